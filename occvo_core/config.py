@@ -1,0 +1,73 @@
+"""One typed configuration for the whole odometry, with the paper's defaults and names."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from pydantic import BaseModel, ConfigDict, Field
+
+from occvo_core.errors import ConfigError
+
+
+class _Section(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+
+class GICPConfig(_Section):
+    k_neighbours_radius_voxels: int = Field(1, ge=1, le=3, description="covariance from the (2r+1)^3 voxel neighbourhood on the grid")
+    covariance_epsilon: float = Field(1e-3, gt=0, description="plane regularisation: eigenvalues (eps, 1, 1), Segal et al.")
+    coarse_max_correspondence_m: float = Field(2.0, gt=0)
+    fine_max_correspondence_m: float = Field(0.8, gt=0)
+    coarse_iterations: int = Field(12, ge=1)
+    fine_iterations: int = Field(10, ge=1)
+    convergence_rotation_rad: float = Field(1e-5, gt=0)
+    convergence_translation_m: float = Field(1e-4, gt=0)
+    source_voxel_m: float = Field(0.8, gt=0, description="frame points are downsampled to this voxel for registration")
+
+
+class SemanticLabelFilterConfig(_Section):
+    enabled: bool = True
+
+
+class DynamicObjectFilterConfig(_Section):
+    enabled: bool = True
+    displacement_threshold_m: float = Field(2.0, gt=0, description="objects farther than this from their map counterpart are dynamic")
+    min_cluster_voxels: int = Field(3, ge=1)
+
+
+class VoxelPFilterConfig(_Section):
+    enabled: bool = True
+    p_index_threshold: float = Field(0.5, ge=0, le=1, description="only map voxels with p-index above this constrain registration")
+    map_voxel_m: float = Field(0.4, gt=0)
+    local_map_radius_m: float = Field(60.0, gt=0, description="map voxels farther than this from the ego are not searched")
+
+
+class InitialisationConfig(_Section):
+    bev_search_radius_m: float = Field(12.0, ge=0, description="first-motion search window of the BEV correlation")
+    bev_yaw_steps_deg: tuple[float, ...] = (-6.0, -3.0, 0.0, 3.0, 6.0)
+    use_constant_velocity: bool = True
+
+
+class OccVOConfig(_Section):
+    gicp: GICPConfig = GICPConfig()
+    semantic_label_filter: SemanticLabelFilterConfig = SemanticLabelFilterConfig()
+    dynamic_object_filter: DynamicObjectFilterConfig = DynamicObjectFilterConfig()
+    voxel_pfilter: VoxelPFilterConfig = VoxelPFilterConfig()
+    initialisation: InitialisationConfig = InitialisationConfig()
+
+    @classmethod
+    def load(cls, path: str | Path) -> "OccVOConfig":
+        """From a JSON or YAML-free JSON5 file; unknown keys are an error."""
+        import json5
+
+        try:
+            return cls.model_validate(json5.loads(Path(path).read_text()))
+        except Exception as exc:  # noqa: BLE001 - one clear error for any bad config
+            raise ConfigError(f"{path}: {exc}") from None
+
+    def with_filters(self, semantic: bool = True, dynamic: bool = True, pfilter: bool = True) -> "OccVOConfig":
+        return self.model_copy(update={
+            "semantic_label_filter": SemanticLabelFilterConfig(enabled=semantic),
+            "dynamic_object_filter": self.dynamic_object_filter.model_copy(update={"enabled": dynamic}),
+            "voxel_pfilter": self.voxel_pfilter.model_copy(update={"enabled": pfilter}),
+        })

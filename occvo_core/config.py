@@ -16,12 +16,13 @@ class _Section(BaseModel):
 class GICPConfig(_Section):
     k_neighbours_radius_voxels: int = Field(1, ge=1, le=3, description="covariance from the (2r+1)^3 voxel neighbourhood on the grid")
     covariance_epsilon: float = Field(1e-3, gt=0, description="plane regularisation: eigenvalues (eps, 1, 1), Segal et al.")
-    coarse_max_correspondence_m: float = Field(2.0, gt=0)
-    fine_max_correspondence_m: float = Field(0.8, gt=0)
+    coarse_max_correspondence_m: float = Field(1.2, gt=0)
+    fine_max_correspondence_m: float = Field(0.6, gt=0)
     coarse_iterations: int = Field(12, ge=1)
     fine_iterations: int = Field(10, ge=1)
     convergence_rotation_rad: float = Field(1e-5, gt=0)
     convergence_translation_m: float = Field(1e-4, gt=0)
+    robust_kernel_scale: float = Field(0.0, ge=0, description="Cauchy scale on the Mahalanobis error; 0 = least squares")
     source_voxel_m: float = Field(0.8, gt=0, description="frame points are downsampled to this voxel for registration")
 
 
@@ -32,7 +33,9 @@ class SemanticLabelFilterConfig(_Section):
 class DynamicObjectFilterConfig(_Section):
     enabled: bool = True
     displacement_threshold_m: float = Field(2.0, gt=0, description="objects farther than this from their map counterpart are dynamic")
-    min_cluster_voxels: int = Field(3, ge=1)
+    min_cluster_voxels: int = Field(5, ge=1, description="smaller clusters of movable voxels are not judged")
+    cluster_eps_m: float = Field(1.0, gt=0, description="single-linkage distance that joins voxels into one object")
+    displacement_quantile: float = Field(0.8, gt=0, le=1, description="robust max of an object's point distances")
 
 
 class VoxelPFilterConfig(_Section):

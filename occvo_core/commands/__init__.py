@@ -1,0 +1,1 @@
+"""Subcommands of `occvo`; occvo_core.cli lists them."""

@@ -1,0 +1,49 @@
+"""Cut the semantic map into square x-y tiles for serving: tile (ix, iy) = (floor(x / tile_m), floor(y / tile_m))."""
+
+from __future__ import annotations
+
+import numpy as np
+
+DEFAULT_TILE_M = 20.0
+
+
+def tile_keys(points: np.ndarray, tile_m: float = DEFAULT_TILE_M) -> np.ndarray:
+    """(N,2) int64 tile indices of world points (N,3)."""
+    if tile_m <= 0:
+        raise ValueError(f"tile size must be positive, got {tile_m}")
+    return np.floor(np.asarray(points, dtype=np.float64)[:, :2] / tile_m).astype(np.int64)
+
+
+def tiles_from_map(points: np.ndarray, labels: np.ndarray, tile_m: float = DEFAULT_TILE_M) -> dict[tuple[int, int], tuple[np.ndarray, np.ndarray]]:
+    """Map (points (M,3), labels (M,)) -> {(ix, iy): (points, labels)}; each tile keeps the map's point order."""
+    points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    labels = np.asarray(labels, dtype=np.uint8).reshape(-1)
+    if len(points) != len(labels):
+        raise ValueError(f"{len(points)} points but {len(labels)} labels")
+    if len(points) == 0:
+        return {}
+    keys = tile_keys(points, tile_m)
+    # one int64 per point (ix, iy packed) so the grouping is a 1-d stable sort, not a row-wise unique
+    packed = (keys[:, 0] << 32) + (keys[:, 1] & 0xFFFFFFFF)
+    order = np.argsort(packed, kind="stable")  # stable: point order inside a tile is the map's
+    sorted_keys = packed[order]
+    starts = np.flatnonzero(np.r_[True, sorted_keys[1:] != sorted_keys[:-1]])
+    ends = np.r_[starts[1:], len(order)]
+    out = {}
+    for s, e in zip(starts, ends):
+        first = order[s]
+        sel = order[s:e]
+        out[(int(keys[first, 0]), int(keys[first, 1]))] = (points[sel], labels[sel])
+    return out
+
+
+def changed_tiles(old: dict, new: dict) -> dict[tuple[int, int], tuple[np.ndarray, np.ndarray]]:
+    """Tiles of `new` that differ from `old`, plus tiles that disappeared (as empty arrays)."""
+    out = {}
+    for key, (p, l) in new.items():
+        prev = old.get(key)
+        if prev is None or not (np.array_equal(prev[0], p) and np.array_equal(prev[1], l)):
+            out[key] = (p, l)
+    for key in old.keys() - new.keys():
+        out[key] = (np.zeros((0, 3)), np.zeros(0, np.uint8))
+    return out

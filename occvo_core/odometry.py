@@ -1,0 +1,201 @@
+"""OCC-VO: register each occupancy frame to the global semantic map (the paper's Fig. 2, one method per box)."""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from occvo_core.config import OccVOConfig
+from occvo_core.errors import InvalidFrameError
+from occvo_core.frame import OccupancyFrame
+from occvo_core.grid import MOVABLE_CLASSES, OCC3D_GRID
+from occvo_core.registration import kernels
+from occvo_core.registration.dynamic_object_filter import dynamic_object_filter
+from occvo_core.registration.gicp import gicp
+from occvo_core.registration.initialisation import bev_first_motion
+from occvo_core.registration.voxel_map import VoxelPFilterMap
+
+STAGES = ("preprocess", "initial_guess", "coarse_gicp", "dynamic_object_filter", "fine_gicp", "voxel_pfilter")
+
+
+@dataclass
+class StepResult:
+    index: int
+    pose: np.ndarray  # 4x4 ego -> world; the first frame defines the world
+    status: str  # "initialised" for the first frame, then "ok"
+    timings_ms: dict[str, float] = field(default_factory=dict)
+    pairs: dict[str, int] = field(default_factory=dict)
+
+
+@dataclass
+class _Prepared:
+    """A frame made ready for registration: per-point GICP covariances and two downsampled source sets."""
+
+    points: np.ndarray
+    labels: np.ndarray
+    covs: np.ndarray
+    coarse: np.ndarray  # indices of the coarse-GICP sources
+    fine: np.ndarray  # indices of the fine-GICP sources
+    movable: np.ndarray  # indices of movable-class points
+    index: int = 0
+
+
+class _Stopwatch:
+    def __init__(self):
+        self.ms: dict[str, float] = {}
+        self._t = time.perf_counter()
+
+    def lap(self, stage: str) -> None:
+        now = time.perf_counter()
+        self.ms[stage] = (now - self._t) * 1e3
+        self._t = now
+
+
+def _transform(pose: np.ndarray, points: np.ndarray) -> np.ndarray:
+    return points @ pose[:3, :3].T + pose[:3, 3]
+
+
+class OccVO:
+    def __init__(self, config: OccVOConfig | None = None):
+        self.config = config or OccVOConfig()
+        self.reset()
+
+    def reset(self) -> None:
+        pf = self.config.voxel_pfilter
+        self.map = VoxelPFilterMap(pf.map_voxel_m, pf.p_index_threshold, pfilter=pf.enabled)
+        self._poses: list[np.ndarray] = []
+        self._indices: list[int] = []
+        self._last: _Prepared | None = None
+
+    @property
+    def poses(self) -> np.ndarray:
+        return np.array(self._poses).reshape(-1, 4, 4)
+
+    @property
+    def frame_indices(self) -> list[int]:
+        return list(self._indices)
+
+    def map_points(self) -> tuple[np.ndarray, np.ndarray]:
+        return self.map.points()
+
+    def step(self, frame: OccupancyFrame) -> StepResult:
+        """Register one frame. A bad frame raises InvalidFrameError and leaves poses and map as they were."""
+        watch = _Stopwatch()
+        prepared = self._preprocess(frame)
+        watch.lap("preprocess")
+        t = len(self._poses)
+        if t == 0:
+            self._commit(prepared, np.eye(4), np.zeros(0, np.int64))
+            watch.lap("voxel_pfilter")
+            return StepResult(frame.index, np.eye(4), "initialised", watch.ms, {"map_voxels": len(self.map)})
+        pose, pairs = self.register_frame(prepared, t, watch)
+        return StepResult(frame.index, pose, "ok", watch.ms, pairs)
+
+    def register_frame(self, frame: _Prepared, t: int, watch: _Stopwatch) -> tuple[np.ndarray, dict[str, int]]:
+        """Coarse GICP -> semantic label filter -> dynamic object filter -> fine GICP -> voxel pfilter."""
+        cfg = self.config
+        guess = self._initial_guess(frame)
+        watch.lap("initial_guess")
+        reliable = self._local_map(guess, t)  # voxel pfilter: only p-index > threshold constrain registration
+        coarse = self._gicp(frame, frame.coarse, reliable, guess, cfg.gicp.coarse_max_correspondence_m, cfg.gicp.coarse_iterations)
+        watch.lap("coarse_gicp")
+        keep, map_moved_rows, dyn = self._dynamic_object_filter(frame, coarse.pose, t)
+        if len(map_moved_rows):
+            reliable = self._local_map(coarse.pose, t, exclude=map_moved_rows)
+        watch.lap("dynamic_object_filter")
+        fine = self._gicp(frame, frame.fine[keep[frame.fine]], reliable, coarse.pose, cfg.gicp.fine_max_correspondence_m,
+                          cfg.gicp.fine_iterations)
+        watch.lap("fine_gicp")
+        self._commit(frame, fine.pose, map_moved_rows)
+        watch.lap("voxel_pfilter")
+        pairs = {"coarse_found": coarse.pairs_found, "coarse_semantic_kept": coarse.pairs_kept,
+                 "fine_found": fine.pairs_found, "fine_semantic_kept": fine.pairs_kept, **dyn,
+                 "reliable_voxels": len(reliable), "map_voxels": len(self.map)}
+        return fine.pose, pairs
+
+    # -- the boxes of the pipeline ------------------------------------------------------------------------------
+    def _preprocess(self, frame: OccupancyFrame) -> _Prepared:
+        frame.validate()
+        points = np.ascontiguousarray(frame.points, dtype=np.float64)
+        ijk = OCC3D_GRID.indices_of(points)
+        outside = ~OCC3D_GRID.inside(ijk)
+        if outside.any():
+            raise InvalidFrameError(frame.index, f"{int(outside.sum())} points outside the occupancy grid "
+                                    f"{OCC3D_GRID.lower}..{OCC3D_GRID.upper} (is the frame in ego coordinates?)")
+        shape = np.array(OCC3D_GRID.shape, np.int64)
+        grid = kernels.dense_index(ijk, shape)
+        labels = np.asarray(frame.labels, np.uint8)
+        surface = kernels.surface_mask(ijk, grid, shape)
+        if not surface.all():
+            points, labels, ijk = points[surface], labels[surface], ijk[surface]
+            grid = kernels.dense_index(ijk, shape)
+        g = self.config.gicp
+        covs = kernels.plane_covariances(points, ijk, grid, shape, g.k_neighbours_radius_voxels, g.covariance_epsilon)
+        factor = max(1, int(round(g.source_voxel_m / OCC3D_GRID.voxel_size)))
+        return _Prepared(points, labels, covs, kernels.first_per_block(ijk, factor + 1, shape),
+                         kernels.first_per_block(ijk, factor, shape), np.flatnonzero(np.isin(labels, MOVABLE_CLASSES)), frame.index)
+
+    def _initial_guess(self, frame: _Prepared) -> np.ndarray:
+        init = self.config.initialisation
+        if len(self._poses) >= 2 and init.use_constant_velocity:
+            motion = np.linalg.inv(self._poses[-2]) @ self._poses[-1]
+            return self._poses[-1] @ motion
+        prev = self._last
+        motion, _ = bev_first_motion(prev.points, prev.labels, frame.points, frame.labels,
+                                     search_radius_m=init.bev_search_radius_m, yaw_steps_deg=init.bev_yaw_steps_deg)
+        return self._poses[-1] @ motion
+
+    def _local_map(self, pose: np.ndarray, t: int, exclude: np.ndarray | None = None):
+        centre = np.floor(pose[:3, 3] / self.map.voxel).astype(np.int64)
+        reach = int(np.ceil(self.config.voxel_pfilter.local_map_radius_m / self.map.voxel))
+        lower = centre - np.array([reach, reach, 12])
+        upper = centre + np.array([reach, reach, 24])
+        local = self.map.window(lower, upper, t)
+        if exclude is not None and len(exclude):
+            keep = ~np.isin(local.rows, exclude)
+            local = self.map._local(local.rows[keep], lower, upper)
+        return local
+
+    def _gicp(self, frame: _Prepared, idx: np.ndarray, local, pose: np.ndarray, max_dist: float, iterations: int):
+        g = self.config.gicp
+        return gicp(frame.points[idx], frame.covs[idx], frame.labels[idx], local, pose, max_correspondence_m=max_dist,
+                    iterations=iterations, semantic_label_filter=self.config.semantic_label_filter.enabled,
+                    robust_scale=g.robust_kernel_scale,
+                    convergence_rotation_rad=g.convergence_rotation_rad, convergence_translation_m=g.convergence_translation_m)
+
+    def _dynamic_object_filter(self, frame: _Prepared, pose: np.ndarray, t: int):
+        """Returns (mask of frame points kept for fine GICP, map rows of moved objects, counts)."""
+        keep = np.ones(len(frame.points), bool)
+        d = self.config.dynamic_object_filter
+        if not d.enabled or len(frame.movable) == 0:
+            return keep, np.zeros(0, np.int64), {"dynamic_frame_objects": 0, "dynamic_map_objects": 0, "dynamic_points": 0}
+        movable_world = _transform(pose, frame.points[frame.movable])
+        # map objects are judged only where this frame can see them: inside its grid, after the coarse alignment
+        corners = np.array(np.meshgrid(*zip(OCC3D_GRID.lower, OCC3D_GRID.upper), indexing="ij")).reshape(3, -1).T
+        corners = _transform(pose, corners)
+        lower = np.floor(corners.min(axis=0) / self.map.voxel).astype(np.int64)
+        upper = np.floor(corners.max(axis=0) / self.map.voxel).astype(np.int64)
+        candidates = self.map.window(lower, upper, None, classes=np.array(MOVABLE_CLASSES))
+        in_view = OCC3D_GRID.inside(OCC3D_GRID.indices_of(_transform(np.linalg.inv(pose), candidates.pos)))
+        rows, map_pos = candidates.rows[in_view], candidates.pos[in_view]
+        found = dynamic_object_filter(movable_world, map_pos, threshold_m=d.displacement_threshold_m,
+                                      cluster_eps_m=d.cluster_eps_m, min_cluster_points=d.min_cluster_voxels,
+                                      quantile=d.displacement_quantile)
+        keep[frame.movable[found.frame_moved]] = False
+        moved_rows = rows[found.map_moved]
+        return keep, moved_rows, {"dynamic_frame_objects": found.frame_objects, "dynamic_map_objects": found.map_objects,
+                                  "dynamic_points": int(found.frame_moved.sum()), "dynamic_map_voxels_removed": len(moved_rows)}
+
+    def _commit(self, frame: _Prepared, pose: np.ndarray, moved_rows: np.ndarray) -> None:
+        """The only place state changes: drop moved objects from the map, merge the frame, append the pose."""
+        t = len(self._poses)
+        if len(moved_rows):
+            self.map.remove(moved_rows)
+        rot = pose[:3, :3]
+        covs_world = np.einsum("ij,njk,lk->nil", rot, frame.covs, rot)
+        self.map.merge(_transform(pose, frame.points), frame.labels, covs_world, t)
+        self._poses.append(pose)
+        self._indices.append(frame.index)
+        self._last = frame

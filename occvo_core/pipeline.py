@@ -1,0 +1,80 @@
+"""Run the odometry over a scene source and write what users look at (KISS-ICP's pipeline.py in spirit)."""
+
+from __future__ import annotations
+
+import json
+import resource
+import time
+from pathlib import Path
+
+import numpy as np
+from tqdm import tqdm
+
+from occvo_core.config import OccVOConfig
+from occvo_core.errors import InvalidFrameError
+from occvo_core.eval import ape_rmse, success
+from occvo_core.io import plot_trajectory, write_ply
+from occvo_core.odometry import OccVO
+from occvo_core.trajectory import write_kitti, write_tum
+
+
+class OdometryPipeline:
+    def __init__(self, source, config: OccVOConfig | None = None, skip_bad_frames: bool = False, progress: bool = True):
+        self.source = source
+        self.odometry = OccVO(config)
+        self.skip_bad_frames = skip_bad_frames
+        self.progress = progress
+        self.frame_ms: list[float] = []
+        self.stage_ms: dict[str, list[float]] = {}
+        self.skipped: list[str] = []
+
+    def run(self) -> "OdometryPipeline":
+        self.odometry.reset()
+        for i in tqdm(range(len(self.source)), desc=f"OCC-VO {self.source.name}", unit="frame", disable=not self.progress):
+            try:
+                frame = self.source[i]
+                start = time.perf_counter()
+                result = self.odometry.step(frame)
+            except InvalidFrameError as exc:
+                if not self.skip_bad_frames:
+                    raise
+                self.skipped.append(str(exc))
+                continue
+            if result.status == "ok":  # the first frame only seeds the map
+                self.frame_ms.append((time.perf_counter() - start) * 1e3)
+                for stage, ms in result.timings_ms.items():
+                    self.stage_ms.setdefault(stage, []).append(ms)
+        return self
+
+    def gt_of_registered(self) -> np.ndarray | None:
+        gt = self.source.gt_poses
+        return None if gt is None else gt[self.odometry.frame_indices]
+
+    def summary(self) -> dict:
+        poses = self.odometry.poses
+        gt = self.gt_of_registered()
+        out: dict = {"scene": self.source.name, "frames": int(len(poses)), "skipped_frames": self.skipped}
+        if gt is not None:
+            rmse = ape_rmse(gt, poses)
+            out.update(ape_rmse_m=rmse, success=success(rmse))
+        out["ms_per_frame_median"] = float(np.median(self.frame_ms)) if self.frame_ms else None
+        out["ms_per_stage_median"] = {k: float(np.median(v)) for k, v in self.stage_ms.items()}
+        out["map_voxels"] = len(self.odometry.map)
+        out["peak_rss_mb"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+        return out
+
+    def write(self, out_dir: str | Path, extra: dict | None = None) -> dict:
+        out = Path(out_dir)
+        out.mkdir(parents=True, exist_ok=True)
+        poses = self.odometry.poses
+        stamps = np.array(self.odometry.frame_indices, float) / self.source.rate_hz
+        write_kitti(out / "trajectory.kitti", poses)
+        write_tum(out / "trajectory.tum", poses, stamps)
+        arrays = self.odometry.map.arrays(len(poses))
+        np.savez_compressed(out / "map.npz", **arrays)
+        write_ply(out / "map.ply", arrays["points"], arrays["labels"])
+        gt = self.gt_of_registered()
+        plot_trajectory(out / "trajectory.png", poses, gt, title=self.source.name)
+        summary = {**self.summary(), **(extra or {})}
+        (out / "summary.json").write_text(json.dumps(summary, indent=2, default=float) + "\n")
+        return summary

@@ -1,0 +1,155 @@
+"""The three filters of the paper on hand-built cases whose answers are known."""
+
+import numpy as np
+
+from occvo_core import OccVO, OccVOConfig
+from occvo_core.grid import OCC3D_GRID
+from occvo_core.registration import kernels
+from occvo_core.registration.dynamic_object_filter import cluster_objects, dynamic_object_filter
+from occvo_core.registration.voxel_map import VoxelPFilterMap
+from scenes import box, car, frame, shell, town
+
+
+# -- semantic label filter --------------------------------------------------------------------------------------
+def test_semantic_label_filter_drops_exactly_the_pairs_whose_labels_differ():
+    points, labels = town()
+    m = VoxelPFilterMap()
+    map_labels = labels.copy()
+    relabelled = np.flatnonzero(labels == 15)[::2]  # every other manmade voxel now says vegetation
+    map_labels[relabelled] = 16
+    m.merge(points, map_labels, np.tile(np.eye(3) * 0.1, (len(points), 1, 1)), 0)
+    local = m.window(np.array([-110, -110, -10]), np.array([110, 110, 20]))
+    covs = np.tile(np.eye(3) * 0.1, (len(points), 1, 1))
+    args = (points, covs, labels.astype(np.int64), np.eye(3), np.zeros(3), local.pos, local.cov,
+            local.labels.astype(np.int64), local.grid, local.origin, local.dims, 0.4, 1, 0.3)
+    _, _, _, found_on, kept_on = kernels.gicp_linearise(*args, True, 0.0)
+    _, _, _, found_off, kept_off = kernels.gicp_linearise(*args, False, 0.0)
+    assert found_on == found_off == len(points)
+    assert kept_off == len(points)
+    assert kept_on == len(points) - len(relabelled)
+
+
+def test_semantic_label_filter_stops_a_frame_locking_onto_the_wrong_class():
+    """A pole row (manmade) beside a hedge (vegetation) 1.2 m away: shifted by 1.0 m toward the hedge, geometry
+    alone pairs poles with the hedge; with labels, only pole-to-pole pairs are used and the true pose is found."""
+    ground = box((-20, -20, -0.9), (20, 20, -0.9), 11)
+    poles = box((-20, 4.1, -0.5), (20, 4.1, 3.0), 15)
+    hedge = box((-20, 5.3, -0.5), (20, 5.3, 3.0), 16)
+    cross = box((3.0, -10, -0.5), (3.0, -2, 3.0), 15)  # pins x
+    pts = np.concatenate([p for p, _ in (ground, poles, hedge, cross)])
+    lab = np.concatenate([l for _, l in (ground, poles, hedge, cross)])
+    results = {}
+    for semantic in (True, False):
+        vo = OccVO(OccVOConfig().with_filters(semantic=semantic, dynamic=False, pfilter=False))
+        vo.step(frame(pts, lab, 0))
+        shifted = pts.copy()
+        shifted[:, 1] -= 1.2  # the car moved 1.2 m to +y: the world appears 1.2 m toward -y
+        vo.config.initialisation.use_constant_velocity = True
+        vo._poses.append(np.eye(4))  # a standing-still motion history: the guess is "no motion"
+        vo._indices.append(0)
+        r = vo.step(frame(shifted, lab, 1))
+        results[semantic] = r.pose[1, 3]
+    assert abs(results[True] - 1.2) < 0.05
+    assert abs(results[False] - 1.2) > abs(results[True] - 1.2)
+
+
+# -- dynamic object filter --------------------------------------------------------------------------------------
+def test_dynamic_object_filter_removes_moved_objects_and_keeps_parked_ones():
+    parked_then, _ = car(10, -5)
+    moving_then, _ = car(-10, 3)
+    nudged_then, _ = car(20, 3)
+    parked_now = parked_then + np.array([0.0, 0.0, 0.0])
+    moving_now = moving_then + np.array([3.5, 0.0, 0.0])  # 3.5 m along its axis: moved
+    nudged_now = nudged_then + np.array([0.4, 0.0, 0.0])  # 0.4 m: below the 2 m threshold, kept
+    frame_pts = np.concatenate([parked_now, moving_now, nudged_now])
+    map_pts = np.concatenate([parked_then, moving_then, nudged_then])
+    found = dynamic_object_filter(frame_pts, map_pts, threshold_m=2.0, cluster_eps_m=1.0, min_cluster_points=5,
+                                  quantile=0.8)
+    n1, n2 = len(parked_now), len(moving_now)
+    assert found.frame_objects == 3 and found.map_objects == 3
+    assert not found.frame_moved[:n1].any() and found.frame_moved[n1:n1 + n2].all() and not found.frame_moved[n1 + n2:].any()
+    assert not found.map_moved[:n1].any() and found.map_moved[n1:n1 + n2].all() and not found.map_moved[n1 + n2:].any()
+
+
+def test_cluster_objects_separates_cars_and_ignores_specks():
+    a, _ = car(0, 0)
+    b, _ = car(0, 4)  # 2.2 m gap
+    speck = np.array([[20.0, 20.0, 0.0], [20.2, 20.0, 0.0]])
+    ids = cluster_objects(np.concatenate([a, b, speck]), eps=1.0, min_points=5)
+    assert len(np.unique(ids[: len(a)])) == 1 and len(np.unique(ids[len(a): len(a) + len(b)])) == 1
+    assert ids[0] != ids[len(a)]
+    assert (ids[-2:] == -1).all()
+
+
+def test_odometry_drops_a_moving_car_from_the_map_and_keeps_the_parked_one():
+    scene, scene_labels = town()
+    parked, parked_l = car(12, -5.5)
+    mover, mover_l = car(-14, 2.5)
+    vo = OccVO()
+    pts0 = np.concatenate([scene, parked, mover])
+    lab0 = np.concatenate([scene_labels, parked_l, mover_l])
+    vo.step(frame(pts0, lab0, 0))
+    pts1 = np.concatenate([scene, parked, mover + np.array([4.0, 0, 0])])
+    r = vo.step(frame(pts1, lab0, 1))
+    assert np.allclose(r.pose, np.eye(4), atol=1e-3)
+    assert r.pairs["dynamic_points"] > 0 and r.pairs["dynamic_map_voxels_removed"] > 0
+    map_pts, map_lab = vo.map_points()
+    cars = map_pts[map_lab == 4]
+    old_mover = cars[:, 0] < -10.3  # the mover was at x -14..-9.8 and is now at -10..-5.8
+    assert not old_mover.any()
+    in_parked_box = lambda p: np.all(np.abs(p - np.array([14.1, -4.6, 0.25])) < np.array([2.5, 1.5, 1.0]), axis=1)  # noqa: E731
+    parked_surface = in_parked_box(shell(pts0)).sum()  # the odometry keeps the surface voxels of a frame
+    assert in_parked_box(cars).sum() >= 0.9 * parked_surface > 0
+
+
+# -- voxel pfilter ----------------------------------------------------------------------------------------------
+def _merge(m, pts, t, label=15):
+    m.merge(np.asarray(pts, float), np.full(len(pts), label, np.uint8), np.tile(np.eye(3), (len(pts), 1, 1)), t)
+
+
+def test_p_index_is_times_seen_over_frames_since_first_seen():
+    m = VoxelPFilterMap()
+    steady, blinking, once = [1.0, 1.0, 1.0], [5.0, 5.0, 1.0], [9.0, 9.0, 1.0]
+    _merge(m, [steady, blinking, once], 0)
+    _merge(m, [steady, blinking], 1)
+    _merge(m, [steady], 2)
+    _merge(m, [steady], 3)
+    p = dict(zip(map(tuple, m.pos[: m._n].round(3)), m.p_index(4)))
+    assert p[tuple(steady)] == 1.0  # 4 of 4
+    assert p[tuple(blinking)] == 0.5  # 2 of 4
+    assert p[tuple(once)] == 0.25  # 1 of 4
+    reliable = m.window(np.array([-10, -10, -10]), np.array([40, 40, 10]), t=4)
+    assert len(reliable) == 1 and np.allclose(reliable.pos[0], steady)  # only p-index > 0.5 constrains registration
+    everything = m.window(np.array([-10, -10, -10]), np.array([40, 40, 10]))
+    assert len(everything) == 3
+
+
+def test_merge_is_a_p_index_weighted_average_per_voxel():
+    m = VoxelPFilterMap(merge_radius_m=0.0)
+    _merge(m, [[0.1, 0.1, 0.1]], 0)
+    _merge(m, [[0.1, 0.1, 0.1]], 1)  # f = 2, t0 = 0
+    # at t = 4 the voxel's p-index is 2/4: old weight f * p = 1; the new point has weight 1
+    _merge(m, [[0.3, 0.1, 0.1]], 4)
+    assert m._n == 1
+    assert np.allclose(m.pos[0], [0.2, 0.1, 0.1])
+    off = VoxelPFilterMap(merge_radius_m=0.0, pfilter=False)  # without the filter: a plain running mean
+    for t, x in enumerate([0.1, 0.1, 0.3]):
+        _merge(off, [[x, 0.1, 0.1]], t)
+    assert np.allclose(off.pos[0], [(0.1 + 0.1 + 0.3) / 3, 0.1, 0.1])
+
+
+def test_pfilter_off_lets_every_voxel_constrain_registration():
+    m = VoxelPFilterMap(pfilter=False)
+    _merge(m, [[1.0, 1, 1], [5.0, 5, 1]], 0)
+    _merge(m, [[1.0, 1, 1]], 1)
+    _merge(m, [[1.0, 1, 1]], 2)
+    assert len(m.window(np.array([-10, -10, -10]), np.array([40, 40, 10]), t=3)) == 2
+
+
+def test_surface_mask_keeps_the_shell_of_a_solid_block():
+    pts, _ = box((0, 0, 0), (2.0, 2.0, 2.0), 15)
+    ijk = OCC3D_GRID.indices_of(pts)
+    sides = ijk.max(axis=0) - ijk.min(axis=0) + 1
+    shape = np.array(OCC3D_GRID.shape)
+    keep = kernels.surface_mask(ijk, kernels.dense_index(ijk, shape), shape)
+    assert keep.sum() == np.prod(sides) - np.prod(sides - 2)

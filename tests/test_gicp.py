@@ -1,0 +1,80 @@
+import numpy as np
+import pytest
+
+from conftest import random_pose
+from occvo_core.grid import OCC3D_GRID
+from occvo_core.registration import kernels
+from occvo_core.registration.gicp import gicp
+from occvo_core.registration.voxel_map import VoxelPFilterMap
+from scenes import town
+
+
+def _surface_town():
+    points, labels = town()
+    ijk = OCC3D_GRID.indices_of(points)
+    keep = kernels.surface_mask(ijk, kernels.dense_index(ijk, np.array(OCC3D_GRID.shape)), np.array(OCC3D_GRID.shape))
+    return points[keep], labels[keep]
+
+
+def _prepared(points):
+    ijk = OCC3D_GRID.indices_of(points)
+    shape = np.array(OCC3D_GRID.shape, np.int64)
+    grid = kernels.dense_index(ijk, shape)
+    return kernels.plane_covariances(points, ijk, grid, shape, 1, 1e-3)
+
+
+def _map_at(pose, points, labels, covs):
+    m = VoxelPFilterMap()
+    rot = pose[:3, :3]
+    m.merge(points @ rot.T + pose[:3, 3], labels, np.einsum("ij,njk,lk->nil", rot, covs, rot), 0)
+    lower = np.floor(pose[:3, 3] / 0.4).astype(int) - 150
+    return m.window(lower, lower + 300, 1)
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_gicp_recovers_known_rigid_transform(seed):
+    rng = np.random.default_rng(seed)
+    points, labels = _surface_town()
+    covs = _prepared(points)
+    truth = random_pose(rng, np.deg2rad(3), 0.6)
+    local = _map_at(truth, points, labels, covs)
+    result = gicp(points, covs, labels, local, np.eye(4), max_correspondence_m=1.2, iterations=40,
+                  semantic_label_filter=True)
+    err = np.linalg.inv(truth) @ result.pose
+    assert np.linalg.norm(err[:3, 3]) < 0.01
+    assert np.degrees(np.arccos(np.clip((np.trace(err[:3, :3]) - 1) / 2, -1, 1))) < 0.05
+    assert result.pairs_kept > 0.9 * len(points)
+
+
+def test_plane_covariance_is_flat_along_the_surface_normal():
+    points, _ = town()
+    covs = _prepared(points)
+    ground = np.flatnonzero(np.isclose(points[:, 2], -0.8) & (np.abs(points[:, 0]) < 5) & (np.abs(points[:, 1]) < 5))
+    for c in covs[ground[:20]]:
+        w, v = np.linalg.eigh(c)
+        assert np.allclose(w, [1e-3, 1, 1], atol=1e-6)
+        assert abs(abs(v[2, 0]) - 1) < 1e-6  # the flat direction is z, the ground's normal
+
+
+def test_jacobi_eigh3_matches_numpy():
+    rng = np.random.default_rng(0)
+    for _ in range(50):
+        a = rng.normal(size=(3, 3))
+        a = a @ a.T
+        w, v = kernels.jacobi_eigh3(a)
+        assert np.allclose(w, np.linalg.eigvalsh(a), atol=1e-9)
+        assert np.allclose(v @ np.diag(w) @ v.T, a, atol=1e-8)
+
+
+def test_nearest_in_window_is_the_true_nearest_within_radius():
+    rng = np.random.default_rng(1)
+    m = VoxelPFilterMap()
+    pts = rng.uniform(-10, 10, (3000, 3))
+    m.merge(pts, np.zeros(len(pts), np.uint8), np.tile(np.eye(3), (len(pts), 1, 1)), 0)
+    local = m.window(np.array([-30, -30, -30]), np.array([30, 30, 30]))
+    queries = rng.uniform(-9, 9, (500, 3))
+    dist, idx = local.nearest(queries, 3)
+    brute = np.linalg.norm(queries[:, None] - local.pos[None], axis=2)
+    best = brute.min(axis=1)
+    within = best <= 3 * 0.4
+    assert np.allclose(dist[within], best[within])

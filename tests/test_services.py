@@ -1,0 +1,332 @@
+"""Services on real Zenoh sessions (router + three workers as threads of the test process, random loopback port):
+bad input of every kind is reported and survived, good frames give the offline poses, flow policies, several streams."""
+
+from __future__ import annotations
+
+import threading
+import time
+import warnings
+from pathlib import Path
+
+import msgpack
+import numpy as np
+import pytest
+import zenoh
+
+from occvo_core.map_tiles import changed_tiles, tiles_from_map
+from schemas import keys
+from schemas.codec import decode, encode
+from schemas.models import CameraFrame, ErrorEvent, OccupancyFrameMsg, SparseOccupancy
+from services.client import OccVOClient, ServiceError, camera_frame_of
+from services.local import InProcessService
+from services.runtime import SeqTracker, StageQueue, open_session
+
+DATA = Path(__file__).resolve().parents[2] / "shared/data/occvo-sample"
+SCENE = DATA / "occupancy/scene-0101"
+needs_data = pytest.mark.skipif(not SCENE.is_dir(), reason=f"sample data not found at {SCENE}")
+warnings.filterwarnings("ignore", category=RuntimeWarning)
+
+
+def scene(name="scene-0101"):
+    from occvo_core.datasets.occvo_release import OccVOReleaseScene
+
+    return OccVOReleaseScene(DATA / "occupancy" / name)
+
+
+def offline(frames):
+    from occvo_core import OccVO
+
+    vo = OccVO()
+    vo.reset()
+    for f in frames:
+        vo.step(f)
+    return vo
+
+
+# ------------------------------------------------------------------ pure parts
+
+def test_stage_queue_latest_drops_oldest_and_counts():
+    dropped = []
+    q = StageQueue(2, "latest", dropped.append, threading.Event())
+    for i in range(5):
+        assert q.put(i)
+    assert dropped == [0, 1, 2] and [q.get(0.1), q.get(0.1)] == [3, 4]
+
+
+def test_stage_queue_lossless_blocks_until_space_and_gives_up_on_stop():
+    stop = threading.Event()
+    q = StageQueue(1, "lossless", lambda _: pytest.fail("lossless never drops"), stop)
+    q.put("a")
+    done = []
+    t = threading.Thread(target=lambda: done.append(q.put("b")))
+    t.start()
+    time.sleep(0.3)
+    assert not done  # blocked: backpressure
+    assert q.get(0.1) == "a"
+    t.join(2)
+    assert done == [True] and q.get(0.1) == "b"
+    q.put("c")
+    stop.set()
+    assert q.put("d") is False
+
+
+def test_seq_tracker():
+    t = SeqTracker()
+    assert t.check(0) == (True, None, None)
+    assert t.check(1)[0]
+    ok, code, msg = t.check(4)
+    assert ok and code == "missing_seq" and "2..3" in msg
+    ok, code, _ = t.check(3)
+    assert not ok and code == "out_of_order"
+    assert t.check(0) == (True, None, None)  # a new trajectory
+    assert t.check(1)[0]
+
+
+def test_tiles_partition_the_map_and_diff():
+    rng = np.random.default_rng(1)
+    pts = rng.uniform(-70, 70, (5000, 3))
+    labels = rng.integers(0, 17, 5000).astype(np.uint8)
+    tiles = tiles_from_map(pts, labels, 20.0)
+    assert sum(len(p) for p, _ in tiles.values()) == len(pts)
+    for (ix, iy), (p, l) in tiles.items():
+        assert np.all(np.floor(p[:, :2] / 20.0) == [ix, iy])
+    back = np.concatenate([p for p, _ in tiles.values()])
+    assert np.array_equal(np.unique(back, axis=0), np.unique(pts, axis=0))
+    assert changed_tiles(tiles, tiles) == {}
+    moved = pts.copy()
+    moved[0] = [1.0, 1.0, 0.0]  # into tile (0, 0)
+    diff = changed_tiles(tiles, tiles_from_map(moved, labels, 20.0))
+    old_key = tuple(np.floor(pts[0, :2] / 20).astype(int))
+    assert (0, 0) in diff and old_key in diff and len(diff) <= 2
+    gone = changed_tiles(tiles, {})
+    assert set(gone) == set(tiles) and all(len(p) == 0 for p, _ in gone.values())
+    with pytest.raises(ValueError):
+        tiles_from_map(pts, labels, 0.0)
+
+
+# ------------------------------------------------------------------ service
+
+class ErrorLog:
+    def __init__(self, session, stream="*"):
+        self.events: list[ErrorEvent] = []
+        self.sub = session.declare_subscriber(keys.errors(stream), lambda s: self.events.append(decode(s.payload.to_bytes(), ErrorEvent)))
+
+    def wait(self, n, timeout=10.0):
+        deadline = time.monotonic() + timeout
+        while len(self.events) < n and time.monotonic() < deadline:
+            time.sleep(0.02)
+        return list(self.events)
+
+
+@pytest.fixture(scope="module")
+def service():
+    with InProcessService(max_message_bytes=2_000_000) as svc:
+        yield svc
+
+
+@needs_data
+def test_bad_input_is_reported_and_good_poses_still_come(service):
+    s, n = scene(), 4
+    frames = [s[i] for i in range(n)]
+    session = open_session(service.endpoint)
+    errors = ErrorLog(session, "bad")
+    good = camera_frame_of(frames[0], "bad", 0)
+    raw = msgpack.unpackb(encode(good), raw=False)
+
+    def variant(mutate):
+        d = msgpack.unpackb(encode(good), raw=False)
+        mutate(d)
+        return msgpack.packb(d, use_bin_type=True)
+
+    pts = frames[0].points.copy()
+    pts[5, 2] = np.nan
+    labels = frames[0].labels.copy()
+    labels[9] = 77
+
+    def set_(path, value):
+        def f(d):
+            for p in path[:-1]:
+                d = d[p]
+            d[path[-1]] = value
+        return f
+
+    bad_inputs = {
+        "malformed": b"\x92\xc1\xff not msgpack",
+        "unknown_kind": msgpack.packb({**raw, "kind": "telepathy"}),
+        "unsupported_version": variant(set_(["schema_version"], 99)),
+        "wrong_array_size": variant(set_(["gt_occupancy", "points", "data"], pts.tobytes()[:-24])),
+        "nan": variant(set_(["gt_occupancy", "points", "data"], pts.tobytes())),
+        "labels_out_of_range": variant(set_(["gt_occupancy", "labels", "data"], labels.tobytes())),
+        "oversize": b"\x00" * 2_100_000,
+        "stream_mismatch": encode(camera_frame_of(frames[0], "other", 0)),
+    }
+    for payload in bad_inputs.values():
+        session.put(keys.camera("bad"), payload)
+    # straight at the registration worker too: an occupancy frame with NaN coordinates, a garbage payload
+    occ = msgpack.unpackb(encode(OccupancyFrameMsg(stream="bad", seq=0, stamp=0, source="replay", occupancy=good.gt_occupancy)), raw=False)
+    occ["occupancy"]["points"]["data"] = pts.tobytes()
+    session.put(keys.occupancy("bad"), msgpack.packb(occ))
+    session.put(keys.occupancy("bad"), b"\xc1")
+    events = errors.wait(len(bad_inputs) + 2)
+    codes = [e.code for e in events]
+    assert codes.count("malformed") == 2 and codes.count("invalid_message") == 4, codes
+    for code in ("unknown_kind", "unsupported_version", "oversize", "stream_mismatch"):
+        assert code in codes, codes
+    messages = " | ".join(e.message for e in events)
+    for phrase in ("telepathy", "newer", "bytes", "non-finite", "labels out of range", "exceeds the limit"):
+        assert phrase in messages, phrase
+    assert {e.worker.split("-")[0] for e in events} == {"inference", "registration"}
+
+    # a tile that does not exist: a query error reply naming it, and an error event
+    replies = list(session.get(keys.map_tile("bad", 99, 99), timeout=5.0))
+    assert len(replies) == 1 and replies[0].err is not None
+    err = decode(replies[0].err.payload.to_bytes(), ErrorEvent)
+    assert err.code == "tile_not_found" and "99,99" in err.message
+
+    # then a good scene: every pose, equal to the offline run
+    with OccVOClient(service.endpoint, "bad", session=session) as client:
+        client.reset()
+        got = np.array([client.step(f).matrix() for f in frames])
+        vo = offline(frames)
+        assert np.abs(got - vo.poses).max() <= 1e-9
+        info_before = client.map_info()
+        traj_before = client.trajectory().poses.to_numpy()
+        # bad input after good: reported, and every pose and tile is kept
+        session.put(keys.camera("bad"), bad_inputs["nan"])
+        session.put(keys.occupancy("bad"), b"\xc1")
+        with pytest.raises(ServiceError, match="tile_not_found"):
+            client.tile(-50, -50)
+        errors.wait(len(bad_inputs) + 2 + 1 + 3)
+        time.sleep(0.2)
+        assert client.map_info() == info_before
+        assert np.array_equal(client.trajectory().poses.to_numpy(), traj_before)
+        assert client.pose_latest().seq == n - 1
+    counters = {h.role: h.counters for h in OccVOClient(service.endpoint, "bad", session=session).stats()}
+    assert counters["inference"]["errors"] >= len(bad_inputs) and counters["registration"]["errors"] >= 2
+    assert counters["registration"]["frames_out"] >= n
+    session.close()
+
+
+@needs_data
+def test_sequence_gaps_and_steps_back_are_reported(service):
+    s = scene()
+    session = open_session(service.endpoint)
+    errors = ErrorLog(session, "seqs")
+    with OccVOClient(service.endpoint, "seqs", session=session) as client:
+        def send(i, seq):
+            session.put(keys.camera("seqs"), encode(camera_frame_of(s[i], "seqs", seq)))
+
+        send(0, 0)
+        send(1, 1)
+        send(3, 3)  # seq 2 missing
+        send(2, 2)  # arrives late: out of order, dropped
+        assert client.wait_pose(3).seq == 3
+        events = errors.wait(2)
+        codes = {e.code: e for e in events}
+        assert "missing seq 2..2" in codes["missing_seq"].message and codes["out_of_order"].seq == 2
+        time.sleep(0.3)
+        assert sorted(client.poses) == [0, 1, 3]
+    session.close()
+
+
+@needs_data
+def test_four_streams_keep_their_trajectories_apart(service):
+    runs = {"s0": ("scene-0101", 0), "s1": ("scene-0268", 0), "s2": ("scene-0101", 20), "s3": ("scene-0268", 20)}
+    n = 4
+    frames = {k: [scene(name)[start + i] for i in range(n)] for k, (name, start) in runs.items()}
+    got = {}
+
+    def drive(stream):
+        with OccVOClient(service.endpoint, stream) as c:
+            c.reset()
+            for f in frames[stream]:
+                c.publish(f)
+            got[stream] = np.array([c.wait_pose(i).matrix() for i in range(n)])
+            got[stream + "/map"] = c.map_info()
+
+    threads = [threading.Thread(target=drive, args=(k,)) for k in runs]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join(120)
+    for k in runs:
+        vo = offline(frames[k])
+        assert np.abs(got[k] - vo.poses).max() <= 1e-9, k
+    assert len({round(float(got[k][-1][0, 3]), 6) for k in runs}) == 4  # four different motions
+
+
+@needs_data
+def test_latest_policy_drops_oldest_and_counts():
+    s = scene()
+    with InProcessService(policy="latest", queue_size=1) as svc:
+        session = open_session(svc.endpoint)
+        errors = ErrorLog(session, "live")
+        with OccVOClient(svc.endpoint, "live", session=session) as c:
+            c.reset()
+            for i in range(6):
+                c.publish(s[i])
+            c.wait_pose(5, timeout=60)
+            time.sleep(0.2)
+            delivered = sorted(c.poses)
+        stats = {h.role: h for h in c.stats()}
+        drops = stats["registration"].counters["drops"] + stats["inference"].counters["drops"]
+        assert delivered[0] == 0 and delivered[-1] == 5 and len(delivered) < 6
+        assert drops == 6 - len(delivered)
+        assert stats["registration"].stages["registration"].count == len(delivered)
+        session.close()
+
+
+def test_model_source_runs_the_torch_network(tmp_path):
+    from services.inference_worker import InferenceWorker
+    from services.occupancy_model import encode_image
+    from services.runtime import WorkerConfig, free_port, open_router
+
+    ep = f"tcp/127.0.0.1:{free_port()}"
+    router = open_router(ep)
+    worker = InferenceWorker(WorkerConfig(connect=ep, source="model", device="cpu", log_level="WARNING")).start()
+    session = open_session(ep)
+    try:
+        got = []
+        sub = session.declare_subscriber(keys.occupancy("cam"), lambda smp: got.append(decode(smp.payload.to_bytes(), OccupancyFrameMsg)))
+        errors = ErrorLog(session, "cam")
+        time.sleep(0.3)
+        rng = np.random.default_rng(0)
+        imgs = [encode_image(rng.integers(0, 255, (90, 160, 3), dtype=np.uint8), f"CAM_{i}", np.eye(3), np.eye(4)) for i in range(6)]
+        session.put(keys.camera("cam"), encode(CameraFrame(stream="cam", seq=0, stamp=0.0, images=imgs)))
+        session.put(keys.camera("cam"), encode(CameraFrame(stream="cam", seq=1, stamp=0.5)))  # no images: the model cannot run
+        broken = imgs[0].model_copy(update={"data": b"not a jpeg"})
+        session.put(keys.camera("cam"), encode(CameraFrame(stream="cam", seq=2, stamp=1.0, images=[broken] + imgs[1:])))
+        deadline = time.monotonic() + 30
+        while (not got or len(errors.events) < 2) and time.monotonic() < deadline:
+            time.sleep(0.05)
+        assert len(got) == 1 and got[0].source == "model:TinyOccNet" and got[0].occupancy.voxels is not None
+        assert got[0].timings_ms["inference"] > 0
+        msgs = " ".join(e.message for e in errors.events)
+        assert "needs 6 camera images" in msgs and "cannot decode jpeg" in msgs
+        sub.undeclare()
+    finally:
+        session.close()
+        worker.stop()
+        router.close()
+
+
+def test_device_selection():
+    from occvo_core.errors import ConfigError
+    from services.occupancy_model import select_device
+    import torch
+
+    assert select_device("cpu").type == "cpu"
+    assert select_device("auto").type == ("cuda" if torch.cuda.is_available() else "cpu")
+    if not torch.cuda.is_available():
+        with pytest.raises(ConfigError, match="no CUDA"):
+            select_device("cuda")
+
+
+def test_stats_and_liveliness(service):
+    with OccVOClient(service.endpoint, "x") as c:
+        roles = {k.split("/")[2] for k in c.workers()}
+        assert roles == {"inference", "registration", "map"}
+        health = c.stats()
+        assert {h.role for h in health} == roles
+        for h in health:
+            assert {"frames_in", "frames_out", "drops", "errors"} <= set(h.counters)

@@ -17,13 +17,16 @@ class GICPConfig(_Section):
     k_neighbours_radius_voxels: int = Field(1, ge=1, le=3, description="covariance from the (2r+1)^3 voxel neighbourhood on the grid")
     covariance_epsilon: float = Field(1e-3, gt=0, description="plane regularisation: eigenvalues (eps, 1, 1), Segal et al.")
     coarse_max_correspondence_m: float = Field(1.2, gt=0)
+    coarse_map_voxel_m: float = Field(1.2, gt=0, description="coarse GICP pairs with the map pooled on this grid")
     fine_max_correspondence_m: float = Field(0.6, gt=0)
     coarse_iterations: int = Field(12, ge=1)
     fine_iterations: int = Field(10, ge=1)
-    convergence_rotation_rad: float = Field(1e-5, gt=0)
-    convergence_translation_m: float = Field(1e-4, gt=0)
+    convergence_rotation_rad: float = Field(3e-4, gt=0)
+    convergence_translation_m: float = Field(3e-3, gt=0)
     robust_kernel_scale: float = Field(0.0, ge=0, description="Cauchy scale on the Mahalanobis error; 0 = least squares")
-    source_voxel_m: float = Field(0.8, gt=0, description="frame points are downsampled to this voxel for registration")
+    source_voxel_m: float = Field(0.8, gt=0, description="fine GICP uses one frame point per block of this size")
+    ground_source_voxel_m: float = Field(1.6, gt=0, description="the same for ground classes, which hold only z, roll, pitch")
+    coarse_source_voxel_m: float = Field(1.6, gt=0, description="coarse GICP uses one frame point per block of this size")
 
 
 class SemanticLabelFilterConfig(_Section):
@@ -42,7 +45,8 @@ class VoxelPFilterConfig(_Section):
     enabled: bool = True
     p_index_threshold: float = Field(0.5, ge=0, le=1, description="only map voxels with p-index above this constrain registration")
     map_voxel_m: float = Field(0.4, gt=0)
-    local_map_radius_m: float = Field(60.0, gt=0, description="map voxels farther than this from the ego are not searched")
+    merge_radius_m: float = Field(0.2, ge=0, description="a frame point joins the nearest map point this close, else its own voxel")
+    window_margin_m: float = Field(4.0, ge=0, description="map kept around the frame's box for registration and merging")
 
 
 class InitialisationConfig(_Section):

@@ -15,8 +15,11 @@ from occvo_core.registration import kernels
 from occvo_core.registration.dynamic_object_filter import dynamic_object_filter
 from occvo_core.registration.gicp import gicp
 from occvo_core.registration.initialisation import bev_first_motion
-from occvo_core.registration.voxel_map import VoxelPFilterMap
+from occvo_core.registration.voxel_map import EgoMap, VoxelPFilterMap
 
+_GRID_CORNERS = np.array(np.meshgrid(*zip(OCC3D_GRID.lower, OCC3D_GRID.upper), indexing="ij")).reshape(3, -1).T
+GROUND_CLASSES = (11, 12, 13, 14)  # driveable surface, other flat, sidewalk, terrain
+_EGO_LOWER, _EGO_UPPER = np.array(OCC3D_GRID.lower), np.array(OCC3D_GRID.upper)
 STAGES = ("preprocess", "initial_guess", "coarse_gicp", "dynamic_object_filter", "fine_gicp", "voxel_pfilter")
 
 
@@ -53,6 +56,13 @@ class _Stopwatch:
         self._t = now
 
 
+def _thin(ijk: np.ndarray, subset: np.ndarray, voxel_m: float) -> np.ndarray:
+    """Indices of one point per block of voxel_m among the subset (downsampling on the grid)."""
+    idx = np.flatnonzero(subset)
+    factor = max(1, int(round(voxel_m / OCC3D_GRID.voxel_size)))
+    return idx[kernels.first_per_block(ijk[idx], factor, np.array(OCC3D_GRID.shape, np.int64))]
+
+
 def _transform(pose: np.ndarray, points: np.ndarray) -> np.ndarray:
     return points @ pose[:3, :3].T + pose[:3, 3]
 
@@ -62,9 +72,14 @@ class OccVO:
         self.config = config or OccVOConfig()
         self.reset()
 
+    @property
+    def _margin(self) -> np.ndarray:
+        m = self.config.voxel_pfilter.window_margin_m
+        return np.array([m, m, min(m, 1.0)])  # the ground does not move 4 m up between frames
+
     def reset(self) -> None:
         pf = self.config.voxel_pfilter
-        self.map = VoxelPFilterMap(pf.map_voxel_m, pf.p_index_threshold, pfilter=pf.enabled)
+        self.map = VoxelPFilterMap(pf.map_voxel_m, pf.p_index_threshold, pfilter=pf.enabled, merge_radius_m=pf.merge_radius_m)
         self._poses: list[np.ndarray] = []
         self._indices: list[int] = []
         self._last: _Prepared | None = None
@@ -95,25 +110,27 @@ class OccVO:
 
     def register_frame(self, frame: _Prepared, t: int, watch: _Stopwatch) -> tuple[np.ndarray, dict[str, int]]:
         """Coarse GICP -> semantic label filter -> dynamic object filter -> fine GICP -> voxel pfilter."""
-        cfg = self.config
+        cfg = self.config.gicp
         guess = self._initial_guess(frame)
+        local = self._local_map(guess, t)  # local.usable: the voxel pfilter's reliable voxels (p-index > threshold)
+        ego = EgoMap.build(local, guess, _EGO_LOWER - self._margin, _EGO_UPPER + self._margin, self.map.voxel)
         watch.lap("initial_guess")
-        reliable = self._local_map(guess, t)  # voxel pfilter: only p-index > threshold constrain registration
-        coarse = self._gicp(frame, frame.coarse, reliable, guess, cfg.gicp.coarse_max_correspondence_m, cfg.gicp.coarse_iterations)
+        coarse = self._gicp(frame, frame.coarse, ego.pooled(cfg.coarse_map_voxel_m), np.eye(4),
+                            cfg.coarse_max_correspondence_m, cfg.coarse_iterations)
         watch.lap("coarse_gicp")
-        keep, map_moved_rows, dyn = self._dynamic_object_filter(frame, coarse.pose, t)
-        if len(map_moved_rows):
-            reliable = self._local_map(coarse.pose, t, exclude=map_moved_rows)
+        keep, map_moved, dyn = self._dynamic_object_filter(frame, guess @ coarse.pose, local)
         watch.lap("dynamic_object_filter")
-        fine = self._gicp(frame, frame.fine[keep[frame.fine]], reliable, coarse.pose, cfg.gicp.fine_max_correspondence_m,
-                          cfg.gicp.fine_iterations)
+        ego.usable &= ~map_moved[ego.source]
+        fine = self._gicp(frame, frame.fine[keep[frame.fine]], ego, coarse.pose, cfg.fine_max_correspondence_m,
+                          cfg.fine_iterations)
+        pose = guess @ fine.pose
         watch.lap("fine_gicp")
-        self._commit(frame, fine.pose, map_moved_rows)
+        self._commit(frame, pose, local.rows[map_moved], local)
         watch.lap("voxel_pfilter")
         pairs = {"coarse_found": coarse.pairs_found, "coarse_semantic_kept": coarse.pairs_kept,
                  "fine_found": fine.pairs_found, "fine_semantic_kept": fine.pairs_kept, **dyn,
-                 "reliable_voxels": len(reliable), "map_voxels": len(self.map)}
-        return fine.pose, pairs
+                 "reliable_voxels": int(local.usable.sum()), "map_voxels": len(self.map)}
+        return pose, pairs
 
     # -- the boxes of the pipeline ------------------------------------------------------------------------------
     def _preprocess(self, frame: OccupancyFrame) -> _Prepared:
@@ -133,9 +150,11 @@ class OccVO:
             grid = kernels.dense_index(ijk, shape)
         g = self.config.gicp
         covs = kernels.plane_covariances(points, ijk, grid, shape, g.k_neighbours_radius_voxels, g.covariance_epsilon)
-        factor = max(1, int(round(g.source_voxel_m / OCC3D_GRID.voxel_size)))
-        return _Prepared(points, labels, covs, kernels.first_per_block(ijk, factor + 1, shape),
-                         kernels.first_per_block(ijk, factor, shape), np.flatnonzero(np.isin(labels, MOVABLE_CLASSES)), frame.index)
+        ground = np.isin(labels, GROUND_CLASSES)
+        coarse = _thin(ijk, np.ones(len(points), bool), g.coarse_source_voxel_m)
+        # the ground only holds z, roll and pitch: a sparse sample of it is enough
+        fine = np.sort(np.concatenate([_thin(ijk, ~ground, g.source_voxel_m), _thin(ijk, ground, g.ground_source_voxel_m)]))
+        return _Prepared(points, labels, covs, coarse, fine, np.flatnonzero(np.isin(labels, MOVABLE_CLASSES)), frame.index)
 
     def _initial_guess(self, frame: _Prepared) -> np.ndarray:
         init = self.config.initialisation
@@ -147,55 +166,52 @@ class OccVO:
                                      search_radius_m=init.bev_search_radius_m, yaw_steps_deg=init.bev_yaw_steps_deg)
         return self._poses[-1] @ motion
 
-    def _local_map(self, pose: np.ndarray, t: int, exclude: np.ndarray | None = None):
-        centre = np.floor(pose[:3, 3] / self.map.voxel).astype(np.int64)
-        reach = int(np.ceil(self.config.voxel_pfilter.local_map_radius_m / self.map.voxel))
-        lower = centre - np.array([reach, reach, 12])
-        upper = centre + np.array([reach, reach, 24])
-        local = self.map.window(lower, upper, t)
-        if exclude is not None and len(exclude):
-            keep = ~np.isin(local.rows, exclude)
-            local = self.map._local(local.rows[keep], lower, upper)
-        return local
+    def _local_map(self, pose: np.ndarray, t: int):
+        """The map voxels the frame can reach from `pose`: its grid's box in the world, with a margin for the
+        correction registration will make."""
+        corners = _transform(pose, _GRID_CORNERS)
+        lower = np.floor((corners.min(axis=0) - self._margin) / self.map.voxel).astype(np.int64)
+        upper = np.floor((corners.max(axis=0) + self._margin) / self.map.voxel).astype(np.int64)
+        return self.map.window(lower, upper, t)
 
     def _gicp(self, frame: _Prepared, idx: np.ndarray, local, pose: np.ndarray, max_dist: float, iterations: int):
         g = self.config.gicp
-        return gicp(frame.points[idx], frame.covs[idx], frame.labels[idx], local, pose, max_correspondence_m=max_dist,
-                    iterations=iterations, semantic_label_filter=self.config.semantic_label_filter.enabled,
-                    robust_scale=g.robust_kernel_scale,
+        return gicp(frame.points[idx], frame.covs[idx], frame.labels[idx], local, pose,
+                    max_correspondence_m=max_dist, iterations=iterations, robust_scale=g.robust_kernel_scale,
+                    semantic_label_filter=self.config.semantic_label_filter.enabled,
                     convergence_rotation_rad=g.convergence_rotation_rad, convergence_translation_m=g.convergence_translation_m)
 
-    def _dynamic_object_filter(self, frame: _Prepared, pose: np.ndarray, t: int):
-        """Returns (mask of frame points kept for fine GICP, map rows of moved objects, counts)."""
+    def _dynamic_object_filter(self, frame: _Prepared, pose: np.ndarray, local):
+        """Returns (mask of frame points kept for fine GICP, mask of local voxels of moved objects, counts)."""
         keep = np.ones(len(frame.points), bool)
+        map_moved = np.zeros(len(local), bool)
         d = self.config.dynamic_object_filter
         if not d.enabled or len(frame.movable) == 0:
-            return keep, np.zeros(0, np.int64), {"dynamic_frame_objects": 0, "dynamic_map_objects": 0, "dynamic_points": 0}
+            return keep, map_moved, {"dynamic_frame_objects": 0, "dynamic_map_objects": 0, "dynamic_points": 0,
+                                     "dynamic_map_voxels_removed": 0}
         movable_world = _transform(pose, frame.points[frame.movable])
         # map objects are judged only where this frame can see them: inside its grid, after the coarse alignment
-        corners = np.array(np.meshgrid(*zip(OCC3D_GRID.lower, OCC3D_GRID.upper), indexing="ij")).reshape(3, -1).T
-        corners = _transform(pose, corners)
-        lower = np.floor(corners.min(axis=0) / self.map.voxel).astype(np.int64)
-        upper = np.floor(corners.max(axis=0) / self.map.voxel).astype(np.int64)
-        candidates = self.map.window(lower, upper, None, classes=np.array(MOVABLE_CLASSES))
-        in_view = OCC3D_GRID.inside(OCC3D_GRID.indices_of(_transform(np.linalg.inv(pose), candidates.pos)))
-        rows, map_pos = candidates.rows[in_view], candidates.pos[in_view]
-        found = dynamic_object_filter(movable_world, map_pos, threshold_m=d.displacement_threshold_m,
+        candidates = np.flatnonzero(np.isin(local.labels, MOVABLE_CLASSES))
+        in_view = OCC3D_GRID.inside(OCC3D_GRID.indices_of(_transform(np.linalg.inv(pose), local.pos[candidates])))
+        candidates = candidates[in_view]
+        found = dynamic_object_filter(movable_world, local.pos[candidates], threshold_m=d.displacement_threshold_m,
                                       cluster_eps_m=d.cluster_eps_m, min_cluster_points=d.min_cluster_voxels,
                                       quantile=d.displacement_quantile)
         keep[frame.movable[found.frame_moved]] = False
-        moved_rows = rows[found.map_moved]
-        return keep, moved_rows, {"dynamic_frame_objects": found.frame_objects, "dynamic_map_objects": found.map_objects,
-                                  "dynamic_points": int(found.frame_moved.sum()), "dynamic_map_voxels_removed": len(moved_rows)}
+        map_moved[candidates[found.map_moved]] = True
+        return keep, map_moved, {"dynamic_frame_objects": found.frame_objects, "dynamic_map_objects": found.map_objects,
+                                 "dynamic_points": int(found.frame_moved.sum()),
+                                 "dynamic_map_voxels_removed": int(found.map_moved.sum())}
 
-    def _commit(self, frame: _Prepared, pose: np.ndarray, moved_rows: np.ndarray) -> None:
+    def _commit(self, frame: _Prepared, pose: np.ndarray, moved_rows: np.ndarray, local=None) -> None:
         """The only place state changes: drop moved objects from the map, merge the frame, append the pose."""
         t = len(self._poses)
         if len(moved_rows):
             self.map.remove(moved_rows)
         rot = pose[:3, :3]
-        covs_world = np.einsum("ij,njk,lk->nil", rot, frame.covs, rot)
-        self.map.merge(_transform(pose, frame.points), frame.labels, covs_world, t)
+        covs_world = kernels.rotate_covariances(frame.covs, np.ascontiguousarray(rot))
+        self.map.merge(_transform(pose, frame.points), frame.labels, covs_world, t, local)
+        self.map.compact()
         self._poses.append(pose)
         self._indices.append(frame.index)
         self._last = frame

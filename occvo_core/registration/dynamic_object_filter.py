@@ -6,40 +6,38 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.sparse import coo_matrix
-from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
+
+from occvo_core.registration import kernels
 
 
 def cluster_objects(points: np.ndarray, eps: float, min_points: int) -> np.ndarray:
     """Object id per point by single-linkage clustering at distance eps; -1 for clusters under min_points."""
-    n = len(points)
-    if n == 0:
+    if len(points) == 0:
         return np.zeros(0, np.int64)
-    pairs = cKDTree(points).query_pairs(eps, output_type="ndarray")
-    adj = coo_matrix((np.ones(len(pairs), np.int8), (pairs[:, 0], pairs[:, 1])), shape=(n, n))
-    _, ids = connected_components(adj, directed=False)
-    sizes = np.bincount(ids)
+    ids = kernels.grid_clusters(np.ascontiguousarray(points, np.float64), float(eps))
+    sizes = np.bincount(ids, minlength=len(points))
     return np.where(sizes[ids] >= min_points, ids, -1)
 
 
 def displaced_objects(points: np.ndarray, ids: np.ndarray, counterparts: np.ndarray, threshold_m: float,
                       quantile: float) -> np.ndarray:
     """Mask of points whose object is displaced: the object's `quantile` of nearest-counterpart distances > threshold."""
-    moved = np.zeros(len(points), bool)
-    valid = ids >= 0
-    if not valid.any():
-        return moved
+    valid = np.flatnonzero(ids >= 0)
+    if len(valid) == 0:
+        return np.zeros(len(points), bool)
     if len(counterparts) == 0:
-        dist = np.full(len(points), np.inf)
+        dist = np.full(len(valid), np.inf)
     else:
-        dist, _ = cKDTree(counterparts).query(points, distance_upper_bound=threshold_m * 4)
-        dist = np.minimum(dist, threshold_m * 4)  # "far" is enough; inf would poison the quantile
-    for obj in np.unique(ids[valid]):
-        members = ids == obj
-        if np.quantile(dist[members], quantile) > threshold_m:
-            moved |= members
-    return moved
+        dist, _ = cKDTree(counterparts).query(points[valid], distance_upper_bound=threshold_m * 4)
+    # per object, the distance at the quantile's rank: sort by (object, distance) and pick within each run
+    order = np.lexsort((dist, ids[valid]))
+    obj_sorted = ids[valid][order]
+    starts = np.flatnonzero(np.r_[True, obj_sorted[1:] != obj_sorted[:-1]])
+    sizes = np.diff(np.r_[starts, len(order)])
+    at_quantile = dist[order][starts + np.minimum((quantile * (sizes - 1)).round().astype(np.int64), sizes - 1)]
+    moved_objects = obj_sorted[starts][at_quantile > threshold_m]
+    return np.isin(ids, moved_objects) & (ids >= 0)
 
 
 @dataclass

@@ -29,6 +29,7 @@ def se3_exp_left(delta: np.ndarray, pose: np.ndarray) -> np.ndarray:
 
 
 def gicp(points: np.ndarray, covs: np.ndarray, labels: np.ndarray, local_map: LocalMap, initial_pose: np.ndarray, *,
+         usable: np.ndarray | None = None,
          max_correspondence_m: float, iterations: int, semantic_label_filter: bool, robust_scale: float = 0.0,
          convergence_rotation_rad: float = 1e-5, convergence_translation_m: float = 1e-4) -> GICPResult:
     pose = np.array(initial_pose, dtype=np.float64)
@@ -36,11 +37,13 @@ def gicp(points: np.ndarray, covs: np.ndarray, labels: np.ndarray, local_map: Lo
     found = kept = 0
     cost = np.inf
     labels = labels.astype(np.int64)
+    usable = local_map.usable if usable is None else usable
+    map_labels = local_map.labels.astype(np.int64)
     for it in range(1, iterations + 1):
         h, g, total, found, kept = kernels.gicp_linearise(
-            points, covs, labels, pose[:3, :3].copy(), pose[:3, 3].copy(), local_map.pos, local_map.cov,
-            local_map.labels.astype(np.int64), local_map.grid, local_map.origin, local_map.dims, local_map.voxel,
-            radius, max_correspondence_m, semantic_label_filter, robust_scale)
+            points, covs, labels, pose[:3, :3].copy(), pose[:3, 3].copy(), local_map.pos, local_map.cov, map_labels,
+            usable, local_map.grid, local_map.origin, local_map.dims, local_map.voxel, radius, max_correspondence_m,
+            semantic_label_filter, robust_scale)
         if kept < 6:
             break
         cost = total / kept

@@ -9,39 +9,6 @@ _CACHE = True
 
 
 @njit(cache=_CACHE)
-def jacobi_eigh3(a):
-    """Eigenvalues (ascending) and eigenvectors (columns) of a symmetric 3x3 matrix by cyclic Jacobi sweeps."""
-    m = a.copy()
-    v = np.eye(3)
-    for _ in range(12):
-        off = m[0, 1] ** 2 + m[0, 2] ** 2 + m[1, 2] ** 2
-        if off < 1e-22:
-            break
-        for p, q in ((0, 1), (0, 2), (1, 2)):
-            if abs(m[p, q]) < 1e-30:
-                continue
-            theta = (m[q, q] - m[p, p]) / (2.0 * m[p, q])
-            t = (1.0 if theta >= 0 else -1.0) / (abs(theta) + np.sqrt(theta * theta + 1.0))
-            c = 1.0 / np.sqrt(t * t + 1.0)
-            s = t * c
-            for k in range(3):  # m = J^T m J
-                mkp, mkq = m[k, p], m[k, q]
-                m[k, p] = c * mkp - s * mkq
-                m[k, q] = s * mkp + c * mkq
-            for k in range(3):
-                mpk, mqk = m[p, k], m[q, k]
-                m[p, k] = c * mpk - s * mqk
-                m[q, k] = s * mpk + c * mqk
-            for k in range(3):
-                vkp, vkq = v[k, p], v[k, q]
-                v[k, p] = c * vkp - s * vkq
-                v[k, q] = s * vkp + c * vkq
-    w = np.array([m[0, 0], m[1, 1], m[2, 2]])
-    order = np.argsort(w)
-    return w[order], v[:, order]
-
-
-@njit(cache=_CACHE)
 def dense_index(ijk, shape):
     """Flat dense grid holding each point's row index (-1 = empty); points outside the grid are left out."""
     grid = np.full(shape[0] * shape[1] * shape[2], -1, np.int32)
@@ -68,16 +35,47 @@ def surface_mask(ijk, grid, shape):
     return out
 
 
+@njit(cache=_CACHE, inline="always")
+def _smallest_eigenvector(a00, a01, a02, a11, a12, a22):
+    """Unit eigenvector of the smallest eigenvalue of a symmetric 3x3 matrix (closed form, no allocation)."""
+    p1 = a01 * a01 + a02 * a02 + a12 * a12
+    q = (a00 + a11 + a22) / 3.0
+    p2 = (a00 - q) ** 2 + (a11 - q) ** 2 + (a22 - q) ** 2 + 2.0 * p1
+    p = np.sqrt(p2 / 6.0)
+    if p < 1e-12:
+        return 0.0, 0.0, 1.0  # isotropic: no preferred normal
+    b00, b11, b22 = (a00 - q) / p, (a11 - q) / p, (a22 - q) / p
+    b01, b02, b12 = a01 / p, a02 / p, a12 / p
+    r = (b00 * (b11 * b22 - b12 * b12) - b01 * (b01 * b22 - b12 * b02) + b02 * (b01 * b12 - b11 * b02)) / 2.0
+    r = min(1.0, max(-1.0, r))
+    lam = q + 2.0 * p * np.cos(np.arccos(r) / 3.0 + 2.0 * np.pi / 3.0)  # the smallest root
+    # rows of (A - lam I); their cross products are parallel to the eigenvector
+    r0x, r0y, r0z = a00 - lam, a01, a02
+    r1x, r1y, r1z = a01, a11 - lam, a12
+    r2x, r2y, r2z = a02, a12, a22 - lam
+    c0x, c0y, c0z = r0y * r1z - r0z * r1y, r0z * r1x - r0x * r1z, r0x * r1y - r0y * r1x
+    c1x, c1y, c1z = r0y * r2z - r0z * r2y, r0z * r2x - r0x * r2z, r0x * r2y - r0y * r2x
+    c2x, c2y, c2z = r1y * r2z - r1z * r2y, r1z * r2x - r1x * r2z, r1x * r2y - r1y * r2x
+    n0, n1, n2 = c0x * c0x + c0y * c0y + c0z * c0z, c1x * c1x + c1y * c1y + c1z * c1z, c2x * c2x + c2y * c2y + c2z * c2z
+    if n0 >= n1 and n0 >= n2 and n0 > 1e-24:
+        s = 1.0 / np.sqrt(n0)
+        return c0x * s, c0y * s, c0z * s
+    if n1 >= n2 and n1 > 1e-24:
+        s = 1.0 / np.sqrt(n1)
+        return c1x * s, c1y * s, c1z * s
+    if n2 > 1e-24:
+        s = 1.0 / np.sqrt(n2)
+        return c2x * s, c2y * s, c2z * s
+    return 0.0, 0.0, 1.0  # two smallest eigenvalues equal (a line): any normal across it will do
+
+
 @njit(cache=_CACHE)
 def plane_covariances(points, ijk, grid, shape, radius, epsilon):
-    """GICP covariances (Segal et al.): neighbourhood covariance with eigenvalues replaced by (eps, 1, 1)."""
+    """GICP covariances (Segal et al.): the neighbourhood's plane, as eps along its normal and 1 across it."""
     n_pts = points.shape[0]
     covs = np.empty((n_pts, 3, 3))
-    s = np.zeros(3)
-    ss = np.zeros((3, 3))
     for n in range(n_pts):
-        s[:] = 0.0
-        ss[:] = 0.0
+        sx = sy = sz = sxx = sxy = sxz = syy = syz = szz = 0.0
         cnt = 0
         for di in range(-radius, radius + 1):
             i = ijk[n, 0] + di
@@ -94,24 +92,29 @@ def plane_covariances(points, ijk, grid, shape, radius, epsilon):
                     m = grid[(i * shape[1] + j) * shape[2] + k]
                     if m < 0:
                         continue
-                    p = points[m]
+                    x, y, z = points[m, 0], points[m, 1], points[m, 2]
                     cnt += 1
-                    for a in range(3):
-                        s[a] += p[a]
-                        for b in range(3):
-                            ss[a, b] += p[a] * p[b]
+                    sx += x
+                    sy += y
+                    sz += z
+                    sxx += x * x
+                    sxy += x * y
+                    sxz += x * z
+                    syy += y * y
+                    syz += y * z
+                    szz += z * z
         if cnt < 3:  # too few neighbours for a surface: isotropic
-            covs[n] = np.eye(3)
+            for a in range(3):
+                for b in range(3):
+                    covs[n, a, b] = 1.0 if a == b else 0.0
             continue
-        for a in range(3):
-            s[a] /= cnt
-        for a in range(3):
-            for b in range(3):
-                ss[a, b] = ss[a, b] / cnt - s[a] * s[b]
-        _, vec = jacobi_eigh3(ss)
+        mx, my, mz = sx / cnt, sy / cnt, sz / cnt
+        nx, ny, nz = _smallest_eigenvector(sxx / cnt - mx * mx, sxy / cnt - mx * my, sxz / cnt - mx * mz,
+                                           syy / cnt - my * my, syz / cnt - my * mz, szz / cnt - mz * mz)
+        nv = (nx, ny, nz)
         for a in range(3):
             for b in range(3):
-                covs[n, a, b] = (epsilon * vec[a, 0] * vec[b, 0] + vec[a, 1] * vec[b, 1] + vec[a, 2] * vec[b, 2])
+                covs[n, a, b] = (1.0 if a == b else 0.0) - (1.0 - epsilon) * nv[a] * nv[b]
     return covs
 
 
@@ -132,8 +135,8 @@ def first_per_block(ijk, factor, shape):
 
 
 @njit(cache=_CACHE)
-def nearest_in_window(q, map_pos, grid, origin, dims, voxel, radius):
-    """Nearest map point to q within `radius` voxel rings: (index or -1, squared distance).
+def nearest_in_window(q, map_pos, grid, origin, dims, voxel, radius, usable):
+    """Nearest usable map point to q within `radius` voxel rings: (index or -1, squared distance).
 
     Rings are searched outwards; after ring r every unsearched point is at least r voxels away, so the search
     stops as soon as the best distance is below that."""
@@ -160,7 +163,7 @@ def nearest_in_window(q, map_pos, grid, origin, dims, voxel, radius):
                     k = ck + dk
                     if 0 <= k < dims[2]:
                         m = grid[base + k]
-                        if m >= 0:
+                        if m >= 0 and usable[m]:
                             d0 = map_pos[m, 0] - q[0]
                             d1 = map_pos[m, 1] - q[1]
                             d2 = map_pos[m, 2] - q[2]
@@ -195,9 +198,8 @@ def _inv3_sym(c):
 
 
 @njit(cache=_CACHE)
-def gicp_linearise(src, src_cov, src_lab, rot, trans, map_pos, map_cov, map_lab, grid, origin, dims, voxel, radius,
-                   max_dist, semantic_label_filter, robust_scale):
-    """One Gauss-Newton step of GICP: H, g of the Mahalanobis cost, plus counts of pairs found and kept."""
+def _gicp_chunk(lo, hi, src, src_cov, src_lab, rot, trans, map_pos, map_cov, map_lab, usable, grid, origin, dims,
+                voxel, radius, max_dist, semantic_label_filter, robust_scale):
     h = np.zeros((6, 6))
     g = np.zeros(6)
     cost = 0.0
@@ -211,10 +213,10 @@ def gicp_linearise(src, src_cov, src_lab, rot, trans, map_pos, map_cov, map_lab,
     j[0, 3] = -1.0
     j[1, 4] = -1.0
     j[2, 5] = -1.0
-    for n in range(src.shape[0]):
+    for n in range(lo, hi):
         for a in range(3):
             q[a] = rot[a, 0] * src[n, 0] + rot[a, 1] * src[n, 1] + rot[a, 2] * src[n, 2] + trans[a]
-        m, d2 = nearest_in_window(q, map_pos, grid, origin, dims, voxel, radius)
+        m, d2 = nearest_in_window(q, map_pos, grid, origin, dims, voxel, radius, usable)
         if m < 0 or d2 > max_d2:
             continue
         found += 1
@@ -253,6 +255,17 @@ def gicp_linearise(src, src_cov, src_lab, rot, trans, map_pos, map_cov, map_lab,
             g[u] += w * (t0 * r0 + t1 * r1 + t2 * r2)
             for v in range(u, 6):
                 h[u, v] += w * (t0 * j[0, v] + t1 * j[1, v] + t2 * j[2, v])
+    return h, g, cost, found, kept
+
+
+@njit(cache=_CACHE)
+def gicp_linearise(src, src_cov, src_lab, rot, trans, map_pos, map_cov, map_lab, usable, grid, origin, dims, voxel,
+                   radius, max_dist, semantic_label_filter, robust_scale):
+    """One Gauss-Newton step of GICP: H, g of the Mahalanobis cost, plus counts of pairs found and kept.
+    One thread on purpose: the registration worker shares its cores with inference in the pipeline."""
+    h, g, cost, found, kept = _gicp_chunk(0, src.shape[0], src, src_cov, src_lab, rot, trans, map_pos, map_cov, map_lab,
+                                          usable, grid, origin, dims, voxel, radius, max_dist, semantic_label_filter,
+                                          robust_scale)
     for u in range(6):
         for v in range(u):
             h[u, v] = h[v, u]
@@ -260,11 +273,11 @@ def gicp_linearise(src, src_cov, src_lab, rot, trans, map_pos, map_cov, map_lab,
 
 
 @njit(cache=_CACHE)
-def nearest_distances(queries, map_pos, grid, origin, dims, voxel, radius):
+def nearest_distances(queries, map_pos, grid, origin, dims, voxel, radius, usable):
     out = np.empty(queries.shape[0])
     idx = np.empty(queries.shape[0], np.int64)
     for n in range(queries.shape[0]):
-        m, d2 = nearest_in_window(queries[n], map_pos, grid, origin, dims, voxel, radius)
+        m, d2 = nearest_in_window(queries[n], map_pos, grid, origin, dims, voxel, radius, usable)
         idx[n] = m
         out[n] = np.sqrt(d2) if m >= 0 else np.inf
     return out, idx
@@ -284,33 +297,64 @@ def window_grid(keys, origin, dims):
 
 
 @njit(cache=_CACHE)
-def assign_voxels(points, keys, map_pos, grid, origin, dims, voxel, merge_radius, map_rows, n_map):
-    """Map row of each frame point: the nearest existing map point within merge_radius (that voxel is observed again),
-    else the voxel holding the point, created as a new row (numbered from n_map on) when empty.
-
-    Joining the nearest point rather than the enclosing voxel keeps a surface that straddles a voxel boundary in one
-    voxel across frames, so its p-index measures persistence, not aliasing. Returns (rows, first point of each new row)."""
+def assign_voxels(points, keys, map_pos, grid, origin, dims, voxel, merge_radius, map_rows, alive, n_map):
+    """Map row of each frame point: the live map voxel holding it; else the nearest live map point within
+    merge_radius (so a surface straddling a voxel boundary stays one voxel across frames and its p-index measures
+    persistence, not aliasing); else a new row, numbered from n_map on, for its voxel.
+    Returns (rows, first point of each new row). The grid is used up: new rows are written into it."""
     out = np.empty(keys.shape[0], np.int64)
     first_key = np.empty(keys.shape[0], np.int64)
     n_new = 0
     r2 = merge_radius * merge_radius
     for n in range(keys.shape[0]):
-        m, d2 = nearest_in_window(points[n], map_pos, grid, origin, dims, voxel, 1)
-        if m >= 0 and d2 <= r2:
-            out[n] = map_rows[m]
-            continue
         cell = ((keys[n, 0] - origin[0]) * dims[1] + keys[n, 1] - origin[1]) * dims[2] + keys[n, 2] - origin[2]
         local = grid[cell]
-        if local >= 0:
+        if local >= 0 and alive[local]:
             out[n] = map_rows[local]
-        elif local == -1:
-            out[n] = n_map + n_new
-            first_key[n_new] = n
-            grid[cell] = -3 - n_new  # later points in this voxel join the same new row
-            n_new += 1
-        else:
+            continue
+        if local <= -3:  # a voxel this frame created
             out[n] = n_map + (-3 - local)
+            continue
+        if r2 > 0.0:
+            m, d2 = nearest_in_window(points[n], map_pos, grid, origin, dims, voxel, 1, alive)
+            if m >= 0 and d2 <= r2:
+                out[n] = map_rows[m]
+                continue
+        out[n] = n_map + n_new
+        first_key[n_new] = n
+        grid[cell] = -3 - n_new  # later points in this voxel join the same new row
+        n_new += 1
     return out, first_key[:n_new]
+
+
+@njit(cache=_CACHE)
+def rotate_covariances(cov, rot):
+    """R C R^T for each C (numpy's batched matmul is slow for 3x3)."""
+    out = np.empty_like(cov)
+    tmp = np.empty((3, 3))
+    for n in range(cov.shape[0]):
+        for a in range(3):
+            for b in range(3):
+                tmp[a, b] = rot[a, 0] * cov[n, 0, b] + rot[a, 1] * cov[n, 1, b] + rot[a, 2] * cov[n, 2, b]
+        for a in range(3):
+            for b in range(3):
+                out[n, a, b] = tmp[a, 0] * rot[b, 0] + tmp[a, 1] * rot[b, 1] + tmp[a, 2] * rot[b, 2]
+    return out
+
+
+@njit(cache=_CACHE)
+def rows_in_box(keys, alive, lower, upper):
+    """Rows of live voxels whose keys lie in [lower, upper]."""
+    out = np.empty(keys.shape[0], np.int64)
+    n_out = 0
+    for n in range(keys.shape[0]):
+        if not alive[n]:
+            continue
+        if (lower[0] <= keys[n, 0] <= upper[0] and lower[1] <= keys[n, 1] <= upper[1]
+                and lower[2] <= keys[n, 2] <= upper[2]):
+            out[n_out] = n
+            n_out += 1
+    return out[:n_out]
 
 
 @njit(cache=_CACHE)
@@ -324,19 +368,138 @@ def merge_points(rows, pw, cw, labels, t, pos, cov, counts, label, t0, f, last, 
                 w = f[r] * (f[r] / (t - t0[r])) if use_p_index else float(f[r])
             else:
                 w = 0.0
-            pos[r] *= w
-            cov[r] *= w
+            for a in range(3):
+                pos[r, a] *= w
+                for b in range(3):
+                    cov[r, a, b] *= w
             wacc[r] = w
             f[r] += 1
             last[r] = t
-        pos[r] += pw[n]
-        cov[r] += cw[n]
+        for a in range(3):
+            pos[r, a] += pw[n, a]
+            for b in range(3):
+                cov[r, a, b] += cw[n, a, b]
         wacc[r] += 1.0
         counts[r, labels[n]] += 1
     for n in range(rows.shape[0]):
         r = rows[n]
         if wacc[r] > 0.0:
-            pos[r] /= wacc[r]
-            cov[r] /= wacc[r]
+            inv = 1.0 / wacc[r]
+            for a in range(3):
+                pos[r, a] *= inv
+                for b in range(3):
+                    cov[r, a, b] *= inv
             wacc[r] = 0.0
-            label[r] = np.argmax(counts[r])
+            best = 0
+            for c in range(counts.shape[1]):
+                if counts[r, c] > counts[r, best]:
+                    best = c
+            label[r] = best
+
+
+@njit(cache=_CACHE)
+def pool_voxels(pos, cov, labels, keys, dims, n_classes):
+    """Mean position and covariance and majority label of the points in each cell of a coarser grid."""
+    n_cells = dims[0] * dims[1] * dims[2]
+    slot = np.full(n_cells, -1, np.int64)
+    out_pos = np.zeros((pos.shape[0], 3))
+    out_cov = np.zeros((pos.shape[0], 3, 3))
+    votes = np.zeros((pos.shape[0], n_classes), np.int32)
+    count = np.zeros(pos.shape[0])
+    out_keys = np.empty((pos.shape[0], 3), np.int64)
+    n_out = 0
+    for n in range(pos.shape[0]):
+        i, j, k = keys[n, 0], keys[n, 1], keys[n, 2]
+        if i < 0 or j < 0 or k < 0 or i >= dims[0] or j >= dims[1] or k >= dims[2]:
+            continue
+        cell = (i * dims[1] + j) * dims[2] + k
+        s = slot[cell]
+        if s < 0:
+            s = n_out
+            slot[cell] = s
+            out_keys[s, 0], out_keys[s, 1], out_keys[s, 2] = i, j, k
+            n_out += 1
+        for a in range(3):
+            out_pos[s, a] += pos[n, a]
+            for b in range(3):
+                out_cov[s, a, b] += cov[n, a, b]
+        votes[s, labels[n]] += 1
+        count[s] += 1.0
+    out_lab = np.empty(n_out, np.uint8)
+    for s in range(n_out):
+        for a in range(3):
+            out_pos[s, a] /= count[s]
+            for b in range(3):
+                out_cov[s, a, b] /= count[s]
+        best = 0
+        for c in range(n_classes):
+            if votes[s, c] > votes[s, best]:
+                best = c
+        out_lab[s] = best
+    return out_pos[:n_out], out_cov[:n_out], out_lab, out_keys[:n_out]
+
+
+@njit(cache=_CACHE)
+def _find(parent, i):
+    while parent[i] != i:
+        parent[i] = parent[parent[i]]
+        i = parent[i]
+    return i
+
+
+@njit(cache=_CACHE)
+def grid_clusters(points, eps):
+    """Single-linkage clusters at distance eps, found through a grid of eps-sized cells (union-find)."""
+    n = points.shape[0]
+    parent = np.arange(n)
+    if n == 0:
+        return parent
+    lo = np.empty(3)
+    hi = np.empty(3)
+    for a in range(3):
+        lo[a] = points[:, a].min()
+        hi[a] = points[:, a].max()
+    dims = np.empty(3, np.int64)
+    for a in range(3):
+        dims[a] = int((hi[a] - lo[a]) / eps) + 1
+    cell_of = np.empty(n, np.int64)
+    for i in range(n):
+        cell_of[i] = ((int((points[i, 0] - lo[0]) / eps) * dims[1] + int((points[i, 1] - lo[1]) / eps)) * dims[2]
+                      + int((points[i, 2] - lo[2]) / eps))
+    n_cells = dims[0] * dims[1] * dims[2]
+    start = np.zeros(n_cells + 1, np.int64)  # counting sort: points of cell c are order[start[c]:start[c + 1]]
+    for i in range(n):
+        start[cell_of[i] + 1] += 1
+    for c in range(n_cells):
+        start[c + 1] += start[c]
+    fill = start[:-1].copy()
+    order = np.empty(n, np.int64)
+    for i in range(n):
+        order[fill[cell_of[i]]] = i
+        fill[cell_of[i]] += 1
+    eps2 = eps * eps
+    for i in range(n):
+        ci = int((points[i, 0] - lo[0]) / eps)
+        cj = int((points[i, 1] - lo[1]) / eps)
+        ck = int((points[i, 2] - lo[2]) / eps)
+        for di in range(-1, 2):
+            for dj in range(-1, 2):
+                for dk in range(-1, 2):
+                    a, b, c = ci + di, cj + dj, ck + dk
+                    if a < 0 or b < 0 or c < 0 or a >= dims[0] or b >= dims[1] or c >= dims[2]:
+                        continue
+                    cell = (a * dims[1] + b) * dims[2] + c
+                    for s in range(start[cell], start[cell + 1]):
+                        j = order[s]
+                        if j <= i:
+                            continue
+                        d0 = points[i, 0] - points[j, 0]
+                        d1 = points[i, 1] - points[j, 1]
+                        d2 = points[i, 2] - points[j, 2]
+                        if d0 * d0 + d1 * d1 + d2 * d2 <= eps2:
+                            ri, rj = _find(parent, i), _find(parent, j)
+                            if ri != rj:
+                                parent[max(ri, rj)] = min(ri, rj)
+    for i in range(n):
+        parent[i] = _find(parent, i)
+    return parent

@@ -10,15 +10,20 @@ import numpy as np
 from occvo_core.grid import NUM_CLASSES
 from occvo_core.registration import kernels
 
+_FIELDS = ("keys", "pos", "cov", "counts", "label", "t0", "f", "last", "wacc", "alive")
+
 
 @dataclass
 class LocalMap:
-    """Map voxels of a window, with a dense index grid over their integer keys for neighbour lookups."""
+    """The map voxels of a window, with a dense index grid over their integer keys for neighbour lookups.
+    `usable` says which of them registration may pair with (the voxel pfilter's reliable ones, less moved objects)."""
 
     rows: np.ndarray  # map rows of these voxels
     pos: np.ndarray
     cov: np.ndarray
     labels: np.ndarray
+    p_index: np.ndarray
+    usable: np.ndarray
     grid: np.ndarray
     origin: np.ndarray
     dims: np.ndarray
@@ -27,31 +32,82 @@ class LocalMap:
     def __len__(self) -> int:
         return len(self.rows)
 
+    def contains(self, keys: np.ndarray) -> bool:
+        return bool(len(keys) == 0 or (np.all(keys.min(axis=0) >= self.origin)
+                                       and np.all(keys.max(axis=0) < self.origin + self.dims)))
+
     def nearest(self, queries: np.ndarray, radius_cells: int) -> tuple[np.ndarray, np.ndarray]:
-        """(distance, local index or -1) of each query's nearest voxel within radius_cells voxels."""
+        """(distance, local index or -1) of each query's nearest usable voxel within radius_cells voxels."""
         return kernels.nearest_distances(np.ascontiguousarray(queries, np.float64), self.pos, self.grid,
-                                         self.origin, self.dims, self.voxel, radius_cells)
+                                         self.origin, self.dims, self.voxel, radius_cells, self.usable)
+
+
+@dataclass
+class EgoMap:
+    """Usable map voxels moved into the frame of a predicted ego pose, on a grid aligned with that frame.
+
+    Registration runs here: the grid is the size of the frame's own box whatever the heading (a world-aligned box
+    of a frame turned 45 degrees holds twice the cells), and it stays in cache."""
+
+    pose: np.ndarray  # the predicted ego pose these coordinates are relative to
+    pos: np.ndarray
+    cov: np.ndarray
+    labels: np.ndarray
+    usable: np.ndarray
+    grid: np.ndarray
+    origin: np.ndarray
+    dims: np.ndarray
+    voxel: float
+    source: np.ndarray  # index into the LocalMap of each point (-1 for pooled points)
+
+    def __len__(self) -> int:
+        return len(self.pos)
+
+    @classmethod
+    def build(cls, local: "LocalMap", pose: np.ndarray, lower: np.ndarray, upper: np.ndarray, voxel: float,
+              subset: np.ndarray | None = None) -> "EgoMap":
+        idx = np.flatnonzero(local.usable if subset is None else subset)
+        rot, trans = pose[:3, :3], pose[:3, 3]
+        pos = (local.pos[idx] - trans) @ rot
+        cov = kernels.rotate_covariances(local.cov[idx], np.ascontiguousarray(rot.T))
+        origin = np.floor(np.asarray(lower) / voxel).astype(np.int64)
+        dims = np.floor(np.asarray(upper) / voxel).astype(np.int64) - origin + 1
+        keys = np.floor(pos / voxel).astype(np.int64)
+        grid = kernels.window_grid(keys, origin, dims)
+        return cls(pose, pos, cov, local.labels[idx], np.ones(len(idx), bool), grid, origin, dims, voxel, idx)
+
+    def pooled(self, voxel: float) -> "EgoMap":
+        """The same map averaged on a coarser grid (coarse GICP searches farther at the same cost)."""
+        origin = np.floor(self.origin * self.voxel / voxel).astype(np.int64)
+        dims = np.floor((self.origin + self.dims) * self.voxel / voxel).astype(np.int64) - origin + 1
+        keys = np.floor(self.pos / voxel).astype(np.int64) - origin
+        keep = self.usable
+        pos, cov, labels, cell = kernels.pool_voxels(self.pos[keep], self.cov[keep], self.labels[keep].astype(np.int64),
+                                                     keys[keep], dims, NUM_CLASSES)
+        grid = kernels.window_grid(cell + origin, origin, dims)
+        return EgoMap(self.pose, pos, cov, labels, np.ones(len(pos), bool), grid, origin, dims, voxel,
+                      np.full(len(pos), -1))
 
 
 class VoxelPFilterMap:
     def __init__(self, voxel_m: float = 0.4, p_index_threshold: float = 0.5, pfilter: bool = True,
                  merge_radius_m: float | None = None):
         self.voxel = float(voxel_m)
-        self.merge_radius = 0.5 * self.voxel if merge_radius_m is None else float(merge_radius_m)
         self.p_index_threshold = float(p_index_threshold)
         self.pfilter = pfilter
+        self.merge_radius = 0.5 * self.voxel if merge_radius_m is None else float(merge_radius_m)
         self._n = 0
         self._alloc(1 << 16)
 
     def _alloc(self, capacity: int) -> None:
         old = getattr(self, "pos", None)
-        fields = {
-            "keys": ((capacity, 3), np.int32, 0), "pos": ((capacity, 3), np.float64, 0.0),
+        spec = {
+            "keys": ((capacity, 3), np.int64, 0), "pos": ((capacity, 3), np.float64, 0.0),
             "cov": ((capacity, 3, 3), np.float64, 0.0), "counts": ((capacity, NUM_CLASSES), np.int32, 0),
             "label": ((capacity,), np.uint8, 0), "t0": ((capacity,), np.int32, 0), "f": ((capacity,), np.int32, 0),
             "last": ((capacity,), np.int32, -1), "wacc": ((capacity,), np.float64, 0.0), "alive": ((capacity,), np.bool_, False),
         }
-        for name, (shape, dtype, fill) in fields.items():
+        for name, (shape, dtype, fill) in spec.items():
             arr = np.full(shape, fill, dtype)
             if old is not None:
                 arr[: self._n] = getattr(self, name)[: self._n]
@@ -63,7 +119,7 @@ class VoxelPFilterMap:
     def copy(self) -> "VoxelPFilterMap":
         other = VoxelPFilterMap(self.voxel, self.p_index_threshold, self.pfilter, self.merge_radius)
         other._n = self._n
-        for name in ("keys", "pos", "cov", "counts", "label", "t0", "f", "last", "wacc", "alive"):
+        for name in _FIELDS:
             setattr(other, name, getattr(self, name).copy())
         return other
 
@@ -72,31 +128,30 @@ class VoxelPFilterMap:
         n = self._n
         return self.f[:n] / np.maximum(t - self.t0[:n], 1)
 
-    def window(self, lower: np.ndarray, upper: np.ndarray, t: int | None = None, classes: np.ndarray | None = None) -> LocalMap:
-        """Voxels with keys in [lower, upper]; with t given and the filter on, only those with p-index > threshold."""
+    def window(self, lower: np.ndarray, upper: np.ndarray, t: int | None = None) -> LocalMap:
+        """Every live voxel with key in [lower, upper]; `usable` marks those with p-index above the threshold at
+        frame t (all of them with the filter off or no t)."""
         n = self._n
         keys = self.keys[:n]
-        mask = self.alive[:n] & np.all(keys >= lower, axis=1) & np.all(keys <= upper, axis=1)
-        if t is not None and self.pfilter:
-            mask &= self.p_index(t) > self.p_index_threshold
-        if classes is not None:
-            mask &= np.isin(self.label[:n], classes)
-        rows = np.flatnonzero(mask)
-        return self._local(rows, lower, upper)
-
-    def _local(self, rows: np.ndarray, lower: np.ndarray, upper: np.ndarray) -> LocalMap:
+        rows = kernels.rows_in_box(keys, self.alive[:n], np.asarray(lower, np.int64), np.asarray(upper, np.int64))
+        p_index = self.f[rows] / np.maximum((t if t is not None else 0) - self.t0[rows], 1)
+        usable = p_index > self.p_index_threshold if (t is not None and self.pfilter) else np.ones(len(rows), bool)
         origin = np.asarray(lower, np.int64)
         dims = np.asarray(upper, np.int64) - origin + 1
-        grid = kernels.window_grid(self.keys[rows].astype(np.int64), origin, dims)
-        return LocalMap(rows, self.pos[rows], self.cov[rows], self.label[rows], grid, origin, dims, self.voxel)
+        grid = kernels.window_grid(self.keys[rows], origin, dims)
+        return LocalMap(rows, self.pos[rows], self.cov[rows], self.label[rows], p_index, usable, grid, origin, dims,
+                        self.voxel)
 
-    def merge(self, points_world: np.ndarray, labels: np.ndarray, covs_world: np.ndarray, t: int) -> np.ndarray:
-        """Add frame t's points (world frame) and return the map rows they landed in."""
+    def merge(self, points_world: np.ndarray, labels: np.ndarray, covs_world: np.ndarray, t: int,
+              local: LocalMap | None = None) -> np.ndarray:
+        """Add frame t's points (world frame) and return the map rows they landed in. `local`, when it covers the
+        points, saves building the window again (its grid is used up: new voxels are written into it)."""
         keys = np.floor(points_world / self.voxel).astype(np.int64)
-        lower, upper = keys.min(axis=0) - 1, keys.max(axis=0) + 1
-        local = self.window(lower, upper)
-        rows, first_key = kernels.assign_voxels(points_world, keys, local.pos, local.grid, local.origin, local.dims,
-                                                self.voxel, self.merge_radius, local.rows, self._n)
+        if local is None or not local.contains(keys):
+            local = self.window(keys.min(axis=0) - 1, keys.max(axis=0) + 1)
+        rows, first_key = kernels.assign_voxels(points_world, keys, local.pos, local.grid, local.origin,
+                                                local.dims, self.voxel, self.merge_radius, local.rows,
+                                                self.alive[local.rows], self._n)
         n_new = len(first_key)
         if self._n + n_new > len(self.pos):
             self._alloc(max(2 * len(self.pos), self._n + n_new))
@@ -113,16 +168,20 @@ class VoxelPFilterMap:
         return rows
 
     def remove(self, rows: np.ndarray) -> None:
-        """Drop voxels (the dynamic object filter's moved objects); space is reclaimed when a third is dead."""
+        """Drop voxels (the dynamic object filter's moved objects). Rows keep their numbers until compact()."""
         self.alive[rows] = False
+
+    def compact(self, min_dead_share: float = 1 / 3) -> None:
+        """Reclaim the space of dropped voxels once they are a given share of the rows (renumbers rows)."""
         n = self._n
-        if n and np.count_nonzero(~self.alive[:n]) > n // 3:
-            keep = np.flatnonzero(self.alive[:n])
-            for name in ("keys", "pos", "cov", "counts", "label", "t0", "f", "last", "wacc", "alive"):
-                arr = getattr(self, name)
-                arr[: len(keep)] = arr[keep]
-            self.alive[len(keep): n] = False
-            self._n = len(keep)
+        if n == 0 or np.count_nonzero(~self.alive[:n]) <= n * min_dead_share:
+            return
+        keep = np.flatnonzero(self.alive[:n])
+        for name in _FIELDS:
+            arr = getattr(self, name)
+            arr[: len(keep)] = arr[keep]
+        self.alive[len(keep): n] = False
+        self._n = len(keep)
 
     def points(self) -> tuple[np.ndarray, np.ndarray]:
         alive = self.alive[: self._n]

@@ -46,6 +46,7 @@ class VoxelPFilterConfig(_Section):
     p_index_threshold: float = Field(0.5, ge=0, le=1, description="only map voxels with p-index above this constrain registration")
     map_voxel_m: float = Field(0.4, gt=0)
     merge_radius_m: float = Field(0.2, ge=0, description="a frame point joins the nearest map point this close, else its own voxel")
+    observe_radius_m: float = Field(0.45, ge=0, description="a voxel counts as seen when a frame point lands this close (one voxel pitch: frames are quantised on their own ego grid)")
     window_margin_m: float = Field(4.0, ge=0, description="map kept around the frame's box for registration and merging")
 
 
@@ -56,6 +57,7 @@ class InitialisationConfig(_Section):
 
 
 class OccVOConfig(_Section):
+    max_range_m: float | None = Field(None, gt=0, description="frame points farther than this (horizontally) are not used")
     gicp: GICPConfig = GICPConfig()
     semantic_label_filter: SemanticLabelFilterConfig = SemanticLabelFilterConfig()
     dynamic_object_filter: DynamicObjectFilterConfig = DynamicObjectFilterConfig()

@@ -79,7 +79,8 @@ class OccVO:
 
     def reset(self) -> None:
         pf = self.config.voxel_pfilter
-        self.map = VoxelPFilterMap(pf.map_voxel_m, pf.p_index_threshold, pfilter=pf.enabled, merge_radius_m=pf.merge_radius_m)
+        self.map = VoxelPFilterMap(pf.map_voxel_m, pf.p_index_threshold, pfilter=pf.enabled, merge_radius_m=pf.merge_radius_m,
+                                   observe_radius_m=pf.observe_radius_m)
         self._poses: list[np.ndarray] = []
         self._indices: list[int] = []
         self._last: _Prepared | None = None
@@ -142,8 +143,12 @@ class OccVO:
             raise InvalidFrameError(frame.index, f"{int(outside.sum())} points outside the occupancy grid "
                                     f"{OCC3D_GRID.lower}..{OCC3D_GRID.upper} (is the frame in ego coordinates?)")
         shape = np.array(OCC3D_GRID.shape, np.int64)
-        grid = kernels.dense_index(ijk, shape)
         labels = np.asarray(frame.labels, np.uint8)
+        max_range = self.config.max_range_m
+        if max_range is not None:  # camera occupancy is least sure of what is far
+            near = points[:, 0] ** 2 + points[:, 1] ** 2 <= max_range ** 2
+            points, labels, ijk = points[near], labels[near], ijk[near]
+        grid = kernels.dense_index(ijk, shape)
         surface = kernels.surface_mask(ijk, grid, shape)
         if not surface.all():
             points, labels, ijk = points[surface], labels[surface], ijk[surface]

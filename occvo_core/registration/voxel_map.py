@@ -91,11 +91,12 @@ class EgoMap:
 
 class VoxelPFilterMap:
     def __init__(self, voxel_m: float = 0.4, p_index_threshold: float = 0.5, pfilter: bool = True,
-                 merge_radius_m: float | None = None):
+                 merge_radius_m: float | None = None, observe_radius_m: float = 0.0):
         self.voxel = float(voxel_m)
         self.p_index_threshold = float(p_index_threshold)
         self.pfilter = pfilter
         self.merge_radius = 0.5 * self.voxel if merge_radius_m is None else float(merge_radius_m)
+        self.observe_radius = float(observe_radius_m)
         self._n = 0
         self._alloc(1 << 16)
 
@@ -117,7 +118,7 @@ class VoxelPFilterMap:
         return int(np.count_nonzero(self.alive[: self._n]))
 
     def copy(self) -> "VoxelPFilterMap":
-        other = VoxelPFilterMap(self.voxel, self.p_index_threshold, self.pfilter, self.merge_radius)
+        other = VoxelPFilterMap(self.voxel, self.p_index_threshold, self.pfilter, self.merge_radius, self.observe_radius)
         other._n = self._n
         for name in _FIELDS:
             setattr(other, name, getattr(self, name).copy())
@@ -165,6 +166,9 @@ class VoxelPFilterMap:
         self._n += n_new
         kernels.merge_points(rows, points_world, covs_world, labels.astype(np.int64), t, self.pos, self.cov, self.counts,
                              self.label, self.t0, self.f, self.last, self.wacc, self.pfilter)
+        if self.observe_radius > 0:
+            kernels.mark_observed(points_world, local.pos, local.grid, local.origin, local.dims, self.voxel,
+                                  self.observe_radius, local.rows, self.alive[local.rows], self.f, self.last, t)
         return rows
 
     def remove(self, rows: np.ndarray) -> None:

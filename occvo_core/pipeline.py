@@ -70,9 +70,10 @@ class OdometryPipeline:
         stamps = np.array(self.odometry.frame_indices, float) / self.source.rate_hz
         write_kitti(out / "trajectory.kitti", poses)
         write_tum(out / "trajectory.tum", poses, stamps)
-        arrays = self.odometry.map.arrays(len(poses))
-        np.savez_compressed(out / "map.npz", **arrays)
-        write_ply(out / "map.ply", arrays["points"], arrays["labels"])
+        points, labels = self.odometry.map_points()
+        np.savez_compressed(out / "map.npz", points=points, labels=labels)
+        np.savez_compressed(out / "map_voxels.npz", **self.odometry.map.arrays(len(poses)))
+        write_ply(out / "map.ply", points, labels)
         gt = self.gt_of_registered()
         plot_trajectory(out / "trajectory.png", poses, gt, title=self.source.name)
         summary = {**self.summary(), **(extra or {})}

@@ -151,3 +151,20 @@ def test_surface_mask_keeps_the_shell_of_a_solid_block():
     shape = np.array(OCC3D_GRID.shape)
     keep = kernels.surface_mask(ijk, kernels.dense_index(ijk, shape), shape)
     assert keep.sum() == np.prod(sides) - np.prod(sides - 2)
+
+
+def test_finished_map_keeps_voxels_seen_in_most_frames_while_in_view():
+    m = VoxelPFilterMap()
+    steady, blinking, passed = [1.0, 1.0, 1.0], [5.0, 5.0, 1.0], [9.0, 9.0, 1.0]
+    _merge(m, [steady, blinking, passed], 0)
+    _merge(m, [steady, passed], 1)
+    _merge(m, [steady], 2)  # `passed` is behind the car from here on: its plain p-index decays, it stays in the map
+    _merge(m, [steady, blinking], 3)
+    pts, _ = m.points()
+    kept = {tuple(p) for p in pts.round(3)}
+    assert kept == {tuple(steady), tuple(passed)}  # blinking: 2 of the 4 frames from first to last sighting
+    assert np.allclose(m.p_index(4)[m.pos[: m._n, 0].round(3) == 9.0], 0.5)
+    every = VoxelPFilterMap(pfilter=False)
+    for t in range(4):
+        _merge(every, [steady, blinking] if t in (0, 3) else [steady], t)
+    assert len(every.points()[0]) == 2

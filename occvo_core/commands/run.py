@@ -49,7 +49,7 @@ def run(args) -> int:
         extra["map_metrics"] = _synthetic_map_metrics(source, pipeline)
     summary = pipeline.write(args.out, extra)
     print(json.dumps({k: summary[k] for k in summary if k not in ("skipped_frames",)}, indent=2, default=float))
-    print(f"wrote {args.out}/: trajectory.kitti trajectory.tum map.ply map.npz trajectory.png summary.json")
+    print(f"wrote {args.out}/: trajectory.kitti trajectory.tum map.ply map.npz map_voxels.npz trajectory.png summary.json")
     return 0
 
 

@@ -187,12 +187,26 @@ class VoxelPFilterMap:
         self.alive[len(keep): n] = False
         self._n = len(keep)
 
+    def persistent(self) -> np.ndarray:
+        """The voxel pfilter on the finished map, per live row: seen in more than the threshold's share of the frames
+        from its first to its last sighting (the p-index over the time it was in view; the plain p-index would also
+        punish a voxel for every frame after the car drove past it)."""
+        n = self._n
+        alive = self.alive[:n]
+        if not self.pfilter:
+            return alive
+        f = self.f[:n]
+        return alive & (f / np.maximum(self.last[:n] - self.t0[:n] + 1, 1) > self.p_index_threshold)
+
     def points(self) -> tuple[np.ndarray, np.ndarray]:
-        alive = self.alive[: self._n]
-        return self.pos[: self._n][alive].copy(), self.label[: self._n][alive].copy()
+        """The map a user gets: the persistent voxels (all live voxels with the filter off)."""
+        keep = self.persistent()
+        return self.pos[: self._n][keep].copy(), self.label[: self._n][keep].copy()
 
     def arrays(self, t: int) -> dict[str, np.ndarray]:
-        """Everything a saved map holds: points, labels, t0, f, p-index at frame t."""
-        alive = self.alive[: self._n]
-        return {"points": self.pos[: self._n][alive], "labels": self.label[: self._n][alive],
-                "t0": self.t0[: self._n][alive], "f": self.f[: self._n][alive], "p_index": self.p_index(t)[alive]}
+        """Every live voxel: points, labels, t0, f, last seen, p-index at frame t, and `persistent` (in the map)."""
+        n = self._n
+        alive = self.alive[:n]
+        return {"points": self.pos[:n][alive], "labels": self.label[:n][alive], "t0": self.t0[:n][alive],
+                "f": self.f[:n][alive], "last_seen": self.last[:n][alive], "p_index": self.p_index(t)[alive],
+                "persistent": self.persistent()[alive]}

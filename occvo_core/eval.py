@@ -43,3 +43,10 @@ def success(rmse: float) -> bool:
 def success_ratio(rmses) -> float:
     rmses = list(rmses)
     return sum(success(r) for r in rmses) / len(rmses) if rmses else float("nan")
+
+
+# The paper's map metrics (Table IV) live beside the trajectory ones.
+from occvo_core.map_metrics import (  # noqa: E402
+    MapCloud, MapMetrics, align_to_ground_truth, evaluate_map_against_truth, ground_truth_map, load_map, map_metrics,
+    reference_map_from_poses, save_map,
+)

@@ -28,27 +28,12 @@ def write_ply(path: str | Path, points: np.ndarray, labels: np.ndarray) -> None:
 
 
 def read_map(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
-    """(points, labels) from a map.npz (points, labels) or a PLY written by write_ply."""
-    from occvo_core.errors import DatasetError
+    """(points, labels) from a map.npz or a PLY; labels are 255 where the file has none."""
+    from occvo_core.map_metrics import load_map
 
-    path = Path(path)
-    try:
-        if path.suffix == ".npz":
-            with np.load(path) as data:
-                return np.asarray(data["points"], np.float64), np.asarray(data["labels"], np.uint8)
-        if path.suffix == ".ply":
-            raw = path.read_bytes()
-            end = raw.index(b"end_header\n") + len(b"end_header\n")
-            header = raw[:end].decode("ascii")
-            if "property uchar label" not in header:
-                raise ValueError("PLY without a label property")
-            count = int(next(l.split()[2] for l in header.splitlines() if l.startswith("element vertex")))
-            rows = np.frombuffer(raw[end:], dtype=[("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("red", "u1"),
-                                                    ("green", "u1"), ("blue", "u1"), ("label", "u1")], count=count)
-            return np.column_stack([rows["x"], rows["y"], rows["z"]]).astype(np.float64), rows["label"].copy()
-    except (OSError, KeyError, ValueError, StopIteration) as exc:
-        raise DatasetError(path, f"unreadable map: {exc}") from None
-    raise DatasetError(path, "a map must be .npz (points, labels) or .ply")
+    cloud = load_map(path)
+    labels = cloud.labels if cloud.labels is not None else np.full(len(cloud.points), 255, np.uint8)
+    return cloud.points, labels
 
 
 def plot_trajectory(path: str | Path, est: np.ndarray, gt: np.ndarray | None = None, title: str = "") -> None:

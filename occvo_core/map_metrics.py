@@ -126,17 +126,21 @@ def ground_truth_map(source) -> MapCloud:
     return reference_map_from_poses(source)
 
 
-def align_to_ground_truth(points: np.ndarray, est_poses: np.ndarray, gt_poses: np.ndarray) -> np.ndarray:
-    """Map points from the estimate's world frame to the ground truth's, by the SE(3) Umeyama alignment of the
-    trajectory positions (the alignment APE uses), or by the first poses when there are fewer than 3."""
+def align_to_ground_truth(points: np.ndarray, est_poses: np.ndarray, gt_poses: np.ndarray, lever_m: float = 10.0) -> np.ndarray:
+    """Map points from the estimate's world frame to the ground truth's by an SE(3) Umeyama fit over the poses:
+    each pose contributes its position and the tips of its three axes `lever_m` long. Orientation makes the fit
+    well posed on straight drives, where positions alone (APE's alignment) leave the roll about the road free."""
     from occvo_core.eval import umeyama_se3
 
-    est_poses, gt_poses = np.asarray(est_poses), np.asarray(gt_poses)
-    if len(est_poses) >= 3:
-        rot, trans = umeyama_se3(est_poses[:, :3, 3], gt_poses[:, :3, 3])
-    else:
-        t = gt_poses[0] @ np.linalg.inv(est_poses[0])
-        rot, trans = t[:3, :3], t[:3, 3]
+    est_poses, gt_poses = np.asarray(est_poses, np.float64), np.asarray(gt_poses, np.float64)
+    if est_poses.shape != gt_poses.shape or len(est_poses) == 0:
+        raise ValueError(f"need matching (N,4,4) trajectories, got {est_poses.shape} and {gt_poses.shape}")
+
+    def anchors(poses):
+        tips = poses[:, :3, 3][:, None, :] + lever_m * poses[:, :3, :3].transpose(0, 2, 1)
+        return np.concatenate([poses[:, :3, 3], tips.reshape(-1, 3)])
+
+    rot, trans = umeyama_se3(anchors(est_poses), anchors(gt_poses))
     return np.asarray(points, dtype=np.float64) @ rot.T + trans
 
 

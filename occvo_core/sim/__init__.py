@@ -4,6 +4,8 @@
     frame = scene[0]                 # OccupancyFrame, ego frame, camera-visible voxels with prediction noise
     scene.gt_poses                   # (N,4,4) ego->world
     scene.static_map()               # true static world map (world frame), scene.dynamic_tracks()
+    scene.true_grid(i)               # noise-free (200,200,16) uint8 before visibility; scene.camera_mask(i)
+    export_release(scene, root) / export_occ3d(scene, root)   # occvo_core.sim.export
 
 The town: a road graph of straight and bowed roads meeting at intersections (driveable surface), sidewalks
 raised by a kerb, terrain, buildings, walls, site cabins (manmade), street lights, signs, barriers and cones,

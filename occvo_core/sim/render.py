@@ -228,3 +228,61 @@ def nonzero3(grid, value, equal):
                     out[n, 2] = k
                     n += 1
     return out
+
+
+@njit(cache=True)
+def horizontal_neighbours(solid, idx):
+    """For each voxel idx (N,3), how many of its 8 horizontal neighbours are set in `solid`."""
+    nx, ny, _ = solid.shape
+    out = np.zeros(idx.shape[0], np.int64)
+    for n in range(idx.shape[0]):
+        i, j, k = idx[n, 0], idx[n, 1], idx[n, 2]
+        c = 0
+        for di in range(-1, 2):
+            for dj in range(-1, 2):
+                if (di or dj) and 0 <= i + di < nx and 0 <= j + dj < ny and solid[i + di, j + dj, k]:
+                    c += 1
+        out[n] = c
+    return out
+
+
+@njit(cache=True)
+def surface_free_voxels(occ_idx, occupied, seen, labels):
+    """Visible free voxels face-adjacent to an occupied voxel of occ_idx (N,3, C order), themselves in C order:
+    (indices (K,3), class of the first occupied neighbour in occ_idx order)."""
+    nx, ny, nz = occupied.shape
+    mark = np.zeros(occupied.shape, np.bool_)
+    lin = np.empty(6 * occ_idx.shape[0], np.int64)
+    lab = np.empty(6 * occ_idx.shape[0], np.uint8)
+    n = 0
+    for m in range(occ_idx.shape[0]):
+        i, j, k = occ_idx[m, 0], occ_idx[m, 1], occ_idx[m, 2]
+        for f in range(6):
+            a, b, c = i, j, k
+            if f == 0:
+                a += 1
+            elif f == 1:
+                a -= 1
+            elif f == 2:
+                b += 1
+            elif f == 3:
+                b -= 1
+            elif f == 4:
+                c += 1
+            else:
+                c -= 1
+            if 0 <= a < nx and 0 <= b < ny and 0 <= c < nz and seen[a, b, c] and not occupied[a, b, c] and not mark[a, b, c]:
+                mark[a, b, c] = True
+                lin[n] = (a * ny + b) * nz + c
+                lab[n] = labels[i, j, k]
+                n += 1
+    order = np.argsort(lin[:n])
+    idx = np.empty((n, 3), np.int64)
+    out_lab = np.empty(n, np.uint8)
+    for q in range(n):
+        v = lin[order[q]]
+        idx[q, 0] = v // (ny * nz)
+        idx[q, 1] = (v // nz) % ny
+        idx[q, 2] = v % nz
+        out_lab[q] = lab[order[q]]
+    return idx, out_lab

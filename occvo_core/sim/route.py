@@ -102,12 +102,18 @@ def lane_path(graph: RoadGraph, nodes: list[int], offset: float = LANE_OFFSET, c
     for i, (a, b) in enumerate(zip(nodes[:-1], nodes[1:])):
         lane = _offset(graph.path(a, b), offset)
         lanes.append(_trim(lane, corner_m if i > 0 else 0.0, corner_m if i < len(nodes) - 2 else 0.0))
-    pieces, node_s, node_hw, total = [lanes[0]], [], [], 0.0
-    for prev, nxt, node, (a, b) in zip(lanes[:-1], lanes[1:], nodes[1:-1], zip(nodes[:-1], nodes[1:])):
+    def length(p):
+        return float(np.sum(np.linalg.norm(np.diff(p, axis=0), axis=1)))
+
+    pieces, node_s, node_hw, total = [lanes[0]], [], [], length(lanes[0])
+    for prev, nxt, (a, b) in zip(lanes[:-1], lanes[1:], zip(nodes[:-1], nodes[1:])):
         d0 = prev[-1] - prev[-2]
         d3 = nxt[1] - nxt[0]
         conn = _connector(prev[-1], d0 / np.linalg.norm(d0), nxt[0], d3 / np.linalg.norm(d3))
         pieces += [conn[1:], nxt[1:]]
+        node_s.append(total + length(conn) / 2)  # where the path passes the intersection
+        node_hw.append(graph.half_width[graph.key(a, b)])
+        total += length(conn) + length(nxt)
     poly = resample(np.concatenate(pieces), DS)
     # steering takes time: smoothing ramps the curvature in and out over a few metres, as clothoids do
     poly = gaussian_filter1d(poly, 2.5 / DS, axis=0, mode="nearest")
@@ -115,10 +121,6 @@ def lane_path(graph: RoadGraph, nodes: list[int], offset: float = LANE_OFFSET, c
     heading = np.unwrap(np.arctan2(d[:, 1], d[:, 0]))
     heading = gaussian_filter1d(heading, 2.0, mode="nearest")
     curvature = np.gradient(heading) / DS
-    for n, (a, b) in zip(nodes[1:-1], zip(nodes[:-1], nodes[1:])):  # arc length where the path passes each node
-        k = int(np.argmin(np.sum((poly - graph.nodes[n]) ** 2, axis=1)))
-        node_s.append(k * DS)
-        node_hw.append(graph.half_width[graph.key(a, b)])
     return Path(poly, heading, curvature, np.array(node_s), np.array(node_hw))
 
 

@@ -6,7 +6,7 @@ import numpy as np
 
 from occvo_core.errors import ConfigError
 from occvo_core.frame import OccupancyFrame
-from occvo_core.grid import FREE, OCC3D_GRID, STATIC_CLASSES
+from occvo_core.grid import FREE, OCC3D_GRID
 from occvo_core.sim import render
 from occvo_core.sim.agents import DynamicTrack, boxes_in_ego, make_traffic
 from occvo_core.sim.noise import NoiseModel, occupied_indices
@@ -76,8 +76,9 @@ class SyntheticScene:
         lower, upper = xy.min(axis=0) - 62.0, xy.max(axis=0) + 62.0
         self.town: Town = build_town(self.seed, self.graph, self.terrain, lower, upper)
         self._poses = self._ego_poses(xy, heading)
-        n_veh = int(r_traffic.integers(6, 11) * max(1.0, duration / 20.0)) if traffic else 0
-        n_ped = int(r_traffic.integers(8, 16) * max(1.0, duration / 20.0)) if traffic else 0
+        scale = min(max(1.0, duration / 20.0), 4.0)  # longer drives see more of the town, up to a point
+        n_veh = int(r_traffic.integers(6, 11) * scale) if traffic else 0
+        n_ped = int(r_traffic.integers(8, 16) * scale) if traffic else 0
         self.tracks: list[DynamicTrack] = make_traffic(self.town, r_traffic, self.times, xy, lower, upper, n_veh, n_ped)
         self._frames: dict[int, OccupancyFrame] = {}
         self._static: dict[int, tuple[np.ndarray, np.ndarray]] = {}  # frame -> (world voxel keys, labels) seen
@@ -212,4 +213,4 @@ class SyntheticScene:
         self._static[index] = (keys, static[seen])
 
 
-__all__ = ["SyntheticScene", "CAMERAS", "LIDAR", "STATIC_CLASSES"]
+__all__ = ["SyntheticScene", "CAMERAS", "LIDAR"]

@@ -273,7 +273,6 @@ def build_town(seed: int, graph: RoadGraph, terrain: Terrain, lower: np.ndarray,
 
     # City blocks: connected areas behind the sidewalks, each of one kind.
     blocks, n_blocks = ndimage.label(~road & ~walk)
-    kinds = ("none", "buildings", "park", "walled", "parking", "construction")
     kind_p = np.array([0.5, 0.15, 0.12, 0.13, 0.10])
     block_kind = np.zeros(n_blocks + 1, np.int8)
     if n_blocks:
@@ -390,12 +389,28 @@ def build_town(seed: int, graph: RoadGraph, terrain: Terrain, lower: np.ndarray,
                     p = at(hw_e + sw_e - 0.9, i)
                     if on(p, (SIDEWALK,)):
                         _tree(paint, rng, p[0], p[1])
-            for i in (12, len(s) - 14):  # signs before intersections
-                if 0 <= i < len(s):
-                    p = at(hw_e + 0.6, i)
-                    if on(p, (SIDEWALK,)):
-                        paint.disc(p[0], p[1], 0.05, MANMADE, 0.0, 2.9)
-                        paint.box(p[0], p[1], yaw_of[i] + np.pi / 2, 0.8, 0.1, MANMADE, 2.0, 2.9, layer=1)
+            a_node, b_node = key
+            for i, node in ((12, a_node), (len(s) - 14, b_node)):  # before intersections: traffic lights or signs
+                if not 0 <= i < len(s):
+                    continue
+                p = at(hw_e + 0.6, i)
+                if not on(p, (SIDEWALK,)):
+                    continue
+                approach = (side < 0) == (node == b_node)  # the kerb on the right of traffic entering this node
+                if approach and len(graph.neighbours[node]) >= 3 and hash_uniform(seed, node, salt=35) < 0.6:
+                    paint.disc(p[0], p[1], 0.12, MANMADE, 0.0, 5.2)  # signal mast
+                    q = at(hw_e - 2.0, i)
+                    paint.box(q[0], q[1], yaw_of[i] + np.pi / 2, 5.0, 0.25, MANMADE, 4.9, 5.2, layer=1)  # arm over the lane
+                    q = at(hw_e - 3.8, i)
+                    paint.box(q[0], q[1], yaw_of[i], 0.4, 0.4, MANMADE, 4.0, 4.9, layer=1)  # signal head
+                else:
+                    paint.disc(p[0], p[1], 0.05, MANMADE, 0.0, 2.9)
+                    paint.box(p[0], p[1], yaw_of[i] + np.pi / 2, 0.8, 0.1, MANMADE, 2.0, 2.9, layer=1)
+            if 0.55 < r_side < 0.65 and len(s) > 40:  # a bus shelter mid-block
+                i = len(s) // 2
+                p = at(hw_e + sw_e - 0.9, i)
+                if on(p, (SIDEWALK,)):
+                    paint.box(p[0], p[1], yaw_of[i], 4.0, 1.3, MANMADE, 0.0, 2.6)
             if r_side < 0.25:  # a run of barriers along the kerb
                 i0 = int(15 + r_side * 60)
                 for i in range(i0, min(i0 + 14, len(s) - 15), 2):

@@ -20,7 +20,7 @@ def test_semantic_label_filter_drops_exactly_the_pairs_whose_labels_differ():
     m.merge(points, map_labels, np.tile(np.eye(3) * 0.1, (len(points), 1, 1)), 0)
     local = m.window(np.array([-110, -110, -10]), np.array([110, 110, 20]))
     covs = np.tile(np.eye(3) * 0.1, (len(points), 1, 1))
-    args = (points, covs, labels.astype(np.int64), np.eye(3), np.zeros(3), local.pos, local.cov,
+    args = (points, covs, labels.astype(np.int64), np.eye(3), np.zeros(3), local.pos, m.cov[local.rows],
             local.labels.astype(np.int64), local.usable, local.grid, local.origin, local.dims, 0.4, 1, 0.3)
     _, _, _, found_on, kept_on = kernels.gicp_linearise(*args, True, 0.0)
     _, _, _, found_off, kept_off = kernels.gicp_linearise(*args, False, 0.0)

@@ -20,7 +20,6 @@ class LocalMap:
 
     rows: np.ndarray  # map rows of these voxels
     pos: np.ndarray
-    cov: np.ndarray
     labels: np.ndarray
     p_index: np.ndarray
     usable: np.ndarray
@@ -28,9 +27,14 @@ class LocalMap:
     origin: np.ndarray
     dims: np.ndarray
     voxel: float
+    map: "VoxelPFilterMap"  # the map these rows belong to (covariances are read from it on demand)
 
     def __len__(self) -> int:
         return len(self.rows)
+
+    @property
+    def cov(self) -> np.ndarray:
+        return self.map.cov[self.rows]
 
     def contains(self, keys: np.ndarray) -> bool:
         return bool(len(keys) == 0 or (np.all(keys.min(axis=0) >= self.origin)
@@ -69,7 +73,7 @@ class EgoMap:
         idx = np.flatnonzero(local.usable if subset is None else subset)
         rot, trans = pose[:3, :3], pose[:3, 3]
         pos = (local.pos[idx] - trans) @ rot
-        cov = kernels.rotate_covariances(local.cov[idx], np.ascontiguousarray(rot.T))
+        cov = kernels.rotate_covariances(local.map.cov[local.rows[idx]], np.ascontiguousarray(rot.T))
         origin = np.floor(np.asarray(lower) / voxel).astype(np.int64)
         dims = np.floor(np.asarray(upper) / voxel).astype(np.int64) - origin + 1
         keys = np.floor(pos / voxel).astype(np.int64)
@@ -140,8 +144,7 @@ class VoxelPFilterMap:
         origin = np.asarray(lower, np.int64)
         dims = np.asarray(upper, np.int64) - origin + 1
         grid = kernels.window_grid(self.keys[rows], origin, dims)
-        return LocalMap(rows, self.pos[rows], self.cov[rows], self.label[rows], p_index, usable, grid, origin, dims,
-                        self.voxel)
+        return LocalMap(rows, self.pos[rows], self.label[rows], p_index, usable, grid, origin, dims, self.voxel, self)
 
     def merge(self, points_world: np.ndarray, labels: np.ndarray, covs_world: np.ndarray, t: int,
               local: LocalMap | None = None) -> np.ndarray:

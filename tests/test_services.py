@@ -270,7 +270,8 @@ def test_latest_policy_drops_oldest_and_counts():
             delivered = sorted(c.poses)
         stats = {h.role: h for h in c.stats()}
         drops = stats["registration"].counters["drops"] + stats["inference"].counters["drops"]
-        assert delivered[0] == 0 and delivered[-1] == 5 and len(delivered) < 6
+        # the newest frame always gets through; which older ones were dropped depends on timing
+        assert delivered[-1] == 5 and len(delivered) < 6
         assert drops == 6 - len(delivered)
         assert stats["registration"].stages["registration"].count == len(delivered)
         session.close()
@@ -289,14 +290,18 @@ def test_model_source_runs_the_torch_network(tmp_path):
         got = []
         sub = session.declare_subscriber(keys.occupancy("cam"), lambda smp: got.append(decode(smp.payload.to_bytes(), OccupancyFrameMsg)))
         errors = ErrorLog(session, "cam")
-        time.sleep(0.3)
+        pub = session.declare_publisher(keys.camera("cam"))
+        deadline = time.monotonic() + 20
+        while not pub.matching_status.matching and time.monotonic() < deadline:  # the worker's subscriber is known
+            time.sleep(0.05)
+        time.sleep(0.5)  # and ours has reached the router
         rng = np.random.default_rng(0)
         imgs = [encode_image(rng.integers(0, 255, (90, 160, 3), dtype=np.uint8), f"CAM_{i}", np.eye(3), np.eye(4)) for i in range(6)]
         session.put(keys.camera("cam"), encode(CameraFrame(stream="cam", seq=0, stamp=0.0, images=imgs)))
         session.put(keys.camera("cam"), encode(CameraFrame(stream="cam", seq=1, stamp=0.5)))  # no images: the model cannot run
         broken = imgs[0].model_copy(update={"data": b"not a jpeg"})
         session.put(keys.camera("cam"), encode(CameraFrame(stream="cam", seq=2, stamp=1.0, images=[broken] + imgs[1:])))
-        deadline = time.monotonic() + 30
+        deadline = time.monotonic() + 60
         while (not got or len(errors.events) < 2) and time.monotonic() < deadline:
             time.sleep(0.05)
         assert len(got) == 1 and got[0].source == "model:TinyOccNet" and got[0].occupancy.voxels is not None
@@ -330,3 +335,15 @@ def test_stats_and_liveliness(service):
         assert {h.role for h in health} == roles
         for h in health:
             assert {"frames_in", "frames_out", "drops", "errors"} <= set(h.counters)
+
+
+def test_replay_of_a_synthetic_scene(service):
+    from services.commands.replay import load_scene, replay
+
+    scene = load_scene("synthetic:1", frames=3)
+    with OccVOClient(service.endpoint, "synthetic") as c:
+        out = replay(c, scene, window=2)
+        assert out["poses"] == 3 and not c.errors
+        assert np.abs(out["trajectory"] - offline([scene[i] for i in range(3)]).poses).max() <= 1e-9
+    with pytest.raises(Exception, match="synthetic:<seed>"):
+        load_scene("synthetic:x")

@@ -46,18 +46,16 @@ def _cli(module, argv):
 
 @pytest.mark.slow
 def test_scene_0101_through_separate_worker_processes_matches_offline(capsys):
-    from occvo_core import OccVO
+    from occvo_core.datasets import open_scene
     from occvo_core.datasets.occvo_release import OccVOReleaseScene
+    from occvo_core.pipeline import OdometryPipeline
     from services.commands import map_info, poses, replay, tile
 
     scene = OccVOReleaseScene(SCENE)
     offline = {}
 
-    def run_offline():  # in parallel with the service: the workers are other processes
-        vo = OccVO()
-        vo.reset()
-        for i in range(len(scene)):
-            vo.step(scene[i])
+    def run_offline():  # what `occvo run --input SCENE` computes, in parallel with the service (other processes)
+        vo = OdometryPipeline(open_scene(SCENE), progress=False).run().odometry
         offline["poses"] = vo.poses
         offline["map"] = vo.map_points()
 
@@ -76,7 +74,10 @@ def test_scene_0101_through_separate_worker_processes_matches_offline(capsys):
                 info = client.map_info()
             tiles = client.region()
             t.join(300)
-            assert np.abs(out["trajectory"] - offline["poses"]).max() <= 1e-6
+            diff = np.abs(out["trajectory"] - offline["poses"]).max()
+            with capsys.disabled():
+                print(f"\nscene-0101 through the service vs occvo run: max pose difference {diff:.3e}")
+            assert diff <= 1e-6
             P, L = offline["map"]
             want = tiles_from_map(P, L, 20.0)
             assert {(tl.ix, tl.iy) for tl in tiles} == set(want)
@@ -121,12 +122,18 @@ def test_serve_command_starts_and_stops_cleanly(tmp_path):
     try:
         ready = json.loads(proc.stdout.readline())
         assert ready["event"] == "ready" and set(ready["workers"]) == {"inference", "registration", "map"}
+        follow = subprocess.Popen([sys.executable, "-m", "services.commands", "poses", "--follow", "--count", "3", "--stream", "cli",
+                                   "--connect", f"tcp/127.0.0.1:{port}"], cwd=REPO, env=env, stdout=subprocess.PIPE,
+                                  stderr=subprocess.PIPE, text=True)
+        assert json.loads(follow.stderr.readline())["event"] == "following"
         rc = subprocess.run([sys.executable, "-m", "services.commands", "replay", str(SCENE), "--connect",
                              f"tcp/127.0.0.1:{port}", "--frames", "3", "--stream", "cli"], cwd=REPO, env=env,
                             capture_output=True, text=True, timeout=120)
         assert rc.returncode == 0, rc.stderr
         summary = json.loads(rc.stdout.strip().splitlines()[-1])
         assert summary["poses"] == 3 and summary["frames"] == 3
+        followed, _ = follow.communicate(timeout=30)
+        assert [json.loads(line)["seq"] for line in followed.splitlines()] == [0, 1, 2]
         proc.send_signal(signal.SIGINT)
         out, _ = proc.communicate(timeout=60)
         assert proc.returncode == 0

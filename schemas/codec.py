@@ -1,0 +1,71 @@
+"""msgpack codec for the messages in schemas.models: arrays as raw bytes, a size limit, kind and version checks.
+
+Every failure is a CodecError whose `code` is an ErrorEvent code and whose message names the problem.
+"""
+
+from __future__ import annotations
+
+from typing import TypeVar
+
+import msgpack
+from pydantic import BaseModel, ValidationError
+
+from schemas.models import MESSAGES, SCHEMA_VERSION
+
+DEFAULT_MAX_BYTES = 16 * 1024 * 1024  # 6 JPEG images or a 640k-voxel frame fit with room to spare
+T = TypeVar("T", bound=BaseModel)
+
+
+class CodecError(ValueError):
+    def __init__(self, code: str, message: str):
+        self.code = code
+        self.message = message
+        super().__init__(f"{code}: {message}")
+
+
+def encode(message: BaseModel, max_bytes: int = DEFAULT_MAX_BYTES) -> bytes:
+    data = msgpack.packb(message.model_dump(mode="python"), use_bin_type=True)
+    if len(data) > max_bytes:
+        raise CodecError("oversize", f"{message.kind} of {len(data)} bytes exceeds the limit of {max_bytes}")
+    return data
+
+
+def _summary(exc: ValidationError) -> str:
+    parts = []
+    for e in exc.errors()[:3]:
+        where = ".".join(str(p) for p in e["loc"]) or "message"
+        parts.append(f"{where}: {e['msg']}")
+    more = f" (+{exc.error_count() - 3} more)" if exc.error_count() > 3 else ""
+    return "; ".join(parts) + more
+
+
+def decode(data: bytes, expect: type[T] | tuple[type, ...] | None = None, max_bytes: int = DEFAULT_MAX_BYTES) -> T:
+    """bytes -> a validated message; `expect` restricts which models are accepted."""
+    if len(data) > max_bytes:
+        raise CodecError("oversize", f"payload of {len(data)} bytes exceeds the limit of {max_bytes}")
+    try:
+        obj = msgpack.unpackb(data, raw=False, strict_map_key=True)
+    except Exception as exc:  # noqa: BLE001 - msgpack raises several unrelated types on garbage
+        raise CodecError("malformed", f"not a msgpack message: {type(exc).__name__}: {exc}") from None
+    if not isinstance(obj, dict):
+        raise CodecError("malformed", f"a message is a msgpack map, got {type(obj).__name__}")
+    kind = obj.get("kind")
+    model = MESSAGES.get(kind) if isinstance(kind, str) else None
+    if model is None:
+        raise CodecError("unknown_kind", f"unknown message kind {kind!r}; known: {sorted(MESSAGES)}")
+    version = obj.get("schema_version")
+    if not isinstance(version, int) or isinstance(version, bool):
+        raise CodecError("unsupported_version", f"{kind}: schema_version missing or not an integer ({version!r})")
+    if version > SCHEMA_VERSION:
+        raise CodecError("unsupported_version", f"{kind}: schema_version {version} is newer than this build's {SCHEMA_VERSION}")
+    if version < 1:
+        raise CodecError("unsupported_version", f"{kind}: schema_version {version} is not a valid version")
+    if expect is not None:
+        allowed = expect if isinstance(expect, tuple) else (expect,)
+        if model not in allowed:
+            names = [m.model_fields["kind"].default for m in allowed]
+            raise CodecError("unknown_kind", f"expected {' or '.join(names)}, got {kind}")
+    try:
+        return model.model_validate(obj)
+    except ValidationError as exc:
+        raise CodecError("invalid_message", f"{kind}: {_summary(exc)}") from None

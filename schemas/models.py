@@ -1,0 +1,331 @@
+"""Every message occvo sends over Zenoh, as pydantic v2 models.
+
+Each message carries `kind` (which model) and `schema_version`; the codec (schemas/codec.py) checks both before
+validating. Numpy arrays travel as `Array` (dtype, shape, raw little-endian bytes) so msgpack carries them as `bin`.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Annotated, Literal
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
+
+from occvo_core.grid import NUM_CLASSES, GridSpec
+
+SCHEMA_VERSION = 1
+ALLOWED_DTYPES = ("uint8", "uint16", "int32", "int64", "float32", "float64")
+Finite = Annotated[float, Field(allow_inf_nan=False)]
+
+
+class _Model(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=False, arbitrary_types_allowed=False)
+
+
+class Array(_Model):
+    """An n-d numpy array: dtype name, shape, and the C-order little-endian bytes."""
+
+    dtype: Literal["uint8", "uint16", "int32", "int64", "float32", "float64"]
+    shape: list[Annotated[int, Field(ge=0)]]
+    data: bytes
+
+    @model_validator(mode="after")
+    def _size_matches(self) -> "Array":
+        expected = int(np.prod(self.shape, dtype=np.int64)) * np.dtype(self.dtype).itemsize
+        if len(self.data) != expected:
+            raise ValueError(f"array of dtype {self.dtype} and shape {self.shape} needs {expected} bytes, got {len(self.data)}")
+        return self
+
+    @classmethod
+    def from_numpy(cls, a: np.ndarray) -> "Array":
+        a = np.asarray(a)
+        if a.dtype.name not in ALLOWED_DTYPES:
+            raise ValueError(f"dtype {a.dtype} cannot travel; use one of {ALLOWED_DTYPES}")
+        a = np.ascontiguousarray(a, dtype=a.dtype.newbyteorder("<"))
+        return cls(dtype=a.dtype.name, shape=list(a.shape), data=a.tobytes())
+
+    def to_numpy(self) -> np.ndarray:
+        return np.frombuffer(self.data, dtype=np.dtype(self.dtype).newbyteorder("<")).reshape(self.shape)
+
+
+class GridSpecModel(_Model):
+    lower: tuple[Finite, Finite, Finite] = (-40.0, -40.0, -1.0)
+    upper: tuple[Finite, Finite, Finite] = (40.0, 40.0, 5.4)
+    voxel_size: Finite = Field(0.4, gt=0)
+
+    def to_grid(self) -> GridSpec:
+        return GridSpec(tuple(self.lower), tuple(self.upper), self.voxel_size)
+
+    @classmethod
+    def from_grid(cls, g: GridSpec) -> "GridSpecModel":
+        return cls(lower=tuple(g.lower), upper=tuple(g.upper), voxel_size=g.voxel_size)
+
+
+def _col_extremes(a: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per-column min and max of an (N,3) array; column by column is ~10x faster than axis=0 here."""
+    return np.array([a[:, i].min() for i in range(a.shape[1])]), np.array([a[:, i].max() for i in range(a.shape[1])])
+
+
+class SparseOccupancy(_Model):
+    """Occupied voxels of one grid with their labels (N,). Voxels travel either as integer indices (N,3) on the grid
+    (compact: 4 bytes a voxel; network output) or as exact float64 ego-frame coordinates (N,3) (recorded data whose
+    coordinates are voxel centres only to within rounding; replay sends these so a replay reproduces an offline run
+    bit for bit). Exactly one of `voxels` and `points` is set."""
+
+    grid: GridSpecModel = GridSpecModel()
+    voxels: Array | None = Field(None, description="(N,3) uint8 or uint16 voxel indices i, j, k on the grid")
+    points: Array | None = Field(None, description="(N,3) float64 ego-frame voxel coordinates, inside the grid")
+    labels: Array = Field(description="(N,) uint8 Occ3D class ids 0..17")
+
+    @model_validator(mode="after")
+    def _check(self) -> "SparseOccupancy":
+        if (self.voxels is None) == (self.points is None):
+            raise ValueError("set exactly one of voxels (grid indices) and points (coordinates)")
+        l = self.labels
+        grid = self.grid.to_grid()
+        if self.voxels is not None:
+            v = self.voxels
+            if v.dtype not in ("uint8", "uint16") or len(v.shape) != 2 or v.shape[1] != 3:
+                raise ValueError(f"voxels must be (N,3) uint8/uint16, got {v.dtype} {v.shape}")
+            n = v.shape[0]
+            if n and (_col_extremes(v.to_numpy())[1] >= np.array(grid.shape)).any():  # one pass on the happy path
+                over = np.any(v.to_numpy() >= np.array(grid.shape), axis=1)
+                raise ValueError(f"{int(over.sum())} voxel indices outside the grid shape {grid.shape}")
+        else:
+            v = self.points
+            if v.dtype != "float64" or len(v.shape) != 2 or v.shape[1] != 3:
+                raise ValueError(f"points must be (N,3) float64, got {v.dtype} {v.shape}")
+            n = v.shape[0]
+            p = v.to_numpy()
+            if n:
+                lo, hi = _col_extremes(p)  # NaN and inf show in the extremes: one pass when all is well
+                if not (np.isfinite(lo).all() and np.isfinite(hi).all()):
+                    bad = ~np.isfinite(p).all(axis=1)
+                    raise ValueError(f"{int(bad.sum())} points with non-finite coordinates (NaN or inf)")
+                if (lo < np.array(grid.lower)).any() or (hi >= np.array(grid.upper)).any():
+                    out = ~grid.inside(grid.indices_of(p))
+                    raise ValueError(f"{int(out.sum())} points outside the grid {grid.lower}..{grid.upper}")
+        if l.dtype != "uint8" or len(l.shape) != 1 or l.shape[0] != n:
+            raise ValueError(f"labels must be ({n},) uint8, got {l.dtype} {l.shape}")
+        if n:
+            top = int(l.to_numpy().max())
+            if top >= NUM_CLASSES:
+                raise ValueError(f"labels out of range 0..{NUM_CLASSES - 1}: max {top}")
+        return self
+
+    @classmethod
+    def from_points(cls, points: np.ndarray, labels: np.ndarray, grid: GridSpec, exact: bool = True) -> "SparseOccupancy":
+        """exact: send the coordinates as they are; else snap them to voxel indices (compact)."""
+        labels = Array.from_numpy(np.asarray(labels, dtype=np.uint8))
+        if exact:
+            return cls(grid=GridSpecModel.from_grid(grid), points=Array.from_numpy(np.asarray(points, np.float64)), labels=labels)
+        idx = grid.indices_of(points)
+        if len(idx) and not grid.inside(idx).all():
+            raise ValueError(f"{int((~grid.inside(idx)).sum())} points fall outside the grid")
+        dtype = np.uint8 if max(grid.shape) <= 256 else np.uint16
+        return cls(grid=GridSpecModel.from_grid(grid), voxels=Array.from_numpy(idx.astype(dtype)), labels=labels)
+
+    def to_points(self) -> np.ndarray:
+        """Ego-frame coordinates (N,3) float64: as sent, or the voxel centres of the indices."""
+        if self.points is not None:
+            return self.points.to_numpy().copy()
+        return self.grid.to_grid().centres_of(self.voxels.to_numpy().astype(np.int64))
+
+    def __len__(self) -> int:
+        return self.labels.shape[0]
+
+
+class _Message(_Model):
+    schema_version: int = SCHEMA_VERSION
+
+
+class _StreamMessage(_Message):
+    stream: str = Field(pattern=r"^[A-Za-z0-9_\-.]{1,64}$", description="stream id, one key chunk")
+
+
+def _finite_matrix(m: list[list[float]], rows: int, cols: int, what: str) -> list[list[float]]:
+    if len(m) != rows or any(len(r) != cols for r in m):
+        raise ValueError(f"{what} must be {rows}x{cols}")
+    if not all(math.isfinite(x) for r in m for x in r):
+        raise ValueError(f"{what} has non-finite values (NaN or inf)")
+    return m
+
+
+class CameraImage(_Model):
+    camera: str = Field(description="e.g. CAM_FRONT")
+    encoding: Literal["jpeg", "png", "raw_rgb8"]
+    width: int = Field(gt=0, le=8192)
+    height: int = Field(gt=0, le=8192)
+    data: bytes
+    intrinsics: list[list[float]] = Field(description="3x3 pinhole K")
+    extrinsics: list[list[float]] = Field(description="4x4 camera-to-ego")
+
+    @field_validator("intrinsics")
+    @classmethod
+    def _k(cls, v):
+        return _finite_matrix(v, 3, 3, "intrinsics")
+
+    @field_validator("extrinsics")
+    @classmethod
+    def _t(cls, v):
+        return _finite_matrix(v, 4, 4, "extrinsics")
+
+    @model_validator(mode="after")
+    def _raw_size(self) -> "CameraImage":
+        if self.encoding == "raw_rgb8" and len(self.data) != self.width * self.height * 3:
+            raise ValueError(f"raw_rgb8 image {self.camera} needs {self.width * self.height * 3} bytes, got {len(self.data)}")
+        return self
+
+
+class CameraFrame(_StreamMessage):
+    """The six camera images of one instant. A recorded frame may carry its ground-truth occupancy instead of,
+    or besides, the images: the `replay` inference source uses it (the paper's ground-truth occupancy row)."""
+
+    kind: Literal["camera_frame"] = "camera_frame"
+    seq: int = Field(ge=0, description="0 starts a new trajectory")
+    stamp: Finite
+    images: list[CameraImage] = Field(default_factory=list, description="0 or 6 images")
+    gt_occupancy: SparseOccupancy | None = None
+    sent_at: Finite = Field(0.0, description="publisher wall clock, seconds, for hop latency")
+
+    @field_validator("images")
+    @classmethod
+    def _six(cls, v):
+        if len(v) not in (0, 6):
+            raise ValueError(f"a camera frame has 6 images (or none for occupancy-only replay), got {len(v)}")
+        return v
+
+
+class OccupancyFrameMsg(_StreamMessage):
+    kind: Literal["occupancy_frame"] = "occupancy_frame"
+    seq: int = Field(ge=0)
+    stamp: Finite
+    source: str = Field(description="replay | model:<name>")
+    occupancy: SparseOccupancy
+    timings_ms: dict[str, Finite] = Field(default_factory=dict, description="upstream stage timings")
+    sent_at: Finite = 0.0
+
+
+Status = Literal["ok", "lost", "reinitialised"]
+
+
+class PoseEstimate(_StreamMessage):
+    kind: Literal["pose_estimate"] = "pose_estimate"
+    seq: int = Field(ge=0)
+    stamp: Finite
+    pose: list[list[float]] = Field(description="4x4 ego-to-world, first frame of a trajectory = identity")
+    status: Status
+    timings_ms: dict[str, Finite] = Field(default_factory=dict, description="per-stage timings, inference to registration")
+    sent_at: Finite = 0.0
+
+    @field_validator("pose")
+    @classmethod
+    def _p(cls, v):
+        return _finite_matrix(v, 4, 4, "pose")
+
+    def matrix(self) -> np.ndarray:
+        return np.array(self.pose, dtype=np.float64)
+
+
+class Trajectory(_StreamMessage):
+    kind: Literal["trajectory"] = "trajectory"
+    seqs: Array = Field(description="(T,) int64")
+    stamps: Array = Field(description="(T,) float64")
+    poses: Array = Field(description="(T,4,4) float64")
+
+
+class MapTileQuery(_StreamMessage):
+    """Optional query payload; without it the tile indices come from the key (a wildcard key asks for a region)."""
+
+    kind: Literal["map_tile_query"] = "map_tile_query"
+    ix_min: int | None = None
+    ix_max: int | None = None
+    iy_min: int | None = None
+    iy_max: int | None = None
+
+
+class MapTile(_StreamMessage):
+    kind: Literal["map_tile"] = "map_tile"
+    ix: int
+    iy: int
+    tile_m: Finite = Field(gt=0)
+    seq: int = Field(ge=0, description="frame whose registration last changed the tile")
+    points: Array = Field(description="(M,3) float64 world-frame voxel centres")
+    labels: Array = Field(description="(M,) uint8")
+
+    @model_validator(mode="after")
+    def _check(self) -> "MapTile":
+        if self.points.dtype != "float64" or len(self.points.shape) != 2 or self.points.shape[1] != 3:
+            raise ValueError(f"tile points must be (M,3) float64, got {self.points.dtype} {self.points.shape}")
+        if self.labels.dtype != "uint8" or self.labels.shape != [self.points.shape[0]]:
+            raise ValueError(f"tile labels must be ({self.points.shape[0]},) uint8")
+        if not np.all(np.isfinite(self.points.to_numpy())):
+            raise ValueError("tile points have non-finite values")
+        return self
+
+
+class MapUpdate(_StreamMessage):
+    """Registration worker -> map service after each frame: the tiles that changed (empty points = tile removed)."""
+
+    kind: Literal["map_update"] = "map_update"
+    seq: int = Field(ge=0)
+    reset: bool = Field(False, description="a new trajectory started: drop every tile of the stream first")
+    tile_m: Finite = Field(gt=0)
+    tiles: list[MapTile] = Field(default_factory=list)
+
+
+class MapInfo(_StreamMessage):
+    kind: Literal["map_info"] = "map_info"
+    tile_m: Finite
+    tile_count: int
+    voxel_count: int
+    last_seq: int | None
+    bounds_min: tuple[Finite, Finite, Finite] | None
+    bounds_max: tuple[Finite, Finite, Finite] | None
+    tiles: list[tuple[int, int]] = Field(default_factory=list)
+
+
+ErrorCode = Literal[
+    "malformed", "unknown_kind", "unsupported_version", "invalid_message", "oversize", "stream_mismatch",
+    "out_of_order", "missing_seq", "invalid_frame", "tile_not_found", "bad_query", "internal",
+]
+
+
+class ErrorEvent(_Message):
+    kind: Literal["error_event"] = "error_event"
+    stream: str = Field(description="stream of the offending key, or '*'")
+    worker: str
+    code: ErrorCode
+    message: str
+    key: str = ""
+    seq: int | None = None
+    stamp: Finite = 0.0
+
+
+class StageStats(_Model):
+    count: int
+    p50_ms: Finite
+    p90_ms: Finite
+    p99_ms: Finite
+    mean_ms: Finite
+
+
+class WorkerHealth(_Message):
+    kind: Literal["worker_health"] = "worker_health"
+    worker: str
+    role: Literal["inference", "registration", "map"]
+    pid: int
+    uptime_s: Finite
+    policy: Literal["lossless", "latest"]
+    streams: list[str]
+    counters: dict[str, int] = Field(description="frames_in, frames_out, drops, errors, ...")
+    queue_depth: dict[str, int] = Field(default_factory=dict)
+    stages: dict[str, StageStats] = Field(default_factory=dict)
+
+
+MESSAGES: dict[str, type[_Message]] = {
+    m.model_fields["kind"].default: m
+    for m in (CameraFrame, OccupancyFrameMsg, PoseEstimate, Trajectory, MapTileQuery, MapTile, MapUpdate, MapInfo,
+              ErrorEvent, WorkerHealth)
+}

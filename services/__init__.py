@@ -1,0 +1,1 @@
+"""occvo services: inference, registration and map workers on Zenoh, their client and CLI commands."""

@@ -1,0 +1,189 @@
+"""Python client of the occvo service over Zenoh.
+
+    with OccVOClient("tcp/127.0.0.1:7447", stream="car0") as env:
+        env.reset()
+        for frame in scene:                 # OccupancyFrame (replayed occupancy) or CameraFrame
+            pose = env.step(frame)          # PoseEstimate, like a Gymnasium env step
+        tile = env.tile(0, 1)
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+
+import numpy as np
+import zenoh
+
+from occvo_core.frame import OccupancyFrame
+from occvo_core.grid import OCC3D_GRID, GridSpec
+from schemas import keys
+from schemas.codec import CodecError, decode, encode
+from schemas.models import (
+    CameraFrame, ErrorEvent, MapInfo, MapTile, MapTileQuery, PoseEstimate, SparseOccupancy, Trajectory, WorkerHealth,
+)
+from services.runtime import DEFAULT_ENDPOINT, open_session
+
+
+class ServiceError(RuntimeError):
+    """The service answered with an error event (or did not answer in time)."""
+
+    def __init__(self, message: str, event: ErrorEvent | None = None):
+        self.event = event
+        super().__init__(message)
+
+
+def camera_frame_of(frame: OccupancyFrame, stream: str, seq: int, grid: GridSpec = OCC3D_GRID, exact: bool = True) -> CameraFrame:
+    """A recorded occupancy frame as a camera-frame message for the replay source (no images, its occupancy);
+    exact keeps the recorded coordinates bit for bit, else they are snapped to compact voxel indices."""
+    return CameraFrame(stream=stream, seq=seq, stamp=float(frame.stamp),
+                       gt_occupancy=SparseOccupancy.from_points(frame.points, frame.labels, grid, exact), sent_at=time.time())
+
+
+class OccVOClient:
+    def __init__(self, connect: str = DEFAULT_ENDPOINT, stream: str = "default", timeout: float = 60.0,
+                 session: zenoh.Session | None = None, exact: bool = True):
+        self.exact = exact
+        self.stream = keys.check_stream(stream)
+        self.timeout = timeout
+        self._own = session is None
+        self.session = session or open_session(connect)
+        self._cv = threading.Condition()
+        self.poses: dict[int, PoseEstimate] = {}
+        self.errors: list[ErrorEvent] = []
+        self._seq = 0
+        self._subs = [self.session.declare_subscriber(keys.pose(stream), self._on_pose),
+                      self.session.declare_subscriber(keys.errors(stream), self._on_error)]
+        self._pub = self.session.declare_publisher(keys.camera(stream), congestion_control=zenoh.CongestionControl.BLOCK)
+
+    # -- subscriptions
+    def _on_pose(self, sample: zenoh.Sample) -> None:
+        try:
+            pose = decode(sample.payload.to_bytes(), PoseEstimate)
+        except CodecError:
+            return  # not ours to judge; the workers only publish valid poses
+        with self._cv:
+            self.poses[pose.seq] = pose
+            self._cv.notify_all()
+
+    def _on_error(self, sample: zenoh.Sample) -> None:
+        try:
+            event = decode(sample.payload.to_bytes(), ErrorEvent)
+        except CodecError:
+            return
+        with self._cv:
+            self.errors.append(event)
+            self._cv.notify_all()
+
+    # -- Gymnasium-style driving
+    def reset(self) -> None:
+        """The next step starts a new trajectory (seq 0): the service resets this stream's odometry and map."""
+        with self._cv:
+            self._seq = 0
+            self.poses.clear()
+            self.errors.clear()
+
+    def publish(self, frame: OccupancyFrame | CameraFrame) -> int:
+        """Send one frame without waiting; returns its seq."""
+        seq = self._seq
+        msg = frame.model_copy(update={"stream": self.stream, "seq": seq, "sent_at": time.time()}) if isinstance(frame, CameraFrame) \
+            else camera_frame_of(frame, self.stream, seq, exact=self.exact)
+        self._seq += 1
+        self._pub.put(encode(msg))
+        return seq
+
+    def wait_pose(self, seq: int, timeout: float | None = None) -> PoseEstimate:
+        """The pose of `seq`; ServiceError if a worker reported an error for that seq or nothing came in time."""
+        deadline = time.monotonic() + (timeout or self.timeout)
+        with self._cv:
+            while True:
+                if seq in self.poses:
+                    return self.poses[seq]
+                bad = [e for e in self.errors if e.seq == seq and e.code not in ("missing_seq",)]
+                if bad:
+                    raise ServiceError(f"seq {seq}: {bad[0].code}: {bad[0].message}", bad[0])
+                left = deadline - time.monotonic()
+                if left <= 0:
+                    raise ServiceError(f"no pose for seq {seq} of stream {self.stream} within {timeout or self.timeout} s")
+                self._cv.wait(left)
+
+    def step(self, frame: OccupancyFrame | CameraFrame) -> PoseEstimate:
+        return self.wait_pose(self.publish(frame))
+
+    # -- queries
+    def _get(self, selector: str, expect, payload: bytes | None = None, timeout: float = 10.0) -> list:
+        out, errs = [], []
+        for reply in self.session.get(selector, payload=payload, timeout=timeout):
+            if reply.ok is not None:
+                out.append(decode(reply.ok.payload.to_bytes(), expect, 1 << 30))
+            else:
+                try:
+                    errs.append(decode(reply.err.payload.to_bytes(), ErrorEvent))
+                except CodecError:
+                    errs.append(ErrorEvent(stream=self.stream, worker="?", code="internal", message=reply.err.payload.to_bytes().decode(errors="replace")))
+        if not out and errs:
+            raise ServiceError(f"{selector}: {errs[0].code}: {errs[0].message}", errs[0])
+        return out
+
+    def tile(self, ix: int, iy: int) -> MapTile:
+        found = self._get(keys.map_tile(self.stream, ix, iy), MapTile)
+        if not found:
+            raise ServiceError(f"no reply for tile {ix},{iy} (is the map service up?)")
+        return found[0]
+
+    def region(self, ix_min: int | None = None, ix_max: int | None = None, iy_min: int | None = None, iy_max: int | None = None) -> list[MapTile]:
+        q = MapTileQuery(stream=self.stream, ix_min=ix_min, ix_max=ix_max, iy_min=iy_min, iy_max=iy_max)
+        return self._get(keys.map_tile(self.stream, "*", "*"), MapTile, payload=encode(q))
+
+    def map_points(self) -> tuple[np.ndarray, np.ndarray]:
+        tiles = self.region()
+        if not tiles:
+            return np.zeros((0, 3)), np.zeros(0, np.uint8)
+        return (np.concatenate([t.points.to_numpy() for t in tiles]), np.concatenate([t.labels.to_numpy() for t in tiles]))
+
+    def map_info(self) -> MapInfo:
+        found = self._get(keys.map_info(self.stream), MapInfo)
+        if not found:
+            raise ServiceError("no map info reply (is the map service up?)")
+        return found[0]
+
+    def pose_latest(self) -> PoseEstimate:
+        found = self._get(keys.pose_latest(self.stream), PoseEstimate)
+        if not found:
+            raise ServiceError("no pose/latest reply (is the registration worker up?)")
+        return found[0]
+
+    def trajectory(self) -> Trajectory:
+        found = self._get(keys.trajectory(self.stream), Trajectory)
+        if not found:
+            raise ServiceError("no trajectory reply (is the registration worker up?)")
+        return found[0]
+
+    def stats(self, worker: str = "*") -> list[WorkerHealth]:
+        return self._get(keys.stats(worker), WorkerHealth)
+
+    def workers(self) -> list[str]:
+        """Keys of the live workers' liveliness tokens."""
+        return sorted(str(r.ok.key_expr) for r in self.session.liveliness().get(keys.alive("*", "*"), timeout=5.0) if r.ok)
+
+    def wait_for_workers(self, roles=("inference", "registration", "map"), timeout: float = 30.0) -> None:
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            alive = {k.split("/")[2] for k in self.workers()}
+            if set(roles) <= alive:
+                return
+            time.sleep(0.1)
+        raise ServiceError(f"workers {sorted(set(roles) - alive)} not alive after {timeout} s")
+
+    def close(self) -> None:
+        for s in self._subs:
+            s.undeclare()
+        self._pub.undeclare()
+        if self._own:
+            self.session.close()
+
+    def __enter__(self) -> "OccVOClient":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()

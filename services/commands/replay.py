@@ -1,0 +1,96 @@
+"""occvo replay: publish a scene's frames to a stream, at a rate or as fast as the pipeline takes (lossless)."""
+
+from __future__ import annotations
+
+import json
+import sys
+import time
+
+import numpy as np
+
+from services.client import OccVOClient, ServiceError
+from services.commands._common import add_connection, endpoint
+
+
+def load_scene(spec: str, frames: int | None = None):
+    """A scene folder (OCC-VO release or Occ3D layout), or `synthetic:<seed>` for a generated scene."""
+    if spec.startswith("synthetic:"):
+        from occvo_core.errors import ConfigError
+        from occvo_core.sim import SyntheticScene
+
+        try:
+            seed = int(spec.split(":", 1)[1])
+        except ValueError:
+            raise ConfigError(f"synthetic scene spec is synthetic:<seed>, got {spec!r}") from None
+        return SyntheticScene(seed=seed, frames=frames or 40)
+    from occvo_core.datasets import open_scene
+
+    return open_scene(spec)
+
+
+def replay(client: OccVOClient, scene, rate_hz: float = 0.0, window: int = 4, frames: int | None = None,
+           timeout: float = 120.0, progress=None) -> dict:
+    """Publish frames 0..n-1 as one trajectory, keeping at most `window` frames in flight (application-level
+    backpressure: the next frame goes out when an earlier pose or error came back). Returns a summary."""
+    n = len(scene) if frames is None else min(frames, len(scene))
+    client.reset()
+    t0 = time.perf_counter()
+    sent_at = []
+
+    def settled() -> int:
+        with client._cv:
+            return len(client.poses) + len({e.seq for e in client.errors if e.seq is not None and e.seq not in client.poses and e.code != "missing_seq"})
+
+    for i in range(n):
+        frame = scene[i]
+        if rate_hz > 0:
+            delay = t0 + i / rate_hz - time.perf_counter()
+            if delay > 0:
+                time.sleep(delay)
+        deadline = time.monotonic() + timeout
+        with client._cv:
+            while i - settled() >= window:
+                if not client._cv.wait(max(0.0, deadline - time.monotonic())) and time.monotonic() > deadline:
+                    raise ServiceError(f"pipeline stalled: no pose for {timeout} s with {window} frames in flight")
+        sent_at.append(time.perf_counter())
+        client.publish(frame)
+        if progress:
+            progress(i, n)
+    deadline = time.monotonic() + timeout
+    with client._cv:
+        while settled() < n and time.monotonic() < deadline:
+            client._cv.wait(max(0.0, deadline - time.monotonic()))
+    elapsed = time.perf_counter() - t0
+    poses = dict(client.poses)
+    return {"stream": client.stream, "frames": n, "poses": len(poses), "errors": len(client.errors),
+            "seconds": elapsed, "fps": len(poses) / elapsed if elapsed > 0 else 0.0,
+            "trajectory": np.array([poses[s].matrix() for s in sorted(poses)]) if poses else np.zeros((0, 4, 4)),
+            "pose_msgs": poses}
+
+
+def add_parser(subparsers) -> None:
+    p = subparsers.add_parser("replay", help="publish a scene (folder or synthetic:<seed>) to the running service")
+    p.add_argument("scene", help="scene folder (OCC-VO release layout) or synthetic:<seed>")
+    add_connection(p)
+    p.add_argument("--rate", type=float, default=0.0, help="frames per second; 0 = as fast as the pipeline takes")
+    p.add_argument("--window", type=int, default=4, help="frames in flight at most (lossless replay)")
+    p.add_argument("--frames", type=int, default=None, help="replay only the first N frames")
+    p.add_argument("--timeout", type=float, default=120.0)
+    p.add_argument("--output", help="write the received trajectory (KITTI) here")
+    p.set_defaults(func=run)
+
+
+def run(args) -> int:
+    scene = load_scene(args.scene, args.frames)
+    with OccVOClient(endpoint(args), stream=args.stream) as client:
+        client.wait_for_workers(timeout=args.timeout)
+        out = replay(client, scene, args.rate, args.window, args.frames, args.timeout)
+        errors = list(client.errors)
+    if args.output and len(out["trajectory"]):
+        from occvo_core.trajectory import write_kitti
+
+        write_kitti(args.output, out["trajectory"])
+    for e in errors:
+        print(json.dumps({"error": e.code, "seq": e.seq, "message": e.message}), file=sys.stderr)
+    print(json.dumps({k: v for k, v in out.items() if k not in ("trajectory", "pose_msgs")}))
+    return 0 if out["poses"] == out["frames"] else 1

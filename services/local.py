@@ -1,0 +1,148 @@
+"""A whole occvo service on one machine: a Zenoh router plus the three workers, as separate processes
+(`occvo serve`, the end-to-end tests, benchmarks/pipeline.py) or as threads of this process (fast tests)."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+from services.runtime import WorkerConfig, free_port, open_router, open_session
+from schemas import keys
+
+REPO = Path(__file__).resolve().parents[1]
+WORKERS = {"inference": "services.inference_worker", "registration": "services.registration_worker", "map": "services.map_service"}
+
+
+def wait_alive(session, roles, timeout: float) -> None:
+    deadline = time.monotonic() + timeout
+    alive: set[str] = set()
+    while time.monotonic() < deadline:
+        alive = {str(r.ok.key_expr).split("/")[2] for r in session.liveliness().get(keys.alive("*", "*"), timeout=2.0) if r.ok}
+        if set(roles) <= alive:
+            return
+        time.sleep(0.1)
+    raise TimeoutError(f"workers {sorted(set(roles) - alive)} not alive after {timeout} s")
+
+
+class LocalService:
+    """Router in this process, workers as child processes (`python -m services.<module>`)."""
+
+    def __init__(self, endpoint: str | None = None, router_config: str | None = None, worker_args: dict | None = None,
+                 common_args: list[str] | None = None, log_dir: str | Path | None = None, quiet: bool = False):
+        self.endpoint = endpoint or f"tcp/127.0.0.1:{free_port()}"
+        self.router_config = router_config
+        self.worker_args = worker_args or {}
+        self.common_args = common_args or []
+        self.log_dir = Path(log_dir) if log_dir else None
+        self.quiet = quiet
+        self.procs: dict[str, subprocess.Popen] = {}
+        self.router = None
+
+    def start(self, timeout: float = 60.0) -> "LocalService":
+        self.router = open_router(self.endpoint, self.router_config)
+        env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(REPO), os.environ.get("PYTHONPATH", "")]).rstrip(os.pathsep))
+        try:
+            for role, module in WORKERS.items():
+                cmd = [sys.executable, "-m", module, "--connect", self.endpoint, "--worker-id", f"{role}-{os.getpid()}",
+                       *self.common_args, *self.worker_args.get(role, [])]
+                err = open(self.log_dir / f"{role}.log", "w") if self.log_dir else (subprocess.DEVNULL if self.quiet else None)
+                self.procs[role] = subprocess.Popen(cmd, cwd=REPO, env=env, stderr=err, stdout=err)
+            probe = open_session(self.endpoint)
+            try:
+                deadline = time.monotonic() + timeout
+                while True:
+                    dead = {r: p.returncode for r, p in self.procs.items() if p.poll() is not None}
+                    if dead:
+                        raise RuntimeError(f"workers exited during start-up: {dead}")
+                    try:
+                        wait_alive(probe, WORKERS, timeout=1.0)
+                        break
+                    except TimeoutError:
+                        if time.monotonic() > deadline:
+                            raise
+            finally:
+                probe.close()
+        except BaseException:
+            self.stop()
+            raise
+        return self
+
+    def stop(self, timeout: float = 30.0) -> dict[str, int | None]:
+        """Stop the workers, then the router; returns the workers' exit codes."""
+        codes = self.stop_workers(timeout)
+        if self.router is not None:
+            self.router.close()
+            self.router = None
+        return codes
+
+    def stop_workers(self, timeout: float = 30.0) -> dict[str, int | None]:
+        """SIGTERM every worker (each finishes its frame in hand), wait, kill stragglers; returns exit codes."""
+        for p in self.procs.values():
+            if p.poll() is None:
+                p.send_signal(signal.SIGTERM)
+        codes = {}
+        for role, p in self.procs.items():
+            try:
+                codes[role] = p.wait(timeout=timeout)
+            except subprocess.TimeoutExpired:
+                p.kill()
+                codes[role] = p.wait()
+        self.procs.clear()
+        return codes
+
+    def __enter__(self) -> "LocalService":
+        return self.start()
+
+    def __exit__(self, *exc) -> None:
+        self.stop()
+
+
+class InProcessService:
+    """Router and the three workers as threads of this process: same code and real Zenoh sessions, faster start."""
+
+    def __init__(self, endpoint: str | None = None, **config):
+        self.endpoint = endpoint or f"tcp/127.0.0.1:{free_port()}"
+        self.config = config
+        self.workers = []
+        self.router = None
+
+    def start(self, timeout: float = 30.0) -> "InProcessService":
+        from services.inference_worker import InferenceWorker
+        from services.map_service import MapService
+        from services.registration_worker import RegistrationWorker
+
+        self.router = open_router(self.endpoint)
+        cfg = {"log_level": "WARNING", **self.config, "connect": self.endpoint}
+        try:
+            for cls in (MapService, RegistrationWorker, InferenceWorker):
+                self.workers.append(cls(WorkerConfig(**{**cfg, "worker_id": f"{cls.role}-{id(self):x}"})).start())
+            probe = open_session(self.endpoint)
+            try:
+                wait_alive(probe, WORKERS, timeout)
+            finally:
+                probe.close()
+        except BaseException:
+            self.stop()
+            raise
+        return self
+
+    def worker(self, role: str):
+        return next(w for w in self.workers if w.role == role)
+
+    def stop(self) -> None:
+        for w in reversed(self.workers):
+            w.stop()
+        self.workers.clear()
+        if self.router is not None:
+            self.router.close()
+            self.router = None
+
+    def __enter__(self) -> "InProcessService":
+        return self.start()
+
+    def __exit__(self, *exc) -> None:
+        self.stop()

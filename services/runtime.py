@@ -1,0 +1,408 @@
+"""What every occvo worker shares: Zenoh sessions, bounded per-stream stage queues, sequence checks, counters,
+latency percentiles, a liveliness token, a stats queryable, error events, structured logs and graceful shutdown."""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import queue
+import signal
+import socket
+import sys
+import threading
+import time
+import uuid
+from collections import defaultdict, deque
+from pathlib import Path
+from typing import Callable, Literal
+
+import numpy as np
+import zenoh
+from pydantic import BaseModel, ConfigDict, Field
+
+from occvo_core.errors import ConfigError
+from schemas import keys
+from schemas.codec import DEFAULT_MAX_BYTES, CodecError, decode, encode
+from schemas.models import ErrorEvent, StageStats, WorkerHealth
+
+DEFAULT_ENDPOINT = "tcp/127.0.0.1:7447"
+Policy = Literal["lossless", "latest"]
+
+
+# ---------------------------------------------------------------- sessions
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def zenoh_config(mode: str = "client", connect: str | None = None, listen: str | None = None) -> zenoh.Config:
+    """Loopback-friendly config: no multicast scouting, explicit endpoints only."""
+    c = zenoh.Config()
+    c.insert_json5("mode", json.dumps(mode))
+    c.insert_json5("scouting/multicast/enabled", "false")
+    if connect:
+        c.insert_json5("connect/endpoints", json.dumps([connect]))
+    if listen:
+        c.insert_json5("listen/endpoints", json.dumps([listen]))
+    return c
+
+
+def open_session(connect: str = DEFAULT_ENDPOINT) -> zenoh.Session:
+    return zenoh.open(zenoh_config("client", connect=connect))
+
+
+def open_router(listen: str | None = None, config_path: str | Path | None = None) -> zenoh.Session:
+    """An in-process Zenoh router, from a json5 config file (deploy/router.json5) or a listen endpoint."""
+    if config_path is not None:
+        c = zenoh.Config.from_file(str(config_path))
+        if listen:
+            c.insert_json5("listen/endpoints", json.dumps([listen]))
+        return zenoh.open(c)
+    return zenoh.open(zenoh_config("router", listen=listen or DEFAULT_ENDPOINT))
+
+
+def router_endpoint(config_path: str | Path) -> str:
+    """The first listen endpoint of a router json5 config, for workers and clients to connect to."""
+    import json5
+
+    try:
+        eps = json5.loads(Path(config_path).read_text())["listen"]["endpoints"]
+        return eps[0]
+    except Exception as exc:  # noqa: BLE001
+        raise ConfigError(f"{config_path}: no listen/endpoints[0] ({exc})") from None
+
+
+# ---------------------------------------------------------------- logs
+
+class _JsonFormatter(logging.Formatter):
+    def format(self, record: logging.LogRecord) -> str:
+        out = {"ts": round(record.created, 6), "level": record.levelname.lower(), "logger": record.name,
+               "event": record.getMessage()}
+        out.update(getattr(record, "fields", {}))
+        return json.dumps(out, default=str)
+
+
+def structured_logger(name: str, level: str = "INFO") -> logging.Logger:
+    log = logging.getLogger(name)
+    if not log.handlers:
+        h = logging.StreamHandler(sys.stderr)
+        h.setFormatter(_JsonFormatter())
+        log.addHandler(h)
+        log.propagate = False
+    log.setLevel(level.upper())
+    return log
+
+
+def log_event(log: logging.Logger, event: str, level: int = logging.INFO, **fields) -> None:
+    log.log(level, event, extra={"fields": fields})
+
+
+# ---------------------------------------------------------------- counters and latencies
+
+class LatencyWindow:
+    """The last `size` samples of one stage, in milliseconds."""
+
+    def __init__(self, size: int = 4096):
+        self.samples: deque[float] = deque(maxlen=size)
+        self.count = 0
+
+    def add(self, ms: float) -> None:
+        self.samples.append(ms)
+        self.count += 1
+
+    def summary(self) -> StageStats:
+        a = np.array(self.samples) if self.samples else np.zeros(1)
+        p50, p90, p99 = np.percentile(a, [50, 90, 99])
+        return StageStats(count=self.count, p50_ms=p50, p90_ms=p90, p99_ms=p99, mean_ms=float(a.mean()))
+
+
+class Stats:
+    def __init__(self):
+        self._lock = threading.Lock()
+        self.counters: dict[str, int] = defaultdict(int)
+        self.stages: dict[str, LatencyWindow] = defaultdict(LatencyWindow)
+        for name in ("frames_in", "frames_out", "drops", "errors"):
+            self.counters[name] = 0
+
+    def inc(self, name: str, n: int = 1) -> None:
+        with self._lock:
+            self.counters[name] += n
+
+    def observe(self, stage: str, ms: float) -> None:
+        with self._lock:
+            self.stages[stage].add(ms)
+
+    def snapshot(self) -> tuple[dict[str, int], dict[str, StageStats]]:
+        with self._lock:
+            return dict(self.counters), {k: v.summary() for k, v in self.stages.items()}
+
+
+# ---------------------------------------------------------------- flow
+
+class StageQueue:
+    """Bounded queue between two stages. lossless: put blocks (backpressure); latest: the oldest item is dropped."""
+
+    def __init__(self, maxsize: int, policy: Policy, on_drop: Callable[[object], None], stop: threading.Event):
+        self.q: queue.Queue = queue.Queue(maxsize=maxsize)
+        self.policy = policy
+        self.on_drop = on_drop
+        self.stop = stop
+
+    def put(self, item) -> bool:
+        """False when the item could not be queued because the worker is stopping."""
+        if self.policy == "lossless":
+            while not self.stop.is_set():
+                try:
+                    self.q.put(item, timeout=0.1)
+                    return True
+                except queue.Full:
+                    continue
+            return False
+        while True:
+            try:
+                self.q.put_nowait(item)
+                return True
+            except queue.Full:
+                try:
+                    self.on_drop(self.q.get_nowait())
+                except queue.Empty:
+                    pass
+
+    def get(self, timeout: float):
+        return self.q.get(timeout=timeout)
+
+    def qsize(self) -> int:
+        return self.q.qsize()
+
+
+class SeqTracker:
+    """Per-stream sequence check. seq 0 starts a new trajectory; a gap is reported as missing, a step back as out of order."""
+
+    def __init__(self):
+        self.expected: int | None = None
+
+    def check(self, seq: int) -> tuple[bool, str | None, str | None]:
+        """(accept, error code, message)."""
+        if self.expected is None or seq == 0 or seq == self.expected:
+            self.expected = seq + 1
+            return True, None, None
+        if seq > self.expected:
+            msg = f"missing seq {self.expected}..{seq - 1} ({seq - self.expected} frames) before seq {seq}"
+            self.expected = seq + 1
+            return True, "missing_seq", msg
+        return False, "out_of_order", f"seq {seq} arrived after seq {self.expected - 1}; dropped"
+
+
+# ---------------------------------------------------------------- worker base
+
+class WorkerConfig(BaseModel):
+    """One config for every worker; fields a role does not use are ignored by it (deploy/*.json5)."""
+
+    model_config = ConfigDict(extra="forbid")
+    connect: str = DEFAULT_ENDPOINT
+    worker_id: str | None = None
+    policy: Policy = "lossless"
+    queue_size: int = Field(4, ge=1, le=1024)
+    max_message_bytes: int = Field(DEFAULT_MAX_BYTES, ge=1024)
+    log_level: str = "INFO"
+    # inference worker
+    source: Literal["replay", "model"] = "replay"
+    device: Literal["auto", "cpu", "cuda"] = "auto"
+    model_weights: str | None = None
+    torch_threads: int = Field(1, ge=1)
+    # registration worker
+    tile_m: float = Field(20.0, gt=0)
+    occvo_config: str | None = None
+
+    @classmethod
+    def load(cls, path: str | Path | None, **overrides) -> "WorkerConfig":
+        import json5
+
+        data = {}
+        if path is not None:
+            try:
+                data = json5.loads(Path(path).read_text())
+            except Exception as exc:  # noqa: BLE001
+                raise ConfigError(f"{path}: {exc}") from None
+        data.update({k: v for k, v in overrides.items() if v is not None})
+        try:
+            return cls.model_validate(data)
+        except Exception as exc:  # noqa: BLE001
+            raise ConfigError(f"worker config {path or ''}: {exc}") from None
+
+
+class StreamLane:
+    """One stream's bounded queue and the thread that runs the stage on it, in arrival (= sequence) order."""
+
+    def __init__(self, worker: "Worker", stream: str, handler: Callable[[str, object], None]):
+        self.worker, self.stream, self.handler = worker, stream, handler
+        self.busy = False
+        self.queue = StageQueue(worker.config.queue_size, worker.config.policy, self._dropped, worker.stopping)
+        self.thread = threading.Thread(target=self._run, name=f"{worker.role}-{stream}", daemon=True)
+        self.thread.start()
+
+    def _dropped(self, item) -> None:
+        self.worker.stats.inc("drops")
+        log_event(self.worker.log, "dropped oldest frame", logging.DEBUG, stream=self.stream)
+
+    def _run(self) -> None:
+        while not self.worker.stopping.is_set():
+            try:
+                item = self.queue.get(timeout=0.1)
+            except queue.Empty:
+                continue
+            self.busy = True
+            try:
+                self.handler(self.stream, item)  # the frame in hand is always finished, even when stopping
+            except Exception as exc:  # noqa: BLE001 - a worker never dies of one frame
+                seq = getattr(item[0], "seq", None) if isinstance(item, tuple) and item else None
+                self.worker.report_error(self.stream, "internal", f"{type(exc).__name__}: {exc}", seq=seq)
+                log_event(self.worker.log, "stage failed", logging.ERROR, stream=self.stream, error=repr(exc))
+            finally:
+                self.busy = False
+
+
+class Worker:
+    role: str = "worker"
+
+    def __init__(self, config: WorkerConfig):
+        self.config = config
+        self.worker_id = config.worker_id or f"{self.role}-{uuid.uuid4().hex[:8]}"
+        self.log = structured_logger(f"occvo.{self.role}", config.log_level)
+        self.stats = Stats()
+        self.stopping = threading.Event()
+        self.started = time.time()
+        self.lanes: dict[str, StreamLane] = {}
+        self.trackers: dict[str, SeqTracker] = defaultdict(SeqTracker)
+        self._lanes_lock = threading.Lock()
+        self._declared: list = []
+        self.session: zenoh.Session | None = None
+
+    # -- lifecycle
+    def start(self) -> "Worker":
+        self.session = open_session(self.config.connect)
+        self._declared.append(self.session.declare_queryable(keys.stats(self.worker_id), self._on_stats))
+        self.declare()
+        self.token = self.session.liveliness().declare_token(keys.alive(self.role, self.worker_id))
+        log_event(self.log, "started", worker=self.worker_id, connect=self.config.connect, policy=self.config.policy, pid=os.getpid())
+        return self
+
+    def declare(self) -> None:
+        """Declare the role's subscribers and queryables (append them to self._declared)."""
+
+    def stop(self) -> None:
+        """Stop taking input, finish the frame in hand on every lane, then leave the network."""
+        if self.stopping.is_set():
+            return
+        self.stopping.set()
+        for lane in list(self.lanes.values()):
+            lane.thread.join(timeout=60)
+            left = lane.queue.qsize()
+            if left:
+                self.stats.inc("abandoned_at_shutdown", left)
+        counters, _ = self.stats.snapshot()
+        log_event(self.log, "stopped", worker=self.worker_id, **counters)
+        try:
+            self.token.undeclare()
+        except Exception:  # noqa: BLE001
+            pass
+        for d in self._declared:
+            try:
+                d.undeclare()
+            except Exception:  # noqa: BLE001
+                pass
+        if self.session is not None:
+            self.session.close()
+
+    def run_forever(self) -> int:
+        """Until SIGTERM or SIGINT; returns the exit code."""
+        requested = threading.Event()
+        for sig in (signal.SIGTERM, signal.SIGINT):
+            signal.signal(sig, lambda *_: requested.set())
+        self.start()
+        while not requested.wait(0.2):
+            pass
+        log_event(self.log, "shutdown requested", worker=self.worker_id)
+        self.stop()
+        return 0
+
+    # -- helpers for roles
+    def lane(self, stream: str, handler: Callable[[str, object], None]) -> StreamLane:
+        with self._lanes_lock:
+            lane = self.lanes.get(stream)
+            if lane is None:
+                lane = self.lanes[stream] = StreamLane(self, stream, handler)
+                log_event(self.log, "new stream", stream=stream)
+            return lane
+
+    def decode_input(self, sample: zenoh.Sample, expect):
+        """Decode and check a sample; on any problem report it and return None."""
+        key = str(sample.key_expr)
+        stream = keys.stream_of(key)
+        self.stats.inc("frames_in")
+        try:
+            msg = decode(sample.payload.to_bytes(), expect, self.config.max_message_bytes)
+        except CodecError as exc:
+            self.report_error(stream, exc.code, exc.message, key)
+            return None
+        if getattr(msg, "stream", stream) != stream:
+            self.report_error(stream, "stream_mismatch", f"message says stream {msg.stream!r} but came on {key}", key, getattr(msg, "seq", None))
+            return None
+        return msg
+
+    def check_seq(self, stream: str, seq: int, key: str) -> bool:
+        ok, code, message = self.trackers[stream].check(seq)
+        if code:
+            self.stats.inc(code)
+            self.report_error(stream, code, message, key, seq)
+        return ok
+
+    def report_error(self, stream: str, code: str, message: str, key: str = "", seq: int | None = None) -> ErrorEvent:
+        self.stats.inc("errors")
+        event = ErrorEvent(stream=stream if keys.STREAM_RE.match(stream) else "*", worker=self.worker_id, code=code,
+                           message=message, key=key, seq=seq, stamp=time.time())
+        log_event(self.log, "error", logging.WARNING, **event.model_dump(exclude={"kind", "schema_version"}))
+        if self.session is not None and not self.session.is_closed():
+            try:
+                self.session.put(keys.errors(event.stream if event.stream != "*" else "_"), encode(event))
+            except Exception as exc:  # noqa: BLE001
+                log_event(self.log, "cannot publish error event", logging.ERROR, error=repr(exc))
+        return event
+
+    def reply_error(self, query: zenoh.Query, stream: str, code: str, message: str) -> None:
+        event = self.report_error(stream, code, message, str(query.key_expr))
+        query.reply_err(encode(event))
+
+    def health(self) -> WorkerHealth:
+        counters, stages = self.stats.snapshot()
+        return WorkerHealth(worker=self.worker_id, role=self.role, pid=os.getpid(), uptime_s=time.time() - self.started,
+                            policy=self.config.policy, streams=self.streams(),
+                            counters=counters, queue_depth={s: l.queue.qsize() for s, l in self.lanes.items()}, stages=stages)
+
+    def streams(self) -> list[str]:
+        return sorted(set(self.lanes) | set(self.trackers))
+
+    def _on_stats(self, query: zenoh.Query) -> None:
+        query.reply(keys.stats(self.worker_id), encode(self.health()))
+
+
+def worker_main(worker_cls: type[Worker], argv: list[str] | None = None, extra_args: Callable | None = None) -> int:
+    """`python -m services.<role>_worker [--config deploy/x.json5] [--connect ...] ...`"""
+    import argparse
+
+    p = argparse.ArgumentParser(prog=f"python -m {worker_cls.__module__}", description=worker_cls.__doc__)
+    p.add_argument("--config", help="worker json5 config (deploy/*.json5)")
+    p.add_argument("--connect", help=f"router endpoint (default {DEFAULT_ENDPOINT})")
+    p.add_argument("--worker-id")
+    p.add_argument("--policy", choices=["lossless", "latest"])
+    p.add_argument("--queue-size", type=int)
+    p.add_argument("--max-message-bytes", type=int)
+    p.add_argument("--log-level")
+    if extra_args:
+        extra_args(p)
+    args = vars(p.parse_args(argv))
+    config = WorkerConfig.load(args.pop("config"), **args)
+    return worker_cls(config).run_forever()

@@ -43,15 +43,7 @@ class InferenceWorker(Worker):
         self._declared.append(self.session.declare_subscriber(keys.camera("*"), self._on_camera))
 
     def _on_camera(self, sample: zenoh.Sample) -> None:
-        t_recv = time.time()
-        msg = self.decode_input(sample, CameraFrame)
-        if msg is None or self.stopping.is_set():
-            return
-        key = str(sample.key_expr)
-        if not self.check_seq(msg.stream, msg.seq, key):
-            return
-        hop_ms = (t_recv - msg.sent_at) * 1000.0 if msg.sent_at > 0 else 0.0
-        self.lane(msg.stream, self._infer).queue.put((msg, hop_ms, time.perf_counter()))
+        self.enqueue(sample, CameraFrame, self._infer)
 
     def _infer(self, stream: str, item) -> None:
         msg, hop_ms, t_queued = item

@@ -66,14 +66,7 @@ class RegistrationWorker(Worker):
             return self.states[stream]
 
     def _on_occupancy(self, sample: zenoh.Sample) -> None:
-        t_recv = time.time()
-        msg = self.decode_input(sample, OccupancyFrameMsg)
-        if msg is None or self.stopping.is_set():
-            return
-        if not self.check_seq(msg.stream, msg.seq, str(sample.key_expr)):
-            return
-        hop_ms = (t_recv - msg.sent_at) * 1000.0 if msg.sent_at > 0 else 0.0
-        self.lane(msg.stream, self._register).queue.put((msg, hop_ms, time.perf_counter()))
+        self.enqueue(sample, OccupancyFrameMsg, self._register)
 
     def _register(self, stream: str, item) -> None:
         msg, hop_ms, t_queued = item

@@ -338,6 +338,18 @@ class Worker:
                 log_event(self.log, "new stream", stream=stream)
             return lane
 
+    def enqueue(self, sample: zenoh.Sample, expect, handler: Callable[[str, object], None]) -> None:
+        """Decode a stream message, check its sequence number and queue it on its stream's lane with its hop
+        latency; bad messages are reported by decode_input and check_seq, never raised."""
+        t_recv = time.time()
+        msg = self.decode_input(sample, expect)
+        if msg is None or self.stopping.is_set():
+            return
+        if not self.check_seq(msg.stream, msg.seq, str(sample.key_expr)):
+            return
+        hop_ms = (t_recv - msg.sent_at) * 1000.0 if msg.sent_at > 0 else 0.0
+        self.lane(msg.stream, handler).queue.put((msg, hop_ms, time.perf_counter()))
+
     def decode_input(self, sample: zenoh.Sample, expect):
         """Decode and check a sample; on any problem report it and return None."""
         key = str(sample.key_expr)

@@ -138,8 +138,8 @@ def first_per_block(ijk, factor, shape):
 def nearest_in_window(q, map_pos, grid, origin, dims, voxel, radius, usable):
     """Nearest usable map point to q within `radius` voxel rings: (index or -1, squared distance).
 
-    Rings are searched outwards; after ring r every unsearched point is at least r voxels away, so the search
-    stops as soon as the best distance is below that."""
+    Rings are searched outwards and the search stops as soon as the best distance is below the distance to the
+    faces of the cube searched so far."""
     ci = int(np.floor(q[0] / voxel)) - origin[0]
     cj = int(np.floor(q[1] / voxel)) - origin[1]
     ck = int(np.floor(q[2] / voxel)) - origin[2]
@@ -172,8 +172,15 @@ def nearest_in_window(q, map_pos, grid, origin, dims, voxel, radius, usable):
                                 best_d2 = d
                                 best = m
                     dk += step if step > 0 else 1
-        if best >= 0 and best_d2 <= (r * voxel) ** 2:
-            break
+        if best >= 0:
+            # every unsearched point lies outside the searched cube: stop once the best is nearer than its faces
+            gap = np.inf
+            for a, c in ((0, ci), (1, cj), (2, ck)):
+                lo_face = (c + origin[a] - r) * voxel
+                hi_face = (c + origin[a] + r + 1) * voxel
+                gap = min(gap, q[a] - lo_face, hi_face - q[a])
+            if best_d2 <= gap * gap:
+                break
     return best, best_d2
 
 

@@ -20,7 +20,7 @@ from occvo_core.registration.voxel_map import EgoMap, VoxelPFilterMap
 _GRID_CORNERS = np.array(np.meshgrid(*zip(OCC3D_GRID.lower, OCC3D_GRID.upper), indexing="ij")).reshape(3, -1).T
 GROUND_CLASSES = (11, 12, 13, 14)  # driveable surface, other flat, sidewalk, terrain
 _EGO_LOWER, _EGO_UPPER = np.array(OCC3D_GRID.lower), np.array(OCC3D_GRID.upper)
-STAGES = ("preprocess", "initial_guess", "coarse_gicp", "dynamic_object_filter", "fine_gicp", "voxel_pfilter")
+STAGES = ("preprocess", "initial_guess", "local_map", "coarse_gicp", "dynamic_object_filter", "fine_gicp", "voxel_pfilter")
 
 
 @dataclass
@@ -113,9 +113,10 @@ class OccVO:
         """Coarse GICP -> semantic label filter -> dynamic object filter -> fine GICP -> voxel pfilter."""
         cfg = self.config.gicp
         guess = self._initial_guess(frame)
+        watch.lap("initial_guess")
         local = self._local_map(guess, t)  # local.usable: the voxel pfilter's reliable voxels (p-index > threshold)
         ego = EgoMap.build(local, guess, _EGO_LOWER - self._margin, _EGO_UPPER + self._margin, self.map.voxel)
-        watch.lap("initial_guess")
+        watch.lap("local_map")
         coarse = self._gicp(frame, frame.coarse, ego.pooled(cfg.coarse_map_voxel_m), np.eye(4),
                             cfg.coarse_max_correspondence_m, cfg.coarse_iterations)
         watch.lap("coarse_gicp")

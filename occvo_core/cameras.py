@@ -232,37 +232,40 @@ def render(
     _cast_rays(origins, dirs, semantics, np.asarray(grid.lower, np.float64), float(grid.voxel_size), label, depth, axis, cell, visible)
 
     hit = label != 255
-    colours = CLASS_COLORS.astype(np.float64)
-    rgb = np.zeros((n, h, w, 3))
+    colours = CLASS_COLORS.astype(np.float32)
+    dirs = dirs.astype(np.float32)
+    depth32 = depth.astype(np.float32)
     # Lambert shading on the hit face: normal = signed axis recorded by the DDA.
-    sun = np.asarray(style.sun, np.float64)
+    sun = np.asarray(style.sun, np.float32)
     sun = sun / np.linalg.norm(sun)
     a = np.abs(axis.astype(np.int64))
     normal_dot = np.where(a > 0, np.sign(axis) * sun[np.clip(a - 1, 0, 2)], 0.5)
     shade = 0.45 + 0.55 * np.clip(normal_dot, 0.0, 1.0)
     # Per-voxel texture from a hash of the voxel index: neighbouring voxels of one class differ a little.
     hsh = (cell[..., 0] * 73856093) ^ (cell[..., 1] * 19349663) ^ (cell[..., 2] * 83492791)
-    tex = 1.0 + style.texture * ((hsh % 1000) / 500.0 - 1.0)
+    tex = (1.0 + style.texture * ((hsh % 1000) / 500.0 - 1.0)).astype(np.float32)
     # Darken voxel edges so shapes are visible inside uniform regions.
-    p = origins[:, None, None, :] + dirs * np.where(hit, depth, 0.0)[..., None]
-    frac = (p - np.asarray(grid.lower)) / grid.voxel_size
+    p = origins.astype(np.float32)[:, None, None, :] + dirs * np.where(hit, depth32, 0.0)[..., None]
+    frac = (p - np.asarray(grid.lower, np.float32)) / np.float32(grid.voxel_size)
     frac = np.abs(frac - np.round(frac))  # distance to the nearest voxel boundary, in voxels
     on_face = np.ones_like(frac, dtype=bool)
     on_face[np.arange(3)[None, None, None, :] == (a[..., None] - 1)] = False  # ignore the axis of the face itself
     edge = np.where(on_face, frac, 1.0).min(axis=-1) < 0.06
     base = colours[label.clip(0, FREE)]
     base = np.where(label[..., None] == 0, 40.0, base)  # "others" is black in the palette: make it dark grey, not void
-    rgb = base * (shade * tex * np.where(edge, 0.8, 1.0))[..., None]
+    rgb = base * (shade * tex * np.where(edge, 0.8, 1.0)).astype(np.float32)[..., None]
     # Background: sky gradient above the horizon, far ground below it.
     up = dirs[..., 2]
-    sky = np.array([120.0, 165.0, 225.0]) + (np.array([205.0, 215.0, 230.0]) - np.array([120.0, 165.0, 225.0])) * np.exp(-8 * np.clip(up, 0, 1))[..., None]
-    ground = np.array([95.0, 92.0, 88.0])
+    zenith, horizon = np.array([120, 165, 225], np.float32), np.array([205, 215, 230], np.float32)
+    sky = zenith + (horizon - zenith) * np.exp(-8 * np.clip(up, 0, 1))[..., None]
+    ground = np.array([95, 92, 88], np.float32)
     background = np.where((up > 0)[..., None], sky, ground)
     rgb = np.where(hit[..., None], rgb, background)
     # Distance fog: far background is fully fogged.
-    fog_w = 1.0 - np.exp(-np.where(hit, depth, np.where(up > 0, 0.0, 1e3)) / style.fog_distance_m)
-    rgb = rgb * (1 - fog_w[..., None]) + np.asarray(style.fog_color) * fog_w[..., None]
-    gain = 1.0 + style.colour_jitter * rng.uniform(-1, 1, size=(n, 1, 1, 3))
-    rgb = rgb * gain + rng.normal(0.0, style.noise_sigma, size=rgb.shape)
+    fog_w = 1.0 - np.exp(-np.where(hit, depth32, np.where(up > 0, 0.0, 1e3)) / np.float32(style.fog_distance_m))
+    rgb = rgb * (1 - fog_w[..., None]) + np.asarray(style.fog_color, np.float32) * fog_w[..., None]
+    gain = (1.0 + style.colour_jitter * rng.uniform(-1, 1, size=(n, 1, 1, 3))).astype(np.float32)
+    noise = rng.standard_normal(size=rgb.shape, dtype=np.float32) * np.float32(style.noise_sigma)
+    rgb = rgb * gain + noise
     images = np.clip(rgb, 0, 255).astype(np.uint8)
     return RenderedFrame(images, depth.astype(np.float32), label, visible)

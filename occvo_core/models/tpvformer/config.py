@@ -1,0 +1,95 @@
+"""One typed configuration for TPV-Former, with the `paper` and `tiny` presets."""
+
+from __future__ import annotations
+
+from typing import Literal
+
+from pydantic import BaseModel, ConfigDict, Field, model_validator
+
+from occvo_core.errors import ConfigError
+from occvo_core.grid import NUM_CLASSES, OCC3D_GRID
+
+
+class _Section(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+
+class BackboneConfig(_Section):
+    block: Literal["basic", "bottleneck"] = "bottleneck"
+    layers: tuple[int, int, int, int] = (3, 4, 23, 3)  # ResNet-101
+    stem_channels: int = Field(64, ge=4)
+    widths: tuple[int, int, int, int] = (64, 128, 256, 512)  # bottleneck outputs are 4x these
+    out_stages: tuple[int, ...] = (1, 2, 3)  # 0-based stages fed to the FPN
+    fpn_channels: int = Field(256, ge=4)
+    num_levels: int = Field(4, ge=1, description="FPN outputs: one per out stage, then stride-2 extra convs")
+
+
+class TPVFormerConfig(_Section):
+    input_size: tuple[int, int] = (1600, 900)  # width, height of each camera image this preset is trained for
+    backbone: BackboneConfig = BackboneConfig()
+    tpv_h: int = Field(200, ge=1, description="plane size along ego x")
+    tpv_w: int = Field(200, ge=1, description="plane size along ego y")
+    tpv_z: int = Field(16, ge=1, description="plane size along ego z")
+    embed_dims: int = Field(256, ge=8)
+    num_heads: int = Field(8, ge=1)
+    ffn_dims: int = Field(512, ge=8)
+    num_layers: int = Field(3, ge=1)
+    dropout: float = Field(0.1, ge=0, lt=1)
+    points_in_pillar: tuple[int, int, int] = (4, 32, 32)  # 3D anchors per query of the HW, ZH, WZ planes
+    sampling_points: tuple[int, int, int] = (8, 64, 64)  # image sampling points per head and level, per plane
+    hybrid_anchors: int = Field(4, ge=1, description="anchors on each other plane for cross-view hybrid attention")
+    hybrid_points: int = Field(4, ge=1, description="sampling points per head per plane in cross-view hybrid attention")
+    decoder_hidden: int = Field(512, ge=8)
+    decoder_out: int = Field(256, ge=8)
+    decode_shape: tuple[int, int, int] | None = Field(None, description="run the voxel MLP here, then upsample the logits "
+                                                      "trilinearly to the grid; None = at the grid resolution")
+    num_classes: int = NUM_CLASSES
+    free_logit_bias: float = Field(0.0, description="added to the free-class logit at inference: undoes the class "
+                                   "weighting's push towards occupied; calibrated on training scenes after training")
+    grid_shape: tuple[int, int, int] = OCC3D_GRID.shape
+    lower: tuple[float, float, float] = OCC3D_GRID.lower
+    upper: tuple[float, float, float] = OCC3D_GRID.upper
+    query_chunk: int = Field(16384, ge=64, description="queries sampled at once: bounds peak memory")
+    decoder_chunk: int = Field(25, ge=1, description="x-slices of the voxel grid decoded at once")
+
+    @model_validator(mode="after")
+    def _check(self) -> "TPVFormerConfig":
+        for name, size, full in (("tpv_h", self.tpv_h, self.grid_shape[0]), ("tpv_w", self.tpv_w, self.grid_shape[1]),
+                                 ("tpv_z", self.tpv_z, self.grid_shape[2])):
+            if size > full:
+                raise ValueError(f"{name}={size} is finer than the grid ({full})")
+        if self.embed_dims % self.num_heads:
+            raise ValueError(f"embed_dims {self.embed_dims} not divisible by num_heads {self.num_heads}")
+        for a, p in zip(self.points_in_pillar, self.sampling_points):
+            if p % a:
+                raise ValueError(f"sampling_points {self.sampling_points} must be multiples of points_in_pillar {self.points_in_pillar}")
+        if self.hybrid_points % self.hybrid_anchors:
+            raise ValueError("hybrid_points must be a multiple of hybrid_anchors")
+        if self.backbone.num_levels < len(self.backbone.out_stages):
+            raise ValueError("num_levels must be at least the number of out stages")
+        return self
+
+
+PRESETS: dict[str, TPVFormerConfig] = {
+    # The published sizes (ResNet-101 + FPN, 4 levels, 256 dims, 3 layers) with TPV planes at the full 200x200x16 grid.
+    "paper": TPVFormerConfig(),
+    # Trainable on 2 CPU cores in minutes: 1/8-resolution images, a small ResNet, planes 50x50x8 upsampled to the grid.
+    "tiny": TPVFormerConfig(
+        input_size=(200, 112),
+        backbone=BackboneConfig(block="basic", layers=(1, 1, 1, 1), stem_channels=16, widths=(16, 32, 48, 64),
+                                out_stages=(1, 2, 3), fpn_channels=48, num_levels=3),
+        tpv_h=50, tpv_w=50, tpv_z=8, embed_dims=48, num_heads=4, ffn_dims=96, num_layers=2, dropout=0.0,
+        points_in_pillar=(4, 8, 8), sampling_points=(4, 8, 8), hybrid_anchors=2, hybrid_points=2,
+        decoder_hidden=32, decoder_out=32, decode_shape=(100, 100, 16),
+    ),
+}
+
+
+def preset(name: str, **overrides) -> TPVFormerConfig:
+    """A named preset, optionally with top-level fields replaced (validated again)."""
+    if name not in PRESETS:
+        raise ConfigError(f"unknown TPV-Former preset {name!r}; choose one of {sorted(PRESETS)}")
+    try:
+        return TPVFormerConfig.model_validate({**PRESETS[name].model_dump(), **overrides})
+    except Exception as exc:  # noqa: BLE001 - one clear error for a bad override
+        raise ConfigError(f"preset {name!r} with {overrides}: {exc}") from None

@@ -204,3 +204,27 @@ def test_image_source_runs_images_through_the_network(tmp_path):
     assert frame.index == 1 and frame.meta["source"] == "tpvformer" and frame.stamp == pytest.approx(scene.times[1])
     assert frame.points.shape[1] == 3 and len(frame.points) == len(frame.labels) and np.all(frame.labels != FREE)
     assert len(source) == 2 and source.gt_poses.shape == (2, 4, 4)
+
+
+def test_occvo_run_from_images_runs_the_whole_chain(tmp_path):
+    """images -> TPV-Former -> occupancy -> OccVO through the CLI (an untrained tiny model: the chain, not accuracy)."""
+    import json
+    import subprocess
+    import sys
+
+    from occvo_core.models.tpvformer.checkpoint import save_checkpoint
+    from occvo_core.models.tpvformer.config import preset
+    from occvo_core.models.tpvformer.model import TPVFormer
+
+    torch.manual_seed(0)
+    ckpt = save_checkpoint(tmp_path / "tiny.pt", TPVFormer(preset("tiny")))
+    out = tmp_path / "out"
+    proc = subprocess.run([sys.executable, "-m", "occvo_core.cli", "run", "--synthetic", "--from-images", "--checkpoint",
+                           str(ckpt), "--frames", "3", "--out", str(out), "--quiet"], capture_output=True, text=True,
+                          timeout=300)
+    assert proc.returncode == 0, proc.stderr
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["frames"] == 3 and summary["scene"].endswith("-from-images")
+    missing = subprocess.run([sys.executable, "-m", "occvo_core.cli", "run", "--from-images", "--out", str(out)],
+                             capture_output=True, text=True)
+    assert missing.returncode == 2 and "--from-images needs --checkpoint" in missing.stderr

@@ -21,6 +21,10 @@ def add_parser(sub) -> None:
     p.add_argument("--seed", type=int, default=0, help="synthetic scene seed (no --input)")
     p.add_argument("--frames", type=int, default=40, help="synthetic scene length (no --input)")
     p.add_argument("--noise", default="default", help="synthetic prediction noise preset: none, default, heavy")
+    p.add_argument("--synthetic", action="store_true", help="a synthetic scene (the default when no --input is given)")
+    p.add_argument("--from-images", action="store_true",
+                   help="render the synthetic scene's six cameras and predict occupancy with --checkpoint")
+    p.add_argument("--checkpoint", type=Path, help="TPV-Former checkpoint for --from-images (occvo train-occ writes one)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=run)
 
@@ -36,17 +40,28 @@ def run(args) -> int:
     from occvo_core.datasets import open_scene
     from occvo_core.pipeline import OdometryPipeline
 
+    from occvo_core.errors import ConfigError
+
+    if args.input is not None and (args.synthetic or args.from_images):
+        raise ConfigError("--input reads a recorded scene; --synthetic and --from-images make one: give one or the other")
+    if args.from_images and args.checkpoint is None:
+        raise ConfigError("--from-images needs --checkpoint (a model from occvo train-occ)")
     if args.input is None:
         from occvo_core.sim import SyntheticScene
 
-        source = SyntheticScene(seed=args.seed, frames=args.frames, noise=args.noise)
+        source = truth = SyntheticScene(seed=args.seed, frames=args.frames, noise=args.noise)
+        if args.from_images:
+            from occvo_core.models.image_source import ImageOccupancySource
+            from occvo_core.models.tpvformer.predictor import OccupancyPredictor
+
+            source = ImageOccupancySource(source, OccupancyPredictor(args.checkpoint))
     else:
         source = open_scene(args.input, gt=args.gt)
     pipeline = OdometryPipeline(source, config_from_args(args), skip_bad_frames=args.skip_bad_frames,
                                 progress=not args.quiet).run()
     extra = {}
     if args.input is None:
-        extra["map_metrics"] = _synthetic_map_metrics(source, pipeline)
+        extra["map_metrics"] = _synthetic_map_metrics(truth, pipeline)
     summary = pipeline.write(args.out, extra)
     print(json.dumps({k: summary[k] for k in summary if k not in ("skipped_frames",)}, indent=2, default=float))
     print(f"wrote {args.out}/: trajectory.kitti trajectory.tum map.ply map.npz map_voxels.npz trajectory.png summary.json")

@@ -294,19 +294,26 @@ def test_model_source_runs_the_torch_network(tmp_path):
         deadline = time.monotonic() + 20
         while not pub.matching_status.matching and time.monotonic() < deadline:  # the worker's subscriber is known
             time.sleep(0.05)
-        time.sleep(0.5)  # and ours has reached the router
+        # our subscribers must have reached the router too: probe with image-less frames until an error comes back
+        seq = 0
+        while not errors.events and time.monotonic() < deadline + 20:
+            session.put(keys.camera("cam"), encode(CameraFrame(stream="cam", seq=seq, stamp=0.0)))
+            seq += 1
+            time.sleep(0.2)
+        time.sleep(0.5)
+        probes = len(errors.events)
         rng = np.random.default_rng(0)
         imgs = [encode_image(rng.integers(0, 255, (90, 160, 3), dtype=np.uint8), f"CAM_{i}", np.eye(3), np.eye(4)) for i in range(6)]
-        session.put(keys.camera("cam"), encode(CameraFrame(stream="cam", seq=0, stamp=0.0, images=imgs)))
-        session.put(keys.camera("cam"), encode(CameraFrame(stream="cam", seq=1, stamp=0.5)))  # no images: the model cannot run
+        session.put(keys.camera("cam"), encode(CameraFrame(stream="cam", seq=seq, stamp=0.0, images=imgs)))
+        session.put(keys.camera("cam"), encode(CameraFrame(stream="cam", seq=seq + 1, stamp=0.5)))  # no images: the model cannot run
         broken = imgs[0].model_copy(update={"data": b"not a jpeg"})
-        session.put(keys.camera("cam"), encode(CameraFrame(stream="cam", seq=2, stamp=1.0, images=[broken] + imgs[1:])))
+        session.put(keys.camera("cam"), encode(CameraFrame(stream="cam", seq=seq + 2, stamp=1.0, images=[broken] + imgs[1:])))
         deadline = time.monotonic() + 60
-        while (not got or len(errors.events) < 2) and time.monotonic() < deadline:
+        while (not got or len(errors.events) < probes + 2) and time.monotonic() < deadline:
             time.sleep(0.05)
         assert len(got) == 1 and got[0].source == "model:TinyOccNet" and got[0].occupancy.voxels is not None
         assert got[0].timings_ms["inference"] > 0
-        msgs = " ".join(e.message for e in errors.events)
+        msgs = " ".join(e.message for e in errors.events[probes:])
         assert "needs 6 camera images" in msgs and "cannot decode jpeg" in msgs
         sub.undeclare()
     finally:

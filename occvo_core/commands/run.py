@@ -20,6 +20,7 @@ def add_parser(sub) -> None:
     p.add_argument("--skip-bad-frames", action="store_true", help="skip frames that fail validation instead of stopping")
     p.add_argument("--seed", type=int, default=0, help="synthetic scene seed (no --input)")
     p.add_argument("--frames", type=int, default=40, help="synthetic scene length (no --input)")
+    p.add_argument("--rate", type=float, default=2.0, help="synthetic frame rate in Hz (no --input)")
     p.add_argument("--noise", default="default", help="synthetic prediction noise preset: none, default, heavy")
     p.add_argument("--synthetic", action="store_true", help="a synthetic scene (the default when no --input is given)")
     p.add_argument("--from-images", action="store_true",
@@ -49,7 +50,7 @@ def run(args) -> int:
     if args.input is None:
         from occvo_core.sim import SyntheticScene
 
-        source = truth = SyntheticScene(seed=args.seed, frames=args.frames, noise=args.noise)
+        source = truth = SyntheticScene(seed=args.seed, frames=args.frames, rate_hz=args.rate, noise=args.noise)
         if args.from_images:
             from occvo_core.models.image_source import ImageOccupancySource
             from occvo_core.models.tpvformer.predictor import OccupancyPredictor

@@ -169,7 +169,7 @@ class StageQueue:
                 try:
                     self.on_drop(self.q.get_nowait())
                 except queue.Empty:
-                    pass
+                    continue  # a consumer took the oldest meanwhile: there is room now, put again
 
     def get(self, timeout: float):
         return self.q.get(timeout=timeout)
@@ -305,15 +305,11 @@ class Worker:
                 self.stats.inc("abandoned_at_shutdown", left)
         counters, _ = self.stats.snapshot()
         log_event(self.log, "stopped", worker=self.worker_id, **counters)
-        try:
-            self.token.undeclare()
-        except Exception:  # noqa: BLE001
-            pass
-        for d in self._declared:
+        for entity in (self.token, *self._declared):
             try:
-                d.undeclare()
-            except Exception:  # noqa: BLE001
-                pass
+                entity.undeclare()
+            except Exception as exc:  # noqa: BLE001 - the session may already be gone; shutting down regardless
+                self.log.debug("undeclare at shutdown failed: %s", exc)
         if self.session is not None:
             self.session.close()
 
@@ -323,8 +319,8 @@ class Worker:
         for sig in (signal.SIGTERM, signal.SIGINT):
             signal.signal(sig, lambda *_: requested.set())
         self.start()
-        while not requested.wait(0.2):
-            pass
+        while not requested.wait(0.2):  # short waits keep the main thread responsive to signals
+            continue
         log_event(self.log, "shutdown requested", worker=self.worker_id)
         self.stop()
         return 0

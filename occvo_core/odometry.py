@@ -20,7 +20,6 @@ from occvo_core.registration.voxel_map import EgoMap, VoxelPFilterMap
 _GRID_CORNERS = np.array(np.meshgrid(*zip(OCC3D_GRID.lower, OCC3D_GRID.upper), indexing="ij")).reshape(3, -1).T
 GROUND_CLASSES = (11, 12, 13, 14)  # driveable surface, other flat, sidewalk, terrain
 _EGO_LOWER, _EGO_UPPER = np.array(OCC3D_GRID.lower), np.array(OCC3D_GRID.upper)
-STAGES = ("preprocess", "initial_guess", "local_map", "coarse_gicp", "dynamic_object_filter", "fine_gicp", "voxel_pfilter")
 
 
 @dataclass

@@ -205,8 +205,10 @@ def _inv3_sym(c):
 
 
 @njit(cache=_CACHE)
-def _gicp_chunk(lo, hi, src, src_cov, src_lab, rot, trans, map_pos, map_cov, map_lab, usable, grid, origin, dims,
-                voxel, radius, max_dist, semantic_label_filter, robust_scale):
+def gicp_linearise(src, src_cov, src_lab, rot, trans, map_pos, map_cov, map_lab, usable, grid, origin, dims, voxel,
+                   radius, max_dist, semantic_label_filter, robust_scale):
+    """One Gauss-Newton step of GICP: H, g of the Mahalanobis cost, plus counts of pairs found and kept.
+    One thread on purpose: the registration worker shares its cores with inference in the pipeline."""
     h = np.zeros((6, 6))
     g = np.zeros(6)
     cost = 0.0
@@ -220,7 +222,7 @@ def _gicp_chunk(lo, hi, src, src_cov, src_lab, rot, trans, map_pos, map_cov, map
     j[0, 3] = -1.0
     j[1, 4] = -1.0
     j[2, 5] = -1.0
-    for n in range(lo, hi):
+    for n in range(src.shape[0]):
         for a in range(3):
             q[a] = rot[a, 0] * src[n, 0] + rot[a, 1] * src[n, 1] + rot[a, 2] * src[n, 2] + trans[a]
         m, d2 = nearest_in_window(q, map_pos, grid, origin, dims, voxel, radius, usable)
@@ -262,17 +264,6 @@ def _gicp_chunk(lo, hi, src, src_cov, src_lab, rot, trans, map_pos, map_cov, map
             g[u] += w * (t0 * r0 + t1 * r1 + t2 * r2)
             for v in range(u, 6):
                 h[u, v] += w * (t0 * j[0, v] + t1 * j[1, v] + t2 * j[2, v])
-    return h, g, cost, found, kept
-
-
-@njit(cache=_CACHE)
-def gicp_linearise(src, src_cov, src_lab, rot, trans, map_pos, map_cov, map_lab, usable, grid, origin, dims, voxel,
-                   radius, max_dist, semantic_label_filter, robust_scale):
-    """One Gauss-Newton step of GICP: H, g of the Mahalanobis cost, plus counts of pairs found and kept.
-    One thread on purpose: the registration worker shares its cores with inference in the pipeline."""
-    h, g, cost, found, kept = _gicp_chunk(0, src.shape[0], src, src_cov, src_lab, rot, trans, map_pos, map_cov, map_lab,
-                                          usable, grid, origin, dims, voxel, radius, max_dist, semantic_label_filter,
-                                          robust_scale)
     for u in range(6):
         for v in range(u):
             h[u, v] = h[v, u]

@@ -121,13 +121,6 @@ class VoxelPFilterMap:
     def __len__(self) -> int:
         return int(np.count_nonzero(self.alive[: self._n]))
 
-    def copy(self) -> "VoxelPFilterMap":
-        other = VoxelPFilterMap(self.voxel, self.p_index_threshold, self.pfilter, self.merge_radius, self.observe_radius)
-        other._n = self._n
-        for name in _FIELDS:
-            setattr(other, name, getattr(self, name).copy())
-        return other
-
     def p_index(self, t: int) -> np.ndarray:
         """p-index of every row at frame t (f counts frames before t; t0 < t for every existing voxel)."""
         n = self._n

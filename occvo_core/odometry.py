@@ -8,7 +8,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from occvo_core.config import OccVOConfig
-from occvo_core.errors import InvalidFrameError
+from occvo_core.errors import ConfigError, InvalidFrameError
 from occvo_core.frame import OccupancyFrame
 from occvo_core.grid import MOVABLE_CLASSES, OCC3D_GRID
 from occvo_core.registration import kernels
@@ -94,6 +94,65 @@ class OccVO:
 
     def map_points(self) -> tuple[np.ndarray, np.ndarray]:
         return self.map.points()
+
+    # -- state for durable storage and paging (the store itself lives outside occvo_core) ------------------------
+    def state_dict(self) -> dict[str, np.ndarray]:
+        """Everything needed to resume: config, poses, frame indices, the voxel pfilter map and the last frame."""
+        out = {"config_json": np.frombuffer(self.config.model_dump_json().encode(), np.uint8),
+               "poses": self.poses, "indices": np.array(self._indices, np.int64)}
+        out.update({f"map.{k}": v for k, v in self.map.state().items()})
+        if self._last is not None:
+            out.update({f"last.{k}": np.asarray(v) for k, v in vars(self._last).items()})
+        return out
+
+    def load_state_dict(self, state: dict[str, np.ndarray]) -> None:
+        """Resume from state_dict(); the next step() continues bit for bit as if the run had never stopped."""
+        saved = bytes(np.asarray(state["config_json"], np.uint8)).decode()
+        if saved != self.config.model_dump_json():
+            raise ConfigError("saved odometry state was made with another OccVOConfig; refusing to mix them "
+                              f"(saved: {saved})")
+        self.reset()
+        self.map.load_state({k[4:]: np.asarray(v) for k, v in state.items() if k.startswith("map.")})
+        self._poses = [np.array(p, np.float64) for p in np.asarray(state["poses"]).reshape(-1, 4, 4)]
+        self._indices = [int(i) for i in state["indices"]]
+        if "last.points" in state:
+            last = {k[5:]: np.asarray(v) for k, v in state.items() if k.startswith("last.")}
+            last["index"] = int(last["index"])
+            self._last = _Prepared(**last)
+
+    def evict_tiles(self, center_xy, radius_m: float, tile_m: float) -> dict[tuple[int, int], dict[str, np.ndarray]]:
+        """Take out of the working map every tile (ix, iy) = floor(xy / tile_m) whose square lies wholly farther
+        than radius_m from center_xy; returns {tile: voxels} for the caller to keep (bounded memory on long drives)."""
+        n = self.map._n
+        alive = np.flatnonzero(self.map.alive[:n])
+        if len(alive) == 0:
+            return {}
+        tiles = self.map.tile_ids(tile_m)[alive]
+        uniq, inverse = np.unique(tiles, axis=0, return_inverse=True)
+        cx, cy = float(center_xy[0]), float(center_xy[1])
+        dx = np.maximum.reduce([uniq[:, 0] * tile_m - cx, np.zeros(len(uniq)), cx - (uniq[:, 0] + 1) * tile_m])
+        dy = np.maximum.reduce([uniq[:, 1] * tile_m - cy, np.zeros(len(uniq)), cy - (uniq[:, 1] + 1) * tile_m])
+        far = np.flatnonzero(np.hypot(dx, dy) > radius_m)
+        if len(far) == 0:
+            return {}
+        t = len(self._poses)
+        inverse = inverse.reshape(-1)
+        order = np.argsort(inverse, kind="stable")
+        bounds = np.searchsorted(inverse[order], np.arange(len(uniq) + 1))
+        out = {(int(uniq[u, 0]), int(uniq[u, 1])): self.map.take(alive[order[bounds[u]:bounds[u + 1]]], t) for u in far}
+        self.map.compact()
+        return out
+
+    def restore_tiles(self, blocks: dict[tuple[int, int], dict[str, np.ndarray]]) -> int:
+        """Put evicted tiles back (as evict_tiles returned them); returns the voxels restored."""
+        t = len(self._poses)
+        return sum(self.map.put(block, t) for block in blocks.values())
+
+    def resident_tiles(self, tile_m: float) -> set[tuple[int, int]]:
+        """Tiles with voxels in the working map."""
+        n = self.map._n
+        tiles = self.map.tile_ids(tile_m)[self.map.alive[:n]]
+        return {(int(a), int(b)) for a, b in np.unique(tiles, axis=0)} if len(tiles) else set()
 
     def step(self, frame: OccupancyFrame) -> StepResult:
         """Register one frame. A bad frame raises InvalidFrameError and leaves poses and map as they were."""

@@ -183,6 +183,56 @@ class VoxelPFilterMap:
         self.alive[len(keep): n] = False
         self._n = len(keep)
 
+    # -- state and paging (durable storage and bounded memory live outside occvo_core; these give them the arrays)
+    def state(self) -> dict[str, np.ndarray]:
+        """Every row (dropped ones too, so row order and thus tie-breaking survive a reload)."""
+        return {name: getattr(self, name)[: self._n].copy() for name in _FIELDS}
+
+    def load_state(self, state: dict[str, np.ndarray]) -> None:
+        n = len(state["keys"])
+        self._n = 0
+        self._alloc(max(1 << 16, n))
+        for name in _FIELDS:
+            getattr(self, name)[:n] = state[name]
+        self._n = n
+
+    def tile_ids(self, tile_m: float) -> np.ndarray:
+        """(n,2) x-y tile of every row: floor(pos / tile_m), as occvo_core.map_tiles cuts the served map."""
+        return np.floor(self.pos[: self._n, :2] / tile_m).astype(np.int64)
+
+    def take(self, rows: np.ndarray, t: int) -> dict[str, np.ndarray]:
+        """Remove live rows and return their voxels with everything the voxel pfilter knows of them."""
+        block = {name: getattr(self, name)[rows].copy() for name in _FIELDS if name != "alive"}
+        block["taken_at"] = np.array(t, np.int64)
+        self.alive[rows] = False
+        return block
+
+    def put(self, block: dict[str, np.ndarray], t: int) -> int:
+        """Add back voxels taken at an earlier frame. Frames spent away do not count against a voxel's p-index
+        (t0 and last move on by the time away). A voxel whose cell already holds a live voxel is dropped: the map
+        observed there since is newer. Returns the number of voxels added."""
+        keys = np.asarray(block["keys"], np.int64)
+        if len(keys) == 0:
+            return 0
+        lower, upper = keys.min(axis=0), keys.max(axis=0)
+        held = self.window(lower, upper)
+        cells = ((keys - held.origin) * [held.dims[1] * held.dims[2], held.dims[2], 1]).sum(axis=1)
+        new = held.grid[cells] < 0
+        shift = int(t) - int(block["taken_at"])
+        n_new = int(new.sum())
+        if self._n + n_new > len(self.pos):
+            self._alloc(max(2 * len(self.pos), self._n + n_new))
+        rows = slice(self._n, self._n + n_new)
+        for name in _FIELDS:
+            if name != "alive":
+                getattr(self, name)[rows] = np.asarray(block[name])[new]
+        self.t0[rows] += shift
+        last = self.last[rows]
+        last[last >= 0] += shift
+        self.alive[rows] = True
+        self._n += n_new
+        return n_new
+
     def persistent(self) -> np.ndarray:
         """The voxel pfilter on the finished map, per live row: seen in more than the threshold's share of the frames
         from its first to its last sighting (the p-index over the time it was in view; the plain p-index would also

@@ -1,0 +1,102 @@
+"""Odometry state for durable storage and paging: state_dict round trip, tile eviction and restore."""
+
+from __future__ import annotations
+
+import io
+
+import numpy as np
+import pytest
+
+from occvo_core import OccVO, OccVOConfig
+from occvo_core.errors import ConfigError
+from occvo_core.sim import SyntheticScene
+
+
+@pytest.fixture(scope="module")
+def scene():
+    return SyntheticScene(seed=5, frames=12)
+
+
+def _through_bytes(state: dict) -> dict:
+    buf = io.BytesIO()
+    np.savez(buf, **state)
+    return dict(np.load(io.BytesIO(buf.getvalue())))
+
+
+def test_resume_from_state_dict_is_bit_identical(scene):
+    whole = OccVO()
+    for i in range(len(scene)):
+        whole.step(scene[i])
+    first = OccVO()
+    for i in range(6):
+        first.step(scene[i])
+    resumed = OccVO()
+    resumed.load_state_dict(_through_bytes(first.state_dict()))
+    for i in range(6, len(scene)):
+        resumed.step(scene[i])
+    assert np.array_equal(resumed.poses, whole.poses)
+    assert resumed.frame_indices == whole.frame_indices
+    for a, b in zip(resumed.map_points(), whole.map_points()):
+        assert np.array_equal(a, b)
+
+
+def test_state_of_another_config_is_refused(scene):
+    vo = OccVO()
+    vo.step(scene[0])
+    other = OccVO(OccVOConfig().with_filters(pfilter=False))
+    with pytest.raises(ConfigError, match="another OccVOConfig"):
+        other.load_state_dict(vo.state_dict())
+
+
+def _voxels(vo: OccVO) -> np.ndarray:
+    """Every live voxel as rows of (key, position, label, t0, f, last), in a canonical order."""
+    m, n = vo.map, vo.map._n
+    live = m.alive[:n]
+    table = np.column_stack([m.keys[:n][live], m.pos[:n][live], m.label[:n][live], m.t0[:n][live], m.f[:n][live],
+                             m.last[:n][live]])
+    return table[np.lexsort(table.T[::-1])]
+
+
+def test_evicted_tiles_leave_the_working_map_and_come_back_whole(scene):
+    vo = OccVO()
+    for i in range(8):
+        vo.step(scene[i])
+    before = _voxels(vo)
+    ego = vo.poses[-1][:2, 3]
+    tiles_before = vo.resident_tiles(20.0)
+    blocks = vo.evict_tiles(ego, 40.0, 20.0)
+    assert blocks, "the first frames' map reaches beyond 40 m of the last pose"
+    resident = vo.resident_tiles(20.0)
+    assert resident.isdisjoint(blocks) and resident | set(blocks) == tiles_before
+    for ix, iy in resident:  # every resident tile touches the disc
+        dx = max(ix * 20.0 - ego[0], 0, ego[0] - (ix + 1) * 20.0)
+        dy = max(iy * 20.0 - ego[1], 0, ego[1] - (iy + 1) * 20.0)
+        assert np.hypot(dx, dy) <= 40.0
+    evicted = sum(len(b["keys"]) for b in blocks.values())
+    assert len(vo.map) == len(before) - evicted
+    assert vo.restore_tiles(blocks) == evicted
+    assert np.array_equal(_voxels(vo), before)  # same voxels and p-index state (restored at the frame they left)
+
+
+def test_frames_spent_evicted_do_not_count_against_the_p_index(scene):
+    vo = OccVO()
+    for i in range(6):
+        vo.step(scene[i])
+    blocks = vo.evict_tiles(vo.poses[-1][:2, 3], 30.0, 20.0)
+    t_out = len(vo.poses)
+    taken = {name: np.concatenate([b[name] for b in blocks.values()]) for name in ("t0", "f", "keys")}
+    p_out = taken["f"] / np.maximum(t_out - taken["t0"], 1)
+    for i in range(6, 9):
+        vo.step(scene[i])
+    t_back = len(vo.poses)
+    n_before = vo.map._n
+    added = vo.restore_tiles(blocks)
+    assert 0 < added <= len(p_out)
+    rows = np.arange(n_before, n_before + added)
+    p_back = vo.map.p_index(t_back)[rows]
+    # the restored voxels are those whose cells the map had not filled again meanwhile, in block order
+    held = {tuple(k) for k in vo.map.keys[:n_before][vo.map.alive[:n_before]]}
+    kept = np.array([tuple(k) not in held for k in taken["keys"]])
+    assert kept.sum() == added
+    assert np.allclose(p_back, p_out[kept])
+    assert t_back > t_out and np.all(vo.map.t0[rows] == taken["t0"][kept] + (t_back - t_out))

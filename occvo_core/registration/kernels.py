@@ -8,7 +8,7 @@ from numba import njit
 _CACHE = True
 
 
-@njit(cache=_CACHE)
+@njit(cache=_CACHE, nogil=True)
 def dense_index(ijk, shape):
     """Flat dense grid holding each point's row index (-1 = empty); points outside the grid are left out."""
     grid = np.full(shape[0] * shape[1] * shape[2], -1, np.int32)
@@ -19,7 +19,7 @@ def dense_index(ijk, shape):
     return grid
 
 
-@njit(cache=_CACHE)
+@njit(cache=_CACHE, nogil=True)
 def surface_mask(ijk, grid, shape):
     """True for voxels with an empty face neighbour. Interior voxels of solid objects repeat every voxel, which
     gives nearest-neighbour ICP a false minimum at every grid step, and have no surface normal."""
@@ -35,7 +35,7 @@ def surface_mask(ijk, grid, shape):
     return out
 
 
-@njit(cache=_CACHE, inline="always")
+@njit(cache=_CACHE, nogil=True, inline="always")
 def _smallest_eigenvector(a00, a01, a02, a11, a12, a22):
     """Unit eigenvector of the smallest eigenvalue of a symmetric 3x3 matrix (closed form, no allocation)."""
     p1 = a01 * a01 + a02 * a02 + a12 * a12
@@ -69,7 +69,7 @@ def _smallest_eigenvector(a00, a01, a02, a11, a12, a22):
     return 0.0, 0.0, 1.0  # two smallest eigenvalues equal (a line): any normal across it will do
 
 
-@njit(cache=_CACHE)
+@njit(cache=_CACHE, nogil=True)
 def plane_covariances(points, ijk, grid, shape, radius, epsilon):
     """GICP covariances (Segal et al.): the neighbourhood's plane, as eps along its normal and 1 across it."""
     n_pts = points.shape[0]
@@ -118,7 +118,7 @@ def plane_covariances(points, ijk, grid, shape, radius, epsilon):
     return covs
 
 
-@njit(cache=_CACHE)
+@njit(cache=_CACHE, nogil=True)
 def first_per_block(ijk, factor, shape):
     """Downsampling on the grid: index of the first point in each factor^3 block of voxels."""
     bshape = ((shape[0] + factor - 1) // factor, (shape[1] + factor - 1) // factor, (shape[2] + factor - 1) // factor)
@@ -134,7 +134,7 @@ def first_per_block(ijk, factor, shape):
     return keep[:n_keep]
 
 
-@njit(cache=_CACHE)
+@njit(cache=_CACHE, nogil=True)
 def nearest_in_window(q, map_pos, grid, origin, dims, voxel, radius, usable):
     """Nearest usable map point to q within `radius` voxel rings: (index or -1, squared distance).
 
@@ -184,7 +184,7 @@ def nearest_in_window(q, map_pos, grid, origin, dims, voxel, radius, usable):
     return best, best_d2
 
 
-@njit(cache=_CACHE)
+@njit(cache=_CACHE, nogil=True)
 def _inv3_sym(c):
     """Inverse of a symmetric positive-definite 3x3 matrix by cofactors (no LAPACK call per pair)."""
     a, b, cc = c[0, 0], c[0, 1], c[0, 2]
@@ -204,7 +204,7 @@ def _inv3_sym(c):
     return out
 
 
-@njit(cache=_CACHE)
+@njit(cache=_CACHE, nogil=True)
 def gicp_linearise(src, src_cov, src_lab, rot, trans, map_pos, map_cov, map_lab, usable, grid, origin, dims, voxel,
                    radius, max_dist, semantic_label_filter, robust_scale):
     """One Gauss-Newton step of GICP: H, g of the Mahalanobis cost, plus counts of pairs found and kept.
@@ -270,7 +270,7 @@ def gicp_linearise(src, src_cov, src_lab, rot, trans, map_pos, map_cov, map_lab,
     return h, g, cost, found, kept
 
 
-@njit(cache=_CACHE)
+@njit(cache=_CACHE, nogil=True)
 def nearest_distances(queries, map_pos, grid, origin, dims, voxel, radius, usable):
     out = np.empty(queries.shape[0])
     idx = np.empty(queries.shape[0], np.int64)
@@ -281,7 +281,7 @@ def nearest_distances(queries, map_pos, grid, origin, dims, voxel, radius, usabl
     return out, idx
 
 
-@njit(cache=_CACHE)
+@njit(cache=_CACHE, nogil=True)
 def window_grid(keys, origin, dims):
     """Dense index of map voxels (integer keys) inside a window starting at origin."""
     grid = np.full(dims[0] * dims[1] * dims[2], -1, np.int32)
@@ -294,7 +294,7 @@ def window_grid(keys, origin, dims):
     return grid
 
 
-@njit(cache=_CACHE)
+@njit(cache=_CACHE, nogil=True)
 def assign_voxels(points, keys, map_pos, grid, origin, dims, voxel, merge_radius, map_rows, alive, n_map):
     """Map row of each frame point: the live map voxel holding it; else the nearest live map point within
     merge_radius (so a surface straddling a voxel boundary stays one voxel across frames and its p-index measures
@@ -325,7 +325,7 @@ def assign_voxels(points, keys, map_pos, grid, origin, dims, voxel, merge_radius
     return out, first_key[:n_new]
 
 
-@njit(cache=_CACHE)
+@njit(cache=_CACHE, nogil=True)
 def rotate_covariances(cov, rot):
     """R C R^T for each C (numpy's batched matmul is slow for 3x3)."""
     out = np.empty_like(cov)
@@ -340,7 +340,7 @@ def rotate_covariances(cov, rot):
     return out
 
 
-@njit(cache=_CACHE)
+@njit(cache=_CACHE, nogil=True)
 def rows_in_box(keys, alive, lower, upper):
     """Rows of live voxels whose keys lie in [lower, upper]."""
     out = np.empty(keys.shape[0], np.int64)
@@ -355,7 +355,7 @@ def rows_in_box(keys, alive, lower, upper):
     return out[:n_out]
 
 
-@njit(cache=_CACHE)
+@njit(cache=_CACHE, nogil=True)
 def merge_points(rows, pw, cw, labels, t, pos, cov, counts, label, t0, f, last, wacc, use_p_index):
     """Voxel PFilter merge, in place: each touched voxel becomes the weighted mean of its old point
     (weight f * p-index, or f without the filter) and the frame's points in it (weight 1 each)."""
@@ -395,7 +395,7 @@ def merge_points(rows, pw, cw, labels, t, pos, cov, counts, label, t0, f, last, 
             label[r] = best
 
 
-@njit(cache=_CACHE)
+@njit(cache=_CACHE, nogil=True)
 def pool_voxels(pos, cov, labels, keys, dims, n_classes):
     """Mean position and covariance and majority label of the points in each cell of a coarser grid."""
     n_cells = dims[0] * dims[1] * dims[2]
@@ -437,7 +437,7 @@ def pool_voxels(pos, cov, labels, keys, dims, n_classes):
     return out_pos[:n_out], out_cov[:n_out], out_lab, out_keys[:n_out]
 
 
-@njit(cache=_CACHE)
+@njit(cache=_CACHE, nogil=True)
 def _find(parent, i):
     while parent[i] != i:
         parent[i] = parent[parent[i]]
@@ -445,7 +445,7 @@ def _find(parent, i):
     return i
 
 
-@njit(cache=_CACHE)
+@njit(cache=_CACHE, nogil=True)
 def grid_clusters(points, eps):
     """Single-linkage clusters at distance eps, found through a grid of eps-sized cells (union-find)."""
     n = points.shape[0]
@@ -503,7 +503,7 @@ def grid_clusters(points, eps):
     return parent
 
 
-@njit(cache=_CACHE)
+@njit(cache=_CACHE, nogil=True)
 def mark_observed(points, map_pos, grid, origin, dims, voxel, radius_m, map_rows, alive, f, last, t):
     """Count as seen at frame t every live voxel within radius_m of a frame point (once a frame): a surface that
     straddles a voxel boundary falls in either voxel from frame to frame, and must not lose its p-index for it."""

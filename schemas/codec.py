@@ -24,7 +24,10 @@ class CodecError(ValueError):
 
 
 def encode(message: BaseModel, max_bytes: int = DEFAULT_MAX_BYTES) -> bytes:
-    data = msgpack.packb(message.model_dump(mode="python"), use_bin_type=True)
+    try:
+        data = msgpack.packb(message.model_dump(mode="python"), use_bin_type=True)
+    except (OverflowError, TypeError, ValueError) as exc:  # e.g. an int beyond msgpack's 64 bits
+        raise CodecError("invalid_message", f"{getattr(message, 'kind', type(message).__name__)} cannot be encoded: {exc}") from None
     if len(data) > max_bytes:
         raise CodecError("oversize", f"{message.kind} of {len(data)} bytes exceeds the limit of {max_bytes}")
     return data
@@ -69,3 +72,5 @@ def decode(data: bytes, expect: type[T] | tuple[type, ...] | None = None, max_by
         return model.model_validate(obj)
     except ValidationError as exc:
         raise CodecError("invalid_message", f"{kind}: {_summary(exc)}") from None
+    except Exception as exc:  # noqa: BLE001 - a validator failing otherwise (OverflowError...) is still a bad message
+        raise CodecError("invalid_message", f"{kind}: {type(exc).__name__}: {exc}") from None

@@ -32,7 +32,10 @@ class Array(_Model):
 
     @model_validator(mode="after")
     def _size_matches(self) -> "Array":
-        expected = int(np.prod(self.shape, dtype=np.int64)) * np.dtype(self.dtype).itemsize
+        itemsize = np.dtype(self.dtype).itemsize
+        if len(self.shape) > 32 or math.prod(d for d in self.shape if d) * itemsize >= 2**63:  # numpy could not hold it
+            raise ValueError(f"array shape {self.shape} is too large for numpy, even with no elements")
+        expected = math.prod(self.shape) * itemsize  # Python ints: a huge shape cannot wrap to 0
         if len(self.data) != expected:
             raise ValueError(f"array of dtype {self.dtype} and shape {self.shape} needs {expected} bytes, got {len(self.data)}")
         return self
@@ -53,6 +56,13 @@ class GridSpecModel(_Model):
     lower: tuple[Finite, Finite, Finite] = (-40.0, -40.0, -1.0)
     upper: tuple[Finite, Finite, Finite] = (40.0, 40.0, 5.4)
     voxel_size: Finite = Field(0.4, gt=0)
+
+    @model_validator(mode="after")
+    def _extent(self) -> "GridSpecModel":
+        n = [(u - l) / self.voxel_size for l, u in zip(self.lower, self.upper)]
+        if not all(0.5 <= x <= 65536 for x in n):  # also catches inf and NaN; indices travel as uint16 at most
+            raise ValueError(f"grid {self.lower}..{self.upper} of {self.voxel_size} m voxels must span 1..65536 voxels per axis")
+        return self
 
     def to_grid(self) -> GridSpec:
         return GridSpec(tuple(self.lower), tuple(self.upper), self.voxel_size)

@@ -5,6 +5,10 @@
         for frame in scene:                 # OccupancyFrame (replayed occupancy) or CameraFrame
             pose = env.step(frame)          # PoseEstimate, like a Gymnasium env step
         tile = env.tile(0, 1)
+
+Frames sent but not answered are sent again when the registration worker's liveliness token comes back (it restarted:
+its durable state answers frames it already registered with their stored poses) or after `resend_after` seconds
+without any answer. A pose that arrives twice is kept once.
 """
 
 from __future__ import annotations
@@ -42,8 +46,9 @@ def camera_frame_of(frame: OccupancyFrame, stream: str, seq: int, grid: GridSpec
 
 class OccVOClient:
     def __init__(self, connect: str = DEFAULT_ENDPOINT, stream: str = "default", timeout: float = 60.0,
-                 session: zenoh.Session | None = None, exact: bool = True):
+                 session: zenoh.Session | None = None, exact: bool = True, resend_after: float | None = 5.0):
         self.exact = exact
+        self.resend_after = resend_after
         self.stream = keys.check_stream(stream)
         self.timeout = timeout
         self._own = session is None
@@ -52,9 +57,20 @@ class OccVOClient:
         self.poses: dict[int, PoseEstimate] = {}
         self.errors: list[ErrorEvent] = []
         self._seq = 0
+        self._unanswered: dict[int, bytes] = {}  # seq -> the encoded frame, until its pose or error comes back
+        self._send_lock = threading.Lock()  # resends and new frames leave in seq order
+        self._last_answer = time.monotonic()
+        self._registration: set[str] = set()  # live registration workers' tokens
+        self._down = False  # the registration worker left: hold new frames until it is back and the lost ones resent
+        self._back_at: float | None = None
+        self.resends = 0
         self._subs = [self.session.declare_subscriber(keys.pose(stream), self._on_pose),
-                      self.session.declare_subscriber(keys.errors(stream), self._on_error)]
+                      self.session.declare_subscriber(keys.errors(stream), self._on_error),
+                      self.session.liveliness().declare_subscriber(keys.alive("registration", "*"), self._on_alive, history=True)]
         self._pub = self.session.declare_publisher(keys.camera(stream), congestion_control=zenoh.CongestionControl.BLOCK)
+        self._closed = threading.Event()
+        self._resender = threading.Thread(target=self._resend_loop, name=f"occvo-resend-{stream}", daemon=True)
+        self._resender.start()
 
     # -- subscriptions
     def _on_pose(self, sample: zenoh.Sample) -> None:
@@ -63,7 +79,11 @@ class OccVOClient:
         except CodecError:
             return  # not ours to judge; the workers only publish valid poses
         with self._cv:
-            self.poses[pose.seq] = pose
+            self.poses.setdefault(pose.seq, pose)  # a resent frame's pose comes again: keep the first
+            # poses come in seq order: an older frame still unanswered was dropped upstream (latest policy)
+            for seq in [s for s in self._unanswered if s <= pose.seq]:
+                del self._unanswered[seq]
+            self._last_answer = time.monotonic()
             self._cv.notify_all()
 
     def _on_error(self, sample: zenoh.Sample) -> None:
@@ -73,7 +93,52 @@ class OccVOClient:
             return
         with self._cv:
             self.errors.append(event)
+            if event.seq is not None and event.code != "missing_seq":
+                self._unanswered.pop(event.seq, None)
+                self._last_answer = time.monotonic()
             self._cv.notify_all()
+
+    def _on_alive(self, sample: zenoh.Sample) -> None:
+        key = str(sample.key_expr)
+        with self._cv:
+            if sample.kind == zenoh.SampleKind.PUT:
+                if key not in self._registration and (self._down or self._unanswered):
+                    self._back_at = time.monotonic()  # a (re)started worker: resend what it cannot have seen
+                self._registration.add(key)
+            else:
+                self._registration.discard(key)
+                self._down = not self._registration
+                self._back_at = None
+            self._cv.notify_all()
+
+    # -- resending what a restarted worker lost
+    def _resend_loop(self, settle_s: float = 0.3) -> None:
+        while not self._closed.wait(0.1):
+            if self.resend_after is None:
+                continue
+            with self._cv:
+                now = time.monotonic()
+                # back: its subscriptions have reached the router by now (they are declared before its token)
+                back = self._back_at is not None and now - self._back_at >= settle_s
+                stalled = bool(self._unanswered) and not self._down and now - self._last_answer >= self.resend_after
+                if not (back or stalled):
+                    continue
+                self._last_answer = now
+            self.resend()  # frames in flight while it was away were lost; nothing new went out meanwhile
+            if back:
+                with self._cv:
+                    self._down, self._back_at = False, None
+                    self._cv.notify_all()
+
+    def resend(self) -> int:
+        """Send every unanswered frame again, in seq order; returns how many."""
+        with self._send_lock:
+            with self._cv:
+                pending = sorted(self._unanswered.items())
+            for _, payload in pending:
+                self._pub.put(payload)
+            self.resends += len(pending)
+            return len(pending)
 
     # -- Gymnasium-style driving
     def reset(self) -> None:
@@ -82,14 +147,25 @@ class OccVOClient:
             self._seq = 0
             self.poses.clear()
             self.errors.clear()
+            self._unanswered.clear()
 
     def publish(self, frame: OccupancyFrame | CameraFrame) -> int:
         """Send one frame without waiting; returns its seq."""
         seq = self._seq
         msg = frame.model_copy(update={"stream": self.stream, "seq": seq, "sent_at": time.time()}) if isinstance(frame, CameraFrame) \
             else camera_frame_of(frame, self.stream, seq, exact=self.exact)
+        payload = encode(msg)
         self._seq += 1
-        self._pub.put(encode(msg))
+        with self._cv:  # while the registration worker is away, a new frame would overtake the lost ones
+            deadline = time.monotonic() + self.timeout
+            while self._down and self.resend_after is not None and time.monotonic() < deadline:
+                self._cv.wait(0.1)
+        with self._send_lock:
+            with self._cv:
+                if not self._unanswered:
+                    self._last_answer = time.monotonic()  # the resend clock runs from the oldest frame in flight
+                self._unanswered[seq] = payload
+            self._pub.put(payload)
         return seq
 
     def wait_pose(self, seq: int, timeout: float | None = None) -> PoseEstimate:
@@ -176,6 +252,8 @@ class OccVOClient:
         raise ServiceError(f"workers {sorted(set(roles) - alive)} not alive after {timeout} s")
 
     def close(self) -> None:
+        self._closed.set()
+        self._resender.join(timeout=5)
         for s in self._subs:
             s.undeclare()
         self._pub.undeclare()

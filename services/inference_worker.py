@@ -3,7 +3,8 @@
 Sources:
   replay  the frame's recorded occupancy (any occvo_core scene source, published by `occvo replay`): the paper's
           ground-truth occupancy row.
-  model   a torch occupancy network on the six images (services.occupancy_model.OccupancyModel), on cuda or cpu.
+  model   a torch occupancy network on the six images: the trained TPV-Former of `checkpoint` (occvo train-occ), on
+          cuda with bf16 autocast when present, else cpu (services.occupancy_model.load_occupancy_model).
 
 Runs in its own process, so inference of frame t+1 overlaps registration of frame t in the registration worker.
 """
@@ -11,7 +12,9 @@ Runs in its own process, so inference of frame t+1 overlaps registration of fram
 from __future__ import annotations
 
 import sys
+import threading
 import time
+from collections import deque
 
 import numpy as np
 import zenoh
@@ -19,6 +22,7 @@ import zenoh
 from schemas import keys
 from schemas.codec import encode
 from schemas.models import CameraFrame, OccupancyFrameMsg, SparseOccupancy
+from occvo_core.errors import ConfigError
 from services.runtime import Worker, WorkerConfig, log_event, worker_main
 
 
@@ -30,17 +34,32 @@ class InferenceWorker(Worker):
     def __init__(self, config: WorkerConfig, model=None):
         super().__init__(config)
         self.model = model
+        self._model_lock = threading.Lock()  # one network, one device: streams take turns
+        self._forwarded: dict[str, deque] = {}  # per stream, the last seqs forwarded (resends pass, see check_seq)
         if config.source == "model" and model is None:
             import torch
 
-            from services.occupancy_model import TorchOccupancyModel
+            from services.occupancy_model import load_occupancy_model
 
             torch.set_num_threads(config.torch_threads)
-            self.model = TorchOccupancyModel(device=config.device, weights=config.model_weights)
-            log_event(self.log, "model loaded", model=self.model.name, device=str(self.model.device))
+            self.model = load_occupancy_model(config.checkpoint, config.model_weights, config.device)
+            log_event(self.log, "model loaded", model=self.model.name, device=str(self.model.device),
+                      checkpoint=config.checkpoint, torch_threads=config.torch_threads)
 
     def declare(self) -> None:
         self._declared.append(self.session.declare_subscriber(keys.camera("*"), self._on_camera))
+
+    def check_seq(self, stream: str, seq: int, key: str) -> bool:
+        """A step back to a frame forwarded lately is a resend (its pose was lost, e.g. the registration worker
+        restarted): forward it; the registration worker answers it from its stored trajectory."""
+        recent = self._forwarded.setdefault(stream, deque(maxlen=64))
+        expected = self.trackers[stream].expected
+        if expected is not None and seq < expected and seq in recent:
+            return True
+        ok = super().check_seq(stream, seq, key)
+        if ok:
+            recent.append(seq)
+        return ok
 
     def _on_camera(self, sample: zenoh.Sample) -> None:
         self.enqueue(sample, CameraFrame, self._infer)
@@ -55,19 +74,21 @@ class InferenceWorker(Worker):
                 return
             occupancy, source = msg.gt_occupancy, "replay"
         else:
-            if len(msg.images) != 6:
-                self.report_error(stream, "invalid_frame", f"seq {msg.seq}: the model source needs 6 camera images, got {len(msg.images)}", key, msg.seq)
-                return
-            from services.occupancy_model import decode_image
+            from occvo_core.models.tpvformer.predictor import InvalidCameraFrameError
+            from services.occupancy_model import camera_inputs
 
             try:
-                images = [decode_image(im) for im in msg.images]
-            except ValueError as exc:
+                images, K, T = camera_inputs(msg.images)
+                t1 = time.perf_counter()
+                with self._model_lock:
+                    t2 = time.perf_counter()
+                    idx, labels = self.model.predict(images, K, T)
+                    model_ms = (time.perf_counter() - t2) * 1000.0
+            except (ValueError, InvalidCameraFrameError) as exc:  # images or calibration the network cannot take
                 self.report_error(stream, "invalid_frame", f"seq {msg.seq}: {exc}", key, msg.seq)
                 return
-            K = np.array([im.intrinsics for im in msg.images])
-            T = np.array([im.extrinsics for im in msg.images])
-            idx, labels = self.model.predict(images, K, T)
+            self.stats.observe("decode_images", (t1 - t0) * 1000.0)
+            self.stats.observe("model", model_ms)
             dtype = np.uint8 if max(self.model.grid.shape) <= 256 else np.uint16
             occupancy = SparseOccupancy.model_validate({
                 "grid": {"lower": self.model.grid.lower, "upper": self.model.grid.upper, "voxel_size": self.model.grid.voxel_size},
@@ -92,8 +113,18 @@ class InferenceWorker(Worker):
 def _args(p) -> None:
     p.add_argument("--source", choices=["replay", "model"])
     p.add_argument("--device", choices=["auto", "cpu", "cuda"])
-    p.add_argument("--model-weights")
+    p.add_argument("--checkpoint", help="TPV-Former checkpoint for the model source (occvo train-occ writes one)")
+    p.add_argument("--model-weights", help="TinyOccNet state_dict for the model source, instead of --checkpoint")
+    p.add_argument("--torch-threads", type=int)
+
+
+def main(argv: list[str] | None = None) -> int:
+    try:
+        return worker_main(InferenceWorker, argv, extra_args=_args)
+    except ConfigError as exc:  # a bad config or checkpoint: one line and exit 2, before anything connects
+        print(f"inference worker: {exc}", file=sys.stderr)
+        return 2
 
 
 if __name__ == "__main__":
-    sys.exit(worker_main(InferenceWorker, extra_args=_args))
+    sys.exit(main())

@@ -1,27 +1,22 @@
 """Map service: holds the tiles the registration worker publishes (occvo/<stream>/map/updates) and answers
 tile queries: occvo/<stream>/map/tile/<ix>/<iy> (one tile), a wildcard such as occvo/<stream>/map/tile/*/*
-(a region, optionally bounded by a MapTileQuery payload), and occvo/<stream>/map/info (bounds, tile count, size)."""
+(a region, optionally bounded by a MapTileQuery payload), and occvo/<stream>/map/info (bounds, tile count, size).
+
+With `store_path` (config or --store-path) the tiles live in a SQLite file (services/map_store.py): each update is
+one transaction, queries read the file, and a restarted service serves what the file holds. Without it, in memory."""
 
 from __future__ import annotations
 
 import sys
-import threading
 import time
 
-import numpy as np
 import zenoh
 
 from schemas import keys
 from schemas.codec import CodecError, decode, encode
-from schemas.models import MapInfo, MapTileQuery, MapUpdate
-from services.runtime import Worker, WorkerConfig, worker_main
-
-
-class StreamMap:
-    def __init__(self, tile_m: float):
-        self.tile_m = tile_m
-        self.tiles: dict[tuple[int, int], tuple[bytes, int, np.ndarray]] = {}  # encoded MapTile, voxels, (min, max)
-        self.last_seq: int | None = None
+from schemas.models import MapTileQuery, MapUpdate
+from services.map_store import open_map_store
+from services.runtime import Worker, WorkerConfig, log_event, worker_main
 
 
 class MapService(Worker):
@@ -31,8 +26,7 @@ class MapService(Worker):
 
     def __init__(self, config: WorkerConfig):
         super().__init__(config)
-        self.maps: dict[str, StreamMap] = {}
-        self.lock = threading.Lock()
+        self.store = open_map_store(config.store_path)
 
     def declare(self) -> None:
         s = self.session
@@ -41,37 +35,35 @@ class MapService(Worker):
             s.declare_queryable(keys.map_tile("*", "*", "*"), self._on_tile_query),
             s.declare_queryable(keys.map_info("*"), self._on_info),
         ]
+        if self.config.store_path:
+            log_event(self.log, "map store", path=self.config.store_path, streams=self.store.streams())
+
+    def stop(self) -> None:
+        if self.stopping.is_set():
+            return
+        super().stop()
+        self.store.close()
 
     def _on_update(self, sample: zenoh.Sample) -> None:
         t0 = time.perf_counter()
         msg = self.decode_input(sample, MapUpdate)
         if msg is None:
             return
-        encoded = [(t, encode(t, 1 << 30)) for t in msg.tiles]  # encode once, serve many times
-        with self.lock:
-            m = self.maps.get(msg.stream)
-            if m is None or msg.reset:
-                m = self.maps[msg.stream] = StreamMap(msg.tile_m)
-            m.tile_m = msg.tile_m
-            for tile, data in encoded:
-                n = tile.points.shape[0]
-                if n == 0:
-                    m.tiles.pop((tile.ix, tile.iy), None)
-                else:
-                    p = tile.points.to_numpy()
-                    m.tiles[(tile.ix, tile.iy)] = (data, n, np.stack([p.min(0), p.max(0)]))
-            m.last_seq = msg.seq
+        encoded = [encode(t, 1 << 30) for t in msg.tiles]  # encode once, serve many times
+        try:
+            self.store.apply(msg, encoded)
+        except Exception as exc:  # noqa: BLE001 - e.g. the disk is full: report it, keep serving what is stored
+            self.report_error(msg.stream, "internal", f"map update seq {msg.seq} not stored: {type(exc).__name__}: {exc}",
+                              str(sample.key_expr), msg.seq)
+            return
         self.stats.inc("frames_out")
         self.stats.observe("apply_update", (time.perf_counter() - t0) * 1000.0)
 
     def streams(self) -> list[str]:
-        with self.lock:
-            return sorted(self.maps)
+        return self.store.streams()
 
-    def _streams_for(self, query_key: zenoh.KeyExpr, key_of) -> list[tuple[str, StreamMap]]:
-        with self.lock:
-            items = list(self.maps.items())
-        return [(s, m) for s, m in items if query_key.intersects(zenoh.KeyExpr(key_of(s)))]
+    def _matching_streams(self, query_key: zenoh.KeyExpr, key_of) -> list[str]:
+        return [s for s in self.store.streams() if query_key.intersects(zenoh.KeyExpr(key_of(s)))]
 
     def _on_tile_query(self, query: zenoh.Query) -> None:
         t0 = time.perf_counter()
@@ -83,43 +75,36 @@ class MapService(Worker):
                 bounds = decode(query.payload.to_bytes(), MapTileQuery, self.config.max_message_bytes)
             except CodecError as exc:
                 return self.reply_error(query, stream, exc.code, f"tile query payload: {exc.message}")
+        tile = keys.tile_of(str(qkey))
         replies = []
-        for s, m in self._streams_for(qkey, lambda s: keys.map_tile(s, "*", "*")):
-            with self.lock:
-                tiles = list(m.tiles.items())
-            for (ix, iy), (data, _, _) in tiles:
-                tkey = keys.map_tile(s, ix, iy)
-                if not qkey.intersects(zenoh.KeyExpr(tkey)):
-                    continue
-                if bounds is not None and not (
-                        (bounds.ix_min is None or ix >= bounds.ix_min) and (bounds.ix_max is None or ix <= bounds.ix_max)
-                        and (bounds.iy_min is None or iy >= bounds.iy_min) and (bounds.iy_max is None or iy <= bounds.iy_max)):
-                    continue
-                replies.append((tkey, data))
+        try:
+            for s in self._matching_streams(qkey, lambda s: keys.map_tile(s, "*", "*")):
+                for ix, iy, data in self.store.tiles(s, *(tile or (None, None)), bounds=bounds):
+                    tkey = keys.map_tile(s, ix, iy)
+                    if qkey.intersects(zenoh.KeyExpr(tkey)):
+                        replies.append((tkey, data))
+        except Exception as exc:  # noqa: BLE001 - a store read failed: the querier gets a reason, the service lives
+            return self.reply_error(query, stream, "internal", f"reading the map store: {type(exc).__name__}: {exc}")
         if not replies:
-            tile = keys.tile_of(str(qkey))
             what = f"tile {tile[0]},{tile[1]}" if tile else "any tile"
-            return self.reply_error(query, stream, "tile_not_found", f"no map {what} for {qkey} (streams with maps: {sorted(self.maps)})")
+            return self.reply_error(query, stream, "tile_not_found", f"no map {what} for {qkey} (streams with maps: {self.streams()})")
         for tkey, data in replies:
             query.reply(tkey, data)
         self.stats.observe("tile_query", (time.perf_counter() - t0) * 1000.0)
 
     def _on_info(self, query: zenoh.Query) -> None:
-        found = self._streams_for(query.key_expr, keys.map_info)
+        found = self._matching_streams(query.key_expr, keys.map_info)
         if not found:
             return self.reply_error(query, keys.stream_of(str(query.key_expr)), "tile_not_found", f"no map for {query.key_expr}")
-        for s, m in found:
-            with self.lock:
-                tiles = dict(m.tiles)
-                last = m.last_seq
-            lo = hi = None
-            if tiles:
-                ext = np.stack([b for _, _, b in tiles.values()])
-                lo, hi = tuple(ext[:, 0].min(0).tolist()), tuple(ext[:, 1].max(0).tolist())
-            info = MapInfo(stream=s, tile_m=m.tile_m, tile_count=len(tiles), voxel_count=sum(n for _, n, _ in tiles.values()),
-                           last_seq=last, bounds_min=lo, bounds_max=hi, tiles=sorted(tiles))
-            query.reply(keys.map_info(s), encode(info))
+        for s in found:
+            info = self.store.info(s)
+            if info is not None:
+                query.reply(keys.map_info(s), encode(info))
+
+
+def _args(p) -> None:
+    p.add_argument("--store-path", help="SQLite file holding the tiles across restarts (default: in memory)")
 
 
 if __name__ == "__main__":
-    sys.exit(worker_main(MapService))
+    sys.exit(worker_main(MapService, extra_args=_args))

@@ -1,9 +1,10 @@
-"""The seam between camera frames and occupancy: an `OccupancyModel` interface and one small real torch network.
+"""The seam between camera frames and occupancy: the `OccupancyModel` interface and the networks behind it.
 
-The trained occupancy network arrives in a later issue; it only has to implement `OccupancyModel.predict`.
-`TinyOccNet` is a real (untrained unless weights are given) camera-to-voxel network so the `model` source runs
-end to end now: shared conv encoder per camera, cameras fused, a BEV head predicting 18 classes on a coarse
-(50 x 50 x 4) volume that is repeated up to the 200 x 200 x 16 Occ3D grid.
+`load_occupancy_model(checkpoint, model_weights, device)` picks the network of the inference worker's `model` source:
+  checkpoint     the trained TPV-Former (occvo_core.models.tpvformer.OccupancyPredictor; `occvo train-occ` writes one)
+  model_weights  `TinyOccNet` with its saved state_dict: a small real camera-to-voxel net (shared conv encoder per
+                 camera, cameras fused, a BEV head on a coarse 50 x 50 x 4 volume repeated up to the 200 x 200 x 16 grid)
+Neither: a ConfigError. An untrained network's voxels would flow into the odometry as if they were a prediction.
 """
 
 from __future__ import annotations
@@ -20,14 +21,23 @@ from occvo_core.grid import FREE, NUM_CLASSES, OCC3D_GRID, GridSpec
 from schemas.models import CameraImage
 
 
+RGB_MODES = ("RGB", "RGBA")  # 8 bits a channel; alpha is dropped. Grey or 16-bit images are refused, not guessed at.
+
+
 def decode_image(img: CameraImage) -> np.ndarray:
-    """(H, W, 3) uint8 RGB; ValueError naming the camera when the bytes do not decode to the declared size."""
+    """(H, W, 3) uint8 RGB; ValueError naming the camera when the bytes do not decode to an 8-bit colour image of the
+    declared size."""
     if img.encoding == "raw_rgb8":
         return np.frombuffer(img.data, np.uint8).reshape(img.height, img.width, 3)
     from PIL import Image
 
     try:
         with Image.open(io.BytesIO(img.data)) as im:
+            fmt, mode = im.format, im.mode
+            if fmt != img.encoding.upper():
+                raise ValueError(f"the bytes are {fmt or 'no known image format'}")
+            if mode not in RGB_MODES:
+                raise ValueError(f"pixel mode {mode}; the model takes 8-bit RGB")
             rgb = np.asarray(im.convert("RGB"))
     except Exception as exc:  # noqa: BLE001 - PIL raises many types on bad bytes
         raise ValueError(f"camera {img.camera}: cannot decode {img.encoding}: {exc}") from None
@@ -117,3 +127,41 @@ class TorchOccupancyModel:
         full = labels.repeat_interleave(rep[0], 0).repeat_interleave(rep[1], 1).repeat_interleave(rep[2], 2).cpu().numpy()
         idx = np.argwhere(full != FREE)
         return idx, full[full != FREE].astype(np.uint8)
+
+
+def camera_inputs(images: list[CameraImage]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Six wire images -> (6, H, W, 3) uint8, K (6, 3, 3), camera-to-ego (6, 4, 4); ValueError naming what is wrong."""
+    if len(images) != 6:
+        raise ValueError(f"the model source needs 6 camera images, got {len(images)}")
+    rgb = [decode_image(im) for im in images]
+    sizes = {f"{a.shape[1]}x{a.shape[0]}" for a in rgb}
+    if len(sizes) > 1:
+        raise ValueError(f"the 6 camera images differ in size ({', '.join(f'{im.camera} {im.width}x{im.height}' for im in images)})")
+    return np.stack(rgb), np.array([im.intrinsics for im in images]), np.array([im.extrinsics for im in images])
+
+
+def load_occupancy_model(checkpoint: str | None = None, model_weights: str | None = None,
+                         device: str = "auto") -> OccupancyModel:
+    """The network of the worker's `model` source, or a ConfigError naming what is wrong (file, format, shapes)."""
+    if checkpoint and model_weights:
+        raise ConfigError("give checkpoint (TPV-Former) or model_weights (TinyOccNet), not both")
+    if not checkpoint and not model_weights:
+        raise ConfigError("source 'model' needs checkpoint: a TPV-Former checkpoint from `occvo train-occ` "
+                          "(--checkpoint PATH, or `checkpoint` in the worker config)")
+    dev = str(select_device(device))
+    if model_weights:
+        try:
+            return TorchOccupancyModel(device=dev, weights=model_weights)
+        except Exception as exc:  # noqa: BLE001 - missing file, pickle or shape errors: one clear line
+            raise ConfigError(f"model_weights {model_weights}: not TinyOccNet weights ({type(exc).__name__}: {exc})") from None
+    from occvo_core.models.tpvformer import CheckpointError, OccupancyPredictor
+
+    try:
+        model = OccupancyPredictor(checkpoint, device=dev)
+    except CheckpointError as exc:
+        raise ConfigError(f"checkpoint {exc}") from None
+    if model.cfg.num_classes != NUM_CLASSES:  # the wire carries Occ3D class ids
+        raise ConfigError(f"checkpoint {checkpoint}: {model.cfg.num_classes} classes, the service needs the {NUM_CLASSES} Occ3D classes")
+    if max(model.grid.shape) > 65535:
+        raise ConfigError(f"checkpoint {checkpoint}: grid {model.grid.shape} too large for uint16 voxel indices")
+    return model

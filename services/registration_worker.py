@@ -2,11 +2,18 @@
 
 Map updates: after each frame the worker tiles `vo.map_points()` (occvo_core.map_tiles) and publishes only the tiles
 whose content changed (a tile that emptied is sent empty), so the map service always equals the odometry's map.
-This costs one tiling of the map per frame (~tens of ms for 10^5 voxels) and keeps messages to the changed area.
+This costs one tiling of the working map per frame (~tens of ms for 10^5 voxels) and keeps messages to the changed area.
+
+Durable state (`store_path`, services/store.py): every pose is committed with its frame before it is published, the
+OccVO state is snapshotted every `snapshot_every` frames and at shutdown; a restarted worker resumes a stream at its
+next frame from the snapshot plus the journaled frames. A resent frame already registered gets its stored pose again.
+With `working_radius_m`, map tiles wholly farther than that from the ego leave the working set for the store (the map
+service keeps serving them) and come back when the ego is within working_radius_m - tile_m of them.
 """
 
 from __future__ import annotations
 
+import hashlib
 import sys
 import threading
 import time
@@ -14,27 +21,68 @@ import time
 import numpy as np
 import zenoh
 
-from occvo_core.errors import InvalidFrameError
+from occvo_core.errors import ConfigError, InvalidFrameError
 from occvo_core.frame import OccupancyFrame
 from occvo_core.map_tiles import changed_tiles, tiles_from_map
 from schemas import keys
 from schemas.codec import encode
 from schemas.models import Array, MapTile, MapUpdate, OccupancyFrameMsg, PoseEstimate, Trajectory
 from services.runtime import Worker, WorkerConfig, log_event, worker_main
+from services.store import StoredPose, TrajectoryStore, frame_digest, pack_arrays, pack_frame, unpack_arrays
 
 _STATUS = {"ok": "ok", "lost": "lost", "initialised": "reinitialised", "reinitialised": "reinitialised"}
+MIN_SAFE_RADIUS_M = 60.0  # a frame reaches ~57 m (the grid's corners): eviction closer than that changes registration
 
 
 class StreamState:
-    def __init__(self, vo):
-        self.vo = vo
-        self.lock = threading.Lock()
+    """One stream: its OccVO (None until this process registered or resumed it) and what queries read."""
+
+    def __init__(self):
+        self.vo = None
+        self.lock = threading.Lock()  # guards the lists and `latest`; only the stream's lane touches vo
         self.seqs: list[int] = []
         self.stamps: list[float] = []
         self.poses: list[np.ndarray] = []
+        self.statuses: list[str] = []
+        self.digests: list[bytes] = []
+        self.position: dict[int, int] = {}  # seq -> index in the lists
         self.latest: PoseEstimate | None = None
-        self.tiles: dict = {}
-        self.started = False
+        self.tiles: dict = {}  # published tiles of the working map
+        self.started = False  # a trajectory exists (in memory or in the store)
+        self.cold: dict[tuple[int, int], list[int]] = {}  # evicted tile -> seqs it was evicted at (its store rows)
+        self.cold_digest: dict[tuple[int, int], bytes] = {}  # published content of an evicted tile
+        self.pending_restored: list[tuple[int, int, int]] = []  # restored, not yet committed with a frame
+        self.since_snapshot = 0
+        self.send_all_tiles = False
+        self.tiling_ms = 0.0
+        self.ego_xy: np.ndarray | None = None  # x-y of the last registered pose (eviction and restore centre)  # after a resume: the map service may lack the last frames' tiles
+
+    def append(self, seq: int, stamp: float, pose: np.ndarray, status: str, digest: bytes) -> None:
+        self.position[seq] = len(self.seqs)
+        self.seqs.append(seq)
+        self.stamps.append(stamp)
+        self.poses.append(pose)
+        self.statuses.append(status)
+        self.digests.append(digest)
+
+    def clear(self) -> None:
+        self.seqs, self.stamps, self.poses, self.statuses, self.digests, self.position = [], [], [], [], [], {}
+
+    def stored(self, seq: int) -> StoredPose | None:
+        i = self.position.get(seq)
+        return None if i is None else StoredPose(seq, self.stamps[i], self.digests[i], self.statuses[i], self.poses[i])
+
+
+def _tile_digest(tile) -> bytes:
+    p, l = tile
+    return hashlib.blake2b(np.ascontiguousarray(p).tobytes() + np.ascontiguousarray(l).tobytes(), digest_size=16).digest()
+
+
+def _tile_distance(tiles: np.ndarray, xy: np.ndarray, tile_m: float) -> np.ndarray:
+    """Distance from xy to the nearest point of each tile's square (0 inside)."""
+    lo = tiles * tile_m
+    d = np.maximum(np.maximum(lo - xy, 0.0), xy - (lo + tile_m))
+    return np.hypot(d[:, 0], d[:, 1])
 
 
 class RegistrationWorker(Worker):
@@ -50,6 +98,23 @@ class RegistrationWorker(Worker):
         self.occvo_config = OccVOConfig.load(config.occvo_config) if config.occvo_config else OccVOConfig()
         self.states: dict[str, StreamState] = {}
         self._states_lock = threading.Lock()
+        radius = config.working_radius_m
+        self.evict_off = radius is not None and config.store_path is None
+        if self.evict_off:  # the deploy config sets a radius; eviction starts when a store is given
+            self.config = config = config.model_copy(update={"working_radius_m": None})
+            radius = None
+        if radius is not None and radius <= config.tile_m:
+            raise ConfigError(f"working_radius_m ({radius}) must exceed tile_m ({config.tile_m}): tiles come back "
+                              "within working_radius_m - tile_m")
+        self.store = TrajectoryStore(config.store_path, config.store_sync.upper()) if config.store_path else None
+        if self.store is not None:
+            for stream in self.store.streams():  # queries answer at once; the odometry resumes at the next frame
+                st = self.states[stream] = StreamState()
+                for p in self.store.poses(stream):
+                    st.append(p.seq, p.stamp, p.pose, p.status, p.digest)
+                st.started = bool(st.seqs)
+                if st.started:
+                    st.latest = self._pose_msg(stream, st.stored(st.seqs[-1]))
 
     def declare(self) -> None:
         s = self.session
@@ -58,16 +123,50 @@ class RegistrationWorker(Worker):
             s.declare_queryable(keys.pose_latest("*"), self._on_pose_latest),
             s.declare_queryable(keys.trajectory("*"), self._on_trajectory),
         ]
+        if self.evict_off:
+            log_event(self.log, "working_radius_m ignored: eviction needs store_path (the evicted map goes there)")
+        if self.store is not None:
+            log_event(self.log, "trajectory store", path=self.config.store_path, streams=sorted(self.states),
+                      working_radius_m=self.config.working_radius_m, snapshot_every=self.config.snapshot_every)
+            if self.config.working_radius_m is not None and self.config.working_radius_m < MIN_SAFE_RADIUS_M:
+                log_event(self.log, "working radius below a frame's reach: eviction changes registration",
+                          working_radius_m=self.config.working_radius_m)
+
+    def stop(self) -> None:
+        """Finish the frames in hand, leave the network, then snapshot every stream with unsnapshotted frames."""
+        if self.stopping.is_set():
+            return
+        super().stop()
+        if self.store is None:
+            return
+        for stream, st in list(self.states.items()):
+            lane = self.lanes.get(stream)
+            if lane is not None and lane.thread.is_alive():
+                continue  # its frame in hand did not finish in time: do not touch its OccVO from here
+            if st.vo is not None and st.since_snapshot > 0:
+                try:
+                    self._snapshot(stream, st)
+                except Exception as exc:  # noqa: BLE001 - the journal still holds those frames
+                    log_event(self.log, "snapshot at shutdown failed", stream=stream, error=repr(exc))
+        self.store.close()
 
     def state(self, stream: str) -> StreamState:
         with self._states_lock:
             if stream not in self.states:
-                self.states[stream] = StreamState(self._OccVO(self.occvo_config))
+                self.states[stream] = StreamState()
             return self.states[stream]
+
+    def check_seq(self, stream: str, seq: int, key: str) -> bool:
+        return True  # judged in the lane against the stream's trajectory: a step back may be a resend
 
     def _on_occupancy(self, sample: zenoh.Sample) -> None:
         self.enqueue(sample, OccupancyFrameMsg, self._register)
 
+    def _seq_error(self, stream: str, code: str, message: str, seq: int) -> None:
+        self.stats.inc(code)
+        self.report_error(stream, code, message, keys.occupancy(stream), seq)
+
+    # -- one frame ------------------------------------------------------------------------------------------------
     def _register(self, stream: str, item) -> None:
         msg, hop_ms, t_queued = item
         t0 = time.perf_counter()
@@ -76,38 +175,70 @@ class RegistrationWorker(Worker):
                                meta={"stream": stream, "source": msg.source})
         try:
             frame.validate()  # before any reset, so a bad first frame leaves the old trajectory and map intact
-            restart = msg.seq == 0 or not st.started
-            if restart:  # only this lane's thread touches st.vo; queries read the lists below under st.lock
-                st.vo.reset()
-            result = st.vo.step(frame)
         except InvalidFrameError as exc:
             self.report_error(stream, "invalid_frame", f"seq {msg.seq}: {exc.reason}", keys.occupancy(stream), msg.seq)
             return
-        reg_ms = (time.perf_counter() - t0) * 1000.0
+        digest = frame_digest(frame.points, frame.labels, msg.stamp)
+        known = st.stored(msg.seq)
+        if known is not None and known.digest == digest:  # a resend: answer it, register nothing twice
+            self.stats.inc("republished")
+            self.session.put(keys.pose(stream), encode(self._pose_msg(stream, known)), congestion_control=zenoh.CongestionControl.BLOCK)
+            return
+        restart = msg.seq == 0 or not st.started
+        if not restart:
+            last = st.seqs[-1]
+            if msg.seq <= last:
+                what = "differs from the registered frame" if known is not None else "is older than the trajectory"
+                return self._seq_error(stream, "out_of_order", f"seq {msg.seq} arrived after seq {last} and {what}; dropped", msg.seq)
+            if msg.seq > last + 1:
+                self._seq_error(stream, "missing_seq", f"missing seq {last + 1}..{msg.seq - 1} ({msg.seq - last - 1} frames) "
+                                f"before seq {msg.seq}", msg.seq)
+            if st.vo is None:
+                self._resume(stream, st)
+        if restart:  # only this lane's thread touches st.vo; queries read the lists under st.lock
+            st.vo = st.vo or self._OccVO(self.occvo_config)
+            st.vo.reset()
+            st.cold, st.cold_digest, st.pending_restored, st.tiles = {}, {}, [], {}
+            st.since_snapshot, st.send_all_tiles, st.ego_xy = 0, False, None
+        try:
+            result, restored, evicted, tiles = self._advance(stream, st, frame, msg.seq, publish=True)
+        except InvalidFrameError as exc:
+            if restart and self.store is not None:
+                st.vo = None  # reset for nothing: the stored trajectory stands and resumes at the next frame
+            self.report_error(stream, "invalid_frame", f"seq {msg.seq}: {exc.reason}", keys.occupancy(stream), msg.seq)
+            return
+        reg_ms = (time.perf_counter() - t0) * 1000.0 - st.tiling_ms
+        pose_m = np.asarray(result.pose, float)
+        status = _STATUS.get(result.status, "ok")
+        t_store = time.perf_counter()
+        if self.store is not None:
+            try:
+                self.store.commit_frame(stream, msg.seq, msg.stamp, digest, status, pose_m, pack_frame(frame), new_trajectory=restart,
+                                        evicted={k: pack_arrays(b) for k, b in evicted.items()}, restored=st.pending_restored)
+            except Exception as exc:  # noqa: BLE001 - e.g. disk full: publish nothing the store lacks; rebuild from it
+                st.vo = None
+                st.tiles = {}
+                self.report_error(stream, "internal", f"seq {msg.seq} not stored, pose not published ({type(exc).__name__}: {exc}); "
+                                  "the stream resumes from the store at its next frame", keys.occupancy(stream), msg.seq)
+                return
+        st.pending_restored = []
+        store_ms = (time.perf_counter() - t_store) * 1000.0
         t_map = time.perf_counter()
-        pts, labels = st.vo.map_points()
-        tiles = tiles_from_map(pts, labels, self.config.tile_m)
-        changed = tiles if restart else changed_tiles(st.tiles, tiles)
-        update = MapUpdate(stream=stream, seq=msg.seq, reset=restart, tile_m=self.config.tile_m, tiles=[
-            MapTile(stream=stream, ix=ix, iy=iy, tile_m=self.config.tile_m, seq=msg.seq,
-                    points=Array.from_numpy(np.asarray(p, np.float64)), labels=Array.from_numpy(np.asarray(l, np.uint8)))
-            for (ix, iy), (p, l) in sorted(changed.items())])
-        self.session.put(keys.map_updates(stream), encode(update, 1 << 30), congestion_control=zenoh.CongestionControl.BLOCK)
-        map_ms = (time.perf_counter() - t_map) * 1000.0
+        self._publish_map(stream, st, msg.seq, restart, tiles, evicted, restored)
+        map_ms = (time.perf_counter() - t_map) * 1000.0 + st.tiling_ms
         timings = dict(msg.timings_ms)
         timings.update({"occupancy_hop": hop_ms, "registration_queue": (t0 - t_queued) * 1000.0, "registration": reg_ms,
                         "map_update": map_ms})
+        if self.store is not None:
+            timings["store_commit"] = store_ms
         timings.update({f"registration.{k}": float(v) for k, v in result.timings_ms.items()})
-        pose = PoseEstimate(stream=stream, seq=msg.seq, stamp=msg.stamp, pose=np.asarray(result.pose, float).tolist(),
-                            status=_STATUS.get(result.status, "ok"), timings_ms=timings, sent_at=time.time())
+        pose = PoseEstimate(stream=stream, seq=msg.seq, stamp=msg.stamp, pose=pose_m.tolist(), status=status, timings_ms=timings,
+                            sent_at=time.time())
         with st.lock:
             if restart:
-                st.seqs, st.stamps, st.poses = [], [], []
+                st.clear()
                 st.started = True
-            st.tiles = tiles
-            st.seqs.append(msg.seq)
-            st.stamps.append(msg.stamp)
-            st.poses.append(np.asarray(result.pose, float))
+            st.append(msg.seq, msg.stamp, pose_m, status, digest)
             st.latest = pose
         self.session.put(keys.pose(stream), encode(pose), congestion_control=zenoh.CongestionControl.BLOCK)
         self.stats.inc("frames_out")
@@ -115,8 +246,153 @@ class RegistrationWorker(Worker):
         self.stats.observe("map_update", map_ms)
         self.stats.observe("occupancy_hop", hop_ms)
         self.stats.observe("stage_total", (time.perf_counter() - t0) * 1000.0)
+        if self.store is not None:
+            self.stats.observe("store_commit", store_ms)
+            st.since_snapshot += 1
+            if st.since_snapshot >= self.config.snapshot_every:
+                try:
+                    self._snapshot(stream, st)
+                except Exception as exc:  # noqa: BLE001 - the journal keeps the frames; retried next frame
+                    self.report_error(stream, "internal", f"snapshot after seq {msg.seq} failed: {type(exc).__name__}: {exc}",
+                                      keys.occupancy(stream), msg.seq)
         if restart:
             log_event(self.log, "trajectory started", stream=stream, seq=msg.seq)
+
+    # -- durable state --------------------------------------------------------------------------------------------
+    def _snapshot(self, stream: str, st: StreamState) -> None:
+        t0 = time.perf_counter()
+        blob = pack_arrays(st.vo.state_dict())
+        self.store.write_snapshot(stream, st.seqs[-1], blob)
+        st.since_snapshot = 0
+        self.stats.inc("snapshots")
+        self.stats.observe("snapshot", (time.perf_counter() - t0) * 1000.0)
+
+    def _resume(self, stream: str, st: StreamState) -> None:
+        """Rebuild the stream's OccVO from its snapshot and journal, as it was after the last committed frame."""
+        t0 = time.perf_counter()
+        vo = self._OccVO(self.occvo_config)
+        snap = self.store.snapshot(stream)
+        snap_seq = None
+        if snap is not None:
+            snap_seq, blob = snap
+            vo.load_state_dict(unpack_arrays(blob))
+        st.vo = vo
+        st.ego_xy = vo.poses[-1][:2, 3].copy() if snap is not None and len(vo.poses) else None
+        st.cold = self.store.cold_index(stream, as_of_seq=snap_seq if snap_seq is not None else -1)
+        st.cold_digest, st.pending_restored, st.tiles = {}, [], {}
+        journal = self.store.journal(stream, snap_seq)
+        worst = 0.0
+        for seq, frame in journal:  # the same restores and evictions as the first time, so the same poses
+            result = self._advance(stream, st, frame, seq, publish=False)[0]
+            st.pending_restored = []
+            stored = st.stored(seq)
+            diff = float(np.abs(np.asarray(result.pose) - stored.pose).max()) if stored is not None else np.inf
+            worst = max(worst, diff)
+        now = self.store.cold_index(stream)
+        if worst > 0 or now != st.cold:
+            self.report_error(stream, "internal", f"resume replayed {len(journal)} journaled frames: max pose difference "
+                              f"{worst:.3e} m, cold tiles {'equal' if now == st.cold else 'differ'} (expected 0 and equal); "
+                              "the stored poses stand", keys.occupancy(stream))
+            st.cold = now
+        st.since_snapshot = len(journal)
+        st.send_all_tiles = True
+        self.stats.inc("resumes")
+        log_event(self.log, "stream resumed", stream=stream, snapshot_seq=snap_seq, journal_frames=len(journal),
+                  last_seq=st.seqs[-1], cold_tiles=len(st.cold), ms=round((time.perf_counter() - t0) * 1000.0, 1))
+
+    # -- one step and the bounded working map ----------------------------------------------------------------------
+    def _advance(self, stream: str, st: StreamState, frame: OccupancyFrame, seq: int, publish: bool):
+        """Restore near map, register, keep every tile wholly resident or wholly cold, evict far map. The same on a
+        resume's replay of the journal, so it reproduces the poses. Returns (result, restored tiles, evicted blocks,
+        tiles of the working map before eviction if publish)."""
+        restored = self._restore(stream, st, self._near(st)) if st.ego_xy is not None else []
+        result = st.vo.step(frame)
+        pose = np.asarray(result.pose, float)
+        if st.cold:  # a frame that reached into an evicted tile: bring the rest back, so the tile stays whole
+            restored += self._restore(stream, st, self._reached(st, frame, pose))
+        t_map = time.perf_counter()
+        tiles = tiles_from_map(*st.vo.map_points(), self.config.tile_m) if publish else None
+        st.tiling_ms = (time.perf_counter() - t_map) * 1000.0
+        evicted = self._evict_far(st, seq, pose)
+        st.ego_xy = pose[:2, 3].copy()
+        return result, restored, evicted, tiles
+
+    def _reached(self, st: StreamState, frame: OccupancyFrame, pose: np.ndarray) -> list[tuple[int, int]]:
+        """Cold tiles the frame's points land in at `pose`, or within a merge of them (a map voxel averaged with a
+        point moves at most that far). Happens only when working_radius_m - tile_m is below a frame's reach (~57 m);
+        a bounding-box test first keeps it cheap otherwise."""
+        tile_m, margin = self.config.tile_m, 1.0
+        xy = frame.points @ pose[:2, :3].T + pose[:2, 3]
+        lo = np.floor((xy.min(axis=0) - margin) / tile_m)
+        hi = np.floor((xy.max(axis=0) + margin) / tile_m)
+        candidates = [k for k in st.cold if lo[0] <= k[0] <= hi[0] and lo[1] <= k[1] <= hi[1]]
+        if not candidates:
+            return []
+        ids = np.concatenate([np.floor((xy + d) / tile_m).astype(np.int64)
+                              for d in ((0, 0), (-margin, -margin), (-margin, margin), (margin, -margin), (margin, margin))])
+        packed = set(np.unique((ids[:, 0] << 32) + (ids[:, 1] & 0xFFFFFFFF)).tolist())
+        return [k for k in candidates if (k[0] << 32) + (k[1] & 0xFFFFFFFF) in packed]
+
+    def _near(self, st: StreamState) -> list[tuple[int, int]]:
+        """Cold tiles within working_radius_m - tile_m of the last pose (one tile of hysteresis: no flapping)."""
+        radius = self.config.working_radius_m
+        if radius is None or not st.cold:
+            return []
+        keys_ = list(st.cold)
+        near = _tile_distance(np.array(keys_, np.int64), st.ego_xy, self.config.tile_m) <= radius - self.config.tile_m
+        return [k for k, n in zip(keys_, near) if n]
+
+    def _restore(self, stream: str, st: StreamState, back: list[tuple[int, int]]) -> list[tuple[int, int]]:
+        """Put cold tiles back into the working map (newest block first: put() keeps a cell's newer voxel)."""
+        for k in back:
+            seqs = st.cold.pop(k)
+            for e in sorted(seqs, reverse=True):
+                st.vo.restore_tiles({k: unpack_arrays(self.store.cold_block(stream, k[0], k[1], e))})
+                st.pending_restored.append((k[0], k[1], e))
+        if back:
+            self.stats.inc("tiles_restored", len(back))
+        return list(back)
+
+    def _evict_far(self, st: StreamState, seq: int, pose: np.ndarray) -> dict:
+        """After a step: take the tiles wholly farther than working_radius_m out of the working map."""
+        if self.config.working_radius_m is None:
+            return {}
+        blocks = st.vo.evict_tiles(pose[:2, 3], self.config.working_radius_m, self.config.tile_m)
+        for k in blocks:
+            st.cold.setdefault(k, []).append(seq)
+        if blocks:
+            self.stats.inc("tiles_evicted", len(blocks))
+        return blocks
+
+    def _publish_map(self, stream: str, st: StreamState, seq: int, restart: bool, tiles: dict, evicted: dict,
+                     restored: list) -> None:
+        """Changed tiles of the working map as it was before this frame's eviction (an evicted tile goes out with its
+        last content, then is not sent as emptied: the map service keeps it); a restored tile only if it changed."""
+        if restart or st.send_all_tiles:
+            changed = dict(tiles)
+        else:
+            changed = changed_tiles(st.tiles, tiles)
+            for k in restored:
+                was = st.cold_digest.pop(k, None)
+                if k in changed and was is not None and _tile_digest(changed[k]) == was:
+                    del changed[k]
+        for k in evicted:
+            if k in tiles:
+                st.cold_digest[k] = _tile_digest(tiles[k])
+        st.send_all_tiles = False
+        st.tiles = {k: v for k, v in tiles.items() if k not in evicted} if evicted else tiles
+        tile_m = self.config.tile_m
+        update = MapUpdate(stream=stream, seq=seq, reset=restart, tile_m=tile_m, tiles=[
+            MapTile(stream=stream, ix=ix, iy=iy, tile_m=tile_m, seq=seq,
+                    points=Array.from_numpy(np.asarray(p, np.float64)), labels=Array.from_numpy(np.asarray(l, np.uint8)))
+            for (ix, iy), (p, l) in sorted(changed.items())])
+        self.session.put(keys.map_updates(stream), encode(update, 1 << 30), congestion_control=zenoh.CongestionControl.BLOCK)
+
+    # -- queries --------------------------------------------------------------------------------------------------
+    @staticmethod
+    def _pose_msg(stream: str, p: StoredPose) -> PoseEstimate:
+        return PoseEstimate(stream=stream, seq=p.seq, stamp=p.stamp, pose=np.asarray(p.pose, float).tolist(), status=p.status,
+                            timings_ms={}, sent_at=time.time())
 
     def _matching(self, query: zenoh.Query, key_of) -> list[tuple[str, StreamState]]:
         q = query.key_expr
@@ -148,6 +424,10 @@ class RegistrationWorker(Worker):
 def _args(p) -> None:
     p.add_argument("--tile-m", type=float)
     p.add_argument("--occvo-config")
+    p.add_argument("--store-path", help="SQLite file of the trajectories, snapshots and evicted map (default: none)")
+    p.add_argument("--snapshot-every", type=int, help="frames between state snapshots")
+    p.add_argument("--working-radius-m", type=float, help="evict map tiles farther than this from the ego to the store")
+    p.add_argument("--store-sync", choices=["full", "normal"], help="full: a published pose survives a power cut too")
 
 
 if __name__ == "__main__":

@@ -38,20 +38,44 @@ def free_port() -> int:
         return s.getsockname()[1]
 
 
-def zenoh_config(mode: str = "client", connect: str | None = None, listen: str | None = None) -> zenoh.Config:
-    """Loopback-friendly config: no multicast scouting, explicit endpoints only."""
-    c = zenoh.Config()
+ZENOH_CONFIG_ENV = "OCCVO_ZENOH_CONFIG"  # a zenoh json5 for client sessions: TLS certificates, credentials (deploy/)
+CLIENT_RETRY = '{period_init_ms: 100, period_max_ms: 500, period_increase_factor: 2}'
+BLOCK_WAIT_KEY = "transport/link/tx/queue/congestion_control/block/wait_before_close"
+BLOCK_WAIT_US = 60_000_000
+
+
+def lossless_links(c: zenoh.Config) -> zenoh.Config:
+    """A lossless worker holds its Zenoh callback while its stage queue is full; zenoh closes a link blocked longer
+    than wait_before_close (5 s by default) and loses what it buffered. Under overload a frame can wait longer than
+    that for room (8 streams at 2 Hz measured gaps of ~80 frames a stream), so allow 60 s unless a config sets it."""
+    if json.loads(c.get_json(BLOCK_WAIT_KEY)) == 5_000_000:
+        c.insert_json5(BLOCK_WAIT_KEY, str(BLOCK_WAIT_US))
+    return c
+
+
+def zenoh_config(mode: str = "client", connect: str | None = None, listen: str | None = None,
+                 base: str | Path | None = None) -> zenoh.Config:
+    """Loopback-friendly config: no multicast scouting, explicit endpoints only. Client sessions start from
+    `base` (default: the file named by $OCCVO_ZENOH_CONFIG) and retry a lost router every 0.5 s at most, so
+    workers and clients reconnect within half a second of a router restart (zenoh's default waits up to 4 s)."""
+    base = base or (os.environ.get(ZENOH_CONFIG_ENV) if mode == "client" else None)
+    try:
+        c = zenoh.Config.from_file(str(base)) if base else zenoh.Config()
+    except Exception as exc:  # noqa: BLE001 - zenoh names the key, we name the file
+        raise ConfigError(f"zenoh config {base}: {exc}") from None
     c.insert_json5("mode", json.dumps(mode))
     c.insert_json5("scouting/multicast/enabled", "false")
     if connect:
         c.insert_json5("connect/endpoints", json.dumps([connect]))
     if listen:
         c.insert_json5("listen/endpoints", json.dumps([listen]))
-    return c
+    if mode == "client" and json.loads(c.get_json("connect/retry")) is None:
+        c.insert_json5("connect/retry", CLIENT_RETRY)
+    return lossless_links(c)
 
 
-def open_session(connect: str = DEFAULT_ENDPOINT) -> zenoh.Session:
-    return zenoh.open(zenoh_config("client", connect=connect))
+def open_session(connect: str = DEFAULT_ENDPOINT, base: str | Path | None = None) -> zenoh.Session:
+    return zenoh.open(zenoh_config("client", connect=connect, base=base))
 
 
 def open_router(listen: str | None = None, config_path: str | Path | None = None) -> zenoh.Session:
@@ -60,7 +84,7 @@ def open_router(listen: str | None = None, config_path: str | Path | None = None
         c = zenoh.Config.from_file(str(config_path))
         if listen:
             c.insert_json5("listen/endpoints", json.dumps([listen]))
-        return zenoh.open(c)
+        return zenoh.open(lossless_links(c))
     return zenoh.open(zenoh_config("router", listen=listen or DEFAULT_ENDPOINT))
 
 
@@ -211,11 +235,17 @@ class WorkerConfig(BaseModel):
     # inference worker
     source: Literal["replay", "model"] = "replay"
     device: Literal["auto", "cpu", "cuda"] = "auto"
-    model_weights: str | None = None
+    model_weights: str | None = None  # TinyOccNet state_dict (services.occupancy_model)
+    checkpoint: str | None = None  # TPV-Former checkpoint of the model source (occvo train-occ)
     torch_threads: int = Field(1, ge=1)
     # registration worker
     tile_m: float = Field(20.0, gt=0)
     occvo_config: str | None = None
+    # durable state (SQLite file; the registration worker and the map service may share one)
+    store_path: str | None = None
+    snapshot_every: int = Field(20, ge=1)  # registration: frames between state snapshots (a journal covers the rest)
+    working_radius_m: float | None = Field(None, gt=0)  # registration: map farther from the ego goes to the store
+    store_sync: Literal["full", "normal"] = "full"  # registration: SQLite synchronous; normal survives kill -9, not power loss
 
     @classmethod
     def load(cls, path: str | Path | None, **overrides) -> "WorkerConfig":
@@ -259,7 +289,10 @@ class StreamLane:
                 self.handler(self.stream, item)  # the frame in hand is always finished, even when stopping
             except Exception as exc:  # noqa: BLE001 - a worker never dies of one frame
                 seq = getattr(item[0], "seq", None) if isinstance(item, tuple) and item else None
-                self.worker.report_error(self.stream, "internal", f"{type(exc).__name__}: {exc}", seq=seq)
+                if isinstance(exc, CodecError):  # e.g. an output over the size limit: the frame's problem, named so
+                    self.worker.report_error(self.stream, exc.code, f"seq {seq}: output not sent: {exc.message}", seq=seq)
+                else:
+                    self.worker.report_error(self.stream, "internal", f"{type(exc).__name__}: {exc}", seq=seq)
                 log_event(self.worker.log, "stage failed", logging.ERROR, stream=self.stream, error=repr(exc))
             finally:
                 self.busy = False
@@ -343,7 +376,8 @@ class Worker:
             return
         if not self.check_seq(msg.stream, msg.seq, str(sample.key_expr)):
             return
-        hop_ms = (t_recv - msg.sent_at) * 1000.0 if msg.sent_at > 0 else 0.0
+        # a sent_at a day off (e.g. 1e308) would give an infinite hop: no hop latency then, not a failed stage
+        hop_ms = (t_recv - msg.sent_at) * 1000.0 if 0 < msg.sent_at and abs(t_recv - msg.sent_at) < 86400 else 0.0
         self.lane(msg.stream, handler).queue.put((msg, hop_ms, time.perf_counter()))
 
     def decode_input(self, sample: zenoh.Sample, expect):
@@ -375,7 +409,8 @@ class Worker:
         log_event(self.log, "error", logging.WARNING, **event.model_dump(exclude={"kind", "schema_version"}))
         if self.session is not None and not self.session.is_closed():
             try:
-                self.session.put(keys.errors(event.stream if event.stream != "*" else "_"), encode(event))
+                self.session.put(keys.errors(event.stream if event.stream != "*" else "_"), encode(event),
+                                 congestion_control=zenoh.CongestionControl.BLOCK)  # a report is never dropped
             except Exception as exc:  # noqa: BLE001
                 log_event(self.log, "cannot publish error event", logging.ERROR, error=repr(exc))
         return event

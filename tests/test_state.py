@@ -49,11 +49,11 @@ def test_state_of_another_config_is_refused(scene):
 
 
 def _voxels(vo: OccVO) -> np.ndarray:
-    """Every live voxel as rows of (key, position, label, t0, f, last), in a canonical order."""
+    """Every live voxel as rows of (key, position, label, f, frames from first to last sighting), sorted."""
     m, n = vo.map, vo.map._n
     live = m.alive[:n]
-    table = np.column_stack([m.keys[:n][live], m.pos[:n][live], m.label[:n][live], m.t0[:n][live], m.f[:n][live],
-                             m.last[:n][live]])
+    table = np.column_stack([m.keys[:n][live], m.pos[:n][live], m.label[:n][live], m.f[:n][live],
+                             m.last[:n][live] - m.t0[:n][live]])
     return table[np.lexsort(table.T[::-1])]
 
 
@@ -75,28 +75,28 @@ def test_evicted_tiles_leave_the_working_map_and_come_back_whole(scene):
     evicted = sum(len(b["keys"]) for b in blocks.values())
     assert len(vo.map) == len(before) - evicted
     assert vo.restore_tiles(blocks) == evicted
-    assert np.array_equal(_voxels(vo), before)  # same voxels and p-index state (restored at the frame they left)
+    assert np.array_equal(_voxels(vo), before)  # same voxels, labels and sighting history
 
 
-def test_frames_spent_evicted_do_not_count_against_the_p_index(scene):
+def test_a_restored_voxel_keeps_its_p_index_of_the_time_it_was_in_view(scene):
     vo = OccVO()
     for i in range(6):
         vo.step(scene[i])
     blocks = vo.evict_tiles(vo.poses[-1][:2, 3], 30.0, 20.0)
-    t_out = len(vo.poses)
-    taken = {name: np.concatenate([b[name] for b in blocks.values()]) for name in ("t0", "f", "keys")}
-    p_out = taken["f"] / np.maximum(t_out - taken["t0"], 1)
+    taken = {name: np.concatenate([b[name] for b in blocks.values()]) for name in ("t0", "f", "last", "keys")}
+    in_view = taken["f"] / (taken["last"] - taken["t0"] + 1)
     for i in range(6, 9):
         vo.step(scene[i])
     t_back = len(vo.poses)
     n_before = vo.map._n
+    persistent_before = vo.map.persistent().sum()
     added = vo.restore_tiles(blocks)
-    assert 0 < added <= len(p_out)
+    assert 0 < added <= len(in_view)
     rows = np.arange(n_before, n_before + added)
-    p_back = vo.map.p_index(t_back)[rows]
     # the restored voxels are those whose cells the map had not filled again meanwhile, in block order
     held = {tuple(k) for k in vo.map.keys[:n_before][vo.map.alive[:n_before]]}
     kept = np.array([tuple(k) not in held for k in taken["keys"]])
     assert kept.sum() == added
-    assert np.allclose(p_back, p_out[kept])
-    assert t_back > t_out and np.all(vo.map.t0[rows] == taken["t0"][kept] + (t_back - t_out))
+    assert np.allclose(vo.map.p_index(t_back)[rows], in_view[kept])  # as if last seen the frame before
+    assert np.all(vo.map.last[rows] == t_back - 1)
+    assert vo.map.persistent().sum() == persistent_before + np.count_nonzero(in_view[kept] > 0.5)

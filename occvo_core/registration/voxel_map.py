@@ -208,9 +208,11 @@ class VoxelPFilterMap:
         return block
 
     def put(self, block: dict[str, np.ndarray], t: int) -> int:
-        """Add back voxels taken at an earlier frame. Frames spent away do not count against a voxel's p-index
-        (t0 and last move on by the time away). A voxel whose cell already holds a live voxel is dropped: the map
-        observed there since is newer. Returns the number of voxels added."""
+        """Add back voxels taken at an earlier frame, as if last seen at frame t - 1: the frames a voxel spent out of
+        view do not count against its p-index, which comes back as its share of the frames from its first to its
+        last sighting (what persistent() judges). Without this, a place revisited after a loop would have no reliable
+        voxels left and the odometry could not register to it. A voxel whose cell already holds a live voxel is
+        dropped: the map observed there since is newer. Returns the number of voxels added."""
         keys = np.asarray(block["keys"], np.int64)
         if len(keys) == 0:
             return 0
@@ -218,7 +220,8 @@ class VoxelPFilterMap:
         held = self.window(lower, upper)
         cells = ((keys - held.origin) * [held.dims[1] * held.dims[2], held.dims[2], 1]).sum(axis=1)
         new = held.grid[cells] < 0
-        shift = int(t) - int(block["taken_at"])
+        seen = np.asarray(block["last"], np.int64)[new]
+        shift = (int(t) - 1) - np.where(seen >= 0, seen, int(block["taken_at"]) - 1)
         n_new = int(new.sum())
         if self._n + n_new > len(self.pos):
             self._alloc(max(2 * len(self.pos), self._n + n_new))
@@ -227,8 +230,7 @@ class VoxelPFilterMap:
             if name != "alive":
                 getattr(self, name)[rows] = np.asarray(block[name])[new]
         self.t0[rows] += shift
-        last = self.last[rows]
-        last[last >= 0] += shift
+        self.last[rows] = int(t) - 1
         self.alive[rows] = True
         self._n += n_new
         return n_new

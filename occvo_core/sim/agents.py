@@ -35,8 +35,10 @@ def _pose(town: Town, xy: np.ndarray, yaw: np.ndarray) -> np.ndarray:
 
 
 def make_traffic(town: Town, rng: np.random.Generator, times: np.ndarray, ego_xy: np.ndarray,
-                 lower: np.ndarray, upper: np.ndarray, n_vehicles: int, n_pedestrians: int) -> list[DynamicTrack]:
-    """Agents whose paths never come near the ego or each other (no collisions to explain)."""
+                 lower: np.ndarray, upper: np.ndarray, n_vehicles: int, n_pedestrians: int,
+                 avoid: list | None = None, first_id: int = 0) -> list[DynamicTrack]:
+    """Agents whose paths never come near the ego or each other (no collisions to explain).
+    avoid: (positions at 0.25 s steps, radius) of agents placed already, kept clear of too."""
     graph = town.graph
     duration = float(times[-1]) if len(times) else 0.0
     check_t = np.arange(0.0, duration + 1e-9, 0.25)
@@ -44,7 +46,7 @@ def make_traffic(town: Town, rng: np.random.Generator, times: np.ndarray, ego_xy
     ego_at = np.column_stack([np.interp(check_t, times, ego_xy[:, 0]), np.interp(check_t, times, ego_xy[:, 1])])
     near = np.nonzero(np.all((graph.nodes > lower + 20) & (graph.nodes < upper - 20), axis=1))[0]
     tracks: list[DynamicTrack] = []
-    placed: list[tuple[np.ndarray, float]] = []  # (positions at check_t, radius)
+    placed: list[tuple[np.ndarray, float]] = list(avoid or [])  # (positions at check_t, radius)
 
     def clear(pos: np.ndarray, radius: float) -> bool:
         if np.min(np.linalg.norm(pos - ego_at, axis=1)) < radius + 4.0:
@@ -69,7 +71,7 @@ def make_traffic(town: Town, rng: np.random.Generator, times: np.ndarray, ego_xy
         if not clear(pos, length / 2):
             continue
         placed.append((pos, length / 2))
-        tracks.append(DynamicTrack(len(tracks), label, (length, width, height), clearance, _pose(town, xy, yaw),
+        tracks.append(DynamicTrack(first_id + len(tracks), label, (length, width, height), clearance, _pose(town, xy, yaw),
                                    motion.speed_at(times + t0)))
 
     attempts = 0
@@ -105,9 +107,75 @@ def make_traffic(town: Town, rng: np.random.Generator, times: np.ndarray, ego_xy
             continue
         placed.append((pos, 0.4))
         length, width, height, clearance = VEHICLE_SIZE[PEDESTRIAN]
-        tracks.append(DynamicTrack(len(tracks), PEDESTRIAN, (length, width, rng.uniform(1.55, 1.9)), clearance,
+        tracks.append(DynamicTrack(first_id + len(tracks), PEDESTRIAN, (length, width, rng.uniform(1.55, 1.9)), clearance,
                                    _pose(town, xy, yaw), np.full(len(times), speed) * (np.abs(ds) > 0)))
     return tracks
+
+
+def loop_traffic(town: Town, rng: np.random.Generator, times: np.ndarray, ego, cycle: list[int], lap_m: float,
+                 n_ahead: int, n_oncoming: int) -> tuple[list[DynamicTrack], list]:
+    """Traffic on a closed circuit: vehicles in the ego's lane driving its own speed profile some seconds ahead
+    (time-shifted copies of `ego`, a route.Motion, so they stop where it stops), and oncoming vehicles in the
+    other lane going round the opposite way. Lane followers keep >= 20 m of arc from the ego and each other;
+    oncoming ones keep that among themselves and pass the ego a lane apart. Also returns their (positions at
+    0.25 s steps, radius) for make_traffic's `avoid`."""
+    duration = float(times[-1]) if len(times) else 0.0
+    check_t = np.arange(0.0, duration + 1e-9, 0.25)
+    ego_s = np.mod(ego.s_at(check_t), lap_m)
+    s_end = float(ego.s_knots[-1])
+    tracks: list[DynamicTrack] = []
+    placed: list[tuple[np.ndarray, float]] = []
+
+    def pick_label():
+        r = rng.random()
+        return CAR if r < 0.75 else TRUCK if r < 0.85 else BUS if r < 0.92 else MOTORCYCLE
+
+    def gap_ok(s, others):
+        return all(np.min(np.abs((s - o + lap_m / 2) % lap_m - lap_m / 2)) >= 20.0 for o in others)
+
+    lap_s = float(np.interp(lap_m, ego.s_knots, ego.t_knots))  # time of the first lap
+    taken = [ego_s]
+    for _ in range(20 * max(n_ahead, 1)):
+        if len(tracks) >= n_ahead or lap_s < 40.0:
+            break
+        shift = rng.uniform(10.0, lap_s - 10.0)
+        if ego.s_at(duration + shift) >= s_end - 1.0:
+            continue
+        s = np.mod(ego.s_at(check_t + shift), lap_m)
+        if not gap_ok(s, taken):
+            continue
+        taken.append(s)
+        label = pick_label()
+        xy, yaw = ego.xy_heading(times + shift)
+        length, width, height, clearance = VEHICLE_SIZE[label]
+        placed.append((np.column_stack([np.interp(check_t, times, xy[:, 0]), np.interp(check_t, times, xy[:, 1])]), length / 2))
+        tracks.append(DynamicTrack(len(tracks), label, (length, width, height), clearance, _pose(town, xy, yaw),
+                                   ego.speed_at(times + shift)))
+
+    if n_oncoming > 0:
+        back = cycle[::-1]
+        cruise = rng.uniform(7.0, 11.0)
+        laps = int(np.ceil((cruise * duration + 2 * lap_m + 100.0) / lap_m)) + 1
+        path = lane_path(town.graph, back * laps + back[:1])
+        lap_r = float(path.node_s[len(back)] - path.node_s[0])  # the other lane's lap is a little different
+        motion = speed_profile(path, np.full(len(path.xy), cruise), cruise)
+        lap_back = float(np.interp(lap_r, motion.s_knots, motion.t_knots))
+        taken_r: list[np.ndarray] = []
+        for _ in range(20 * n_oncoming):
+            if len(taken_r) >= n_oncoming:
+                break
+            t0 = rng.uniform(0.0, lap_back)
+            s = np.mod(motion.s_at(check_t + t0), lap_r)
+            if not all(np.min(np.abs((s - o + lap_r / 2) % lap_r - lap_r / 2)) >= 20.0 for o in taken_r):
+                continue
+            taken_r.append(s)
+            label = pick_label()
+            xy, yaw = motion.xy_heading(times + t0)
+            length, width, height, clearance = VEHICLE_SIZE[label]
+            placed.append((np.column_stack([np.interp(check_t, times, xy[:, 0]), np.interp(check_t, times, xy[:, 1])]), length / 2))
+            tracks.append(DynamicTrack(len(tracks), label, (length, width, height), clearance, _pose(town, xy, yaw),
+                                       motion.speed_at(times + t0)))
+    return tracks, placed
 
 
 def boxes_in_ego(tracks: list[DynamicTrack], frame: int, ego_pose: np.ndarray) -> np.ndarray:

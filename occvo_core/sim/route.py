@@ -182,3 +182,29 @@ def speed_profile(path: Path, v_cruise: np.ndarray, v0: float, stops: list[tuple
         for j in range(k + 2, len(t_k)):
             t_k[j] += stop_idx[k]
     return Motion(path, np.array(t_k), np.array(s_k), np.array(v_k))
+
+
+def block_loop(graph: RoadGraph, rng: np.random.Generator, blocks: tuple[int, int]) -> list[int]:
+    """A closed circuit around a rectangle of `blocks` (nx, ny) city blocks near the origin: its boundary nodes
+    in driving order (the first node not repeated at the end). The graph is RoadGraph.random's square lattice
+    (node (i, j) = i * side + j); the rectangle nearest the origin whose boundary roads all exist is taken."""
+    side = int(round(np.sqrt(len(graph.nodes))))
+    a, b = int(blocks[0]), int(blocks[1])
+    if side * side != len(graph.nodes) or a < 1 or b < 1 or a >= side or b >= side:
+        raise ValueError(f"no {a}x{b} block loop in a graph of {len(graph.nodes)} nodes")
+    candidates = []
+    for i0 in range(side - a):
+        for j0 in range(side - b):
+            ring = ([(i, j0) for i in range(i0, i0 + a)] + [(i0 + a, j) for j in range(j0, j0 + b)]
+                    + [(i, j0 + b) for i in range(i0 + a, i0, -1)] + [(i0, j) for j in range(j0 + b, j0, -1)])
+            nodes = [i * side + j for i, j in ring]
+            if all(n in graph.neighbours[m] for m, n in zip(nodes, nodes[1:] + nodes[:1])):
+                centre = graph.nodes[nodes].mean(axis=0)
+                candidates.append((float(np.linalg.norm(centre)), nodes))
+    if not candidates:
+        raise ValueError(f"no {a}x{b} block loop with all its roads in this graph")
+    nodes = min(candidates, key=lambda c: c[0])[1]
+    if rng.random() < 0.5:  # either way round the blocks
+        nodes = nodes[::-1]
+    k = int(rng.integers(len(nodes)))
+    return nodes[k:] + nodes[:k]

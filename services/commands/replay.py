@@ -31,7 +31,9 @@ def load_scene(spec: str, frames: int | None = None):
 def replay(client: OccVOClient, scene, rate_hz: float = 0.0, window: int = 4, frames: int | None = None,
            timeout: float = 120.0, progress=None) -> dict:
     """Publish frames 0..n-1 as one trajectory, keeping at most `window` frames in flight (application-level
-    backpressure: the next frame goes out when an earlier pose or error came back). Returns a summary."""
+    backpressure: the next frame goes out when an earlier pose or error came back). Frames in flight when the
+    registration worker restarts are sent again by the client (OccVOClient.resend_after, its liveliness token), so a
+    replay survives a crashed worker that comes back with its store. Returns a summary."""
     n = len(scene) if frames is None else min(frames, len(scene))
     client.reset()
     t0 = time.perf_counter()
@@ -62,7 +64,7 @@ def replay(client: OccVOClient, scene, rate_hz: float = 0.0, window: int = 4, fr
             client._cv.wait(max(0.0, deadline - time.monotonic()))
     elapsed = time.perf_counter() - t0
     poses = dict(client.poses)
-    return {"stream": client.stream, "frames": n, "poses": len(poses), "errors": len(client.errors),
+    return {"stream": client.stream, "frames": n, "poses": len(poses), "errors": len(client.errors), "resends": client.resends,
             "seconds": elapsed, "fps": len(poses) / elapsed if elapsed > 0 else 0.0,
             "trajectory": np.array([poses[s].matrix() for s in sorted(poses)]) if poses else np.zeros((0, 4, 4)),
             "pose_msgs": poses}
@@ -76,13 +78,16 @@ def add_parser(subparsers) -> None:
     p.add_argument("--window", type=int, default=4, help="frames in flight at most (lossless replay)")
     p.add_argument("--frames", type=int, default=None, help="replay only the first N frames")
     p.add_argument("--timeout", type=float, default=120.0)
+    p.add_argument("--resend-after", type=float, default=5.0,
+                   help="send unanswered frames again after this many seconds without an answer (also when the "
+                        "registration worker comes back); 0 = never")
     p.add_argument("--output", help="write the received trajectory (KITTI) here")
     p.set_defaults(func=run)
 
 
 def run(args) -> int:
     scene = load_scene(args.scene, args.frames)
-    with OccVOClient(endpoint(args), stream=args.stream) as client:
+    with OccVOClient(endpoint(args), stream=args.stream, resend_after=args.resend_after or None) as client:
         client.wait_for_workers(timeout=args.timeout)
         out = replay(client, scene, args.rate, args.window, args.frames, args.timeout)
         errors = list(client.errors)

@@ -16,6 +16,8 @@ def add_parser(subparsers) -> None:
     p.add_argument("--connect", help="override the router listen endpoint, e.g. tcp/127.0.0.1:7447")
     p.add_argument("--source", choices=["replay", "model"], default="replay", help="inference source")
     p.add_argument("--device", choices=["auto", "cpu", "cuda"], default="auto")
+    p.add_argument("--checkpoint", help="TPV-Former checkpoint for --source model (occvo train-occ)")
+    p.add_argument("--store-path", help="SQLite file for the trajectories and the map; a restart resumes from it")
     p.add_argument("--policy", choices=["lossless", "latest"], default="lossless")
     p.add_argument("--queue-size", type=int, default=4)
     p.add_argument("--log-dir", help="write each worker's JSON log lines to <dir>/<role>.log (default: stderr)")
@@ -24,12 +26,14 @@ def add_parser(subparsers) -> None:
 
 def run(args) -> int:
     ep = endpoint(args)
+    store = ["--store-path", args.store_path] if args.store_path else []
     service = LocalService(
         endpoint=ep, router_config=args.router_config if not args.connect else None, log_dir=args.log_dir,
         common_args=["--policy", args.policy, "--queue-size", str(args.queue_size)],
-        worker_args={"inference": ["--config", str(DEPLOY / "inference_worker.json5"), "--source", args.source, "--device", args.device],
-                     "registration": ["--config", str(DEPLOY / "registration_worker.json5")],
-                     "map": ["--config", str(DEPLOY / "map_service.json5")]})
+        worker_args={"inference": ["--config", str(DEPLOY / "inference_worker.json5"), "--source", args.source, "--device", args.device,
+                                   *(["--checkpoint", args.checkpoint] if args.checkpoint else [])],
+                     "registration": ["--config", str(DEPLOY / "registration_worker.json5"), *store],
+                     "map": ["--config", str(DEPLOY / "map_service.json5"), *store]})
     stop = threading.Event()
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: stop.set())

@@ -1,0 +1,86 @@
+"""What durable state costs the registration worker, per frame and per snapshot, and what a resume costs.
+
+    python benchmarks/durable_state.py [--scene DIR | --synthetic SEED] [--frames 40] [--snapshot-every 20]
+
+OccVO runs over the scene in this process; after each frame the worker's store work is timed on real SQLite files in a
+temporary folder: the frame commit (pose + journaled frame, one transaction) with synchronous=FULL and with NORMAL, the
+state snapshot (pack + write) every --snapshot-every frames, the eviction check, and at the end a resume (load the
+snapshot, replay the journal). Prints medians in ms and the store's sizes.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import tempfile
+import time
+import warnings
+from pathlib import Path
+
+import numpy as np
+
+from occvo_core import OccVO
+from services.store import TrajectoryStore, frame_digest, pack_arrays, pack_frame, unpack_arrays
+
+warnings.filterwarnings("ignore", category=RuntimeWarning)
+DATA = Path(__file__).resolve().parents[2] / "shared/data/occvo-sample/occupancy/scene-0101"
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--scene", default=str(DATA) if DATA.is_dir() else None)
+    p.add_argument("--synthetic", type=int, default=0, help="seed of a synthetic scene when --scene is not given")
+    p.add_argument("--frames", type=int, default=40)
+    p.add_argument("--snapshot-every", type=int, default=20)
+    args = p.parse_args()
+    if args.scene:
+        from occvo_core.datasets import open_scene
+
+        scene, name = open_scene(args.scene), Path(args.scene).name
+    else:
+        from occvo_core.sim import SyntheticScene
+
+        scene, name = SyntheticScene(seed=args.synthetic, frames=args.frames), f"synthetic:{args.synthetic}"
+    n = min(args.frames, len(scene))
+    frames = [scene[i] for i in range(n)]
+    t = {"step": [], "commit_full": [], "commit_normal": [], "snapshot": [], "evict_check": []}
+    with tempfile.TemporaryDirectory() as tmp:
+        full, normal = TrajectoryStore(Path(tmp) / "full.sqlite", "FULL"), TrajectoryStore(Path(tmp) / "normal.sqlite", "NORMAL")
+        vo = OccVO()
+        for i, f in enumerate(frames):
+            t0 = time.perf_counter()
+            r = vo.step(f)
+            t["step"].append(time.perf_counter() - t0)
+            digest = frame_digest(f.points, f.labels, f.stamp)
+            for store, key in ((full, "commit_full"), (normal, "commit_normal")):
+                t0 = time.perf_counter()
+                store.commit_frame("s", i, f.stamp, digest, r.status, r.pose, pack_frame(f), new_trajectory=i == 0)
+                t[key].append(time.perf_counter() - t0)
+            t0 = time.perf_counter()
+            vo.evict_tiles(r.pose[:2, 3], 120.0, 20.0)
+            t["evict_check"].append(time.perf_counter() - t0)
+            if (i + 1) % args.snapshot_every == 0 and i + 1 < n:
+                t0 = time.perf_counter()
+                full.write_snapshot("s", i, pack_arrays(vo.state_dict()))
+                t["snapshot"].append(time.perf_counter() - t0)
+        sizes = full.sizes("s")
+        t0 = time.perf_counter()
+        seq, blob = full.snapshot("s")
+        back = OccVO()
+        back.load_state_dict(unpack_arrays(blob))
+        journal = full.journal("s", seq)
+        for _, f in journal:
+            back.step(f)
+        resume_s = time.perf_counter() - t0
+        assert np.array_equal(back.poses, vo.poses), "resume did not reproduce the poses"
+        full.close()
+        normal.close()
+    med = {k: round(float(np.median(v)) * 1000, 2) for k, v in t.items() if v}
+    print(json.dumps({"scene": name, "frames": n, "median_ms": med, "map_voxels": len(vo.map),
+                      "snapshot_mb": round(sizes["snapshots_bytes"] / 1e6, 2),
+                      "journal_frame_kb": round(sizes["journal_bytes"] / max(sizes["journal_rows"], 1) / 1e3, 1),
+                      "resume": {"journal_frames": len(journal), "seconds": round(resume_s, 2), "poses_equal": True}}))
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,263 @@
+"""`occvo up`: a router and the workers named in one json5 file, as child processes, kept running.
+
+A child that exits with a nonzero code or is killed is started again after a backoff (0.5 s doubling to 30 s by
+default, back to 0.5 s once it has stayed up 60 s). SIGINT/SIGTERM stop the workers first (each finishes its frame
+in hand), then the router. Every event is a JSON line on stderr.
+
+    {
+      router: { config: "router.json5", listen: "tcp/127.0.0.1:7447" },   // paths relative to this file
+      workers: [ { role: "registration", config: "registration_worker.json5", args: ["--store-path", "x.sqlite"], count: 1 } ],
+      restart: { backoff_initial_s: 0.5, backoff_max_s: 30, reset_after_s: 60 },
+    }
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import signal
+import socket
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+from typing import Literal
+
+from pydantic import BaseModel, ConfigDict, Field
+
+from occvo_core.errors import ConfigError
+from services.runtime import log_event, router_endpoint, structured_logger
+
+REPO = Path(__file__).resolve().parents[1]
+MODULES = {"inference": "services.inference_worker", "registration": "services.registration_worker", "map": "services.map_service"}
+
+
+class RouterSpec(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+    config: str | None = None               # router json5; default deploy/router.json5
+    listen: str | None = None               # replaces the file's listen endpoint
+    connect: str | None = None              # what workers dial; default: the listen endpoint (0.0.0.0 -> 127.0.0.1)
+    enabled: bool = True                    # false: the router runs elsewhere (another host), only workers here
+
+
+class WorkerSpec(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+    role: Literal["inference", "registration", "map"]
+    config: str | None = None
+    args: list[str] = []
+    count: int = Field(1, ge=1, le=64)      # replicas; each handles every stream it subscribes to (see README)
+    env: dict[str, str] = {}
+
+
+class RestartSpec(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+    backoff_initial_s: float = Field(0.5, gt=0)
+    backoff_max_s: float = Field(30.0, gt=0)
+    reset_after_s: float = Field(60.0, gt=0)
+
+
+class UpConfig(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+    router: RouterSpec = RouterSpec()
+    workers: list[WorkerSpec]
+    restart: RestartSpec = RestartSpec()
+    stop_timeout_s: float = Field(60.0, gt=0)
+    log_dir: str | None = None              # each child's stderr to <log_dir>/<name>.log (default: this stderr)
+
+    @classmethod
+    def load(cls, path: str | Path) -> "UpConfig":
+        """Read the json5 file; relative paths in it are relative to the file."""
+        import json5
+
+        path = Path(path)
+        try:
+            cfg = cls.model_validate(json5.loads(path.read_text()))
+        except Exception as exc:  # noqa: BLE001
+            raise ConfigError(f"{path}: {exc}") from None
+        base = path.resolve().parent
+
+        def rel(p: str | None) -> str | None:
+            return None if p is None else str((base / p) if not Path(p).is_absolute() else Path(p))
+
+        cfg.router.config = rel(cfg.router.config)
+        cfg.log_dir = rel(cfg.log_dir)
+        for w in cfg.workers:
+            w.config = rel(w.config)
+        for f in (cfg.router.config, *(w.config for w in cfg.workers)):
+            if f is not None and not Path(f).is_file():
+                raise ConfigError(f"{path}: config file {f} not found")
+        return cfg
+
+    def endpoint(self) -> str:
+        """The endpoint workers connect to."""
+        if self.router.connect:
+            return self.router.connect
+        ep = self.router.listen or router_endpoint(self.router.config or REPO / "deploy" / "router.json5")
+        return ep.replace("0.0.0.0", "127.0.0.1").replace("[::]", "[::1]")
+
+
+class Backoff:
+    """Restart delay of one child: initial, doubling to max; back to initial after the child stayed up reset_after."""
+
+    def __init__(self, spec: RestartSpec):
+        self.spec = spec
+        self.delay = spec.backoff_initial_s
+
+    def next(self, uptime_s: float) -> float:
+        if uptime_s >= self.spec.reset_after_s:
+            self.delay = self.spec.backoff_initial_s
+        d = self.delay
+        self.delay = min(self.delay * 2, self.spec.backoff_max_s)
+        return d
+
+
+class Child:
+    def __init__(self, name: str, cmd: list[str], env: dict[str, str], spec: RestartSpec, role: str):
+        self.name, self.cmd, self.env, self.role = name, cmd, env, role
+        self.backoff = Backoff(spec)
+        self.proc: subprocess.Popen | None = None
+        self.started_at = 0.0
+        self.restart_at: float | None = None
+        self.restarts = 0
+
+
+def _die_with_parent() -> None:
+    """In the child: SIGTERM when the supervisor dies, so no worker outlives a killed `occvo up` (Linux)."""
+    if sys.platform.startswith("linux"):
+        import ctypes
+
+        ctypes.CDLL("libc.so.6", use_errno=True).prctl(1, signal.SIGTERM)  # PR_SET_PDEATHSIG
+
+
+class Supervisor:
+    def __init__(self, config: UpConfig, log: logging.Logger | None = None):
+        self.config = config
+        self.log = log or structured_logger("occvo.up")
+        self.endpoint = config.endpoint()
+        self.stopping = threading.Event()
+        env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(REPO), os.environ.get("PYTHONPATH", "")]).rstrip(os.pathsep))
+        self.router: Child | None = None
+        if config.router.enabled:
+            cmd = [sys.executable, "-m", "services.router", "--config", config.router.config or str(REPO / "deploy" / "router.json5")]
+            if config.router.listen:
+                cmd += ["--listen", config.router.listen]
+            self.router = Child("router", cmd, env, config.restart, "router")
+        self.workers: list[Child] = []
+        for w in config.workers:
+            for i in range(w.count):
+                name = f"{w.role}-{i}"
+                cmd = [sys.executable, "-m", MODULES[w.role], *(["--config", w.config] if w.config else []),
+                       "--connect", self.endpoint, "--worker-id", name, *w.args]
+                self.workers.append(Child(name, cmd, {**env, **w.env}, config.restart, w.role))
+
+    # -- children
+    def _spawn(self, child: Child) -> None:
+        err = None
+        if self.config.log_dir:
+            Path(self.config.log_dir).mkdir(parents=True, exist_ok=True)
+            err = open(Path(self.config.log_dir) / f"{child.name}.log", "a")
+        # own process group: a terminal's Ctrl-C reaches only the supervisor, which stops workers before the router
+        child.proc = subprocess.Popen(child.cmd, cwd=REPO, env=child.env, stdout=err, stderr=err, process_group=0,
+                                      preexec_fn=_die_with_parent)
+        if err is not None:
+            err.close()
+        child.started_at = time.monotonic()
+        child.restart_at = None
+        log_event(self.log, "started", name=child.name, role=child.role, pid=child.proc.pid, restarts=child.restarts)
+
+    def _wait_router(self, timeout: float) -> None:
+        """Until the router accepts TCP connections on its endpoint (tcp/tls), so workers do not start too early."""
+        proto, _, addr = self.endpoint.partition("/")
+        if proto not in ("tcp", "tls"):
+            time.sleep(1.0)
+            return
+        host, _, port = addr.split("#")[0].rpartition(":")
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline and not self.stopping.is_set():
+            if self.router is not None and self.router.proc.poll() is not None:
+                raise RuntimeError(f"router exited with code {self.router.proc.returncode} during start-up")
+            try:
+                with socket.create_connection((host.strip("[]"), int(port)), timeout=0.5):
+                    return
+            except OSError:
+                time.sleep(0.1)
+        if not self.stopping.is_set():
+            raise TimeoutError(f"router not accepting connections on {self.endpoint} after {timeout} s")
+
+    def start(self, timeout: float = 60.0) -> "Supervisor":
+        log_event(self.log, "up", endpoint=self.endpoint, workers=[c.name for c in self.workers], pid=os.getpid())
+        if self.router is not None:
+            self._spawn(self.router)
+            self._wait_router(timeout)
+        for child in self.workers:
+            self._spawn(child)
+        return self
+
+    def pids(self) -> dict[str, int | None]:
+        return {c.name: (c.proc.pid if c.proc and c.proc.poll() is None else None)
+                for c in ([self.router] if self.router else []) + self.workers}
+
+    def poll(self) -> None:
+        """Notice exited children and restart them when their backoff has passed."""
+        now = time.monotonic()
+        for child in ([self.router] if self.router else []) + self.workers:
+            if child.restart_at is not None:
+                if now >= child.restart_at and not self.stopping.is_set():
+                    child.restarts += 1
+                    self._spawn(child)
+                continue
+            code = child.proc.poll() if child.proc else None
+            if code is None:
+                continue
+            uptime = now - child.started_at
+            if code == 0:  # a clean exit is a decision (e.g. systemctl stop of one worker): not restarted
+                log_event(self.log, "exited", name=child.name, code=0, uptime_s=round(uptime, 3))
+                child.proc = None
+                child.restart_at = float("inf")
+                continue
+            delay = child.backoff.next(uptime)
+            child.restart_at = now + delay
+            how = f"signal {signal.Signals(-code).name}" if code < 0 else f"code {code}"
+            log_event(self.log, "crashed", logging.WARNING, name=child.name, role=child.role, pid=child.proc.pid,
+                      code=code, how=how, uptime_s=round(uptime, 3), restart_in_s=delay)
+
+    def run(self, ready=None) -> int:
+        """Start, supervise until SIGINT/SIGTERM, stop; returns 0 when every child stopped cleanly."""
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            signal.signal(sig, lambda *_: self.stopping.set())
+        try:
+            self.start()
+            if ready:
+                ready(self)
+            while not self.stopping.wait(0.1):
+                self.poll()
+        finally:
+            codes = self.stop()
+        # -SIGTERM: a child stopped by our SIGTERM before it set its handler (still importing): nothing was in hand
+        return 0 if all(c in (0, None, -signal.SIGTERM) for c in codes.values()) else 1
+
+    def stop(self) -> dict[str, int | None]:
+        """SIGTERM the workers and wait for them (each finishes its frame in hand), then the router."""
+        self.stopping.set()
+        log_event(self.log, "stopping")
+        codes = self._stop_group(self.workers)
+        if self.router is not None:
+            codes.update(self._stop_group([self.router]))
+        log_event(self.log, "stopped", exit_codes=codes)
+        return codes
+
+    def _stop_group(self, children: list[Child]) -> dict[str, int | None]:
+        live = [c for c in children if c.proc is not None and c.proc.poll() is None]
+        for c in live:
+            c.proc.send_signal(signal.SIGTERM)
+        codes: dict[str, int | None] = {c.name: None for c in children}
+        deadline = time.monotonic() + self.config.stop_timeout_s
+        for c in live:
+            try:
+                codes[c.name] = c.proc.wait(timeout=max(0.1, deadline - time.monotonic()))
+            except subprocess.TimeoutExpired:
+                log_event(self.log, "kill", logging.WARNING, name=c.name, pid=c.proc.pid, after_s=self.config.stop_timeout_s)
+                c.proc.kill()
+                codes[c.name] = c.proc.wait()
+        return codes

@@ -1,0 +1,325 @@
+"""Durable state of the registration worker (services/store.py) on real SQLite files: commits survive a reopen,
+a snapshot plus the journal resume OccVO bit for bit, evicted tiles round-trip, two connections share the file; then
+the worker itself (real Zenoh on loopback, in this process): a clean stop and a new worker on the same store continue
+a stream exactly, with and without eviction of far map."""
+
+from __future__ import annotations
+
+import threading
+import time
+import warnings
+
+import numpy as np
+import pytest
+
+from occvo_core import OccVO
+from occvo_core.sim import SyntheticScene
+from services.store import (
+    TrajectoryStore, frame_digest, pack_arrays, pack_frame, unpack_arrays, unpack_frame,
+)
+
+warnings.filterwarnings("ignore", category=RuntimeWarning)
+N = 12
+
+
+@pytest.fixture(scope="module")
+def scene():
+    s = SyntheticScene(seed=5, frames=N)
+    return [s[i] for i in range(N)]
+
+
+@pytest.fixture(scope="module")
+def uninterrupted(scene):
+    vo = OccVO()
+    for f in scene:
+        vo.step(f)
+    return vo.poses
+
+
+def _commit(store, stream, vo, frame, seq, **kw):
+    r = vo.step(frame)
+    store.commit_frame(stream, seq, frame.stamp, frame_digest(frame.points, frame.labels, frame.stamp), r.status,
+                       r.pose, pack_frame(frame), new_trajectory=seq == 0, **kw)
+    return r
+
+
+def test_commit_survives_reopen_and_new_trajectory_drops_the_old(tmp_path, scene):
+    path = tmp_path / "s.sqlite"
+    store = TrajectoryStore(path)
+    poses = [np.eye(4) + i for i in range(3)]
+    for i in range(3):
+        f = scene[i]
+        store.commit_frame("car", i, f.stamp, frame_digest(f.points, f.labels, f.stamp), "ok", poses[i], pack_frame(f),
+                           new_trajectory=i == 0)
+    store.close()
+    store = TrajectoryStore(path)
+    assert store.streams() == ["car"]
+    rec = store.record("car")
+    assert rec.last_seq == 2 and rec.snapshot_seq is None
+    got = store.poses("car")
+    assert [p.seq for p in got] == [0, 1, 2] and all(np.array_equal(p.pose, q) for p, q in zip(got, poses))
+    assert got[1].digest == frame_digest(scene[1].points, scene[1].labels, scene[1].stamp) != got[2].digest
+    journal = store.journal("car", None)
+    assert [s for s, _ in journal] == [0, 1, 2]
+    assert np.array_equal(journal[1][1].points, scene[1].points) and np.array_equal(journal[1][1].labels, scene[1].labels)
+    assert store.pose("car", 7) is None
+    # seq 0 of another trajectory replaces everything of the stream in one transaction
+    f = scene[5]
+    store.commit_frame("car", 0, f.stamp, b"x" * 16, "reinitialised", np.eye(4), pack_frame(f), new_trajectory=True)
+    assert [p.seq for p in store.poses("car")] == [0] and store.record("car").last_seq == 0
+    store.close()
+
+
+def test_snapshot_and_journal_resume_bit_for_bit(tmp_path, scene, uninterrupted):
+    path = tmp_path / "s.sqlite"
+    store = TrajectoryStore(path)
+    vo = OccVO()
+    for i in range(8):
+        _commit(store, "car", vo, scene[i], i)
+        if i == 4:
+            store.write_snapshot("car", i, pack_arrays(vo.state_dict()))
+    store.close()
+    del vo  # "crash": only the file remains
+
+    store = TrajectoryStore(path)
+    seq, blob = store.snapshot("car")
+    assert seq == 4 and store.record("car").snapshot_seq == 4
+    vo = OccVO()
+    vo.load_state_dict(unpack_arrays(blob))
+    journal = store.journal("car", seq)
+    assert [s for s, _ in journal] == [5, 6, 7]  # the snapshot cleared what it covers
+    stored = {p.seq: p.pose for p in store.poses("car")}
+    for s, frame in journal:
+        assert np.array_equal(vo.step(frame).pose, stored[s])
+    for i in range(8, N):
+        vo.step(scene[i])
+    assert np.array_equal(vo.poses, uninterrupted)  # bit for bit, as if never stopped
+    store.close()
+
+
+def test_cold_tiles_round_trip(tmp_path, scene):
+    store = TrajectoryStore(tmp_path / "s.sqlite")
+    vo = OccVO()
+    for i in range(3):
+        _commit(store, "car", vo, scene[i], i)
+    resident = vo.resident_tiles(10.0)
+    blocks = vo.evict_tiles(vo.poses[-1][:2, 3], 30.0, 10.0)
+    assert blocks and not (set(blocks) & vo.resident_tiles(10.0)) and set(blocks) <= resident
+    _commit(store, "car", vo, scene[3], 3, evicted={k: pack_arrays(b) for k, b in blocks.items()})
+    cold = store.cold_index("car")
+    assert cold == {k: [3] for k in blocks}
+    for (ix, iy), block in blocks.items():
+        back = unpack_arrays(store.cold_block("car", ix, iy, 3))
+        assert set(back) == set(block) and all(np.array_equal(back[n], block[n]) for n in block)
+    # restore two of them with frame 4: gone from the cold set now, still cold as of frame 3
+    two = sorted(blocks)[:2]
+    vo.restore_tiles({k: unpack_arrays(store.cold_block("car", *k, 3)) for k in two})
+    assert set(two) <= vo.resident_tiles(10.0)
+    _commit(store, "car", vo, scene[4], 4, restored=[(ix, iy, 3) for ix, iy in two])
+    assert set(store.cold_index("car")) == set(blocks) - set(two)
+    assert set(store.cold_index("car", as_of_seq=3)) == set(blocks)
+    assert store.cold_index("car", as_of_seq=2) == {}
+    # a snapshot after the restore no longer needs the restored rows
+    store.write_snapshot("car", 4, pack_arrays(vo.state_dict()))
+    assert store.sizes("car")["cold_tiles_rows"] == len(blocks) - 2 and store.sizes("car")["journal_rows"] == 0
+    with pytest.raises(KeyError, match="no cold tile"):
+        store.cold_block("car", *two[0], 3)
+    store.close()
+
+
+def test_two_connections_share_the_file(tmp_path, scene):
+    path = tmp_path / "s.sqlite"
+    a, b = TrajectoryStore(path), TrajectoryStore(path)
+    f = scene[0]
+    blob = pack_frame(f)
+    assert unpack_frame(blob).index == f.index and np.array_equal(unpack_frame(blob).points, f.points)
+    errors = []
+
+    def writer(store, stream):
+        try:
+            for i in range(30):
+                store.commit_frame(stream, i, float(i), bytes(16), "ok", np.eye(4) * (i + 1), blob, new_trajectory=i == 0)
+        except Exception as exc:  # noqa: BLE001
+            errors.append(exc)
+
+    threads = [threading.Thread(target=writer, args=(s, n)) for s, n in ((a, "one"), (b, "two"))]
+    for t in threads:
+        t.start()
+    # a reader on a third connection sees committed rows while the writers go on (WAL)
+    c = TrajectoryStore(path)
+    seen = 0
+    deadline = time.monotonic() + 30
+    while any(t.is_alive() for t in threads) and time.monotonic() < deadline:
+        seen = max(seen, len(c.poses("one")))
+    for t in threads:
+        t.join(30)
+    assert not errors
+    assert [p.seq for p in c.poses("one")] == list(range(30)) == [p.seq for p in a.poses("two")]
+    assert np.array_equal(b.pose("one", 29).pose, np.eye(4) * 30)
+    assert c.db.execute("PRAGMA journal_mode").fetchone()[0] == "wal"
+    for s in (a, b, c):
+        s.close()
+
+
+def test_store_refuses_an_unusable_path(tmp_path):
+    from occvo_core.errors import ConfigError
+
+    (tmp_path / "dir.sqlite").mkdir()
+    with pytest.raises(ConfigError, match="trajectory store"):
+        TrajectoryStore(tmp_path / "dir.sqlite")
+
+
+# ------------------------------------------------------------------ the worker on its store (real Zenoh, in process)
+
+class Pipeline:
+    """Router, map service, inference worker and a registration worker that can be stopped and started again."""
+
+    def __init__(self, store_path, **registration):
+        from services.inference_worker import InferenceWorker
+        from services.map_service import MapService
+        from services.runtime import WorkerConfig, free_port, open_router
+
+        self.endpoint = f"tcp/127.0.0.1:{free_port()}"
+        self.router = open_router(self.endpoint)
+        base = {"connect": self.endpoint, "log_level": "WARNING"}
+        # the map service keeps its tiles in the same SQLite file (its own tables, its own connection)
+        self.others = [MapService(WorkerConfig(**base, worker_id="map-t", store_path=str(store_path))).start(),
+                       InferenceWorker(WorkerConfig(**base, worker_id="inference-t")).start()]
+        self.config = WorkerConfig(**base, worker_id="registration-t", store_path=str(store_path), **registration)
+        self.reg = None
+
+    def start_registration(self):
+        from services.local import wait_alive
+        from services.registration_worker import RegistrationWorker
+        from services.runtime import open_session
+
+        self.reg = RegistrationWorker(self.config).start()
+        probe = open_session(self.endpoint)
+        try:
+            wait_alive(probe, ["registration", "inference", "map"], 20)
+        finally:
+            probe.close()
+        return self.reg
+
+    def crash_registration(self):
+        """Leave like a killed process after its last commit: no shutdown snapshot."""
+        from services.runtime import Worker
+
+        Worker.stop(self.reg)
+        self.reg.store.close()
+
+    def close(self):
+        if self.reg is not None and not self.reg.stopping.is_set():
+            self.reg.stop()
+        for w in self.others:
+            w.stop()
+        self.router.close()
+
+
+def _sorted_rows(tile):
+    a = np.column_stack([tile.points.to_numpy(), tile.labels.to_numpy().astype(np.float64)])
+    return a[np.lexsort(a.T[::-1])]
+
+
+def _wait_map(client, seq, timeout=20.0):
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        try:
+            if client.map_info().last_seq == seq:
+                return
+        except Exception:  # noqa: BLE001 - the map may not exist yet
+            pass
+        time.sleep(0.1)
+    raise AssertionError(f"map service did not reach seq {seq}")
+
+
+def test_clean_restart_continues_the_stream_and_answers_resends(tmp_path, scene, uninterrupted):
+    from schemas import keys
+    from schemas.codec import encode
+    from services.client import OccVOClient, camera_frame_of
+
+    path = tmp_path / "state.sqlite"
+    svc = Pipeline(path, snapshot_every=4)
+    try:
+        svc.start_registration()
+        with OccVOClient(svc.endpoint, "car") as client:
+            client.reset()
+            for i in range(7):
+                client.step(scene[i])
+            svc.reg.stop()  # clean: a snapshot of the frames since the last one
+            probe = TrajectoryStore(path)
+            rec = probe.record("car")
+            assert (rec.last_seq, rec.snapshot_seq) == (6, 6) and probe.sizes("car")["journal_rows"] == 0
+            reg = svc.start_registration()
+            # the new worker answers queries from the store before any frame
+            traj = client.trajectory()
+            assert np.array_equal(traj.poses.to_numpy(), uninterrupted[:7]) and client.pose_latest().seq == 6
+            got = [client.step(scene[i]).matrix() for i in range(7, N)]
+            assert np.array_equal(np.array([client.poses[i].matrix() for i in range(7)] + got), uninterrupted)
+            counters = reg.stats.snapshot()[0]
+            assert counters["resumes"] == 1 and counters["frames_out"] == N - 7
+
+            # a resend of a registered frame is answered with its stored pose, not registered twice
+            client.session.put(keys.camera("car"), encode(camera_frame_of(scene[N - 1], "car", N - 1)))
+            # another frame under a registered seq is refused by name
+            client.session.put(keys.camera("car"), encode(camera_frame_of(scene[2], "car", 5)))
+            deadline = time.monotonic() + 20
+            while time.monotonic() < deadline and not (reg.stats.snapshot()[0].get("republished") and client.errors):
+                time.sleep(0.05)
+            counters = reg.stats.snapshot()[0]
+            assert counters["republished"] == 1 and counters["frames_out"] == N - 7
+            assert [(e.code, e.seq) for e in client.errors] == [("out_of_order", 5)]
+            assert "differs from the registered frame" in client.errors[0].message
+            assert [p.seq for p in probe.poses("car")] == list(range(N))
+            assert np.array_equal(np.array([p.pose for p in probe.poses("car")]), uninterrupted)
+            # seq 0 of another frame starts a new trajectory: the old one leaves the store in the same transaction
+            client.reset()
+            assert client.step(scene[3]).status == "reinitialised"
+            assert [p.seq for p in probe.poses("car")] == [0] and probe.record("car").snapshot_seq is None
+            probe.close()
+    finally:
+        svc.close()
+
+
+def test_crash_with_eviction_resumes_exactly_and_the_map_service_keeps_far_tiles(tmp_path, scene):
+    from services.client import OccVOClient
+    from services.registration_worker import _tile_distance
+
+    radius, tile_m = 30.0, 10.0  # smaller than a frame's reach, so tiles leave and come back within 12 frames
+    path = tmp_path / "state.sqlite"
+    svc = Pipeline(path, snapshot_every=3, working_radius_m=radius, tile_m=tile_m)
+    try:
+        first = svc.start_registration()
+        with OccVOClient(svc.endpoint, "ref") as ref, OccVOClient(svc.endpoint, "cut") as cut:
+            ref.reset()
+            want = np.array([ref.step(f).matrix() for f in scene])
+            cut.reset()
+            for i in range(8):
+                cut.step(scene[i])
+            svc.crash_registration()
+            probe = TrajectoryStore(path)
+            assert probe.record("cut").snapshot_seq == 5 and [s for s, _ in probe.journal("cut", 5)] == [6, 7]
+            assert probe.sizes("cut")["cold_tiles_rows"] > 0
+            second = svc.start_registration()
+            for i in range(8, N):
+                cut.step(scene[i])
+            got = np.array([cut.poses[i].matrix() for i in range(N)])
+            assert np.array_equal(got, want)  # the journal replay redid the same restores and evictions
+            c1, c2 = first.stats.snapshot()[0], second.stats.snapshot()[0]
+            assert c1["tiles_evicted"] > 0 and c1["tiles_restored"] > 0 and c2["resumes"] == 1 and not c2["errors"]
+            # the working map stays within the radius (checked when the ego changes half-tile cell)
+            vo = second.states["cut"].vo
+            resident = np.array(sorted(vo.resident_tiles(tile_m)))
+            assert (_tile_distance(resident, got[-1][:2, 3], tile_m) <= radius + tile_m).all()
+            assert set(second.states["cut"].tiles) <= set(map(tuple, resident))
+            # the map service holds resident and evicted tiles alike, equal to the uninterrupted stream's
+            _wait_map(ref, N - 1)
+            _wait_map(cut, N - 1)
+            a = {(t.ix, t.iy): t for t in ref.region()}
+            b = {(t.ix, t.iy): t for t in cut.region()}
+            assert set(a) == set(b) and len(a) > len(resident)
+            for k in a:
+                assert np.array_equal(_sorted_rows(a[k]), _sorted_rows(b[k])), k
+            probe.close()
+    finally:
+        svc.close()

@@ -40,17 +40,6 @@ def free_port() -> int:
 
 ZENOH_CONFIG_ENV = "OCCVO_ZENOH_CONFIG"  # a zenoh json5 for client sessions: TLS certificates, credentials (deploy/)
 CLIENT_RETRY = '{period_init_ms: 100, period_max_ms: 500, period_increase_factor: 2}'
-BLOCK_WAIT_KEY = "transport/link/tx/queue/congestion_control/block/wait_before_close"
-BLOCK_WAIT_US = 60_000_000
-
-
-def lossless_links(c: zenoh.Config) -> zenoh.Config:
-    """A lossless worker holds its Zenoh callback while its stage queue is full; zenoh closes a link blocked longer
-    than wait_before_close (5 s by default) and loses what it buffered. Under overload a frame can wait longer than
-    that for room (8 streams at 2 Hz measured gaps of ~80 frames a stream), so allow 60 s unless a config sets it."""
-    if json.loads(c.get_json(BLOCK_WAIT_KEY)) == 5_000_000:
-        c.insert_json5(BLOCK_WAIT_KEY, str(BLOCK_WAIT_US))
-    return c
 
 
 def zenoh_config(mode: str = "client", connect: str | None = None, listen: str | None = None,
@@ -71,7 +60,7 @@ def zenoh_config(mode: str = "client", connect: str | None = None, listen: str |
         c.insert_json5("listen/endpoints", json.dumps([listen]))
     if mode == "client" and json.loads(c.get_json("connect/retry")) is None:
         c.insert_json5("connect/retry", CLIENT_RETRY)
-    return lossless_links(c)
+    return c
 
 
 def open_session(connect: str = DEFAULT_ENDPOINT, base: str | Path | None = None) -> zenoh.Session:
@@ -84,7 +73,7 @@ def open_router(listen: str | None = None, config_path: str | Path | None = None
         c = zenoh.Config.from_file(str(config_path))
         if listen:
             c.insert_json5("listen/endpoints", json.dumps([listen]))
-        return zenoh.open(lossless_links(c))
+        return zenoh.open(c)
     return zenoh.open(zenoh_config("router", listen=listen or DEFAULT_ENDPOINT))
 
 

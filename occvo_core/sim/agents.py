@@ -133,6 +133,15 @@ def loop_traffic(town: Town, rng: np.random.Generator, times: np.ndarray, ego, c
     def gap_ok(s, others):
         return all(np.min(np.abs((s - o + lap_m / 2) % lap_m - lap_m / 2)) >= 20.0 for o in others)
 
+    def add_vehicle(motion, shift: float) -> None:
+        """A vehicle of a random class driving `motion` `shift` seconds ahead of the clock."""
+        label = pick_label()
+        xy, yaw = motion.xy_heading(times + shift)
+        length, width, height, clearance = VEHICLE_SIZE[label]
+        placed.append((np.column_stack([np.interp(check_t, times, xy[:, 0]), np.interp(check_t, times, xy[:, 1])]), length / 2))
+        tracks.append(DynamicTrack(len(tracks), label, (length, width, height), clearance, _pose(town, xy, yaw),
+                                   motion.speed_at(times + shift)))
+
     lap_s = float(np.interp(lap_m, ego.s_knots, ego.t_knots))  # time of the first lap
     taken = [ego_s]
     for _ in range(20 * max(n_ahead, 1)):
@@ -145,12 +154,7 @@ def loop_traffic(town: Town, rng: np.random.Generator, times: np.ndarray, ego, c
         if not gap_ok(s, taken):
             continue
         taken.append(s)
-        label = pick_label()
-        xy, yaw = ego.xy_heading(times + shift)
-        length, width, height, clearance = VEHICLE_SIZE[label]
-        placed.append((np.column_stack([np.interp(check_t, times, xy[:, 0]), np.interp(check_t, times, xy[:, 1])]), length / 2))
-        tracks.append(DynamicTrack(len(tracks), label, (length, width, height), clearance, _pose(town, xy, yaw),
-                                   ego.speed_at(times + shift)))
+        add_vehicle(ego, shift)
 
     if n_oncoming > 0:
         back = cycle[::-1]
@@ -169,12 +173,7 @@ def loop_traffic(town: Town, rng: np.random.Generator, times: np.ndarray, ego, c
             if not all(np.min(np.abs((s - o + lap_r / 2) % lap_r - lap_r / 2)) >= 20.0 for o in taken_r):
                 continue
             taken_r.append(s)
-            label = pick_label()
-            xy, yaw = motion.xy_heading(times + t0)
-            length, width, height, clearance = VEHICLE_SIZE[label]
-            placed.append((np.column_stack([np.interp(check_t, times, xy[:, 0]), np.interp(check_t, times, xy[:, 1])]), length / 2))
-            tracks.append(DynamicTrack(len(tracks), label, (length, width, height), clearance, _pose(town, xy, yaw),
-                                       motion.speed_at(times + t0)))
+            add_vehicle(motion, t0)
     return tracks, placed
 
 

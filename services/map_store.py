@@ -113,7 +113,7 @@ class MemoryMapStore:
         return _info(stream, tile_m, last, list(tiles), sum(t[1] for t in tiles.values()), lo, hi)
 
     def close(self) -> None:
-        pass
+        """Nothing to release: the tiles live in this object (same interface as MapStore.close)."""
 
 
 class MapStore:

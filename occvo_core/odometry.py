@@ -11,6 +11,7 @@ from occvo_core.config import OccVOConfig
 from occvo_core.errors import ConfigError, InvalidFrameError
 from occvo_core.frame import OccupancyFrame
 from occvo_core.grid import MOVABLE_CLASSES, OCC3D_GRID
+from occvo_core.map_tiles import pack_tiles, tile_distance
 from occvo_core.registration import kernels
 from occvo_core.registration.dynamic_object_filter import dynamic_object_filter
 from occvo_core.registration.gicp import gicp
@@ -128,13 +129,9 @@ class OccVO:
         if len(alive) == 0:
             return {}
         tiles = self.map.tile_ids(tile_m)[alive]
-        # unique over one packed int64 per row: np.unique(axis=0) sorts rows as bytes, ~50x slower (85 ms at 2e4 voxels)
-        _, first, inverse = np.unique((tiles[:, 0] << 32) + (tiles[:, 1] & 0xFFFFFFFF), return_index=True, return_inverse=True)
+        _, first, inverse = np.unique(pack_tiles(tiles), return_index=True, return_inverse=True)
         uniq = tiles[first]
-        cx, cy = float(center_xy[0]), float(center_xy[1])
-        dx = np.maximum.reduce([uniq[:, 0] * tile_m - cx, np.zeros(len(uniq)), cx - (uniq[:, 0] + 1) * tile_m])
-        dy = np.maximum.reduce([uniq[:, 1] * tile_m - cy, np.zeros(len(uniq)), cy - (uniq[:, 1] + 1) * tile_m])
-        far = np.flatnonzero(np.hypot(dx, dy) > radius_m)
+        far = np.flatnonzero(tile_distance(uniq, center_xy, tile_m) > radius_m)
         if len(far) == 0:
             return {}
         t = len(self._poses)
@@ -156,7 +153,7 @@ class OccVO:
         tiles = self.map.tile_ids(tile_m)[self.map.alive[:n]]
         if not len(tiles):
             return set()
-        _, first = np.unique((tiles[:, 0] << 32) + (tiles[:, 1] & 0xFFFFFFFF), return_index=True)
+        _, first = np.unique(pack_tiles(tiles), return_index=True)
         return {(int(a), int(b)) for a, b in tiles[first]}
 
     def step(self, frame: OccupancyFrame) -> StepResult:

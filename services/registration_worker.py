@@ -23,7 +23,7 @@ import zenoh
 
 from occvo_core.errors import ConfigError, InvalidFrameError
 from occvo_core.frame import OccupancyFrame
-from occvo_core.map_tiles import changed_tiles, tiles_from_map
+from occvo_core.map_tiles import changed_tiles, pack_tiles, tile_distance, tiles_from_map
 from schemas import keys
 from schemas.codec import encode
 from schemas.models import Array, MapTile, MapUpdate, OccupancyFrameMsg, PoseEstimate, Trajectory
@@ -76,13 +76,6 @@ class StreamState:
 def _tile_digest(tile) -> bytes:
     p, l = tile
     return hashlib.blake2b(np.ascontiguousarray(p).tobytes() + np.ascontiguousarray(l).tobytes(), digest_size=16).digest()
-
-
-def _tile_distance(tiles: np.ndarray, xy: np.ndarray, tile_m: float) -> np.ndarray:
-    """Distance from xy to the nearest point of each tile's square (0 inside)."""
-    lo = tiles * tile_m
-    d = np.maximum(np.maximum(lo - xy, 0.0), xy - (lo + tile_m))
-    return np.hypot(d[:, 0], d[:, 1])
 
 
 class RegistrationWorker(Worker):
@@ -330,8 +323,8 @@ class RegistrationWorker(Worker):
             return []
         ids = np.concatenate([np.floor((xy + d) / tile_m).astype(np.int64)
                               for d in ((0, 0), (-margin, -margin), (-margin, margin), (margin, -margin), (margin, margin))])
-        packed = set(np.unique((ids[:, 0] << 32) + (ids[:, 1] & 0xFFFFFFFF)).tolist())
-        return [k for k in candidates if (k[0] << 32) + (k[1] & 0xFFFFFFFF) in packed]
+        packed = set(np.unique(pack_tiles(ids)).tolist())
+        return [k for k, code in zip(candidates, pack_tiles(np.array(candidates, np.int64)).tolist()) if code in packed]
 
     def _near(self, st: StreamState) -> list[tuple[int, int]]:
         """Cold tiles within working_radius_m - tile_m of the last pose (one tile of hysteresis: no flapping)."""
@@ -339,7 +332,7 @@ class RegistrationWorker(Worker):
         if radius is None or not st.cold:
             return []
         keys_ = list(st.cold)
-        near = _tile_distance(np.array(keys_, np.int64), st.ego_xy, self.config.tile_m) <= radius - self.config.tile_m
+        near = tile_distance(np.array(keys_, np.int64), st.ego_xy, self.config.tile_m) <= radius - self.config.tile_m
         return [k for k, n in zip(keys_, near) if n]
 
     def _restore(self, stream: str, st: StreamState, back: list[tuple[int, int]]) -> list[tuple[int, int]]:

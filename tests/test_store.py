@@ -283,7 +283,7 @@ def test_clean_restart_continues_the_stream_and_answers_resends(tmp_path, scene,
 
 def test_crash_with_eviction_resumes_exactly_and_the_map_service_keeps_far_tiles(tmp_path, scene):
     from services.client import OccVOClient
-    from services.registration_worker import _tile_distance
+    from occvo_core.map_tiles import tile_distance
 
     radius, tile_m = 30.0, 10.0  # smaller than a frame's reach, so tiles leave and come back within 12 frames
     path = tmp_path / "state.sqlite"
@@ -310,7 +310,7 @@ def test_crash_with_eviction_resumes_exactly_and_the_map_service_keeps_far_tiles
             # the working map stays within the radius (checked when the ego changes half-tile cell)
             vo = second.states["cut"].vo
             resident = np.array(sorted(vo.resident_tiles(tile_m)))
-            assert (_tile_distance(resident, got[-1][:2, 3], tile_m) <= radius + tile_m).all()
+            assert (tile_distance(resident, got[-1][:2, 3], tile_m) <= radius + tile_m).all()
             assert set(second.states["cut"].tiles) <= set(map(tuple, resident))
             # the map service holds resident and evicted tiles alike, equal to the uninterrupted stream's
             _wait_map(ref, N - 1)

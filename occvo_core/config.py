@@ -14,6 +14,9 @@ class _Section(BaseModel):
 
 
 class GICPConfig(_Section):
+    wide_voxel_m: float = Field(2.4, ge=0, description="first coarse pass with map pooling, source thinning and "
+                                "correspondence limit all this size: nuScenes keyframe intervals jitter by a third, so the "
+                                "constant-velocity guess can be 2 m off; 0 = no wide pass")
     k_neighbours_radius_voxels: int = Field(1, ge=1, le=3, description="covariance from the (2r+1)^3 voxel neighbourhood on the grid")
     covariance_epsilon: float = Field(1e-3, gt=0, description="plane regularisation: eigenvalues (eps, 1, 1), Segal et al.")
     coarse_max_correspondence_m: float = Field(1.2, gt=0)
@@ -23,6 +26,8 @@ class GICPConfig(_Section):
     fine_iterations: int = Field(10, ge=1)
     convergence_rotation_rad: float = Field(3e-4, gt=0)
     convergence_translation_m: float = Field(3e-3, gt=0)
+    correspondence_reuse: float = Field(0.25, ge=0, description="search nearest neighbours again only once a point may "
+                                        "have moved this share of a map voxel since the last search; 0 = every iteration")
     robust_kernel_scale: float = Field(0.0, ge=0, description="Cauchy scale on the Mahalanobis error; 0 = least squares")
     source_voxel_m: float = Field(0.8, gt=0, description="fine GICP uses one frame point per block of this size")
     ground_source_voxel_m: float = Field(1.6, gt=0, description="the same for ground classes, which hold only z, roll, pitch")
@@ -57,6 +62,7 @@ class InitialisationConfig(_Section):
 
 
 class OccVOConfig(_Section):
+    threads: int = Field(0, ge=0, description="cores the compiled kernels use (0 = all); poses do not depend on it")
     max_range_m: float | None = Field(None, gt=0, description="frame points farther than this (horizontally) are not used")
     gicp: GICPConfig = GICPConfig()
     semantic_label_filter: SemanticLabelFilterConfig = SemanticLabelFilterConfig()

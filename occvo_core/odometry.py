@@ -39,6 +39,7 @@ class _Prepared:
     points: np.ndarray
     labels: np.ndarray
     covs: np.ndarray
+    wide: np.ndarray  # indices of the wide-pass sources
     coarse: np.ndarray  # indices of the coarse-GICP sources
     fine: np.ndarray  # indices of the fine-GICP sources
     movable: np.ndarray  # indices of movable-class points
@@ -158,6 +159,7 @@ class OccVO:
 
     def step(self, frame: OccupancyFrame) -> StepResult:
         """Register one frame. A bad frame raises InvalidFrameError and leaves poses and map as they were."""
+        kernels.set_threads(self.config.threads)
         watch = _Stopwatch()
         prepared = self._preprocess(frame)
         watch.lap("preprocess")
@@ -177,8 +179,7 @@ class OccVO:
         local = self._local_map(guess, t)  # local.usable: the voxel pfilter's reliable voxels (p-index > threshold)
         ego = EgoMap.build(local, guess, _EGO_LOWER - self._margin, _EGO_UPPER + self._margin, self.map.voxel)
         watch.lap("local_map")
-        coarse = self._gicp(frame, frame.coarse, ego.pooled(cfg.coarse_map_voxel_m), np.eye(4),
-                            cfg.coarse_max_correspondence_m, cfg.coarse_iterations)
+        coarse = self._coarse_gicp(frame, ego)
         watch.lap("coarse_gicp")
         keep, map_moved, dyn = self._dynamic_object_filter(frame, guess @ coarse.pose, local)
         watch.lap("dynamic_object_filter")
@@ -217,10 +218,12 @@ class OccVO:
         g = self.config.gicp
         covs = kernels.plane_covariances(points, ijk, grid, shape, g.k_neighbours_radius_voxels, g.covariance_epsilon)
         ground = np.isin(labels, GROUND_CLASSES)
-        coarse = _thin(ijk, np.ones(len(points), bool), g.coarse_source_voxel_m)
+        everything = np.ones(len(points), bool)
+        wide = _thin(ijk, everything, g.wide_voxel_m) if g.wide_voxel_m > 0 else np.zeros(0, np.int64)
+        coarse = _thin(ijk, everything, g.coarse_source_voxel_m)
         # the ground only holds z, roll and pitch: a sparse sample of it is enough
         fine = np.sort(np.concatenate([_thin(ijk, ~ground, g.source_voxel_m), _thin(ijk, ground, g.ground_source_voxel_m)]))
-        return _Prepared(points, labels, covs, coarse, fine, np.flatnonzero(np.isin(labels, MOVABLE_CLASSES)), frame.index)
+        return _Prepared(points, labels, covs, wide, coarse, fine, np.flatnonzero(np.isin(labels, MOVABLE_CLASSES)), frame.index)
 
     def _initial_guess(self, frame: _Prepared) -> np.ndarray:
         init = self.config.initialisation
@@ -240,12 +243,23 @@ class OccVO:
         upper = np.floor((corners.max(axis=0) + self._margin) / self.map.voxel).astype(np.int64)
         return self.map.window(lower, upper, t)
 
+    def _coarse_gicp(self, frame: _Prepared, ego: EgoMap):
+        """GICP against the map pooled on a wide grid, then on the coarse one: a basin of metres, then decimetres."""
+        cfg = self.config.gicp
+        pose = np.eye(4)
+        coarse_map = ego.pooled(cfg.coarse_map_voxel_m)
+        if cfg.wide_voxel_m > 0:
+            pose = self._gicp(frame, frame.wide, coarse_map.pooled(cfg.wide_voxel_m), pose, cfg.wide_voxel_m,
+                              cfg.coarse_iterations).pose
+        return self._gicp(frame, frame.coarse, coarse_map, pose, cfg.coarse_max_correspondence_m, cfg.coarse_iterations)
+
     def _gicp(self, frame: _Prepared, idx: np.ndarray, local, pose: np.ndarray, max_dist: float, iterations: int):
         g = self.config.gicp
         return gicp(frame.points[idx], frame.covs[idx], frame.labels[idx], local, pose,
                     max_correspondence_m=max_dist, iterations=iterations, robust_scale=g.robust_kernel_scale,
                     semantic_label_filter=self.config.semantic_label_filter.enabled,
-                    convergence_rotation_rad=g.convergence_rotation_rad, convergence_translation_m=g.convergence_translation_m)
+                    convergence_rotation_rad=g.convergence_rotation_rad, convergence_translation_m=g.convergence_translation_m,
+                    correspondence_reuse=g.correspondence_reuse)
 
     def _dynamic_object_filter(self, frame: _Prepared, pose: np.ndarray, local):
         """Returns (mask of frame points kept for fine GICP, mask of local voxels of moved objects, counts)."""

@@ -31,15 +31,16 @@ def _map_at(pose, points, labels, covs):
     return m.window(lower, lower + 300, 1)
 
 
+@pytest.mark.parametrize("reuse", [0.0, 0.25])
 @pytest.mark.parametrize("seed", range(4))
-def test_gicp_recovers_known_rigid_transform(seed):
+def test_gicp_recovers_known_rigid_transform(seed, reuse):
     rng = np.random.default_rng(seed)
     points, labels = _surface_town()
     covs = _prepared(points)
     truth = random_pose(rng, np.deg2rad(3), 0.6)
     local = _map_at(truth, points, labels, covs)
     result = gicp(points, covs, labels, local, np.eye(4), max_correspondence_m=1.2, iterations=40,
-                  semantic_label_filter=True)
+                  semantic_label_filter=True, correspondence_reuse=reuse)
     err = np.linalg.inv(truth) @ result.pose
     assert np.linalg.norm(err[:3, 3]) < 0.01
     assert np.degrees(np.arccos(np.clip((np.trace(err[:3, :3]) - 1) / 2, -1, 1))) < 0.05
@@ -78,3 +79,33 @@ def test_nearest_in_window_is_the_true_nearest_within_radius():
     best = brute.min(axis=1)
     within = best <= 3 * 0.4
     assert np.allclose(dist[within], best[within])
+
+
+def test_kept_pairs_linearise_as_a_fresh_search_does():
+    """gicp_linearise_pairs with the pairs a search just found gives that search's H, g and cost."""
+    points, labels = _surface_town()
+    covs = _prepared(points)
+    local = _map_at(random_pose(np.random.default_rng(7), np.deg2rad(2), 0.3), points, labels, covs)
+    rot, trans = np.eye(3), np.zeros(3)
+    pairs = np.empty(len(points), np.int64)
+    h, g, cost, found, kept = kernels.gicp_linearise(
+        points, covs, labels.astype(np.int64), rot, trans, local.pos, local.cov, local.labels.astype(np.int64),
+        local.usable, local.grid, local.origin, local.dims, local.voxel, 2, 0.8, True, 0.0, pairs)
+    h2, g2, cost2, _, kept2 = kernels.gicp_linearise_pairs(points, covs, rot, trans, local.pos, local.cov, pairs, 0.0)
+    assert kept == kept2 == int((pairs >= 0).sum()) and 0 < kept <= found
+    assert np.allclose(h, h2, rtol=1e-12, atol=0) and np.allclose(g, g2, rtol=1e-12, atol=0) and np.isclose(cost, cost2)
+
+
+def test_poses_do_not_depend_on_the_thread_count():
+    """Kernel sums run over fixed chunks, so one core and two give the same poses bit for bit."""
+    from occvo_core import OccVO, OccVOConfig
+    from occvo_core.sim import SyntheticScene
+
+    scene = SyntheticScene(seed=5, frames=5)
+    runs = []
+    for threads in (1, 2):
+        vo = OccVO(OccVOConfig(threads=threads))
+        for i in range(len(scene)):
+            vo.step(scene[i])
+        runs.append(vo.poses)
+    assert np.array_equal(runs[0], runs[1])

@@ -28,27 +28,52 @@ def se3_exp_left(delta: np.ndarray, pose: np.ndarray) -> np.ndarray:
     return step @ pose
 
 
+def _moved(pose: np.ndarray, since: np.ndarray, reach: float) -> float:
+    """Bound on how far any point within `reach` of the origin moved from pose `since` to `pose`."""
+    step = pose @ np.linalg.inv(since)
+    angle = np.arccos(np.clip((np.trace(step[:3, :3]) - 1.0) / 2.0, -1.0, 1.0))
+    return float(np.linalg.norm(step[:3, 3]) + angle * (reach + np.linalg.norm(since[:3, 3])))
+
+
 def gicp(points: np.ndarray, covs: np.ndarray, labels: np.ndarray, local_map: LocalMap, initial_pose: np.ndarray, *,
          usable: np.ndarray | None = None,
          max_correspondence_m: float, iterations: int, semantic_label_filter: bool, robust_scale: float = 0.0,
-         convergence_rotation_rad: float = 1e-5, convergence_translation_m: float = 1e-4) -> GICPResult:
+         convergence_rotation_rad: float = 1e-5, convergence_translation_m: float = 1e-4,
+         correspondence_reuse: float = 0.0) -> GICPResult:
+    """Gauss-Newton on the summed Mahalanobis distances of nearest pairs. The nearest-neighbour search, most of the
+    cost, is skipped while no point can have moved more than correspondence_reuse map voxels since the last one."""
     pose = np.array(initial_pose, dtype=np.float64)
+    reach = float(np.sqrt((points ** 2).sum(axis=1).max())) if len(points) else 0.0
+    pairs = np.empty(len(points), np.int64)
+    searched_at = None
     radius = max(1, int(np.ceil(max_correspondence_m / local_map.voxel)))
     found = kept = 0
     cost = np.inf
     labels = labels.astype(np.int64)
     usable = local_map.usable if usable is None else usable
     map_labels = local_map.labels.astype(np.int64)
+    verify = False
     for it in range(1, iterations + 1):
-        h, g, total, found, kept = kernels.gicp_linearise(
-            points, covs, labels, pose[:3, :3].copy(), pose[:3, 3].copy(), local_map.pos, local_map.cov, map_labels,
-            usable, local_map.grid, local_map.origin, local_map.dims, local_map.voxel, radius, max_correspondence_m,
-            semantic_label_filter, robust_scale)
+        rot, trans = pose[:3, :3].copy(), pose[:3, 3].copy()
+        search = verify or searched_at is None or _moved(pose, searched_at, reach) > correspondence_reuse * local_map.voxel
+        if search:
+            h, g, total, found, kept = kernels.gicp_linearise(
+                points, covs, labels, rot, trans, local_map.pos, local_map.cov, map_labels, usable, local_map.grid,
+                local_map.origin, local_map.dims, local_map.voxel, radius, max_correspondence_m, semantic_label_filter,
+                robust_scale, pairs)
+            searched_at = pose
+        else:
+            h, g, total, _, kept = kernels.gicp_linearise_pairs(points, covs, rot, trans, local_map.pos, local_map.cov,
+                                                                pairs, robust_scale)
         if kept < 6:
             break
         cost = total / kept
         delta = np.linalg.solve(h + 1e-9 * np.eye(6), -g)
         pose = se3_exp_left(delta, pose)
         if np.linalg.norm(delta[:3]) < convergence_rotation_rad and np.linalg.norm(delta[3:]) < convergence_translation_m:
-            break
+            if search:
+                break
+            verify = True  # converged on kept pairs: search once more, so the answer's pairs are its own nearest
+        else:
+            verify = False
     return GICPResult(pose, it, found, kept, cost)

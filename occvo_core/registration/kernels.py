@@ -2,10 +2,27 @@
 
 from __future__ import annotations
 
-import numpy as np
-from numba import njit
+import os
+
+# Waiting kernel threads sleep instead of spinning: on a shared 2-core machine a spinning thread starves the one it
+# waits for (set before numba first loads OpenMP).
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+
+import numba  # noqa: E402
+import numpy as np  # noqa: E402
+from numba import njit, prange  # noqa: E402
 
 _CACHE = True
+# Workers call these kernels from several threads at once: the default workqueue layer would abort on that.
+numba.config.THREADING_LAYER = "threadsafe"
+# Sums are taken over this many fixed chunks of the input, whatever the thread count, so a pose does not depend on
+# how many cores computed it.
+CHUNKS = 16
+
+
+def set_threads(threads: int) -> None:
+    """Threads for the parallel kernels in the calling thread (0 = every core numba sees)."""
+    numba.set_num_threads(max(1, min(threads or numba.config.NUMBA_NUM_THREADS, numba.config.NUMBA_NUM_THREADS)))
 
 
 @njit(cache=_CACHE, nogil=True)
@@ -69,12 +86,12 @@ def _smallest_eigenvector(a00, a01, a02, a11, a12, a22):
     return 0.0, 0.0, 1.0  # two smallest eigenvalues equal (a line): any normal across it will do
 
 
-@njit(cache=_CACHE, nogil=True)
+@njit(cache=_CACHE, nogil=True, parallel=True)
 def plane_covariances(points, ijk, grid, shape, radius, epsilon):
     """GICP covariances (Segal et al.): the neighbourhood's plane, as eps along its normal and 1 across it."""
     n_pts = points.shape[0]
     covs = np.empty((n_pts, 3, 3))
-    for n in range(n_pts):
+    for n in prange(n_pts):
         sx = sy = sz = sxx = sxy = sxz = syy = syz = szz = 0.0
         cnt = 0
         for di in range(-radius, radius + 1):
@@ -111,10 +128,13 @@ def plane_covariances(points, ijk, grid, shape, radius, epsilon):
         mx, my, mz = sx / cnt, sy / cnt, sz / cnt
         nx, ny, nz = _smallest_eigenvector(sxx / cnt - mx * mx, sxy / cnt - mx * my, sxz / cnt - mx * mz,
                                            syy / cnt - my * my, syz / cnt - my * mz, szz / cnt - mz * mz)
-        nv = (nx, ny, nz)
-        for a in range(3):
-            for b in range(3):
-                covs[n, a, b] = (1.0 if a == b else 0.0) - (1.0 - epsilon) * nv[a] * nv[b]
+        s = 1.0 - epsilon
+        covs[n, 0, 0] = 1.0 - s * nx * nx
+        covs[n, 1, 1] = 1.0 - s * ny * ny
+        covs[n, 2, 2] = 1.0 - s * nz * nz
+        covs[n, 0, 1] = covs[n, 1, 0] = -s * nx * ny
+        covs[n, 0, 2] = covs[n, 2, 0] = -s * nx * nz
+        covs[n, 1, 2] = covs[n, 2, 1] = -s * ny * nz
     return covs
 
 
@@ -184,90 +204,132 @@ def nearest_in_window(q, map_pos, grid, origin, dims, voxel, radius, usable):
     return best, best_d2
 
 
-@njit(cache=_CACHE, nogil=True)
-def _inv3_sym(c):
-    """Inverse of a symmetric positive-definite 3x3 matrix by cofactors (no LAPACK call per pair)."""
-    a, b, cc = c[0, 0], c[0, 1], c[0, 2]
-    d, e, f = c[1, 1], c[1, 2], c[2, 2]
+@njit(cache=_CACHE, nogil=True, inline="always")
+def _inv3_sym(a, b, c, d, e, f):
+    """Inverse of the symmetric positive-definite [[a b c] [b d e] [c e f]] by cofactors, as its six entries."""
     A = d * f - e * e
-    B = cc * e - b * f
-    C = b * e - cc * d
-    det = a * A + b * B + cc * C
-    out = np.empty((3, 3))
-    inv_det = 1.0 / det
-    out[0, 0] = A * inv_det
-    out[0, 1] = out[1, 0] = B * inv_det
-    out[0, 2] = out[2, 0] = C * inv_det
-    out[1, 1] = (a * f - cc * cc) * inv_det
-    out[1, 2] = out[2, 1] = (b * cc - a * e) * inv_det
-    out[2, 2] = (a * d - b * b) * inv_det
-    return out
+    B = c * e - b * f
+    C = b * e - c * d
+    inv_det = 1.0 / (a * A + b * B + c * C)
+    return (A * inv_det, B * inv_det, C * inv_det, (a * f - c * c) * inv_det, (b * c - a * e) * inv_det,
+            (a * d - b * b) * inv_det)
+
+
+@njit(cache=_CACHE, nogil=True, inline="always")
+def _add_pair(n, m, src, src_cov, rot, trans, map_pos, map_cov, robust_scale, out):
+    """Add the GICP terms of the pair (source n, map point m) into out = (H upper triangle 21, g 6, cost, ...)."""
+    q0 = rot[0, 0] * src[n, 0] + rot[0, 1] * src[n, 1] + rot[0, 2] * src[n, 2] + trans[0]
+    q1 = rot[1, 0] * src[n, 0] + rot[1, 1] * src[n, 1] + rot[1, 2] * src[n, 2] + trans[1]
+    q2 = rot[2, 0] * src[n, 0] + rot[2, 1] * src[n, 1] + rot[2, 2] * src[n, 2] + trans[2]
+    # c = map_cov + R src_cov R^T (symmetric: six entries)
+    rc00 = rot[0, 0] * src_cov[n, 0, 0] + rot[0, 1] * src_cov[n, 1, 0] + rot[0, 2] * src_cov[n, 2, 0]
+    rc01 = rot[0, 0] * src_cov[n, 0, 1] + rot[0, 1] * src_cov[n, 1, 1] + rot[0, 2] * src_cov[n, 2, 1]
+    rc02 = rot[0, 0] * src_cov[n, 0, 2] + rot[0, 1] * src_cov[n, 1, 2] + rot[0, 2] * src_cov[n, 2, 2]
+    rc10 = rot[1, 0] * src_cov[n, 0, 0] + rot[1, 1] * src_cov[n, 1, 0] + rot[1, 2] * src_cov[n, 2, 0]
+    rc11 = rot[1, 0] * src_cov[n, 0, 1] + rot[1, 1] * src_cov[n, 1, 1] + rot[1, 2] * src_cov[n, 2, 1]
+    rc12 = rot[1, 0] * src_cov[n, 0, 2] + rot[1, 1] * src_cov[n, 1, 2] + rot[1, 2] * src_cov[n, 2, 2]
+    rc20 = rot[2, 0] * src_cov[n, 0, 0] + rot[2, 1] * src_cov[n, 1, 0] + rot[2, 2] * src_cov[n, 2, 0]
+    rc21 = rot[2, 0] * src_cov[n, 0, 1] + rot[2, 1] * src_cov[n, 1, 1] + rot[2, 2] * src_cov[n, 2, 1]
+    rc22 = rot[2, 0] * src_cov[n, 0, 2] + rot[2, 1] * src_cov[n, 1, 2] + rot[2, 2] * src_cov[n, 2, 2]
+    c00 = map_cov[m, 0, 0] + rc00 * rot[0, 0] + rc01 * rot[0, 1] + rc02 * rot[0, 2]
+    c01 = map_cov[m, 0, 1] + rc00 * rot[1, 0] + rc01 * rot[1, 1] + rc02 * rot[1, 2]
+    c02 = map_cov[m, 0, 2] + rc00 * rot[2, 0] + rc01 * rot[2, 1] + rc02 * rot[2, 2]
+    c11 = map_cov[m, 1, 1] + rc10 * rot[1, 0] + rc11 * rot[1, 1] + rc12 * rot[1, 2]
+    c12 = map_cov[m, 1, 2] + rc10 * rot[2, 0] + rc11 * rot[2, 1] + rc12 * rot[2, 2]
+    c22 = map_cov[m, 2, 2] + rc20 * rot[2, 0] + rc21 * rot[2, 1] + rc22 * rot[2, 2]
+    i00, i01, i02, i11, i12, i22 = _inv3_sym(c00, c01, c02, c11, c12, c22)
+    r0 = map_pos[m, 0] - q0
+    r1 = map_pos[m, 1] - q1
+    r2 = map_pos[m, 2] - q2
+    ir0 = i00 * r0 + i01 * r1 + i02 * r2
+    ir1 = i01 * r0 + i11 * r1 + i12 * r2
+    ir2 = i02 * r0 + i12 * r1 + i22 * r2
+    e = r0 * ir0 + r1 * ir1 + r2 * ir2
+    out[27] += e
+    # Cauchy weight on the Mahalanobis error: one bad pair cannot outvote a surface
+    w = 1.0 if robust_scale <= 0.0 else 1.0 / (1.0 + e / robust_scale)
+    # J = [[q]_x, -I]: columns (0, q2, -q1), (-q2, 0, q0), (q1, -q0, 0), -e_x, -e_y, -e_z. T = J^T info (6 x 3)
+    t = ((q2 * i01 - q1 * i02, q2 * i11 - q1 * i12, q2 * i12 - q1 * i22),
+         (-q2 * i00 + q0 * i02, -q2 * i01 + q0 * i12, -q2 * i02 + q0 * i22),
+         (q1 * i00 - q0 * i01, q1 * i01 - q0 * i11, q1 * i02 - q0 * i12),
+         (-i00, -i01, -i02), (-i01, -i11, -i12), (-i02, -i12, -i22))
+    cols = ((0.0, q2, -q1), (-q2, 0.0, q0), (q1, -q0, 0.0), (-1.0, 0.0, 0.0), (0.0, -1.0, 0.0), (0.0, 0.0, -1.0))
+    k = 0
+    for u in range(6):
+        tu = t[u]
+        out[21 + u] += w * (tu[0] * r0 + tu[1] * r1 + tu[2] * r2)
+        for v in range(u, 6):
+            cv = cols[v]
+            out[k] += w * (tu[0] * cv[0] + tu[1] * cv[1] + tu[2] * cv[2])
+            k += 1
 
 
 @njit(cache=_CACHE, nogil=True)
-def gicp_linearise(src, src_cov, src_lab, rot, trans, map_pos, map_cov, map_lab, usable, grid, origin, dims, voxel,
-                   radius, max_dist, semantic_label_filter, robust_scale):
-    """One Gauss-Newton step of GICP: H, g of the Mahalanobis cost, plus counts of pairs found and kept.
-    One thread on purpose: the registration worker shares its cores with inference in the pipeline."""
-    h = np.zeros((6, 6))
-    g = np.zeros(6)
-    cost = 0.0
-    found = 0
-    kept = 0
-    max_d2 = max_dist * max_dist
+def _linearise_range(lo, hi, src, src_cov, src_lab, rot, trans, map_pos, map_cov, map_lab, usable, grid, origin, dims,
+                     voxel, radius, max_d2, semantic_label_filter, robust_scale, pairs, out):
+    """Search the nearest map point of sources lo..hi, record it in pairs (-1: none kept) and add the GICP terms
+    of the kept pairs into out = (H upper triangle 21, g 6, cost, found, kept)."""
     q = np.empty(3)
-    c = np.empty((3, 3))
-    rc = np.empty((3, 3))
-    j = np.zeros((3, 6))
-    j[0, 3] = -1.0
-    j[1, 4] = -1.0
-    j[2, 5] = -1.0
-    for n in range(src.shape[0]):
+    for n in range(lo, hi):
+        pairs[n] = -1
         for a in range(3):
             q[a] = rot[a, 0] * src[n, 0] + rot[a, 1] * src[n, 1] + rot[a, 2] * src[n, 2] + trans[a]
         m, d2 = nearest_in_window(q, map_pos, grid, origin, dims, voxel, radius, usable)
         if m < 0 or d2 > max_d2:
             continue
-        found += 1
+        out[28] += 1.0
         if semantic_label_filter and map_lab[m] != src_lab[n]:
             continue  # the semantic label filter: pairs whose labels differ do not constrain the pose
-        kept += 1
-        for a in range(3):  # c = map_cov + R src_cov R^T
-            for b in range(3):
-                rc[a, b] = rot[a, 0] * src_cov[n, 0, b] + rot[a, 1] * src_cov[n, 1, b] + rot[a, 2] * src_cov[n, 2, b]
-        for a in range(3):
-            for b in range(3):
-                c[a, b] = map_cov[m, a, b] + rc[a, 0] * rot[b, 0] + rc[a, 1] * rot[b, 1] + rc[a, 2] * rot[b, 2]
-        info = _inv3_sym(c)
-        r0 = map_pos[m, 0] - q[0]
-        r1 = map_pos[m, 1] - q[1]
-        r2 = map_pos[m, 2] - q[2]
-        # J = [[q]_x, -I]
-        j[0, 1] = -q[2]
-        j[0, 2] = q[1]
-        j[1, 0] = q[2]
-        j[1, 2] = -q[0]
-        j[2, 0] = -q[1]
-        j[2, 1] = q[0]
-        ir0 = info[0, 0] * r0 + info[0, 1] * r1 + info[0, 2] * r2
-        ir1 = info[1, 0] * r0 + info[1, 1] * r1 + info[1, 2] * r2
-        ir2 = info[2, 0] * r0 + info[2, 1] * r1 + info[2, 2] * r2
-        e = r0 * ir0 + r1 * ir1 + r2 * ir2
-        cost += e
-        # Cauchy weight on the Mahalanobis error: one bad pair cannot outvote a surface
-        w = 1.0 if robust_scale <= 0.0 else 1.0 / (1.0 + e / robust_scale)
-        for u in range(6):
-            # (J^T info)[u, :]
-            t0 = j[0, u] * info[0, 0] + j[1, u] * info[1, 0] + j[2, u] * info[2, 0]
-            t1 = j[0, u] * info[0, 1] + j[1, u] * info[1, 1] + j[2, u] * info[2, 1]
-            t2 = j[0, u] * info[0, 2] + j[1, u] * info[1, 2] + j[2, u] * info[2, 2]
-            g[u] += w * (t0 * r0 + t1 * r1 + t2 * r2)
-            for v in range(u, 6):
-                h[u, v] += w * (t0 * j[0, v] + t1 * j[1, v] + t2 * j[2, v])
+        out[29] += 1.0
+        pairs[n] = m
+        _add_pair(n, m, src, src_cov, rot, trans, map_pos, map_cov, robust_scale, out)
+
+
+@njit(cache=_CACHE, nogil=True)
+def _sum_parts(parts):
+    total = np.zeros(parts.shape[1])
+    for c in range(parts.shape[0]):
+        for i in range(parts.shape[1]):
+            total[i] += parts[c, i]
+    h = np.empty((6, 6))
+    k = 0
     for u in range(6):
-        for v in range(u):
-            h[u, v] = h[v, u]
-    return h, g, cost, found, kept
+        for v in range(u, 6):
+            h[u, v] = h[v, u] = total[k]
+            k += 1
+    return h, total[21:27].copy(), total[27], int(total[28]), int(total[29])
+
+
+@njit(cache=_CACHE, nogil=True, parallel=True)
+def gicp_linearise_pairs(src, src_cov, rot, trans, map_pos, map_cov, pairs, robust_scale):
+    """gicp_linearise at a new pose with the pairs of an earlier search kept (the pose moved too little since
+    to change which map point is nearest, so the search, most of the cost, is skipped)."""
+    n = src.shape[0]
+    parts = np.zeros((CHUNKS, 30))
+    for c in prange(CHUNKS):
+        for i in range(n * c // CHUNKS, n * (c + 1) // CHUNKS):
+            if pairs[i] >= 0:
+                parts[c, 29] += 1.0
+                _add_pair(i, pairs[i], src, src_cov, rot, trans, map_pos, map_cov, robust_scale, parts[c])
+    return _sum_parts(parts)
+
+
+@njit(cache=_CACHE, nogil=True, parallel=True)
+def gicp_linearise(src, src_cov, src_lab, rot, trans, map_pos, map_cov, map_lab, usable, grid, origin, dims, voxel,
+                   radius, max_dist, semantic_label_filter, robust_scale, pairs=None):
+    """One Gauss-Newton step of GICP: H, g of the Mahalanobis cost, plus counts of pairs found and kept; the kept
+    pairs go into `pairs` (map index per source, -1 none) when given.
+    Sums run over CHUNKS fixed slices of the sources, added in order: the same result on any number of threads."""
+    n = src.shape[0]
+    if pairs is None:
+        pairs = np.empty(n, np.int64)
+    parts = np.zeros((CHUNKS, 30))
+    max_d2 = max_dist * max_dist
+    for c in prange(CHUNKS):
+        _linearise_range(n * c // CHUNKS, n * (c + 1) // CHUNKS, src, src_cov, src_lab, rot, trans, map_pos, map_cov,
+                         map_lab, usable, grid, origin, dims, voxel, radius, max_d2, semantic_label_filter, robust_scale,
+                         pairs, parts[c])
+    return _sum_parts(parts)
 
 
 @njit(cache=_CACHE, nogil=True)
@@ -325,18 +387,17 @@ def assign_voxels(points, keys, map_pos, grid, origin, dims, voxel, merge_radius
     return out, first_key[:n_new]
 
 
-@njit(cache=_CACHE, nogil=True)
+@njit(cache=_CACHE, nogil=True, parallel=True)
 def rotate_covariances(cov, rot):
     """R C R^T for each C (numpy's batched matmul is slow for 3x3)."""
     out = np.empty_like(cov)
-    tmp = np.empty((3, 3))
-    for n in range(cov.shape[0]):
+    for n in prange(cov.shape[0]):
         for a in range(3):
+            t0 = rot[a, 0] * cov[n, 0, 0] + rot[a, 1] * cov[n, 1, 0] + rot[a, 2] * cov[n, 2, 0]
+            t1 = rot[a, 0] * cov[n, 0, 1] + rot[a, 1] * cov[n, 1, 1] + rot[a, 2] * cov[n, 2, 1]
+            t2 = rot[a, 0] * cov[n, 0, 2] + rot[a, 1] * cov[n, 1, 2] + rot[a, 2] * cov[n, 2, 2]
             for b in range(3):
-                tmp[a, b] = rot[a, 0] * cov[n, 0, b] + rot[a, 1] * cov[n, 1, b] + rot[a, 2] * cov[n, 2, b]
-        for a in range(3):
-            for b in range(3):
-                out[n, a, b] = tmp[a, 0] * rot[b, 0] + tmp[a, 1] * rot[b, 1] + tmp[a, 2] * rot[b, 2]
+                out[n, a, b] = t0 * rot[b, 0] + t1 * rot[b, 1] + t2 * rot[b, 2]
     return out
 
 
@@ -396,33 +457,45 @@ def merge_points(rows, pw, cw, labels, t, pos, cov, counts, label, t0, f, last, 
 
 
 @njit(cache=_CACHE, nogil=True)
-def pool_voxels(pos, cov, labels, keys, dims, n_classes):
-    """Mean position and covariance and majority label of the points in each cell of a coarser grid."""
+def pool_voxels(pos, cov, labels, usable, weight, votes_in, voxel, origin, dims, n_classes):
+    """Weighted mean position and covariance and majority label of the usable points in each cell of a coarser grid.
+    weight and votes_in (empty: one point, one vote of its label) carry a pooled map's counts, so pooling it again
+    equals pooling its voxels directly. Returns pos, cov, labels, dense grid of the cells, weights, votes."""
     n_cells = dims[0] * dims[1] * dims[2]
-    slot = np.full(n_cells, -1, np.int64)
-    out_pos = np.zeros((pos.shape[0], 3))
-    out_cov = np.zeros((pos.shape[0], 3, 3))
-    votes = np.zeros((pos.shape[0], n_classes), np.int32)
-    count = np.zeros(pos.shape[0])
-    out_keys = np.empty((pos.shape[0], 3), np.int64)
+    grid = np.full(n_cells, -1, np.int32)
+    cap = min(pos.shape[0], n_cells)
+    out_pos = np.zeros((cap, 3))
+    out_cov = np.zeros((cap, 3, 3))
+    votes = np.zeros((cap, n_classes), np.int32)
+    count = np.zeros(cap)
+    weighted = weight.shape[0] > 0
+    pooled_votes = votes_in.shape[0] > 0
     n_out = 0
     for n in range(pos.shape[0]):
-        i, j, k = keys[n, 0], keys[n, 1], keys[n, 2]
+        if not usable[n]:
+            continue
+        i = int(np.floor(pos[n, 0] / voxel)) - origin[0]
+        j = int(np.floor(pos[n, 1] / voxel)) - origin[1]
+        k = int(np.floor(pos[n, 2] / voxel)) - origin[2]
         if i < 0 or j < 0 or k < 0 or i >= dims[0] or j >= dims[1] or k >= dims[2]:
             continue
         cell = (i * dims[1] + j) * dims[2] + k
-        s = slot[cell]
+        s = grid[cell]
         if s < 0:
             s = n_out
-            slot[cell] = s
-            out_keys[s, 0], out_keys[s, 1], out_keys[s, 2] = i, j, k
+            grid[cell] = s
             n_out += 1
+        w = weight[n] if weighted else 1.0
         for a in range(3):
-            out_pos[s, a] += pos[n, a]
+            out_pos[s, a] += w * pos[n, a]
             for b in range(3):
-                out_cov[s, a, b] += cov[n, a, b]
-        votes[s, labels[n]] += 1
-        count[s] += 1.0
+                out_cov[s, a, b] += w * cov[n, a, b]
+        if pooled_votes:
+            for c in range(n_classes):
+                votes[s, c] += votes_in[n, c]
+        else:
+            votes[s, labels[n]] += 1
+        count[s] += w
     out_lab = np.empty(n_out, np.uint8)
     for s in range(n_out):
         for a in range(3):
@@ -434,7 +507,36 @@ def pool_voxels(pos, cov, labels, keys, dims, n_classes):
             if votes[s, c] > votes[s, best]:
                 best = c
         out_lab[s] = best
-    return out_pos[:n_out], out_cov[:n_out], out_lab, out_keys[:n_out]
+    return out_pos[:n_out], out_cov[:n_out], out_lab, grid, count[:n_out], votes[:n_out]
+
+
+@njit(cache=_CACHE, nogil=True)
+def ego_points(idx, rows, map_pos, map_cov, rot, trans, origin, dims, voxel):
+    """Map voxels rows[idx] moved into the frame of the pose (rot, trans): positions R^T (p - t), covariances
+    R^T C R, and the dense grid of their cells (a later voxel in the same cell wins)."""
+    n = idx.shape[0]
+    pos = np.empty((n, 3))
+    cov = np.empty((n, 3, 3))
+    grid = np.full(dims[0] * dims[1] * dims[2], -1, np.int32)
+    for a in range(n):
+        r = rows[idx[a]]
+        d0 = map_pos[r, 0] - trans[0]
+        d1 = map_pos[r, 1] - trans[1]
+        d2 = map_pos[r, 2] - trans[2]
+        for j in range(3):
+            pos[a, j] = d0 * rot[0, j] + d1 * rot[1, j] + d2 * rot[2, j]
+        for u in range(3):  # R^T C R
+            t0 = rot[0, u] * map_cov[r, 0, 0] + rot[1, u] * map_cov[r, 1, 0] + rot[2, u] * map_cov[r, 2, 0]
+            t1 = rot[0, u] * map_cov[r, 0, 1] + rot[1, u] * map_cov[r, 1, 1] + rot[2, u] * map_cov[r, 2, 1]
+            t2 = rot[0, u] * map_cov[r, 0, 2] + rot[1, u] * map_cov[r, 1, 2] + rot[2, u] * map_cov[r, 2, 2]
+            for v in range(3):
+                cov[a, u, v] = t0 * rot[0, v] + t1 * rot[1, v] + t2 * rot[2, v]
+        i = int(np.floor(pos[a, 0] / voxel)) - origin[0]
+        j = int(np.floor(pos[a, 1] / voxel)) - origin[1]
+        k = int(np.floor(pos[a, 2] / voxel)) - origin[2]
+        if 0 <= i < dims[0] and 0 <= j < dims[1] and 0 <= k < dims[2]:
+            grid[(i * dims[1] + j) * dims[2] + k] = a
+    return pos, cov, grid
 
 
 @njit(cache=_CACHE, nogil=True)
@@ -503,34 +605,32 @@ def grid_clusters(points, eps):
     return parent
 
 
-@njit(cache=_CACHE, nogil=True)
+@njit(cache=_CACHE, nogil=True, parallel=True)
 def mark_observed(points, map_pos, grid, origin, dims, voxel, radius_m, map_rows, alive, f, last, t):
     """Count as seen at frame t every live voxel within radius_m of a frame point (once a frame): a surface that
     straddles a voxel boundary falls in either voxel from frame to frame, and must not lose its p-index for it."""
     r2 = radius_m * radius_m
-    for n in range(points.shape[0]):
-        ci = int(np.floor(points[n, 0] / voxel)) - origin[0]
-        cj = int(np.floor(points[n, 1] / voxel)) - origin[1]
-        ck = int(np.floor(points[n, 2] / voxel)) - origin[2]
-        for i in range(ci - 1, ci + 2):
-            if i < 0 or i >= dims[0]:
-                continue
-            for j in range(cj - 1, cj + 2):
-                if j < 0 or j >= dims[1]:
-                    continue
-                base = (i * dims[1] + j) * dims[2]
-                for k in range(ck - 1, ck + 2):
-                    if k < 0 or k >= dims[2]:
-                        continue
-                    m = grid[base + k]
-                    if m < 0 or not alive[m]:
-                        continue
-                    row = map_rows[m]
-                    if last[row] == t:
-                        continue
-                    d0 = map_pos[m, 0] - points[n, 0]
-                    d1 = map_pos[m, 1] - points[n, 1]
-                    d2 = map_pos[m, 2] - points[n, 2]
-                    if d0 * d0 + d1 * d1 + d2 * d2 <= r2:
-                        f[row] += 1
-                        last[row] = t
+    hit = np.zeros(map_rows.shape[0], np.bool_)
+    n_pts = points.shape[0]
+    for c in prange(CHUNKS):  # first find the voxels (threads only ever write True), then count them once
+        for n in range(n_pts * c // CHUNKS, n_pts * (c + 1) // CHUNKS):
+            ci = int(np.floor(points[n, 0] / voxel)) - origin[0]
+            cj = int(np.floor(points[n, 1] / voxel)) - origin[1]
+            ck = int(np.floor(points[n, 2] / voxel)) - origin[2]
+            for i in range(max(ci - 1, 0), min(ci + 2, dims[0])):
+                for j in range(max(cj - 1, 0), min(cj + 2, dims[1])):
+                    base = (i * dims[1] + j) * dims[2]
+                    for k in range(max(ck - 1, 0), min(ck + 2, dims[2])):
+                        m = grid[base + k]
+                        if m < 0 or hit[m] or not alive[m] or last[map_rows[m]] == t:
+                            continue
+                        d0 = map_pos[m, 0] - points[n, 0]
+                        d1 = map_pos[m, 1] - points[n, 1]
+                        d2 = map_pos[m, 2] - points[n, 2]
+                        if d0 * d0 + d1 * d1 + d2 * d2 <= r2:
+                            hit[m] = True
+    for m in range(map_rows.shape[0]):
+        if hit[m]:
+            row = map_rows[m]
+            f[row] += 1
+            last[row] = t

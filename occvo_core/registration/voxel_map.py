@@ -67,30 +67,31 @@ class EgoMap:
     def __len__(self) -> int:
         return len(self.pos)
 
+    weight: np.ndarray | None = None  # map voxels behind each pooled point (None: not pooled)
+    votes: np.ndarray | None = None  # their label votes
+
     @classmethod
     def build(cls, local: "LocalMap", pose: np.ndarray, lower: np.ndarray, upper: np.ndarray, voxel: float,
               subset: np.ndarray | None = None) -> "EgoMap":
         idx = np.flatnonzero(local.usable if subset is None else subset)
-        rot, trans = pose[:3, :3], pose[:3, 3]
-        pos = (local.pos[idx] - trans) @ rot
-        cov = kernels.rotate_covariances(local.map.cov[local.rows[idx]], np.ascontiguousarray(rot.T))
         origin = np.floor(np.asarray(lower) / voxel).astype(np.int64)
         dims = np.floor(np.asarray(upper) / voxel).astype(np.int64) - origin + 1
-        keys = np.floor(pos / voxel).astype(np.int64)
-        grid = kernels.window_grid(keys, origin, dims)
+        pos, cov, grid = kernels.ego_points(idx, local.rows, local.map.pos, local.map.cov,
+                                            np.ascontiguousarray(pose[:3, :3]), np.ascontiguousarray(pose[:3, 3]),
+                                            origin, dims, voxel)
         return cls(pose, pos, cov, local.labels[idx], np.ones(len(idx), bool), grid, origin, dims, voxel, idx)
 
     def pooled(self, voxel: float) -> "EgoMap":
-        """The same map averaged on a coarser grid (coarse GICP searches farther at the same cost)."""
+        """The same map averaged on a coarser grid (coarse GICP searches farther at the same cost). Pooling a pooled
+        map again equals pooling this one directly on the coarser grid, when the grids nest (sizes multiples)."""
         origin = np.floor(self.origin * self.voxel / voxel).astype(np.int64)
         dims = np.floor((self.origin + self.dims) * self.voxel / voxel).astype(np.int64) - origin + 1
-        keys = np.floor(self.pos / voxel).astype(np.int64) - origin
-        keep = self.usable
-        pos, cov, labels, cell = kernels.pool_voxels(self.pos[keep], self.cov[keep], self.labels[keep].astype(np.int64),
-                                                     keys[keep], dims, NUM_CLASSES)
-        grid = kernels.window_grid(cell + origin, origin, dims)
+        empty_w, empty_v = np.zeros(0), np.zeros((0, NUM_CLASSES), np.int32)
+        pos, cov, labels, grid, weight, votes = kernels.pool_voxels(
+            self.pos, self.cov, self.labels, self.usable, empty_w if self.weight is None else self.weight,
+            empty_v if self.votes is None else self.votes, voxel, origin, dims, NUM_CLASSES)
         return EgoMap(self.pose, pos, cov, labels, np.ones(len(pos), bool), grid, origin, dims, voxel,
-                      np.full(len(pos), -1))
+                      np.full(len(pos), -1), weight, votes)
 
 
 class VoxelPFilterMap:

@@ -244,14 +244,21 @@ class OccVO:
         return self.map.window(lower, upper, t)
 
     def _coarse_gicp(self, frame: _Prepared, ego: EgoMap):
-        """GICP against the map pooled on a wide grid, then on the coarse one: a basin of metres, then decimetres."""
+        """Coarse GICP against the map pooled on a coarse grid. A wide pass first (the map pooled wider still) reaches
+        minima metres away; when it lands far from the guess, both starts are refined and the one whose alignment
+        keeps more pairs wins, since repeated structure (tree rows, lamp posts) can give the wide pass a wrong one."""
         cfg = self.config.gicp
-        pose = np.eye(4)
         coarse_map = ego.pooled(cfg.coarse_map_voxel_m)
+        starts = [np.eye(4)]
         if cfg.wide_voxel_m > 0:
-            pose = self._gicp(frame, frame.wide, coarse_map.pooled(cfg.wide_voxel_m), pose, cfg.wide_voxel_m,
+            wide = self._gicp(frame, frame.wide, coarse_map.pooled(cfg.wide_voxel_m), np.eye(4), cfg.wide_voxel_m,
                               cfg.coarse_iterations).pose
-        return self._gicp(frame, frame.coarse, coarse_map, pose, cfg.coarse_max_correspondence_m, cfg.coarse_iterations)
+            near = np.linalg.norm(wide[:3, 3]) < cfg.coarse_map_voxel_m / 4 and \
+                np.arccos(np.clip((np.trace(wide[:3, :3]) - 1) / 2, -1, 1)) < np.deg2rad(0.5)
+            starts = [wide] if near else [np.eye(4), wide]
+        results = [self._gicp(frame, frame.coarse, coarse_map, start, cfg.coarse_max_correspondence_m,
+                              cfg.coarse_iterations) for start in starts]
+        return max(results, key=lambda r: (r.pairs_kept, -r.cost))
 
     def _gicp(self, frame: _Prepared, idx: np.ndarray, local, pose: np.ndarray, max_dist: float, iterations: int):
         g = self.config.gicp

@@ -253,8 +253,9 @@ class OccVO:
         if cfg.wide_voxel_m > 0:
             wide = self._gicp(frame, frame.wide, coarse_map.pooled(cfg.wide_voxel_m), np.eye(4), cfg.wide_voxel_m,
                               cfg.coarse_iterations).pose
-            near = np.linalg.norm(wide[:3, 3]) < cfg.coarse_map_voxel_m / 4 and \
-                np.arccos(np.clip((np.trace(wide[:3, :3]) - 1) / 2, -1, 1)) < np.deg2rad(0.5)
+            # within coarse reach of the guess, coarse GICP would find the same minimum from either start
+            near = np.linalg.norm(wide[:3, 3]) < cfg.coarse_max_correspondence_m and \
+                np.arccos(np.clip((np.trace(wide[:3, :3]) - 1) / 2, -1, 1)) < np.deg2rad(2.0)
             starts = [wide] if near else [np.eye(4), wide]
         results = [self._gicp(frame, frame.coarse, coarse_map, start, cfg.coarse_max_correspondence_m,
                               cfg.coarse_iterations) for start in starts]

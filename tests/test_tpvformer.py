@@ -22,7 +22,7 @@ def micro(**kw):
     """The tiny architecture at toy sizes: seconds per step on one core."""
     base = dict(input_size=(96, 54), tpv_h=20, tpv_w=20, tpv_z=4, embed_dims=16, num_heads=2, ffn_dims=32, num_layers=1,
                 points_in_pillar=(2, 4, 4), sampling_points=(2, 4, 4), hybrid_anchors=2, hybrid_points=2,
-                decoder_hidden=16, decoder_out=16, decode_shape=(100, 100, 16))
+                decoder_hidden=16, decoder_out=16, decode_shape=(40, 40, 8))
     base.update(kw)
     return preset("tiny", **base)
 
@@ -31,7 +31,20 @@ def calib(rig):
     return torch.tensor(rig.intrinsics, dtype=torch.float32)[None], torch.tensor(rig.cam_to_ego, dtype=torch.float32)[None]
 
 
-def test_image_cross_attention_samples_the_camera_the_query_projects_into():
+def _identity_attention(att):
+    """One head, one level: identity projections and zero offsets, so a query reads exactly its projected anchors."""
+    with torch.no_grad():
+        for lin in (att.value_proj, *att.output_proj):
+            lin.weight.copy_(torch.eye(8))
+            lin.bias.zero_()
+        for off in att.sampling_offsets:
+            off.weight.zero_()
+            off.bias.zero_()
+    return att
+
+
+@pytest.mark.parametrize("visible_anchors_only", [False, True])
+def test_image_cross_attention_samples_the_camera_the_query_projects_into(visible_anchors_only):
     torch.manual_seed(0)
     cfg = micro()
     model = TPVFormer(cfg)
@@ -45,14 +58,8 @@ def test_image_cross_attention_samples_the_camera_the_query_projects_into():
     assert hw_valid[BACK, behind].any() and not hw_valid[FRONT, behind].any()
 
     # One head, one level, sampling exactly at the projected anchors, identity projections.
-    att = ImageCrossAttention(8, 1, 1, cfg.points_in_pillar, cfg.points_in_pillar)
-    with torch.no_grad():
-        for lin in (att.value_proj, *att.output_proj):
-            lin.weight.copy_(torch.eye(8))
-            lin.bias.zero_()
-        for off in att.sampling_offsets:
-            off.weight.zero_()
-            off.bias.zero_()
+    att = _identity_attention(ImageCrossAttention(8, 1, 1, cfg.points_in_pillar, cfg.points_in_pillar,
+                                                  visible_anchors_only=visible_anchors_only))
     h, w = 27, 48
 
     def features_marked_in(cam):
@@ -68,6 +75,33 @@ def test_image_cross_attention_samples_the_camera_the_query_projects_into():
     # The same marks in a camera the query does not project into are never sampled.
     f_back = features_marked_in(FRONT).roll(BACK - FRONT, dims=1)
     assert att(queries, queries, [f_back], uv, valid)[0][0][ahead].abs().max() == 0
+
+
+def test_depth_aware_cross_attention_skips_cells_in_front_of_the_surface():
+    """With a depth distribution, a cell takes an image's features only where the surface lies at its own depth."""
+    cfg = micro()
+    model = TPVFormer(cfg)
+    rig = nuscenes_rig(96, 54)
+    k, e = calib(rig)
+    uv, valid, depth = model.project_anchors(k, e, (54, 96), return_depth=True)
+    cell = lambda x, y: int((x + 40) / 80 * cfg.tpv_h) * cfg.tpv_w + int((y + 40) / 80 * cfg.tpv_w)  # noqa: E731
+    surface, in_front = cell(14.0, 0.0), cell(6.0, 0.0)
+    assert valid[0][0, FRONT, surface].all() and valid[0][0, FRONT, in_front].any()
+    bins, near, far = 8, 1.0, 80.0
+    att = _identity_attention(ImageCrossAttention(8, 1, 1, cfg.points_in_pillar, cfg.points_in_pillar,
+                                                  visible_anchors_only=True, depth_range=(near, far)))
+    h, w = 27, 48
+    f = torch.zeros(1, 6, 8, h, w)
+    f[0, FRONT, 3] = 1.0  # the front camera sees something everywhere ...
+    z = float(depth[0][0, FRONT, surface].mean())
+    prob = torch.zeros(1, 6, bins, h, w)
+    prob[:, :, int(np.log(z / near) / np.log(far / near) * bins)] = 1.0  # ... at the depth of the surface cell
+    queries = [torch.zeros(1, n, 8) for n in (uv[0].shape[2], uv[1].shape[2], uv[2].shape[2])]
+    with torch.no_grad():
+        plain = att(queries, queries, [f], uv, valid)[0][0]
+        aware = att(queries, queries, [f], uv, valid, depth, prob)[0][0]
+    assert plain[surface, 3] > 0.4 and plain[in_front, 3] > 0.4
+    assert aware[surface, 3] > 0.2 and aware[in_front, 3] == 0
 
 
 def _world(seed=0):
@@ -228,3 +262,20 @@ def test_occvo_run_from_images_runs_the_whole_chain(tmp_path):
     missing = subprocess.run([sys.executable, "-m", "occvo_core.cli", "run", "--from-images", "--out", str(out)],
                              capture_output=True, text=True)
     assert missing.returncode == 2 and "--from-images needs --checkpoint" in missing.stderr
+
+
+def test_rendered_training_frames_are_cached_on_disk_and_read_back(tmp_path):
+    from occvo_core.models.train import SyntheticOccDataset
+
+    rig = nuscenes_rig(96, 54)
+    first = SyntheticOccDataset([3], frames=2, rig=rig, stride=2, cache_dir=tmp_path)[0]
+    files = list(tmp_path.glob("*.npz"))
+    assert [f.name for f in files] == ["seed3_of2_frame0_96x54_v2.npz"]
+    again = SyntheticOccDataset([3], frames=2, rig=rig, stride=2, cache_dir=tmp_path)
+    again._scene_cls = None  # read from disk: the scene is never built
+    second = again[0]
+    assert torch.equal(first.images, second.images) and torch.equal(first.intrinsics, second.intrinsics)
+    np.testing.assert_array_equal(first.semantics, second.semantics)
+    np.testing.assert_array_equal(first.camera_mask, second.camera_mask)
+    np.testing.assert_array_equal(first.depth, second.depth)
+    np.testing.assert_array_equal(first.pixel_labels, second.pixel_labels)

@@ -15,6 +15,7 @@ def add_parser(sub) -> None:
     p.add_argument("--stride", type=int, default=2, help="use every n-th frame")
     p.add_argument("--lr", type=float, default=2e-3)
     p.add_argument("--max-steps", type=int, help="stop after this many steps even within the budget")
+    p.add_argument("--cache", type=Path, help="keep rendered training frames here (.npz) and reuse them in later runs")
     p.add_argument("--threads", type=int, default=1, help="torch CPU threads (the machine is shared)")
     p.set_defaults(func=run)
 
@@ -28,7 +29,7 @@ def run(args) -> int:
     torch.set_num_threads(args.threads)
     cfg = preset(args.preset)
     result = train(cfg, args.out, args.minutes, args.seeds, frames=args.frames, stride=args.stride, lr=args.lr,
-                   max_steps=args.max_steps, preset_name=args.preset)
+                   max_steps=args.max_steps, preset_name=args.preset, cache_dir=args.cache)
     tail = sum(result.losses[-20:]) / max(1, len(result.losses[-20:]))
     print(f"trained {result.steps} steps in {result.seconds / 60:.1f} min; loss {result.losses[0]:.3f} -> {tail:.3f} (mean of last 20)")
     print(f"checkpoint: {result.checkpoint}")

@@ -11,6 +11,7 @@ from pathlib import Path
 import numpy as np
 import torch
 import torch.nn.functional as F
+from torch import nn
 from tqdm import tqdm
 
 from occvo_core.cameras import CameraRig, RenderStyle, nuscenes_rig, render
@@ -25,36 +26,65 @@ class Sample:
     cam_to_ego: torch.Tensor  # (6, 4, 4)
     semantics: np.ndarray  # (200, 200, 16) uint8
     camera_mask: np.ndarray  # (200, 200, 16) bool
+    depth: np.ndarray | None = None  # (6, H, W) float32 ray length to the first occupied voxel, inf where none
+    pixel_labels: np.ndarray | None = None  # (6, H, W) uint8 class of that voxel, 255 where none
+
+
+def _sample(images_uint8, rig: CameraRig, semantics, camera_mask, depth=None, pixel_labels=None) -> Sample:
+    images = torch.from_numpy(np.ascontiguousarray(images_uint8)).permute(0, 3, 1, 2).float().div_(255.0)
+    return Sample(images, torch.tensor(rig.intrinsics, dtype=torch.float32), torch.tensor(rig.cam_to_ego, dtype=torch.float32),
+                  np.asarray(semantics, np.uint8), np.asarray(camera_mask, bool), depth, pixel_labels)
 
 
 def make_sample(semantics: np.ndarray, rig: CameraRig, rng: int | np.random.Generator = 0, style: RenderStyle = RenderStyle()) -> Sample:
     frame = render(semantics, rig, style, rng)
-    images = torch.from_numpy(frame.images).permute(0, 3, 1, 2).float().div_(255.0)
-    return Sample(images, torch.tensor(rig.intrinsics, dtype=torch.float32), torch.tensor(rig.cam_to_ego, dtype=torch.float32),
-                  np.asarray(semantics, np.uint8), frame.camera_mask)
+    return _sample(frame.images, rig, semantics, frame.camera_mask, frame.depth, frame.labels)
 
 
 class SyntheticOccDataset:
-    """Frames of SyntheticScene(seed) for each seed; each rendered once on first use and kept (small at tiny sizes)."""
+    """Frames of SyntheticScene(seed) for each seed; each rendered once on first use and kept (small at tiny sizes).
 
-    def __init__(self, seeds: list[int], frames: int, rig: CameraRig, stride: int = 1):
+    With `cache_dir`, rendered frames are also kept on disk (one .npz each, named by seed, frame and image size) and
+    read back by later runs, so training time goes to training steps rather than to ray casting.
+    """
+
+    def __init__(self, seeds: list[int], frames: int, rig: CameraRig, stride: int = 1, cache_dir: str | Path | None = None,
+                 first: int = 0):
         from occvo_core.sim import SyntheticScene  # the sim is only needed for synthetic training/eval
 
         self.seeds, self.rig = list(seeds), rig
         self._scene_cls, self._frames, self._stride = SyntheticScene, frames, stride
         self._scenes: dict[int, object] = {}
-        self.index = [(s, i) for s in self.seeds for i in range(0, frames, stride)]
+        self.index = [(s, i) for s in self.seeds for i in range(first, frames, stride)]
         self._cache: dict[int, Sample] = {}
+        self.cache_dir = Path(cache_dir) if cache_dir is not None else None
 
     def __len__(self) -> int:
         return len(self.index)
 
+    def _disk_path(self, seed: int, i: int) -> Path:
+        w, h = self.rig.size
+        return self.cache_dir / f"seed{seed}_of{self._frames}_frame{i}_{w}x{h}_v2.npz"
+
     def __getitem__(self, k: int) -> Sample:
         if k not in self._cache:
             seed, i = self.index[k]
+            path = self._disk_path(seed, i) if self.cache_dir is not None else None
+            if path is not None and path.is_file():
+                with np.load(path) as z:
+                    self._cache[k] = _sample(z["images"], self.rig, z["semantics"], z["camera_mask"], z["depth"], z["labels"])
+                return self._cache[k]
             if seed not in self._scenes:
                 self._scenes[seed] = self._scene_cls(seed=seed, frames=self._frames)
-            self._cache[k] = make_sample(self._scenes[seed].true_grid(i), self.rig, rng=seed * 1000 + i)
+            semantics = np.asarray(self._scenes[seed].true_grid(i), np.uint8)
+            frame = render(semantics, self.rig, RenderStyle(), seed * 1000 + i)
+            self._cache[k] = _sample(frame.images, self.rig, semantics, frame.camera_mask, frame.depth, frame.labels)
+            if path is not None:
+                path.parent.mkdir(parents=True, exist_ok=True)
+                tmp = path.with_suffix(".tmp.npz")
+                np.savez_compressed(tmp, images=frame.images, semantics=semantics, camera_mask=frame.camera_mask,
+                                    depth=frame.depth.astype(np.float32), labels=frame.labels)
+                tmp.replace(path)
         return self._cache[k]
 
 
@@ -94,15 +124,56 @@ def occupancy_loss(logits: torch.Tensor, semantics: torch.Tensor, mask: torch.Te
 
     logits (B, C, X, Y, Z), semantics (B, X, Y, Z) long, mask (B, X, Y, Z) bool.
     """
-    ce = F.cross_entropy(logits, semantics, weight=weights, reduction="none")
-    w = torch.where(mask, 1.0, outside_weight)
-    ce = (ce * w).sum() / w.sum()
-    flat, labels = logits.permute(0, 2, 3, 4, 1)[mask], semantics[mask]
-    if len(labels) > lovasz_voxels:
-        keep = torch.randperm(len(labels), generator=generator)[:lovasz_voxels]
-        flat, labels = flat[keep], labels[keep]
+    c = logits.shape[1]
+    voxels = logits.permute(0, 2, 3, 4, 1).reshape(-1, c)  # the model's logits are channels-last in memory: no copy
+    visible = mask.reshape(-1)
+    # Voxels outside the mask enter with probability `outside_weight` instead of at that weight: the same loss in
+    # expectation, at a third of the cost of a log-softmax over every voxel.
+    kept = visible | (torch.rand(visible.shape, generator=generator, device=visible.device) < outside_weight)
+    ce = F.cross_entropy(voxels[kept], semantics.reshape(-1)[kept], weight=weights, reduction="sum") / kept.sum().clamp(min=1)
+    idx = visible.nonzero().squeeze(1)
+    if len(idx) > lovasz_voxels:
+        idx = idx[torch.randperm(len(idx), generator=generator)[:lovasz_voxels]]
+    flat, labels = voxels[idx], semantics.reshape(-1)[idx]
     lovasz = lovasz_softmax(flat.float().softmax(-1), labels)
     return ce + lovasz, {"ce": float(ce.detach()), "lovasz": float(lovasz.detach())}
+
+
+class ImageAuxHead(nn.Module):
+    """Training-only head on the finest FPN level: per-pixel class of the first voxel hit (17 classes + none).
+
+    The synthetic renderer knows it for every pixel; supervising it teaches the backbone what it sees before the
+    occupancy loss has to. Not part of the checkpoint: inference never runs it.
+    """
+
+    def __init__(self, channels: int):
+        super().__init__()
+        self.net = nn.Sequential(nn.Conv2d(channels, channels, 3, padding=1), nn.ReLU(inplace=True),
+                                 nn.Conv2d(channels, NUM_CLASSES, 1))
+
+    def loss(self, feature: torch.Tensor, labels: np.ndarray) -> torch.Tensor:
+        """feature (Ncam, C, h, w) of one sample; labels (Ncam, H, W) at image resolution, 255 = no hit."""
+        out = F.interpolate(self.net(feature), size=labels.shape[-2:], mode="bilinear", align_corners=False)
+        lab = torch.from_numpy(labels.astype(np.int64))
+        lab[lab == 255] = NUM_CLASSES - 1  # no hit: the free class
+        return F.cross_entropy(out, lab)
+
+
+def depth_loss(depth_logits: torch.Tensor, ray_length: np.ndarray, intrinsics: torch.Tensor,
+               depth_range: tuple[float, float]) -> torch.Tensor:
+    """Cross entropy of the depth head's log-spaced bins (Ncam, bins, h, w) against the rendered depth (Ncam, H, W)
+    (ray length, turned into depth along the optical axis as the anchors use it); rays without a hit are ignored."""
+    ncam, bins = depth_logits.shape[:2]
+    h, w = ray_length.shape[-2:]
+    out = F.interpolate(depth_logits, size=(h, w), mode="bilinear", align_corners=False)
+    r = torch.from_numpy(np.asarray(ray_length, np.float32))
+    v, u = torch.meshgrid(torch.arange(h, dtype=torch.float32), torch.arange(w, dtype=torch.float32), indexing="ij")
+    fx, fy, cx, cy = (intrinsics[:, i, j].view(-1, 1, 1) for i, j in ((0, 0), (1, 1), (0, 2), (1, 2)))
+    z = r / torch.sqrt(((u - cx) / fx) ** 2 + ((v - cy) / fy) ** 2 + 1)
+    near, far = depth_range
+    target = (torch.log(z.clamp(near, far) / near) / math.log(far / near) * bins).long().clamp(0, bins - 1)
+    target[~torch.isfinite(r)] = -100
+    return F.cross_entropy(out, target, ignore_index=-100)
 
 
 # -- training -------------------------------------------------------------------------------------------------------
@@ -117,14 +188,14 @@ class TrainResult:
 
 def train(cfg: TPVFormerConfig, out_dir: str | Path, minutes: float, seeds: list[int], frames: int = 20, stride: int = 2, lr: float = 2e-3,
           max_steps: int | None = None, seed: int = 0, progress: bool = True, dataset=None, preset_name: str = "",
-          warmup: int = 30) -> TrainResult:
+          warmup: int = 30, cache_dir: str | Path | None = None, aux_weight: float = 0.5) -> TrainResult:
     """Time-budgeted AdamW with warm-up and cosine decay over the budget; writes checkpoint.pt, loss_curve.png, train_log.json."""
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     torch.manual_seed(seed)
     rng = np.random.default_rng(seed)
     rig = nuscenes_rig(*cfg.input_size)
-    data = dataset if dataset is not None else SyntheticOccDataset(seeds, frames, rig, stride=stride)
+    data = dataset if dataset is not None else SyntheticOccDataset(seeds, frames, rig, stride=stride, cache_dir=cache_dir)
     model = TPVFormer(cfg).train()
     # Class frequencies inside the camera mask from a few frames.
     counts = np.zeros(NUM_CLASSES)
@@ -132,7 +203,15 @@ def train(cfg: TPVFormerConfig, out_dir: str | Path, minutes: float, seeds: list
         s = data[int(k)]
         counts += np.bincount(s.semantics[s.camera_mask], minlength=NUM_CLASSES)
     weights = class_weights(counts + 1)
-    opt = torch.optim.AdamW(model.parameters(), lr=lr, weight_decay=0.01)
+    params = list(model.parameters())
+    aux_head, captured, hooks = None, {}, []
+    if aux_weight > 0 and getattr(data[0], "depth", None) is not None:  # image supervision from the renderer
+        aux_head = ImageAuxHead(cfg.backbone.fpn_channels).train()
+        params += list(aux_head.parameters())
+        hooks.append(model.backbone.register_forward_hook(lambda _m, _i, out: captured.__setitem__("levels", out)))
+        if model.depth_head is not None:
+            hooks.append(model.depth_head.register_forward_hook(lambda _m, _i, out: captured.__setitem__("depth", out)))
+    opt = torch.optim.AdamW(params, lr=lr, weight_decay=0.01)
     budget = minutes * 60.0
     start, losses, step = time.monotonic(), [], 0
     bar = tqdm(total=int(budget), unit="s", disable=not progress, desc="train-occ",
@@ -152,21 +231,34 @@ def train(cfg: TPVFormerConfig, out_dir: str | Path, minutes: float, seeds: list
             order = rng.permutation(len(data))
         logits = model(s.images[None], s.intrinsics[None], s.cam_to_ego[None])
         loss, parts = occupancy_loss(logits, torch.from_numpy(s.semantics[None]).long(), torch.from_numpy(s.camera_mask[None]), weights)
+        if aux_head is not None:
+            aux = aux_head.loss(captured.pop("levels")[0], s.pixel_labels)
+            if "depth" in captured:
+                aux = aux + depth_loss(captured.pop("depth"), s.depth, s.intrinsics, cfg.depth_range)
+            loss = loss + aux_weight * aux
+            parts["aux"] = float(aux.detach())
         opt.zero_grad(set_to_none=True)
         loss.backward()
-        torch.nn.utils.clip_grad_norm_(model.parameters(), 5.0)
+        torch.nn.utils.clip_grad_norm_(params, 5.0)
         opt.step()
         losses.append(float(loss.detach()))
         step += 1
         bar.n = min(int(time.monotonic() - start), int(budget))
-        bar.set_postfix_str(f"step {step} loss {np.mean(losses[-20:]):.3f} ce {parts['ce']:.3f} lovasz {parts['lovasz']:.3f}")
+        bar.set_postfix_str(f"step {step} loss {np.mean(losses[-20:]):.3f} ce {parts['ce']:.3f} lovasz {parts['lovasz']:.3f}"
+                            + (f" aux {parts['aux']:.3f}" if "aux" in parts else ""))
         bar.refresh()
         if time.monotonic() - last_save > 120:
             _save(ckpt, model, losses, step, time.monotonic() - start, seeds, preset_name)
             last_save = time.monotonic()
     bar.close()
     seconds = time.monotonic() - start
-    calibration = calibrate_free_bias(model, [data[int(k)] for k in order[:6]])
+    for hook in hooks:
+        hook.remove()
+    if dataset is None and stride > 1 and frames > 1:  # frames of the training scenes that training did not use
+        held = SyntheticOccDataset(seeds[:12], frames, rig, stride=frames, cache_dir=cache_dir, first=1)
+        calibration = calibrate_free_bias(model, (held[k] for k in range(len(held))))
+    else:
+        calibration = calibrate_free_bias(model, [data[int(k)] for k in order[:6]])
     model.meta_calibration = calibration
     _save(ckpt, model, losses, step, seconds, seeds, preset_name)
     plot_losses(losses, out / "loss_curve.png")
@@ -176,21 +268,22 @@ def train(cfg: TPVFormerConfig, out_dir: str | Path, minutes: float, seeds: list
 
 
 @torch.no_grad()
-def calibrate_free_bias(model: TPVFormer, samples: list[Sample], candidates=(0.0, 0.5, 1.0, 1.5, 2.0, 3.0, 4.0)) -> dict:
-    """Pick the free-class logit offset maximising mIoU + geometry IoU on (training) samples; sets it on the model."""
+def calibrate_free_bias(model: TPVFormer, samples, candidates=tuple(np.arange(0.0, 5.01, 0.25))) -> dict:
+    """Pick the free-class logit offset maximising mIoU + geometry IoU on `samples` (not evaluation seeds); sets it
+    on the model."""
     model.eval()
     cfg = model.cfg.model_copy(update={"free_logit_bias": 0.0})
     model.cfg = cfg
-    logits = [model(s.images[None], s.intrinsics[None], s.cam_to_ego[None])[0].permute(1, 2, 3, 0) for s in samples]
-    table = {}
-    for bias in candidates:
-        m = OccMetrics()
-        for s, lg in zip(samples, logits):
-            adjusted = lg.clone()
-            adjusted[..., -1] += bias
-            m.update(adjusted.argmax(-1).numpy(), s.semantics, s.camera_mask)
-        table[bias] = {"miou": m.miou(), "geometry_iou": m.geometry_iou()}
-    best = max(candidates, key=lambda b: table[b]["miou"] + table[b]["geometry_iou"])
+    metrics = {float(b): OccMetrics() for b in candidates}
+    for s in samples:  # one frame's logits at a time: 18 x 640k floats each
+        lg = model(s.images[None], s.intrinsics[None], s.cam_to_ego[None])[0].permute(1, 2, 3, 0)
+        mask = s.camera_mask
+        other, cls = lg[..., :-1].max(-1)  # the best occupied class: the offset only decides it against free
+        margin, cls = (lg[..., -1] - other).numpy()[mask], cls.numpy()[mask]
+        for bias, m in metrics.items():
+            m.update(np.where(margin + bias >= 0, lg.shape[-1] - 1, cls), s.semantics[mask])
+    table = {b: {"miou": m.miou(), "geometry_iou": m.geometry_iou()} for b, m in metrics.items()}
+    best = max(table, key=lambda b: table[b]["miou"] + table[b]["geometry_iou"])
     model.cfg = cfg.model_copy(update={"free_logit_bias": float(best)})
     return {"free_logit_bias": float(best), "table": {str(k): v for k, v in table.items()}}
 

@@ -36,6 +36,13 @@ class LearnedPositionalEncoding(nn.Module):
         return torch.cat([r[:, None].expand(-1, len(c), -1), c[None].expand(len(r), -1, -1)], -1).flatten(0, 1)
 
 
+def _upsampler(cin: int, cout: int, factors: tuple[int, int]) -> nn.Module:
+    """Transposed convolution upsampling a plane by integer factors (1 or even): kernel 2f, stride f, padding f/2,
+    so each output cell mixes its own and the neighbouring input cells (like bilinear, but learned)."""
+    kernel = tuple(2 * f if f > 1 else 1 for f in factors)
+    return nn.ConvTranspose2d(cin, cout, kernel, stride=factors, padding=tuple(f // 2 if f > 1 else 0 for f in factors))
+
+
 class EncoderLayer(nn.Module):
     """Cross-view hybrid attention -> norm -> image cross attention -> norm -> FFN -> norm (each with a residual)."""
 
@@ -44,15 +51,16 @@ class EncoderLayer(nn.Module):
         c = cfg.embed_dims
         self.hybrid = CrossViewHybridAttention(c, cfg.num_heads, cfg.hybrid_points, cfg.query_chunk)
         self.cross = ImageCrossAttention(c, cfg.num_heads, cfg.backbone.num_levels, cfg.points_in_pillar, cfg.sampling_points,
-                                         cfg.query_chunk)
+                                         cfg.query_chunk, cfg.visible_anchors_only, tuple(cfg.depth_range))
         self.norms = nn.ModuleList(nn.LayerNorm(c) for _ in range(3))
         self.ffn = nn.Sequential(nn.Linear(c, cfg.ffn_dims), nn.ReLU(inplace=True), nn.Dropout(cfg.dropout),
                                  nn.Linear(cfg.ffn_dims, c))
         self.drop = nn.Dropout(cfg.dropout)
 
-    def forward(self, tpv, pos, shape, hybrid_ref, feats, ref_uv, ref_valid):
+    def forward(self, tpv, pos, shape, hybrid_ref, feats, ref_uv, ref_valid, ref_depth=None, depth_prob=None):
         tpv = [self.norms[0](t + self.drop(a)) for t, a in zip(tpv, self.hybrid(tpv, pos, shape, hybrid_ref))]
-        tpv = [self.norms[1](t + self.drop(a)) for t, a in zip(tpv, self.cross(tpv, pos, feats, ref_uv, ref_valid))]
+        cross = self.cross(tpv, pos, feats, ref_uv, ref_valid, ref_depth, depth_prob)
+        tpv = [self.norms[1](t + self.drop(a)) for t, a in zip(tpv, cross)]
         return [self.norms[2](t + self.drop(self.ffn(t))) for t in tpv]
 
 
@@ -74,8 +82,20 @@ class TPVFormer(nn.Module):
         self.pos = nn.ModuleList([LearnedPositionalEncoding(c, h, w), LearnedPositionalEncoding(c, z, h),
                                   LearnedPositionalEncoding(c, w, z)])
         self.layers = nn.ModuleList(EncoderLayer(cfg) for _ in range(cfg.num_layers))
-        self.decoder = nn.Sequential(nn.Linear(c, cfg.decoder_hidden), nn.Softplus(), nn.Linear(cfg.decoder_hidden, cfg.decoder_out),
-                                     nn.Softplus(), nn.Linear(cfg.decoder_out, cfg.num_classes))
+        fpn_c = cfg.backbone.fpn_channels
+        self.depth_head = (nn.Sequential(nn.Conv2d(fpn_c, fpn_c, 3, padding=1), nn.ReLU(inplace=True), nn.Conv2d(fpn_c, cfg.depth_bins, 1))
+                           if cfg.depth_bins else None)
+        act = nn.Softplus if cfg.decoder_activation == "softplus" else lambda: nn.ReLU(inplace=True)
+        self.decoder = nn.Sequential(nn.Linear(c, cfg.decoder_hidden), act(), nn.Linear(cfg.decoder_hidden, cfg.decoder_out),
+                                     act(), nn.Linear(cfg.decoder_out, cfg.num_classes))
+        self.plane_up = None
+        if cfg.plane_upsampling == "deconv":  # learned upsampling replaces the bilinear one and the decoder's first layer
+            self.decoder[0] = nn.Identity()
+            shapes = [(h, w), (z, h), (w, z)]
+            gx, gy, gz = cfg.decode_shape
+            targets = [(gx, gy), (gz, gx), (gy, gz)]
+            self.plane_up = nn.ModuleList(_upsampler(c, cfg.decoder_hidden, tuple(t // n for t, n in zip(tg, sh)))
+                                          for sh, tg in zip(shapes, targets))
         nn.init.normal_(self.decoder[-1].weight, std=0.01)  # start near uniform class scores: a calm first loss
         nn.init.zeros_(self.decoder[-1].bias)
         self.register_buffer("image_mean", torch.tensor(IMAGE_MEAN).view(1, 3, 1, 1), persistent=False)
@@ -118,11 +138,13 @@ class TPVFormer(nn.Module):
         wz = torch.stack([pair(Y, T), pair(T, Z), pair(Z, Y)], 2).flatten(0, 1)
         return [hw, zh, wz]
 
-    def project_anchors(self, intrinsics: torch.Tensor, cam_to_ego: torch.Tensor, image_hw: tuple[int, int]):
-        """Anchors -> per plane normalised pixel coordinates (B, Ncam, Q, D, 2) and validity (in front, in image)."""
+    def project_anchors(self, intrinsics: torch.Tensor, cam_to_ego: torch.Tensor, image_hw: tuple[int, int],
+                        return_depth: bool = False):
+        """Anchors -> per plane normalised pixel coordinates (B, Ncam, Q, D, 2) and validity (in front, in image);
+        with `return_depth` also their depths along each camera's optical axis (B, Ncam, Q, D)."""
         ego_to_pix = intrinsics @ torch.linalg.inv(cam_to_ego)[..., :3, :]  # (B, Ncam, 3, 4)
         ih, iw = image_hw
-        uvs, valid = [], []
+        uvs, valid, depths = [], [], []
         for i in range(3):
             pts = getattr(self, f"anchors_{i}")
             cam = torch.einsum("bnij,qdj->bnqdi", ego_to_pix[..., :3], pts) + ego_to_pix[..., 3][:, :, None, None, :]
@@ -132,7 +154,8 @@ class TPVFormer(nn.Module):
             ok = (depth[..., 0] > 0.1) & (uv >= 0).all(-1) & (uv <= 1).all(-1)
             uvs.append(uv)
             valid.append(ok)
-        return uvs, valid
+            depths.append(depth[..., 0])
+        return (uvs, valid, depths) if return_depth else (uvs, valid)
 
     # -- forward ---------------------------------------------------------------------------------------------------
     def encode(self, images: torch.Tensor, intrinsics: torch.Tensor, cam_to_ego: torch.Tensor) -> list[torch.Tensor]:
@@ -146,16 +169,23 @@ class TPVFormer(nn.Module):
         if ncam > self.cams_embed.shape[0]:
             raise ValueError(f"{ncam} cameras given, the model has embeddings for {self.cams_embed.shape[0]}")
         x = (images.flatten(0, 1) - self.image_mean) / self.image_std
+        levels = self.backbone(x)
+        depth_prob = None
+        if self.depth_head is not None:  # depth distribution of every pixel of the finest level
+            depth_prob = self.depth_head(levels[0]).softmax(1)
+            depth_prob = depth_prob.view(b, ncam, *depth_prob.shape[1:])
         feats = [f.view(b, ncam, *f.shape[1:]) + self.cams_embed[None, :ncam, :, None, None] + self.level_embed[lv, :, None, None]
-                 for lv, f in enumerate(map(self.input_proj, self.backbone(x)))]
-        ref_uv, ref_valid = self.project_anchors(intrinsics.float(), cam_to_ego.float(), (ih, iw))
+                 for lv, f in enumerate(map(self.input_proj, levels))]
+        ref_uv, ref_valid, ref_depth = self.project_anchors(intrinsics.float(), cam_to_ego.float(), (ih, iw), return_depth=True)
+        if depth_prob is None:
+            ref_depth = None
         cfg = self.cfg
         shape = (cfg.tpv_h, cfg.tpv_w, cfg.tpv_z)
         tpv = [self.queries[k][None].expand(b, -1, -1) for k in ("hw", "zh", "wz")]
         pos = [p()[None].expand(b, -1, -1) for p in self.pos]
         hybrid_ref = [getattr(self, f"hybrid_ref_{i}") for i in range(3)]
         for layer in self.layers:
-            tpv = layer(tpv, pos, shape, hybrid_ref, feats, ref_uv, ref_valid)
+            tpv = layer(tpv, pos, shape, hybrid_ref, feats, ref_uv, ref_valid, ref_depth, depth_prob)
         maps = [(cfg.tpv_h, cfg.tpv_w), (cfg.tpv_z, cfg.tpv_h), (cfg.tpv_w, cfg.tpv_z)]
         return [t.transpose(1, 2).reshape(b, -1, r, c) for t, (r, c) in zip(tpv, maps)]
 
@@ -174,17 +204,24 @@ class TPVFormer(nn.Module):
         multiplications than on every voxel).
         """
         first, rest = self.decoder[0], self.decoder[1:]
-        hw, zh, wz = (F.linear(p.permute(0, 2, 3, 1), first.weight) for p in self.upsample(planes))  # channels last
-        hw = hw + first.bias
+        if self.plane_up is not None:
+            hw, zh, wz = (up(p).permute(0, 2, 3, 1) for up, p in zip(self.plane_up, planes))  # channels last
+        else:
+            # The first layer is linear and so is the bilinear upsampling: apply the layer at plane resolution first
+            # (fewer pixels), then upsample its output in channels-last memory (the fast layout for interpolate on CPU).
+            hidden = [F.linear(p.permute(0, 2, 3, 1), first.weight).permute(0, 3, 1, 2) for p in planes]
+            hw, zh, wz = (p.permute(0, 2, 3, 1) for p in self.upsample(hidden))  # channels last
+            hw = hw + first.bias
         gx = hw.shape[1]
         chunks = []
         for s in range(0, gx, self.cfg.decoder_chunk):
             e = min(gx, s + self.cfg.decoder_chunk)
-            f = hw[:, s:e, :, None] + zh[:, :, s:e].transpose(1, 2)[:, :, None] + wz[:, None]  # (B, x, Y, Z, hidden)
+            f = hw[:, s:e, :, None] + zh[:, :, s:e].transpose(1, 2)[:, :, None]  # (B, x, Y, Z, hidden)
+            f += wz[:, None]  # in place: one pass less over the largest tensor of the decoder
             chunks.append(rest(f))
-        logits = torch.cat(chunks, 1)  # (B, X, Y, Z, classes), classes innermost: cheap argmax over classes
+        logits = chunks[0] if len(chunks) == 1 else torch.cat(chunks, 1)  # (B, X, Y, Z, classes), classes innermost
         if self.cfg.free_logit_bias:
-            logits = logits + F.one_hot(torch.tensor(FREE), self.cfg.num_classes).to(logits) * self.cfg.free_logit_bias
+            logits[..., FREE] += self.cfg.free_logit_bias  # in place on the fresh logits: no second full tensor
         b, x, y, z, c = logits.shape
         gx, gy, gz = self.cfg.grid_shape
         if (x, y) != (gx, gy):

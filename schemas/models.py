@@ -299,7 +299,6 @@ class MapInfo(_StreamMessage):
 ErrorCode = Literal[
     "malformed", "unknown_kind", "unsupported_version", "invalid_message", "oversize", "stream_mismatch",
     "out_of_order", "missing_seq", "invalid_frame", "tile_not_found", "bad_query", "internal",
-    "busy",  # lossless worker full: the frame was not taken, send it (and what follows) again
 ]
 
 

@@ -8,8 +8,7 @@
 
 Frames sent but not answered are sent again when the registration worker's liveliness token comes back (it restarted:
 its durable state answers frames it already registered with their stored poses) or after `resend_after` seconds
-without any answer. A frame a lossless worker refused as busy (its queue stayed full) is sent again, with what
-follows it, after a backoff of 0.25 s doubling to 2 s. A pose that arrives twice is kept once.
+without any answer. A pose that arrives twice is kept once.
 """
 
 from __future__ import annotations
@@ -28,8 +27,6 @@ from schemas.models import (
     CameraFrame, ErrorEvent, MapInfo, MapTile, MapTileQuery, PoseEstimate, SparseOccupancy, Trajectory, WorkerHealth,
 )
 from services.runtime import DEFAULT_ENDPOINT, open_session
-
-BUSY_BACKOFF_S = (0.25, 2.0)  # first and longest wait before frames refused as busy go again
 
 
 class ServiceError(RuntimeError):
@@ -67,9 +64,6 @@ class OccVOClient:
         self._down = False  # the registration worker left: hold new frames until it is back and the lost ones resent
         self._back_at: float | None = None
         self.resends = 0
-        self.busy = 0  # frames a lossless worker refused as busy (each went again)
-        self._busy_at: float | None = None  # first busy refusal not yet answered by a resend
-        self._busy_backoff = BUSY_BACKOFF_S[0]
         self._subs = [self.session.declare_subscriber(keys.pose(stream), self._on_pose),
                       self.session.declare_subscriber(keys.errors(stream), self._on_error),
                       self.session.liveliness().declare_subscriber(keys.alive("registration", "*"), self._on_alive, history=True)]
@@ -86,7 +80,6 @@ class OccVOClient:
             return  # not ours to judge; the workers only publish valid poses
         with self._cv:
             self.poses.setdefault(pose.seq, pose)  # a resent frame's pose comes again: keep the first
-            self._busy_backoff = BUSY_BACKOFF_S[0]
             # poses come in seq order: an older frame still unanswered was dropped upstream (latest policy)
             for seq in [s for s in self._unanswered if s <= pose.seq]:
                 del self._unanswered[seq]
@@ -99,11 +92,6 @@ class OccVOClient:
         except CodecError:
             return
         with self._cv:
-            if event.code == "busy":  # not taken: it stays unanswered and goes again after a backoff
-                self.busy += 1
-                if self._busy_at is None:
-                    self._busy_at = time.monotonic()
-                return
             self.errors.append(event)
             if event.seq is not None and event.code != "missing_seq":
                 self._unanswered.pop(event.seq, None)
@@ -125,21 +113,17 @@ class OccVOClient:
 
     # -- resending what a restarted worker lost
     def _resend_loop(self, settle_s: float = 0.3) -> None:
-        while not self._closed.wait(0.05):
+        while not self._closed.wait(0.1):
+            if self.resend_after is None:
+                continue
             with self._cv:
                 now = time.monotonic()
-                watch = self.resend_after is not None
                 # back: its subscriptions have reached the router by now (they are declared before its token)
-                back = watch and self._back_at is not None and now - self._back_at >= settle_s
-                stalled = watch and bool(self._unanswered) and not self._down and now - self._last_answer >= self.resend_after
-                # refused as busy: send again once the backoff has passed (it doubles until a pose comes)
-                refused = self._busy_at is not None and now - self._busy_at >= self._busy_backoff
-                if not (back or stalled or refused):
+                back = self._back_at is not None and now - self._back_at >= settle_s
+                stalled = bool(self._unanswered) and not self._down and now - self._last_answer >= self.resend_after
+                if not (back or stalled):
                     continue
                 self._last_answer = now
-                if refused:
-                    self._busy_at = None
-                    self._busy_backoff = min(2 * self._busy_backoff, BUSY_BACKOFF_S[1])
             self.resend()  # frames in flight while it was away were lost; nothing new went out meanwhile
             if back:
                 with self._cv:

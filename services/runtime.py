@@ -156,29 +156,23 @@ class Stats:
 # ---------------------------------------------------------------- flow
 
 class StageQueue:
-    """Bounded queue between two stages. lossless: put waits up to busy_after_s for room, then refuses (the caller
-    tells the sender, who sends again: nothing is lost, and a full queue never holds Zenoh's link long enough for
-    Zenoh to close it). latest: the oldest item is dropped."""
+    """Bounded queue between two stages. lossless: put blocks (backpressure); latest: the oldest item is dropped."""
 
-    def __init__(self, maxsize: int, policy: Policy, on_drop: Callable[[object], None], stop: threading.Event,
-                 busy_after_s: float = 0.2):
+    def __init__(self, maxsize: int, policy: Policy, on_drop: Callable[[object], None], stop: threading.Event):
         self.q: queue.Queue = queue.Queue(maxsize=maxsize)
         self.policy = policy
         self.on_drop = on_drop
         self.stop = stop
-        self.busy_after_s = busy_after_s
 
     def put(self, item) -> bool:
-        """False when the item was not queued: lossless and still full after busy_after_s, or the worker stopping."""
+        """False when the item could not be queued because the worker is stopping."""
         if self.policy == "lossless":
-            deadline = time.monotonic() + self.busy_after_s
             while not self.stop.is_set():
                 try:
-                    self.q.put(item, timeout=max(0.0, min(0.1, deadline - time.monotonic())))
+                    self.q.put(item, timeout=0.1)
                     return True
                 except queue.Full:
-                    if time.monotonic() >= deadline:
-                        return False
+                    continue
             return False
         while True:
             try:
@@ -225,7 +219,6 @@ class WorkerConfig(BaseModel):
     worker_id: str | None = None
     policy: Policy = "lossless"
     queue_size: int = Field(4, ge=1, le=1024)
-    busy_after_s: float = Field(0.2, ge=0, le=2.0)  # lossless: a full queue refuses a frame as busy after this wait
     max_message_bytes: int = Field(DEFAULT_MAX_BYTES, ge=1024)
     log_level: str = "INFO"
     # inference worker
@@ -266,8 +259,7 @@ class StreamLane:
     def __init__(self, worker: "Worker", stream: str, handler: Callable[[str, object], None]):
         self.worker, self.stream, self.handler = worker, stream, handler
         self.busy = False
-        self.queue = StageQueue(worker.config.queue_size, worker.config.policy, self._dropped, worker.stopping,
-                                worker.config.busy_after_s)
+        self.queue = StageQueue(worker.config.queue_size, worker.config.policy, self._dropped, worker.stopping)
         self.thread = threading.Thread(target=self._run, name=f"{worker.role}-{stream}", daemon=True)
         self.thread.start()
 
@@ -307,7 +299,6 @@ class Worker:
         self.started = time.time()
         self.lanes: dict[str, StreamLane] = {}
         self.trackers: dict[str, SeqTracker] = defaultdict(SeqTracker)
-        self.refused: dict[str, int] = {}  # stream -> seq refused as busy: later seqs are refused until it comes again
         self._lanes_lock = threading.Lock()
         self._declared: list = []
         self.session: zenoh.Session | None = None
@@ -372,26 +363,11 @@ class Worker:
         msg = self.decode_input(sample, expect)
         if msg is None or self.stopping.is_set():
             return
-        key = str(sample.key_expr)
-        refused = self.refused.get(msg.stream)
-        if refused is not None and msg.seq > refused:  # back to the refused frame first: the stream stays in order
-            return self._busy(msg.stream, msg.seq, key, f"seq {refused} was refused before it")
-        if not self.check_seq(msg.stream, msg.seq, key):
+        if not self.check_seq(msg.stream, msg.seq, str(sample.key_expr)):
             return
-        if refused is not None and msg.seq in (refused, 0):  # taken now, or a new trajectory
-            del self.refused[msg.stream]
         # a sent_at a day off (e.g. 1e308) would give an infinite hop: no hop latency then, not a failed stage
         hop_ms = (t_recv - msg.sent_at) * 1000.0 if 0 < msg.sent_at and abs(t_recv - msg.sent_at) < 86400 else 0.0
-        if not self.lane(msg.stream, handler).queue.put((msg, hop_ms, time.perf_counter())) and not self.stopping.is_set():
-            self.refused[msg.stream] = msg.seq
-            self.trackers[msg.stream].expected = msg.seq  # its resend is the next frame in order
-            self._busy(msg.stream, msg.seq, key, f"queue full for {self.config.busy_after_s} s")
-
-    def _busy(self, stream: str, seq: int, key: str, why: str) -> None:
-        """Tell the sender a frame was not taken (it sends it again, and what follows): nothing is lost, and the
-        Zenoh link is never held long enough for Zenoh to close it."""
-        self.stats.inc("busy")
-        self.report_error(stream, "busy", f"seq {seq} not taken ({why}); send it again", key, seq)
+        self.lane(msg.stream, handler).queue.put((msg, hop_ms, time.perf_counter()))
 
     def decode_input(self, sample: zenoh.Sample, expect):
         """Decode and check a sample; on any problem report it and return None."""

@@ -16,10 +16,10 @@ ratio of the last minute's latency p99 to the first minute's. Prints a table and
 "Keeps up" = every frame sent on time and answered, poses at >= 95% of the offered rate in the last bucket, frames in
 flight growing by less than one per stream per minute, and the median latency of the last bucket under twice the first's.
 
-Lossless under sustained overload: a worker whose queue stays full for busy_after_s refuses the frame (error event
-`busy`); each stream here then sends the refused frame and every later unanswered one again after a backoff (0.25 s
-doubling to 2 s), as OccVOClient does, and counts them (resent_after_busy). Before that refusal existed, Zenoh closed
-links held blocked for 5 s and ~80 frames a stream were lost (missing_seq).
+Lossless under sustained overload was not lossless end to end here: with 8 streams the inference worker published every
+frame (BLOCK, no drops) yet the registration worker saw gaps of ~80 frames per stream (missing_seq errors). Likely cause,
+not yet proven: a worker whose queues are full blocks its Zenoh callback, and Zenoh closes a link blocked longer than
+transport/link/tx/queue/congestion_control/block/wait_before_close (5 s by default), losing what was buffered on it.
 """
 
 from __future__ import annotations
@@ -45,7 +45,6 @@ from occvo_core.grid import OCC3D_GRID  # noqa: E402
 from schemas import keys  # noqa: E402
 from schemas.codec import CodecError, decode, encode  # noqa: E402
 from schemas.models import Array, CameraFrame, ErrorEvent, GridSpecModel, PoseEstimate, SparseOccupancy, WorkerHealth  # noqa: E402
-from services.client import BUSY_BACKOFF_S  # noqa: E402
 from services.local import LocalService  # noqa: E402
 from services.runtime import open_session  # noqa: E402
 
@@ -121,13 +120,6 @@ class Stream:
         self.recv_at: dict[int, float] = {}
         self.last_sent = -1
         self.errors: dict[str, int] = {}
-        # frames refused as busy go again from the first refused one, after a backoff (as OccVOClient does)
-        self.unanswered: dict[int, bytes] = {}
-        self.lock = threading.Lock()
-        self.refused_seq: int | None = None
-        self.refused_at: float | None = None
-        self.backoff = BUSY_BACKOFF_S[0]
-        self.resent = 0
 
     def on_pose(self, sample) -> None:
         t = time.time()
@@ -136,29 +128,6 @@ class Stream:
         except CodecError:
             return
         self.recv_at.setdefault(pose.seq, t)
-        with self.lock:
-            for seq in [k for k in self.unanswered if k <= pose.seq]:
-                del self.unanswered[seq]
-            self.backoff = BUSY_BACKOFF_S[0]
-
-    def on_busy(self, seq: int) -> None:
-        with self.lock:
-            if self.refused_seq is None or seq < self.refused_seq:
-                self.refused_seq = seq
-            if self.refused_at is None:
-                self.refused_at = time.monotonic()
-
-    def resend_refused(self, pub) -> None:
-        """Send the refused frames and every later unanswered one again, once the backoff has passed."""
-        with self.lock:
-            if self.refused_at is None or time.monotonic() - self.refused_at < self.backoff:
-                return
-            again = [self.unanswered[k] for k in sorted(self.unanswered) if k >= self.refused_seq]
-            self.refused_seq = self.refused_at = None
-            self.backoff = min(2 * self.backoff, BUSY_BACKOFF_S[1])
-        for data in again:
-            pub.put(data)
-        self.resent += len(again)
 
     def newest_back(self) -> int:
         return max(self.recv_at, default=-1)
@@ -170,7 +139,6 @@ class Stream:
         for i, occ in enumerate(self.frames):
             due = self.due[i]
             while not stop.is_set() and time.time() < due:
-                self.resend_refused(pub)
                 time.sleep(min(0.05, max(0.0, due - time.time())))
             if stop.is_set():
                 return
@@ -178,8 +146,6 @@ class Stream:
             now = time.time()
             data = encode(CameraFrame(stream=self.name, seq=i, stamp=i / rate, gt_occupancy=occ, sent_at=now))
             b = time.perf_counter()
-            with self.lock:
-                self.unanswered[i] = data
             pub.put(data)
             self.put_ms[i] = (time.perf_counter() - b) * 1000.0
             self.build_ms[i] = (b - a) * 1000.0
@@ -223,8 +189,6 @@ def run_load(n: int, rate: float, minutes: float, policy: str, queue_size: int, 
             for st in streams:
                 if st.name == e.stream:
                     st.errors[e.code] = st.errors.get(e.code, 0) + 1
-                    if e.code == "busy" and e.seq is not None:
-                        st.on_busy(e.seq)
         subs.append(session.declare_subscriber(keys.errors("*"), on_error))
         deadline = time.monotonic() + 30
         while not all(p.matching_status.matching for p in pubs) and time.monotonic() < deadline:
@@ -278,8 +242,6 @@ def run_load(n: int, rate: float, minutes: float, policy: str, queue_size: int, 
         # drain: every stream's newest frame back (or dropped before it), or time out
         deadline = time.monotonic() + drain_s
         while any(st.newest_back() < st.last_sent for st in streams) and time.monotonic() < deadline:
-            for st, pub in zip(streams, pubs):
-                st.resend_refused(pub)
             time.sleep(0.1)
         drained = all(st.newest_back() >= st.last_sent for st in streams)
         cpu1 = {role: sum(p.cpu_times()[:2]) for role, p in procs.items()}
@@ -346,7 +308,6 @@ def run_load(n: int, rate: float, minutes: float, policy: str, queue_size: int, 
         "drops": {"registration": int(smp[-1, 4]) if len(smp) else 0, "inference": int(smp[-1, 5]) if len(smp) else 0,
                   "registration_final": reg.counters.get("drops", 0) if reg else None},
         "errors": {st.name: st.errors for st in streams if st.errors},
-        "resent_after_busy": sum(st.resent for st in streams),
         "p99_ratio_last_first": (last / first) if first and last else None,
         "capture_p99_ratio_last_first": (clast / cfirst) if cfirst and clast else None,
         "slope_capture_latency_ms_per_min": _slope(lat_t, cap_v),
@@ -406,7 +367,6 @@ def print_run(r: dict, bucket_s: float) -> None:
     print(f"client per frame: build+encode p50 {fmt(r['client_build_ms_p50'], '{:.2f}')} ms p99 {fmt(r['client_build_ms_p99'], '{:.2f}')} ms, "
           f"put p50 {fmt(r['client_put_ms_p50'], '{:.2f}')} ms p99 {fmt(r['client_put_ms_p99'], '{:.2f}')} ms, send lag p50 "
           f"{r['send_lag_ms_p50']:.1f} ms max {fmt(r['send_lag_ms_max'], '{:.0f}')} ms; errors {r['errors'] or 'none'}; "
-          f"resent after busy {r['resent_after_busy']}; "
           f"exit codes {r['worker_exit_codes']}")
 
 

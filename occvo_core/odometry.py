@@ -14,7 +14,7 @@ from occvo_core.grid import MOVABLE_CLASSES, OCC3D_GRID
 from occvo_core.map_tiles import pack_tiles, tile_distance
 from occvo_core.registration import kernels
 from occvo_core.registration.dynamic_object_filter import dynamic_object_filter
-from occvo_core.registration.gicp import gicp
+from occvo_core.registration.gicp import gicp, rotation_angle
 from occvo_core.registration.initialisation import bev_first_motion
 from occvo_core.registration.voxel_map import EgoMap, VoxelPFilterMap
 
@@ -255,7 +255,7 @@ class OccVO:
                               cfg.coarse_iterations).pose
             # within coarse reach of the guess, coarse GICP would find the same minimum from either start
             near = np.linalg.norm(wide[:3, 3]) < cfg.coarse_max_correspondence_m and \
-                np.arccos(np.clip((np.trace(wide[:3, :3]) - 1) / 2, -1, 1)) < np.deg2rad(2.0)
+                rotation_angle(wide[:3, :3]) < np.deg2rad(2.0)
             starts = [wide] if near else [np.eye(4), wide]
         results = [self._gicp(frame, frame.coarse, coarse_map, start, cfg.coarse_max_correspondence_m,
                               cfg.coarse_iterations) for start in starts]

@@ -28,11 +28,15 @@ def se3_exp_left(delta: np.ndarray, pose: np.ndarray) -> np.ndarray:
     return step @ pose
 
 
+def rotation_angle(rot: np.ndarray) -> float:
+    """Angle of a rotation matrix, radians."""
+    return float(np.arccos(np.clip((np.trace(rot) - 1.0) / 2.0, -1.0, 1.0)))
+
+
 def _moved(pose: np.ndarray, since: np.ndarray, reach: float) -> float:
     """Bound on how far any point within `reach` of the origin moved from pose `since` to `pose`."""
     step = pose @ np.linalg.inv(since)
-    angle = np.arccos(np.clip((np.trace(step[:3, :3]) - 1.0) / 2.0, -1.0, 1.0))
-    return float(np.linalg.norm(step[:3, 3]) + angle * (reach + np.linalg.norm(since[:3, 3])))
+    return float(np.linalg.norm(step[:3, 3]) + rotation_angle(step[:3, :3]) * (reach + np.linalg.norm(since[:3, 3])))
 
 
 def gicp(points: np.ndarray, covs: np.ndarray, labels: np.ndarray, local_map: LocalMap, initial_pose: np.ndarray, *,

@@ -1,6 +1,6 @@
 """Registration speed: median ms per frame for each stage and in total, over repeated runs of real scenes.
 
-    python benchmarks/registration.py [--repeats 3] [--threads 1 0] [--scenes scene-0101 scene-0268] [--json out.json]
+    python benchmarks/registration.py [--repeats 3] [--scenes scene-0101 scene-0268] [--json out.json]
 
 Prints one table a scene (wall-clock medians, and CPU-time medians, which a busy machine disturbs less) and the
 ratio to the 40 ms/frame goal. The first frame only seeds the map and is left out; the first run compiles."""
@@ -44,16 +44,14 @@ def main(argv=None) -> int:
     ap.add_argument("--sample", type=Path, default=SAMPLE)
     ap.add_argument("--scenes", nargs="+", default=["scene-0101", "scene-0268"])
     ap.add_argument("--repeats", type=int, default=3)
-    ap.add_argument("--threads", type=int, nargs="+", default=[1, 0],
-                    help="cores for the compiled kernels, one run set each (0 = all)")
     ap.add_argument("--json", type=Path)
     args = ap.parse_args(argv)
     if not (args.sample / "occupancy").is_dir():
         print(f"no sample data at {args.sample}", file=sys.stderr)
         return 2
     report = {}
-    for name, threads in [(n, t) for n in args.scenes for t in args.threads]:
-        config = OccVOConfig(threads=threads)
+    config = OccVOConfig()
+    for name in args.scenes:
         source = OccVOReleaseScene(args.sample / "occupancy" / name)
         frames = [source[i] for i in range(len(source))]
         run_once(frames[:3], config)  # compile / warm caches
@@ -66,8 +64,8 @@ def main(argv=None) -> int:
             rmses.append(ape_rmse(source.gt_poses, vo.poses))
         stage_median = {k: float(np.median([r[k] for r in stage_runs])) for k in stage_runs[0]}
         total = float(np.median(walls))
-        key = f"{name} threads={threads or 'all'}"
-        report[key] = {"threads": threads, "frames": len(frames), "repeats": args.repeats, "ms_per_frame_median": total,
+        key = name
+        report[key] = {"frames": len(frames), "repeats": args.repeats, "ms_per_frame_median": total,
                         "cpu_ms_per_frame_median": float(np.median(cpus)), "ms_per_stage_median": stage_median,
                         "ratio_to_goal": total / GOAL_MS, "ape_rmse_m": float(np.median(rmses))}
         print(f"\n{key}: {len(frames)} frames, {args.repeats} runs (median of per-run medians)")

@@ -62,8 +62,6 @@ class InitialisationConfig(_Section):
 
 
 class OccVOConfig(_Section):
-    threads: int = Field(1, ge=0, description="cores the compiled kernels use (0 = all); poses do not depend on it. "
-                         "1 by default: on this 2-core VM waking a second thread costs what it saves")
     max_range_m: float | None = Field(None, gt=0, description="frame points farther than this (horizontally) are not used")
     gicp: GICPConfig = GICPConfig()
     semantic_label_filter: SemanticLabelFilterConfig = SemanticLabelFilterConfig()

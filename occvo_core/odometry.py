@@ -159,7 +159,6 @@ class OccVO:
 
     def step(self, frame: OccupancyFrame) -> StepResult:
         """Register one frame. A bad frame raises InvalidFrameError and leaves poses and map as they were."""
-        kernels.set_threads(self.config.threads)
         watch = _Stopwatch()
         prepared = self._preprocess(frame)
         watch.lap("preprocess")

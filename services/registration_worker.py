@@ -88,9 +88,7 @@ class RegistrationWorker(Worker):
         from occvo_core import OccVO, OccVOConfig
 
         self._OccVO = OccVO
-        # one core a stream unless configured: streams and the pipelined inference already fill the others
-        # (poses do not depend on it)
-        self.occvo_config = OccVOConfig.load(config.occvo_config) if config.occvo_config else OccVOConfig(threads=1)
+        self.occvo_config = OccVOConfig.load(config.occvo_config) if config.occvo_config else OccVOConfig()
         self.states: dict[str, StreamState] = {}
         self._states_lock = threading.Lock()
         radius = config.working_radius_m

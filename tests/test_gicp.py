@@ -94,18 +94,3 @@ def test_kept_pairs_linearise_as_a_fresh_search_does():
     h2, g2, cost2, _, kept2 = kernels.gicp_linearise_pairs(points, covs, rot, trans, local.pos, local.cov, pairs, 0.0)
     assert kept == kept2 == int((pairs >= 0).sum()) and 0 < kept <= found
     assert np.allclose(h, h2, rtol=1e-12, atol=0) and np.allclose(g, g2, rtol=1e-12, atol=0) and np.isclose(cost, cost2)
-
-
-def test_poses_do_not_depend_on_the_thread_count():
-    """Kernel sums run over fixed chunks, so one core and two give the same poses bit for bit."""
-    from occvo_core import OccVO, OccVOConfig
-    from occvo_core.sim import SyntheticScene
-
-    scene = SyntheticScene(seed=5, frames=5)
-    runs = []
-    for threads in (1, 2):
-        vo = OccVO(OccVOConfig(threads=threads))
-        for i in range(len(scene)):
-            vo.step(scene[i])
-        runs.append(vo.poses)
-    assert np.array_equal(runs[0], runs[1])

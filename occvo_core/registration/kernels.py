@@ -2,27 +2,13 @@
 
 from __future__ import annotations
 
-import os
-
-# Waiting kernel threads sleep instead of spinning: on a shared 2-core machine a spinning thread starves the one it
-# waits for (set before numba first loads OpenMP).
-os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
-
-import numba  # noqa: E402
-import numpy as np  # noqa: E402
-from numba import njit, prange  # noqa: E402
+import numpy as np
+from numba import njit
 
 _CACHE = True
-# Workers call these kernels from several threads at once: the default workqueue layer would abort on that.
-numba.config.THREADING_LAYER = "threadsafe"
-# Sums are taken over this many fixed chunks of the input, whatever the thread count, so a pose does not depend on
-# how many cores computed it.
+# GICP sums are taken over this many fixed slices of the sources, then added: a summation order that would survive
+# spreading the slices over cores (tried; on this 2-core VM it did not pay and doubled compile time).
 CHUNKS = 16
-
-
-def set_threads(threads: int) -> None:
-    """Threads for the parallel kernels in the calling thread (0 = every core numba sees)."""
-    numba.set_num_threads(max(1, min(threads or numba.config.NUMBA_NUM_THREADS, numba.config.NUMBA_NUM_THREADS)))
 
 
 @njit(cache=_CACHE, nogil=True)
@@ -86,12 +72,12 @@ def _smallest_eigenvector(a00, a01, a02, a11, a12, a22):
     return 0.0, 0.0, 1.0  # two smallest eigenvalues equal (a line): any normal across it will do
 
 
-@njit(cache=_CACHE, nogil=True, parallel=True)
+@njit(cache=_CACHE, nogil=True)
 def plane_covariances(points, ijk, grid, shape, radius, epsilon):
     """GICP covariances (Segal et al.): the neighbourhood's plane, as eps along its normal and 1 across it."""
     n_pts = points.shape[0]
     covs = np.empty((n_pts, 3, 3))
-    for n in prange(n_pts):
+    for n in range(n_pts):
         sx = sy = sz = sxx = sxy = sxz = syy = syz = szz = 0.0
         cnt = 0
         for di in range(-radius, radius + 1):
@@ -300,13 +286,13 @@ def _sum_parts(parts):
     return h, total[21:27].copy(), total[27], int(total[28]), int(total[29])
 
 
-@njit(cache=_CACHE, nogil=True, parallel=True)
+@njit(cache=_CACHE, nogil=True)
 def gicp_linearise_pairs(src, src_cov, rot, trans, map_pos, map_cov, pairs, robust_scale):
     """gicp_linearise at a new pose with the pairs of an earlier search kept (the pose moved too little since
     to change which map point is nearest, so the search, most of the cost, is skipped)."""
     n = src.shape[0]
     parts = np.zeros((CHUNKS, 30))
-    for c in prange(CHUNKS):
+    for c in range(CHUNKS):
         for i in range(n * c // CHUNKS, n * (c + 1) // CHUNKS):
             if pairs[i] >= 0:
                 parts[c, 29] += 1.0
@@ -314,18 +300,18 @@ def gicp_linearise_pairs(src, src_cov, rot, trans, map_pos, map_cov, pairs, robu
     return _sum_parts(parts)
 
 
-@njit(cache=_CACHE, nogil=True, parallel=True)
+@njit(cache=_CACHE, nogil=True)
 def gicp_linearise(src, src_cov, src_lab, rot, trans, map_pos, map_cov, map_lab, usable, grid, origin, dims, voxel,
                    radius, max_dist, semantic_label_filter, robust_scale, pairs=None):
     """One Gauss-Newton step of GICP: H, g of the Mahalanobis cost, plus counts of pairs found and kept; the kept
     pairs go into `pairs` (map index per source, -1 none) when given.
-    Sums run over CHUNKS fixed slices of the sources, added in order: the same result on any number of threads."""
+    Sums run over CHUNKS fixed slices of the sources, added in order."""
     n = src.shape[0]
     if pairs is None:
         pairs = np.empty(n, np.int64)
     parts = np.zeros((CHUNKS, 30))
     max_d2 = max_dist * max_dist
-    for c in prange(CHUNKS):
+    for c in range(CHUNKS):
         _linearise_range(n * c // CHUNKS, n * (c + 1) // CHUNKS, src, src_cov, src_lab, rot, trans, map_pos, map_cov,
                          map_lab, usable, grid, origin, dims, voxel, radius, max_d2, semantic_label_filter, robust_scale,
                          pairs, parts[c])
@@ -387,11 +373,11 @@ def assign_voxels(points, keys, map_pos, grid, origin, dims, voxel, merge_radius
     return out, first_key[:n_new]
 
 
-@njit(cache=_CACHE, nogil=True, parallel=True)
+@njit(cache=_CACHE, nogil=True)
 def rotate_covariances(cov, rot):
     """R C R^T for each C (numpy's batched matmul is slow for 3x3)."""
     out = np.empty_like(cov)
-    for n in prange(cov.shape[0]):
+    for n in range(cov.shape[0]):
         for a in range(3):
             t0 = rot[a, 0] * cov[n, 0, 0] + rot[a, 1] * cov[n, 1, 0] + rot[a, 2] * cov[n, 2, 0]
             t1 = rot[a, 0] * cov[n, 0, 1] + rot[a, 1] * cov[n, 1, 1] + rot[a, 2] * cov[n, 2, 1]
@@ -605,14 +591,14 @@ def grid_clusters(points, eps):
     return parent
 
 
-@njit(cache=_CACHE, nogil=True, parallel=True)
+@njit(cache=_CACHE, nogil=True)
 def mark_observed(points, map_pos, grid, origin, dims, voxel, radius_m, map_rows, alive, f, last, t):
     """Count as seen at frame t every live voxel within radius_m of a frame point (once a frame): a surface that
     straddles a voxel boundary falls in either voxel from frame to frame, and must not lose its p-index for it."""
     r2 = radius_m * radius_m
     hit = np.zeros(map_rows.shape[0], np.bool_)
     n_pts = points.shape[0]
-    for c in prange(CHUNKS):  # first find the voxels (threads only ever write True), then count them once
+    for c in range(CHUNKS):  # first find the voxels, then count each once
         for n in range(n_pts * c // CHUNKS, n_pts * (c + 1) // CHUNKS):
             ci = int(np.floor(points[n, 0] / voxel)) - origin[0]
             cj = int(np.floor(points[n, 1] / voxel)) - origin[1]

@@ -596,27 +596,29 @@ def mark_observed(points, map_pos, grid, origin, dims, voxel, radius_m, map_rows
     """Count as seen at frame t every live voxel within radius_m of a frame point (once a frame): a surface that
     straddles a voxel boundary falls in either voxel from frame to frame, and must not lose its p-index for it."""
     r2 = radius_m * radius_m
-    hit = np.zeros(map_rows.shape[0], np.bool_)
-    n_pts = points.shape[0]
-    for c in range(CHUNKS):  # first find the voxels, then count each once
-        for n in range(n_pts * c // CHUNKS, n_pts * (c + 1) // CHUNKS):
-            ci = int(np.floor(points[n, 0] / voxel)) - origin[0]
-            cj = int(np.floor(points[n, 1] / voxel)) - origin[1]
-            ck = int(np.floor(points[n, 2] / voxel)) - origin[2]
-            for i in range(max(ci - 1, 0), min(ci + 2, dims[0])):
-                for j in range(max(cj - 1, 0), min(cj + 2, dims[1])):
-                    base = (i * dims[1] + j) * dims[2]
-                    for k in range(max(ck - 1, 0), min(ck + 2, dims[2])):
-                        m = grid[base + k]
-                        if m < 0 or hit[m] or not alive[m] or last[map_rows[m]] == t:
-                            continue
-                        d0 = map_pos[m, 0] - points[n, 0]
-                        d1 = map_pos[m, 1] - points[n, 1]
-                        d2 = map_pos[m, 2] - points[n, 2]
-                        if d0 * d0 + d1 * d1 + d2 * d2 <= r2:
-                            hit[m] = True
-    for m in range(map_rows.shape[0]):
-        if hit[m]:
-            row = map_rows[m]
-            f[row] += 1
-            last[row] = t
+    for n in range(points.shape[0]):
+        ci = int(np.floor(points[n, 0] / voxel)) - origin[0]
+        cj = int(np.floor(points[n, 1] / voxel)) - origin[1]
+        ck = int(np.floor(points[n, 2] / voxel)) - origin[2]
+        for i in range(ci - 1, ci + 2):
+            if i < 0 or i >= dims[0]:
+                continue
+            for j in range(cj - 1, cj + 2):
+                if j < 0 or j >= dims[1]:
+                    continue
+                base = (i * dims[1] + j) * dims[2]
+                for k in range(ck - 1, ck + 2):
+                    if k < 0 or k >= dims[2]:
+                        continue
+                    m = grid[base + k]
+                    if m < 0 or not alive[m]:
+                        continue
+                    row = map_rows[m]
+                    if last[row] == t:
+                        continue
+                    d0 = map_pos[m, 0] - points[n, 0]
+                    d1 = map_pos[m, 1] - points[n, 1]
+                    d2 = map_pos[m, 2] - points[n, 2]
+                    if d0 * d0 + d1 * d1 + d2 * d2 <= r2:
+                        f[row] += 1
+                        last[row] = t

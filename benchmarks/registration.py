@@ -49,8 +49,8 @@ def main(argv=None) -> int:
     if not (args.sample / "occupancy").is_dir():
         print(f"no sample data at {args.sample}", file=sys.stderr)
         return 2
-    report = {}
     config = OccVOConfig()
+    report = {}
     for name in args.scenes:
         source = OccVOReleaseScene(args.sample / "occupancy" / name)
         frames = [source[i] for i in range(len(source))]
@@ -64,11 +64,10 @@ def main(argv=None) -> int:
             rmses.append(ape_rmse(source.gt_poses, vo.poses))
         stage_median = {k: float(np.median([r[k] for r in stage_runs])) for k in stage_runs[0]}
         total = float(np.median(walls))
-        key = name
-        report[key] = {"frames": len(frames), "repeats": args.repeats, "ms_per_frame_median": total,
+        report[name] = {"frames": len(frames), "repeats": args.repeats, "ms_per_frame_median": total,
                         "cpu_ms_per_frame_median": float(np.median(cpus)), "ms_per_stage_median": stage_median,
                         "ratio_to_goal": total / GOAL_MS, "ape_rmse_m": float(np.median(rmses))}
-        print(f"\n{key}: {len(frames)} frames, {args.repeats} runs (median of per-run medians)")
+        print(f"\n{name}: {len(frames)} frames, {args.repeats} runs (median of per-run medians)")
         print(f"  {'stage':<24}{'ms':>9}")
         for stage, ms in stage_median.items():
             print(f"  {stage:<24}{ms:>9.1f}")

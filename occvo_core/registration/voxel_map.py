@@ -63,12 +63,11 @@ class EgoMap:
     dims: np.ndarray
     voxel: float
     source: np.ndarray  # index into the LocalMap of each point (-1 for pooled points)
+    weight: np.ndarray | None = None  # map voxels behind each pooled point (None: not pooled)
+    votes: np.ndarray | None = None  # their label votes
 
     def __len__(self) -> int:
         return len(self.pos)
-
-    weight: np.ndarray | None = None  # map voxels behind each pooled point (None: not pooled)
-    votes: np.ndarray | None = None  # their label votes
 
     @classmethod
     def build(cls, local: "LocalMap", pose: np.ndarray, lower: np.ndarray, upper: np.ndarray, voxel: float,

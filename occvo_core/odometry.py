@@ -97,6 +97,10 @@ class OccVO:
     def map_points(self) -> tuple[np.ndarray, np.ndarray]:
         return self.map.points()
 
+    def pop_changed_region(self) -> np.ndarray | None:
+        """x-y box of the map changed since the last call (see VoxelPFilterMap.pop_changed_region)."""
+        return self.map.pop_changed_region()
+
     # -- state for durable storage and paging (the store itself lives outside occvo_core) ------------------------
     def state_dict(self) -> dict[str, np.ndarray]:
         """Everything needed to resume: config, poses, frame indices, the voxel pfilter map and the last frame."""

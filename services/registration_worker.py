@@ -23,7 +23,7 @@ import zenoh
 
 from occvo_core.errors import ConfigError, InvalidFrameError
 from occvo_core.frame import OccupancyFrame
-from occvo_core.map_tiles import changed_tiles, pack_tiles, tile_distance, tiles_from_map
+from occvo_core.map_tiles import changed_tiles, pack_tiles, retile_region, tile_distance
 from schemas import keys
 from schemas.codec import encode
 from schemas.models import Array, MapTile, MapUpdate, OccupancyFrameMsg, PoseEstimate, Trajectory
@@ -194,7 +194,7 @@ class RegistrationWorker(Worker):
             st.cold, st.cold_digest, st.pending_restored, st.tiles = {}, {}, [], {}
             st.since_snapshot, st.send_all_tiles, st.ego_xy = 0, False, None
         try:
-            result, restored, evicted, tiles = self._advance(stream, st, frame, msg.seq, publish=True)
+            result, restored, evicted, (tiles, dirty) = self._advance(stream, st, frame, msg.seq, publish=True)
         except InvalidFrameError as exc:
             if restart and self.store is not None:
                 st.vo = None  # reset for nothing: the stored trajectory stands and resumes at the next frame
@@ -217,7 +217,7 @@ class RegistrationWorker(Worker):
         st.pending_restored = []
         store_ms = (time.perf_counter() - t_store) * 1000.0
         t_map = time.perf_counter()
-        self._publish_map(stream, st, msg.seq, restart, tiles, evicted, restored)
+        self._publish_map(stream, st, msg.seq, restart, tiles, dirty, evicted, restored)
         map_ms = (time.perf_counter() - t_map) * 1000.0 + st.tiling_ms
         timings = dict(msg.timings_ms)
         timings.update({"occupancy_hop": hop_ms, "registration_queue": (t0 - t_queued) * 1000.0, "registration": reg_ms,
@@ -304,11 +304,13 @@ class RegistrationWorker(Worker):
         if st.cold:  # a frame that reached into an evicted tile: bring the rest back, so the tile stays whole
             restored += self._restore(stream, st, self._reached(st, frame, pose))
         t_map = time.perf_counter()
-        tiles = tiles_from_map(*st.vo.map_points(), self.config.tile_m) if publish else None
+        tiles = dirty = None
+        if publish:  # only the part of the map this frame changed is cut again (a replay leaves the region open)
+            tiles, dirty = retile_region(st.tiles, *st.vo.map_points(), st.vo.pop_changed_region(), self.config.tile_m)
         st.tiling_ms = (time.perf_counter() - t_map) * 1000.0
         evicted = self._evict_far(st, seq, pose)
         st.ego_xy = pose[:2, 3].copy()
-        return result, restored, evicted, tiles
+        return result, restored, evicted, (tiles, dirty)
 
     def _reached(self, st: StreamState, frame: OccupancyFrame, pose: np.ndarray) -> list[tuple[int, int]]:
         """Cold tiles the frame's points land in at `pose`, or within a merge of them (a map voxel averaged with a
@@ -357,14 +359,14 @@ class RegistrationWorker(Worker):
             self.stats.inc("tiles_evicted", len(blocks))
         return blocks
 
-    def _publish_map(self, stream: str, st: StreamState, seq: int, restart: bool, tiles: dict, evicted: dict,
-                     restored: list) -> None:
+    def _publish_map(self, stream: str, st: StreamState, seq: int, restart: bool, tiles: dict, dirty: set,
+                     evicted: dict, restored: list) -> None:
         """Changed tiles of the working map as it was before this frame's eviction (an evicted tile goes out with its
         last content, then is not sent as emptied: the map service keeps it); a restored tile only if it changed."""
         if restart or st.send_all_tiles:
             changed = dict(tiles)
         else:
-            changed = changed_tiles(st.tiles, tiles)
+            changed = changed_tiles({k: st.tiles[k] for k in dirty if k in st.tiles}, {k: tiles[k] for k in dirty if k in tiles})
             for k in restored:
                 was = st.cold_digest.pop(k, None)
                 if k in changed and was is not None and _tile_digest(changed[k]) == was:

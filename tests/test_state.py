@@ -100,3 +100,29 @@ def test_a_restored_voxel_keeps_its_p_index_of_the_time_it_was_in_view(scene):
     assert np.allclose(vo.map.p_index(t_back)[rows], in_view[kept])  # as if last seen the frame before
     assert np.all(vo.map.last[rows] == t_back - 1)
     assert vo.map.persistent().sum() == persistent_before + np.count_nonzero(in_view[kept] > 0.5)
+
+
+def test_retiling_the_changed_region_equals_tiling_the_whole_map():
+    """The registration worker re-cuts only the tiles a frame changed; through steps with moving cars (the dynamic
+    object filter removes map voxels), evictions and restores, that must equal cutting the whole map every frame."""
+    from occvo_core.map_tiles import retile_region, tiles_from_map
+
+    scene = SyntheticScene(seed=3, frames=24)
+    vo, tiles, cold, redone_share = OccVO(), {}, {}, []
+    for i in range(len(scene)):
+        if i == 16:
+            vo.restore_tiles(cold)  # back near the start: the evicted map returns
+        vo.step(scene[i])
+        points, labels = vo.map_points()
+        tiles, redone = retile_region(tiles, points, labels, vo.pop_changed_region(), 20.0)
+        whole = tiles_from_map(points, labels, 20.0)
+        assert tiles.keys() == whole.keys(), f"frame {i}"
+        for k in whole:
+            assert np.array_equal(tiles[k][0], whole[k][0]) and np.array_equal(tiles[k][1], whole[k][1]), f"frame {i} tile {k}"
+        redone_share.append(len(redone) / max(len(whole), 1))
+        if i in (8, 12):
+            blocks = vo.evict_tiles(vo.poses[-1][:2, 3], 40.0, 20.0)
+            cold.update(blocks)
+            tiles = {k: v for k, v in tiles.items() if k not in blocks}  # as the worker drops evicted tiles
+    assert cold, "some tiles were evicted"
+    assert min(redone_share[1:]) < 1.0, "a frame re-cut fewer tiles than the whole map"

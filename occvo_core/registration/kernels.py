@@ -403,13 +403,15 @@ def rows_in_box(keys, alive, lower, upper):
 
 
 @njit(cache=_CACHE, nogil=True)
-def merge_points(rows, pw, cw, labels, t, pos, cov, counts, label, t0, f, last, wacc, use_p_index):
+def merge_points(rows, pw, cw, labels, t, pos, cov, counts, label, t0, f, last, wacc, use_p_index, changed):
     """Voxel PFilter merge, in place: each touched voxel becomes the weighted mean of its old point
-    (weight f * p-index, or f without the filter) and the frame's points in it (weight 1 each)."""
+    (weight f * p-index, or f without the filter) and the frame's points in it (weight 1 each).
+    changed (xmin, ymin, xmax, ymax) grows to hold every touched voxel before and after."""
     for n in range(rows.shape[0]):
         r = rows[n]
         if last[r] != t:  # first point of this frame in voxel r
             if f[r] > 0:
+                _grow_box(changed, pos[r, 0], pos[r, 1])
                 w = f[r] * (f[r] / (t - t0[r])) if use_p_index else float(f[r])
             else:
                 w = 0.0
@@ -435,6 +437,7 @@ def merge_points(rows, pw, cw, labels, t, pos, cov, counts, label, t0, f, last, 
                 for b in range(3):
                     cov[r, a, b] *= inv
             wacc[r] = 0.0
+            _grow_box(changed, pos[r, 0], pos[r, 1])
             best = 0
             for c in range(counts.shape[1]):
                 if counts[r, c] > counts[r, best]:
@@ -591,11 +594,24 @@ def grid_clusters(points, eps):
     return parent
 
 
+@njit(cache=_CACHE, nogil=True, inline="always")
+def _grow_box(box, x, y):
+    box[0] = min(box[0], x)
+    box[1] = min(box[1], y)
+    box[2] = max(box[2], x)
+    box[3] = max(box[3], y)
+
+
 @njit(cache=_CACHE, nogil=True)
-def mark_observed(points, map_pos, grid, origin, dims, voxel, radius_m, map_rows, alive, f, last, t):
+def mark_observed(points, map_pos, grid, origin, dims, voxel, radius_m, map_rows, alive, f, last, t, changed):
     """Count as seen at frame t every live voxel within radius_m of a frame point (once a frame): a surface that
-    straddles a voxel boundary falls in either voxel from frame to frame, and must not lose its p-index for it."""
+    straddles a voxel boundary falls in either voxel from frame to frame, and must not lose its p-index for it.
+    changed grows to hold the voxels counted."""
     r2 = radius_m * radius_m
+    # window-local "already counted at t": neighbouring frame points test the same voxels many times over
+    counted = np.empty(map_rows.shape[0], np.bool_)
+    for m in range(map_rows.shape[0]):
+        counted[m] = last[map_rows[m]] == t or not alive[m]
     for n in range(points.shape[0]):
         ci = int(np.floor(points[n, 0] / voxel)) - origin[0]
         cj = int(np.floor(points[n, 1] / voxel)) - origin[1]
@@ -611,14 +627,14 @@ def mark_observed(points, map_pos, grid, origin, dims, voxel, radius_m, map_rows
                     if k < 0 or k >= dims[2]:
                         continue
                     m = grid[base + k]
-                    if m < 0 or not alive[m]:
-                        continue
-                    row = map_rows[m]
-                    if last[row] == t:
+                    if m < 0 or counted[m]:
                         continue
                     d0 = map_pos[m, 0] - points[n, 0]
                     d1 = map_pos[m, 1] - points[n, 1]
                     d2 = map_pos[m, 2] - points[n, 2]
                     if d0 * d0 + d1 * d1 + d2 * d2 <= r2:
+                        counted[m] = True
+                        _grow_box(changed, map_pos[m, 0], map_pos[m, 1])
+                        row = map_rows[m]
                         f[row] += 1
                         last[row] = t

@@ -102,6 +102,7 @@ class VoxelPFilterMap:
         self.merge_radius = 0.5 * self.voxel if merge_radius_m is None else float(merge_radius_m)
         self.observe_radius = float(observe_radius_m)
         self._n = 0
+        self._changed: np.ndarray | None = None  # x-y box of what changed since pop_changed_region(); None = anything
         self._alloc(1 << 16)
 
     def _alloc(self, capacity: int) -> None:
@@ -113,13 +114,33 @@ class VoxelPFilterMap:
             "last": ((capacity,), np.int32, -1), "wacc": ((capacity,), np.float64, 0.0), "alive": ((capacity,), np.bool_, False),
         }
         for name, (shape, dtype, fill) in spec.items():
-            arr = np.full(shape, fill, dtype)
+            # zeros come from calloc: pages cost nothing until touched, so doubling does not write the new half
+            arr = np.zeros(shape, dtype) if fill == 0 else np.full(shape, fill, dtype)
             if old is not None:
                 arr[: self._n] = getattr(self, name)[: self._n]
             setattr(self, name, arr)
 
     def __len__(self) -> int:
         return int(np.count_nonzero(self.alive[: self._n]))
+
+    def _touch(self, pos: np.ndarray) -> None:
+        if self._changed is not None and len(pos):
+            xy = pos[:, :2]
+            self._changed[:2] = np.minimum(self._changed[:2], xy.min(axis=0))
+            self._changed[2:] = np.maximum(self._changed[2:], xy.max(axis=0))
+
+    def _touch_box(self, box: np.ndarray) -> None:
+        if self._changed is not None:
+            self._changed[:2] = np.minimum(self._changed[:2], box[:2])
+            self._changed[2:] = np.maximum(self._changed[2:], box[2:])
+
+    def pop_changed_region(self) -> np.ndarray | None:
+        """(xmin, ymin, xmax, ymax) holding, before and after, every voxel whose position, label, persistence or
+        presence changed since the last call (empty box: none; None: anything, e.g. after a reset or load). Lets a
+        caller re-tile only that part of the map. Voxels handed out by take() are not included: the caller has them."""
+        out = self._changed
+        self._changed = np.array([np.inf, np.inf, -np.inf, -np.inf])
+        return out
 
     def p_index(self, t: int) -> np.ndarray:
         """p-index of every row at frame t (f counts frames before t; t0 < t for every existing voxel)."""
@@ -160,15 +181,18 @@ class VoxelPFilterMap:
         self.counts[new] = 0
         self.alive[new] = True
         self._n += n_new
+        changed = np.array([np.inf, np.inf, -np.inf, -np.inf])  # merged voxels before and after, observed ones
         kernels.merge_points(rows, points_world, covs_world, labels.astype(np.int64), t, self.pos, self.cov, self.counts,
-                             self.label, self.t0, self.f, self.last, self.wacc, self.pfilter)
+                             self.label, self.t0, self.f, self.last, self.wacc, self.pfilter, changed)
         if self.observe_radius > 0:
             kernels.mark_observed(points_world, local.pos, local.grid, local.origin, local.dims, self.voxel,
-                                  self.observe_radius, local.rows, self.alive[local.rows], self.f, self.last, t)
+                                  self.observe_radius, local.rows, self.alive[local.rows], self.f, self.last, t, changed)
+        self._touch_box(changed)
         return rows
 
     def remove(self, rows: np.ndarray) -> None:
         """Drop voxels (the dynamic object filter's moved objects). Rows keep their numbers until compact()."""
+        self._touch(self.pos[rows])
         self.alive[rows] = False
 
     def compact(self, min_dead_share: float = 1 / 3) -> None:
@@ -191,6 +215,7 @@ class VoxelPFilterMap:
     def load_state(self, state: dict[str, np.ndarray]) -> None:
         n = len(state["keys"])
         self._n = 0
+        self._changed = None
         self._alloc(max(1 << 16, n))
         for name in _FIELDS:
             getattr(self, name)[:n] = state[name]
@@ -232,6 +257,7 @@ class VoxelPFilterMap:
         self.t0[rows] += shift
         self.last[rows] = int(t) - 1
         self.alive[rows] = True
+        self._touch(self.pos[rows])
         self._n += n_new
         return n_new
 

@@ -50,22 +50,21 @@ def tiles_from_map(points: np.ndarray, labels: np.ndarray, tile_m: float = DEFAU
     return out
 
 
-def retile_region(tiles: dict, points: np.ndarray, labels: np.ndarray, region: np.ndarray | None,
+def retile_region(tiles: dict, map_points, region: np.ndarray | None,
                   tile_m: float = DEFAULT_TILE_M) -> tuple[dict, set]:
     """`tiles` (an earlier tiles_from_map of the map) brought up to date after a change confined to `region` (x-y box
-    xmin, ymin, xmax, ymax; None = anywhere): the tiles the box overlaps are cut again from (points, labels), the
-    others kept. Returns (tiles, keys of the tiles cut again). Equals tiles_from_map(points, labels) when nothing
-    outside the region changed; costs one pass over the map instead of a sort of it."""
+    xmin, ymin, xmax, ymax; None = anywhere): the tiles the box overlaps are cut again, the others kept. map_points()
+    gives the whole map, map_points((lo, hi, tile_m)) the points in tiles lo..hi (as OccVO.map_points). Returns
+    (tiles, keys of the tiles cut again). Equals tiles_from_map(*map_points()) when nothing outside the region
+    changed, at the cost of the changed part."""
     if region is None:
-        new = tiles_from_map(points, labels, tile_m)
+        new = tiles_from_map(*map_points(), tile_m)
         return new, set(new) | set(tiles)
     if region[0] > region[2]:
         return dict(tiles), set()
     lo = np.floor(np.asarray(region[:2]) / tile_m).astype(np.int64)
     hi = np.floor(np.asarray(region[2:]) / tile_m).astype(np.int64)
-    keys = tile_keys(points, tile_m)
-    inside = np.all((keys >= lo) & (keys <= hi), axis=1)
-    redone = tiles_from_map(np.asarray(points)[inside], np.asarray(labels)[inside], tile_m)
+    redone = tiles_from_map(*map_points((lo, hi, tile_m)), tile_m)
     stale = {k for k in tiles if lo[0] <= k[0] <= hi[0] and lo[1] <= k[1] <= hi[1]}
     out = {k: v for k, v in tiles.items() if k not in stale}
     out.update(redone)

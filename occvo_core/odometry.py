@@ -94,19 +94,21 @@ class OccVO:
     def frame_indices(self) -> list[int]:
         return list(self._indices)
 
-    def map_points(self) -> tuple[np.ndarray, np.ndarray]:
-        return self.map.points()
+    def map_points(self, tiles: tuple[np.ndarray, np.ndarray, float] | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """The map (points, labels); with tiles = (lo, hi, tile_m), only the part in x-y tiles lo..hi."""
+        return self.map.points(tiles)
 
     def pop_changed_region(self) -> np.ndarray | None:
         """x-y box of the map changed since the last call (see VoxelPFilterMap.pop_changed_region)."""
         return self.map.pop_changed_region()
 
     # -- state for durable storage and paging (the store itself lives outside occvo_core) ------------------------
-    def state_dict(self) -> dict[str, np.ndarray]:
-        """Everything needed to resume: config, poses, frame indices, the voxel pfilter map and the last frame."""
+    def state_dict(self, copy: bool = True) -> dict[str, np.ndarray]:
+        """Everything needed to resume: config, poses, frame indices, the voxel pfilter map and the last frame.
+        copy=False gives views of the map arrays, for a caller that writes them out before the next step."""
         out = {"config_json": np.frombuffer(self.config.model_dump_json().encode(), np.uint8),
                "poses": self.poses, "indices": np.array(self._indices, np.int64)}
-        out.update({f"map.{k}": v for k, v in self.map.state().items()})
+        out.update({f"map.{k}": v for k, v in self.map.state(copy).items()})
         if self._last is not None:
             out.update({f"last.{k}": np.asarray(v) for k, v in vars(self._last).items()})
         return out

@@ -53,6 +53,7 @@ class StreamState:
         self.cold_digest: dict[tuple[int, int], bytes] = {}  # published content of an evicted tile
         self.pending_restored: list[tuple[int, int, int]] = []  # restored, not yet committed with a frame
         self.since_snapshot = 0
+        self.snapshot_due = 0.0  # time.monotonic() before which a snapshot would overrun snapshot_max_share
         self.send_all_tiles = False
         self.tiling_ms = 0.0
         self.ego_xy: np.ndarray | None = None  # x-y of the last registered pose (eviction and restore centre)  # after a resume: the map service may lack the last frames' tiles
@@ -242,7 +243,7 @@ class RegistrationWorker(Worker):
         if self.store is not None:
             self.stats.observe("store_commit", store_ms)
             st.since_snapshot += 1
-            if st.since_snapshot >= self.config.snapshot_every:
+            if st.since_snapshot >= self.config.snapshot_every and time.monotonic() >= st.snapshot_due:
                 try:
                     self._snapshot(stream, st)
                 except Exception as exc:  # noqa: BLE001 - the journal keeps the frames; retried next frame
@@ -254,9 +255,12 @@ class RegistrationWorker(Worker):
     # -- durable state --------------------------------------------------------------------------------------------
     def _snapshot(self, stream: str, st: StreamState) -> None:
         t0 = time.perf_counter()
-        blob = pack_arrays(st.vo.state_dict())
+        blob = pack_arrays(st.vo.state_dict(copy=False))
         self.store.write_snapshot(stream, st.seqs[-1], blob)
         st.since_snapshot = 0
+        took = time.perf_counter() - t0
+        if self.config.snapshot_max_share is not None:
+            st.snapshot_due = time.monotonic() + took / self.config.snapshot_max_share
         self.stats.inc("snapshots")
         self.stats.observe("snapshot", (time.perf_counter() - t0) * 1000.0)
 
@@ -306,7 +310,7 @@ class RegistrationWorker(Worker):
         t_map = time.perf_counter()
         tiles = dirty = None
         if publish:  # only the part of the map this frame changed is cut again (a replay leaves the region open)
-            tiles, dirty = retile_region(st.tiles, *st.vo.map_points(), st.vo.pop_changed_region(), self.config.tile_m)
+            tiles, dirty = retile_region(st.tiles, st.vo.map_points, st.vo.pop_changed_region(), self.config.tile_m)
         st.tiling_ms = (time.perf_counter() - t_map) * 1000.0
         evicted = self._evict_far(st, seq, pose)
         st.ego_xy = pose[:2, 3].copy()

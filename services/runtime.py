@@ -232,7 +232,11 @@ class WorkerConfig(BaseModel):
     occvo_config: str | None = None
     # durable state (SQLite file; the registration worker and the map service may share one)
     store_path: str | None = None
-    snapshot_every: int = Field(20, ge=1)  # registration: frames between state snapshots (a journal covers the rest)
+    snapshot_every: int = Field(20, ge=1)  # registration: frames between state snapshots at least (a journal covers the rest)
+    # registration: snapshots of a stream take at most this share of its time; a big map is snapshotted less often
+    # (a resume replays more journal) instead of stalling every stream (a 10^6-voxel state is ~200 MB, ~1 s to write);
+    # None: every snapshot_every frames whatever they cost
+    snapshot_max_share: float | None = Field(0.02, gt=0, le=1)
     working_radius_m: float | None = Field(None, gt=0)  # registration: map farther from the ego goes to the store
     store_sync: Literal["full", "normal"] = "full"  # registration: SQLite synchronous; normal survives kill -9, not power loss
 

@@ -114,7 +114,7 @@ def test_retiling_the_changed_region_equals_tiling_the_whole_map():
             vo.restore_tiles(cold)  # back near the start: the evicted map returns
         vo.step(scene[i])
         points, labels = vo.map_points()
-        tiles, redone = retile_region(tiles, points, labels, vo.pop_changed_region(), 20.0)
+        tiles, redone = retile_region(tiles, vo.map_points, vo.pop_changed_region(), 20.0)
         whole = tiles_from_map(points, labels, 20.0)
         assert tiles.keys() == whole.keys(), f"frame {i}"
         for k in whole:

@@ -281,13 +281,37 @@ def test_clean_restart_continues_the_stream_and_answers_resends(tmp_path, scene,
         svc.close()
 
 
+def test_snapshots_keep_to_their_share_of_the_time_and_shutdown_still_writes_one(tmp_path, scene, uninterrupted):
+    from services.client import OccVOClient
+
+    path = tmp_path / "state.sqlite"
+    # a share so small that the first snapshot's cost puts the next one hours away
+    svc = Pipeline(path, snapshot_every=2, snapshot_max_share=1e-6)
+    try:
+        reg = svc.start_registration()
+        with OccVOClient(svc.endpoint, "car") as client:
+            client.reset()
+            for i in range(8):
+                client.step(scene[i])
+            assert reg.stats.snapshot()[0]["snapshots"] == 1
+            probe = TrajectoryStore(path)
+            assert probe.record("car").snapshot_seq == 1 and [s for s, _ in probe.journal("car", 1)] == list(range(2, 8))
+            svc.reg.stop()  # shutdown snapshots whatever the share
+            assert probe.record("car").snapshot_seq == 7 and probe.sizes("car")["journal_rows"] == 0
+            svc.start_registration()
+            got = [client.step(scene[i]).matrix() for i in range(8, N)]
+            assert np.array_equal(np.array([client.poses[i].matrix() for i in range(8)] + got), uninterrupted)
+    finally:
+        svc.close()
+
+
 def test_crash_with_eviction_resumes_exactly_and_the_map_service_keeps_far_tiles(tmp_path, scene):
     from services.client import OccVOClient
     from occvo_core.map_tiles import tile_distance
 
     radius, tile_m = 30.0, 10.0  # smaller than a frame's reach, so tiles leave and come back within 12 frames
     path = tmp_path / "state.sqlite"
-    svc = Pipeline(path, snapshot_every=3, working_radius_m=radius, tile_m=tile_m)
+    svc = Pipeline(path, snapshot_every=3, snapshot_max_share=None, working_radius_m=radius, tile_m=tile_m)
     try:
         first = svc.start_registration()
         with OccVOClient(svc.endpoint, "ref") as ref, OccVOClient(svc.endpoint, "cut") as cut:

@@ -208,9 +208,9 @@ class VoxelPFilterMap:
         self._n = len(keep)
 
     # -- state and paging (durable storage and bounded memory live outside occvo_core; these give them the arrays)
-    def state(self) -> dict[str, np.ndarray]:
-        """Every row (dropped ones too, so row order and thus tie-breaking survive a reload)."""
-        return {name: getattr(self, name)[: self._n].copy() for name in _FIELDS}
+    def state(self, copy: bool = True) -> dict[str, np.ndarray]:
+        """Every row (dropped ones too, so row order and thus tie-breaking survive a reload); copy=False: views."""
+        return {name: getattr(self, name)[: self._n].copy() if copy else getattr(self, name)[: self._n] for name in _FIELDS}
 
     def load_state(self, state: dict[str, np.ndarray]) -> None:
         n = len(state["keys"])
@@ -272,8 +272,15 @@ class VoxelPFilterMap:
         f = self.f[:n]
         return alive & (f / np.maximum(self.last[:n] - self.t0[:n] + 1, 1) > self.p_index_threshold)
 
-    def points(self) -> tuple[np.ndarray, np.ndarray]:
-        """The map a user gets: the persistent voxels (all live voxels with the filter off)."""
+    def points(self, tiles: tuple[np.ndarray, np.ndarray, float] | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """The map a user gets: the persistent voxels (all live voxels with the filter off); with tiles = (lo, hi,
+        tile_m), those whose x-y tile floor(pos / tile_m) lies in lo..hi."""
+        if tiles is not None:
+            lo, hi, tile_m = tiles
+            rows = kernels.persistent_in_tiles(self.pos, self.alive, self.f, self.last, self.t0, self._n,
+                                               self.p_index_threshold, self.pfilter, np.asarray(lo, np.int64),
+                                               np.asarray(hi, np.int64), float(tile_m))
+            return self.pos[rows], self.label[rows]
         keep = self.persistent()
         return self.pos[: self._n][keep].copy(), self.label[: self._n][keep].copy()
 

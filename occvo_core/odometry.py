@@ -57,11 +57,9 @@ class _Stopwatch:
         self._t = now
 
 
-def _thin(ijk: np.ndarray, subset: np.ndarray, voxel_m: float) -> np.ndarray:
-    """Indices of one point per block of voxel_m among the subset (downsampling on the grid)."""
-    idx = np.flatnonzero(subset)
-    factor = max(1, int(round(voxel_m / OCC3D_GRID.voxel_size)))
-    return idx[kernels.first_per_block(ijk[idx], factor, np.array(OCC3D_GRID.shape, np.int64))]
+def _block_factor(voxel_m: float) -> int:
+    """Grid voxels per side of a downsampling block of voxel_m."""
+    return max(1, int(round(voxel_m / OCC3D_GRID.voxel_size)))
 
 
 def _transform(pose: np.ndarray, points: np.ndarray) -> np.ndarray:
@@ -204,30 +202,24 @@ class OccVO:
     def _preprocess(self, frame: OccupancyFrame) -> _Prepared:
         frame.validate()
         points = np.ascontiguousarray(frame.points, dtype=np.float64)
-        ijk = OCC3D_GRID.indices_of(points)
-        outside = ~OCC3D_GRID.inside(ijk)
-        if outside.any():
-            raise InvalidFrameError(frame.index, f"{int(outside.sum())} points outside the occupancy grid "
-                                    f"{OCC3D_GRID.lower}..{OCC3D_GRID.upper} (is the frame in ego coordinates?)")
         shape = np.array(OCC3D_GRID.shape, np.int64)
+        ijk, outside = kernels.grid_indices(points, _EGO_LOWER, OCC3D_GRID.voxel_size, shape)
+        if outside:
+            raise InvalidFrameError(frame.index, f"{outside} points outside the occupancy grid "
+                                    f"{OCC3D_GRID.lower}..{OCC3D_GRID.upper} (is the frame in ego coordinates?)")
         labels = np.asarray(frame.labels, np.uint8)
         max_range = self.config.max_range_m
         if max_range is not None:  # camera occupancy is least sure of what is far
             near = points[:, 0] ** 2 + points[:, 1] ** 2 <= max_range ** 2
             points, labels, ijk = points[near], labels[near], ijk[near]
-        grid = kernels.dense_index(ijk, shape)
-        surface = kernels.surface_mask(ijk, grid, shape)
-        if not surface.all():
+        surface, grid = kernels.surface_voxels(ijk, shape)
+        if len(surface) < len(points):
             points, labels, ijk = points[surface], labels[surface], ijk[surface]
-            grid = kernels.dense_index(ijk, shape)
         g = self.config.gicp
         covs = kernels.plane_covariances(points, ijk, grid, shape, g.k_neighbours_radius_voxels, g.covariance_epsilon)
-        ground = np.isin(labels, GROUND_CLASSES)
-        everything = np.ones(len(points), bool)
-        wide = _thin(ijk, everything, g.wide_voxel_m) if g.wide_voxel_m > 0 else np.zeros(0, np.int64)
-        coarse = _thin(ijk, everything, g.coarse_source_voxel_m)
-        # the ground only holds z, roll and pitch: a sparse sample of it is enough
-        fine = np.sort(np.concatenate([_thin(ijk, ~ground, g.source_voxel_m), _thin(ijk, ground, g.ground_source_voxel_m)]))
+        wide, coarse, fine = kernels.thin_sources(
+            ijk, np.isin(labels, GROUND_CLASSES), shape, _block_factor(g.wide_voxel_m) if g.wide_voxel_m > 0 else 0,
+            _block_factor(g.coarse_source_voxel_m), _block_factor(g.source_voxel_m), _block_factor(g.ground_source_voxel_m))
         return _Prepared(points, labels, covs, wide, coarse, fine, np.flatnonzero(np.isin(labels, MOVABLE_CLASSES)), frame.index)
 
     def _initial_guess(self, frame: _Prepared) -> np.ndarray:

@@ -17,6 +17,8 @@ def add_parser(sub) -> None:
     p.add_argument("--max-steps", type=int, help="stop after this many steps even within the budget")
     p.add_argument("--cache", type=Path, help="keep rendered training frames here (.npz) and reuse them in later runs")
     p.add_argument("--threads", type=int, default=1, help="torch CPU threads (the machine is shared)")
+    p.add_argument("--prerender", type=int, metavar="JOBS", help="first render every training frame into --cache in JOBS "
+                   "processes, before the training clock starts (rendering is data making, not training)")
     p.set_defaults(func=run)
 
 
@@ -28,6 +30,13 @@ def run(args) -> int:
 
     torch.set_num_threads(args.threads)
     cfg = preset(args.preset)
+    if args.prerender:
+        if args.cache is None:
+            raise SystemExit("occvo train-occ: --prerender needs --cache DIR (the frames are rendered there)")
+        from occvo_core.models.train import prerender
+
+        n = prerender(args.seeds, args.frames, args.stride, cfg.input_size, args.cache, args.prerender)
+        print(f"prerendered {n} frames of {len(args.seeds)} seeds into {args.cache}")
     result = train(cfg, args.out, args.minutes, args.seeds, frames=args.frames, stride=args.stride, lr=args.lr,
                    max_steps=args.max_steps, preset_name=args.preset, cache_dir=args.cache)
     tail = sum(result.losses[-20:]) / max(1, len(result.losses[-20:]))

@@ -88,6 +88,25 @@ class SyntheticOccDataset:
         return self._cache[k]
 
 
+def _render_seed(job: tuple[int, int, int, tuple[int, int], str]) -> int:
+    seed, frames, stride, size, cache_dir = job
+    data = SyntheticOccDataset([seed], frames, nuscenes_rig(*size), stride=stride, cache_dir=cache_dir)
+    for k in range(len(data)):
+        data[k]
+        data._cache.clear()  # on disk now; a worker holds one frame at a time
+    return len(data)
+
+
+def prerender(seeds: list[int], frames: int, stride: int, input_size: tuple[int, int], cache_dir: str | Path,
+              jobs: int = 2, progress: bool = True) -> int:
+    """Render every training frame of `seeds` into cache_dir (frames already there are kept), in `jobs` processes."""
+    from concurrent.futures import ProcessPoolExecutor
+
+    todo = [(s, frames, stride, tuple(input_size), str(cache_dir)) for s in seeds]
+    with ProcessPoolExecutor(max_workers=max(1, jobs)) as pool:
+        return sum(tqdm(pool.map(_render_seed, todo), total=len(todo), desc="prerender", unit="seed", disable=not progress))
+
+
 # -- losses ---------------------------------------------------------------------------------------------------------
 
 def _lovasz_grad(gt_sorted: torch.Tensor) -> torch.Tensor:

@@ -38,6 +38,62 @@ def surface_mask(ijk, grid, shape):
     return out
 
 
+@njit(cache=_CACHE, nogil=True)
+def grid_indices(points, lower, voxel, shape):
+    """Voxel indices floor((p - lower) / voxel) of each point, and how many fall outside the grid."""
+    ijk = np.empty((points.shape[0], 3), np.int64)
+    outside = 0
+    for n in range(points.shape[0]):
+        inside = True
+        for a in range(3):
+            v = int(np.floor((points[n, a] - lower[a]) / voxel))
+            ijk[n, a] = v
+            inside = inside and 0 <= v < shape[a]
+        if not inside:
+            outside += 1
+    return ijk, outside
+
+
+@njit(cache=_CACHE, nogil=True)
+def surface_voxels(ijk, shape):
+    """Indices of the points that are surface voxels (surface_mask) and the dense grid holding, for each, its rank
+    among them: dense_index of the surface points, without a second grid."""
+    grid = dense_index(ijk, shape)
+    keep = np.flatnonzero(surface_mask(ijk, grid, shape))
+    for n in range(ijk.shape[0]):
+        grid[(ijk[n, 0] * shape[1] + ijk[n, 1]) * shape[2] + ijk[n, 2]] = -1
+    for a in range(keep.shape[0]):
+        n = keep[a]
+        grid[(ijk[n, 0] * shape[1] + ijk[n, 1]) * shape[2] + ijk[n, 2]] = a
+    return keep, grid
+
+
+@njit(cache=_CACHE, nogil=True)
+def thin_sources(ijk, ground, shape, wide, coarse, fine, fine_ground):
+    """The registration source sets in one pass, each the first point of every factor^3 block of voxels (0: no
+    set): one point per wide and per coarse block, and for fine one per fine block off the ground and per fine_ground
+    block on it (the ground only holds z, roll and pitch). Indices ascending."""
+    factors = (wide, coarse, fine, fine_ground)
+    seen = []
+    for f in factors:
+        g = max(f, 1)
+        seen.append(np.zeros(((shape[0] + g - 1) // g) * ((shape[1] + g - 1) // g) * ((shape[2] + g - 1) // g), np.bool_))
+    out = np.empty((3, ijk.shape[0]), np.int64)
+    count = np.zeros(3, np.int64)
+    for n in range(ijk.shape[0]):
+        for s in range(4):
+            f = factors[s]
+            if f == 0 or (s == 2 and ground[n]) or (s == 3 and not ground[n]):
+                continue
+            b = ((ijk[n, 0] // f) * ((shape[1] + f - 1) // f) + ijk[n, 1] // f) * ((shape[2] + f - 1) // f) + ijk[n, 2] // f
+            if not seen[s][b]:
+                seen[s][b] = True
+                o = min(s, 2)
+                out[o, count[o]] = n
+                count[o] += 1
+    return out[0, :count[0]].copy(), out[1, :count[1]].copy(), out[2, :count[2]].copy()
+
+
 @njit(cache=_CACHE, nogil=True, inline="always")
 def _smallest_eigenvector(a00, a01, a02, a11, a12, a22):
     """Unit eigenvector of the smallest eigenvalue of a symmetric 3x3 matrix (closed form, no allocation)."""
@@ -122,22 +178,6 @@ def plane_covariances(points, ijk, grid, shape, radius, epsilon):
         covs[n, 0, 2] = covs[n, 2, 0] = -s * nx * nz
         covs[n, 1, 2] = covs[n, 2, 1] = -s * ny * nz
     return covs
-
-
-@njit(cache=_CACHE, nogil=True)
-def first_per_block(ijk, factor, shape):
-    """Downsampling on the grid: index of the first point in each factor^3 block of voxels."""
-    bshape = ((shape[0] + factor - 1) // factor, (shape[1] + factor - 1) // factor, (shape[2] + factor - 1) // factor)
-    seen = np.zeros(bshape[0] * bshape[1] * bshape[2], np.bool_)
-    keep = np.empty(ijk.shape[0], np.int64)
-    n_keep = 0
-    for n in range(ijk.shape[0]):
-        b = ((ijk[n, 0] // factor) * bshape[1] + ijk[n, 1] // factor) * bshape[2] + ijk[n, 2] // factor
-        if not seen[b]:
-            seen[b] = True
-            keep[n_keep] = n
-            n_keep += 1
-    return keep[:n_keep]
 
 
 @njit(cache=_CACHE, nogil=True)
@@ -330,19 +370,6 @@ def nearest_distances(queries, map_pos, grid, origin, dims, voxel, radius, usabl
 
 
 @njit(cache=_CACHE, nogil=True)
-def window_grid(keys, origin, dims):
-    """Dense index of map voxels (integer keys) inside a window starting at origin."""
-    grid = np.full(dims[0] * dims[1] * dims[2], -1, np.int32)
-    for n in range(keys.shape[0]):
-        i = keys[n, 0] - origin[0]
-        j = keys[n, 1] - origin[1]
-        k = keys[n, 2] - origin[2]
-        if 0 <= i < dims[0] and 0 <= j < dims[1] and 0 <= k < dims[2]:
-            grid[(i * dims[1] + j) * dims[2] + k] = n
-    return grid
-
-
-@njit(cache=_CACHE, nogil=True)
 def assign_voxels(points, keys, map_pos, grid, origin, dims, voxel, merge_radius, map_rows, alive, n_map):
     """Map row of each frame point: the live map voxel holding it; else the nearest live map point within
     merge_radius (so a surface straddling a voxel boundary stays one voxel across frames and its p-index measures
@@ -385,21 +412,6 @@ def rotate_covariances(cov, rot):
             for b in range(3):
                 out[n, a, b] = t0 * rot[b, 0] + t1 * rot[b, 1] + t2 * rot[b, 2]
     return out
-
-
-@njit(cache=_CACHE, nogil=True)
-def rows_in_box(keys, alive, lower, upper):
-    """Rows of live voxels whose keys lie in [lower, upper]."""
-    out = np.empty(keys.shape[0], np.int64)
-    n_out = 0
-    for n in range(keys.shape[0]):
-        if not alive[n]:
-            continue
-        if (lower[0] <= keys[n, 0] <= upper[0] and lower[1] <= keys[n, 1] <= upper[1]
-                and lower[2] <= keys[n, 2] <= upper[2]):
-            out[n_out] = n
-            n_out += 1
-    return out[:n_out]
 
 
 @njit(cache=_CACHE, nogil=True)
@@ -657,3 +669,35 @@ def persistent_in_tiles(pos, alive, f, last, t0, n, threshold, use_p_index, lo, 
         out[n_out] = r
         n_out += 1
     return out[:n_out]
+
+
+@njit(cache=_CACHE, nogil=True)
+def window_voxels(keys, alive, f, t0, pos, label, n, lower, upper, t):
+    """Live rows < n with keys in [lower, upper], in row order, with copies of their positions and labels, their
+    p-index f / max(t - t0, 1), and the dense grid of the box holding each one's window index (one pass, not five)."""
+    dims = upper - lower + 1
+    grid = np.full(dims[0] * dims[1] * dims[2], -1, np.int32)
+    rows = np.empty(n, np.int64)
+    m = 0
+    for r in range(n):
+        if not alive[r]:
+            continue
+        i = keys[r, 0] - lower[0]
+        j = keys[r, 1] - lower[1]
+        k = keys[r, 2] - lower[2]
+        if 0 <= i < dims[0] and 0 <= j < dims[1] and 0 <= k < dims[2]:
+            rows[m] = r
+            grid[(i * dims[1] + j) * dims[2] + k] = m
+            m += 1
+    rows = rows[:m]
+    out_pos = np.empty((m, 3))
+    out_label = np.empty(m, np.uint8)
+    p_index = np.empty(m)
+    for a in range(m):
+        r = rows[a]
+        out_pos[a, 0] = pos[r, 0]
+        out_pos[a, 1] = pos[r, 1]
+        out_pos[a, 2] = pos[r, 2]
+        out_label[a] = label[r]
+        p_index[a] = f[r] / max(t - t0[r], 1)
+    return rows, out_pos, out_label, p_index, grid

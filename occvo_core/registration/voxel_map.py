@@ -150,15 +150,11 @@ class VoxelPFilterMap:
     def window(self, lower: np.ndarray, upper: np.ndarray, t: int | None = None) -> LocalMap:
         """Every live voxel with key in [lower, upper]; `usable` marks those with p-index above the threshold at
         frame t (all of them with the filter off or no t)."""
-        n = self._n
-        keys = self.keys[:n]
-        rows = kernels.rows_in_box(keys, self.alive[:n], np.asarray(lower, np.int64), np.asarray(upper, np.int64))
-        p_index = self.f[rows] / np.maximum((t if t is not None else 0) - self.t0[rows], 1)
+        origin, upper = np.asarray(lower, np.int64), np.asarray(upper, np.int64)
+        rows, pos, labels, p_index, grid = kernels.window_voxels(self.keys, self.alive, self.f, self.t0, self.pos, self.label,
+                                                                 self._n, origin, upper, t if t is not None else 0)
         usable = p_index > self.p_index_threshold if (t is not None and self.pfilter) else np.ones(len(rows), bool)
-        origin = np.asarray(lower, np.int64)
-        dims = np.asarray(upper, np.int64) - origin + 1
-        grid = kernels.window_grid(self.keys[rows], origin, dims)
-        return LocalMap(rows, self.pos[rows], self.label[rows], p_index, usable, grid, origin, dims, self.voxel, self)
+        return LocalMap(rows, pos, labels, p_index, usable, grid, origin, upper - origin + 1, self.voxel, self)
 
     def merge(self, points_world: np.ndarray, labels: np.ndarray, covs_world: np.ndarray, t: int,
               local: LocalMap | None = None) -> np.ndarray:

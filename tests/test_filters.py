@@ -168,3 +168,17 @@ def test_finished_map_keeps_voxels_seen_in_most_frames_while_in_view():
     for t in range(4):
         _merge(every, [steady, blinking] if t in (0, 3) else [steady], t)
     assert len(every.points()[0]) == 2
+
+
+def test_near_any_agrees_with_a_kd_tree():
+    from scipy.spatial import cKDTree
+
+    from occvo_core.registration import kernels
+
+    rng = np.random.default_rng(7)
+    for n_points, spread in ((0, 10.0), (1, 10.0), (300, 10.0), (2000, 40.0)):
+        points = rng.uniform(-spread, spread, (n_points, 3))
+        queries = np.concatenate([rng.uniform(-spread - 5, spread + 5, (500, 3)),
+                                  points[:50] + rng.normal(0, 1.2, (min(50, n_points), 3))])
+        want = (cKDTree(points).query(queries)[0] <= 2.0) if n_points else np.zeros(len(queries), bool)
+        assert np.array_equal(kernels.near_any(queries, points, 2.0), want)

@@ -6,7 +6,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.spatial import cKDTree
 
 from occvo_core.registration import kernels
 
@@ -26,17 +25,12 @@ def displaced_objects(points: np.ndarray, ids: np.ndarray, counterparts: np.ndar
     valid = np.flatnonzero(ids >= 0)
     if len(valid) == 0:
         return np.zeros(len(points), bool)
-    if len(counterparts) == 0:
-        dist = np.full(len(valid), np.inf)
-    else:
-        dist, _ = cKDTree(counterparts).query(points[valid], distance_upper_bound=threshold_m * 4)
-    # per object, the distance at the quantile's rank: sort by (object, distance) and pick within each run
-    order = np.lexsort((dist, ids[valid]))
-    obj_sorted = ids[valid][order]
-    starts = np.flatnonzero(np.r_[True, obj_sorted[1:] != obj_sorted[:-1]])
-    sizes = np.diff(np.r_[starts, len(order)])
-    at_quantile = dist[order][starts + np.minimum((quantile * (sizes - 1)).round().astype(np.int64), sizes - 1)]
-    moved_objects = obj_sorted[starts][at_quantile > threshold_m]
+    near = kernels.near_any(np.ascontiguousarray(points[valid], np.float64),
+                            np.ascontiguousarray(counterparts, np.float64).reshape(-1, 3), float(threshold_m))
+    objects, which, sizes = np.unique(ids[valid], return_inverse=True, return_counts=True)
+    rank = np.minimum((quantile * (sizes - 1)).round().astype(np.int64), sizes - 1)
+    # the distance at the quantile's rank exceeds the threshold exactly when no more than `rank` points are near
+    moved_objects = objects[np.bincount(which.reshape(-1), weights=near, minlength=len(objects)) <= rank]
     return np.isin(ids, moved_objects) & (ids >= 0)
 
 

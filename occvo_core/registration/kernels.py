@@ -541,6 +541,60 @@ def ego_points(idx, rows, map_pos, map_cov, rot, trans, origin, dims, voxel):
 
 
 @njit(cache=_CACHE, nogil=True)
+def near_any(queries, points, radius):
+    """For each query, whether some point lies within radius (distance not above it), through a grid of
+    radius-sized cells over the points (counting sort)."""
+    out = np.zeros(queries.shape[0], np.bool_)
+    n = points.shape[0]
+    if n == 0:
+        return out
+    lo = np.empty(3)
+    dims = np.empty(3, np.int64)
+    for a in range(3):
+        lo[a] = points[:, a].min()
+        dims[a] = int((points[:, a].max() - lo[a]) / radius) + 1
+    cell_of = np.empty(n, np.int64)
+    for i in range(n):
+        cell_of[i] = ((int((points[i, 0] - lo[0]) / radius) * dims[1] + int((points[i, 1] - lo[1]) / radius)) * dims[2]
+                      + int((points[i, 2] - lo[2]) / radius))
+    start = np.zeros(dims[0] * dims[1] * dims[2] + 1, np.int64)
+    for i in range(n):
+        start[cell_of[i] + 1] += 1
+    for c in range(start.shape[0] - 1):
+        start[c + 1] += start[c]
+    fill = start[:-1].copy()
+    order = np.empty(n, np.int64)
+    for i in range(n):
+        order[fill[cell_of[i]]] = i
+        fill[cell_of[i]] += 1
+    for q in range(queries.shape[0]):
+        c = np.empty(3, np.int64)
+        for a in range(3):
+            c[a] = int(np.floor((queries[q, a] - lo[a]) / radius))
+        found = False
+        for i in range(max(c[0] - 1, 0), min(c[0] + 2, dims[0])):
+            for j in range(max(c[1] - 1, 0), min(c[1] + 2, dims[1])):
+                for k in range(max(c[2] - 1, 0), min(c[2] + 2, dims[2])):
+                    cell = (i * dims[1] + j) * dims[2] + k
+                    for s in range(start[cell], start[cell + 1]):
+                        p = order[s]
+                        d0 = queries[q, 0] - points[p, 0]
+                        d1 = queries[q, 1] - points[p, 1]
+                        d2 = queries[q, 2] - points[p, 2]
+                        if not np.sqrt(d0 * d0 + d1 * d1 + d2 * d2) > radius:
+                            found = True
+                            break
+                    if found:
+                        break
+                if found:
+                    break
+            if found:
+                break
+        out[q] = found
+    return out
+
+
+@njit(cache=_CACHE, nogil=True)
 def _find(parent, i):
     while parent[i] != i:
         parent[i] = parent[parent[i]]

@@ -541,22 +541,19 @@ def ego_points(idx, rows, map_pos, map_cov, rot, trans, origin, dims, voxel):
 
 
 @njit(cache=_CACHE, nogil=True)
-def near_any(queries, points, radius):
-    """For each query, whether some point lies within radius (distance not above it), through a grid of
-    radius-sized cells over the points (counting sort)."""
-    out = np.zeros(queries.shape[0], np.bool_)
+def _cell_sort(points, cell):
+    """Points bucketed in cubes of side `cell` from their lowest corner (counting sort): (lo, dims, start, order),
+    the points of cube c being order[start[c]:start[c + 1]]."""
     n = points.shape[0]
-    if n == 0:
-        return out
     lo = np.empty(3)
     dims = np.empty(3, np.int64)
     for a in range(3):
         lo[a] = points[:, a].min()
-        dims[a] = int((points[:, a].max() - lo[a]) / radius) + 1
+        dims[a] = int((points[:, a].max() - lo[a]) / cell) + 1
     cell_of = np.empty(n, np.int64)
     for i in range(n):
-        cell_of[i] = ((int((points[i, 0] - lo[0]) / radius) * dims[1] + int((points[i, 1] - lo[1]) / radius)) * dims[2]
-                      + int((points[i, 2] - lo[2]) / radius))
+        cell_of[i] = ((int((points[i, 0] - lo[0]) / cell) * dims[1] + int((points[i, 1] - lo[1]) / cell)) * dims[2]
+                      + int((points[i, 2] - lo[2]) / cell))
     start = np.zeros(dims[0] * dims[1] * dims[2] + 1, np.int64)
     for i in range(n):
         start[cell_of[i] + 1] += 1
@@ -567,6 +564,17 @@ def near_any(queries, points, radius):
     for i in range(n):
         order[fill[cell_of[i]]] = i
         fill[cell_of[i]] += 1
+    return lo, dims, start, order
+
+
+@njit(cache=_CACHE, nogil=True)
+def near_any(queries, points, radius):
+    """For each query, whether some point lies within radius (distance not above it), through a grid of
+    radius-sized cells over the points (counting sort)."""
+    out = np.zeros(queries.shape[0], np.bool_)
+    if points.shape[0] == 0:
+        return out
+    lo, dims, start, order = _cell_sort(points, radius)
     for q in range(queries.shape[0]):
         c = np.empty(3, np.int64)
         for a in range(3):
@@ -609,29 +617,7 @@ def grid_clusters(points, eps):
     parent = np.arange(n)
     if n == 0:
         return parent
-    lo = np.empty(3)
-    hi = np.empty(3)
-    for a in range(3):
-        lo[a] = points[:, a].min()
-        hi[a] = points[:, a].max()
-    dims = np.empty(3, np.int64)
-    for a in range(3):
-        dims[a] = int((hi[a] - lo[a]) / eps) + 1
-    cell_of = np.empty(n, np.int64)
-    for i in range(n):
-        cell_of[i] = ((int((points[i, 0] - lo[0]) / eps) * dims[1] + int((points[i, 1] - lo[1]) / eps)) * dims[2]
-                      + int((points[i, 2] - lo[2]) / eps))
-    n_cells = dims[0] * dims[1] * dims[2]
-    start = np.zeros(n_cells + 1, np.int64)  # counting sort: points of cell c are order[start[c]:start[c + 1]]
-    for i in range(n):
-        start[cell_of[i] + 1] += 1
-    for c in range(n_cells):
-        start[c + 1] += start[c]
-    fill = start[:-1].copy()
-    order = np.empty(n, np.int64)
-    for i in range(n):
-        order[fill[cell_of[i]]] = i
-        fill[cell_of[i]] += 1
+    lo, dims, start, order = _cell_sort(points, eps)
     eps2 = eps * eps
     for i in range(n):
         ci = int((points[i, 0] - lo[0]) / eps)

@@ -61,7 +61,7 @@ def main() -> None:
             t["evict_check"].append(time.perf_counter() - t0)
             if (i + 1) % args.snapshot_every == 0 and i + 1 < n:
                 t0 = time.perf_counter()
-                full.write_snapshot("s", i, pack_arrays(vo.state_dict()))
+                full.write_snapshot("s", i, pack_arrays(vo.state_dict(copy=False)))  # as the worker packs it
                 t["snapshot"].append(time.perf_counter() - t0)
         sizes = full.sizes("s")
         t0 = time.perf_counter()

@@ -1,8 +1,8 @@
 """Registration worker: occupancy frames in, OccVO per stream, poses out in sequence order, map tile updates out.
 
-Map updates: after each frame the worker tiles `vo.map_points()` (occvo_core.map_tiles) and publishes only the tiles
-whose content changed (a tile that emptied is sent empty), so the map service always equals the odometry's map.
-This costs one tiling of the working map per frame (~tens of ms for 10^5 voxels) and keeps messages to the changed area.
+Map updates: after each frame the worker cuts again the map tiles the frame changed (OccVO.pop_changed_region,
+occvo_core.map_tiles.retile_region) and publishes only the tiles whose content changed (a tile that emptied is sent
+empty), so the map service always equals the odometry's map; the cost follows the changed area, not the map's size.
 
 Durable state (`store_path`, services/store.py): every pose is committed with its frame before it is published, the
 OccVO state is snapshotted every `snapshot_every` frames and at shutdown; a restarted worker resumes a stream at its

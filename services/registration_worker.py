@@ -5,7 +5,8 @@ occvo_core.map_tiles.retile_region) and publishes only the tiles whose content c
 empty), so the map service always equals the odometry's map; the cost follows the changed area, not the map's size.
 
 Durable state (`store_path`, services/store.py): every pose is committed with its frame before it is published, the
-OccVO state is snapshotted every `snapshot_every` frames and at shutdown; a restarted worker resumes a stream at its
+OccVO state is snapshotted every `snapshot_every` frames (less often when snapshots would take more than
+`snapshot_max_share` of the stream's time) and at shutdown; a restarted worker resumes a stream at its
 next frame from the snapshot plus the journaled frames. A resent frame already registered gets its stored pose again.
 With `working_radius_m`, map tiles wholly farther than that from the ego leave the working set for the store (the map
 service keeps serving them) and come back when the ego is within working_radius_m - tile_m of them.

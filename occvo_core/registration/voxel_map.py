@@ -124,10 +124,8 @@ class VoxelPFilterMap:
         return int(np.count_nonzero(self.alive[: self._n]))
 
     def _touch(self, pos: np.ndarray) -> None:
-        if self._changed is not None and len(pos):
-            xy = pos[:, :2]
-            self._changed[:2] = np.minimum(self._changed[:2], xy.min(axis=0))
-            self._changed[2:] = np.maximum(self._changed[2:], xy.max(axis=0))
+        if len(pos):
+            self._touch_box(np.concatenate([pos[:, :2].min(axis=0), pos[:, :2].max(axis=0)]))
 
     def _touch_box(self, box: np.ndarray) -> None:
         if self._changed is not None:

@@ -1,6 +1,6 @@
 """Registration speed: median ms per frame for each stage and in total, over repeated runs of real scenes.
 
-    python benchmarks/registration.py [--repeats 3] [--scenes scene-0101 scene-0268] [--json out.json]
+    python benchmarks/registration.py [--repeats 3] [--scenes scene-0101 scene-0268] [--threads 1 0] [--json out.json]
 
 Prints one table a scene (wall-clock medians, and CPU-time medians, which a busy machine disturbs less) and the
 ratio to the 40 ms/frame goal. The first frame only seeds the map and is left out; the first run compiles."""
@@ -23,8 +23,8 @@ GOAL_MS = 40.0
 SAMPLE = Path(__file__).resolve().parents[2] / "shared" / "data" / "occvo-sample"
 
 
-def run_once(frames, config):
-    vo = OccVO(config)
+def run_once(frames, config, threads=0):
+    vo = OccVO(config, threads=threads)
     wall, cpu, stages = [], [], {}
     for frame in frames:
         w0, c0 = time.perf_counter(), time.process_time()
@@ -44,6 +44,8 @@ def main(argv=None) -> int:
     ap.add_argument("--sample", type=Path, default=SAMPLE)
     ap.add_argument("--scenes", nargs="+", default=["scene-0101", "scene-0268"])
     ap.add_argument("--repeats", type=int, default=3)
+    ap.add_argument("--threads", type=int, nargs="+", default=[0],
+                    help="kernel thread counts to measure, 0 = all cores (e.g. --threads 1 0: one core, then all)")
     ap.add_argument("--json", type=Path)
     args = ap.parse_args(argv)
     if not (args.sample / "occupancy").is_dir():
@@ -54,26 +56,29 @@ def main(argv=None) -> int:
     for name in args.scenes:
         source = OccVOReleaseScene(args.sample / "occupancy" / name)
         frames = [source[i] for i in range(len(source))]
-        run_once(frames[:3], config)  # compile / warm caches
-        walls, cpus, stage_runs, rmses = [], [], [], []
-        for _ in range(args.repeats):
-            vo, wall, cpu, stages = run_once(frames, config)
-            walls.append(np.median(wall))
-            cpus.append(np.median(cpu))
-            stage_runs.append({k: float(np.median(v)) for k, v in stages.items()})
-            rmses.append(ape_rmse(source.gt_poses, vo.poses))
-        stage_median = {k: float(np.median([r[k] for r in stage_runs])) for k in stage_runs[0]}
-        total = float(np.median(walls))
-        report[name] = {"frames": len(frames), "repeats": args.repeats, "ms_per_frame_median": total,
-                        "cpu_ms_per_frame_median": float(np.median(cpus)), "ms_per_stage_median": stage_median,
-                        "ratio_to_goal": total / GOAL_MS, "ape_rmse_m": float(np.median(rmses))}
-        print(f"\n{name}: {len(frames)} frames, {args.repeats} runs (median of per-run medians)")
-        print(f"  {'stage':<24}{'ms':>9}")
-        for stage, ms in stage_median.items():
-            print(f"  {stage:<24}{ms:>9.1f}")
-        print(f"  {'total (wall)':<24}{total:>9.1f}   goal {GOAL_MS:.0f} ms: ratio {total / GOAL_MS:.2f}")
-        print(f"  {'total (cpu)':<24}{np.median(cpus):>9.1f}")
-        print(f"  APE RMSE {np.median(rmses):.3f} m")
+        for threads in args.threads:
+            key = name if len(args.threads) == 1 else f"{name} threads={threads}"
+            run_once(frames[:3], config, threads)  # compile / warm caches
+            walls, cpus, stage_runs, rmses = [], [], [], []
+            for _ in range(args.repeats):
+                vo, wall, cpu, stages = run_once(frames, config, threads)
+                walls.append(np.median(wall))
+                cpus.append(np.median(cpu))
+                stage_runs.append({k: float(np.median(v)) for k, v in stages.items()})
+                rmses.append(ape_rmse(source.gt_poses, vo.poses))
+            stage_median = {k: float(np.median([r[k] for r in stage_runs])) for k in stage_runs[0]}
+            total = float(np.median(walls))
+            report[key] = {"frames": len(frames), "repeats": args.repeats, "threads": threads,
+                           "ms_per_frame_median": total, "cpu_ms_per_frame_median": float(np.median(cpus)),
+                           "ms_per_stage_median": stage_median, "ratio_to_goal": total / GOAL_MS,
+                           "ape_rmse_m": float(np.median(rmses))}
+            print(f"\n{key}: {len(frames)} frames, {args.repeats} runs (median of per-run medians)")
+            print(f"  {'stage':<24}{'ms':>9}")
+            for stage, ms in stage_median.items():
+                print(f"  {stage:<24}{ms:>9.1f}")
+            print(f"  {'total (wall)':<24}{total:>9.1f}   goal {GOAL_MS:.0f} ms: ratio {total / GOAL_MS:.2f}")
+            print(f"  {'total (cpu)':<24}{np.median(cpus):>9.1f}")
+            print(f"  APE RMSE {np.median(rmses):.3f} m")
     print(json.dumps(report, indent=2))
     if args.json:
         args.json.write_text(json.dumps(report, indent=2) + "\n")

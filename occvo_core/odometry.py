@@ -67,8 +67,13 @@ def _transform(pose: np.ndarray, points: np.ndarray) -> np.ndarray:
 
 
 class OccVO:
-    def __init__(self, config: OccVOConfig | None = None):
+    def __init__(self, config: OccVOConfig | None = None, *, threads: int = 0):
+        """threads: cores the kernels of step() may use, 0 = all. Poses and map are the same for any value, so it
+        is a run setting, not part of the config a saved state must match."""
+        if threads < 0:
+            raise ConfigError(f"threads must be >= 0 (0 = all cores), got {threads}")
         self.config = config or OccVOConfig()
+        self.threads = threads
         self.reset()
 
     @property
@@ -164,6 +169,7 @@ class OccVO:
     def step(self, frame: OccupancyFrame) -> StepResult:
         """Register one frame. A bad frame raises InvalidFrameError and leaves poses and map as they were."""
         watch = _Stopwatch()
+        kernels.use_threads(self.threads)
         prepared = self._preprocess(frame)
         watch.lap("preprocess")
         t = len(self._poses)

@@ -19,9 +19,10 @@ from occvo_core.trajectory import write_kitti, write_tum
 
 
 class OdometryPipeline:
-    def __init__(self, source, config: OccVOConfig | None = None, skip_bad_frames: bool = False, progress: bool = True):
+    def __init__(self, source, config: OccVOConfig | None = None, skip_bad_frames: bool = False, progress: bool = True,
+                 threads: int = 0):
         self.source = source
-        self.odometry = OccVO(config)
+        self.odometry = OccVO(config, threads=threads)
         self.skip_bad_frames = skip_bad_frames
         self.progress = progress
         self.frame_ms: list[float] = []

@@ -191,7 +191,7 @@ class RegistrationWorker(Worker):
             if st.vo is None:
                 self._resume(stream, st)
         if restart:  # only this lane's thread touches st.vo; queries read the lists under st.lock
-            st.vo = st.vo or self._OccVO(self.occvo_config)
+            st.vo = st.vo or self._OccVO(self.occvo_config, threads=self.config.kernel_threads)
             st.vo.reset()
             st.cold, st.cold_digest, st.pending_restored, st.tiles = {}, {}, [], {}
             st.since_snapshot, st.send_all_tiles, st.ego_xy = 0, False, None
@@ -268,7 +268,7 @@ class RegistrationWorker(Worker):
     def _resume(self, stream: str, st: StreamState) -> None:
         """Rebuild the stream's OccVO from its snapshot and journal, as it was after the last committed frame."""
         t0 = time.perf_counter()
-        vo = self._OccVO(self.occvo_config)
+        vo = self._OccVO(self.occvo_config, threads=self.config.kernel_threads)
         snap = self.store.snapshot(stream)
         snap_seq = None
         if snap is not None:

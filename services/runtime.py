@@ -230,6 +230,9 @@ class WorkerConfig(BaseModel):
     # registration worker
     tile_m: float = Field(20.0, gt=0)
     occvo_config: str | None = None
+    # registration: cores each stream's kernels may use, 0 = all. Streams already run side by side in threads, and
+    # the inference worker wants a core; poses are the same for any value
+    kernel_threads: int = Field(1, ge=0)
     # durable state (SQLite file; the registration worker and the map service may share one)
     store_path: str | None = None
     snapshot_every: int = Field(20, ge=1)  # registration: frames between state snapshots at least (a journal covers the rest)

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import io
 
+import numba
 import numpy as np
 import pytest
 
@@ -126,3 +127,57 @@ def test_retiling_the_changed_region_equals_tiling_the_whole_map():
             tiles = {k: v for k, v in tiles.items() if k not in blocks}  # as the worker drops evicted tiles
     assert cold, "some tiles were evicted"
     assert min(redone_share[1:]) < 1.0, "a frame re-cut fewer tiles than the whole map"
+
+
+def _run(scene, threads: int):
+    vo, steps = OccVO(threads=threads), []
+    for i in range(len(scene)):
+        r = vo.step(scene[i])
+        steps.append((r.pairs, vo.pop_changed_region()))
+    return vo, steps
+
+
+def _same_run(a, b) -> None:
+    (vo_a, steps_a), (vo_b, steps_b) = a, b
+    assert np.array_equal(vo_a.poses, vo_b.poses)
+    for (pairs_a, box_a), (pairs_b, box_b) in zip(steps_a, steps_b):
+        assert pairs_a == pairs_b
+        assert (box_a is None and box_b is None) or np.array_equal(box_a, box_b)
+    state_a, state_b = vo_a.state_dict(), vo_b.state_dict()
+    assert state_a.keys() == state_b.keys()
+    for k in state_a:
+        assert np.array_equal(state_a[k], state_b[k]), k
+
+
+needs_two_cores = pytest.mark.skipif(numba.config.NUMBA_NUM_THREADS < 2,
+                                     reason="one core here: there is no second kernel thread to compare with")
+
+
+@needs_two_cores
+def test_kernel_threads_do_not_change_a_bit():
+    """The parallel kernels sum over fixed slices and number new voxels serially: one core or two, the same poses,
+    filter counts, changed regions and map state (a scene with moving cars, so the dynamic object filter acts)."""
+    scene = SyntheticScene(seed=3, frames=16)
+    one, two = _run(scene, 1), _run(scene, 2)
+    assert sum(pairs.get("dynamic_map_voxels_removed", 0) for pairs, _ in one[1]) > 0
+    _same_run(one, two)
+
+
+@needs_two_cores
+def test_streams_in_threads_run_parallel_kernels_at_once():
+    """The registration worker steps its streams in threads of one process: parallel kernels launched from two
+    threads at once must neither abort nor mix their results."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    scenes = [SyntheticScene(seed=s, frames=10) for s in (1, 2)]
+    alone = [_run(s, 2) for s in scenes]
+    with ThreadPoolExecutor(2) as pool:
+        together = list(pool.map(lambda s: _run(s, 2), scenes))
+    for a, b in zip(alone, together):
+        _same_run(a, b)
+    assert not np.array_equal(alone[0][0].poses, alone[1][0].poses)
+
+
+def test_negative_kernel_threads_are_refused():
+    with pytest.raises(ConfigError, match="threads"):
+        OccVO(threads=-1)

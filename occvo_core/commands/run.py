@@ -17,6 +17,8 @@ def add_parser(sub) -> None:
     p.add_argument("--no-semantic-filter", action="store_true", help="switch the semantic label filter off")
     p.add_argument("--no-dynamic-filter", action="store_true", help="switch the dynamic object filter off")
     p.add_argument("--no-pfilter", action="store_true", help="switch the voxel pfilter off")
+    p.add_argument("--threads", type=int, default=0, help="cores the registration kernels may use (default 0: all); "
+                   "the result does not depend on it")
     p.add_argument("--skip-bad-frames", action="store_true", help="skip frames that fail validation instead of stopping")
     p.add_argument("--seed", type=int, default=0, help="synthetic scene seed (no --input)")
     p.add_argument("--frames", type=int, default=40, help="synthetic scene length (no --input)")
@@ -58,7 +60,7 @@ def run(args) -> int:
             source = ImageOccupancySource(source, OccupancyPredictor(args.checkpoint))
     else:
         source = open_scene(args.input, gt=args.gt)
-    pipeline = OdometryPipeline(source, config_from_args(args), skip_bad_frames=args.skip_bad_frames,
+    pipeline = OdometryPipeline(source, config_from_args(args), skip_bad_frames=args.skip_bad_frames, threads=args.threads,
                                 progress=not args.quiet).run()
     extra = {}
     if args.input is None:

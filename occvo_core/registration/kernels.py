@@ -1,14 +1,29 @@
-"""Compiled inner loops. Every frame lives on a 0.4 m grid, so neighbour search is a dense-array lookup, not a tree."""
+"""Compiled inner loops. Every frame lives on a 0.4 m grid, so neighbour search is a dense-array lookup, not a tree.
+
+The parallel kernels give the same bits on any number of threads: sums are taken over fixed slices and added in
+order, and whatever depends on order (new row numbers, grid cells two voxels share) is done serially afterwards."""
 
 from __future__ import annotations
 
+import os
+
+import numba
 import numpy as np
-from numba import njit
+from numba import njit, prange
+
+if "NUMBA_THREADING_LAYER" not in os.environ:
+    # streams registered side by side in threads of one worker launch parallel kernels at once: numba's default
+    # fallback (workqueue) would abort on that, OpenMP and TBB take it (the variable survives numba's config reloads)
+    os.environ["NUMBA_THREADING_LAYER"] = numba.config.THREADING_LAYER = "threadsafe"
 
 _CACHE = True
-# GICP sums are taken over this many fixed slices of the sources, then added: a summation order that would survive
-# spreading the slices over cores (tried; on this 2-core VM it did not pay and doubled compile time).
-CHUNKS = 16
+CHUNKS = 16  # fixed slices of parallel loops (see above)
+
+
+def use_threads(threads: int) -> None:
+    """Kernel threads for calls from this Python thread: 0 = all cores (numba's thread count is per thread)."""
+    most = numba.config.NUMBA_NUM_THREADS
+    numba.set_num_threads(most if threads <= 0 else min(threads, most))
 
 
 @njit(cache=_CACHE, nogil=True)
@@ -128,12 +143,12 @@ def _smallest_eigenvector(a00, a01, a02, a11, a12, a22):
     return 0.0, 0.0, 1.0  # two smallest eigenvalues equal (a line): any normal across it will do
 
 
-@njit(cache=_CACHE, nogil=True)
+@njit(cache=_CACHE, nogil=True, parallel=True)
 def plane_covariances(points, ijk, grid, shape, radius, epsilon):
     """GICP covariances (Segal et al.): the neighbourhood's plane, as eps along its normal and 1 across it."""
     n_pts = points.shape[0]
     covs = np.empty((n_pts, 3, 3))
-    for n in range(n_pts):
+    for n in prange(n_pts):
         sx = sy = sz = sxx = sxy = sxz = syy = syz = szz = 0.0
         cnt = 0
         for di in range(-radius, radius + 1):
@@ -326,13 +341,13 @@ def _sum_parts(parts):
     return h, total[21:27].copy(), total[27], int(total[28]), int(total[29])
 
 
-@njit(cache=_CACHE, nogil=True)
+@njit(cache=_CACHE, nogil=True, parallel=True)
 def gicp_linearise_pairs(src, src_cov, rot, trans, map_pos, map_cov, pairs, robust_scale):
     """gicp_linearise at a new pose with the pairs of an earlier search kept (the pose moved too little since
     to change which map point is nearest, so the search, most of the cost, is skipped)."""
     n = src.shape[0]
     parts = np.zeros((CHUNKS, 30))
-    for c in range(CHUNKS):
+    for c in prange(CHUNKS):
         for i in range(n * c // CHUNKS, n * (c + 1) // CHUNKS):
             if pairs[i] >= 0:
                 parts[c, 29] += 1.0
@@ -340,7 +355,7 @@ def gicp_linearise_pairs(src, src_cov, rot, trans, map_pos, map_cov, pairs, robu
     return _sum_parts(parts)
 
 
-@njit(cache=_CACHE, nogil=True)
+@njit(cache=_CACHE, nogil=True, parallel=True)
 def gicp_linearise(src, src_cov, src_lab, rot, trans, map_pos, map_cov, map_lab, usable, grid, origin, dims, voxel,
                    radius, max_dist, semantic_label_filter, robust_scale, pairs=None):
     """One Gauss-Newton step of GICP: H, g of the Mahalanobis cost, plus counts of pairs found and kept; the kept
@@ -351,7 +366,7 @@ def gicp_linearise(src, src_cov, src_lab, rot, trans, map_pos, map_cov, map_lab,
         pairs = np.empty(n, np.int64)
     parts = np.zeros((CHUNKS, 30))
     max_d2 = max_dist * max_dist
-    for c in range(CHUNKS):
+    for c in prange(CHUNKS):
         _linearise_range(n * c // CHUNKS, n * (c + 1) // CHUNKS, src, src_cov, src_lab, rot, trans, map_pos, map_cov,
                          map_lab, usable, grid, origin, dims, voxel, radius, max_d2, semantic_label_filter, robust_scale,
                          pairs, parts[c])
@@ -369,42 +384,53 @@ def nearest_distances(queries, map_pos, grid, origin, dims, voxel, radius, usabl
     return out, idx
 
 
-@njit(cache=_CACHE, nogil=True)
+@njit(cache=_CACHE, nogil=True, parallel=True)
 def assign_voxels(points, keys, map_pos, grid, origin, dims, voxel, merge_radius, map_rows, alive, n_map):
     """Map row of each frame point: the live map voxel holding it; else the nearest live map point within
     merge_radius (so a surface straddling a voxel boundary stays one voxel across frames and its p-index measures
     persistence, not aliasing); else a new row, numbered from n_map on, for its voxel.
     Returns (rows, first point of each new row). The grid is used up: new rows are written into it."""
-    out = np.empty(keys.shape[0], np.int64)
-    first_key = np.empty(keys.shape[0], np.int64)
-    n_new = 0
+    n_pts = keys.shape[0]
+    out = np.empty(n_pts, np.int64)
+    near = np.empty(n_pts, np.int64)
+    cells = np.empty(n_pts, np.int64)
     r2 = merge_radius * merge_radius
-    for n in range(keys.shape[0]):
+    # lookups in the map's own voxels, in parallel (new rows never take part in them) ...
+    for n in prange(n_pts):
         cell = ((keys[n, 0] - origin[0]) * dims[1] + keys[n, 1] - origin[1]) * dims[2] + keys[n, 2] - origin[2]
+        cells[n] = cell
+        out[n] = near[n] = -1
         local = grid[cell]
         if local >= 0 and alive[local]:
             out[n] = map_rows[local]
-            continue
-        if local <= -3:  # a voxel this frame created
-            out[n] = n_map + (-3 - local)
-            continue
-        if r2 > 0.0:
+        elif r2 > 0.0:
             m, d2 = nearest_in_window(points[n], map_pos, grid, origin, dims, voxel, 1, alive)
             if m >= 0 and d2 <= r2:
-                out[n] = map_rows[m]
-                continue
-        out[n] = n_map + n_new
-        first_key[n_new] = n
-        grid[cell] = -3 - n_new  # later points in this voxel join the same new row
-        n_new += 1
+                near[n] = map_rows[m]
+    # ... then, in point order, a voxel this frame created before the nearest map point, else a new row
+    first_key = np.empty(n_pts, np.int64)
+    n_new = 0
+    for n in range(n_pts):
+        if out[n] >= 0:
+            continue
+        local = grid[cells[n]]
+        if local <= -3:
+            out[n] = n_map + (-3 - local)
+        elif near[n] >= 0:
+            out[n] = near[n]
+        else:
+            out[n] = n_map + n_new
+            first_key[n_new] = n
+            grid[cells[n]] = -3 - n_new  # later points in this voxel join the same new row
+            n_new += 1
     return out, first_key[:n_new]
 
 
-@njit(cache=_CACHE, nogil=True)
+@njit(cache=_CACHE, nogil=True, parallel=True)
 def rotate_covariances(cov, rot):
     """R C R^T for each C (numpy's batched matmul is slow for 3x3)."""
     out = np.empty_like(cov)
-    for n in range(cov.shape[0]):
+    for n in prange(cov.shape[0]):
         for a in range(3):
             t0 = rot[a, 0] * cov[n, 0, 0] + rot[a, 1] * cov[n, 1, 0] + rot[a, 2] * cov[n, 2, 0]
             t1 = rot[a, 0] * cov[n, 0, 1] + rot[a, 1] * cov[n, 1, 1] + rot[a, 2] * cov[n, 2, 1]
@@ -414,65 +440,73 @@ def rotate_covariances(cov, rot):
     return out
 
 
-@njit(cache=_CACHE, nogil=True)
-def merge_points(rows, pw, cw, labels, t, pos, cov, counts, label, t0, f, last, wacc, use_p_index, changed):
+@njit(cache=_CACHE, nogil=True, parallel=True)
+def merge_points(rows, pw, cw, labels, t, pos, cov, counts, label, t0, f, last, wacc, use_p_index, changed, parts):
     """Voxel PFilter merge, in place: each touched voxel becomes the weighted mean of its old point
     (weight f * p-index, or f without the filter) and the frame's points in it (weight 1 each).
     changed (xmin, ymin, xmax, ymax) grows to hold every touched voxel before and after."""
-    for n in range(rows.shape[0]):
-        r = rows[n]
-        if last[r] != t:  # first point of this frame in voxel r
-            if f[r] > 0:
-                _grow_box(changed, pos[r, 0], pos[r, 1])
-                w = f[r] * (f[r] / (t - t0[r])) if use_p_index else float(f[r])
-            else:
-                w = 0.0
+    # part c (one a thread) owns the rows r with (r // 64) % parts == c and adds their points in point order, so every
+    # voxel sums the same numbers in the same order for any number of parts (blocks of 64 rows: no shared cache lines)
+    boxes = np.empty((parts, 4))
+    for c in prange(parts):
+        box = boxes[c]
+        box[0] = box[1] = np.inf
+        box[2] = box[3] = -np.inf
+        for n in range(rows.shape[0]):
+            r = rows[n]
+            if (r >> 6) % parts != c:
+                continue
+            if last[r] != t:  # first point of this frame in voxel r
+                if f[r] > 0:
+                    _grow_box(box, pos[r, 0], pos[r, 1])
+                    w = f[r] * (f[r] / (t - t0[r])) if use_p_index else float(f[r])
+                else:
+                    w = 0.0
+                for a in range(3):
+                    pos[r, a] *= w
+                    for b in range(3):
+                        cov[r, a, b] *= w
+                wacc[r] = w
+                f[r] += 1
+                last[r] = t
             for a in range(3):
-                pos[r, a] *= w
+                pos[r, a] += pw[n, a]
                 for b in range(3):
-                    cov[r, a, b] *= w
-            wacc[r] = w
-            f[r] += 1
-            last[r] = t
-        for a in range(3):
-            pos[r, a] += pw[n, a]
-            for b in range(3):
-                cov[r, a, b] += cw[n, a, b]
-        wacc[r] += 1.0
-        counts[r, labels[n]] += 1
-    for n in range(rows.shape[0]):
-        r = rows[n]
-        if wacc[r] > 0.0:
+                    cov[r, a, b] += cw[n, a, b]
+            wacc[r] += 1.0
+            counts[r, labels[n]] += 1
+        for n in range(rows.shape[0]):
+            r = rows[n]
+            if (r >> 6) % parts != c or wacc[r] <= 0.0:
+                continue
             inv = 1.0 / wacc[r]
             for a in range(3):
                 pos[r, a] *= inv
                 for b in range(3):
                     cov[r, a, b] *= inv
             wacc[r] = 0.0
-            _grow_box(changed, pos[r, 0], pos[r, 1])
+            _grow_box(box, pos[r, 0], pos[r, 1])
             best = 0
-            for c in range(counts.shape[1]):
-                if counts[r, c] > counts[r, best]:
-                    best = c
+            for k in range(counts.shape[1]):
+                if counts[r, k] > counts[r, best]:
+                    best = k
             label[r] = best
+    for c in range(parts):
+        if boxes[c, 0] <= boxes[c, 2]:  # this part touched a voxel
+            _grow_box(changed, boxes[c, 0], boxes[c, 1])
+            _grow_box(changed, boxes[c, 2], boxes[c, 3])
 
 
-@njit(cache=_CACHE, nogil=True)
-def pool_voxels(pos, cov, labels, usable, weight, votes_in, voxel, origin, dims, n_classes):
+@njit(cache=_CACHE, nogil=True, parallel=True)
+def pool_voxels(pos, cov, labels, usable, weight, votes_in, voxel, origin, dims, n_classes, parts):
     """Weighted mean position and covariance and majority label of the usable points in each cell of a coarser grid.
     weight and votes_in (empty: one point, one vote of its label) carry a pooled map's counts, so pooling it again
     equals pooling its voxels directly. Returns pos, cov, labels, dense grid of the cells, weights, votes."""
     n_cells = dims[0] * dims[1] * dims[2]
     grid = np.full(n_cells, -1, np.int32)
-    cap = min(pos.shape[0], n_cells)
-    out_pos = np.zeros((cap, 3))
-    out_cov = np.zeros((cap, 3, 3))
-    votes = np.zeros((cap, n_classes), np.int32)
-    count = np.zeros(cap)
-    weighted = weight.shape[0] > 0
-    pooled_votes = votes_in.shape[0] > 0
+    slot = np.full(pos.shape[0], -1, np.int64)
     n_out = 0
-    for n in range(pos.shape[0]):
+    for n in range(pos.shape[0]):  # cells numbered in order of first point, serially
         if not usable[n]:
             continue
         i = int(np.floor(pos[n, 0] / voxel)) - origin[0]
@@ -481,37 +515,49 @@ def pool_voxels(pos, cov, labels, usable, weight, votes_in, voxel, origin, dims,
         if i < 0 or j < 0 or k < 0 or i >= dims[0] or j >= dims[1] or k >= dims[2]:
             continue
         cell = (i * dims[1] + j) * dims[2] + k
-        s = grid[cell]
-        if s < 0:
-            s = n_out
-            grid[cell] = s
+        if grid[cell] < 0:
+            grid[cell] = n_out
             n_out += 1
-        w = weight[n] if weighted else 1.0
-        for a in range(3):
-            out_pos[s, a] += w * pos[n, a]
-            for b in range(3):
-                out_cov[s, a, b] += w * cov[n, a, b]
-        if pooled_votes:
-            for c in range(n_classes):
-                votes[s, c] += votes_in[n, c]
-        else:
-            votes[s, labels[n]] += 1
-        count[s] += w
+        slot[n] = grid[cell]
+    out_pos = np.zeros((n_out, 3))
+    out_cov = np.zeros((n_out, 3, 3))
+    votes = np.zeros((n_out, n_classes), np.int32)
+    count = np.zeros(n_out)
     out_lab = np.empty(n_out, np.uint8)
-    for s in range(n_out):
+    weighted = weight.shape[0] > 0
+    pooled_votes = votes_in.shape[0] > 0
+    # part c owns the cells s with (s // 64) % parts == c and adds their points in point order: the same sums on
+    # any number of parts
+    for c in prange(parts):
+        for n in range(pos.shape[0]):
+            s = slot[n]
+            if s < 0 or (s >> 6) % parts != c:
+                continue
+            w = weight[n] if weighted else 1.0
+            for a in range(3):
+                out_pos[s, a] += w * pos[n, a]
+                for b in range(3):
+                    out_cov[s, a, b] += w * cov[n, a, b]
+            if pooled_votes:
+                for v in range(n_classes):
+                    votes[s, v] += votes_in[n, v]
+            else:
+                votes[s, labels[n]] += 1
+            count[s] += w
+    for s in prange(n_out):
         for a in range(3):
             out_pos[s, a] /= count[s]
             for b in range(3):
                 out_cov[s, a, b] /= count[s]
         best = 0
-        for c in range(n_classes):
-            if votes[s, c] > votes[s, best]:
-                best = c
+        for v in range(n_classes):
+            if votes[s, v] > votes[s, best]:
+                best = v
         out_lab[s] = best
-    return out_pos[:n_out], out_cov[:n_out], out_lab, grid, count[:n_out], votes[:n_out]
+    return out_pos, out_cov, out_lab, grid, count, votes
 
 
-@njit(cache=_CACHE, nogil=True)
+@njit(cache=_CACHE, nogil=True, parallel=True)
 def ego_points(idx, rows, map_pos, map_cov, rot, trans, origin, dims, voxel):
     """Map voxels rows[idx] moved into the frame of the pose (rot, trans): positions R^T (p - t), covariances
     R^T C R, and the dense grid of their cells (a later voxel in the same cell wins)."""
@@ -519,19 +565,20 @@ def ego_points(idx, rows, map_pos, map_cov, rot, trans, origin, dims, voxel):
     pos = np.empty((n, 3))
     cov = np.empty((n, 3, 3))
     grid = np.full(dims[0] * dims[1] * dims[2], -1, np.int32)
-    for a in range(n):
+    for a in prange(n):
         r = rows[idx[a]]
         d0 = map_pos[r, 0] - trans[0]
         d1 = map_pos[r, 1] - trans[1]
         d2 = map_pos[r, 2] - trans[2]
-        for j in range(3):
-            pos[a, j] = d0 * rot[0, j] + d1 * rot[1, j] + d2 * rot[2, j]
+        for b in range(3):
+            pos[a, b] = d0 * rot[0, b] + d1 * rot[1, b] + d2 * rot[2, b]
         for u in range(3):  # R^T C R
             t0 = rot[0, u] * map_cov[r, 0, 0] + rot[1, u] * map_cov[r, 1, 0] + rot[2, u] * map_cov[r, 2, 0]
             t1 = rot[0, u] * map_cov[r, 0, 1] + rot[1, u] * map_cov[r, 1, 1] + rot[2, u] * map_cov[r, 2, 1]
             t2 = rot[0, u] * map_cov[r, 0, 2] + rot[1, u] * map_cov[r, 1, 2] + rot[2, u] * map_cov[r, 2, 2]
             for v in range(3):
                 cov[a, u, v] = t0 * rot[0, v] + t1 * rot[1, v] + t2 * rot[2, v]
+    for a in range(n):  # in order: a later voxel in the same cell wins
         i = int(np.floor(pos[a, 0] / voxel)) - origin[0]
         j = int(np.floor(pos[a, 1] / voxel)) - origin[1]
         k = int(np.floor(pos[a, 2] / voxel)) - origin[2]
@@ -654,42 +701,42 @@ def _grow_box(box, x, y):
     box[3] = max(box[3], y)
 
 
-@njit(cache=_CACHE, nogil=True)
+@njit(cache=_CACHE, nogil=True, parallel=True)
 def mark_observed(points, map_pos, grid, origin, dims, voxel, radius_m, map_rows, alive, f, last, t, changed):
     """Count as seen at frame t every live voxel within radius_m of a frame point (once a frame): a surface that
     straddles a voxel boundary falls in either voxel from frame to frame, and must not lose its p-index for it.
     changed grows to hold the voxels counted."""
     r2 = radius_m * radius_m
+    n_win = map_rows.shape[0]
     # window-local "already counted at t": neighbouring frame points test the same voxels many times over
-    counted = np.empty(map_rows.shape[0], np.bool_)
-    for m in range(map_rows.shape[0]):
+    counted = np.empty(n_win, np.bool_)
+    for m in range(n_win):
         counted[m] = last[map_rows[m]] == t or not alive[m]
-    for n in range(points.shape[0]):
-        ci = int(np.floor(points[n, 0] / voxel)) - origin[0]
-        cj = int(np.floor(points[n, 1] / voxel)) - origin[1]
-        ck = int(np.floor(points[n, 2] / voxel)) - origin[2]
-        for i in range(ci - 1, ci + 2):
-            if i < 0 or i >= dims[0]:
-                continue
-            for j in range(cj - 1, cj + 2):
-                if j < 0 or j >= dims[1]:
-                    continue
-                base = (i * dims[1] + j) * dims[2]
-                for k in range(ck - 1, ck + 2):
-                    if k < 0 or k >= dims[2]:
-                        continue
-                    m = grid[base + k]
-                    if m < 0 or counted[m]:
-                        continue
-                    d0 = map_pos[m, 0] - points[n, 0]
-                    d1 = map_pos[m, 1] - points[n, 1]
-                    d2 = map_pos[m, 2] - points[n, 2]
-                    if d0 * d0 + d1 * d1 + d2 * d2 <= r2:
-                        counted[m] = True
-                        _grow_box(changed, map_pos[m, 0], map_pos[m, 1])
-                        row = map_rows[m]
-                        f[row] += 1
-                        last[row] = t
+    seen = counted.copy()  # threads only ever write True here, so any interleaving gives the same set
+    n_pts = points.shape[0]
+    for c in prange(CHUNKS):
+        for n in range(n_pts * c // CHUNKS, n_pts * (c + 1) // CHUNKS):
+            ci = int(np.floor(points[n, 0] / voxel)) - origin[0]
+            cj = int(np.floor(points[n, 1] / voxel)) - origin[1]
+            ck = int(np.floor(points[n, 2] / voxel)) - origin[2]
+            for i in range(max(ci - 1, 0), min(ci + 2, dims[0])):
+                for j in range(max(cj - 1, 0), min(cj + 2, dims[1])):
+                    base = (i * dims[1] + j) * dims[2]
+                    for k in range(max(ck - 1, 0), min(ck + 2, dims[2])):
+                        m = grid[base + k]
+                        if m < 0 or seen[m]:
+                            continue
+                        d0 = map_pos[m, 0] - points[n, 0]
+                        d1 = map_pos[m, 1] - points[n, 1]
+                        d2 = map_pos[m, 2] - points[n, 2]
+                        if d0 * d0 + d1 * d1 + d2 * d2 <= r2:
+                            seen[m] = True
+    for m in range(n_win):
+        if seen[m] and not counted[m]:
+            _grow_box(changed, map_pos[m, 0], map_pos[m, 1])
+            row = map_rows[m]
+            f[row] += 1
+            last[row] = t
 
 
 @njit(cache=_CACHE, nogil=True)
@@ -711,33 +758,46 @@ def persistent_in_tiles(pos, alive, f, last, t0, n, threshold, use_p_index, lo, 
     return out[:n_out]
 
 
-@njit(cache=_CACHE, nogil=True)
+@njit(cache=_CACHE, nogil=True, parallel=True)
 def window_voxels(keys, alive, f, t0, pos, label, n, lower, upper, t):
     """Live rows < n with keys in [lower, upper], in row order, with copies of their positions and labels, their
     p-index f / max(t - t0, 1), and the dense grid of the box holding each one's window index (one pass, not five)."""
     dims = upper - lower + 1
-    grid = np.full(dims[0] * dims[1] * dims[2], -1, np.int32)
-    rows = np.empty(n, np.int64)
-    m = 0
-    for r in range(n):
-        if not alive[r]:
-            continue
-        i = keys[r, 0] - lower[0]
-        j = keys[r, 1] - lower[1]
-        k = keys[r, 2] - lower[2]
-        if 0 <= i < dims[0] and 0 <= j < dims[1] and 0 <= k < dims[2]:
-            rows[m] = r
-            grid[(i * dims[1] + j) * dims[2] + k] = m
-            m += 1
-    rows = rows[:m]
+    n_cells = dims[0] * dims[1] * dims[2]
+    grid = np.empty(n_cells, np.int32)
+    for c in prange(CHUNKS):
+        grid[n_cells * c // CHUNKS: n_cells * (c + 1) // CHUNKS] = -1
+    inside = np.empty(n, np.bool_)
+    counts = np.zeros(CHUNKS + 1, np.int64)
+    for c in prange(CHUNKS):  # the scan of every row is the cost: count each slice's rows in parallel
+        for r in range(n * c // CHUNKS, n * (c + 1) // CHUNKS):
+            i = keys[r, 0] - lower[0]
+            j = keys[r, 1] - lower[1]
+            k = keys[r, 2] - lower[2]
+            inside[r] = alive[r] and 0 <= i < dims[0] and 0 <= j < dims[1] and 0 <= k < dims[2]
+            if inside[r]:
+                counts[c + 1] += 1
+    for c in range(CHUNKS):
+        counts[c + 1] += counts[c]
+    m = counts[CHUNKS]
+    rows = np.empty(m, np.int64)
+    for c in prange(CHUNKS):
+        a = counts[c]
+        for r in range(n * c // CHUNKS, n * (c + 1) // CHUNKS):
+            if inside[r]:
+                rows[a] = r
+                a += 1
     out_pos = np.empty((m, 3))
     out_label = np.empty(m, np.uint8)
     p_index = np.empty(m)
-    for a in range(m):
+    for a in prange(m):
         r = rows[a]
         out_pos[a, 0] = pos[r, 0]
         out_pos[a, 1] = pos[r, 1]
         out_pos[a, 2] = pos[r, 2]
         out_label[a] = label[r]
         p_index[a] = f[r] / max(t - t0[r], 1)
+    for a in range(m):  # in row order: a later row with the same key wins
+        r = rows[a]
+        grid[((keys[r, 0] - lower[0]) * dims[1] + keys[r, 1] - lower[1]) * dims[2] + keys[r, 2] - lower[2]] = a
     return rows, out_pos, out_label, p_index, grid

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import numba
 import numpy as np
 
 from occvo_core.grid import NUM_CLASSES
@@ -88,7 +89,7 @@ class EgoMap:
         empty_w, empty_v = np.zeros(0), np.zeros((0, NUM_CLASSES), np.int32)
         pos, cov, labels, grid, weight, votes = kernels.pool_voxels(
             self.pos, self.cov, self.labels, self.usable, empty_w if self.weight is None else self.weight,
-            empty_v if self.votes is None else self.votes, voxel, origin, dims, NUM_CLASSES)
+            empty_v if self.votes is None else self.votes, voxel, origin, dims, NUM_CLASSES, numba.get_num_threads())
         return EgoMap(self.pose, pos, cov, labels, np.ones(len(pos), bool), grid, origin, dims, voxel,
                       np.full(len(pos), -1), weight, votes)
 
@@ -177,7 +178,8 @@ class VoxelPFilterMap:
         self._n += n_new
         changed = np.array([np.inf, np.inf, -np.inf, -np.inf])  # merged voxels before and after, observed ones
         kernels.merge_points(rows, points_world, covs_world, labels.astype(np.int64), t, self.pos, self.cov, self.counts,
-                             self.label, self.t0, self.f, self.last, self.wacc, self.pfilter, changed)
+                             self.label, self.t0, self.f, self.last, self.wacc, self.pfilter, changed,
+                             numba.get_num_threads())
         if self.observe_radius > 0:
             kernels.mark_observed(points_world, local.pos, local.grid, local.origin, local.dims, self.voxel,
                                   self.observe_radius, local.rows, self.alive[local.rows], self.f, self.last, t, changed)

@@ -61,6 +61,29 @@ class InitialisationConfig(_Section):
     use_constant_velocity: bool = True
 
 
+class LoopClosureConfig(_Section):
+    """Relocalisation against the map of a place seen long ago (not in the paper: its scenes are 20 s long, but a
+    long drive that comes back to its start does so with metres of drift, beyond any GICP basin)."""
+    enabled: bool = True
+    min_gap_frames: int = Field(100, ge=1, description="voxels made at least this many frames ago are the old map")
+    min_old_voxels: int = Field(3000, ge=1, description="reliable old voxels within the frame's box before a loop is looked for")
+    lock_share: float = Field(0.3, ge=0, le=1, description="no search while this share of the fine sources lies on the "
+                              "old map (same label, within the fine correspondence distance): the ego already follows it")
+    accept_share: float = Field(0.6, ge=0, le=1, description="a loop is closed when the relocalised frame puts at least "
+                                "this share of its fine sources where the old map is on it (and twice the share of "
+                                "all its sources as before)")
+    min_overlap: float = Field(0.25, ge=0, le=1, description="... and at least this share of them has old map within "
+                               "twice the coarse correspondence distance (the frame overlaps the old place)")
+    min_correction_m: float = Field(1.0, ge=0, description="smaller corrections are left to registration (its wide pass reaches 2.4 m)")
+    search_radius_m: float = Field(24.0, gt=0, description="BEV correlation window around the registered pose")
+    yaw_steps_deg: tuple[float, ...] = (-4.0, -2.0, 0.0, 2.0, 4.0)
+    correction_reach_m: float = Field(60.0, gt=0, description="after a closure, the map made since the old place was "
+                                      "last seen moves by the whole correction this close to the ego, fading to none "
+                                      "at twice the distance (a frame reaches ~57 m)")
+    ghost_radius_m: float = Field(1.0, ge=0, description="after a closure, a corrected recent voxel this close to an old "
+                                  "one of its label is that voxel seen through drift, and is dropped")
+
+
 class OccVOConfig(_Section):
     max_range_m: float | None = Field(None, gt=0, description="frame points farther than this (horizontally) are not used")
     gicp: GICPConfig = GICPConfig()
@@ -68,6 +91,7 @@ class OccVOConfig(_Section):
     dynamic_object_filter: DynamicObjectFilterConfig = DynamicObjectFilterConfig()
     voxel_pfilter: VoxelPFilterConfig = VoxelPFilterConfig()
     initialisation: InitialisationConfig = InitialisationConfig()
+    loop_closure: LoopClosureConfig = LoopClosureConfig()
 
     @classmethod
     def load(cls, path: str | Path) -> "OccVOConfig":

@@ -6,6 +6,7 @@ import time
 from dataclasses import dataclass, field
 
 import numpy as np
+from scipy.spatial.transform import Rotation
 
 from occvo_core.config import OccVOConfig
 from occvo_core.errors import ConfigError, InvalidFrameError
@@ -30,6 +31,7 @@ class StepResult:
     status: str  # "initialised" for the first frame, then "ok"
     timings_ms: dict[str, float] = field(default_factory=dict)
     pairs: dict[str, int] = field(default_factory=dict)
+    loop_correction: np.ndarray | None = None  # 4x4 world -> world when this frame closed a loop (see _loop_closure)
 
 
 @dataclass
@@ -88,6 +90,13 @@ class OccVO:
         self._poses: list[np.ndarray] = []
         self._indices: list[int] = []
         self._last: _Prepared | None = None
+        self._loops: list[tuple[int, np.ndarray]] = []  # (frame, correction) of every loop closed
+
+    @property
+    def loop_closures(self) -> list[tuple[int, np.ndarray]]:
+        """(frame, 4x4 world -> world correction) of each loop closed: the map made since the place was last seen
+        was moved by it, and poses from that frame on are relocalised (earlier poses stay as published)."""
+        return [(t, c.copy()) for t, c in self._loops]
 
     @property
     def poses(self) -> np.ndarray:
@@ -112,6 +121,7 @@ class OccVO:
         out = {"config_json": np.frombuffer(self.config.model_dump_json().encode(), np.uint8),
                "poses": self.poses, "indices": np.array(self._indices, np.int64)}
         out.update({f"map.{k}": v for k, v in self.map.state(copy).items()})
+        out["loops"] = np.array([[t, *c.ravel()] for t, c in self._loops], np.float64).reshape(-1, 17)
         if self._last is not None:
             out.update({f"last.{k}": np.asarray(v) for k, v in vars(self._last).items()})
         return out
@@ -119,13 +129,18 @@ class OccVO:
     def load_state_dict(self, state: dict[str, np.ndarray]) -> None:
         """Resume from state_dict(); the next step() continues bit for bit as if the run had never stopped."""
         saved = bytes(np.asarray(state["config_json"], np.uint8)).decode()
-        if saved != self.config.model_dump_json():
+        try:  # compared as configs, not text: a section added since takes its default
+            same = OccVOConfig.model_validate_json(saved) == self.config
+        except ValueError:
+            same = False
+        if not same:
             raise ConfigError("saved odometry state was made with another OccVOConfig; refusing to mix them "
                               f"(saved: {saved})")
         self.reset()
         self.map.load_state({k[4:]: np.asarray(v) for k, v in state.items() if k.startswith("map.")})
         self._poses = [np.array(p, np.float64) for p in np.asarray(state["poses"]).reshape(-1, 4, 4)]
         self._indices = [int(i) for i in state["indices"]]
+        self._loops = [(int(row[0]), row[1:].reshape(4, 4).copy()) for row in np.asarray(state.get("loops", np.zeros((0, 17))))]
         if "last.points" in state:
             last = {k[5:]: np.asarray(v) for k, v in state.items() if k.startswith("last.")}
             last["index"] = int(last["index"])
@@ -178,10 +193,11 @@ class OccVO:
             watch.lap("voxel_pfilter")
             return StepResult(frame.index, np.eye(4), "initialised", watch.ms, {"map_voxels": len(self.map)})
         pose, pairs = self.register_frame(prepared, t, watch)
-        return StepResult(frame.index, pose, "ok", watch.ms, pairs)
+        loop = self._loops[-1][1].copy() if self._loops and self._loops[-1][0] == t else None
+        return StepResult(frame.index, pose, "ok", watch.ms, pairs, loop)
 
     def register_frame(self, frame: _Prepared, t: int, watch: _Stopwatch) -> tuple[np.ndarray, dict[str, int]]:
-        """Coarse GICP -> semantic label filter -> dynamic object filter -> fine GICP -> voxel pfilter."""
+        """Coarse GICP -> semantic label filter -> dynamic object filter -> fine GICP -> (loop closure) -> voxel pfilter."""
         cfg = self.config.gicp
         guess = self._initial_guess(frame)
         watch.lap("initial_guess")
@@ -197,11 +213,15 @@ class OccVO:
                           cfg.fine_iterations)
         pose = guess @ fine.pose
         watch.lap("fine_gicp")
-        self._commit(frame, pose, local.rows[map_moved], local)
+        correction, loop = self._loop_closure(frame, pose, t, local)
+        watch.lap("loop_closure")
+        if correction is not None:
+            pose = correction @ pose
+        self._commit(frame, pose, local.rows[map_moved], local, correction)
         watch.lap("voxel_pfilter")
         pairs = {"coarse_found": coarse.pairs_found, "coarse_semantic_kept": coarse.pairs_kept,
                  "fine_found": fine.pairs_found, "fine_semantic_kept": fine.pairs_kept, **dyn,
-                 "reliable_voxels": int(local.usable.sum()), "map_voxels": len(self.map)}
+                 "reliable_voxels": int(local.usable.sum()), "map_voxels": len(self.map), **loop}
         return pose, pairs
 
     # -- the boxes of the pipeline ------------------------------------------------------------------------------
@@ -231,20 +251,33 @@ class OccVO:
     def _initial_guess(self, frame: _Prepared) -> np.ndarray:
         init = self.config.initialisation
         if len(self._poses) >= 2 and init.use_constant_velocity:
-            motion = np.linalg.inv(self._poses[-2]) @ self._poses[-1]
+            before = self._poses[-2]
+            if self._loops and self._loops[-1][0] == len(self._poses) - 1:
+                before = self._loops[-1][1] @ before  # the last pose was relocalised: the motion is not the jump
+            motion = np.linalg.inv(before) @ self._poses[-1]
             return self._poses[-1] @ motion
         prev = self._last
         motion, _ = bev_first_motion(prev.points, prev.labels, frame.points, frame.labels,
                                      search_radius_m=init.bev_search_radius_m, yaw_steps_deg=init.bev_yaw_steps_deg)
         return self._poses[-1] @ motion
 
-    def _local_map(self, pose: np.ndarray, t: int):
+    def _local_map(self, pose: np.ndarray, t: int, margin: np.ndarray | None = None):
         """The map voxels the frame can reach from `pose`: its grid's box in the world, with a margin for the
         correction registration will make."""
         corners = _transform(pose, _GRID_CORNERS)
-        lower = np.floor((corners.min(axis=0) - self._margin) / self.map.voxel).astype(np.int64)
-        upper = np.floor((corners.max(axis=0) + self._margin) / self.map.voxel).astype(np.int64)
+        margin = self._margin if margin is None else margin
+        lower = np.floor((corners.min(axis=0) - margin) / self.map.voxel).astype(np.int64)
+        upper = np.floor((corners.max(axis=0) + margin) / self.map.voxel).astype(np.int64)
         return self.map.window(lower, upper, t)
+
+    def _old_map(self, local, t: int) -> np.ndarray:
+        """Mask of the window's voxels that are the old map for loop closure: made at least min_gap_frames ago,
+        and reliable while they were in view (their p-index now also counts the frames since)."""
+        m, rows = self.map, local.rows
+        old = m.alive[rows] & (m.born[rows] < t - self.config.loop_closure.min_gap_frames)
+        if m.pfilter:
+            old &= m.f[rows] / np.maximum(m.last[rows] - m.t0[rows] + 1, 1) > m.p_index_threshold
+        return old
 
     def _coarse_gicp(self, frame: _Prepared, ego: EgoMap):
         """Coarse GICP against the map pooled on a coarse grid. A wide pass first (the map pooled wider still) reaches
@@ -294,11 +327,94 @@ class OccVO:
                                  "dynamic_points": int(found.frame_moved.sum()),
                                  "dynamic_map_voxels_removed": int(found.map_moved.sum())}
 
-    def _commit(self, frame: _Prepared, pose: np.ndarray, moved_rows: np.ndarray, local=None) -> None:
-        """The only place state changes: drop moved objects from the map, merge the frame, append the pose."""
+    def _loop_closure(self, frame: _Prepared, pose: np.ndarray, t: int, local) -> tuple[np.ndarray | None, dict[str, int]]:
+        """Back at a place mapped long ago, with drift beyond GICP's reach: find the frame on that old map (a BEV
+        correlation over metres, then coarse and fine GICP against the old voxels alone) and return the correction
+        (world -> world) when it puts far more of the frame on the old map than the registered pose does."""
+        lc, g = self.config.loop_closure, self.config.gicp
+        if not lc.enabled or t <= lc.min_gap_frames:
+            return None, {}
+        old = self._old_map(local, t)
+        info = {"loop_old_voxels": int(old.sum())}
+        if info["loop_old_voxels"] < lc.min_old_voxels:
+            return None, info
+        # the share is judged on static structure: ground lies on old ground at any offset along a road
+        src = frame.fine[~np.isin(frame.labels[frame.fine], GROUND_CLASSES + MOVABLE_CLASSES)]
+        share, _ = self._share_on(frame, src, pose, local, old)
+        info["loop_share_pct"] = int(round(100 * share))
+        if share >= lc.lock_share or len(src) == 0:
+            return None, info
+        # what the recent map already explains at this pose is the road just driven: the rest of the frame is what
+        # must be found on the old map (and the trail's rows of trees and houses would only alias the search)
+        recent = local.map.alive[local.rows] & ~old
+        d, _ = local.nearest(_transform(pose, frame.points), int(np.ceil(g.fine_max_correspondence_m / local.voxel)),
+                             usable=recent)
+        unexplained = d > g.fine_max_correspondence_m
+        # search the old map as far around the frame as the search reaches, not just its registration window
+        local = self._local_map(pose, t, self._margin + [lc.search_radius_m, lc.search_radius_m, 0.0])
+        old = self._old_map(local, t)
+        inverse = np.linalg.inv(pose)
+        motion, _ = bev_first_motion(_transform(inverse, local.pos[old]), local.labels[old], frame.points[unexplained],
+                                     frame.labels[unexplained], search_radius_m=lc.search_radius_m,
+                                     yaw_steps_deg=lc.yaw_steps_deg)
+        candidate = pose @ motion
+        ego = EgoMap.build(local, candidate, _EGO_LOWER - self._margin, _EGO_UPPER + self._margin, self.map.voxel,
+                           subset=old)
+        coarse = self._coarse_gicp(frame, ego)  # with its wide pass: the BEV peak can be metres off along a street
+        fine = self._gicp(frame, frame.fine, ego, coarse.pose, g.fine_max_correspondence_m, g.fine_iterations)
+        relocalised = candidate @ fine.pose
+        found, covered = self._share_on(frame, src, relocalised, local, old)
+        jump = float(np.linalg.norm(relocalised[:3, 3] - pose[:3, 3]))
+        on_covered = found / max(covered, 1e-9)
+        info.update(loop_found_pct=int(round(100 * found)), loop_covered_pct=int(round(100 * covered)),
+                    loop_jump_mm=int(round(1000 * jump)))
+        # judged where the old map is: coming back, a frame still sees the road it came by, which the old map lacks
+        if on_covered < lc.accept_share or covered < lc.min_overlap or found < 2 * share or jump < lc.min_correction_m:
+            return None, info
+        info["loop_closed"] = 1
+        return relocalised @ inverse, info
+
+    def _correct_recent_map(self, pose: np.ndarray, correction: np.ndarray, t: int) -> None:
+        """Move the voxels made within the last min_gap_frames by the loop correction, turning about the ego: wholly
+        within correction_reach_m of it (the map the frames now anchored to the old map were made from), fading to
+        nothing at twice that (the trail left long before, whose drift was smaller). Voxels that land on the old
+        map's own voxels are dropped as ghosts of them."""
+        lc = self.config.loop_closure
+        n = self.map._n
+        rows = np.flatnonzero(self.map.alive[:n] & (self.map.born[:n] >= t - lc.min_gap_frames))
+        centre = pose[:3, 3]  # the registered ego position: partial turns are about it, where they are right
+        away = np.linalg.norm(self.map.pos[rows, :2] - centre[:2], axis=1)
+        share = np.clip(2.0 - away / lc.correction_reach_m, 0.0, 1.0)
+        rot = Rotation.from_rotvec(share[:, None] * Rotation.from_matrix(correction[:3, :3]).as_rotvec()).as_matrix()
+        jump = correction[:3, :3] @ centre + correction[:3, 3] - centre  # where the correction takes the ego
+        trans = centre - np.einsum("nij,j->ni", rot, centre) + share[:, None] * jump
+        self.map.move(rows, rot, trans, ghost_radius_m=lc.ghost_radius_m, born_before=t - lc.min_gap_frames)
+
+    def _share_on(self, frame: _Prepared, idx: np.ndarray, pose: np.ndarray, local, subset: np.ndarray) -> tuple[float, float]:
+        """Shares of frame points idx that, at pose, have a voxel of subset with their label within the fine GICP
+        correspondence distance, and that have one of any label within twice the loop search's coarse reach
+        (the part of the frame the subset covers)."""
+        if len(idx) == 0:
+            return 0.0, 0.0
+        reach = self.config.gicp.fine_max_correspondence_m
+        cover = 2.0 * self.config.gicp.coarse_max_correspondence_m
+        d, j = kernels.nearest_distances(np.ascontiguousarray(_transform(pose, frame.points[idx])), local.pos, local.grid,
+                                         local.origin, local.dims, local.voxel, int(np.ceil(cover / local.voxel)), subset)
+        hit = (j >= 0) & (d <= reach)
+        hit[hit] = local.labels[j[hit]] == frame.labels[idx][hit]
+        return float(hit.mean()), float(((j >= 0) & (d <= cover)).mean())
+
+    def _commit(self, frame: _Prepared, pose: np.ndarray, moved_rows: np.ndarray, local=None,
+                correction: np.ndarray | None = None) -> None:
+        """The only place state changes: drop moved objects from the map, move the map made since a closed loop's
+        place was last seen, merge the frame, append the pose."""
         t = len(self._poses)
         if len(moved_rows):
             self.map.remove(moved_rows)
+        if correction is not None:
+            self._correct_recent_map(pose, correction, t)
+            self._loops.append((t, correction))
+            local = None  # its rows and grid are stale now
         rot = pose[:3, :3]
         covs_world = kernels.rotate_covariances(frame.covs, np.ascontiguousarray(rot))
         self.map.merge(_transform(pose, frame.points), frame.labels, covs_world, t, local)

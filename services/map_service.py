@@ -38,10 +38,7 @@ class MapService(Worker):
         if self.config.store_path:
             log_event(self.log, "map store", path=self.config.store_path, streams=self.store.streams())
 
-    def stop(self) -> None:
-        if self.stopping.is_set():
-            return
-        super().stop()
+    def after_leaving(self) -> None:
         self.store.close()
 
     def _on_update(self, sample: zenoh.Sample) -> None:

@@ -15,6 +15,7 @@ service keeps serving them) and come back when the ego is within working_radius_
 from __future__ import annotations
 
 import hashlib
+import logging
 import sys
 import threading
 import time
@@ -127,11 +128,8 @@ class RegistrationWorker(Worker):
                 log_event(self.log, "working radius below a frame's reach: eviction changes registration",
                           working_radius_m=self.config.working_radius_m)
 
-    def stop(self) -> None:
-        """Finish the frames in hand, leave the network, then snapshot every stream with unsnapshotted frames."""
-        if self.stopping.is_set():
-            return
-        super().stop()
+    def after_leaving(self) -> None:
+        """Off the network (the frames in hand finished): snapshot every stream with unsnapshotted frames."""
         if self.store is None:
             return
         for stream, st in list(self.states.items()):
@@ -139,11 +137,20 @@ class RegistrationWorker(Worker):
             if lane is not None and lane.thread.is_alive():
                 continue  # its frame in hand did not finish in time: do not touch its OccVO from here
             if st.vo is not None and st.since_snapshot > 0:
+                t0 = time.perf_counter()
                 try:
                     self._snapshot(stream, st)
                 except Exception as exc:  # noqa: BLE001 - the journal still holds those frames
                     log_event(self.log, "snapshot at shutdown failed", stream=stream, error=repr(exc))
+                self._shutdown_step("snapshot at shutdown", t0, stream=stream, map_voxels=len(st.vo.map))
+        t0, sizes = time.perf_counter(), self.store.file_sizes_mb()  # the WAL is checkpointed into the file on close
         self.store.close()
+        self._shutdown_step("store closed", t0, **sizes)
+
+    def _shutdown_step(self, step: str, t0: float, **fields) -> None:
+        """Log a shutdown step's time; a slow one at WARNING, since a supervisor's stop timeout may cut it short."""
+        took = time.perf_counter() - t0
+        log_event(self.log, step, logging.WARNING if took > 5.0 else logging.INFO, seconds=round(took, 2), **fields)
 
     def state(self, stream: str) -> StreamState:
         with self._states_lock:
@@ -204,6 +211,10 @@ class RegistrationWorker(Worker):
             return
         reg_ms = (time.perf_counter() - t0) * 1000.0 - st.tiling_ms
         pose_m = np.asarray(result.pose, float)
+        if result.loop_correction is not None:
+            self.stats.inc("loop_closures")
+            log_event(self.log, "loop closed", stream=stream, seq=msg.seq,
+                      correction_m=round(float(np.linalg.norm(pose_m[:3, 3] - (np.linalg.inv(result.loop_correction) @ pose_m)[:3, 3])), 3))
         status = _STATUS.get(result.status, "ok")
         t_store = time.perf_counter()
         if self.store is not None:

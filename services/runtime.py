@@ -332,8 +332,6 @@ class Worker:
             left = lane.queue.qsize()
             if left:
                 self.stats.inc("abandoned_at_shutdown", left)
-        counters, _ = self.stats.snapshot()
-        log_event(self.log, "stopped", worker=self.worker_id, **counters)
         for entity in (self.token, *self._declared):
             try:
                 entity.undeclare()
@@ -341,6 +339,12 @@ class Worker:
                 self.log.debug("undeclare at shutdown failed: %s", exc)
         if self.session is not None:
             self.session.close()
+        self.after_leaving()
+        counters, _ = self.stats.snapshot()
+        log_event(self.log, "stopped", worker=self.worker_id, **counters)  # always the last line of a worker's log
+
+    def after_leaving(self) -> None:
+        """Shutdown work once off the network (e.g. the registration worker's last snapshots)."""
 
     def run_forever(self) -> int:
         """Until SIGTERM or SIGINT; returns the exit code."""

@@ -246,6 +246,16 @@ class TrajectoryStore:
         with self.lock:
             self.db.close()
 
+    def file_sizes_mb(self) -> dict[str, float]:
+        """Sizes of the SQLite file and its WAL, MB (for logs)."""
+        out = {}
+        for name, path in (("db_mb", Path(self.path)), ("wal_mb", Path(f"{self.path}-wal"))):
+            try:
+                out[name] = round(path.stat().st_size / 2**20, 1)
+            except (OSError, TypeError):
+                pass
+        return out
+
 
 def _pose(row) -> StoredPose:
     seq, stamp, digest, status, blob = row

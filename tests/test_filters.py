@@ -182,3 +182,32 @@ def test_near_any_agrees_with_a_kd_tree():
                                   points[:50] + rng.normal(0, 1.2, (min(50, n_points), 3))])
         want = (cKDTree(points).query(queries)[0] <= 2.0) if n_points else np.zeros(len(queries), bool)
         assert np.array_equal(kernels.near_any(queries, points, 2.0), want)
+
+
+def test_moving_map_voxels_drops_ghosts_of_older_voxels_and_cell_clashes():
+    """A loop closure moves the recent map; a moved voxel that lands on an older voxel of its label (within the
+    ghost radius) or in an occupied cell is that voxel seen through drift, and goes."""
+    m = VoxelPFilterMap(merge_radius_m=0.0)
+    old = [[10.1, 10.1, 1.1], [20.1, 20.1, 1.1]]
+    for t in range(3):
+        _merge(m, old, t)
+    _merge(m, [[15.1, 10.1, 1.1], [25.1, 20.1, 1.1], [40.1, 40.1, 1.1]], 10, label=15)
+    _merge(m, [[35.1, 40.1, 1.1]], 10, label=16)
+    recent = np.flatnonzero(m.born[: m._n] >= 10)
+    shift = np.array([-5.0, 0.0, 0.0])
+    # 15.1 -> 10.1: old voxel's cell; 25.1 -> 20.1 likewise; 40.1 -> 35.1: free; 35.1 (other label) -> 30.1: free
+    m.move(recent, np.tile(np.eye(3), (len(recent), 1, 1)), np.tile(shift, (len(recent), 1)), ghost_radius_m=1.0, born_before=5)
+    kept = {tuple(p) for p in m.pos[: m._n][m.alive[: m._n]].round(2)}
+    assert kept == {(10.1, 10.1, 1.1), (20.1, 20.1, 1.1), (35.1, 40.1, 1.1), (30.1, 40.1, 1.1)}
+    assert m.pop_changed_region() is None  # moved anywhere: the caller re-tiles everything
+    # a ghost one cell off: dropped only when an old voxel of its label is within the radius
+    for radius, expect in ((1.0, 1), (0.0, 0)):
+        m2 = VoxelPFilterMap(merge_radius_m=0.0)
+        for t in range(3):
+            _merge(m2, [[10.1, 10.1, 1.1]], t)
+        _merge(m2, [[15.1, 10.1, 1.1]], 10)  # -> (10.6, 10.4): 0.58 m from the old voxel, in the next cell
+        _merge(m2, [[15.1, 10.5, 1.1]], 10, label=16)  # -> (10.6, 10.8): as near, another class
+        recent = np.flatnonzero(m2.born[: m2._n] >= 10)
+        assert m2.move(recent, np.tile(np.eye(3), (2, 1, 1)), np.tile([-4.5, 0.3, 0.0], (2, 1)), ghost_radius_m=radius,
+                       born_before=5) == expect
+        assert m2.alive[recent[1]]

@@ -203,9 +203,8 @@ class Pipeline:
 
     def crash_registration(self):
         """Leave like a killed process after its last commit: no shutdown snapshot."""
-        from services.runtime import Worker
-
-        Worker.stop(self.reg)
+        self.reg.after_leaving = lambda: None
+        self.reg.stop()
         self.reg.store.close()
 
     def close(self):

@@ -11,7 +11,7 @@ import numpy as np
 from occvo_core.grid import NUM_CLASSES
 from occvo_core.registration import kernels
 
-_FIELDS = ("keys", "pos", "cov", "counts", "label", "t0", "f", "last", "wacc", "alive")
+_FIELDS = ("keys", "pos", "cov", "counts", "label", "t0", "f", "last", "wacc", "alive", "born")
 
 
 @dataclass
@@ -41,10 +41,10 @@ class LocalMap:
         return bool(len(keys) == 0 or (np.all(keys.min(axis=0) >= self.origin)
                                        and np.all(keys.max(axis=0) < self.origin + self.dims)))
 
-    def nearest(self, queries: np.ndarray, radius_cells: int) -> tuple[np.ndarray, np.ndarray]:
-        """(distance, local index or -1) of each query's nearest usable voxel within radius_cells voxels."""
-        return kernels.nearest_distances(np.ascontiguousarray(queries, np.float64), self.pos, self.grid,
-                                         self.origin, self.dims, self.voxel, radius_cells, self.usable)
+    def nearest(self, queries: np.ndarray, radius_cells: int, usable: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """(distance, local index or -1) of each query's nearest usable voxel (or of `usable`) within radius_cells voxels."""
+        return kernels.nearest_distances(np.ascontiguousarray(queries, np.float64), self.pos, self.grid, self.origin,
+                                         self.dims, self.voxel, radius_cells, self.usable if usable is None else usable)
 
 
 @dataclass
@@ -94,6 +94,11 @@ class EgoMap:
                       np.full(len(pos), -1), weight, votes)
 
 
+def _older_name(arrays: dict, name: str) -> str:
+    """States and evicted blocks saved before `born` existed: a voxel's t0 is the best guess of its birth."""
+    return "t0" if name == "born" and "born" not in arrays else name
+
+
 class VoxelPFilterMap:
     def __init__(self, voxel_m: float = 0.4, p_index_threshold: float = 0.5, pfilter: bool = True,
                  merge_radius_m: float | None = None, observe_radius_m: float = 0.0):
@@ -113,6 +118,7 @@ class VoxelPFilterMap:
             "cov": ((capacity, 3, 3), np.float64, 0.0), "counts": ((capacity, NUM_CLASSES), np.int32, 0),
             "label": ((capacity,), np.uint8, 0), "t0": ((capacity,), np.int32, 0), "f": ((capacity,), np.int32, 0),
             "last": ((capacity,), np.int32, -1), "wacc": ((capacity,), np.float64, 0.0), "alive": ((capacity,), np.bool_, False),
+            "born": ((capacity,), np.int32, 0),  # frame the voxel was made: unlike t0, not shifted by put()
         }
         for name, (shape, dtype, fill) in spec.items():
             # zeros come from calloc: pages cost nothing until touched, so doubling does not write the new half
@@ -170,7 +176,7 @@ class VoxelPFilterMap:
             self._alloc(max(2 * len(self.pos), self._n + n_new))
         new = slice(self._n, self._n + n_new)
         self.keys[new] = keys[first_key]
-        self.t0[new] = t
+        self.t0[new] = self.born[new] = t
         self.f[new] = 0
         self.last[new] = -1
         self.counts[new] = 0
@@ -214,7 +220,7 @@ class VoxelPFilterMap:
         self._changed = None
         self._alloc(max(1 << 16, n))
         for name in _FIELDS:
-            getattr(self, name)[:n] = state[name]
+            getattr(self, name)[:n] = state[_older_name(state, name)]
         self._n = n
 
     def tile_ids(self, tile_m: float) -> np.ndarray:
@@ -249,13 +255,45 @@ class VoxelPFilterMap:
         rows = slice(self._n, self._n + n_new)
         for name in _FIELDS:
             if name != "alive":
-                getattr(self, name)[rows] = np.asarray(block[name])[new]
+                getattr(self, name)[rows] = np.asarray(block[_older_name(block, name)])[new]
         self.t0[rows] += shift
         self.last[rows] = int(t) - 1
         self.alive[rows] = True
         self._touch(self.pos[rows])
         self._n += n_new
         return n_new
+
+    def move(self, rows: np.ndarray, rot: np.ndarray, trans: np.ndarray, ghost_radius_m: float = 0.0,
+             born_before: int = 0) -> int:
+        """Move live rows rigidly, each by its own rotation (k,3,3) and translation (k,3), as a loop closure corrects
+        the map made since a place was last seen. A moved voxel is dropped when its new cell already holds a live
+        voxel (the map seen there first stands, as in put()), or when a reliable voxel born before `born_before` with
+        its label lies within ghost_radius_m: it is that voxel seen again through drift. Returns the number dropped."""
+        rows = np.asarray(rows, np.int64)
+        if len(rows) == 0:
+            return 0
+        pos = np.einsum("nij,nj->ni", rot, self.pos[rows]) + trans
+        self.pos[rows] = pos
+        self.cov[rows] = np.einsum("nij,njk,nlk->nil", rot, self.cov[rows], rot)
+        self.keys[rows] = keys = np.floor(pos / self.voxel).astype(np.int64)
+        self.alive[rows] = False  # judge the moved voxels against the others
+        held = self.window(keys.min(axis=0) - 1, keys.max(axis=0) + 1)
+        cells = ((keys - held.origin) * [held.dims[1] * held.dims[2], held.dims[2], 1]).sum(axis=1)
+        keep = np.zeros(len(rows), bool)
+        keep[np.unique(cells, return_index=True)[1]] = True  # two moved voxels in one cell: the first row stands
+        keep &= held.grid[cells] < 0
+        if ghost_radius_m > 0 and len(held):
+            old = self.born[held.rows] < born_before
+            if self.pfilter:
+                r = held.rows
+                old &= self.f[r] / np.maximum(self.last[r] - self.t0[r] + 1, 1) > self.p_index_threshold
+            d, j = held.nearest(pos, int(np.ceil(ghost_radius_m / self.voxel)), usable=old)
+            ghost = (j >= 0) & (d <= ghost_radius_m)
+            ghost[ghost] = held.labels[j[ghost]] == self.label[rows[ghost]]
+            keep &= ~ghost
+        self.alive[rows[keep]] = True
+        self._changed = None  # voxels moved anywhere in the working set: re-tile it all
+        return int(len(rows) - keep.sum())
 
     def persistent(self) -> np.ndarray:
         """The voxel pfilter on the finished map, per live row: seen in more than the threshold's share of the frames

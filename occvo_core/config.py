@@ -76,6 +76,8 @@ class LoopClosureConfig(_Section):
                                "twice the coarse correspondence distance (the frame overlaps the old place)")
     min_correction_m: float = Field(1.0, ge=0, description="smaller corrections are left to registration (its wide pass reaches 2.4 m)")
     search_radius_m: float = Field(24.0, gt=0, description="BEV correlation window around the registered pose")
+    search_every_frames: int = Field(5, ge=1, description="after a search, the next one waits this many frames (a "
+                                     "search costs tens of ms; many streams share the worker's cores)")
     yaw_steps_deg: tuple[float, ...] = (-4.0, -2.0, 0.0, 2.0, 4.0)
     correction_reach_m: float = Field(60.0, gt=0, description="after a closure, the map made since the old place was "
                                       "last seen moves by the whole correction this close to the ego, fading to none "

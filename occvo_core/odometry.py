@@ -91,6 +91,7 @@ class OccVO:
         self._indices: list[int] = []
         self._last: _Prepared | None = None
         self._loops: list[tuple[int, np.ndarray]] = []  # (frame, correction) of every loop closed
+        self._last_loop_search = -(1 << 30)  # frame of the last loop search
 
     @property
     def loop_closures(self) -> list[tuple[int, np.ndarray]]:
@@ -122,6 +123,7 @@ class OccVO:
                "poses": self.poses, "indices": np.array(self._indices, np.int64)}
         out.update({f"map.{k}": v for k, v in self.map.state(copy).items()})
         out["loops"] = np.array([[t, *c.ravel()] for t, c in self._loops], np.float64).reshape(-1, 17)
+        out["last_loop_search"] = np.array(self._last_loop_search, np.int64)
         if self._last is not None:
             out.update({f"last.{k}": np.asarray(v) for k, v in vars(self._last).items()})
         return out
@@ -141,6 +143,7 @@ class OccVO:
         self._poses = [np.array(p, np.float64) for p in np.asarray(state["poses"]).reshape(-1, 4, 4)]
         self._indices = [int(i) for i in state["indices"]]
         self._loops = [(int(row[0]), row[1:].reshape(4, 4).copy()) for row in np.asarray(state.get("loops", np.zeros((0, 17))))]
+        self._last_loop_search = int(state.get("last_loop_search", self._last_loop_search))
         if "last.points" in state:
             last = {k[5:]: np.asarray(v) for k, v in state.items() if k.startswith("last.")}
             last["index"] = int(last["index"])
@@ -217,7 +220,7 @@ class OccVO:
         watch.lap("loop_closure")
         if correction is not None:
             pose = correction @ pose
-        self._commit(frame, pose, local.rows[map_moved], local, correction)
+        self._commit(frame, pose, local.rows[map_moved], local, correction, searched="loop_searched" in loop)
         watch.lap("voxel_pfilter")
         pairs = {"coarse_found": coarse.pairs_found, "coarse_semantic_kept": coarse.pairs_kept,
                  "fine_found": fine.pairs_found, "fine_semantic_kept": fine.pairs_kept, **dyn,
@@ -273,11 +276,7 @@ class OccVO:
     def _old_map(self, local, t: int) -> np.ndarray:
         """Mask of the window's voxels that are the old map for loop closure: made at least min_gap_frames ago,
         and reliable while they were in view (their p-index now also counts the frames since)."""
-        m, rows = self.map, local.rows
-        old = m.alive[rows] & (m.born[rows] < t - self.config.loop_closure.min_gap_frames)
-        if m.pfilter:
-            old &= m.f[rows] / np.maximum(m.last[rows] - m.t0[rows] + 1, 1) > m.p_index_threshold
-        return old
+        return self.map.persistent_rows(local.rows, born_before=t - self.config.loop_closure.min_gap_frames)
 
     def _coarse_gicp(self, frame: _Prepared, ego: EgoMap):
         """Coarse GICP against the map pooled on a coarse grid. A wide pass first (the map pooled wider still) reaches
@@ -342,8 +341,9 @@ class OccVO:
         src = frame.fine[~np.isin(frame.labels[frame.fine], GROUND_CLASSES + MOVABLE_CLASSES)]
         share, _ = self._share_on(frame, src, pose, local, old)
         info["loop_share_pct"] = int(round(100 * share))
-        if share >= lc.lock_share or len(src) == 0:
+        if share >= lc.lock_share or len(src) == 0 or t - self._last_loop_search < lc.search_every_frames:
             return None, info
+        info["loop_searched"] = 1
         # what the recent map already explains at this pose is the road just driven: the rest of the frame is what
         # must be found on the old map (and the trail's rows of trees and houses would only alias the search)
         recent = local.map.alive[local.rows] & ~old
@@ -392,7 +392,7 @@ class OccVO:
 
     def _share_on(self, frame: _Prepared, idx: np.ndarray, pose: np.ndarray, local, subset: np.ndarray) -> tuple[float, float]:
         """Shares of frame points idx that, at pose, have a voxel of subset with their label within the fine GICP
-        correspondence distance, and that have one of any label within twice the loop search's coarse reach
+        correspondence distance, and that have one of any label within twice the coarse correspondence distance
         (the part of the frame the subset covers)."""
         if len(idx) == 0:
             return 0.0, 0.0
@@ -405,12 +405,14 @@ class OccVO:
         return float(hit.mean()), float(((j >= 0) & (d <= cover)).mean())
 
     def _commit(self, frame: _Prepared, pose: np.ndarray, moved_rows: np.ndarray, local=None,
-                correction: np.ndarray | None = None) -> None:
+                correction: np.ndarray | None = None, searched: bool = False) -> None:
         """The only place state changes: drop moved objects from the map, move the map made since a closed loop's
         place was last seen, merge the frame, append the pose."""
         t = len(self._poses)
         if len(moved_rows):
             self.map.remove(moved_rows)
+        if searched:
+            self._last_loop_search = t
         if correction is not None:
             self._correct_recent_map(pose, correction, t)
             self._loops.append((t, correction))

@@ -283,10 +283,7 @@ class VoxelPFilterMap:
         keep[np.unique(cells, return_index=True)[1]] = True  # two moved voxels in one cell: the first row stands
         keep &= held.grid[cells] < 0
         if ghost_radius_m > 0 and len(held):
-            old = self.born[held.rows] < born_before
-            if self.pfilter:
-                r = held.rows
-                old &= self.f[r] / np.maximum(self.last[r] - self.t0[r] + 1, 1) > self.p_index_threshold
+            old = self.persistent_rows(held.rows, born_before)
             d, j = held.nearest(pos, int(np.ceil(ghost_radius_m / self.voxel)), usable=old)
             ghost = (j >= 0) & (d <= ghost_radius_m)
             ghost[ghost] = held.labels[j[ghost]] == self.label[rows[ghost]]
@@ -299,12 +296,17 @@ class VoxelPFilterMap:
         """The voxel pfilter on the finished map, per live row: seen in more than the threshold's share of the frames
         from its first to its last sighting (the p-index over the time it was in view; the plain p-index would also
         punish a voxel for every frame after the car drove past it)."""
-        n = self._n
-        alive = self.alive[:n]
-        if not self.pfilter:
-            return alive
-        f = self.f[:n]
-        return alive & (f / np.maximum(self.last[:n] - self.t0[:n] + 1, 1) > self.p_index_threshold)
+        return self.persistent_rows(np.arange(self._n))
+
+    def persistent_rows(self, rows: np.ndarray, born_before: int | None = None) -> np.ndarray:
+        """persistent() for the given rows; with born_before, only voxels made before that frame (the old map of
+        loop closure)."""
+        keep = self.alive[rows].copy()
+        if self.pfilter:
+            keep &= self.f[rows] / np.maximum(self.last[rows] - self.t0[rows] + 1, 1) > self.p_index_threshold
+        if born_before is not None:
+            keep &= self.born[rows] < born_before
+        return keep
 
     def points(self, tiles: tuple[np.ndarray, np.ndarray, float] | None = None) -> tuple[np.ndarray, np.ndarray]:
         """The map a user gets: the persistent voxels (all live voxels with the filter off); with tiles = (lo, hi,

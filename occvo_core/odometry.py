@@ -398,8 +398,7 @@ class OccVO:
             return 0.0, 0.0
         reach = self.config.gicp.fine_max_correspondence_m
         cover = 2.0 * self.config.gicp.coarse_max_correspondence_m
-        d, j = kernels.nearest_distances(np.ascontiguousarray(_transform(pose, frame.points[idx])), local.pos, local.grid,
-                                         local.origin, local.dims, local.voxel, int(np.ceil(cover / local.voxel)), subset)
+        d, j = local.nearest(_transform(pose, frame.points[idx]), int(np.ceil(cover / local.voxel)), usable=subset)
         hit = (j >= 0) & (d <= reach)
         hit[hit] = local.labels[j[hit]] == frame.labels[idx][hit]
         return float(hit.mean()), float(((j >= 0) & (d <= cover)).mean())

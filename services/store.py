@@ -248,13 +248,9 @@ class TrajectoryStore:
 
     def file_sizes_mb(self) -> dict[str, float]:
         """Sizes of the SQLite file and its WAL, MB (for logs)."""
-        out = {}
-        for name, path in (("db_mb", Path(self.path)), ("wal_mb", Path(f"{self.path}-wal"))):
-            try:
-                out[name] = round(path.stat().st_size / 2**20, 1)
-            except (OSError, TypeError):
-                pass
-        return out
+        paths = {"db_mb": Path(self.path), "wal_mb": Path(f"{self.path}-wal")}
+        # an in-memory store has neither file, a checkpointed WAL may be gone: only what exists is reported
+        return {name: round(path.stat().st_size / 2**20, 1) for name, path in paths.items() if path.is_file()}
 
 
 def _pose(row) -> StoredPose:

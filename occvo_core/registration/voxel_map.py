@@ -296,9 +296,9 @@ class VoxelPFilterMap:
         """The voxel pfilter on the finished map, per live row: seen in more than the threshold's share of the frames
         from its first to its last sighting (the p-index over the time it was in view; the plain p-index would also
         punish a voxel for every frame after the car drove past it)."""
-        return self.persistent_rows(np.arange(self._n))
+        return self.persistent_rows(slice(0, self._n))
 
-    def persistent_rows(self, rows: np.ndarray, born_before: int | None = None) -> np.ndarray:
+    def persistent_rows(self, rows: np.ndarray | slice, born_before: int | None = None) -> np.ndarray:
         """persistent() for the given rows; with born_before, only voxels made before that frame (the old map of
         loop closure)."""
         keep = self.alive[rows].copy()

@@ -67,8 +67,10 @@ class LoopClosureConfig(_Section):
     enabled: bool = True
     min_gap_frames: int = Field(100, ge=1, description="voxels made at least this many frames ago are the old map")
     min_old_voxels: int = Field(3000, ge=1, description="reliable old voxels within the frame's box before a loop is looked for")
-    lock_share: float = Field(0.3, ge=0, le=1, description="no search while this share of the fine sources lies on the "
-                              "old map (same label, within the fine correspondence distance): the ego already follows it")
+    lock_share: float = Field(0.3, ge=0, le=1, description="a frame with this share of its fine sources on the old map "
+                              "(same label, within the fine correspondence distance) follows it: no search, the old map "
+                              "constrains the next registration whatever its p-index and takes the frame's points (a "
+                              "frame off it would only drag it), and the map made since drifted no more")
     accept_share: float = Field(0.6, ge=0, le=1, description="a loop is closed when the relocalised frame puts at least "
                                 "this share of its fine sources where the old map is on it (and twice the share of "
                                 "all its sources as before)")
@@ -76,14 +78,13 @@ class LoopClosureConfig(_Section):
                                "twice the coarse correspondence distance (the frame overlaps the old place)")
     min_correction_m: float = Field(1.0, ge=0, description="smaller corrections are left to registration (its wide pass reaches 2.4 m)")
     search_radius_m: float = Field(24.0, gt=0, description="BEV correlation window around the registered pose")
+    search_height_m: float = Field(8.0, ge=0, description="the search also reaches this far up and down (height drifts "
+                                   "too; the frame's ground is then levelled on the old map's)")
     search_every_frames: int = Field(5, ge=1, description="after a search, the next one waits this many frames (a "
                                      "search costs tens of ms; many streams share the worker's cores)")
     yaw_steps_deg: tuple[float, ...] = (-4.0, -2.0, 0.0, 2.0, 4.0)
-    correction_reach_m: float = Field(60.0, gt=0, description="after a closure, the map made since the old place was "
-                                      "last seen moves by the whole correction this close to the ego, fading to none "
-                                      "at twice the distance (a frame reaches ~57 m)")
-    ghost_radius_m: float = Field(1.0, ge=0, description="after a closure, a corrected recent voxel this close to an old "
-                                  "one of its label is that voxel seen through drift, and is dropped")
+    ghost_radius_m: float = Field(1.0, ge=0, description="after a closure, a corrected voxel this close to one of the "
+                                  "anchor's map with its label is that voxel seen through drift, and is dropped")
 
 
 class OccVOConfig(_Section):

@@ -16,8 +16,8 @@ from occvo_core.map_tiles import pack_tiles, tile_distance
 from occvo_core.registration import kernels
 from occvo_core.registration.dynamic_object_filter import dynamic_object_filter
 from occvo_core.registration.gicp import gicp, rotation_angle
-from occvo_core.registration.initialisation import bev_first_motion
-from occvo_core.registration.voxel_map import EgoMap, VoxelPFilterMap
+from occvo_core.registration.initialisation import bev_first_motion, ground_height_correction
+from occvo_core.registration.voxel_map import EgoMap, VoxelPFilterMap, _older_name
 
 _GRID_CORNERS = np.array(np.meshgrid(*zip(OCC3D_GRID.lower, OCC3D_GRID.upper), indexing="ij")).reshape(3, -1).T
 GROUND_CLASSES = (11, 12, 13, 14)  # driveable surface, other flat, sidewalk, terrain
@@ -92,6 +92,10 @@ class OccVO:
         self._last: _Prepared | None = None
         self._loops: list[tuple[int, np.ndarray]] = []  # (frame, correction) of every loop closed
         self._last_loop_search = -(1 << 30)  # frame of the last loop search
+        self._on_old_map = False  # the last frame lay on the old map (loop closure's lock_share)
+        self._anchor = 0  # the last frame on the old map (or the first): the map since then drifted with the poses
+        # per loop closed: the frames (anchor, t] and the world -> world correction of the map made at each
+        self._map_corrections: list[tuple[int, np.ndarray, np.ndarray]] = []
 
     @property
     def loop_closures(self) -> list[tuple[int, np.ndarray]]:
@@ -124,6 +128,10 @@ class OccVO:
         out.update({f"map.{k}": v for k, v in self.map.state(copy).items()})
         out["loops"] = np.array([[t, *c.ravel()] for t, c in self._loops], np.float64).reshape(-1, 17)
         out["last_loop_search"] = np.array(self._last_loop_search, np.int64)
+        out["on_old_map"] = np.array(self._on_old_map)
+        out["anchor"] = np.array(self._anchor, np.int64)
+        out["map_corrections"] = np.array([[t, b, *c.ravel()] for t, frames, cs in self._map_corrections
+                                           for b, c in zip(frames, cs)], np.float64).reshape(-1, 18)
         if self._last is not None:
             out.update({f"last.{k}": np.asarray(v) for k, v in vars(self._last).items()})
         return out
@@ -144,6 +152,12 @@ class OccVO:
         self._indices = [int(i) for i in state["indices"]]
         self._loops = [(int(row[0]), row[1:].reshape(4, 4).copy()) for row in np.asarray(state.get("loops", np.zeros((0, 17))))]
         self._last_loop_search = int(state.get("last_loop_search", self._last_loop_search))
+        self._on_old_map = bool(state.get("on_old_map", False))
+        self._anchor = int(state.get("anchor", 0))
+        rows = np.asarray(state.get("map_corrections", np.zeros((0, 18))))
+        for t in np.unique(rows[:, 0]).astype(np.int64):
+            mine = rows[rows[:, 0] == t]
+            self._map_corrections.append((int(t), mine[:, 1].astype(np.int64), mine[:, 2:].reshape(-1, 4, 4).copy()))
         if "last.points" in state:
             last = {k[5:]: np.asarray(v) for k, v in state.items() if k.startswith("last.")}
             last["index"] = int(last["index"])
@@ -171,9 +185,27 @@ class OccVO:
         return out
 
     def restore_tiles(self, blocks: dict[tuple[int, int], dict[str, np.ndarray]]) -> int:
-        """Put evicted tiles back (as evict_tiles returned them); returns the voxels restored."""
+        """Put evicted tiles back (as evict_tiles returned them), moved by the loops closed since they were taken;
+        returns the voxels restored."""
         t = len(self._poses)
-        return sum(self.map.put(block, t) for block in blocks.values())
+        return sum(self.map.put(self._corrected_block(block), t) for block in blocks.values())
+
+    def _corrected_block(self, block: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+        taken = int(block["taken_at"])
+        later = [c for c in self._map_corrections if c[0] >= taken]
+        if not later or len(block["keys"]) == 0:
+            return block
+        block = dict(block)
+        born = np.asarray(block[_older_name(block, "born")], np.int64)
+        pos, cov = np.array(block["pos"], np.float64), np.array(block["cov"], np.float64)
+        for _, frames, corrections in later:
+            k = np.searchsorted(frames, born)
+            mine = np.flatnonzero((k < len(frames)) & (frames[np.minimum(k, len(frames) - 1)] == born))
+            c = corrections[k[mine]]
+            pos[mine] = np.einsum("nij,nj->ni", c[:, :3, :3], pos[mine]) + c[:, :3, 3]
+            cov[mine] = np.einsum("nij,njk,nlk->nil", c[:, :3, :3], cov[mine], c[:, :3, :3])
+        block.update(pos=pos, cov=cov, keys=np.floor(pos / self.map.voxel).astype(np.int64))
+        return block
 
     def resident_tiles(self, tile_m: float) -> set[tuple[int, int]]:
         """Tiles with voxels in the working map."""
@@ -205,6 +237,10 @@ class OccVO:
         guess = self._initial_guess(frame)
         watch.lap("initial_guess")
         local = self._local_map(guess, t)  # local.usable: the voxel pfilter's reliable voxels (p-index > threshold)
+        entered = self.map.enter(local, t)
+        old = self._old_map(local, t)
+        if self._on_old_map:  # following a place mapped long ago: its map constrains registration again
+            local.usable |= old
         ego = EgoMap.build(local, guess, _EGO_LOWER - self._margin, _EGO_UPPER + self._margin, self.map.voxel)
         watch.lap("local_map")
         coarse = self._coarse_gicp(frame, ego)
@@ -216,11 +252,12 @@ class OccVO:
                           cfg.fine_iterations)
         pose = guess @ fine.pose
         watch.lap("fine_gicp")
-        correction, loop = self._loop_closure(frame, pose, t, local)
+        correction, loop = self._loop_closure(frame, pose, t, local, old)
         watch.lap("loop_closure")
         if correction is not None:
             pose = correction @ pose
-        self._commit(frame, pose, local.rows[map_moved], local, correction, searched="loop_searched" in loop)
+        self._commit(frame, pose, local.rows[map_moved], local, correction, searched="loop_searched" in loop,
+                     on_old_map=loop.get("loop_on_old", 0) == 1, entered=entered)
         watch.lap("voxel_pfilter")
         pairs = {"coarse_found": coarse.pairs_found, "coarse_semantic_kept": coarse.pairs_kept,
                  "fine_found": fine.pairs_found, "fine_semantic_kept": fine.pairs_kept, **dyn,
@@ -273,10 +310,14 @@ class OccVO:
         upper = np.floor((corners.max(axis=0) + margin) / self.map.voxel).astype(np.int64)
         return self.map.window(lower, upper, t)
 
-    def _old_map(self, local, t: int) -> np.ndarray:
+    def _old_map(self, local, t: int) -> np.ndarray | None:
         """Mask of the window's voxels that are the old map for loop closure: made at least min_gap_frames ago,
-        and reliable while they were in view (their p-index now also counts the frames since)."""
-        return self.map.persistent_rows(local.rows, born_before=t - self.config.loop_closure.min_gap_frames)
+        and reliable while they were in view (their p-index now also counts the frames since). None without
+        loop closure or before min_gap_frames."""
+        lc = self.config.loop_closure
+        if not lc.enabled or t <= lc.min_gap_frames:
+            return None
+        return self.map.persistent_rows(local.rows, born_before=t - lc.min_gap_frames)
 
     def _coarse_gicp(self, frame: _Prepared, ego: EgoMap):
         """Coarse GICP against the map pooled on a coarse grid. A wide pass first (the map pooled wider still) reaches
@@ -326,21 +367,23 @@ class OccVO:
                                  "dynamic_points": int(found.frame_moved.sum()),
                                  "dynamic_map_voxels_removed": int(found.map_moved.sum())}
 
-    def _loop_closure(self, frame: _Prepared, pose: np.ndarray, t: int, local) -> tuple[np.ndarray | None, dict[str, int]]:
+    def _loop_closure(self, frame: _Prepared, pose: np.ndarray, t: int, local,
+                      old: np.ndarray | None) -> tuple[np.ndarray | None, dict[str, int]]:
         """Back at a place mapped long ago, with drift beyond GICP's reach: find the frame on that old map (a BEV
         correlation over metres, then coarse and fine GICP against the old voxels alone) and return the correction
-        (world -> world) when it puts far more of the frame on the old map than the registered pose does."""
+        (world -> world) when it puts far more of the frame on the old map than the registered pose does.
+        info["loop_on_old"] says whether the frame (relocalised or not) lies on the old map."""
         lc, g = self.config.loop_closure, self.config.gicp
-        if not lc.enabled or t <= lc.min_gap_frames:
+        if old is None:
             return None, {}
-        old = self._old_map(local, t)
         info = {"loop_old_voxels": int(old.sum())}
         if info["loop_old_voxels"] < lc.min_old_voxels:
             return None, info
         # the share is judged on static structure: ground lies on old ground at any offset along a road
         src = frame.fine[~np.isin(frame.labels[frame.fine], GROUND_CLASSES + MOVABLE_CLASSES)]
-        share, _ = self._share_on(frame, src, pose, local, old)
+        share, covered = self._share_on(frame, src, pose, local, old)
         info["loop_share_pct"] = int(round(100 * share))
+        info["loop_on_old"] = int(covered >= lc.min_overlap and share >= lc.lock_share)
         if share >= lc.lock_share or len(src) == 0 or t - self._last_loop_search < lc.search_every_frames:
             return None, info
         info["loop_searched"] = 1
@@ -351,13 +394,19 @@ class OccVO:
                              usable=recent)
         unexplained = d > g.fine_max_correspondence_m
         # search the old map as far around the frame as the search reaches, not just its registration window
-        local = self._local_map(pose, t, self._margin + [lc.search_radius_m, lc.search_radius_m, 0.0])
+        local = self._local_map(pose, t, self._margin + [lc.search_radius_m, lc.search_radius_m, lc.search_height_m])
         old = self._old_map(local, t)
         inverse = np.linalg.inv(pose)
         motion, _ = bev_first_motion(_transform(inverse, local.pos[old]), local.labels[old], frame.points[unexplained],
                                      frame.labels[unexplained], search_radius_m=lc.search_radius_m,
                                      yaw_steps_deg=lc.yaw_steps_deg)
         candidate = pose @ motion
+        # height, roll and pitch drift too on a long drive: level the frame's ground on the old map's
+        level = ground_height_correction(local.pos[old & np.isin(local.labels, GROUND_CLASSES)],
+                                         _transform(candidate, frame.points[np.isin(frame.labels, GROUND_CLASSES)]),
+                                         candidate[:3, 3])
+        if level is not None:
+            candidate = level @ candidate
         ego = EgoMap.build(local, candidate, _EGO_LOWER - self._margin, _EGO_UPPER + self._margin, self.map.voxel,
                            subset=old)
         coarse = self._coarse_gicp(frame, ego)  # with its wide pass: the BEV peak can be metres off along a street
@@ -371,24 +420,36 @@ class OccVO:
         # judged where the old map is: coming back, a frame still sees the road it came by, which the old map lacks
         if on_covered < lc.accept_share or covered < lc.min_overlap or found < 2 * share or jump < lc.min_correction_m:
             return None, info
-        info["loop_closed"] = 1
+        info["loop_closed"] = info["loop_on_old"] = 1
         return relocalised @ inverse, info
 
-    def _correct_recent_map(self, pose: np.ndarray, correction: np.ndarray, t: int) -> None:
-        """Move the voxels made within the last min_gap_frames by the loop correction, turning about the ego: wholly
-        within correction_reach_m of it (the map the frames now anchored to the old map were made from), fading to
-        nothing at twice that (the trail left long before, whose drift was smaller). Voxels that land on the old
-        map's own voxels are dropped as ghosts of them."""
+    def _correct_map(self, pose: np.ndarray, correction: np.ndarray, t: int) -> None:
+        """Spread the loop correction over the map made since the anchor (the last frame on the old map), as a pose
+        graph with equal weights along the path would: each frame's heading takes the rotation in proportion to
+        the distance driven since the anchor, the path is integrated again with it, and what is left of the
+        translation is spread the same way. Each voxel moves with the frame that made it, so the last frame gets
+        the whole correction and the anchor none. Moved voxels that land on the anchor's map are dropped as ghosts
+        of it (VoxelPFilterMap.move)."""
         lc = self.config.loop_closure
+        a = self._anchor
+        frames = np.arange(a + 1, t + 1)
+        ego = np.array([p[:3, 3] for p in self._poses[a:]] + [pose[:3, 3]])  # frames a..t, registered
+        step = np.diff(ego, axis=0)
+        travelled = np.concatenate([[0.0], np.cumsum(np.linalg.norm(step, axis=1))])
+        share = travelled / max(travelled[-1], 1e-9)
+        turn = Rotation.from_rotvec(share[:, None] * Rotation.from_matrix(correction[:3, :3]).as_rotvec())
+        rot = turn.as_matrix()
+        path = ego[0] + np.concatenate([np.zeros((1, 3)), np.cumsum(np.einsum("nij,nj->ni", rot[1:], step), axis=0)])
+        target = correction[:3, :3] @ ego[-1] + correction[:3, 3]
+        path += share[:, None] * (target - path[-1])
+        corrections = np.tile(np.eye(4), (len(frames), 1, 1))
+        corrections[:, :3, :3] = rot[1:]
+        corrections[:, :3, 3] = path[1:] - np.einsum("nij,nj->ni", rot[1:], ego[1:])
+        self._map_corrections.append((t, frames, corrections))
         n = self.map._n
-        rows = np.flatnonzero(self.map.alive[:n] & (self.map.born[:n] >= t - lc.min_gap_frames))
-        centre = pose[:3, 3]  # the registered ego position: partial turns are about it, where they are right
-        away = np.linalg.norm(self.map.pos[rows, :2] - centre[:2], axis=1)
-        share = np.clip(2.0 - away / lc.correction_reach_m, 0.0, 1.0)
-        rot = Rotation.from_rotvec(share[:, None] * Rotation.from_matrix(correction[:3, :3]).as_rotvec()).as_matrix()
-        jump = correction[:3, :3] @ centre + correction[:3, 3] - centre  # where the correction takes the ego
-        trans = centre - np.einsum("nij,j->ni", rot, centre) + share[:, None] * jump
-        self.map.move(rows, rot, trans, ghost_radius_m=lc.ghost_radius_m, born_before=t - lc.min_gap_frames)
+        rows = np.flatnonzero(self.map.alive[:n] & (self.map.born[:n] > a))
+        c = corrections[self.map.born[rows] - a - 1]
+        self.map.move(rows, c[:, :3, :3], c[:, :3, 3], ghost_radius_m=lc.ghost_radius_m, born_before=a + 1)
 
     def _share_on(self, frame: _Prepared, idx: np.ndarray, pose: np.ndarray, local, subset: np.ndarray) -> tuple[float, float]:
         """Shares of frame points idx that, at pose, have a voxel of subset with their label within the fine GICP
@@ -404,22 +465,31 @@ class OccVO:
         return float(hit.mean()), float(((j >= 0) & (d <= cover)).mean())
 
     def _commit(self, frame: _Prepared, pose: np.ndarray, moved_rows: np.ndarray, local=None,
-                correction: np.ndarray | None = None, searched: bool = False) -> None:
-        """The only place state changes: drop moved objects from the map, move the map made since a closed loop's
-        place was last seen, merge the frame, append the pose."""
+                correction: np.ndarray | None = None, searched: bool = False, on_old_map: bool = False,
+                entered: tuple[np.ndarray, np.ndarray] | None = None) -> None:
+        """The only place state changes: drop moved objects from the map, record the registration window, spread a
+        closed loop's correction over the map made since the anchor, merge the frame (as loop closure's old map
+        allows: see VoxelPFilterMap.merge), append the pose."""
         t = len(self._poses)
+        lc = self.config.loop_closure
+        self._on_old_map = on_old_map
         if len(moved_rows):
             self.map.remove(moved_rows)
+        if entered is not None:
+            self.map.entered(*entered, t)
         if searched:
             self._last_loop_search = t
         if correction is not None:
-            self._correct_recent_map(pose, correction, t)
+            self._correct_map(np.linalg.inv(correction) @ pose, correction, t)
             self._loops.append((t, correction))
             local = None  # its rows and grid are stale now
         rot = pose[:3, :3]
         covs_world = kernels.rotate_covariances(frame.covs, np.ascontiguousarray(rot))
-        self.map.merge(_transform(pose, frame.points), frame.labels, covs_world, t, local)
+        old = t - lc.min_gap_frames if lc.enabled and t > lc.min_gap_frames else None
+        self.map.merge(_transform(pose, frame.points), frame.labels, covs_world, t, local, old, on_old_map)
         self.map.compact()
+        if on_old_map:
+            self._anchor = t
         self._poses.append(pose)
         self._indices.append(frame.index)
         self._last = frame

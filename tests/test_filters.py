@@ -211,3 +211,57 @@ def test_moving_map_voxels_drops_ghosts_of_older_voxels_and_cell_clashes():
         assert m2.move(recent, np.tile(np.eye(3), (2, 1, 1)), np.tile([-4.5, 0.3, 0.0], (2, 1)), ghost_radius_m=radius,
                        born_before=5) == expect
         assert m2.alive[recent[1]]
+
+
+def _window_of(m, t):
+    return m.window(np.array([-100, -100, -10]), np.array([100, 100, 20]), t)
+
+
+def test_a_voxel_back_in_the_registration_window_keeps_its_p_index():
+    """The p-index counts the frames a voxel could be seen in: frames it spent outside every registration window
+    (a place driven away from and come back to) do not wear it down, frames in the window without a sighting do."""
+    m = VoxelPFilterMap()
+    for t in range(4):  # seen in frames 0..3
+        m.entered(*m.enter(_window_of(m, t), t), t)
+        _merge(m, [[5.1, 5.1, 1.1]], t)
+    far = np.array([1000, 1000, 0])
+    for t in range(4, 10):  # the window is elsewhere
+        m.entered(*m.enter(m.window(far, far + 10, t), t), t)
+    local = _window_of(m, 10)
+    rows, away = m.enter(local, 10)
+    assert away.tolist() == [6] and local.p_index[0] == 1.0 and local.usable[0]  # 4 sightings in 4 frames in view
+    assert m.p_index(10)[0] == 4 / 10  # the map itself is untouched until the frame is committed
+    m.entered(rows, away, 10)
+    assert m.p_index(10)[0] == 1.0 and m.persistent()[0]
+    for t in range(10, 14):  # in the window, not seen: these frames count against it
+        m.entered(*m.enter(_window_of(m, t), t), t)
+    assert m.p_index(14)[0] == 4 / 8 and not _window_of(m, 14).usable[0]
+
+
+def test_a_frame_off_the_old_map_leaves_it_alone_and_one_on_it_adds_no_second_layer():
+    """Loop closure's old map in the voxel pfilter merge: a drifted frame neither drags old voxels nor counts them
+    seen; a frame following the old map counts a point near an old voxel as a sighting, not as a new voxel."""
+    def old_map():
+        m = VoxelPFilterMap(observe_radius_m=0.45)
+        for t in range(3):
+            _merge(m, [[5.1, 5.1, 1.1], [9.1, 9.1, 1.1]], t)
+        return m
+
+    points = [[5.15, 5.0, 1.1],  # in the first old voxel's cell
+              [9.1, 9.45, 1.1],  # next cell, 0.35 m from the second old voxel
+              [20.1, 20.1, 1.1]]  # nowhere near
+    off = old_map()
+    rows = off.merge(np.array(points), np.full(3, 15, np.uint8), np.tile(np.eye(3), (3, 1, 1)), 200,
+                     old_born_before=100, on_old=False)
+    assert rows[0] == -1 and rows[1] >= 2 and rows[2] >= 2  # no point lands in an old voxel
+    assert off.f[:2].tolist() == [3, 3] and off.last[:2].tolist() == [2, 2]  # not seen, not moved
+    assert np.allclose(off.pos[:2], [[5.1, 5.1, 1.1], [9.1, 9.1, 1.1]]) and len(off) == 4
+    on = old_map()
+    rows = on.merge(np.array(points), np.full(3, 15, np.uint8), np.tile(np.eye(3), (3, 1, 1)), 200,
+                    old_born_before=100, on_old=True)
+    assert rows[0] == 0 and rows[1] == -1 and rows[2] == 2  # merged, absorbed, new
+    assert on.f[:2].tolist() == [4, 4] and on.last[:2].tolist() == [200, 200]  # both seen once at frame 200
+    assert len(on) == 3
+    plain = old_map()  # without an old map both nearby points make voxels of their own
+    plain.merge(np.array(points), np.full(3, 15, np.uint8), np.tile(np.eye(3), (3, 1, 1)), 200)
+    assert len(plain) == 4

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import numpy as np
 from scipy.ndimage import gaussian_filter
+from scipy.spatial.transform import Rotation
 
 STRUCTURE_CLASSES = np.array([1, 8, 15, 16])  # barrier, traffic cone, manmade, vegetation
 
@@ -46,3 +47,42 @@ def bev_first_motion(prev_points: np.ndarray, prev_labels: np.ndarray, points: n
     motion[:2, :2] = [[c, -s], [s, c]]
     motion[:2, 3] = (di * res, dj * res)
     return motion, float(score)
+
+
+def ground_height_correction(map_ground: np.ndarray, frame_ground: np.ndarray, centre: np.ndarray,
+                             cell_m: float = 0.8, min_cells: int = 30) -> np.ndarray | None:
+    """World -> world correction that puts a frame's ground points (world frame) on the map's ground: a height
+    shift and a tilt about `centre`, from a plane fitted robustly to the per x-y cell differences of mean ground
+    height. The bird's-eye search finds x, y and yaw only; over a long drive, height and pitch drift too.
+    None when fewer than min_cells cells hold both."""
+    def cell_heights(points):
+        ij = np.floor(points[:, :2] / cell_m).astype(np.int64)
+        keys, inverse = np.unique((ij[:, 0] + (1 << 30)) * (1 << 31) + ij[:, 1] + (1 << 30), return_inverse=True)
+        inverse = inverse.reshape(-1)
+        return keys, np.bincount(inverse, points[:, 2]) / np.bincount(inverse)
+
+    if len(map_ground) == 0 or len(frame_ground) == 0:
+        return None
+    map_keys, map_z = cell_heights(map_ground)
+    frame_keys, frame_z = cell_heights(frame_ground)
+    common, mi, fi = np.intersect1d(map_keys, frame_keys, return_indices=True)
+    if len(common) < min_cells:
+        return None
+    xy = np.stack([common // (1 << 31) - (1 << 30), common % (1 << 31) - (1 << 30)], axis=1) * cell_m + 0.5 * cell_m
+    xy = xy - centre[:2]
+    dz = map_z[mi] - frame_z[fi]
+    design = np.column_stack([np.ones(len(dz)), xy])
+    keep = np.ones(len(dz), bool)
+    for _ in range(3):  # kerbs, ramps and cells mixing two surfaces are outliers of one plane
+        coef = np.linalg.lstsq(design[keep], dz[keep], rcond=None)[0]
+        residual = np.abs(dz - design @ coef)
+        keep = residual <= max(3.0 * np.median(residual[keep]), 0.2)
+        if keep.sum() < min_cells:
+            return None
+    a, b, c = coef
+    # a small rotation w about the centre raises a point at (x, y) by w_x * y - w_y * x
+    rot = Rotation.from_rotvec([c, -b, 0.0]).as_matrix()
+    out = np.eye(4)
+    out[:3, :3] = rot
+    out[:3, 3] = centre - rot @ centre + [0.0, 0.0, a]
+    return out

@@ -11,7 +11,7 @@ import numpy as np
 from occvo_core.grid import NUM_CLASSES
 from occvo_core.registration import kernels
 
-_FIELDS = ("keys", "pos", "cov", "counts", "label", "t0", "f", "last", "wacc", "alive", "born")
+_FIELDS = ("keys", "pos", "cov", "counts", "label", "t0", "f", "last", "wacc", "alive", "born", "in_window")
 
 
 @dataclass
@@ -95,8 +95,11 @@ class EgoMap:
 
 
 def _older_name(arrays: dict, name: str) -> str:
-    """States and evicted blocks saved before `born` existed: a voxel's t0 is the best guess of its birth."""
-    return "t0" if name == "born" and "born" not in arrays else name
+    """States and evicted blocks saved before `born` or `in_window` existed: a voxel's t0 is the best guess of its
+    birth, its last sighting of its last frame in a registration window."""
+    if name not in arrays:
+        return {"born": "t0", "in_window": "last"}.get(name, name)
+    return name
 
 
 class VoxelPFilterMap:
@@ -119,6 +122,7 @@ class VoxelPFilterMap:
             "label": ((capacity,), np.uint8, 0), "t0": ((capacity,), np.int32, 0), "f": ((capacity,), np.int32, 0),
             "last": ((capacity,), np.int32, -1), "wacc": ((capacity,), np.float64, 0.0), "alive": ((capacity,), np.bool_, False),
             "born": ((capacity,), np.int32, 0),  # frame the voxel was made: unlike t0, not shifted by put()
+            "in_window": ((capacity,), np.int32, 0),  # last frame whose registration window held it (enter())
         }
         for name, (shape, dtype, fill) in spec.items():
             # zeros come from calloc: pages cost nothing until touched, so doubling does not write the new half
@@ -161,22 +165,66 @@ class VoxelPFilterMap:
         usable = p_index > self.p_index_threshold if (t is not None and self.pfilter) else np.ones(len(rows), bool)
         return LocalMap(rows, pos, labels, p_index, usable, grid, origin, upper - origin + 1, self.voxel, self)
 
+    def enter(self, local: LocalMap, t: int) -> tuple[np.ndarray, np.ndarray]:
+        """Frame t's registration window: a voxel back in it after frames outside (a place driven away from and come
+        back to, without eviction) has those frames taken out of its p-index, as put() does for evicted ones: the
+        p-index counts the frames a voxel could be seen in. On a single pass no voxel leaves the window and comes
+        back, and this changes nothing. Updates local's p-index and usable; returns (rows, frames away) for
+        entered() to record once the frame is committed."""
+        gap = (int(t) - 1) - self.in_window[local.rows]
+        back = np.flatnonzero(gap > 0)
+        if len(back):
+            r = local.rows[back]
+            local.p_index[back] = self.f[r] / np.maximum(t - (self.t0[r] + gap[back]), 1)
+            if self.pfilter:
+                local.usable[back] = local.p_index[back] > self.p_index_threshold
+        return local.rows, np.maximum(gap, 0)
+
+    def entered(self, rows: np.ndarray, away: np.ndarray, t: int) -> None:
+        """Record enter()'s window: t0 and the last sighting move on by the frames away (persistence, seen over the
+        frames in view, stays as it was), and the window held them at frame t. Rows dropped since are skipped."""
+        live = self.alive[rows]
+        rows, away = rows[live], away[live]
+        self.t0[rows] += away.astype(np.int32)
+        self.last[rows] += away.astype(np.int32)
+        self.in_window[rows] = t
+
     def merge(self, points_world: np.ndarray, labels: np.ndarray, covs_world: np.ndarray, t: int,
-              local: LocalMap | None = None) -> np.ndarray:
-        """Add frame t's points (world frame) and return the map rows they landed in. `local`, when it covers the
-        points, saves building the window again (its grid is used up: new voxels are written into it)."""
+              local: LocalMap | None = None, old_born_before: int | None = None, on_old: bool = False) -> np.ndarray:
+        """Add frame t's points (world frame) and return the map rows they landed in (-1: dropped). `local`, when it
+        covers the points, saves building the window again (its grid is used up: new voxels are written into it).
+        With old_born_before, the persistent voxels made before that frame are an old map (loop closure):
+        - a frame on it (on_old) adds no voxel beside them: a point within the observe radius of one, in an empty
+          cell, counts as a sighting of it and is dropped (a revisit must not grow a second layer beside the map);
+        - a frame off it leaves them as they are: not merged into, not counted as seen, and points in their cells
+          are dropped (a frame that drifted would drag them and wear down their p-index by chance overlaps)."""
         keys = np.floor(points_world / self.voxel).astype(np.int64)
         if local is None or not local.contains(keys):
             local = self.window(keys.min(axis=0) - 1, keys.max(axis=0) + 1)
+        alive = self.alive[local.rows]
+        out, seen_from = None, points_world  # dropped points still count as sightings (not of frozen voxels)
+        old = self.persistent_rows(local.rows, old_born_before) if old_born_before is not None else None
+        if old is not None and old.any():
+            cells = ((keys - local.origin) * [local.dims[1] * local.dims[2], local.dims[2], 1]).sum(axis=1)
+            held = local.grid[cells]
+            if on_old:
+                take = held < 0
+                d, _ = local.nearest(points_world[take], int(np.ceil(self.observe_radius / self.voxel)), usable=old)
+                take[take] = d > self.observe_radius
+                take |= held >= 0
+            else:
+                take = ~((held >= 0) & old[np.maximum(held, 0)])
+                alive &= ~old
+            out = np.full(len(keys), -1, np.int64)
+            points_world, labels, covs_world, keys = points_world[take], labels[take], covs_world[take], keys[take]
         rows, first_key = kernels.assign_voxels(points_world, keys, local.pos, local.grid, local.origin,
-                                                local.dims, self.voxel, self.merge_radius, local.rows,
-                                                self.alive[local.rows], self._n)
+                                                local.dims, self.voxel, self.merge_radius, local.rows, alive, self._n)
         n_new = len(first_key)
         if self._n + n_new > len(self.pos):
             self._alloc(max(2 * len(self.pos), self._n + n_new))
         new = slice(self._n, self._n + n_new)
         self.keys[new] = keys[first_key]
-        self.t0[new] = self.born[new] = t
+        self.t0[new] = self.born[new] = self.in_window[new] = t
         self.f[new] = 0
         self.last[new] = -1
         self.counts[new] = 0
@@ -187,9 +235,14 @@ class VoxelPFilterMap:
                              self.label, self.t0, self.f, self.last, self.wacc, self.pfilter, changed,
                              numba.get_num_threads())
         if self.observe_radius > 0:
-            kernels.mark_observed(points_world, local.pos, local.grid, local.origin, local.dims, self.voxel,
-                                  self.observe_radius, local.rows, self.alive[local.rows], self.f, self.last, t, changed)
+            kernels.mark_observed(seen_from, local.pos, local.grid, local.origin, local.dims, self.voxel,
+                                  self.observe_radius, local.rows, alive, self.f, self.last, t, changed)
         self._touch_box(changed)
+        seen = local.rows[self.last[local.rows] == t]
+        self.in_window[seen] = t  # a voxel seen is in view, whatever window this frame registered in
+        if out is not None:
+            out[take] = rows
+            return out
         return rows
 
     def remove(self, rows: np.ndarray) -> None:
@@ -257,7 +310,7 @@ class VoxelPFilterMap:
             if name != "alive":
                 getattr(self, name)[rows] = np.asarray(block[_older_name(block, name)])[new]
         self.t0[rows] += shift
-        self.last[rows] = int(t) - 1
+        self.last[rows] = self.in_window[rows] = int(t) - 1
         self.alive[rows] = True
         self._touch(self.pos[rows])
         self._n += n_new
@@ -267,12 +320,13 @@ class VoxelPFilterMap:
              born_before: int = 0) -> int:
         """Move live rows rigidly, each by its own rotation (k,3,3) and translation (k,3), as a loop closure corrects
         the map made since a place was last seen. A moved voxel is dropped when its new cell already holds a live
-        voxel (the map seen there first stands, as in put()), or when a reliable voxel born before `born_before` with
-        its label lies within ghost_radius_m: it is that voxel seen again through drift. Returns the number dropped."""
+        voxel (the map seen there first stands, as in put()), or when it moved more than a voxel and a reliable voxel
+        born before `born_before` with its label lies within ghost_radius_m: it is that voxel seen again through drift. Returns the number dropped."""
         rows = np.asarray(rows, np.int64)
         if len(rows) == 0:
             return 0
         pos = np.einsum("nij,nj->ni", rot, self.pos[rows]) + trans
+        moved_far = np.linalg.norm(pos - self.pos[rows], axis=1) > self.voxel
         self.pos[rows] = pos
         self.cov[rows] = np.einsum("nij,njk,nlk->nil", rot, self.cov[rows], rot)
         self.keys[rows] = keys = np.floor(pos / self.voxel).astype(np.int64)
@@ -285,7 +339,7 @@ class VoxelPFilterMap:
         if ghost_radius_m > 0 and len(held):
             old = self.persistent_rows(held.rows, born_before)
             d, j = held.nearest(pos, int(np.ceil(ghost_radius_m / self.voxel)), usable=old)
-            ghost = (j >= 0) & (d <= ghost_radius_m)
+            ghost = (j >= 0) & (d <= ghost_radius_m) & moved_far  # a voxel moved less than its size was there already
             ghost[ghost] = held.labels[j[ghost]] == self.label[rows[ghost]]
             keep &= ~ghost
         self.alive[rows[keep]] = True

@@ -11,7 +11,8 @@ served; APE RMSE of the whole trajectory against the scene's gt_poses (occvo_cor
 the map tiles around the start (20 m tiles, [-20, 20) m in x and y of the odometry frame, which is the first
 pose's) queried at the last frame of lap 1 before the ego comes back near its start, against the same query at
 the same point of the last full lap (after every revisit): precision and completion (occvo_core.map_metrics,
-0.4 m, static classes; goal precision >= 0.9). Eviction (--radius with a durable store) is used when the
+0.4 m, static classes; goal precision >= 0.9), and of the last lap's start voxels farther than 0.4 m from lap 1's,
+the share on the true static map (structure lap 1 did not see, against misplaced voxels). Eviction (--radius with a durable store) is used when the
 registration worker has --store-path; otherwise the run says "eviction: off".
 Prints a table, then one JSON line.
 """
@@ -32,6 +33,7 @@ from pathlib import Path
 
 import numpy as np
 import psutil
+from scipy.spatial import cKDTree
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 warnings.filterwarnings("ignore", category=RuntimeWarning)
@@ -221,6 +223,12 @@ def analyse(raw: dict, scene: SyntheticScene, args, t_build: float) -> dict:
     rev2 = map_metrics(*snaps["last"], *snaps["second"]) if "second" in snaps and "last" in snaps else None
     truth = true_start_map(scene)
     vs_truth = {k: round(map_metrics(*snaps[k], *truth).precision, 4) for k in ("first", "second", "last", "end") if k in snaps}
+    # what the revisit added beyond lap 1's map: structure lap 1 did not see (on the true map), or misplaced
+    new_on_truth = float("nan")
+    if "last" in snaps and "first" in snaps and len(snaps["first"][0]) and len(snaps["last"][0]):
+        beyond = cKDTree(snaps["first"][0]).query(snaps["last"][0])[0] > 0.4
+        if beyond.any():
+            new_on_truth = float(np.mean(cKDTree(truth[0]).query(snaps["last"][0][beyond])[0] <= 0.4))
     stages = raw["registration_stages_ms"]
     res = {
         "frames": n, "frames_planned": raw["n_planned"], "budget_stop": bool(out.get("budget_stop")), "poses": out["poses"], "errors": out["errors"], "seed": args.seed, "blocks": args.blocks,
@@ -243,6 +251,7 @@ def analyse(raw: dict, scene: SyntheticScene, args, t_build: float) -> dict:
         "start_voxels": {k: int(len(v[0])) for k, v in snaps.items()},
         "revisit_precision": round(rev.precision, 4), "revisit_completion": round(rev.completion, 4),
         "end_precision": round(rev_end.precision, 4), "end_completion": round(rev_end.completion, 4),
+        "revisit_beyond_lap1_on_truth": round(new_on_truth, 4),
         "lap2_vs_last_precision": round(rev2.precision, 4) if rev2 else None,
         "lap2_vs_last_completion": round(rev2.completion, 4) if rev2 else None,
         "start_precision_vs_truth": vs_truth, "start_truth_voxels": int(len(truth[0])),
@@ -271,6 +280,7 @@ def analyse(raw: dict, scene: SyntheticScene, args, t_build: float) -> dict:
         ("APE RMSE (whole drive)", f"{ape:.3f} m"),
         ("start map last lap vs lap 1: precision (goal >= 0.9)", f"{rev.precision:.4f} (completion {rev.completion:.4f}, "
          f"{sv.get('last')} vs {sv.get('first')} voxels, frames {k_last} vs {k_first})"),
+        ("last lap's start voxels beyond 0.4 m of lap 1's: share on the true map", f"{new_on_truth:.4f}"),
         ("start map end of drive vs lap 1: precision", f"{rev_end.precision:.4f} (completion {rev_end.completion:.4f})"),
         ("start map last lap vs lap 2: precision", f"{rev2.precision:.4f} (completion {rev2.completion:.4f})" if rev2 else "n/a (< 3 laps)"),
         ("start map precision vs the true static map", ", ".join(f"{k} {v:.4f}" for k, v in vs_truth.items())),

@@ -5,7 +5,8 @@
 OccVO runs over the scene in this process; after each frame the worker's store work is timed on real SQLite files in a
 temporary folder: the frame commit (pose + journaled frame, one transaction) with synchronous=FULL and with NORMAL, the
 state snapshot (pack + write) every --snapshot-every frames, the eviction check, and at the end a resume (load the
-snapshot, replay the journal). Prints medians in ms and the store's sizes.
+snapshot, replay the journal). Prints medians in ms, the store's sizes, and each snapshot's peak memory (RSS above
+the process's before it, after packing and after writing; Linux).
 """
 
 from __future__ import annotations
@@ -26,6 +27,22 @@ warnings.filterwarnings("ignore", category=RuntimeWarning)
 DATA = Path(__file__).resolve().parents[2] / "shared/data/occvo-sample/occupancy/scene-0101"
 
 
+def _status_mb(key: str) -> float:
+    for line in Path("/proc/self/status").read_text().splitlines():
+        if line.startswith(key):
+            return int(line.split()[1]) / 1024
+    raise KeyError(key)
+
+
+def _reset_peak_mb() -> float | None:
+    """Reset this process's peak RSS (VmHWM; Linux only) and return the RSS now, or None where it cannot be."""
+    try:
+        Path("/proc/self/clear_refs").write_text("5")
+        return _status_mb("VmRSS:")
+    except OSError:
+        return None
+
+
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--scene", default=str(DATA) if DATA.is_dir() else None)
@@ -44,6 +61,7 @@ def main() -> None:
     n = min(args.frames, len(scene))
     frames = [scene[i] for i in range(n)]
     t = {"step": [], "commit_full": [], "commit_normal": [], "snapshot": [], "evict_check": []}
+    peaks = []  # per snapshot: MB packed, peak RSS above the process's before it after packing and after writing
     with tempfile.TemporaryDirectory() as tmp:
         full, normal = TrajectoryStore(Path(tmp) / "full.sqlite", "FULL"), TrajectoryStore(Path(tmp) / "normal.sqlite", "NORMAL")
         vo = OccVO()
@@ -60,9 +78,15 @@ def main() -> None:
             vo.evict_tiles(r.pose[:2, 3], 120.0, 20.0)
             t["evict_check"].append(time.perf_counter() - t0)
             if (i + 1) % args.snapshot_every == 0 and i + 1 < n:
+                base = _reset_peak_mb()
                 t0 = time.perf_counter()
-                full.write_snapshot("s", i, pack_arrays(vo.state_dict(copy=False)))  # as the worker packs it
+                blob = pack_arrays(vo.state_dict(copy=False))  # as the worker packs it
+                packed = _status_mb("VmHWM:")
+                full.write_snapshot("s", i, blob)
                 t["snapshot"].append(time.perf_counter() - t0)
+                if base is not None:
+                    peaks.append((len(blob) / 1e6, packed - base, _status_mb("VmHWM:") - base))
+                del blob
         sizes = full.sizes("s")
         t0 = time.perf_counter()
         seq, blob = full.snapshot("s")
@@ -79,7 +103,9 @@ def main() -> None:
     print(json.dumps({"scene": name, "frames": n, "median_ms": med, "map_voxels": len(vo.map),
                       "snapshot_mb": round(sizes["snapshots_bytes"] / 1e6, 2),
                       "journal_frame_kb": round(sizes["journal_bytes"] / max(sizes["journal_rows"], 1) / 1e3, 1),
-                      "resume": {"journal_frames": len(journal), "seconds": round(resume_s, 2), "poses_equal": True}}))
+                      "resume": {"journal_frames": len(journal), "seconds": round(resume_s, 2), "poses_equal": True},
+                      "snapshot_peak_rss_mb": [{"state": round(a, 1), "after_pack": round(b, 1), "after_write": round(c, 1)}
+                                               for a, b, c in peaks]}))
 
 
 if __name__ == "__main__":

@@ -70,6 +70,9 @@ CREATE TABLE IF NOT EXISTS cold_tiles (
 _PER_STREAM = ("poses", "snapshots", "journal", "cold_tiles")
 
 
+_BLOB_CHUNK = 1 << 22  # snapshot bytes written to SQLite at a time
+
+
 def pack_arrays(arrays: dict[str, np.ndarray]) -> bytes:
     """numpy arrays -> .npz bytes (no pickle, no compression: the blobs are read back whole and soon)."""
     buf = io.BytesIO()
@@ -197,7 +200,15 @@ class TrajectoryStore:
         """The state after frame `seq` replaces the older snapshot; the journal up to it and the cold rows restored
         by then are no longer needed."""
         def tx(db):
-            db.execute("INSERT OR REPLACE INTO snapshots VALUES (?, ?, ?)", (stream, seq, state_blob))
+            if hasattr(db, "blobopen"):  # Python >= 3.11: write the blob in place, not through one more copy of it
+                db.execute("INSERT OR REPLACE INTO snapshots VALUES (?, ?, zeroblob(?))", (stream, seq, len(state_blob)))
+                rowid = db.execute("SELECT rowid FROM snapshots WHERE stream=?", (stream,)).fetchone()[0]
+                view = memoryview(state_blob)
+                with db.blobopen("snapshots", "state", rowid) as blob:
+                    for at in range(0, len(view), _BLOB_CHUNK):
+                        blob.write(view[at: at + _BLOB_CHUNK])
+            else:
+                db.execute("INSERT OR REPLACE INTO snapshots VALUES (?, ?, ?)", (stream, seq, state_blob))
             db.execute("DELETE FROM journal WHERE stream=? AND seq<=?", (stream, seq))
             db.execute("DELETE FROM cold_tiles WHERE stream=? AND restored_seq IS NOT NULL AND restored_seq<=?", (stream, seq))
             db.execute("UPDATE streams SET snapshot_seq=? WHERE stream=?", (seq, stream))

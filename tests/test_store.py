@@ -77,13 +77,15 @@ def test_snapshot_and_journal_resume_bit_for_bit(tmp_path, scene, uninterrupted)
     for i in range(8):
         _commit(store, "car", vo, scene[i], i)
         if i == 4:
-            store.write_snapshot("car", i, pack_arrays(vo.state_dict()))
+            packed = pack_arrays(vo.state_dict())
+            assert len(packed) > (1 << 22)  # written to SQLite in more than one piece
+            store.write_snapshot("car", i, packed)
     store.close()
     del vo  # "crash": only the file remains
 
     store = TrajectoryStore(path)
     seq, blob = store.snapshot("car")
-    assert seq == 4 and store.record("car").snapshot_seq == 4
+    assert seq == 4 and store.record("car").snapshot_seq == 4 and blob == packed
     vo = OccVO()
     vo.load_state_dict(unpack_arrays(blob))
     journal = store.journal("car", seq)

@@ -17,7 +17,7 @@ from occvo_core.registration import kernels
 from occvo_core.registration.dynamic_object_filter import dynamic_object_filter
 from occvo_core.registration.gicp import gicp, rotation_angle
 from occvo_core.registration.initialisation import bev_first_motion, ground_height_correction
-from occvo_core.registration.voxel_map import EgoMap, VoxelPFilterMap, _older_name
+from occvo_core.registration.voxel_map import EgoMap, VoxelPFilterMap, _older_name, moved
 
 _GRID_CORNERS = np.array(np.meshgrid(*zip(OCC3D_GRID.lower, OCC3D_GRID.upper), indexing="ij")).reshape(3, -1).T
 GROUND_CLASSES = (11, 12, 13, 14)  # driveable surface, other flat, sidewalk, terrain
@@ -191,6 +191,7 @@ class OccVO:
         return sum(self.map.put(self._corrected_block(block), t) for block in blocks.values())
 
     def _corrected_block(self, block: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+        """An evicted block as the loops closed since it was taken would have moved it (see _correct_map)."""
         taken = int(block["taken_at"])
         later = [c for c in self._map_corrections if c[0] >= taken]
         if not later or len(block["keys"]) == 0:
@@ -202,8 +203,7 @@ class OccVO:
             k = np.searchsorted(frames, born)
             mine = np.flatnonzero((k < len(frames)) & (frames[np.minimum(k, len(frames) - 1)] == born))
             c = corrections[k[mine]]
-            pos[mine] = np.einsum("nij,nj->ni", c[:, :3, :3], pos[mine]) + c[:, :3, 3]
-            cov[mine] = np.einsum("nij,njk,nlk->nil", c[:, :3, :3], cov[mine], c[:, :3, :3])
+            pos[mine], cov[mine] = moved(pos[mine], cov[mine], c[:, :3, :3], c[:, :3, 3])
         block.update(pos=pos, cov=cov, keys=np.floor(pos / self.map.voxel).astype(np.int64))
         return block
 

@@ -94,6 +94,11 @@ class EgoMap:
                       np.full(len(pos), -1), weight, votes)
 
 
+def moved(pos: np.ndarray, cov: np.ndarray, rot: np.ndarray, trans: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Voxel positions and covariances moved rigidly, each by its own rotation (k,3,3) and translation (k,3)."""
+    return np.einsum("nij,nj->ni", rot, pos) + trans, np.einsum("nij,njk,nlk->nil", rot, cov, rot)
+
+
 def _older_name(arrays: dict, name: str) -> str:
     """States and evicted blocks saved before `born` or `in_window` existed: a voxel's t0 is the best guess of its
     birth, its last sighting of its last frame in a registration window."""
@@ -325,10 +330,9 @@ class VoxelPFilterMap:
         rows = np.asarray(rows, np.int64)
         if len(rows) == 0:
             return 0
-        pos = np.einsum("nij,nj->ni", rot, self.pos[rows]) + trans
+        pos, self.cov[rows] = moved(self.pos[rows], self.cov[rows], rot, trans)
         moved_far = np.linalg.norm(pos - self.pos[rows], axis=1) > self.voxel
         self.pos[rows] = pos
-        self.cov[rows] = np.einsum("nij,njk,nlk->nil", rot, self.cov[rows], rot)
         self.keys[rows] = keys = np.floor(pos / self.voxel).astype(np.int64)
         self.alive[rows] = False  # judge the moved voxels against the others
         held = self.window(keys.min(axis=0) - 1, keys.max(axis=0) + 1)

@@ -12,8 +12,8 @@ the map tiles around the start (20 m tiles, [-20, 20) m in x and y of the odomet
 pose's) queried at the last frame of lap 1 before the ego comes back near its start, against the same query at
 the same point of the last full lap (after every revisit): precision and completion (occvo_core.map_metrics,
 0.4 m, static classes; goal precision >= 0.9), and of the last lap's start voxels farther than 0.4 m from lap 1's,
-the share on the true static map (structure lap 1 did not see, against misplaced voxels). Eviction (--radius with a durable store) is used when the
-registration worker has --store-path; otherwise the run says "eviction: off".
+the share on the true static map (structure lap 1 did not see, against misplaced voxels). Eviction (--radius with
+a durable store) is used when the registration worker has --store-path; otherwise the run says "eviction: off".
 Prints a table, then one JSON line.
 """
 

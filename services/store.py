@@ -201,8 +201,8 @@ class TrajectoryStore:
         by then are no longer needed."""
         def tx(db):
             if hasattr(db, "blobopen"):  # Python >= 3.11: write the blob in place, not through one more copy of it
-                db.execute("INSERT OR REPLACE INTO snapshots VALUES (?, ?, zeroblob(?))", (stream, seq, len(state_blob)))
-                rowid = db.execute("SELECT rowid FROM snapshots WHERE stream=?", (stream,)).fetchone()[0]
+                rowid = db.execute("INSERT OR REPLACE INTO snapshots VALUES (?, ?, zeroblob(?))",
+                                   (stream, seq, len(state_blob))).lastrowid
                 view = memoryview(state_blob)
                 with db.blobopen("snapshots", "state", rowid) as blob:
                     for at in range(0, len(view), _BLOB_CHUNK):

@@ -41,6 +41,10 @@ class LocalMap:
         return bool(len(keys) == 0 or (np.all(keys.min(axis=0) >= self.origin)
                                        and np.all(keys.max(axis=0) < self.origin + self.dims)))
 
+    def cells(self, keys: np.ndarray) -> np.ndarray:
+        """Index into `grid` of each voxel key (keys inside the window)."""
+        return ((keys - self.origin) * [self.dims[1] * self.dims[2], self.dims[2], 1]).sum(axis=1)
+
     def nearest(self, queries: np.ndarray, radius_cells: int, usable: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
         """(distance, local index or -1) of each query's nearest usable voxel (or of `usable`) within radius_cells voxels."""
         return kernels.nearest_distances(np.ascontiguousarray(queries, np.float64), self.pos, self.grid, self.origin,
@@ -210,7 +214,7 @@ class VoxelPFilterMap:
         out, seen_from = None, points_world  # dropped points still count as sightings (not of frozen voxels)
         old = self.persistent_rows(local.rows, old_born_before) if old_born_before is not None else None
         if old is not None and old.any():
-            cells = ((keys - local.origin) * [local.dims[1] * local.dims[2], local.dims[2], 1]).sum(axis=1)
+            cells = local.cells(keys)
             held = local.grid[cells]
             if on_old:
                 take = held < 0
@@ -303,7 +307,7 @@ class VoxelPFilterMap:
             return 0
         lower, upper = keys.min(axis=0), keys.max(axis=0)
         held = self.window(lower, upper)
-        cells = ((keys - held.origin) * [held.dims[1] * held.dims[2], held.dims[2], 1]).sum(axis=1)
+        cells = held.cells(keys)
         new = held.grid[cells] < 0
         seen = np.asarray(block["last"], np.int64)[new]
         shift = (int(t) - 1) - np.where(seen >= 0, seen, int(block["taken_at"]) - 1)
@@ -326,7 +330,8 @@ class VoxelPFilterMap:
         """Move live rows rigidly, each by its own rotation (k,3,3) and translation (k,3), as a loop closure corrects
         the map made since a place was last seen. A moved voxel is dropped when its new cell already holds a live
         voxel (the map seen there first stands, as in put()), or when it moved more than a voxel and a reliable voxel
-        born before `born_before` with its label lies within ghost_radius_m: it is that voxel seen again through drift. Returns the number dropped."""
+        born before `born_before` with its label lies within ghost_radius_m: it is that voxel seen again through
+        drift. Returns the number dropped."""
         rows = np.asarray(rows, np.int64)
         if len(rows) == 0:
             return 0
@@ -336,7 +341,7 @@ class VoxelPFilterMap:
         self.keys[rows] = keys = np.floor(pos / self.voxel).astype(np.int64)
         self.alive[rows] = False  # judge the moved voxels against the others
         held = self.window(keys.min(axis=0) - 1, keys.max(axis=0) + 1)
-        cells = ((keys - held.origin) * [held.dims[1] * held.dims[2], held.dims[2], 1]).sum(axis=1)
+        cells = held.cells(keys)
         keep = np.zeros(len(rows), bool)
         keep[np.unique(cells, return_index=True)[1]] = True  # two moved voxels in one cell: the first row stands
         keep &= held.grid[cells] < 0

@@ -4,9 +4,9 @@
 
 OccVO runs over the scene in this process; after each frame the worker's store work is timed on real SQLite files in a
 temporary folder: the frame commit (pose + journaled frame, one transaction) with synchronous=FULL and with NORMAL, the
-state snapshot (pack + write) every --snapshot-every frames, the eviction check, and at the end a resume (load the
-snapshot, replay the journal). Prints medians in ms, the store's sizes, and each snapshot's peak memory (RSS above
-the process's before it, after packing and after writing; Linux).
+state snapshot (streamed into its row, as the worker writes it) every --snapshot-every frames, the eviction check,
+and at the end a resume (load the snapshot, replay the journal). Prints medians in ms, the store's sizes, and each
+snapshot's peak memory (RSS above the process's before it; Linux).
 """
 
 from __future__ import annotations
@@ -21,7 +21,7 @@ from pathlib import Path
 import numpy as np
 
 from occvo_core import OccVO
-from services.store import TrajectoryStore, frame_digest, pack_arrays, pack_frame, unpack_arrays
+from services.store import TrajectoryStore, frame_digest, pack_frame, unpack_arrays
 
 warnings.filterwarnings("ignore", category=RuntimeWarning)
 DATA = Path(__file__).resolve().parents[2] / "shared/data/occvo-sample/occupancy/scene-0101"
@@ -61,7 +61,7 @@ def main() -> None:
     n = min(args.frames, len(scene))
     frames = [scene[i] for i in range(n)]
     t = {"step": [], "commit_full": [], "commit_normal": [], "snapshot": [], "evict_check": []}
-    peaks = []  # per snapshot: MB packed, peak RSS above the process's before it after packing and after writing
+    peaks = []  # per snapshot: MB written, peak RSS above the process's before it
     with tempfile.TemporaryDirectory() as tmp:
         full, normal = TrajectoryStore(Path(tmp) / "full.sqlite", "FULL"), TrajectoryStore(Path(tmp) / "normal.sqlite", "NORMAL")
         vo = OccVO()
@@ -80,13 +80,10 @@ def main() -> None:
             if (i + 1) % args.snapshot_every == 0 and i + 1 < n:
                 base = _reset_peak_mb()
                 t0 = time.perf_counter()
-                blob = pack_arrays(vo.state_dict(copy=False))  # as the worker packs it
-                packed = _status_mb("VmHWM:")
-                full.write_snapshot("s", i, blob)
+                full.write_snapshot("s", i, vo.state_dict(copy=False))  # as the worker: streamed into the row
                 t["snapshot"].append(time.perf_counter() - t0)
                 if base is not None:
-                    peaks.append((len(blob) / 1e6, packed - base, _status_mb("VmHWM:") - base))
-                del blob
+                    peaks.append((full.sizes("s")["snapshots_bytes"] / 1e6, _status_mb("VmHWM:") - base))
         sizes = full.sizes("s")
         t0 = time.perf_counter()
         seq, blob = full.snapshot("s")
@@ -104,8 +101,7 @@ def main() -> None:
                       "snapshot_mb": round(sizes["snapshots_bytes"] / 1e6, 2),
                       "journal_frame_kb": round(sizes["journal_bytes"] / max(sizes["journal_rows"], 1) / 1e3, 1),
                       "resume": {"journal_frames": len(journal), "seconds": round(resume_s, 2), "poses_equal": True},
-                      "snapshot_peak_rss_mb": [{"state": round(a, 1), "after_pack": round(b, 1), "after_write": round(c, 1)}
-                                               for a, b, c in peaks]}))
+                      "snapshot_peak_rss_mb": [{"state": round(a, 1), "above_before": round(b, 1)} for a, b in peaks]}))
 
 
 if __name__ == "__main__":

@@ -39,6 +39,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 warnings.filterwarnings("ignore", category=RuntimeWarning)
 
 from occvo_core.eval import ape_rmse  # noqa: E402
+from occvo_core.grid import OCC3D_GRID  # noqa: E402
 from occvo_core.map_metrics import map_metrics  # noqa: E402
 from occvo_core.sim import SyntheticScene  # noqa: E402
 from services.client import OccVOClient, ServiceError  # noqa: E402
@@ -93,6 +94,22 @@ def true_start_map(scene: SyntheticScene, near_m: float = 80.0) -> tuple[np.ndar
     pts = pts @ inv[:3, :3].T + inv[:3, 3]
     keep = np.all((pts[:, :2] >= -20.0) & (pts[:, :2] < 20.0), axis=1)
     return pts[keep], labels[keep]
+
+
+def seen_cells(scene: SyntheticScene, poses: np.ndarray, frames, voxel: float = 0.4) -> np.ndarray:
+    """Keys of the 0.4 m cells of the start box (odometry frame) that some camera saw in `frames`, free cells
+    included, placed by the odometry's own poses: where a map built from those frames could have voxels."""
+    keys = []
+    for i in frames:
+        pts = OCC3D_GRID.centres_of(np.argwhere(scene.camera_mask(int(i))))
+        pts = pts @ poses[i][:3, :3].T + poses[i][:3, 3]
+        keys.append(cell_keys(pts[np.all((pts[:, :2] >= -20.4) & (pts[:, :2] < 20.4), axis=1)], voxel))
+    return np.unique(np.concatenate(keys)) if keys else np.zeros(0, np.int64)
+
+
+def cell_keys(points: np.ndarray, voxel: float = 0.4) -> np.ndarray:
+    c = np.floor(np.asarray(points) / voxel).astype(np.int64) + 1024  # the start box is +-60 cells, heights +-20
+    return (c[:, 0] << 22) | (c[:, 1] << 11) | c[:, 2]
 
 
 class RssSampler(threading.Thread):
@@ -229,6 +246,14 @@ def analyse(raw: dict, scene: SyntheticScene, args, t_build: float) -> dict:
         beyond = cKDTree(snaps["first"][0]).query(snaps["last"][0])[0] > 0.4
         if beyond.any():
             new_on_truth = float(np.mean(cKDTree(truth[0]).query(snaps["last"][0][beyond])[0] <= 0.4))
+    # the same, only where lap 1's cameras looked: a later lap's voxels elsewhere have nothing to match
+    rev_seen = seen_share = None
+    if "last" in snaps and "first" in snaps and len(traj) > k_first:
+        d = np.linalg.norm(scene.gt_poses[: k_first + 1, :2, 3] - scene.gt_poses[0, :2, 3], axis=1)
+        seen = seen_cells(scene, np.asarray(traj), np.nonzero(d <= 80.0)[0])
+        inside = np.isin(cell_keys(snaps["last"][0]), seen)
+        seen_share = float(inside.mean()) if len(inside) else float("nan")
+        rev_seen = map_metrics(snaps["last"][0][inside], snaps["last"][1][inside], *snaps["first"])
     stages = raw["registration_stages_ms"]
     res = {
         "frames": n, "frames_planned": raw["n_planned"], "budget_stop": bool(out.get("budget_stop")), "poses": out["poses"], "errors": out["errors"], "seed": args.seed, "blocks": args.blocks,
@@ -252,6 +277,8 @@ def analyse(raw: dict, scene: SyntheticScene, args, t_build: float) -> dict:
         "revisit_precision": round(rev.precision, 4), "revisit_completion": round(rev.completion, 4),
         "end_precision": round(rev_end.precision, 4), "end_completion": round(rev_end.completion, 4),
         "revisit_beyond_lap1_on_truth": round(new_on_truth, 4),
+        "revisit_precision_where_lap1_looked": round(rev_seen.precision, 4) if rev_seen else None,
+        "revisit_share_where_lap1_looked": round(seen_share, 4) if seen_share is not None else None,
         "lap2_vs_last_precision": round(rev2.precision, 4) if rev2 else None,
         "lap2_vs_last_completion": round(rev2.completion, 4) if rev2 else None,
         "start_precision_vs_truth": vs_truth, "start_truth_voxels": int(len(truth[0])),
@@ -281,6 +308,8 @@ def analyse(raw: dict, scene: SyntheticScene, args, t_build: float) -> dict:
         ("start map last lap vs lap 1: precision (goal >= 0.9)", f"{rev.precision:.4f} (completion {rev.completion:.4f}, "
          f"{sv.get('last')} vs {sv.get('first')} voxels, frames {k_last} vs {k_first})"),
         ("last lap's start voxels beyond 0.4 m of lap 1's: share on the true map", f"{new_on_truth:.4f}"),
+        ("the same, only where lap 1's cameras looked", f"{rev_seen.precision:.4f} ({seen_share:.4f} of the last lap's voxels)"
+         if rev_seen else "n/a"),
         ("start map end of drive vs lap 1: precision", f"{rev_end.precision:.4f} (completion {rev_end.completion:.4f})"),
         ("start map last lap vs lap 2: precision", f"{rev2.precision:.4f} (completion {rev2.completion:.4f})" if rev2 else "n/a (< 3 laps)"),
         ("start map precision vs the true static map", ", ".join(f"{k} {v:.4f}" for k, v in vs_truth.items())),

@@ -1,6 +1,7 @@
 """Many streams at a camera rate on one machine: does the service keep up, and does a backlog grow?
 
     python benchmarks/streams_load.py --streams 8 --rate 2 --minutes 5            # the full measurement
+    python benchmarks/streams_load.py --streams 8 --rate 2 --minutes 5 --working-radius 120   # as deployed
     python benchmarks/streams_load.py --streams 2 4 6 8 --minutes 1               # a sweep: one run per count
     python benchmarks/streams_load.py --streams 8 --policy latest --minutes 1     # what dropping the oldest does
 
@@ -166,12 +167,15 @@ def _slope(t, y) -> float | None:
 
 
 def run_load(n: int, rate: float, minutes: float, policy: str, queue_size: int, scenes: dict, store: bool,
-             sample_s: float, bucket_s: float, drain_s: float, log_dir: Path) -> dict:
+             sample_s: float, bucket_s: float, drain_s: float, log_dir: Path, working_radius: float = 0.0) -> dict:
     import psutil
 
     total = int(round(minutes * 60 * rate))
     load0 = os.getloadavg()[0]  # other jobs on the machine change everything below: say how busy it was
     worker_args = {"map": ["--store-path", str(log_dir / "occvo.sqlite")]} if store else {}
+    if working_radius > 0:  # as deployed (deploy/registration_worker.json5): each stream's working map is bounded
+        worker_args["registration"] = ["--store-path", str(log_dir / "registration.sqlite"),
+                                       "--working-radius-m", str(working_radius)]
     svc = LocalService(common_args=["--policy", policy, "--queue-size", str(queue_size)], worker_args=worker_args,
                        log_dir=log_dir).start(timeout=120)
     streams = [Stream(f"load{k}", scenes[k][:total], k / n) for k in range(n)]
@@ -305,6 +309,7 @@ def run_load(n: int, rate: float, minutes: float, policy: str, queue_size: int, 
     last_rate = buckets[-1]["poses_per_s"]
     out = {
         "streams": n, "rate_hz": rate, "minutes": minutes, "policy": policy, "queue_size": queue_size, "store": store,
+        "working_radius_m": working_radius or None,
         "offered_frames_per_s": offered, "due": due_total, "sent": sent, "received": received, "drained": drained,
         "drops": {"registration": int(smp[-1, 4]) if len(smp) else 0, "inference": int(smp[-1, 5]) if len(smp) else 0,
                   "registration_final": reg.counters.get("drops", 0) if reg else None},
@@ -340,7 +345,8 @@ def run_load(n: int, rate: float, minutes: float, policy: str, queue_size: int, 
 
 def print_run(r: dict, bucket_s: float) -> None:
     print(f"\n== {r['streams']} streams x {r['rate_hz']:g} Hz, {r['minutes']:g} min, policy {r['policy']}, "
-          f"queue {r['queue_size']}, map store {'sqlite' if r['store'] else 'memory'}")
+          f"queue {r['queue_size']}, map store {'sqlite' if r['store'] else 'memory'}, registration "
+          + (f"store + eviction at {r['working_radius_m']:g} m" if r["working_radius_m"] else "in memory, no eviction"))
     unit = "min" if bucket_s == 60 else f"{bucket_s:g}s"
     print(f"{unit:>5} {'due':>5} {'sent':>5} {'recv':>5} {'poses/s':>7} {'lat p50':>7} {'lat p99':>7} {'cap p50':>7} {'cap p99':>7} "
           f"{'lag max':>7} {'regQ':>5} {'regQmax':>7} {'inflight':>8}  per stream sent/recv")
@@ -379,6 +385,8 @@ def main(argv=None) -> int:
     ap.add_argument("--policy", choices=["lossless", "latest"], default="lossless")
     ap.add_argument("--queue-size", type=int, default=4)
     ap.add_argument("--no-store", action="store_true", help="map service in memory (default: a SQLite store per run)")
+    ap.add_argument("--working-radius", type=float, default=0.0, help="registration worker with a SQLite store and "
+                    "eviction beyond this many m, as deploy/registration_worker.json5 (120); 0: in memory, maps grow")
     ap.add_argument("--sample-s", type=float, default=3.0, help="seconds between worker stats samples")
     ap.add_argument("--bucket-s", type=float, default=None, help="report bucket (default 60 s; a third of the run when shorter than 3 min)")
     ap.add_argument("--drain-s", type=float, default=60.0, help="wait this long after the last send for outstanding poses")
@@ -396,7 +404,7 @@ def main(argv=None) -> int:
             log_dir = Path(args.log_dir) / f"{n}-streams" if args.log_dir else Path(tmp)
             log_dir.mkdir(parents=True, exist_ok=True)
             r = run_load(n, args.rate, args.minutes, args.policy, args.queue_size, scenes, not args.no_store,
-                         args.sample_s, bucket_s, args.drain_s, log_dir)
+                         args.sample_s, bucket_s, args.drain_s, log_dir, args.working_radius)
         results.append(r)
         print_run(r, bucket_s)
         print(json.dumps({k: v for k, v in r.items() if k != "buckets"} | {"buckets": [

@@ -16,6 +16,7 @@ FREE = 17
 # Classes that may move: the dynamic object filter clusters these (the paper's movable set).
 MOVABLE_CLASSES: tuple[int, ...] = (0, 2, 3, 4, 5, 6, 7, 9, 10)
 STATIC_CLASSES: tuple[int, ...] = tuple(c for c in range(FREE) if c not in MOVABLE_CLASSES)
+GROUND_CLASSES: tuple[int, ...] = (11, 12, 13, 14)  # driveable surface, other flat, sidewalk, terrain
 
 # Occ3D-nuScenes palette (RGB, 0..255), as used by the benchmark's visualiser.
 CLASS_COLORS = np.array([

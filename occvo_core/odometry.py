@@ -11,7 +11,7 @@ from scipy.spatial.transform import Rotation
 from occvo_core.config import OccVOConfig
 from occvo_core.errors import ConfigError, InvalidFrameError
 from occvo_core.frame import OccupancyFrame
-from occvo_core.grid import MOVABLE_CLASSES, OCC3D_GRID
+from occvo_core.grid import GROUND_CLASSES, MOVABLE_CLASSES, OCC3D_GRID
 from occvo_core.map_tiles import pack_tiles, tile_distance
 from occvo_core.registration import kernels
 from occvo_core.registration.dynamic_object_filter import dynamic_object_filter
@@ -20,7 +20,6 @@ from occvo_core.registration.initialisation import bev_first_motion, ground_heig
 from occvo_core.registration.voxel_map import EgoMap, VoxelPFilterMap, _older_name, moved
 
 _GRID_CORNERS = np.array(np.meshgrid(*zip(OCC3D_GRID.lower, OCC3D_GRID.upper), indexing="ij")).reshape(3, -1).T
-GROUND_CLASSES = (11, 12, 13, 14)  # driveable surface, other flat, sidewalk, terrain
 _EGO_LOWER, _EGO_UPPER = np.array(OCC3D_GRID.lower), np.array(OCC3D_GRID.upper)
 
 
@@ -301,14 +300,14 @@ class OccVO:
                                      search_radius_m=init.bev_search_radius_m, yaw_steps_deg=init.bev_yaw_steps_deg)
         return self._poses[-1] @ motion
 
-    def _local_map(self, pose: np.ndarray, t: int, margin: np.ndarray | None = None):
+    def _local_map(self, pose: np.ndarray, t: int, margin: np.ndarray | None = None, tight: bool = False):
         """The map voxels the frame can reach from `pose`: its grid's box in the world, with a margin for the
-        correction registration will make."""
+        correction registration will make (tight: see VoxelPFilterMap.window)."""
         corners = _transform(pose, _GRID_CORNERS)
         margin = self._margin if margin is None else margin
         lower = np.floor((corners.min(axis=0) - margin) / self.map.voxel).astype(np.int64)
         upper = np.floor((corners.max(axis=0) + margin) / self.map.voxel).astype(np.int64)
-        return self.map.window(lower, upper, t)
+        return self.map.window(lower, upper, t, tight)
 
     def _old_map(self, local, t: int) -> np.ndarray | None:
         """Mask of the window's voxels that are the old map for loop closure: made at least min_gap_frames ago,
@@ -394,7 +393,8 @@ class OccVO:
                              usable=recent)
         unexplained = d > g.fine_max_correspondence_m
         # search the old map as far around the frame as the search reaches, not just its registration window
-        local = self._local_map(pose, t, self._margin + [lc.search_radius_m, lc.search_radius_m, lc.search_height_m])
+        local = self._local_map(pose, t, self._margin + [lc.search_radius_m, lc.search_radius_m, lc.search_height_m],
+                                tight=True)
         old = self._old_map(local, t)
         inverse = np.linalg.inv(pose)
         motion, _ = bev_first_motion(_transform(inverse, local.pos[old]), local.labels[old], frame.points[unexplained],

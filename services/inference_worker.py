@@ -42,9 +42,11 @@ class InferenceWorker(Worker):
             from services.occupancy_model import load_occupancy_model
 
             torch.set_num_threads(config.torch_threads)
-            self.model = load_occupancy_model(config.checkpoint, config.model_weights, config.device)
+            self.model = load_occupancy_model(config.checkpoint, config.model_weights, config.device,
+                                              config.min_confidence, config.min_ground_confidence)
             log_event(self.log, "model loaded", model=self.model.name, device=str(self.model.device),
-                      checkpoint=config.checkpoint, torch_threads=config.torch_threads)
+                      checkpoint=config.checkpoint, torch_threads=config.torch_threads,
+                      min_confidence=config.min_confidence, min_ground_confidence=config.min_ground_confidence)
 
     def declare(self) -> None:
         self._declared.append(self.session.declare_subscriber(keys.camera("*"), self._on_camera))
@@ -116,6 +118,8 @@ def _args(p) -> None:
     p.add_argument("--checkpoint", help="TPV-Former checkpoint for the model source (occvo train-occ writes one)")
     p.add_argument("--model-weights", help="TinyOccNet state_dict for the model source, instead of --checkpoint")
     p.add_argument("--torch-threads", type=int)
+    p.add_argument("--min-confidence", type=float, help="model source: voxels below this softmax confidence are free")
+    p.add_argument("--min-ground-confidence", type=float, help="the same for the ground classes")
 
 
 def main(argv: list[str] | None = None) -> int:

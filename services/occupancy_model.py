@@ -141,7 +141,7 @@ def camera_inputs(images: list[CameraImage]) -> tuple[np.ndarray, np.ndarray, np
 
 
 def load_occupancy_model(checkpoint: str | None = None, model_weights: str | None = None,
-                         device: str = "auto") -> OccupancyModel:
+                         device: str = "auto", min_confidence: float = 0.0, min_ground_confidence: float = 0.0) -> OccupancyModel:
     """The network of the worker's `model` source, or a ConfigError naming what is wrong (file, format, shapes)."""
     if checkpoint and model_weights:
         raise ConfigError("give checkpoint (TPV-Former) or model_weights (TinyOccNet), not both")
@@ -157,7 +157,8 @@ def load_occupancy_model(checkpoint: str | None = None, model_weights: str | Non
     from occvo_core.models.tpvformer import CheckpointError, OccupancyPredictor
 
     try:
-        model = OccupancyPredictor(checkpoint, device=dev)
+        model = OccupancyPredictor(checkpoint, device=dev, min_confidence=min_confidence,
+                                   min_ground_confidence=min_ground_confidence)
     except CheckpointError as exc:
         raise ConfigError(f"checkpoint {exc}") from None
     if model.cfg.num_classes != NUM_CLASSES:  # the wire carries Occ3D class ids

@@ -267,8 +267,7 @@ class RegistrationWorker(Worker):
     # -- durable state --------------------------------------------------------------------------------------------
     def _snapshot(self, stream: str, st: StreamState) -> None:
         t0 = time.perf_counter()
-        blob = pack_arrays(st.vo.state_dict(copy=False))
-        self.store.write_snapshot(stream, st.seqs[-1], blob)
+        self.store.write_snapshot(stream, st.seqs[-1], st.vo.state_dict(copy=False))
         st.since_snapshot = 0
         took = time.perf_counter() - t0
         if self.config.snapshot_max_share is not None:

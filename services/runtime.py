@@ -3,6 +3,7 @@ latency percentiles, a liveliness token, a stats queryable, error events, struct
 
 from __future__ import annotations
 
+import ctypes
 import json
 import logging
 import os
@@ -227,6 +228,9 @@ class WorkerConfig(BaseModel):
     model_weights: str | None = None  # TinyOccNet state_dict (services.occupancy_model)
     checkpoint: str | None = None  # TPV-Former checkpoint of the model source (occvo train-occ)
     torch_threads: int = Field(1, ge=1)
+    # model source: voxels the network is less sure of than this are reported free (OccupancyPredictor)
+    min_confidence: float = Field(0.0, ge=0, lt=1)
+    min_ground_confidence: float = Field(0.0, ge=0, lt=1)
     # registration worker
     tile_m: float = Field(20.0, gt=0)
     occvo_config: str | None = None
@@ -432,6 +436,17 @@ class Worker:
         query.reply(keys.stats(self.worker_id), encode(self.health()))
 
 
+def large_blocks_from_mmap(threshold: int = 128 * 1024) -> bool:
+    """Fix glibc's mmap threshold (False where malloc is not glibc's). By default it rises to the largest block
+    freed, up to 32 MB: then the arrays each frame allocates and frees come from the heap, which fragments, and a
+    worker's RSS creeps up over hours (3,600-frame drive: median RSS +11% from the first half to the second, +4.5%
+    with this). A fixed threshold keeps large blocks in mmap, returned to the system when freed."""
+    try:
+        return bool(ctypes.CDLL("libc.so.6").mallopt(-3, threshold))  # M_MMAP_THRESHOLD
+    except (OSError, AttributeError):
+        return False
+
+
 def worker_main(worker_cls: type[Worker], argv: list[str] | None = None, extra_args: Callable | None = None) -> int:
     """`python -m services.<role>_worker [--config deploy/x.json5] [--connect ...] ...`"""
     import argparse
@@ -448,4 +463,5 @@ def worker_main(worker_cls: type[Worker], argv: list[str] | None = None, extra_a
         extra_args(p)
     args = vars(p.parse_args(argv))
     config = WorkerConfig.load(args.pop("config"), **args)
+    large_blocks_from_mmap()
     return worker_cls(config).run_forever()

@@ -76,8 +76,43 @@ _BLOB_CHUNK = 1 << 22  # snapshot bytes written to SQLite at a time
 def pack_arrays(arrays: dict[str, np.ndarray]) -> bytes:
     """numpy arrays -> .npz bytes (no pickle, no compression: the blobs are read back whole and soon)."""
     buf = io.BytesIO()
-    np.savez(buf, **{k: np.asarray(v) for k, v in arrays.items()})
+    _savez(buf, arrays)
     return buf.getvalue()
+
+
+class _BlobFile(io.RawIOBase):
+    """A seekable file over a fixed-size SQLite blob, for np.savez to write into; with blob=None it only measures
+    how many bytes would be written. The same arrays give the same bytes, so a measuring pass sizes the blob."""
+
+    def __init__(self, blob=None):
+        super().__init__()
+        self.blob, self.pos, self.size = blob, 0, 0
+
+    def writable(self) -> bool:
+        return True
+
+    def seekable(self) -> bool:
+        return True
+
+    def tell(self) -> int:
+        return self.pos
+
+    def seek(self, offset: int, whence: int = io.SEEK_SET) -> int:
+        self.pos = {io.SEEK_SET: 0, io.SEEK_CUR: self.pos, io.SEEK_END: self.size}[whence] + offset
+        return self.pos
+
+    def write(self, data) -> int:
+        n = memoryview(data).nbytes
+        if self.blob is not None:
+            self.blob.seek(self.pos)
+            self.blob.write(data)
+        self.pos += n
+        self.size = max(self.size, self.pos)
+        return n
+
+
+def _savez(fp, arrays: dict[str, np.ndarray]) -> None:
+    np.savez(fp, **{k: np.asarray(v) for k, v in arrays.items()})
 
 
 def unpack_arrays(blob: bytes) -> dict[str, np.ndarray]:
@@ -196,19 +231,32 @@ class TrajectoryStore:
         self._write(tx)
 
     # -- snapshots and journal
-    def write_snapshot(self, stream: str, seq: int, state_blob: bytes) -> None:
-        """The state after frame `seq` replaces the older snapshot; the journal up to it and the cold rows restored
-        by then are no longer needed."""
+    def write_snapshot(self, stream: str, seq: int, state: dict[str, np.ndarray] | bytes) -> None:
+        """The state after frame `seq` (arrays, or pack_arrays' bytes) replaces the older snapshot; the journal up to
+        it and the cold rows restored by then are no longer needed. Arrays are written into the row in place
+        (Python >= 3.11): packing them first would hold a copy of the whole state, and the worker's peak RSS with it."""
+        in_place = hasattr(sqlite3.Connection, "blobopen")
+        if isinstance(state, dict) and not in_place:
+            state = pack_arrays(state)
+        if isinstance(state, dict):
+            size = _BlobFile()
+            _savez(size, state)
+
         def tx(db):
-            if hasattr(db, "blobopen"):  # Python >= 3.11: write the blob in place, not through one more copy of it
+            if isinstance(state, dict):
                 rowid = db.execute("INSERT OR REPLACE INTO snapshots VALUES (?, ?, zeroblob(?))",
-                                   (stream, seq, len(state_blob))).lastrowid
-                view = memoryview(state_blob)
+                                   (stream, seq, size.size)).lastrowid
+                with db.blobopen("snapshots", "state", rowid) as blob:
+                    _savez(_BlobFile(blob), state)
+            elif in_place:
+                rowid = db.execute("INSERT OR REPLACE INTO snapshots VALUES (?, ?, zeroblob(?))",
+                                   (stream, seq, len(state))).lastrowid
+                view = memoryview(state)
                 with db.blobopen("snapshots", "state", rowid) as blob:
                     for at in range(0, len(view), _BLOB_CHUNK):
                         blob.write(view[at: at + _BLOB_CHUNK])
             else:
-                db.execute("INSERT OR REPLACE INTO snapshots VALUES (?, ?, ?)", (stream, seq, state_blob))
+                db.execute("INSERT OR REPLACE INTO snapshots VALUES (?, ?, ?)", (stream, seq, state))
             db.execute("DELETE FROM journal WHERE stream=? AND seq<=?", (stream, seq))
             db.execute("DELETE FROM cold_tiles WHERE stream=? AND restored_seq IS NOT NULL AND restored_seq<=?", (stream, seq))
             db.execute("UPDATE streams SET snapshot_seq=? WHERE stream=?", (seq, stream))

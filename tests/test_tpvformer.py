@@ -161,6 +161,36 @@ def test_checkpoint_round_trip_gives_identical_outputs(tmp_path):
         predictor.predict_grid(images[:5], rig.intrinsics, rig.cam_to_ego)
 
 
+def test_confidence_thresholds_report_unsure_voxels_free(tmp_path):
+    from occvo_core.grid import GROUND_CLASSES
+
+    torch.manual_seed(2)
+    cfg = micro()
+    model = TPVFormer(cfg).eval()
+    rig = nuscenes_rig(*cfg.input_size)
+    s = make_sample(_world(), rig)
+    path = save_checkpoint(tmp_path / "m.pt", model)
+    images = (s.images.permute(0, 2, 3, 1) * 255).round().byte().numpy()
+    with torch.no_grad():
+        prob = model(s.images[None], s.intrinsics[None], s.cam_to_ego[None])[0].softmax(0)
+    confidence, argmax = (v.numpy() for v in prob.max(0))
+    ground = np.isin(argmax, GROUND_CLASSES)
+    plain = OccupancyPredictor(path, device="cpu").predict_grid(images, rig.intrinsics, rig.cam_to_ego)
+    # thresholds between the 20th and 80th percentile of this untrained net's confidence: both sides populated
+    lo, hi = np.quantile(confidence[argmax != FREE], [0.2, 0.8])
+    sure = OccupancyPredictor(path, device="cpu", min_confidence=hi, min_ground_confidence=lo)
+    grid = sure.predict_grid(images, rig.intrinsics, rig.cam_to_ego)
+    decided = np.abs(confidence - np.where(ground, lo, hi)) > 1e-4  # uint8 images vs float ones: tiny differences
+    expected = np.where(confidence < np.where(ground, lo, hi), FREE, plain)
+    np.testing.assert_array_equal(grid[decided], expected[decided])
+    dropped = (plain != FREE) & (grid == FREE)
+    assert dropped.any() and (grid != FREE).any()
+    assert np.all(grid[grid != FREE] == plain[grid != FREE])  # nothing is relabelled, only set free
+    for bad in (-0.1, 1.0):
+        with pytest.raises(ValueError, match="min_confidence"):
+            OccupancyPredictor(path, device="cpu", min_confidence=bad)
+
+
 def test_mismatched_or_corrupt_checkpoint_is_rejected(tmp_path):
     path = save_checkpoint(tmp_path / "m.pt", TPVFormer(micro()))
     with pytest.raises(CheckpointMismatchError) as err:

@@ -28,6 +28,9 @@ def add_parser(sub) -> None:
     p.add_argument("--from-images", action="store_true",
                    help="render the synthetic scene's six cameras and predict occupancy with --checkpoint")
     p.add_argument("--checkpoint", type=Path, help="TPV-Former checkpoint for --from-images (occvo train-occ writes one)")
+    p.add_argument("--min-confidence", type=float, default=0.0, help="--from-images: voxels the network is less "
+                   "sure of than this (softmax of its class) are free")
+    p.add_argument("--min-ground-confidence", type=float, default=0.0, help="--from-images: the same for the ground classes")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=run)
 
@@ -57,7 +60,8 @@ def run(args) -> int:
             from occvo_core.models.image_source import ImageOccupancySource
             from occvo_core.models.tpvformer.predictor import OccupancyPredictor
 
-            source = ImageOccupancySource(source, OccupancyPredictor(args.checkpoint))
+            source = ImageOccupancySource(source, OccupancyPredictor(args.checkpoint, min_confidence=args.min_confidence,
+                                                                     min_ground_confidence=args.min_ground_confidence))
     else:
         source = open_scene(args.input, gt=args.gt)
     pipeline = OdometryPipeline(source, config_from_args(args), skip_bad_frames=args.skip_bad_frames, threads=args.threads,

@@ -758,6 +758,23 @@ def persistent_in_tiles(pos, alive, f, last, t0, n, threshold, use_p_index, lo, 
     return out[:n_out]
 
 
+@njit(cache=_CACHE, nogil=True)
+def key_bounds(keys, alive, n, lower, upper):
+    """(min, max) key of the live rows < n with keys in [lower, upper]; min > max when there are none."""
+    lo = upper.copy() + 1
+    hi = lower.copy() - 1
+    for r in range(n):
+        if alive[r]:
+            inside = True
+            for a in range(3):
+                inside = inside and lower[a] <= keys[r, a] <= upper[a]
+            if inside:
+                for a in range(3):
+                    lo[a] = min(lo[a], keys[r, a])
+                    hi[a] = max(hi[a], keys[r, a])
+    return lo, hi
+
+
 @njit(cache=_CACHE, nogil=True, parallel=True)
 def window_voxels(keys, alive, f, t0, pos, label, n, lower, upper, t):
     """Live rows < n with keys in [lower, upper], in row order, with copies of their positions and labels, their

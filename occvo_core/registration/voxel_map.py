@@ -165,10 +165,14 @@ class VoxelPFilterMap:
         n = self._n
         return self.f[:n] / np.maximum(t - self.t0[:n], 1)
 
-    def window(self, lower: np.ndarray, upper: np.ndarray, t: int | None = None) -> LocalMap:
+    def window(self, lower: np.ndarray, upper: np.ndarray, t: int | None = None, tight: bool = False) -> LocalMap:
         """Every live voxel with key in [lower, upper]; `usable` marks those with p-index above the threshold at
-        frame t (all of them with the filter off or no t)."""
+        frame t (all of them with the filter off or no t). tight: the grid spans only the voxels found, not the
+        whole box (a wide, tall search box is mostly empty: its dense grid would cost tens of MB)."""
         origin, upper = np.asarray(lower, np.int64), np.asarray(upper, np.int64)
+        if tight:
+            lo, hi = kernels.key_bounds(self.keys, self.alive, self._n, origin, upper)
+            origin, upper = (lo, hi) if np.all(lo <= hi) else (origin, origin)
         rows, pos, labels, p_index, grid = kernels.window_voxels(self.keys, self.alive, self.f, self.t0, self.pos, self.label,
                                                                  self._n, origin, upper, t if t is not None else 0)
         usable = p_index > self.p_index_threshold if (t is not None and self.pfilter) else np.ones(len(rows), bool)

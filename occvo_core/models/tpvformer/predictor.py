@@ -10,7 +10,7 @@ import torch.nn.functional as F
 
 from occvo_core.errors import OccVOError
 from occvo_core.frame import OccupancyFrame
-from occvo_core.grid import FREE, OCC3D_GRID, GridSpec, grid_to_points
+from occvo_core.grid import FREE, GROUND_CLASSES, OCC3D_GRID, GridSpec, grid_to_points
 from occvo_core.models.tpvformer.checkpoint import load_checkpoint
 from occvo_core.models.tpvformer.device import autocast, select_device
 
@@ -24,9 +24,17 @@ class OccupancyPredictor:
 
     Also fits services.occupancy_model.OccupancyModel: `name`, `grid`, `predict` -> (voxel indices, labels).
     Images of another size than the checkpoint's input are resized and the intrinsics scaled to match.
+    A voxel whose most likely class has a softmax probability below `min_confidence` (`min_ground_confidence` for
+    the ground classes) is reported free: a network's unsure voxels are often ones it pins to the ego, and an
+    odometry fed with them is pulled towards "no motion" (README, TPV-Former).
     """
 
-    def __init__(self, checkpoint: str | Path, device: str | None = None):
+    def __init__(self, checkpoint: str | Path, device: str | None = None, min_confidence: float = 0.0,
+                 min_ground_confidence: float = 0.0):
+        for name, v in (("min_confidence", min_confidence), ("min_ground_confidence", min_ground_confidence)):
+            if not 0.0 <= v < 1.0:
+                raise ValueError(f"{name} must be in [0, 1), got {v}")
+        self.min_confidence, self.min_ground_confidence = float(min_confidence), float(min_ground_confidence)
         self.device = select_device(device if device != "auto" else None)
         self.model = load_checkpoint(checkpoint, device=self.device)
         self.cfg = self.model.cfg
@@ -67,8 +75,14 @@ class OccupancyPredictor:
         k = torch.from_numpy(intrinsics).to(self.device)[None]
         e = torch.from_numpy(cam_to_ego).to(self.device)[None]
         with autocast(self.device):
-            logits = self.model(x, k, e)
-        return logits[0].argmax(0).to(torch.uint8).cpu().numpy()
+            logits = self.model(x, k, e)[0]
+        labels = logits.argmax(0)
+        if self.min_confidence > 0 or self.min_ground_confidence > 0:
+            confidence = logits.float().softmax(0).amax(0)
+            ground = torch.isin(labels, torch.tensor(GROUND_CLASSES, device=labels.device))
+            below = confidence < torch.where(ground, self.min_ground_confidence, self.min_confidence)
+            labels = labels.masked_fill(below, FREE)
+        return labels.to(torch.uint8).cpu().numpy()
 
     def predict_frame(self, images, intrinsics, cam_to_ego, index: int = 0, stamp: float = 0.0) -> OccupancyFrame:
         points, labels = grid_to_points(self.predict_grid(images, intrinsics, cam_to_ego))

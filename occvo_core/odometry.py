@@ -448,8 +448,8 @@ class OccVO:
         self._map_corrections.append((t, frames, corrections))
         n = self.map._n
         rows = np.flatnonzero(self.map.alive[:n] & (self.map.born[:n] > a))
-        c = corrections[self.map.born[rows] - a - 1]
-        self.map.move(rows, c[:, :3, :3], c[:, :3, 3], ghost_radius_m=lc.ghost_radius_m, born_before=a + 1)
+        self.map.move(rows, corrections[:, :3, :3], corrections[:, :3, 3], ghost_radius_m=lc.ghost_radius_m,
+                      born_before=a + 1, group=self.map.born[rows] - a - 1)
 
     def _share_on(self, frame: _Prepared, idx: np.ndarray, pose: np.ndarray, local, subset: np.ndarray) -> tuple[float, float]:
         """Shares of frame points idx that, at pose, have a voxel of subset with their label within the fine GICP

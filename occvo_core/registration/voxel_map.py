@@ -11,6 +11,7 @@ import numpy as np
 from occvo_core.grid import NUM_CLASSES
 from occvo_core.registration import kernels
 
+_MOVE_CHUNK = 1 << 15  # rows moved at a time by VoxelPFilterMap.move
 _FIELDS = ("keys", "pos", "cov", "counts", "label", "t0", "f", "last", "wacc", "alive", "born", "in_window")
 
 
@@ -330,18 +331,23 @@ class VoxelPFilterMap:
         return n_new
 
     def move(self, rows: np.ndarray, rot: np.ndarray, trans: np.ndarray, ghost_radius_m: float = 0.0,
-             born_before: int = 0) -> int:
-        """Move live rows rigidly, each by its own rotation (k,3,3) and translation (k,3), as a loop closure corrects
-        the map made since a place was last seen. A moved voxel is dropped when its new cell already holds a live
-        voxel (the map seen there first stands, as in put()), or when it moved more than a voxel and a reliable voxel
-        born before `born_before` with its label lies within ghost_radius_m: it is that voxel seen again through
-        drift. Returns the number dropped."""
+             born_before: int = 0, group: np.ndarray | None = None) -> int:
+        """Move live rows rigidly, each by its own rotation (k,3,3) and translation (k,3) (or by those of its
+        `group`, (k,) indices into rot and trans), as a loop closure corrects the map made since a place was last
+        seen. A moved voxel is dropped when its new cell already holds a live voxel (the map seen there first
+        stands, as in put()), or when it moved more than a voxel and a reliable voxel born before `born_before` with
+        its label lies within ghost_radius_m: it is that voxel seen again through drift. Returns the number dropped."""
         rows = np.asarray(rows, np.int64)
         if len(rows) == 0:
             return 0
-        pos, self.cov[rows] = moved(self.pos[rows], self.cov[rows], rot, trans)
-        moved_far = np.linalg.norm(pos - self.pos[rows], axis=1) > self.voxel
-        self.pos[rows] = pos
+        moved_far = np.empty(len(rows), bool)
+        for a in range(0, len(rows), _MOVE_CHUNK):  # in pieces: a whole lap's temporaries would spike the RSS
+            r = rows[a: a + _MOVE_CHUNK]
+            g = slice(a, a + len(r)) if group is None else group[a: a + len(r)]
+            pos, self.cov[r] = moved(self.pos[r], self.cov[r], rot[g], trans[g])
+            moved_far[a: a + len(r)] = np.linalg.norm(pos - self.pos[r], axis=1) > self.voxel
+            self.pos[r] = pos
+        pos = self.pos[rows]
         self.keys[rows] = keys = np.floor(pos / self.voxel).astype(np.int64)
         self.alive[rows] = False  # judge the moved voxels against the others
         held = self.window(keys.min(axis=0) - 1, keys.max(axis=0) + 1)

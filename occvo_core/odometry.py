@@ -12,7 +12,7 @@ from occvo_core.config import OccVOConfig
 from occvo_core.errors import ConfigError, InvalidFrameError
 from occvo_core.frame import OccupancyFrame
 from occvo_core.grid import GROUND_CLASSES, MOVABLE_CLASSES, OCC3D_GRID
-from occvo_core.map_tiles import pack_tiles, tile_distance
+from occvo_core.map_tiles import pack_tiles
 from occvo_core.registration import kernels
 from occvo_core.registration.dynamic_object_filter import dynamic_object_filter
 from occvo_core.registration.gicp import gicp, rotation_angle
@@ -165,21 +165,20 @@ class OccVO:
     def evict_tiles(self, center_xy, radius_m: float, tile_m: float) -> dict[tuple[int, int], dict[str, np.ndarray]]:
         """Take out of the working map every tile (ix, iy) = floor(xy / tile_m) whose square lies wholly farther
         than radius_m from center_xy; returns {tile: voxels} for the caller to keep (bounded memory on long drives)."""
-        n = self.map._n
-        alive = np.flatnonzero(self.map.alive[:n])
-        if len(alive) == 0:
-            return {}
-        tiles = self.map.tile_ids(tile_m)[alive]
-        _, first, inverse = np.unique(pack_tiles(tiles), return_index=True, return_inverse=True)
-        uniq = tiles[first]
-        far = np.flatnonzero(tile_distance(uniq, center_xy, tile_m) > radius_m)
-        if len(far) == 0:
+        center = np.asarray(center_xy, np.float64)
+        rows = kernels.far_tile_rows(self.map.pos, self.map.alive, self.map._n, center[0], center[1], float(tile_m),
+                                     float(radius_m))
+        if len(rows) == 0:
             return {}
         t = len(self._poses)
+        tiles = np.floor(self.map.pos[rows, :2] / tile_m).astype(np.int64)
+        _, first, inverse = np.unique(pack_tiles(tiles), return_index=True, return_inverse=True)
+        uniq = tiles[first]
         inverse = inverse.reshape(-1)
         order = np.argsort(inverse, kind="stable")
         bounds = np.searchsorted(inverse[order], np.arange(len(uniq) + 1))
-        out = {(int(uniq[u, 0]), int(uniq[u, 1])): self.map.take(alive[order[bounds[u]:bounds[u + 1]]], t) for u in far}
+        out = {(int(uniq[u, 0]), int(uniq[u, 1])): self.map.take(rows[order[bounds[u]:bounds[u + 1]]], t)
+               for u in range(len(uniq))}
         self.map.compact()
         return out
 

@@ -759,6 +759,26 @@ def persistent_in_tiles(pos, alive, f, last, t0, n, threshold, use_p_index, lo, 
 
 
 @njit(cache=_CACHE, nogil=True)
+def far_tile_rows(pos, alive, n, cx, cy, tile_m, radius):
+    """Live rows < n, ascending, whose x-y tile (floor(xy / tile_m)) lies wholly farther than radius from (cx, cy):
+    one pass, so the eviction check of a frame with nothing to evict costs no sort of the map."""
+    out = np.empty(n, np.int64)
+    m = 0
+    r2 = radius * radius
+    for r in range(n):
+        if not alive[r]:
+            continue
+        lo_x = np.floor(pos[r, 0] / tile_m) * tile_m
+        lo_y = np.floor(pos[r, 1] / tile_m) * tile_m
+        dx = max(max(lo_x - cx, 0.0), cx - (lo_x + tile_m))
+        dy = max(max(lo_y - cy, 0.0), cy - (lo_y + tile_m))
+        if dx * dx + dy * dy > r2:
+            out[m] = r
+            m += 1
+    return out[:m]
+
+
+@njit(cache=_CACHE, nogil=True)
 def key_bounds(keys, alive, n, lower, upper):
     """(min, max) key of the live rows < n with keys in [lower, upper]; min > max when there are none."""
     lo = upper.copy() + 1

@@ -65,8 +65,13 @@ def test_evicted_tiles_leave_the_working_map_and_come_back_whole(scene):
     before = _voxels(vo)
     ego = vo.poses[-1][:2, 3]
     tiles_before = vo.resident_tiles(20.0)
+    live = vo.map.alive[: vo.map._n]
+    pos_before = vo.map.pos[: vo.map._n][live].copy()
+    tile_of = np.floor(pos_before[:, :2] / 20.0).astype(np.int64)
     blocks = vo.evict_tiles(ego, 40.0, 20.0)
     assert blocks, "the first frames' map reaches beyond 40 m of the last pose"
+    for (ix, iy), block in blocks.items():  # each block: every voxel of its tile, in map row order
+        np.testing.assert_array_equal(block["pos"], pos_before[(tile_of[:, 0] == ix) & (tile_of[:, 1] == iy)])
     resident = vo.resident_tiles(20.0)
     assert resident.isdisjoint(blocks) and resident | set(blocks) == tiles_before
     for ix, iy in resident:  # every resident tile touches the disc

@@ -19,6 +19,16 @@ class InvalidCameraFrameError(OccVOError, ValueError):
     """Camera images or calibration that the network cannot take."""
 
 
+def confident_labels(labels: torch.Tensor, confidence: torch.Tensor | None, min_confidence: float,
+                     min_ground_confidence: float) -> torch.Tensor:
+    """labels with every voxel whose confidence is below its threshold (ground classes: min_ground_confidence)
+    set free."""
+    if confidence is None or (min_confidence <= 0 and min_ground_confidence <= 0):
+        return labels
+    ground = torch.isin(labels, torch.tensor(GROUND_CLASSES, device=labels.device))
+    return labels.masked_fill(confidence < torch.where(ground, min_ground_confidence, min_confidence), FREE)
+
+
 class OccupancyPredictor:
     """Loads a checkpoint once; `predict_grid` maps six images + calibration to a uint8 (200,200,16) label grid.
 
@@ -47,9 +57,17 @@ class OccupancyPredictor:
         occupied = grid != FREE
         return np.argwhere(occupied), grid[occupied]
 
-    @torch.no_grad()
     def predict_grid(self, images: np.ndarray, intrinsics: np.ndarray, cam_to_ego: np.ndarray) -> np.ndarray:
         """images (6, H, W, 3) uint8 RGB; intrinsics (6, 3, 3) for that size; cam_to_ego (6, 4, 4)."""
+        thresholds = self.min_confidence, self.min_ground_confidence
+        labels, confidence = self.predict_labels(images, intrinsics, cam_to_ego, with_confidence=max(thresholds) > 0)
+        return confident_labels(labels, confidence, *thresholds).to(torch.uint8).cpu().numpy()
+
+    @torch.no_grad()
+    def predict_labels(self, images: np.ndarray, intrinsics: np.ndarray, cam_to_ego: np.ndarray,
+                       with_confidence: bool = True) -> tuple[torch.Tensor, torch.Tensor | None]:
+        """The most likely class of every voxel (200,200,16) and, with_confidence, its softmax probability; no
+        threshold applied (predict_grid applies them)."""
         images, intrinsics, cam_to_ego = np.asarray(images), np.asarray(intrinsics, np.float32), np.asarray(cam_to_ego, np.float32)
         if images.ndim != 4 or images.shape[0] != 6 or images.shape[-1] != 3:
             raise InvalidCameraFrameError(f"images must be (6, H, W, 3), got {images.shape}")
@@ -76,13 +94,7 @@ class OccupancyPredictor:
         e = torch.from_numpy(cam_to_ego).to(self.device)[None]
         with autocast(self.device):
             logits = self.model(x, k, e)[0]
-        labels = logits.argmax(0)
-        if self.min_confidence > 0 or self.min_ground_confidence > 0:
-            confidence = logits.float().softmax(0).amax(0)
-            ground = torch.isin(labels, torch.tensor(GROUND_CLASSES, device=labels.device))
-            below = confidence < torch.where(ground, self.min_ground_confidence, self.min_confidence)
-            labels = labels.masked_fill(below, FREE)
-        return labels.to(torch.uint8).cpu().numpy()
+        return logits.argmax(0), (logits.float().softmax(0).amax(0) if with_confidence else None)
 
     def predict_frame(self, images, intrinsics, cam_to_ego, index: int = 0, stamp: float = 0.0) -> OccupancyFrame:
         points, labels = grid_to_points(self.predict_grid(images, intrinsics, cam_to_ego))

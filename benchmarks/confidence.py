@@ -1,0 +1,68 @@
+"""Odometry on a TPV-Former checkpoint's predictions, by confidence threshold: which thresholds to serve with.
+
+    python benchmarks/confidence.py --checkpoint DIR/checkpoint.pt --seeds 2000 2001 2002 2003 2004   # choose
+    python benchmarks/confidence.py --checkpoint DIR/checkpoint.pt --seeds 1000 1001 1002 1003 1004 --pairs 0,0 0.9,0.95
+
+Each synthetic seed (40 frames, 2 Hz) is rendered and run through the network once (OccupancyPredictor.predict_labels);
+then, for each (min_confidence, min_ground_confidence) pair, the voxels below it are set free (confident_labels, as
+the predictor and the inference worker do) and OccVO runs over the frames. Prints the APE RMSE (m) of every seed and
+the successes (APE < 5 m) per pair. Choose on seeds that are neither training seeds (0-199 for the README's model)
+nor the held-out 1000-1004, then measure the chosen pair on those.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+import torch
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from occvo_core import OccVO  # noqa: E402
+from occvo_core.eval import ape_rmse  # noqa: E402
+from occvo_core.frame import OccupancyFrame  # noqa: E402
+from occvo_core.grid import grid_to_points  # noqa: E402
+from occvo_core.models.image_source import ImageOccupancySource  # noqa: E402
+from occvo_core.models.tpvformer.predictor import OccupancyPredictor, confident_labels  # noqa: E402
+from occvo_core.sim import SyntheticScene  # noqa: E402
+
+PAIRS = ["0,0", "0.8,0", "0.9,0", "0.8,0.9", "0.85,0.9", "0.9,0.9", "0.8,0.95", "0.85,0.95", "0.9,0.95"]
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--checkpoint", required=True)
+    ap.add_argument("--seeds", type=int, nargs="+", default=[2000, 2001, 2002, 2003, 2004])
+    ap.add_argument("--pairs", nargs="+", default=PAIRS, help="min_confidence,min_ground_confidence")
+    ap.add_argument("--frames", type=int, default=40)
+    ap.add_argument("--threads", type=int, default=2)
+    args = ap.parse_args()
+    torch.set_num_threads(args.threads)
+    pairs = [tuple(float(v) for v in p.split(",")) for p in args.pairs]
+    predictor = OccupancyPredictor(args.checkpoint, device="cpu")
+    ape = {p: [] for p in pairs}
+    for seed in args.seeds:
+        scene = SyntheticScene(seed=seed, frames=args.frames)
+        source = ImageOccupancySource(scene, predictor)
+        predicted = [predictor.predict_labels(*source.camera_frame(i)) for i in range(len(scene))]
+        for p in pairs:
+            vo = OccVO()
+            for i, (labels, confidence) in enumerate(predicted):
+                points, classes = grid_to_points(confident_labels(labels, confidence, *p).to(torch.uint8).numpy())
+                vo.step(OccupancyFrame(points, classes, i, float(scene.times[i]), {"seed": seed}))
+            ape[p].append(ape_rmse(scene.gt_poses, vo.poses))
+        print(f"seed {seed}: " + "  ".join(f"{a},{b}: {ape[(a, b)][-1]:.2f}" for a, b in pairs), flush=True)
+    print(f"\n{'min_confidence':>14} {'ground':>6}  succeeded  APE RMSE (m) of seeds {' '.join(map(str, args.seeds))}")
+    for a, b in pairs:
+        r = ape[(a, b)]
+        print(f"{a:>14g} {b:>6g}  {sum(x < 5.0 for x in r)} of {len(r):<5}  {' '.join(f'{x:.2f}' for x in r)}")
+    print(json.dumps({"seeds": args.seeds, "ape_rmse_m": {f"{a},{b}": [round(x, 3) for x in ape[(a, b)]] for a, b in pairs}}))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

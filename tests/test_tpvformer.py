@@ -135,13 +135,20 @@ def test_forward_shape_and_a_short_training_run_lowers_the_loss(tmp_path):
     assert trained.meta["steps"] == 10 and trained.cfg.free_logit_bias == trained.meta["calibration"]["free_logit_bias"]
 
 
-def test_checkpoint_round_trip_gives_identical_outputs(tmp_path):
-    torch.manual_seed(1)
+def _saved_model(path, seed: int, meta: dict | None = None):
+    """An untrained micro model saved at path, its rig, a sample of _world() and the sample as uint8 images."""
+    torch.manual_seed(seed)
     cfg = micro()
     model = TPVFormer(cfg).eval()
     rig = nuscenes_rig(*cfg.input_size)
     s = make_sample(_world(), rig)
-    path = save_checkpoint(tmp_path / "m.pt", model, {"note": "round trip"})
+    save_checkpoint(path, model, meta)
+    return model, cfg, rig, s, (s.images.permute(0, 2, 3, 1) * 255).round().byte().numpy()
+
+
+def test_checkpoint_round_trip_gives_identical_outputs(tmp_path):
+    path = tmp_path / "m.pt"
+    model, cfg, rig, s, images = _saved_model(path, 1, {"note": "round trip"})
     loaded = load_checkpoint(path)
     assert loaded.cfg == cfg and loaded.meta == {"note": "round trip"}
     with torch.no_grad():
@@ -150,7 +157,6 @@ def test_checkpoint_round_trip_gives_identical_outputs(tmp_path):
     assert torch.equal(a, b)
     # The serving wrapper gives the same labels from uint8 images.
     predictor = OccupancyPredictor(path, device="cpu")
-    images = (s.images.permute(0, 2, 3, 1) * 255).round().byte().numpy()
     grid = predictor.predict_grid(images, rig.intrinsics, rig.cam_to_ego)
     assert grid.shape == (200, 200, 16) and grid.dtype == np.uint8
     assert np.mean(grid == a[0].argmax(0).numpy()) > 0.99
@@ -164,13 +170,8 @@ def test_checkpoint_round_trip_gives_identical_outputs(tmp_path):
 def test_confidence_thresholds_report_unsure_voxels_free(tmp_path):
     from occvo_core.grid import GROUND_CLASSES
 
-    torch.manual_seed(2)
-    cfg = micro()
-    model = TPVFormer(cfg).eval()
-    rig = nuscenes_rig(*cfg.input_size)
-    s = make_sample(_world(), rig)
-    path = save_checkpoint(tmp_path / "m.pt", model)
-    images = (s.images.permute(0, 2, 3, 1) * 255).round().byte().numpy()
+    path = tmp_path / "m.pt"
+    model, _, rig, s, images = _saved_model(path, 2)
     with torch.no_grad():
         prob = model(s.images[None], s.intrinsics[None], s.cam_to_ego[None])[0].softmax(0)
     confidence, argmax = (v.numpy() for v in prob.max(0))

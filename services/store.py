@@ -70,9 +70,6 @@ CREATE TABLE IF NOT EXISTS cold_tiles (
 _PER_STREAM = ("poses", "snapshots", "journal", "cold_tiles")
 
 
-_BLOB_CHUNK = 1 << 22  # snapshot bytes written to SQLite at a time
-
-
 def pack_arrays(arrays: dict[str, np.ndarray]) -> bytes:
     """numpy arrays -> .npz bytes (no pickle, no compression: the blobs are read back whole and soon)."""
     buf = io.BytesIO()
@@ -238,23 +235,16 @@ class TrajectoryStore:
         in_place = hasattr(sqlite3.Connection, "blobopen")
         if isinstance(state, dict) and not in_place:
             state = pack_arrays(state)
-        if isinstance(state, dict):
-            size = _BlobFile()
-            _savez(size, state)
+        write = (lambda fp: _savez(fp, state)) if isinstance(state, dict) else (lambda fp: fp.write(state))
+        size = _BlobFile()
+        write(size)
 
         def tx(db):
-            if isinstance(state, dict):
+            if in_place:
                 rowid = db.execute("INSERT OR REPLACE INTO snapshots VALUES (?, ?, zeroblob(?))",
                                    (stream, seq, size.size)).lastrowid
                 with db.blobopen("snapshots", "state", rowid) as blob:
-                    _savez(_BlobFile(blob), state)
-            elif in_place:
-                rowid = db.execute("INSERT OR REPLACE INTO snapshots VALUES (?, ?, zeroblob(?))",
-                                   (stream, seq, len(state))).lastrowid
-                view = memoryview(state)
-                with db.blobopen("snapshots", "state", rowid) as blob:
-                    for at in range(0, len(view), _BLOB_CHUNK):
-                        blob.write(view[at: at + _BLOB_CHUNK])
+                    write(_BlobFile(blob))
             else:
                 db.execute("INSERT OR REPLACE INTO snapshots VALUES (?, ?, ?)", (stream, seq, state))
             db.execute("DELETE FROM journal WHERE stream=? AND seq<=?", (stream, seq))

@@ -251,12 +251,14 @@ def analyse(raw: dict, scene: SyntheticScene, args, t_build: float) -> dict:
     if "last" in snaps and "first" in snaps and len(traj) > k_first:
         d = np.linalg.norm(scene.gt_poses[: k_first + 1, :2, 3] - scene.gt_poses[0, :2, 3], axis=1)
         seen = seen_cells(scene, np.asarray(traj), np.nonzero(d <= 80.0)[0])
-        inside = np.isin(cell_keys(snaps["last"][0]), seen)
+
+        def where_seen(points, labels):
+            inside = np.isin(cell_keys(points), seen)
+            return map_metrics(points[inside], labels[inside], *snaps["first"]), inside
+
+        rev_seen, inside = where_seen(*snaps["last"])
         seen_share = float(inside.mean()) if len(inside) else float("nan")
-        rev_seen = map_metrics(snaps["last"][0][inside], snaps["last"][1][inside], *snaps["first"])
-        shifted = snaps["last"][0] + [0.4, 0.0, 0.0]  # does the measure see a map one voxel off?
-        inside_shifted = np.isin(cell_keys(shifted), seen)
-        rev_seen_shifted = map_metrics(shifted[inside_shifted], snaps["last"][1][inside_shifted], *snaps["first"])
+        rev_seen_shifted, _ = where_seen(snaps["last"][0] + [0.4, 0.0, 0.0], snaps["last"][1])  # a map one voxel off
     stages = raw["registration_stages_ms"]
     res = {
         "frames": n, "frames_planned": raw["n_planned"], "budget_stop": bool(out.get("budget_stop")), "poses": out["poses"], "errors": out["errors"], "seed": args.seed, "blocks": args.blocks,

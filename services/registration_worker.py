@@ -7,7 +7,8 @@ empty), so the map service always equals the odometry's map; the cost follows th
 Durable state (`store_path`, services/store.py): every pose is committed with its frame before it is published, the
 OccVO state is snapshotted every `snapshot_every` frames (less often when snapshots would take more than
 `snapshot_max_share` of the stream's time) and at shutdown; a restarted worker resumes a stream at its
-next frame from the snapshot plus the journaled frames. A resent frame already registered gets its stored pose again.
+next frame from the snapshot plus the journaled frames. The lane only copies the state; one writer thread writes the
+copies into the store's snapshot file, so neither this stream's next frame nor another stream's commit waits for it. A resent frame already registered gets its stored pose again.
 With `working_radius_m`, map tiles wholly farther than that from the ego leave the working set for the store (the map
 service keeps serving them) and come back when the ego is within working_radius_m - tile_m of them.
 """
@@ -16,6 +17,7 @@ from __future__ import annotations
 
 import hashlib
 import logging
+import queue
 import sys
 import threading
 import time
@@ -56,6 +58,9 @@ class StreamState:
         self.pending_restored: list[tuple[int, int, int]] = []  # restored, not yet committed with a frame
         self.since_snapshot = 0
         self.snapshot_due = 0.0  # time.monotonic() before which a snapshot would overrun snapshot_max_share
+        self.snapshot_idle = threading.Event()  # no snapshot of this stream queued or being written
+        self.snapshot_idle.set()
+        self.snapshot_retry = False  # the last snapshot failed: take one at the next frame
         self.send_all_tiles = False
         self.tiling_ms = 0.0
         self.ego_xy: np.ndarray | None = None  # x-y of the last registered pose (eviction and restore centre)  # after a resume: the map service may lack the last frames' tiles
@@ -103,7 +108,11 @@ class RegistrationWorker(Worker):
             raise ConfigError(f"working_radius_m ({radius}) must exceed tile_m ({config.tile_m}): tiles come back "
                               "within working_radius_m - tile_m")
         self.store = TrajectoryStore(config.store_path, config.store_sync.upper()) if config.store_path else None
+        self._snapshots: queue.Queue = queue.Queue()
+        self._snapshot_writer = None
         if self.store is not None:
+            self._snapshot_writer = threading.Thread(target=self._write_snapshots, name="snapshot-writer", daemon=True)
+            self._snapshot_writer.start()
             for stream in self.store.streams():  # queries answer at once; the odometry resumes at the next frame
                 st = self.states[stream] = StreamState()
                 for p in self.store.poses(stream):
@@ -132,16 +141,18 @@ class RegistrationWorker(Worker):
         """Off the network (the frames in hand finished): snapshot every stream with unsnapshotted frames."""
         if self.store is None:
             return
+        t0 = time.perf_counter()
+        self._snapshots.put(None)
+        self._snapshot_writer.join()
+        self._shutdown_step("queued snapshots written", t0)
         for stream, st in list(self.states.items()):
             lane = self.lanes.get(stream)
             if lane is not None and lane.thread.is_alive():
                 continue  # its frame in hand did not finish in time: do not touch its OccVO from here
-            if st.vo is not None and st.since_snapshot > 0:
+            if st.vo is not None and (st.since_snapshot > 0 or st.snapshot_retry):
                 t0 = time.perf_counter()
-                try:
-                    self._snapshot(stream, st)
-                except Exception as exc:  # noqa: BLE001 - the journal still holds those frames
-                    log_event(self.log, "snapshot at shutdown failed", stream=stream, error=repr(exc))
+                # in place: no lane steps it any more
+                self._write_snapshot(stream, st, st.seqs[-1], self.store.created(stream), st.vo.state_dict(copy=False))
                 self._shutdown_step("snapshot at shutdown", t0, stream=stream, map_voxels=len(st.vo.map))
         t0, sizes = time.perf_counter(), self.store.file_sizes_mb()  # the WAL is checkpointed into the file on close
         self.store.close()
@@ -255,29 +266,57 @@ class RegistrationWorker(Worker):
         if self.store is not None:
             self.stats.observe("store_commit", store_ms)
             st.since_snapshot += 1
-            if st.since_snapshot >= self.config.snapshot_every and time.monotonic() >= st.snapshot_due:
-                try:
-                    self._snapshot(stream, st)
-                except Exception as exc:  # noqa: BLE001 - the journal keeps the frames; retried next frame
-                    self.report_error(stream, "internal", f"snapshot after seq {msg.seq} failed: {type(exc).__name__}: {exc}",
-                                      keys.occupancy(stream), msg.seq)
+            due = st.snapshot_retry or (st.since_snapshot >= self.config.snapshot_every and time.monotonic() >= st.snapshot_due)
+            if due and st.snapshot_idle.is_set():
+                self._queue_snapshot(stream, st)
         if restart:
             log_event(self.log, "trajectory started", stream=stream, seq=msg.seq)
 
     # -- durable state --------------------------------------------------------------------------------------------
-    def _snapshot(self, stream: str, st: StreamState) -> None:
+    def _queue_snapshot(self, stream: str, st: StreamState) -> None:
+        """Copy the state for the snapshot writer (a few ms): the lane steps on while the copy is written."""
         t0 = time.perf_counter()
-        self.store.write_snapshot(stream, st.seqs[-1], st.vo.state_dict(copy=False))
-        st.since_snapshot = 0
-        took = time.perf_counter() - t0
-        if self.config.snapshot_max_share is not None:
-            st.snapshot_due = time.monotonic() + took / self.config.snapshot_max_share
-        self.stats.inc("snapshots")
-        self.stats.observe("snapshot", (time.perf_counter() - t0) * 1000.0)
+        state = {k: np.array(v) for k, v in st.vo.state_dict(copy=False).items()}
+        st.snapshot_idle.clear()
+        st.since_snapshot, st.snapshot_retry = 0, False
+        self._snapshots.put((stream, st, st.seqs[-1], self.store.created(stream), state))
+        self.stats.observe("snapshot_copy", (time.perf_counter() - t0) * 1000.0)
+
+    def _write_snapshots(self) -> None:
+        """The snapshot writer thread: one snapshot at a time, in queue order, until the None of shutdown."""
+        while (item := self._snapshots.get()) is not None:
+            self._write_snapshot(*item)
+            del item  # the copy goes before the next one is waited for
+
+    def _write_snapshot(self, stream: str, st: StreamState, seq: int, created: float | None, state: dict) -> None:
+        t0 = time.perf_counter()
+        try:
+            if self.store.write_snapshot(stream, seq, state, created):
+                self.stats.inc("snapshots")
+            took = time.perf_counter() - t0
+            if self.config.snapshot_max_share is not None:
+                st.snapshot_due = time.monotonic() + took / self.config.snapshot_max_share
+            self.stats.observe("snapshot", took * 1000.0)
+        except Exception as exc:  # noqa: BLE001 - the journal keeps the frames; retried at the stream's next frame
+            st.snapshot_retry = True
+            self.report_error(stream, "internal", f"snapshot after seq {seq} failed: {type(exc).__name__}: {exc}",
+                              keys.occupancy(stream), seq)
+        finally:
+            st.snapshot_idle.set()
+
+    def snapshots_written(self, timeout: float | None = None) -> bool:
+        """Wait until no snapshot is queued or being written (tests and benchmarks)."""
+        deadline = None if timeout is None else time.monotonic() + timeout
+        for st in list(self.states.values()):
+            left = None if deadline is None else max(0.0, deadline - time.monotonic())
+            if not st.snapshot_idle.wait(left):
+                return False
+        return True
 
     def _resume(self, stream: str, st: StreamState) -> None:
         """Rebuild the stream's OccVO from its snapshot and journal, as it was after the last committed frame."""
         t0 = time.perf_counter()
+        st.snapshot_idle.wait()  # a snapshot being written would delete journal rows between our two reads
         vo = self._OccVO(self.occvo_config, threads=self.config.kernel_threads)
         snap = self.store.snapshot(stream)
         snap_seq = None

@@ -3,7 +3,8 @@
 Tables (they may share a file with the map service's map_streams/map_tiles, services/map_store.py):
   streams     stream, created, last_seq (last committed frame), snapshot_seq
   poses       (stream, seq): stamp, digest of the frame, status, pose (4x4 float64 bytes); every published pose
-  snapshots   stream: seq, the OccVO state_dict after that frame (working map only); the latest one per stream
+  snapshots   (in a second file, <name>.snapshots.sqlite) stream: the trajectory's `created`, seq, the OccVO
+              state_dict after that frame (working map only); the latest one per stream
   journal     (stream, seq): the occupancy frames registered after the snapshot, to replay on resume
   cold_tiles  (stream, ix, iy, evicted_seq): map tiles evicted from the working set, with restored_seq once they came
               back. A restored row stays until the next snapshot: resuming from an older snapshot replays the frames
@@ -12,6 +13,11 @@ Tables (they may share a file with the map service's map_streams/map_tiles, serv
 WAL journal (readers never block the writer), a busy timeout (another process may write the same file) and one
 transaction per frame. synchronous=FULL by default: a pose is committed before it is published, and FULL makes that
 commit survive a power cut too, not only a killed process (NORMAL does the latter; measured cost in services/README.md).
+
+Snapshots have their own file because SQLite has one writer per file: a 100 MB snapshot written in the frames' file
+held every stream's frame commit for up to a second. A snapshot counts only if its `created` is the stream's current
+trajectory's and its seq is committed there; the journal and restored cold rows it covers are deleted only after it
+is durable, so a crash between the two files' transactions leaves a valid (older) resume point.
 """
 
 from __future__ import annotations
@@ -46,11 +52,6 @@ CREATE TABLE IF NOT EXISTS poses (
     pose   BLOB NOT NULL,
     PRIMARY KEY (stream, seq)
 ) WITHOUT ROWID;
-CREATE TABLE IF NOT EXISTS snapshots (
-    stream TEXT PRIMARY KEY,
-    seq    INTEGER NOT NULL,
-    state  BLOB NOT NULL
-);
 CREATE TABLE IF NOT EXISTS journal (
     stream TEXT NOT NULL,
     seq    INTEGER NOT NULL,
@@ -67,7 +68,24 @@ CREATE TABLE IF NOT EXISTS cold_tiles (
     PRIMARY KEY (stream, ix, iy, evicted_seq)
 );
 """
-_PER_STREAM = ("poses", "snapshots", "journal", "cold_tiles")
+SNAPSHOT_SCHEMA = """
+CREATE TABLE IF NOT EXISTS snapshots (
+    stream  TEXT PRIMARY KEY,
+    created REAL NOT NULL,
+    seq     INTEGER NOT NULL,
+    state   BLOB NOT NULL
+);
+"""
+_PER_STREAM = ("poses", "journal", "cold_tiles")
+
+
+def snapshot_path(path: str | Path) -> str:
+    """The snapshot file beside a store file: var/occvo.sqlite -> var/occvo.snapshots.sqlite."""
+    path = str(path)
+    if path == ":memory:":
+        return path
+    p = Path(path)
+    return str(p.with_name(f"{p.stem}.snapshots{p.suffix or '.sqlite'}"))
 
 
 def pack_arrays(arrays: dict[str, np.ndarray]) -> bytes:
@@ -154,34 +172,29 @@ class StreamRecord:
 
 
 class TrajectoryStore:
-    """One SQLite connection shared by the worker's stream lanes (SQLite has one writer anyway), behind a lock."""
+    """Two SQLite connections shared by the worker's stream lanes, each behind its lock: the frames' file and the
+    snapshots' file (services/README.md). SQLite has one writer per file anyway."""
 
     def __init__(self, path: str | Path, synchronous: Literal["NORMAL", "FULL"] = "FULL", busy_timeout_s: float = 30.0):
-        self.path = str(path)
-        try:
-            if self.path != ":memory:":
-                Path(self.path).parent.mkdir(parents=True, exist_ok=True)
-            self.db = sqlite3.connect(self.path, timeout=busy_timeout_s, isolation_level=None, check_same_thread=False)
-            self.db.execute("PRAGMA journal_mode=WAL")
-            self.db.execute(f"PRAGMA synchronous={synchronous}")
-            self.db.execute(f"PRAGMA busy_timeout={int(busy_timeout_s * 1000)}")
-            self.db.execute("PRAGMA journal_size_limit=67108864")  # snapshots are big: truncate the WAL after checkpoints
-            self.db.executescript(SCHEMA)
-        except sqlite3.Error as exc:
-            raise ConfigError(f"trajectory store {self.path}: {exc}") from None
-        self.lock = threading.Lock()
+        self.path, self.snapshot_path = str(path), snapshot_path(path)
+        self.db = _connect(self.path, synchronous, busy_timeout_s, SCHEMA)
+        self.snap_db = _connect(self.snapshot_path, synchronous, busy_timeout_s, SNAPSHOT_SCHEMA)
+        self.lock, self.snap_lock = threading.Lock(), threading.Lock()
+        self._move_old_snapshots()
+
+    def _move_old_snapshots(self) -> None:
+        """A store written before snapshots had their own file: move its snapshots there (its journal needs them)."""
+        if self.db.execute("SELECT 1 FROM sqlite_master WHERE type='table' AND name='snapshots'").fetchone() is None:
+            return
+        rows = self.db.execute("SELECT s.stream, t.created, s.seq, s.state FROM snapshots s JOIN streams t "
+                               "USING (stream)").fetchall()
+        _transaction(self.snap_db, lambda db: db.executemany("INSERT OR REPLACE INTO snapshots VALUES (?, ?, ?, ?)", rows))
+        _transaction(self.db, lambda db: db.execute("DROP TABLE snapshots"))
 
     # -- transactions
     def _write(self, fn):
         with self.lock:
-            self.db.execute("BEGIN IMMEDIATE")
-            try:
-                out = fn(self.db)
-            except BaseException:
-                self.db.execute("ROLLBACK")
-                raise
-            self.db.execute("COMMIT")
-            return out
+            return _transaction(self.db, fn)
 
     def _read(self, sql: str, args=()) -> list:
         with self.lock:
@@ -228,10 +241,15 @@ class TrajectoryStore:
         self._write(tx)
 
     # -- snapshots and journal
-    def write_snapshot(self, stream: str, seq: int, state: dict[str, np.ndarray] | bytes) -> None:
-        """The state after frame `seq` (arrays, or pack_arrays' bytes) replaces the older snapshot; the journal up to
-        it and the cold rows restored by then are no longer needed. Arrays are written into the row in place
-        (Python >= 3.11): packing them first would hold a copy of the whole state, and the worker's peak RSS with it."""
+    def write_snapshot(self, stream: str, seq: int, state: dict[str, np.ndarray] | bytes, created: float | None = None) -> bool:
+        """The state after frame `seq` (arrays, or pack_arrays' bytes) replaces the older snapshot; then the journal
+        up to it and the cold rows restored by then go. Arrays are written into the row in place (Python >= 3.11):
+        packing them first would hold a copy of the whole state, and the worker's peak RSS with it. Frame commits
+        go on meanwhile (another file). `created`: the trajectory the state belongs to (created(stream) when the state
+        was taken), by default the current one. False, and the journal kept, if the stream started another since."""
+        created = self.created(stream) if created is None else created
+        if created is None:
+            return False
         in_place = hasattr(sqlite3.Connection, "blobopen")
         if isinstance(state, dict) and not in_place:
             state = pack_arrays(state)
@@ -239,23 +257,42 @@ class TrajectoryStore:
         size = _BlobFile()
         write(size)
 
-        def tx(db):
+        def snap_tx(db):
             if in_place:
-                rowid = db.execute("INSERT OR REPLACE INTO snapshots VALUES (?, ?, zeroblob(?))",
-                                   (stream, seq, size.size)).lastrowid
+                rowid = db.execute("INSERT OR REPLACE INTO snapshots VALUES (?, ?, ?, zeroblob(?))",
+                                   (stream, created, seq, size.size)).lastrowid
                 with db.blobopen("snapshots", "state", rowid) as blob:
                     write(_BlobFile(blob))
             else:
-                db.execute("INSERT OR REPLACE INTO snapshots VALUES (?, ?, ?)", (stream, seq, state))
+                db.execute("INSERT OR REPLACE INTO snapshots VALUES (?, ?, ?, ?)", (stream, created, seq, state))
+
+        with self.snap_lock:
+            _transaction(self.snap_db, snap_tx)
+
+        def tx(db):  # only if the trajectory is still the one snapshotted
+            if db.execute("SELECT created FROM streams WHERE stream=?", (stream,)).fetchone() != (created,):
+                return False
             db.execute("DELETE FROM journal WHERE stream=? AND seq<=?", (stream, seq))
             db.execute("DELETE FROM cold_tiles WHERE stream=? AND restored_seq IS NOT NULL AND restored_seq<=?", (stream, seq))
             db.execute("UPDATE streams SET snapshot_seq=? WHERE stream=?", (seq, stream))
+            return True
 
-        self._write(tx)
+        return self._write(tx)
+
+    def created(self, stream: str) -> float | None:
+        """Identifies the stream's current trajectory (its creation time)."""
+        rows = self._read("SELECT created FROM streams WHERE stream=?", (stream,))
+        return rows[0][0] if rows else None
 
     def snapshot(self, stream: str) -> tuple[int, bytes] | None:
-        rows = self._read("SELECT seq, state FROM snapshots WHERE stream=?", (stream,))
-        return (int(rows[0][0]), rows[0][1]) if rows else None
+        """(seq, state) of the stream's current trajectory, or None. A snapshot of an older trajectory (a crash
+        between its write and the new trajectory's first commit) or of an uncommitted frame does not count."""
+        record = self.record(stream)
+        with self.snap_lock:
+            rows = self.snap_db.execute("SELECT created, seq, state FROM snapshots WHERE stream=?", (stream,)).fetchall()
+        if not rows or record is None or rows[0][0] != record.created or record.last_seq is None or rows[0][1] > record.last_seq:
+            return None
+        return int(rows[0][1]), rows[0][2]
 
     def journal(self, stream: str, after_seq: int | None) -> list[tuple[int, OccupancyFrame]]:
         rows = self._read("SELECT seq, frame FROM journal WHERE stream=? AND seq>? ORDER BY seq",
@@ -287,19 +324,52 @@ class TrajectoryStore:
         """Rows and blob bytes per table of one stream (for stats and tests)."""
         out = {}
         for table, blob in (("poses", "pose"), ("snapshots", "state"), ("journal", "frame"), ("cold_tiles", "block")):
-            n, b = self._read(f"SELECT COUNT(*), COALESCE(SUM(LENGTH({blob})), 0) FROM {table} WHERE stream=?", (stream,))[0]
+            sql = f"SELECT COUNT(*), COALESCE(SUM(LENGTH({blob})), 0) FROM {table} WHERE stream=?"
+            if table == "snapshots":
+                with self.snap_lock:
+                    n, b = self.snap_db.execute(sql, (stream,)).fetchone()
+            else:
+                n, b = self._read(sql, (stream,))[0]
             out[f"{table}_rows"], out[f"{table}_bytes"] = int(n), int(b)
         return out
 
     def close(self) -> None:
-        with self.lock:
+        with self.lock, self.snap_lock:
             self.db.close()
+            self.snap_db.close()
 
     def file_sizes_mb(self) -> dict[str, float]:
-        """Sizes of the SQLite file and its WAL, MB (for logs)."""
-        paths = {"db_mb": Path(self.path), "wal_mb": Path(f"{self.path}-wal")}
+        """Sizes of the SQLite files and their WALs, MB (for logs)."""
+        paths = {"db_mb": Path(self.path), "wal_mb": Path(f"{self.path}-wal"),
+                 "snapshots_mb": Path(self.snapshot_path), "snapshots_wal_mb": Path(f"{self.snapshot_path}-wal")}
         # an in-memory store has neither file, a checkpointed WAL may be gone: only what exists is reported
         return {name: round(path.stat().st_size / 2**20, 1) for name, path in paths.items() if path.is_file()}
+
+
+def _connect(path: str, synchronous: str, busy_timeout_s: float, schema: str) -> sqlite3.Connection:
+    try:
+        if path != ":memory:":
+            Path(path).parent.mkdir(parents=True, exist_ok=True)
+        db = sqlite3.connect(path, timeout=busy_timeout_s, isolation_level=None, check_same_thread=False)
+        db.execute("PRAGMA journal_mode=WAL")
+        db.execute(f"PRAGMA synchronous={synchronous}")
+        db.execute(f"PRAGMA busy_timeout={int(busy_timeout_s * 1000)}")
+        db.execute("PRAGMA journal_size_limit=67108864")  # snapshots are big: truncate the WAL after checkpoints
+        db.executescript(schema)
+    except sqlite3.Error as exc:
+        raise ConfigError(f"trajectory store {path}: {exc}") from None
+    return db
+
+
+def _transaction(db: sqlite3.Connection, fn):
+    db.execute("BEGIN IMMEDIATE")
+    try:
+        out = fn(db)
+    except BaseException:
+        db.execute("ROLLBACK")
+        raise
+    db.execute("COMMIT")
+    return out
 
 
 def _pose(row) -> StoredPose:

@@ -5,9 +5,11 @@ a stream exactly, with and without eviction of far map."""
 
 from __future__ import annotations
 
+import sqlite3
 import threading
 import time
 import warnings
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -15,7 +17,7 @@ import pytest
 from occvo_core import OccVO
 from occvo_core.sim import SyntheticScene
 from services.store import (
-    TrajectoryStore, frame_digest, pack_arrays, pack_frame, unpack_arrays, unpack_frame,
+    TrajectoryStore, frame_digest, pack_arrays, pack_frame, snapshot_path, unpack_arrays, unpack_frame,
 )
 
 warnings.filterwarnings("ignore", category=RuntimeWarning)
@@ -163,6 +165,45 @@ def test_two_connections_share_the_file(tmp_path, scene):
         s.close()
 
 
+def test_a_snapshot_of_an_older_trajectory_does_not_count(tmp_path, scene):
+    store = TrajectoryStore(tmp_path / "s.sqlite")
+    vo = OccVO()
+    for i in range(3):
+        _commit(store, "car", vo, scene[i], i)
+    old, state = store.created("car"), vo.state_dict()
+    # the stream starts again before the copy taken after seq 2 reaches the snapshot file
+    again = OccVO()
+    for i in range(2):
+        _commit(store, "car", again, scene[5 + i], i)
+    assert store.write_snapshot("car", 2, state, created=old) is False
+    assert store.snapshot("car") is None and store.record("car").snapshot_seq is None
+    assert [s for s, _ in store.journal("car", None)] == [0, 1]  # the new trajectory's journal is whole
+    assert store.write_snapshot("car", 1, again.state_dict(copy=False)) is True
+    assert store.snapshot("car")[0] == 1 and store.journal("car", None) == []
+    store.close()
+
+
+def test_a_store_written_before_the_snapshot_file_keeps_its_snapshot(tmp_path, scene):
+    path = tmp_path / "old.sqlite"
+    store = TrajectoryStore(path)
+    vo = OccVO()
+    for i in range(4):
+        _commit(store, "car", vo, scene[i], i)
+    packed = pack_arrays(vo.state_dict())
+    store.close()
+    for suffix in ("", "-wal", "-shm"):  # as the earlier release left it: the snapshot in the frames' file
+        Path(snapshot_path(path) + suffix).unlink(missing_ok=True)
+    db = sqlite3.connect(path)
+    db.execute("CREATE TABLE snapshots (stream TEXT PRIMARY KEY, seq INTEGER NOT NULL, state BLOB NOT NULL)")
+    db.execute("INSERT INTO snapshots VALUES ('car', 3, ?)", (packed,))
+    db.commit()
+    db.close()
+    store = TrajectoryStore(path)
+    assert store.snapshot("car") == (3, packed)
+    assert store.db.execute("SELECT 1 FROM sqlite_master WHERE name='snapshots'").fetchone() is None
+    store.close()
+
+
 def test_store_refuses_an_unusable_path(tmp_path):
     from occvo_core.errors import ConfigError
 
@@ -294,7 +335,7 @@ def test_snapshots_keep_to_their_share_of_the_time_and_shutdown_still_writes_one
             client.reset()
             for i in range(8):
                 client.step(scene[i])
-            assert reg.stats.snapshot()[0]["snapshots"] == 1
+            assert reg.snapshots_written(30) and reg.stats.snapshot()[0]["snapshots"] == 1
             probe = TrajectoryStore(path)
             assert probe.record("car").snapshot_seq == 1 and [s for s, _ in probe.journal("car", 1)] == list(range(2, 8))
             svc.reg.stop()  # shutdown snapshots whatever the share
@@ -303,6 +344,34 @@ def test_snapshots_keep_to_their_share_of_the_time_and_shutdown_still_writes_one
             got = [client.step(scene[i]).matrix() for i in range(8, N)]
             assert np.array_equal(np.array([client.poses[i].matrix() for i in range(8)] + got), uninterrupted)
     finally:
+        svc.close()
+
+
+def test_frames_are_answered_while_the_snapshot_file_is_locked(tmp_path, scene, uninterrupted):
+    from services.client import OccVOClient
+
+    path = tmp_path / "state.sqlite"
+    svc = Pipeline(path, snapshot_every=2, snapshot_max_share=None)
+    blocker = None
+    try:
+        reg = svc.start_registration()
+        blocker = sqlite3.connect(snapshot_path(path), isolation_level=None)
+        blocker.execute("BEGIN IMMEDIATE")  # another writer holds the snapshot file: the first snapshot waits
+        with OccVOClient(svc.endpoint, "car") as client:
+            client.reset()
+            got = np.array([client.step(f).matrix() for f in scene])
+            assert np.array_equal(got, uninterrupted)  # every frame answered, none waited for the snapshot
+            assert not reg.snapshots_written(0.2) and "snapshots" not in reg.stats.snapshot()[0]
+            blocker.execute("COMMIT")
+            assert reg.snapshots_written(30) and reg.stats.snapshot()[0]["snapshots"] == 1  # one a stream at a time
+            probe = TrajectoryStore(path)
+            assert probe.record("car").snapshot_seq == 1 and [s for s, _ in probe.journal("car", 1)] == list(range(2, N))
+            svc.reg.stop()
+            assert probe.record("car").snapshot_seq == N - 1 and probe.sizes("car")["journal_rows"] == 0
+            probe.close()
+    finally:
+        if blocker is not None:
+            blocker.close()
         svc.close()
 
 
@@ -321,6 +390,7 @@ def test_crash_with_eviction_resumes_exactly_and_the_map_service_keeps_far_tiles
             cut.reset()
             for i in range(8):
                 cut.step(scene[i])
+            assert first.snapshots_written(30)
             svc.crash_registration()
             probe = TrajectoryStore(path)
             assert probe.record("cut").snapshot_seq == 5 and [s for s, _ in probe.journal("cut", 5)] == [6, 7]

@@ -2,6 +2,7 @@
 
     python benchmarks/streams_load.py --streams 8 --rate 2 --minutes 5            # the full measurement
     python benchmarks/streams_load.py --streams 8 --rate 2 --minutes 5 --working-radius 120   # as deployed
+    python benchmarks/streams_load.py --streams 8 --minutes 5 --working-radius 120 --registration-workers 2  # 2 shards
     python benchmarks/streams_load.py --streams 2 4 6 8 --minutes 1               # a sweep: one run per count
     python benchmarks/streams_load.py --streams 8 --policy latest --minutes 1     # what dropping the oldest does
 
@@ -120,6 +121,7 @@ class Stream:
         self.build_ms = np.full(len(frames), np.nan)  # message build + encode
         self.put_ms = np.full(len(frames), np.nan)  # Zenoh put (blocks under lossless backpressure)
         self.recv_at: dict[int, float] = {}
+        self.timings: dict[int, dict[str, float]] = {}  # seq -> the pose's timings_ms (where its time went)
         self.last_sent = -1
         self.errors: dict[str, int] = {}
 
@@ -130,6 +132,7 @@ class Stream:
         except CodecError:
             return
         self.recv_at.setdefault(pose.seq, t)
+        self.timings.setdefault(pose.seq, pose.timings_ms)
 
     def newest_back(self) -> int:
         return max(self.recv_at, default=-1)
@@ -155,6 +158,13 @@ class Stream:
             self.last_sent = i
 
 
+def _stage_medians(timings: list[dict[str, float]]) -> dict[str, float]:
+    """Median ms of each stage over some poses' timings_ms, largest first (where the slowest frames' time went)."""
+    names = {k for t in timings for k in t}
+    med = {k: float(np.median([t.get(k, 0.0) for t in timings])) for k in names}
+    return dict(sorted(med.items(), key=lambda kv: -kv[1]))
+
+
 def _pct(a, q) -> float | None:
     a = np.asarray([x for x in a if x == x])
     return float(np.percentile(a, q)) if len(a) else None
@@ -167,7 +177,8 @@ def _slope(t, y) -> float | None:
 
 
 def run_load(n: int, rate: float, minutes: float, policy: str, queue_size: int, scenes: dict, store: bool,
-             sample_s: float, bucket_s: float, drain_s: float, log_dir: Path, working_radius: float = 0.0) -> dict:
+             sample_s: float, bucket_s: float, drain_s: float, log_dir: Path, working_radius: float = 0.0,
+             registration_workers: int = 1) -> dict:
     import psutil
 
     total = int(round(minutes * 60 * rate))
@@ -177,7 +188,7 @@ def run_load(n: int, rate: float, minutes: float, policy: str, queue_size: int, 
         worker_args["registration"] = ["--store-path", str(log_dir / "registration.sqlite"),
                                        "--working-radius-m", str(working_radius)]
     svc = LocalService(common_args=["--policy", policy, "--queue-size", str(queue_size)], worker_args=worker_args,
-                       log_dir=log_dir).start(timeout=120)
+                       log_dir=log_dir, registration_shards=registration_workers).start(timeout=120)
     streams = [Stream(f"load{k}", scenes[k][:total], k / n) for k in range(n)]
     subs, pubs, session = [], [], None
     try:
@@ -199,18 +210,20 @@ def run_load(n: int, rate: float, minutes: float, policy: str, queue_size: int, 
         while not all(p.matching_status.matching for p in pubs) and time.monotonic() < deadline:
             time.sleep(0.05)
 
-        # warm-up on its own stream (numba compiles on the first frames), outside the measurement
-        warm = Stream("warmup", scenes[0][:3], 0.0)
-        subs.append(session.declare_subscriber(keys.pose("warmup"), warm.on_pose))
-        wpub = session.declare_publisher(keys.camera("warmup"), congestion_control=zenoh.CongestionControl.BLOCK)
-        while not wpub.matching_status.matching and time.monotonic() < deadline:
-            time.sleep(0.05)
-        for i, occ in enumerate(warm.frames):
-            wpub.put(encode(CameraFrame(stream="warmup", seq=i, stamp=float(i), gt_occupancy=occ, sent_at=time.time())))
-            w_deadline = time.monotonic() + 120
-            while i not in warm.recv_at and time.monotonic() < w_deadline:
-                time.sleep(0.02)
-        pubs.append(wpub)
+        # warm-up on a stream of each registration shard (numba compiles on the first frames), outside the measurement
+        for w in range(registration_workers):
+            name = next(f"warmup{i}" for i in range(1000) if keys.shard_of(f"warmup{i}", registration_workers) == w)
+            warm = Stream(name, scenes[0][:3], 0.0)
+            subs.append(session.declare_subscriber(keys.pose(name), warm.on_pose))
+            wpub = session.declare_publisher(keys.camera(name), congestion_control=zenoh.CongestionControl.BLOCK)
+            while not wpub.matching_status.matching and time.monotonic() < deadline:
+                time.sleep(0.05)
+            for i, occ in enumerate(warm.frames):
+                wpub.put(encode(CameraFrame(stream=name, seq=i, stamp=float(i), gt_occupancy=occ, sent_at=time.time())))
+                w_deadline = time.monotonic() + 120
+                while i not in warm.recv_at and time.monotonic() < w_deadline:
+                    time.sleep(0.02)
+            pubs.append(wpub)
 
         procs = {role: psutil.Process(p.pid) for role, p in svc.procs.items()}
         cpu0 = {role: sum(p.cpu_times()[:2]) for role, p in procs.items()}
@@ -233,8 +246,8 @@ def run_load(n: int, rate: float, minutes: float, policy: str, queue_size: int, 
                     continue
                 h = decode(r.ok.payload.to_bytes(), WorkerHealth)
                 depth = sum(v for s, v in h.queue_depth.items() if s.startswith("load"))
-                if h.role == "registration":
-                    reg_q, reg_drops = depth, h.counters.get("drops", 0)
+                if h.role == "registration":  # summed over the shards
+                    reg_q, reg_drops = reg_q + depth, reg_drops + h.counters.get("drops", 0)
                 elif h.role == "inference":
                     inf_q, inf_drops = depth, h.counters.get("drops", 0)
             in_flight = sum(st.last_sent - st.newest_back() for st in streams)
@@ -250,11 +263,13 @@ def run_load(n: int, rate: float, minutes: float, policy: str, queue_size: int, 
             time.sleep(0.1)
         drained = all(st.newest_back() >= st.last_sent for st in streams)
         cpu1 = {role: sum(p.cpu_times()[:2]) for role, p in procs.items()}
-        health = {}
+        health, reg_health = {}, []
         for r in session.get(keys.stats("*"), timeout=5.0):
             if r.ok is not None:
                 h = decode(r.ok.payload.to_bytes(), WorkerHealth)
                 health[h.role] = h
+                if h.role == "registration":
+                    reg_health.append(h)
     finally:
         if session is not None:
             for x in subs + pubs:
@@ -265,13 +280,14 @@ def run_load(n: int, rate: float, minutes: float, policy: str, queue_size: int, 
     # ---- per bucket of due time (when a camera would have captured the frame), over all streams
     n_buckets = max(1, int(np.ceil(minutes * 60 / bucket_s)))
     buckets = []
-    lat_t, lat_v, cap_v = [], [], []  # due time - t0, sent_at -> pose, due -> pose
+    lat_t, lat_v, cap_v, stages = [], [], [], []  # due time - t0, sent_at -> pose, due -> pose, timings_ms
     for st in streams:
         for i in range(st.last_sent + 1):
             if i in st.recv_at:
                 lat_t.append(st.due[i] - t0)
                 lat_v.append((st.recv_at[i] - st.sent_at[i]) * 1000.0)
                 cap_v.append((st.recv_at[i] - st.due[i]) * 1000.0)
+                stages.append(st.timings.get(i, {}))
     lat_t, lat_v, cap_v = np.array(lat_t), np.array(lat_v), np.array(cap_v)
     smp = np.array(samples) if samples else np.zeros((0, 6))
     for b in range(n_buckets):
@@ -285,6 +301,9 @@ def run_load(n: int, rate: float, minutes: float, policy: str, queue_size: int, 
             arrived = sum(1 for t in st.recv_at.values() if lo <= t - t0 < hi)
             per.append({"due": len(due), "sent": len(sent), "received": sum(1 for i in sent if i in st.recv_at), "arrived": arrived})
         in_b = (lat_t >= lo) & (lat_t < hi)
+        slow = np.flatnonzero(in_b & (lat_v >= (_pct(lat_v[in_b], 99) or np.inf)))
+        # waiting (hops between processes, time in a worker's queue) vs working: a backlog shows in the first
+        wait = [sum(v for k, v in stages[j].items() if k.endswith(("_hop", "_queue"))) for j in np.flatnonzero(in_b)]
         sm = smp[(smp[:, 0] >= lo) & (smp[:, 0] < hi)] if len(smp) else smp
         buckets.append({
             "t0_s": lo, "due": sum(p["due"] for p in per), "sent": sum(p["sent"] for p in per),
@@ -295,11 +314,14 @@ def run_load(n: int, rate: float, minutes: float, policy: str, queue_size: int, 
             "send_lag_max_ms": float(max(lags) * 1000.0) if lags else None,
             "reg_queue_mean": float(sm[:, 1].mean()) if len(sm) else None, "reg_queue_max": int(sm[:, 1].max()) if len(sm) else None,
             "in_flight_mean": float(sm[:, 3].mean()) if len(sm) else None, "in_flight_max": int(sm[:, 3].max()) if len(sm) else None,
+            "slowest_1pct_stage_ms": _stage_medians([stages[j] for j in slow]),
+            "wait_p50_ms": _pct(wait, 50), "wait_p99_ms": _pct(wait, 99),
         })
     sent = sum(st.last_sent + 1 for st in streams)
     received = sum(len([s for s in st.recv_at if s <= st.last_sent]) for st in streams)
     due_total = sum(len(st.frames) for st in streams)
     first, last = buckets[0]["latency_p99_ms"], buckets[-1]["latency_p99_ms"]
+    wfirst, wlast = buckets[0]["wait_p99_ms"], buckets[-1]["wait_p99_ms"]
     cfirst, clast = buckets[0]["capture_latency_p99_ms"], buckets[-1]["capture_latency_p99_ms"]
     reg, mp = health.get("registration"), health.get("map")
     build = np.concatenate([st.build_ms for st in streams])
@@ -309,19 +331,21 @@ def run_load(n: int, rate: float, minutes: float, policy: str, queue_size: int, 
     last_rate = buckets[-1]["poses_per_s"]
     out = {
         "streams": n, "rate_hz": rate, "minutes": minutes, "policy": policy, "queue_size": queue_size, "store": store,
+        "registration_workers": registration_workers,
         "working_radius_m": working_radius or None,
         "offered_frames_per_s": offered, "due": due_total, "sent": sent, "received": received, "drained": drained,
         "drops": {"registration": int(smp[-1, 4]) if len(smp) else 0, "inference": int(smp[-1, 5]) if len(smp) else 0,
-                  "registration_final": reg.counters.get("drops", 0) if reg else None},
+                  "registration_final": sum(h.counters.get("drops", 0) for h in reg_health) if reg_health else None},
         "errors": {st.name: st.errors for st in streams if st.errors},
         "p99_ratio_last_first": (last / first) if first and last else None,
         "capture_p99_ratio_last_first": (clast / cfirst) if cfirst and clast else None,
+        "wait_p99_ratio_last_first": (wlast / wfirst) if wfirst and wlast else None,
         "slope_capture_latency_ms_per_min": _slope(lat_t, cap_v),
         "slope_reg_queue_per_min": _slope(smp[:, 0], smp[:, 1]) if len(smp) else None,
         "slope_in_flight_per_min": _slope(smp[:, 0], smp[:, 3]) if len(smp) else None,
         "slope_latency_ms_per_min": _slope(lat_t, lat_v),
         "last_bucket_poses_per_s": last_rate,
-        "registration_ms_p50": reg.stages["registration"].p50_ms if reg and "registration" in reg.stages else None,
+        "registration_ms_p50": reg.stages["registration"].p50_ms if reg and "registration" in reg.stages else None,  # one shard's
         "registration_stage_mean_ms": reg.stages["stage_total"].mean_ms if reg and "stage_total" in reg.stages else None,
         "map_update_ms_p50": reg.stages["map_update"].p50_ms if reg and "map_update" in reg.stages else None,
         "worker_cpu_pct": {role: 100.0 * (cpu1[role] - cpu0[role]) / (time.time() - wall0) for role in cpu0},
@@ -346,7 +370,8 @@ def run_load(n: int, rate: float, minutes: float, policy: str, queue_size: int, 
 def print_run(r: dict, bucket_s: float) -> None:
     print(f"\n== {r['streams']} streams x {r['rate_hz']:g} Hz, {r['minutes']:g} min, policy {r['policy']}, "
           f"queue {r['queue_size']}, map store {'sqlite' if r['store'] else 'memory'}, registration "
-          + (f"store + eviction at {r['working_radius_m']:g} m" if r["working_radius_m"] else "in memory, no eviction"))
+          + (f"store + eviction at {r['working_radius_m']:g} m" if r["working_radius_m"] else "in memory, no eviction")
+          + (f", {r['registration_workers']} registration workers (shards)" if r["registration_workers"] > 1 else ""))
     unit = "min" if bucket_s == 60 else f"{bucket_s:g}s"
     print(f"{unit:>5} {'due':>5} {'sent':>5} {'recv':>5} {'poses/s':>7} {'lat p50':>7} {'lat p99':>7} {'cap p50':>7} {'cap p99':>7} "
           f"{'lag max':>7} {'regQ':>5} {'regQmax':>7} {'inflight':>8}  per stream sent/recv")
@@ -356,12 +381,16 @@ def print_run(r: dict, bucket_s: float) -> None:
               f"{fmt(x['latency_p99_ms']):>7} {fmt(x['capture_latency_p50_ms']):>7} {fmt(x['capture_latency_p99_ms']):>7} "
               f"{fmt(x['send_lag_max_ms']):>7} {fmt(x['reg_queue_mean'], '{:.1f}'):>5} {fmt(x['reg_queue_max']):>7} "
               f"{fmt(x['in_flight_max']):>8}  {' '.join(x['per_stream'].values())}")
+    print("waiting (hops + worker queues) p50/p99, and the slowest 1%: median ms of the stages that took most (timings_ms):")
+    for b, x in enumerate(r["buckets"]):
+        top = list(x.get("slowest_1pct_stage_ms", {}).items())[:6]
+        print(f"{b + 1:>5}  wait {fmt(x.get('wait_p50_ms'))}/{fmt(x.get('wait_p99_ms'))}  slowest: " + ", ".join(f"{k} {v:.0f}" for k, v in top))
     print("(ms; lat = client send -> pose; cap = due time -> pose, what a live camera sees; lag = send - due; regQ = registration "
           "queue depth summed over streams, sampled)")
     print(f"due {r['due']} sent {r['sent']} received {r['received']} (offered {r['offered_frames_per_s']:g} frames/s, last bucket "
           f"{r['last_bucket_poses_per_s']:.2f} poses/s), drops reg/inf {r['drops']['registration_final']}/{r['drops']['inference']}, "
           f"drained {r['drained']}")
-    print(f"backlog: p99 last/first: latency {fmt(r['p99_ratio_last_first'], '{:.2f}')}, capture latency "
+    print(f"backlog: p99 last/first: wait {fmt(r.get('wait_p99_ratio_last_first'), '{:.2f}')}, latency {fmt(r['p99_ratio_last_first'], '{:.2f}')}, capture latency "
           f"{fmt(r['capture_p99_ratio_last_first'], '{:.2f}')} (p50 {fmt(r['capture_p50_ratio_last_first'], '{:.2f}')}); slopes per minute: capture latency "
           f"{fmt(r['slope_capture_latency_ms_per_min'], '{:+.0f}')} ms, registration queue "
           f"{fmt(r['slope_reg_queue_per_min'], '{:+.2f}')}, frames in flight {fmt(r['slope_in_flight_per_min'], '{:+.2f}')}, "
@@ -387,6 +416,8 @@ def main(argv=None) -> int:
     ap.add_argument("--no-store", action="store_true", help="map service in memory (default: a SQLite store per run)")
     ap.add_argument("--working-radius", type=float, default=0.0, help="registration worker with a SQLite store and "
                     "eviction beyond this many m, as deploy/registration_worker.json5 (120); 0: in memory, maps grow")
+    ap.add_argument("--registration-workers", type=int, default=1, help="registration workers sharing the streams "
+                    "(shards, as `count: N` in occvo up)")
     ap.add_argument("--sample-s", type=float, default=3.0, help="seconds between worker stats samples")
     ap.add_argument("--bucket-s", type=float, default=None, help="report bucket (default 60 s; a third of the run when shorter than 3 min)")
     ap.add_argument("--drain-s", type=float, default=60.0, help="wait this long after the last send for outstanding poses")
@@ -404,7 +435,7 @@ def main(argv=None) -> int:
             log_dir = Path(args.log_dir) / f"{n}-streams" if args.log_dir else Path(tmp)
             log_dir.mkdir(parents=True, exist_ok=True)
             r = run_load(n, args.rate, args.minutes, args.policy, args.queue_size, scenes, not args.no_store,
-                         args.sample_s, bucket_s, args.drain_s, log_dir, args.working_radius)
+                         args.sample_s, bucket_s, args.drain_s, log_dir, args.working_radius, args.registration_workers)
         results.append(r)
         print_run(r, bucket_s)
         print(json.dumps({k: v for k, v in r.items() if k != "buckets"} | {"buckets": [

@@ -12,12 +12,14 @@ Per stream:
   occvo/<stream>/errors               pub   ErrorEvent             any worker
 Per worker:
   occvo/@alive/<role>/<worker>        liveliness token
+  occvo/@shard/registration/<n>/<i>/<worker>   liveliness token: this worker registers the streams of shard i of n
   occvo/@workers/<worker>/stats       query -> WorkerHealth
 """
 
 from __future__ import annotations
 
 import re
+import zlib
 
 ROOT = "occvo"
 STREAM_RE = re.compile(r"^[A-Za-z0-9_\-.]{1,64}$")
@@ -67,6 +69,21 @@ def errors(stream: str = "*") -> str:
 
 def alive(role: str = "*", worker: str = "*") -> str:
     return f"{ROOT}/@alive/{role}/{worker}"
+
+
+def registration_shard(shard: int | str = "*", shards: int | str = "*", worker: str = "*") -> str:
+    return f"{ROOT}/@shard/registration/{shards}/{shard}/{worker}"
+
+
+def parse_registration_shard(key: str) -> tuple[int, int] | None:
+    """(shard, shards) of a registration_shard key, None if it is not one."""
+    m = re.fullmatch(rf"{ROOT}/@shard/registration/(\d+)/(\d+)/[^/]+", str(key))
+    return (int(m[2]), int(m[1])) if m else None
+
+
+def shard_of(stream: str, shards: int) -> int:
+    """The shard whose registration worker owns a stream: a stable hash (CRC-32), the same in every process."""
+    return zlib.crc32(stream.encode()) % shards if shards > 1 else 0
 
 
 def stats(worker: str = "*") -> str:

@@ -6,8 +6,8 @@
             pose = env.step(frame)          # PoseEstimate, like a Gymnasium env step
         tile = env.tile(0, 1)
 
-Frames sent but not answered are sent again when the registration worker's liveliness token comes back (it restarted:
-its durable state answers frames it already registered with their stored poses) or after `resend_after` seconds
+Frames sent but not answered are sent again when the liveliness token of the registration worker of the stream's
+shard comes back (it restarted: its durable state answers frames it already registered with their stored poses) or after `resend_after` seconds
 without any answer. A pose that arrives twice is kept once.
 """
 
@@ -60,13 +60,13 @@ class OccVOClient:
         self._unanswered: dict[int, bytes] = {}  # seq -> the encoded frame, until its pose or error comes back
         self._send_lock = threading.Lock()  # resends and new frames leave in seq order
         self._last_answer = time.monotonic()
-        self._registration: set[str] = set()  # live registration workers' tokens
+        self._registration: set[str] = set()  # live tokens of the registration workers of this stream's shard
         self._down = False  # the registration worker left: hold new frames until it is back and the lost ones resent
         self._back_at: float | None = None
         self.resends = 0
         self._subs = [self.session.declare_subscriber(keys.pose(stream), self._on_pose),
                       self.session.declare_subscriber(keys.errors(stream), self._on_error),
-                      self.session.liveliness().declare_subscriber(keys.alive("registration", "*"), self._on_alive, history=True)]
+                      self.session.liveliness().declare_subscriber(keys.registration_shard(), self._on_alive, history=True)]
         self._pub = self.session.declare_publisher(keys.camera(stream), congestion_control=zenoh.CongestionControl.BLOCK)
         self._closed = threading.Event()
         self._resender = threading.Thread(target=self._resend_loop, name=f"occvo-resend-{stream}", daemon=True)
@@ -100,6 +100,9 @@ class OccVOClient:
 
     def _on_alive(self, sample: zenoh.Sample) -> None:
         key = str(sample.key_expr)
+        shard = keys.parse_registration_shard(key)
+        if shard is None or keys.shard_of(self.stream, shard[1]) != shard[0]:
+            return  # another shard's worker: its coming and going does not touch this stream
         with self._cv:
             if sample.kind == zenoh.SampleKind.PUT:
                 if key not in self._registration and (self._down or self._unanswered):

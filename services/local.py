@@ -32,25 +32,30 @@ class LocalService:
     """Router in this process, workers as child processes (`python -m services.<module>`)."""
 
     def __init__(self, endpoint: str | None = None, router_config: str | None = None, worker_args: dict | None = None,
-                 common_args: list[str] | None = None, log_dir: str | Path | None = None, quiet: bool = False):
+                 common_args: list[str] | None = None, log_dir: str | Path | None = None, quiet: bool = False,
+                 registration_shards: int = 1):
         self.endpoint = endpoint or f"tcp/127.0.0.1:{free_port()}"
         self.router_config = router_config
         self.worker_args = worker_args or {}
         self.common_args = common_args or []
         self.log_dir = Path(log_dir) if log_dir else None
         self.quiet = quiet
-        self.procs: dict[str, subprocess.Popen] = {}
+        self.registration_shards = registration_shards  # registration workers sharing the streams
+        self.procs: dict[str, subprocess.Popen] = {}  # by role, or registration-<shard> when sharded
         self.router = None
 
     def start(self, timeout: float = 60.0) -> "LocalService":
         self.router = open_router(self.endpoint, self.router_config)
         env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(REPO), os.environ.get("PYTHONPATH", "")]).rstrip(os.pathsep))
         try:
-            for role, module in WORKERS.items():
-                cmd = [sys.executable, "-m", module, "--connect", self.endpoint, "--worker-id", f"{role}-{os.getpid()}",
-                       *self.common_args, *self.worker_args.get(role, [])]
-                err = open(self.log_dir / f"{role}.log", "w") if self.log_dir else (subprocess.DEVNULL if self.quiet else None)
-                self.procs[role] = subprocess.Popen(cmd, cwd=REPO, env=env, stderr=err, stdout=err)
+            n = self.registration_shards
+            for name, role, shard in [("inference", "inference", []), ("map", "map", [])] + (
+                    [("registration", "registration", [])] if n == 1 else
+                    [(f"registration-{i}", "registration", ["--shard", str(i), "--shards", str(n)]) for i in range(n)]):
+                cmd = [sys.executable, "-m", WORKERS[role], "--connect", self.endpoint, "--worker-id", f"{name}-{os.getpid()}",
+                       *shard, *self.common_args, *self.worker_args.get(role, [])]
+                err = open(self.log_dir / f"{name}.log", "w") if self.log_dir else (subprocess.DEVNULL if self.quiet else None)
+                self.procs[name] = subprocess.Popen(cmd, cwd=REPO, env=env, stderr=err, stdout=err)
             probe = open_session(self.endpoint)
             try:
                 deadline = time.monotonic() + timeout
@@ -60,6 +65,9 @@ class LocalService:
                         raise RuntimeError(f"workers exited during start-up: {dead}")
                     try:
                         wait_alive(probe, WORKERS, timeout=1.0)
+                        shards = [r for r in probe.liveliness().get(keys.registration_shard(), timeout=2.0) if r.ok]
+                        if len(shards) < self.registration_shards:
+                            raise TimeoutError(f"{len(shards)} of {self.registration_shards} registration shards alive")
                         break
                     except TimeoutError:
                         if time.monotonic() > deadline:

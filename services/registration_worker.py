@@ -121,6 +121,13 @@ class RegistrationWorker(Worker):
                 if st.started:
                     st.latest = self._pose_msg(stream, st.stored(st.seqs[-1]))
 
+    def owns(self, stream: str) -> bool:
+        """This worker's shard registers the stream (a malformed stream id is shard 0's to report)."""
+        c = self.config
+        if c.shards == 1:
+            return True
+        return keys.shard_of(stream, c.shards) == c.shard if keys.STREAM_RE.match(stream) else c.shard == 0
+
     def declare(self) -> None:
         s = self.session
         self._declared += [
@@ -128,6 +135,9 @@ class RegistrationWorker(Worker):
             s.declare_queryable(keys.pose_latest("*"), self._on_pose_latest),
             s.declare_queryable(keys.trajectory("*"), self._on_trajectory),
         ]
+        # clients watch their shard's token: frames sent while their stream's worker is away are resent when it is back
+        self._declared.append(s.liveliness().declare_token(keys.registration_shard(self.config.shard, self.config.shards,
+                                                                                    self.worker_id)))
         if self.evict_off:
             log_event(self.log, "working_radius_m ignored: eviction needs store_path (the evicted map goes there)")
         if self.store is not None:
@@ -173,7 +183,8 @@ class RegistrationWorker(Worker):
         return True  # judged in the lane against the stream's trajectory: a step back may be a resend
 
     def _on_occupancy(self, sample: zenoh.Sample) -> None:
-        self.enqueue(sample, OccupancyFrameMsg, self._register)
+        if self.owns(keys.stream_of(str(sample.key_expr))):  # another shard's stream: not ours to count or judge
+            self.enqueue(sample, OccupancyFrameMsg, self._register)
 
     def _seq_error(self, stream: str, code: str, message: str, seq: int) -> None:
         self.stats.inc(code)
@@ -449,9 +460,17 @@ class RegistrationWorker(Worker):
             items = list(self.states.items())
         return [(s, st) for s, st in items if st.started and q.intersects(zenoh.KeyExpr(key_of(s)))]
 
+    def _no_match(self, query: zenoh.Query) -> bool:
+        """Whether to answer a query that matched none of this worker's streams with an error: one shard answers
+        (the stream's owner, or shard 0 for a wildcard), so a sharded query does not collect an error per worker."""
+        stream = keys.stream_of(str(query.key_expr))
+        return self.owns(stream) if keys.STREAM_RE.match(stream) else self.config.shard == 0
+
     def _on_pose_latest(self, query: zenoh.Query) -> None:
         found = self._matching(query, keys.pose_latest)
         if not found:
+            if not self._no_match(query):
+                return None
             return self.reply_error(query, keys.stream_of(str(query.key_expr)), "bad_query", f"no poses for {query.key_expr}")
         for s, st in found:
             with st.lock:
@@ -461,6 +480,8 @@ class RegistrationWorker(Worker):
     def _on_trajectory(self, query: zenoh.Query) -> None:
         found = self._matching(query, keys.trajectory)
         if not found:
+            if not self._no_match(query):
+                return None
             return self.reply_error(query, keys.stream_of(str(query.key_expr)), "bad_query", f"no trajectory for {query.key_expr}")
         for s, st in found:
             with st.lock:
@@ -471,6 +492,8 @@ class RegistrationWorker(Worker):
 
 
 def _args(p) -> None:
+    p.add_argument("--shard", type=int, help="register the streams of this shard (0..shards-1)")
+    p.add_argument("--shards", type=int, help="registration workers sharing the streams (by a hash of the stream id)")
     p.add_argument("--tile-m", type=float)
     p.add_argument("--occvo-config")
     p.add_argument("--store-path", help="SQLite file of the trajectories, snapshots and evicted map (default: none)")

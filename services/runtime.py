@@ -20,7 +20,7 @@ from typing import Callable, Literal
 
 import numpy as np
 import zenoh
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from occvo_core.errors import ConfigError
 from schemas import keys
@@ -232,6 +232,10 @@ class WorkerConfig(BaseModel):
     min_confidence: float = Field(0.0, ge=0, lt=1)
     min_ground_confidence: float = Field(0.0, ge=0, lt=1)
     # registration worker
+    # shards: registration workers sharing the streams; this one registers the streams of `shard`
+    # (schemas.keys.shard_of: CRC-32 of the stream id mod shards). `occvo up` sets both from a role's count
+    shard: int = Field(0, ge=0)
+    shards: int = Field(1, ge=1, le=1024)
     tile_m: float = Field(20.0, gt=0)
     occvo_config: str | None = None
     # registration: cores each stream's kernels may use, 0 = all. Streams already run side by side in threads, and
@@ -246,6 +250,12 @@ class WorkerConfig(BaseModel):
     snapshot_max_share: float | None = Field(0.02, gt=0, le=1)
     working_radius_m: float | None = Field(None, gt=0)  # registration: map farther from the ego goes to the store
     store_sync: Literal["full", "normal"] = "full"  # registration: SQLite synchronous; normal survives kill -9, not power loss
+
+    @model_validator(mode="after")
+    def _shard_in_range(self) -> "WorkerConfig":
+        if self.shard >= self.shards:
+            raise ValueError(f"shard {self.shard} is not one of shards 0..{self.shards - 1}")
+        return self
 
     @classmethod
     def load(cls, path: str | Path | None, **overrides) -> "WorkerConfig":

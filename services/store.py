@@ -183,13 +183,16 @@ class TrajectoryStore:
         self._move_old_snapshots()
 
     def _move_old_snapshots(self) -> None:
-        """A store written before snapshots had their own file: move its snapshots there (its journal needs them)."""
-        if self.db.execute("SELECT 1 FROM sqlite_master WHERE type='table' AND name='snapshots'").fetchone() is None:
-            return
-        rows = self.db.execute("SELECT s.stream, t.created, s.seq, s.state FROM snapshots s JOIN streams t "
-                               "USING (stream)").fetchall()
-        _transaction(self.snap_db, lambda db: db.executemany("INSERT OR REPLACE INTO snapshots VALUES (?, ?, ?, ?)", rows))
-        _transaction(self.db, lambda db: db.execute("DROP TABLE snapshots"))
+        """A store written before snapshots had their own file: move its snapshots there (its journal needs them).
+        In one transaction of the frames' file, so two workers opening the store at once move them once."""
+        def tx(db):
+            if db.execute("SELECT 1 FROM sqlite_master WHERE type='table' AND name='snapshots'").fetchone() is None:
+                return
+            rows = db.execute("SELECT s.stream, t.created, s.seq, s.state FROM snapshots s JOIN streams t USING (stream)").fetchall()
+            _transaction(self.snap_db, lambda snap: snap.executemany("INSERT OR REPLACE INTO snapshots VALUES (?, ?, ?, ?)", rows))
+            db.execute("DROP TABLE snapshots")
+
+        _transaction(self.db, tx)
 
     # -- transactions
     def _write(self, fn):

@@ -46,7 +46,7 @@ class WorkerSpec(BaseModel):
     role: Literal["inference", "registration", "map"]
     config: str | None = None
     args: list[str] = []
-    count: int = Field(1, ge=1, le=64)      # replicas; each handles every stream it subscribes to (see README)
+    count: int = Field(1, ge=1, le=64)      # replicas: registration ones share the streams (shards), others each handle every stream
     env: dict[str, str] = {}
 
 
@@ -147,8 +147,10 @@ class Supervisor:
         for w in config.workers:
             for i in range(w.count):
                 name = f"{w.role}-{i}"
+                # registration replicas share the streams: replica i registers shard i of count
+                shard = ["--shard", str(i), "--shards", str(w.count)] if w.role == "registration" and w.count > 1 else []
                 cmd = [sys.executable, "-m", MODULES[w.role], *(["--config", w.config] if w.config else []),
-                       "--connect", self.endpoint, "--worker-id", name, *w.args]
+                       "--connect", self.endpoint, "--worker-id", name, *shard, *w.args]
                 self.workers.append(Child(name, cmd, {**env, **w.env}, config.restart, w.role))
 
     # -- children

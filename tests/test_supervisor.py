@@ -46,6 +46,16 @@ def test_up_config_resolves_paths_and_names_bad_files(tmp_path):
         UpConfig.load(bad)
 
 
+def test_registration_replicas_are_shards(tmp_path):
+    from services.supervisor import Supervisor
+
+    up = tmp_path / "up.json5"
+    up.write_text('{workers: [{role: "registration", count: 3}, {role: "map", count: 2}]}')
+    sup = Supervisor(UpConfig.load(up))
+    shards = {c.name: c.cmd[c.cmd.index("--shard") + 1:c.cmd.index("--shard") + 4] for c in sup.workers if "--shard" in c.cmd}
+    assert shards == {f"registration-{i}": [str(i), "--shards", "3"] for i in range(3)}  # map replicas are not shards
+
+
 def _stats_pid(session, worker: str) -> int | None:
     from schemas import keys
     from schemas.codec import decode

@@ -1,0 +1,121 @@
+"""Registration workers sharing the streams (WorkerConfig.shard / shards, `count: N` in `occvo up`), on real Zenoh
+sessions on loopback, in this process: each stream is registered by exactly one worker, a query gets one answer,
+and a stream whose worker stops and comes back continues exactly while the other shard's stream goes on."""
+
+from __future__ import annotations
+
+import threading
+import time
+import warnings
+
+import numpy as np
+import pytest
+
+from occvo_core import OccVO
+from occvo_core.sim import SyntheticScene
+from schemas import keys
+from schemas.codec import decode
+from schemas.models import ErrorEvent, Trajectory
+
+warnings.filterwarnings("ignore", category=RuntimeWarning)
+N = 10
+
+
+@pytest.fixture(scope="module")
+def scene():
+    s = SyntheticScene(seed=5, frames=N)
+    return [s[i] for i in range(N)]
+
+
+@pytest.fixture(scope="module")
+def uninterrupted(scene):
+    vo = OccVO()
+    for f in scene:
+        vo.step(f)
+    return vo.poses
+
+
+def _stream_of_shard(shard: int, shards: int = 2) -> str:
+    return next(f"car{i}" for i in range(100) if keys.shard_of(f"car{i}", shards) == shard)
+
+
+def test_shard_of_is_stable_and_spreads_streams():
+    assert [keys.shard_of(f"load{i}", 2) for i in range(8)] == [0, 0, 0, 0, 1, 1, 1, 1]  # CRC-32: any process, any release
+    assert {keys.shard_of(f"s{i}", 3) for i in range(30)} == {0, 1, 2} and keys.shard_of("anything", 1) == 0
+    assert keys.parse_registration_shard(keys.registration_shard(1, 2, "registration-1")) == (1, 2)
+    assert keys.parse_registration_shard(keys.alive("registration", "registration-1")) is None
+
+
+def test_a_shard_outside_the_count_is_refused():
+    from occvo_core.errors import ConfigError
+    from services.runtime import WorkerConfig
+
+    with pytest.raises(ConfigError, match="shard 2 is not one of shards 0..1"):
+        WorkerConfig.load(None, shard=2, shards=2)
+
+
+def test_two_shards_share_the_streams_and_one_restarts_alone(tmp_path, scene, uninterrupted):
+    from services.client import OccVOClient
+    from services.inference_worker import InferenceWorker
+    from services.local import wait_alive
+    from services.map_service import MapService
+    from services.registration_worker import RegistrationWorker
+    from services.runtime import WorkerConfig, free_port, open_router, open_session
+
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    router = open_router(endpoint)
+    base = {"connect": endpoint, "log_level": "WARNING"}
+    store = str(tmp_path / "occvo.sqlite")  # both shards and the map service in one file, as deployed
+    reg_config = [WorkerConfig(**base, worker_id=f"registration-{i}", store_path=store, shard=i, shards=2) for i in (0, 1)]
+    others = [MapService(WorkerConfig(**base, worker_id="map-t", store_path=store)).start(),
+              InferenceWorker(WorkerConfig(**base, worker_id="inference-t")).start()]
+    regs = [RegistrationWorker(c).start() for c in reg_config]
+    probe = open_session(endpoint)
+    name_a, name_b = _stream_of_shard(0), _stream_of_shard(1)
+    try:
+        wait_alive(probe, ["registration", "inference", "map"], 20)
+        with OccVOClient(endpoint, name_a) as a, OccVOClient(endpoint, name_b) as b:
+            a.reset()
+            b.reset()
+            for i in range(4):
+                assert np.array_equal(a.step(scene[i]).matrix(), uninterrupted[i])
+                assert np.array_equal(b.step(scene[i]).matrix(), uninterrupted[i])
+            # each worker registered its own stream only, and saw nothing of the other's
+            assert set(regs[0].states) == {name_a} and set(regs[1].states) == {name_b}
+            assert [r.stats.snapshot()[0]["frames_out"] for r in regs] == [4, 4]
+            assert [r.stats.snapshot()[0].get("frames_in") for r in regs] == [4, 4]
+
+            # one answer a query: the owner's; a stream nobody has gets one error, from its shard's worker
+            def replies(selector):
+                got = list(probe.get(selector, timeout=5.0))
+                return ([decode(r.ok.payload.to_bytes(), Trajectory, 1 << 30) for r in got if r.ok is not None],
+                        [decode(r.err.payload.to_bytes(), ErrorEvent) for r in got if r.ok is None])
+
+            ok, err = replies(keys.trajectory(name_b))
+            assert [t.stream for t in ok] == [name_b] and not err
+            ok, err = replies(keys.trajectory("*"))
+            assert sorted(t.stream for t in ok) == sorted([name_a, name_b]) and not err
+            nobody = _stream_of_shard(1, 2) + "x"
+            ok, err = replies(keys.trajectory(nobody))
+            assert not ok and [e.worker for e in err] == [f"registration-{keys.shard_of(nobody, 2)}"]
+
+            # shard 1's worker stops: stream b waits for it, stream a goes on meanwhile
+            regs[1].stop()
+            b_poses: list = []
+            b_thread = threading.Thread(target=lambda: b_poses.extend(b.step(scene[i]).matrix() for i in range(4, N)))
+            b_thread.start()
+            for i in range(4, N):
+                assert np.array_equal(a.step(scene[i]).matrix(), uninterrupted[i])
+            assert not b_poses and b_thread.is_alive()
+            regs[1] = RegistrationWorker(reg_config[1]).start()  # same shard, same store: resumes stream b
+            b_thread.join(60)
+            assert not b_thread.is_alive()
+            assert np.array_equal(np.array(b_poses), uninterrupted[4:])
+            assert b.resends == 0  # its frames waited for its worker's token: none went out to be lost
+            assert regs[1].stats.snapshot()[0]["resumes"] == 1 and not b.errors and not a.errors
+    finally:
+        probe.close()
+        for w in [*regs, *others]:
+            if not w.stopping.is_set():
+                w.stop()
+        router.close()

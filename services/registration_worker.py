@@ -63,6 +63,7 @@ class StreamState:
         self.snapshot_retry = False  # the last snapshot failed: take one at the next frame
         self.send_all_tiles = False
         self.tiling_ms = 0.0
+        self.restore_ms = self.evict_ms = 0.0  # the last step's working-map restores and evictions
         self.ego_xy: np.ndarray | None = None  # x-y of the last registered pose (eviction and restore centre)  # after a resume: the map service may lack the last frames' tiles
 
     def append(self, seq: int, stamp: float, pose: np.ndarray, status: str, digest: bytes) -> None:
@@ -258,7 +259,7 @@ class RegistrationWorker(Worker):
         timings.update({"occupancy_hop": hop_ms, "registration_queue": (t0 - t_queued) * 1000.0, "registration": reg_ms,
                         "map_update": map_ms})
         if self.store is not None:
-            timings["store_commit"] = store_ms
+            timings.update(store_commit=store_ms, map_restore=st.restore_ms, map_evict=st.evict_ms)
         timings.update({f"registration.{k}": float(v) for k, v in result.timings_ms.items()})
         pose = PoseEstimate(stream=stream, seq=msg.seq, stamp=msg.stamp, pose=pose_m.tolist(), status=status, timings_ms=timings,
                             sent_at=time.time())
@@ -363,17 +364,23 @@ class RegistrationWorker(Worker):
         """Restore near map, register, keep every tile wholly resident or wholly cold, evict far map. The same on a
         resume's replay of the journal, so it reproduces the poses. Returns (result, restored tiles, evicted blocks,
         tiles of the working map before eviction if publish)."""
+        t0 = time.perf_counter()
         restored = self._restore(stream, st, self._near(st)) if st.ego_xy is not None else []
+        t1 = time.perf_counter()
         result = st.vo.step(frame)
+        t2 = time.perf_counter()
         pose = np.asarray(result.pose, float)
         if st.cold:  # a frame that reached into an evicted tile: bring the rest back, so the tile stays whole
             restored += self._restore(stream, st, self._reached(st, frame, pose))
+        st.restore_ms = (t1 - t0 + time.perf_counter() - t2) * 1000.0
         t_map = time.perf_counter()
         tiles = dirty = None
         if publish:  # only the part of the map this frame changed is cut again (a replay leaves the region open)
             tiles, dirty = retile_region(st.tiles, st.vo.map_points, st.vo.pop_changed_region(), self.config.tile_m)
         st.tiling_ms = (time.perf_counter() - t_map) * 1000.0
+        t_evict = time.perf_counter()
         evicted = self._evict_far(st, seq, pose)
+        st.evict_ms = (time.perf_counter() - t_evict) * 1000.0
         st.ego_xy = pose[:2, 3].copy()
         return result, restored, evicted, (tiles, dirty)
 

@@ -114,7 +114,7 @@ class RegistrationWorker(Worker):
         if self.store is not None:
             self._snapshot_writer = threading.Thread(target=self._write_snapshots, name="snapshot-writer", daemon=True)
             self._snapshot_writer.start()
-            for stream in self.store.streams():  # queries answer at once; the odometry resumes at the next frame
+            for stream in filter(self.owns, self.store.streams()):  # queries answer at once; resumed at the next frame
                 st = self.states[stream] = StreamState()
                 for p in self.store.poses(stream):
                     st.append(p.seq, p.stamp, p.pose, p.status, p.digest)

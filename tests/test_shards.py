@@ -119,3 +119,40 @@ def test_two_shards_share_the_streams_and_one_restarts_alone(tmp_path, scene, un
             if not w.stopping.is_set():
                 w.stop()
         router.close()
+
+
+def test_a_stream_moves_to_its_new_shard_through_the_store(tmp_path, scene, uninterrupted):
+    """One worker, then two shards on the same store: the stream's new owner resumes it exactly."""
+    from services.client import OccVOClient
+    from services.inference_worker import InferenceWorker
+    from services.local import wait_alive
+    from services.registration_worker import RegistrationWorker
+    from services.runtime import WorkerConfig, free_port, open_router, open_session
+
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    router = open_router(endpoint)
+    base = {"connect": endpoint, "log_level": "WARNING", "store_path": str(tmp_path / "occvo.sqlite")}
+    workers = [InferenceWorker(WorkerConfig(**base, worker_id="inference-t")).start(),
+               RegistrationWorker(WorkerConfig(**base, worker_id="registration-only")).start()]
+    probe = open_session(endpoint)
+    name = _stream_of_shard(1)
+    try:
+        wait_alive(probe, ["registration", "inference"], 20)
+        with OccVOClient(endpoint, name) as client:
+            client.reset()
+            for i in range(4):
+                client.step(scene[i])
+            workers[1].stop()
+            shards = [RegistrationWorker(WorkerConfig(**base, worker_id=f"registration-{i}", shard=i, shards=2)).start()
+                      for i in (0, 1)]
+            workers += shards
+            got = [client.step(scene[i]).matrix() for i in range(4, N)]
+            assert np.array_equal(np.array([client.poses[i].matrix() for i in range(4)] + got), uninterrupted)
+            assert not shards[0].states and set(shards[1].states) == {name}
+            assert shards[1].stats.snapshot()[0]["resumes"] == 1 and not client.errors
+    finally:
+        probe.close()
+        for w in workers:
+            if not w.stopping.is_set():
+                w.stop()
+        router.close()

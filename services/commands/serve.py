@@ -6,6 +6,7 @@ import json
 import signal
 import threading
 
+from occvo_core.errors import ConfigError
 from services.commands._common import DEPLOY, endpoint
 from services.local import LocalService
 
@@ -20,15 +21,20 @@ def add_parser(subparsers) -> None:
     p.add_argument("--store-path", help="SQLite file for the trajectories and the map; a restart resumes from it")
     p.add_argument("--policy", choices=["lossless", "latest"], default="lossless")
     p.add_argument("--queue-size", type=int, default=4)
+    p.add_argument("--registration-workers", type=int, default=1,
+                   help="registration workers sharing the streams (shards by stream id, one core each)")
     p.add_argument("--log-dir", help="write each worker's JSON log lines to <dir>/<role>.log (default: stderr)")
     p.set_defaults(func=run)
 
 
 def run(args) -> int:
+    if args.registration_workers < 1:
+        raise ConfigError(f"--registration-workers must be at least 1, not {args.registration_workers}")
     ep = endpoint(args)
     store = ["--store-path", args.store_path] if args.store_path else []
     service = LocalService(
         endpoint=ep, router_config=args.router_config if not args.connect else None, log_dir=args.log_dir,
+        registration_shards=args.registration_workers,
         common_args=["--policy", args.policy, "--queue-size", str(args.queue_size)],
         worker_args={"inference": ["--config", str(DEPLOY / "inference_worker.json5"), "--source", args.source, "--device", args.device,
                                    *(["--checkpoint", args.checkpoint] if args.checkpoint else [])],

@@ -4,6 +4,7 @@ import numpy as np
 import pytest
 
 SAMPLE = Path(__file__).resolve().parents[2] / "shared" / "data" / "occvo-sample"
+SERVICE_FRAMES = 12  # frames of `scene`, the synthetic drive the service tests stream (a module may define its own)
 
 
 @pytest.fixture(scope="session")
@@ -18,6 +19,25 @@ def scene_0101(sample_root):
     from occvo_core.datasets import OccVOReleaseScene
 
     return OccVOReleaseScene(sample_root / "occupancy" / "scene-0101")
+
+
+@pytest.fixture(scope="session")
+def scene():
+    from occvo_core.sim import SyntheticScene
+
+    s = SyntheticScene(seed=5, frames=SERVICE_FRAMES)
+    return [s[i] for i in range(SERVICE_FRAMES)]
+
+
+@pytest.fixture(scope="session")
+def uninterrupted(scene):
+    """OccVO's poses over `scene` in this process: what a service run of it must reproduce bit for bit."""
+    from occvo_core import OccVO
+
+    vo = OccVO()
+    for f in scene:
+        vo.step(f)
+    return vo.poses
 
 
 def random_pose(rng: np.random.Generator, max_angle_rad: float, max_shift_m: float) -> np.ndarray:

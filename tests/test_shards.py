@@ -5,34 +5,17 @@ and a stream whose worker stops and comes back continues exactly while the other
 from __future__ import annotations
 
 import threading
-import time
 import warnings
 
 import numpy as np
 import pytest
+from conftest import SERVICE_FRAMES as N  # frames of the `scene` fixture
 
-from occvo_core import OccVO
-from occvo_core.sim import SyntheticScene
 from schemas import keys
 from schemas.codec import decode
 from schemas.models import ErrorEvent, Trajectory
 
 warnings.filterwarnings("ignore", category=RuntimeWarning)
-N = 10
-
-
-@pytest.fixture(scope="module")
-def scene():
-    s = SyntheticScene(seed=5, frames=N)
-    return [s[i] for i in range(N)]
-
-
-@pytest.fixture(scope="module")
-def uninterrupted(scene):
-    vo = OccVO()
-    for f in scene:
-        vo.step(f)
-    return vo.poses
 
 
 def _stream_of_shard(shard: int, shards: int = 2) -> str:

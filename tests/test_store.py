@@ -13,29 +13,14 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import SERVICE_FRAMES as N  # frames of the `scene` fixture
 
 from occvo_core import OccVO
-from occvo_core.sim import SyntheticScene
 from services.store import (
     TrajectoryStore, frame_digest, pack_arrays, pack_frame, snapshot_path, unpack_arrays, unpack_frame,
 )
 
 warnings.filterwarnings("ignore", category=RuntimeWarning)
-N = 12
-
-
-@pytest.fixture(scope="module")
-def scene():
-    s = SyntheticScene(seed=5, frames=N)
-    return [s[i] for i in range(N)]
-
-
-@pytest.fixture(scope="module")
-def uninterrupted(scene):
-    vo = OccVO()
-    for f in scene:
-        vo.step(f)
-    return vo.poses
 
 
 def _commit(store, stream, vo, frame, seq, **kw):

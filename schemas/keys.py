@@ -83,7 +83,7 @@ def parse_registration_shard(key: str) -> tuple[int, int] | None:
 
 def shard_of(stream: str, shards: int) -> int:
     """The shard whose registration worker owns a stream: a stable hash (CRC-32), the same in every process."""
-    return zlib.crc32(stream.encode()) % shards if shards > 1 else 0
+    return zlib.crc32(stream.encode()) % shards
 
 
 def stats(worker: str = "*") -> str:

@@ -7,8 +7,8 @@
         tile = env.tile(0, 1)
 
 Frames sent but not answered are sent again when the liveliness token of the registration worker of the stream's
-shard comes back (it restarted: its durable state answers frames it already registered with their stored poses) or after `resend_after` seconds
-without any answer. A pose that arrives twice is kept once.
+shard comes back (it restarted: its durable state answers frames it already registered with their stored poses) or
+after `resend_after` seconds without any answer. A pose that arrives twice is kept once.
 """
 
 from __future__ import annotations

@@ -8,7 +8,8 @@ Durable state (`store_path`, services/store.py): every pose is committed with it
 OccVO state is snapshotted every `snapshot_every` frames (less often when snapshots would take more than
 `snapshot_max_share` of the stream's time) and at shutdown; a restarted worker resumes a stream at its
 next frame from the snapshot plus the journaled frames. The lane only copies the state; one writer thread writes the
-copies into the store's snapshot file, so neither this stream's next frame nor another stream's commit waits for it. A resent frame already registered gets its stored pose again.
+copies into the store's snapshot file, so neither this stream's next frame nor another stream's commit waits for it.
+A resent frame already registered gets its stored pose again.
 With `working_radius_m`, map tiles wholly farther than that from the ego leave the working set for the store (the map
 service keeps serving them) and come back when the ego is within working_radius_m - tile_m of them.
 """
@@ -125,8 +126,6 @@ class RegistrationWorker(Worker):
     def owns(self, stream: str) -> bool:
         """This worker's shard registers the stream (a malformed stream id is shard 0's to report)."""
         c = self.config
-        if c.shards == 1:
-            return True
         return keys.shard_of(stream, c.shards) == c.shard if keys.STREAM_RE.match(stream) else c.shard == 0
 
     def declare(self) -> None:
@@ -467,18 +466,12 @@ class RegistrationWorker(Worker):
             items = list(self.states.items())
         return [(s, st) for s, st in items if st.started and q.intersects(zenoh.KeyExpr(key_of(s)))]
 
-    def _no_match(self, query: zenoh.Query) -> bool:
-        """Whether to answer a query that matched none of this worker's streams with an error: one shard answers
-        (the stream's owner, or shard 0 for a wildcard), so a sharded query does not collect an error per worker."""
-        stream = keys.stream_of(str(query.key_expr))
-        return self.owns(stream) if keys.STREAM_RE.match(stream) else self.config.shard == 0
-
     def _on_pose_latest(self, query: zenoh.Query) -> None:
         found = self._matching(query, keys.pose_latest)
-        if not found:
-            if not self._no_match(query):
-                return None
-            return self.reply_error(query, keys.stream_of(str(query.key_expr)), "bad_query", f"no poses for {query.key_expr}")
+        if not found:  # one worker answers a miss: the stream's shard's (shard 0's for a wildcard)
+            if self.owns(keys.stream_of(str(query.key_expr))):
+                self.reply_error(query, keys.stream_of(str(query.key_expr)), "bad_query", f"no poses for {query.key_expr}")
+            return
         for s, st in found:
             with st.lock:
                 latest = st.latest
@@ -486,10 +479,10 @@ class RegistrationWorker(Worker):
 
     def _on_trajectory(self, query: zenoh.Query) -> None:
         found = self._matching(query, keys.trajectory)
-        if not found:
-            if not self._no_match(query):
-                return None
-            return self.reply_error(query, keys.stream_of(str(query.key_expr)), "bad_query", f"no trajectory for {query.key_expr}")
+        if not found:  # one worker answers a miss: the stream's shard's (shard 0's for a wildcard)
+            if self.owns(keys.stream_of(str(query.key_expr))):
+                self.reply_error(query, keys.stream_of(str(query.key_expr)), "bad_query", f"no trajectory for {query.key_expr}")
+            return
         for s, st in found:
             with st.lock:
                 traj = Trajectory(stream=s, seqs=Array.from_numpy(np.array(st.seqs, np.int64)),

@@ -185,14 +185,18 @@ class TrajectoryStore:
     def _move_old_snapshots(self) -> None:
         """A store written before snapshots had their own file: move its snapshots there (its journal needs them).
         In one transaction of the frames' file, so two workers opening the store at once move them once."""
+        def old_table(db) -> bool:
+            return db.execute("SELECT 1 FROM sqlite_master WHERE type='table' AND name='snapshots'").fetchone() is not None
+
         def tx(db):
-            if db.execute("SELECT 1 FROM sqlite_master WHERE type='table' AND name='snapshots'").fetchone() is None:
+            if not old_table(db):  # the other worker moved them
                 return
             rows = db.execute("SELECT s.stream, t.created, s.seq, s.state FROM snapshots s JOIN streams t USING (stream)").fetchall()
             _transaction(self.snap_db, lambda snap: snap.executemany("INSERT OR REPLACE INTO snapshots VALUES (?, ?, ?, ?)", rows))
             db.execute("DROP TABLE snapshots")
 
-        _transaction(self.db, tx)
+        if old_table(self.db):  # an open takes no write lock otherwise
+            _transaction(self.db, tx)
 
     # -- transactions
     def _write(self, fn):

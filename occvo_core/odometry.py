@@ -16,7 +16,7 @@ from occvo_core.map_tiles import pack_tiles
 from occvo_core.registration import kernels
 from occvo_core.registration.dynamic_object_filter import dynamic_object_filter
 from occvo_core.registration.gicp import gicp, rotation_angle
-from occvo_core.registration.initialisation import bev_first_motion, ground_height_correction
+from occvo_core.registration.initialisation import bev_first_motion, ground_height_correction, semantic_bev_motion
 from occvo_core.registration.voxel_map import EgoMap, VoxelPFilterMap, _older_name, moved
 
 _GRID_CORNERS = np.array(np.meshgrid(*zip(OCC3D_GRID.lower, OCC3D_GRID.upper), indexing="ij")).reshape(3, -1).T
@@ -293,6 +293,12 @@ class OccVO:
             if self._loops and self._loops[-1][0] == len(self._poses) - 1:
                 before = self._loops[-1][1] @ before  # the last pose was relocalised: the motion is not the jump
             motion = np.linalg.inv(before) @ self._poses[-1]
+            if init.motion_search:
+                prev = self._last
+                motion = semantic_bev_motion(prev.points, prev.labels, frame.points, frame.labels, guess=motion,
+                                             search_radius_m=init.motion_search_radius_m,
+                                             yaw_deg=init.motion_search_yaw_deg, step_deg=init.motion_search_step_deg,
+                                             prior_sigma_m=init.motion_search_prior_m)
             return self._poses[-1] @ motion
         prev = self._last
         motion, _ = bev_first_motion(prev.points, prev.labels, frame.points, frame.labels,

@@ -49,6 +49,71 @@ def bev_first_motion(prev_points: np.ndarray, prev_labels: np.ndarray, points: n
     return motion, float(score)
 
 
+# semantic_bev_motion's channels: road, other flat and sidewalk, terrain, built structure, vegetation
+_MOTION_CHANNELS = ((11,), (12, 13), (14,), (1, 8, 15), (16,))
+_MOTION_RES, _MOTION_SIZE = 0.8, 128  # 102 m: the 80 m grid and its moves without wrapping round
+
+
+def _channel_cells(points: np.ndarray, labels: np.ndarray) -> list[np.ndarray]:
+    """Per channel, the x-y centres of its occupied BEV cells (a column counts once)."""
+    out = []
+    for classes in _MOTION_CHANNELS:
+        xy = points[np.isin(labels, classes), :2]
+        out.append(np.unique(np.floor(xy / _MOTION_RES).astype(np.int64), axis=0) * _MOTION_RES + 0.5 * _MOTION_RES)
+    return out
+
+
+def _channel_spectra(cells: list[np.ndarray], yaw: float) -> np.ndarray:
+    c, s = np.cos(yaw), np.sin(yaw)
+    rot = np.array([[c, s], [-s, c]])
+    spectra = []
+    for xy in cells:
+        ij = np.floor(xy @ rot / _MOTION_RES).astype(np.int64) + _MOTION_SIZE // 2
+        ij = ij[np.all((ij >= 0) & (ij < _MOTION_SIZE), axis=1)]
+        img = np.bincount(ij[:, 0] * _MOTION_SIZE + ij[:, 1], minlength=_MOTION_SIZE ** 2).reshape(_MOTION_SIZE, -1)
+        spectra.append(np.fft.rfft2(np.minimum(img, 1).astype(np.float64)))
+    return np.array(spectra)
+
+
+def _band_pass() -> np.ndarray:
+    """|H|^2 of a blur (1 cell) less its own blur (3 cells): class boundaries count, the inside of a road does not."""
+    f0 = np.fft.fftfreq(_MOTION_SIZE)[:, None]
+    f1 = np.fft.rfftfreq(_MOTION_SIZE)[None, :]
+    w2 = (2 * np.pi) ** 2 * (f0 ** 2 + f1 ** 2)
+    h = np.exp(-0.5 * w2) * (1.0 - np.exp(-0.5 * 9.0 * w2))
+    return h ** 2
+
+
+_BAND_PASS = _band_pass()
+
+
+def semantic_bev_motion(prev_points: np.ndarray, prev_labels: np.ndarray, points: np.ndarray, labels: np.ndarray, *,
+                        guess: np.ndarray, search_radius_m: float, yaw_deg: float, step_deg: float,
+                        prior_sigma_m: float) -> np.ndarray:
+    """Relative motion (4x4, current ego -> previous ego) near `guess` that best overlays the two frames' bird's-eye
+    views, class by class (road, sidewalk, terrain, structure, vegetation edges): yaw within +-yaw_deg of the
+    guess's, x-y within search_radius_m, with a Gaussian prior of prior_sigma_m on the x-y move."""
+    moved = points @ guess[:3, :3].T + guess[:3, 3]
+    ref = _channel_spectra(_channel_cells(prev_points, prev_labels), 0.0) * _BAND_PASS
+    cells = _channel_cells(moved, labels)
+    limit = int(search_radius_m / _MOTION_RES)
+    offsets = np.arange(-limit, limit + 1) * _MOTION_RES
+    prior = np.exp(-(offsets[:, None] ** 2 + offsets[None, :] ** 2) / (2 * prior_sigma_m ** 2))
+    best = (-np.inf, 0.0, 0, 0)
+    for yaw in np.deg2rad(np.arange(-yaw_deg, yaw_deg + 1e-9, step_deg)):
+        corr = np.fft.irfft2((ref * np.conj(_channel_spectra(cells, yaw))).sum(axis=0), s=(_MOTION_SIZE, _MOTION_SIZE))
+        corr = np.roll(corr, (limit, limit), axis=(0, 1))[: 2 * limit + 1, : 2 * limit + 1] * prior
+        i, j = np.unravel_index(np.argmax(corr), corr.shape)
+        if corr[i, j] > best[0]:
+            best = (corr[i, j], yaw, i - limit, j - limit)
+    _, yaw, di, dj = best
+    delta = np.eye(4)
+    c, s = np.cos(yaw), np.sin(yaw)
+    delta[:2, :2] = [[c, -s], [s, c]]
+    delta[:2, 3] = (di * _MOTION_RES, dj * _MOTION_RES)
+    return delta @ guess
+
+
 def ground_height_correction(map_ground: np.ndarray, frame_ground: np.ndarray, centre: np.ndarray,
                              cell_m: float = 0.8, min_cells: int = 30) -> np.ndarray | None:
     """World -> world correction that puts a frame's ground points (world frame) on the map's ground: a height

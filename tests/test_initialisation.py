@@ -29,3 +29,15 @@ def test_the_search_finds_a_turn_the_constant_velocity_guess_lacks(yaw_deg, x, y
     # wide pass reaches 2.4 m
     assert np.linalg.norm(found[:2, 3] - true[:2, 3]) < 1.2, found[:2, 3]
     assert np.allclose(found[2:3], guess[2:3]) and found[2, 3] == guess[2, 3]  # height is left to GICP
+
+
+@pytest.mark.parametrize("from_images, flag, expected", [(True, None, True), (False, None, False), (True, False, False),
+                                                         (False, True, True)])
+def test_occvo_run_searches_on_camera_occupancy_unless_told(from_images, flag, expected):
+    from argparse import Namespace
+
+    from occvo_core.commands.run import config_from_args
+
+    args = Namespace(config=None, from_images=from_images, motion_search=flag, no_semantic_filter=False,
+                     no_dynamic_filter=False, no_pfilter=False)
+    assert config_from_args(args).initialisation.motion_search is expected

@@ -35,18 +35,27 @@ def bev_first_motion(prev_points: np.ndarray, prev_labels: np.ndarray, points: n
         c, s = np.cos(yaw), np.sin(yaw)
         rotated = points[:, :2] @ np.array([[c, s], [-s, c]])
         img = _bev(rotated, labels, res, size)
-        corr = np.fft.irfft2(ref * np.conj(np.fft.rfft2(img)), s=(size, size))
-        corr = np.roll(corr, (limit, limit), axis=(0, 1))[: 2 * limit + 1, : 2 * limit + 1]
+        corr = _shifts(ref * np.conj(np.fft.rfft2(img)), size, limit)
         i, j = np.unravel_index(np.argmax(corr), corr.shape)
         score = corr[i, j] / max(ref_norm * np.sqrt((img ** 2).sum()), 1e-12)
         if score > best[0]:
             best = (score, yaw, i - limit, j - limit)
     score, yaw, di, dj = best
+    return _planar_motion(yaw, di * res, dj * res), float(score)
+
+
+def _shifts(cross_spectrum: np.ndarray, size: int, limit: int) -> np.ndarray:
+    """The circular cross-correlation of two size x size images at shifts -limit..limit (row 0: shift -limit)."""
+    corr = np.fft.irfft2(cross_spectrum, s=(size, size))
+    return np.roll(corr, (limit, limit), axis=(0, 1))[: 2 * limit + 1, : 2 * limit + 1]
+
+
+def _planar_motion(yaw: float, x: float, y: float) -> np.ndarray:
     motion = np.eye(4)
     c, s = np.cos(yaw), np.sin(yaw)
     motion[:2, :2] = [[c, -s], [s, c]]
-    motion[:2, 3] = (di * res, dj * res)
-    return motion, float(score)
+    motion[:2, 3] = (x, y)
+    return motion
 
 
 # semantic_bev_motion's channels: road, other flat and sidewalk, terrain, built structure, vegetation
@@ -101,17 +110,12 @@ def semantic_bev_motion(prev_points: np.ndarray, prev_labels: np.ndarray, points
     prior = np.exp(-(offsets[:, None] ** 2 + offsets[None, :] ** 2) / (2 * prior_sigma_m ** 2))
     best = (-np.inf, 0.0, 0, 0)
     for yaw in np.deg2rad(np.arange(-yaw_deg, yaw_deg + 1e-9, step_deg)):
-        corr = np.fft.irfft2((ref * np.conj(_channel_spectra(cells, yaw))).sum(axis=0), s=(_MOTION_SIZE, _MOTION_SIZE))
-        corr = np.roll(corr, (limit, limit), axis=(0, 1))[: 2 * limit + 1, : 2 * limit + 1] * prior
+        corr = _shifts((ref * np.conj(_channel_spectra(cells, yaw))).sum(axis=0), _MOTION_SIZE, limit) * prior
         i, j = np.unravel_index(np.argmax(corr), corr.shape)
         if corr[i, j] > best[0]:
             best = (corr[i, j], yaw, i - limit, j - limit)
     _, yaw, di, dj = best
-    delta = np.eye(4)
-    c, s = np.cos(yaw), np.sin(yaw)
-    delta[:2, :2] = [[c, -s], [s, c]]
-    delta[:2, 3] = (di * _MOTION_RES, dj * _MOTION_RES)
-    return delta @ guess
+    return _planar_motion(yaw, di * _MOTION_RES, dj * _MOTION_RES) @ guess
 
 
 def ground_height_correction(map_ground: np.ndarray, frame_ground: np.ndarray, centre: np.ndarray,

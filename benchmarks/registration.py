@@ -47,11 +47,14 @@ def main(argv=None) -> int:
     ap.add_argument("--threads", type=int, nargs="+", default=[0],
                     help="kernel thread counts to measure, 0 = all cores (e.g. --threads 1 0: one core, then all)")
     ap.add_argument("--json", type=Path)
+    ap.add_argument("--motion-search", action="store_true", help="with the semantic BEV motion search (as --from-images)")
     args = ap.parse_args(argv)
     if not (args.sample / "occupancy").is_dir():
         print(f"no sample data at {args.sample}", file=sys.stderr)
         return 2
     config = OccVOConfig()
+    if args.motion_search:
+        config = config.model_copy(update={"initialisation": config.initialisation.model_copy(update={"motion_search": True})})
     report = {}
     for name in args.scenes:
         source = OccVOReleaseScene(args.sample / "occupancy" / name)

@@ -62,7 +62,7 @@ class InitialisationConfig(_Section):
     motion_search: bool = Field(False, description="each frame, the constant-velocity guess is refined by a semantic "
                                 "BEV correlation with the previous frame (semantic_bev_motion): it follows turns "
                                 "that start or end between frames, which GICP on a network's occupancy does not. "
-                                "Off by default: it costs 28-41 ms a frame, and on ground-truth occupancy GICP "
+                                "Off by default: it costs 16-21 ms a frame, and on ground-truth occupancy GICP "
                                 "follows turns without it (occvo run --from-images switches it on)")
     motion_search_yaw_deg: float = Field(16.0, ge=0, description="the search turns the guess this far either way")
     motion_search_step_deg: float = Field(2.0, gt=0)

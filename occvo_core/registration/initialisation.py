@@ -67,21 +67,22 @@ def _channel_cells(points: np.ndarray, labels: np.ndarray) -> list[np.ndarray]:
     """Per channel, the x-y centres of its occupied BEV cells (a column counts once)."""
     out = []
     for classes in _MOTION_CHANNELS:
-        xy = points[np.isin(labels, classes), :2]
-        out.append(np.unique(np.floor(xy / _MOTION_RES).astype(np.int64), axis=0) * _MOTION_RES + 0.5 * _MOTION_RES)
+        ij = np.floor(points[np.isin(labels, classes), :2] / _MOTION_RES).astype(np.int64) + (1 << 20)
+        keys = np.unique(ij[:, 0] << 21 | ij[:, 1])  # one int64 a cell: a 1-D sort, not a row sort
+        out.append(np.stack([(keys >> 21) - (1 << 20), (keys & ((1 << 21) - 1)) - (1 << 20)], axis=1) * _MOTION_RES
+                   + 0.5 * _MOTION_RES)
     return out
 
 
 def _channel_spectra(cells: list[np.ndarray], yaw: float) -> np.ndarray:
     c, s = np.cos(yaw), np.sin(yaw)
     rot = np.array([[c, s], [-s, c]])
-    spectra = []
-    for xy in cells:
+    images = np.zeros((len(cells), _MOTION_SIZE * _MOTION_SIZE))
+    for image, xy in zip(images, cells):
         ij = np.floor(xy @ rot / _MOTION_RES).astype(np.int64) + _MOTION_SIZE // 2
         ij = ij[np.all((ij >= 0) & (ij < _MOTION_SIZE), axis=1)]
-        img = np.bincount(ij[:, 0] * _MOTION_SIZE + ij[:, 1], minlength=_MOTION_SIZE ** 2).reshape(_MOTION_SIZE, -1)
-        spectra.append(np.fft.rfft2(np.minimum(img, 1).astype(np.float64)))
-    return np.array(spectra)
+        image[ij[:, 0] * _MOTION_SIZE + ij[:, 1]] = 1.0
+    return np.fft.rfft2(images.reshape(len(cells), _MOTION_SIZE, _MOTION_SIZE))
 
 
 def _band_pass() -> np.ndarray:

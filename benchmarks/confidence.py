@@ -30,8 +30,7 @@ from occvo_core.models.image_source import ImageOccupancySource  # noqa: E402
 from occvo_core.models.tpvformer.predictor import OccupancyPredictor, confident_labels  # noqa: E402
 from occvo_core.sim import SyntheticScene  # noqa: E402
 
-CONFIG = OccVOConfig().model_copy(update={"initialisation": OccVOConfig().initialisation.model_copy(
-    update={"motion_search": True})})  # as occvo run --from-images has it
+CONFIG = OccVOConfig().with_motion_search()  # as occvo run --from-images has it
 PAIRS = ["0,0", "0.8,0", "0.9,0", "0.8,0.9", "0.85,0.9", "0.9,0.9", "0.8,0.95", "0.85,0.95", "0.9,0.95"]
 
 

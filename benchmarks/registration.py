@@ -54,7 +54,7 @@ def main(argv=None) -> int:
         return 2
     config = OccVOConfig()
     if args.motion_search:
-        config = config.model_copy(update={"initialisation": config.initialisation.model_copy(update={"motion_search": True})})
+        config = config.with_motion_search()
     report = {}
     for name in args.scenes:
         source = OccVOReleaseScene(args.sample / "occupancy" / name)

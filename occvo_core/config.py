@@ -123,3 +123,6 @@ class OccVOConfig(_Section):
             "dynamic_object_filter": self.dynamic_object_filter.model_copy(update={"enabled": dynamic}),
             "voxel_pfilter": self.voxel_pfilter.model_copy(update={"enabled": pfilter}),
         })
+
+    def with_motion_search(self, enabled: bool = True) -> "OccVOConfig":
+        return self.model_copy(update={"initialisation": self.initialisation.model_copy(update={"motion_search": enabled})})

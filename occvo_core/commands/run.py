@@ -45,7 +45,7 @@ def config_from_args(args) -> OccVOConfig:
     if search is None and getattr(args, "from_images", False):
         search = True  # camera occupancy needs it to follow turns; it costs 16-21 ms a frame
     if search is not None:
-        cfg = cfg.model_copy(update={"initialisation": cfg.initialisation.model_copy(update={"motion_search": search})})
+        cfg = cfg.with_motion_search(search)
     return cfg.with_filters(semantic=cfg.semantic_label_filter.enabled and not args.no_semantic_filter,
                             dynamic=cfg.dynamic_object_filter.enabled and not args.no_dynamic_filter,
                             pfilter=cfg.voxel_pfilter.enabled and not args.no_pfilter)

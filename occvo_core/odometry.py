@@ -34,6 +34,29 @@ class StepResult:
 
 
 @dataclass
+class Registration:
+    """OccVO.register()'s result: the frame's odometry pose before loop closure and the map update, which
+    OccVO.complete() then makes from the rest (private: what fine GICP left for them)."""
+
+    index: int
+    pose: np.ndarray  # 4x4 ego -> world, as registered against the map (a loop closed in complete() may move it)
+    status: str
+    pairs: dict[str, int] = field(default_factory=dict)
+    _frame: "_Prepared | None" = field(default=None, repr=False)
+    _t: int = 0
+    _watch: "_Stopwatch | None" = field(default=None, repr=False)
+    _version: int = 0
+    _local: object = field(default=None, repr=False)
+    _old: np.ndarray | None = field(default=None, repr=False)
+    _map_moved: np.ndarray | None = field(default=None, repr=False)
+    _entered: tuple | None = field(default=None, repr=False)
+
+    @property
+    def timings_ms(self) -> dict[str, float]:
+        return dict(self._watch.ms)
+
+
+@dataclass
 class _Prepared:
     """A frame made ready for registration: per-point GICP covariances and two downsampled source sets."""
 
@@ -83,6 +106,7 @@ class OccVO:
         return np.array([m, m, min(m, 1.0)])  # the ground does not move 4 m up between frames
 
     def reset(self) -> None:
+        self._version = getattr(self, "_version", 0) + 1  # any change: a pending Registration is stale (complete())
         pf = self.config.voxel_pfilter
         self.map = VoxelPFilterMap(pf.map_voxel_m, pf.p_index_threshold, pfilter=pf.enabled, merge_radius_m=pf.merge_radius_m,
                                    observe_radius_m=pf.observe_radius_m)
@@ -170,6 +194,7 @@ class OccVO:
                                      float(radius_m))
         if len(rows) == 0:
             return {}
+        self._version += 1
         t = len(self._poses)
         tiles = np.floor(self.map.pos[rows, :2] / tile_m).astype(np.int64)
         _, first, inverse = np.unique(pack_tiles(tiles), return_index=True, return_inverse=True)
@@ -186,6 +211,7 @@ class OccVO:
         """Put evicted tiles back (as evict_tiles returned them), moved by the loops closed since they were taken;
         returns the voxels restored."""
         t = len(self._poses)
+        self._version += 1
         return sum(self.map.put(self._corrected_block(block), t) for block in blocks.values())
 
     def _corrected_block(self, block: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
@@ -216,21 +242,46 @@ class OccVO:
 
     def step(self, frame: OccupancyFrame) -> StepResult:
         """Register one frame. A bad frame raises InvalidFrameError and leaves poses and map as they were."""
+        return self.complete(self.register(frame))
+
+    def register(self, frame: OccupancyFrame) -> Registration:
+        """The first half of step(): the frame's odometry pose, through fine GICP. Nothing changes until complete()
+        takes it, so a service can publish the pose before the loop-closure search and the map update."""
         watch = _Stopwatch()
         kernels.use_threads(self.threads)
         prepared = self._preprocess(frame)
         watch.lap("preprocess")
         t = len(self._poses)
         if t == 0:
-            self._commit(prepared, np.eye(4), np.zeros(0, np.int64))
+            return Registration(frame.index, np.eye(4), "initialised", _frame=prepared, _t=t, _watch=watch,
+                                _version=self._version)
+        return self.register_frame(prepared, t, watch)
+
+    def complete(self, reg: Registration) -> StepResult:
+        """The second half of step(): loop closure, then the voxel pfilter's map update. The pose is reg.pose, or the
+        relocalised one when a loop closes (StepResult.loop_correction)."""
+        if reg._version != self._version:
+            raise RuntimeError("complete() takes the registration of the frame just registered, before any other "
+                               "change to the odometry (step, complete, evict_tiles, restore_tiles, reset, load)")
+        frame, t, watch = reg._frame, reg._t, reg._watch
+        if t == 0:
+            self._commit(frame, np.eye(4), np.zeros(0, np.int64))
             watch.lap("voxel_pfilter")
             return StepResult(frame.index, np.eye(4), "initialised", watch.ms, {"map_voxels": len(self.map)})
-        pose, pairs = self.register_frame(prepared, t, watch)
-        loop = self._loops[-1][1].copy() if self._loops and self._loops[-1][0] == t else None
-        return StepResult(frame.index, pose, "ok", watch.ms, pairs, loop)
+        pose, local = reg.pose, reg._local
+        correction, loop = self._loop_closure(frame, pose, t, local, reg._old)
+        watch.lap("loop_closure")
+        if correction is not None:
+            pose = correction @ pose
+        self._commit(frame, pose, local.rows[reg._map_moved], local, correction, searched="loop_searched" in loop,
+                     on_old_map=loop.get("loop_on_old", 0) == 1, entered=reg._entered)
+        watch.lap("voxel_pfilter")
+        pairs = {**reg.pairs, "reliable_voxels": int(local.usable.sum()), "map_voxels": len(self.map), **loop}
+        return StepResult(frame.index, pose, "ok", watch.ms, pairs, None if correction is None else correction.copy())
 
-    def register_frame(self, frame: _Prepared, t: int, watch: _Stopwatch) -> tuple[np.ndarray, dict[str, int]]:
-        """Coarse GICP -> semantic label filter -> dynamic object filter -> fine GICP -> (loop closure) -> voxel pfilter."""
+    def register_frame(self, frame: _Prepared, t: int, watch: _Stopwatch) -> Registration:
+        """Coarse GICP -> semantic label filter -> dynamic object filter -> fine GICP; complete() goes on with
+        (loop closure) -> voxel pfilter."""
         cfg = self.config.gicp
         guess = self._initial_guess(frame)
         watch.lap("initial_guess")
@@ -250,17 +301,10 @@ class OccVO:
                           cfg.fine_iterations)
         pose = guess @ fine.pose
         watch.lap("fine_gicp")
-        correction, loop = self._loop_closure(frame, pose, t, local, old)
-        watch.lap("loop_closure")
-        if correction is not None:
-            pose = correction @ pose
-        self._commit(frame, pose, local.rows[map_moved], local, correction, searched="loop_searched" in loop,
-                     on_old_map=loop.get("loop_on_old", 0) == 1, entered=entered)
-        watch.lap("voxel_pfilter")
         pairs = {"coarse_found": coarse.pairs_found, "coarse_semantic_kept": coarse.pairs_kept,
-                 "fine_found": fine.pairs_found, "fine_semantic_kept": fine.pairs_kept, **dyn,
-                 "reliable_voxels": int(local.usable.sum()), "map_voxels": len(self.map), **loop}
-        return pose, pairs
+                 "fine_found": fine.pairs_found, "fine_semantic_kept": fine.pairs_kept, **dyn}
+        return Registration(frame.index, pose, "ok", pairs, _frame=frame, _t=t, _watch=watch, _version=self._version,
+                            _local=local, _old=old, _map_moved=map_moved, _entered=entered)
 
     # -- the boxes of the pipeline ------------------------------------------------------------------------------
     def _preprocess(self, frame: OccupancyFrame) -> _Prepared:
@@ -477,6 +521,7 @@ class OccVO:
         allows: see VoxelPFilterMap.merge), append the pose."""
         t = len(self._poses)
         lc = self.config.loop_closure
+        self._version += 1
         self._on_old_map = on_old_map
         if len(moved_rows):
             self.map.remove(moved_rows)

@@ -217,7 +217,7 @@ class OccupancyFrameMsg(_StreamMessage):
     sent_at: Finite = 0.0
 
 
-Status = Literal["ok", "lost", "reinitialised"]
+Status = Literal["ok", "lost", "reinitialised", "relocalised"]  # relocalised: a loop closed; replaces the seq's earlier pose
 
 
 class PoseEstimate(_StreamMessage):

@@ -8,7 +8,9 @@
 
 Frames sent but not answered are sent again when the liveliness token of the registration worker of the stream's
 shard comes back (it restarted: its durable state answers frames it already registered with their stored poses) or
-after `resend_after` seconds without any answer. A pose that arrives twice is kept once.
+after `resend_after` seconds without any answer. A pose that arrives twice is kept once. A frame that closed a loop
+has its pose published twice: the odometry pose as soon as it is known, then (status "relocalised") the pose on the
+map seen long ago, which replaces it in `poses` (step() returns the first).
 """
 
 from __future__ import annotations
@@ -79,7 +81,10 @@ class OccVOClient:
         except CodecError:
             return  # not ours to judge; the workers only publish valid poses
         with self._cv:
-            self.poses.setdefault(pose.seq, pose)  # a resent frame's pose comes again: keep the first
+            if pose.status == "relocalised":  # a loop closed at this frame: its pose moved
+                self.poses[pose.seq] = pose
+            else:
+                self.poses.setdefault(pose.seq, pose)  # a resent frame's pose comes again: keep the first
             # poses come in seq order: an older frame still unanswered was dropped upstream (latest policy)
             for seq in [s for s in self._unanswered if s <= pose.seq]:
                 del self._unanswered[seq]

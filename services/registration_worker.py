@@ -4,6 +4,10 @@ Map updates: after each frame the worker cuts again the map tiles the frame chan
 occvo_core.map_tiles.retile_region) and publishes only the tiles whose content changed (a tile that emptied is sent
 empty), so the map service always equals the odometry's map; the cost follows the changed area, not the map's size.
 
+A frame's pose goes out as soon as it is registered (OccVO.register: through fine GICP); the loop-closure search, the
+map update, eviction and restores follow off its latency (OccVO.complete and _finish). A frame that closed a loop
+then publishes its relocalised pose (status "relocalised"), which replaces the first.
+
 Durable state (`store_path`, services/store.py): every pose is committed with its frame before it is published, the
 OccVO state is snapshotted every `snapshot_every` frames (less often when snapshots would take more than
 `snapshot_max_share` of the stream's time) and at shutdown; a restarted worker resumes a stream at its
@@ -65,6 +69,7 @@ class StreamState:
         self.send_all_tiles = False
         self.tiling_ms = 0.0
         self.restore_ms = self.evict_ms = 0.0  # the last step's working-map restores and evictions
+        self.restored_for_next: list[tuple[int, int]] = []  # tiles restored after the last frame, not yet published
         self.ego_xy: np.ndarray | None = None  # x-y of the last registered pose (eviction and restore centre)  # after a resume: the map service may lack the last frames' tiles
 
     def append(self, seq: int, stamp: float, pose: np.ndarray, status: str, digest: bytes) -> None:
@@ -222,66 +227,96 @@ class RegistrationWorker(Worker):
         if restart:  # only this lane's thread touches st.vo; queries read the lists under st.lock
             st.vo = st.vo or self._OccVO(self.occvo_config, threads=self.config.kernel_threads)
             st.vo.reset()
-            st.cold, st.cold_digest, st.pending_restored, st.tiles = {}, {}, [], {}
+            st.cold, st.cold_digest, st.pending_restored, st.tiles, st.restored_for_next = {}, {}, [], {}, []
             st.since_snapshot, st.send_all_tiles, st.ego_xy = 0, False, None
         try:
-            result, restored, evicted, (tiles, dirty) = self._advance(stream, st, frame, msg.seq, publish=True)
+            reg = st.vo.register(frame)
         except InvalidFrameError as exc:
             if restart and self.store is not None:
                 st.vo = None  # reset for nothing: the stored trajectory stands and resumes at the next frame
             self.report_error(stream, "invalid_frame", f"seq {msg.seq}: {exc.reason}", keys.occupancy(stream), msg.seq)
             return
-        reg_ms = (time.perf_counter() - t0) * 1000.0 - st.tiling_ms
-        pose_m = np.asarray(result.pose, float)
-        if result.loop_correction is not None:
-            self.stats.inc("loop_closures")
-            log_event(self.log, "loop closed", stream=stream, seq=msg.seq,
-                      correction_m=round(float(np.linalg.norm(pose_m[:3, 3] - (np.linalg.inv(result.loop_correction) @ pose_m)[:3, 3])), 3))
-        status = _STATUS.get(result.status, "ok")
+        reg_ms = (time.perf_counter() - t0) * 1000.0
+        pose_m = np.asarray(reg.pose, float)
+        status = _STATUS.get(reg.status, "ok")
         t_store = time.perf_counter()
         if self.store is not None:
             try:
-                self.store.commit_frame(stream, msg.seq, msg.stamp, digest, status, pose_m, pack_frame(frame), new_trajectory=restart,
-                                        evicted={k: pack_arrays(b) for k, b in evicted.items()}, restored=st.pending_restored)
+                self.store.commit_frame(stream, msg.seq, msg.stamp, digest, status, pose_m, pack_frame(frame), new_trajectory=restart)
             except Exception as exc:  # noqa: BLE001 - e.g. disk full: publish nothing the store lacks; rebuild from it
-                st.vo = None
-                st.tiles = {}
-                self.report_error(stream, "internal", f"seq {msg.seq} not stored, pose not published ({type(exc).__name__}: {exc}); "
-                                  "the stream resumes from the store at its next frame", keys.occupancy(stream), msg.seq)
-                return
-        st.pending_restored = []
+                return self._store_failed(stream, st, msg.seq, exc, "not stored, pose not published")
         store_ms = (time.perf_counter() - t_store) * 1000.0
+        timings = dict(msg.timings_ms)
+        timings.update({"occupancy_hop": hop_ms, "registration_queue": (t0 - t_queued) * 1000.0, "registration": reg_ms})
+        if self.store is not None:
+            timings.update(store_commit=store_ms)
+        timings.update({f"registration.{k}": float(v) for k, v in reg.timings_ms.items()})
+        self._publish_pose(stream, st, msg.seq, msg.stamp, pose_m, status, digest, timings, restart)
+        self.stats.observe("registration", reg_ms)
+        self.stats.observe("occupancy_hop", hop_ms)
+        if self.store is not None:
+            self.stats.observe("store_commit", store_ms)
+        # the pose is out: loop closure, the map update, eviction and the next frame's restores run off its latency
+        t_tail = time.perf_counter()
+        result, restored, evicted, (tiles, dirty) = self._finish(stream, st, reg, frame, msg.seq, publish=True)
+        relocalised = result.loop_correction is not None
+        if relocalised:
+            self.stats.inc("loop_closures")
+            log_event(self.log, "loop closed", stream=stream, seq=msg.seq,
+                      correction_m=round(float(np.linalg.norm(result.pose[:3, 3] - pose_m[:3, 3])), 3))
+        if self.store is not None and (relocalised or evicted or st.pending_restored):
+            try:
+                self.store.finish_frame(stream, msg.seq, np.asarray(result.pose, float) if relocalised else None,
+                                        evicted={k: pack_arrays(b) for k, b in evicted.items()}, restored=st.pending_restored)
+            except Exception as exc:  # noqa: BLE001 - the journal has the frame: a resume redoes this part
+                return self._store_failed(stream, st, msg.seq, exc, "pose stored and published, its map update not stored")
+        st.pending_restored = []
+        if relocalised:  # supersedes the pose published above
+            timings = {"loop_closure": float(result.timings_ms.get("loop_closure", 0.0))}
+            self._publish_pose(stream, st, msg.seq, msg.stamp, np.asarray(result.pose, float), "relocalised", digest,
+                               timings, False)
         t_map = time.perf_counter()
         self._publish_map(stream, st, msg.seq, restart, tiles, dirty, evicted, restored)
         map_ms = (time.perf_counter() - t_map) * 1000.0 + st.tiling_ms
-        timings = dict(msg.timings_ms)
-        timings.update({"occupancy_hop": hop_ms, "registration_queue": (t0 - t_queued) * 1000.0, "registration": reg_ms,
-                        "map_update": map_ms})
-        if self.store is not None:
-            timings.update(store_commit=store_ms, map_restore=st.restore_ms, map_evict=st.evict_ms)
-        timings.update({f"registration.{k}": float(v) for k, v in result.timings_ms.items()})
-        pose = PoseEstimate(stream=stream, seq=msg.seq, stamp=msg.stamp, pose=pose_m.tolist(), status=status, timings_ms=timings,
-                            sent_at=time.time())
-        with st.lock:
-            if restart:
-                st.clear()
-                st.started = True
-            st.append(msg.seq, msg.stamp, pose_m, status, digest)
-            st.latest = pose
-        self.session.put(keys.pose(stream), encode(pose), congestion_control=zenoh.CongestionControl.BLOCK)
-        self.stats.inc("frames_out")
-        self.stats.observe("registration", reg_ms)
         self.stats.observe("map_update", map_ms)
-        self.stats.observe("occupancy_hop", hop_ms)
+        if self.store is not None:
+            self.stats.observe("map_restore", st.restore_ms)
+            self.stats.observe("map_evict", st.evict_ms)
+        self.stats.observe("frame_after_pose", (time.perf_counter() - t_tail) * 1000.0)
         self.stats.observe("stage_total", (time.perf_counter() - t0) * 1000.0)
         if self.store is not None:
-            self.stats.observe("store_commit", store_ms)
             st.since_snapshot += 1
             due = st.snapshot_retry or (st.since_snapshot >= self.config.snapshot_every and time.monotonic() >= st.snapshot_due)
             if due and st.snapshot_idle.is_set():
                 self._queue_snapshot(stream, st)
         if restart:
             log_event(self.log, "trajectory started", stream=stream, seq=msg.seq)
+
+    def _publish_pose(self, stream: str, st: StreamState, seq: int, stamp: float, pose_m: np.ndarray, status: str,
+                      digest: bytes, timings: dict, restart: bool) -> None:
+        """Record the pose for queries and publish it; a relocalised pose replaces the one of its seq."""
+        pose = PoseEstimate(stream=stream, seq=seq, stamp=stamp, pose=pose_m.tolist(), status=status, timings_ms=timings,
+                            sent_at=time.time())
+        with st.lock:
+            if restart:
+                st.clear()
+                st.started = True
+            if seq in st.position:
+                i = st.position[seq]
+                st.poses[i], st.statuses[i] = pose_m, status
+            else:
+                st.append(seq, stamp, pose_m, status, digest)
+            st.latest = pose
+        self.session.put(keys.pose(stream), encode(pose), congestion_control=zenoh.CongestionControl.BLOCK)
+        self.stats.inc("relocalised" if status == "relocalised" else "frames_out")
+
+    def _store_failed(self, stream: str, st: StreamState, seq: int, exc: Exception, what: str) -> None:
+        """A write failed (e.g. disk full): drop the in-memory state; the stream resumes from the store at its next
+        frame (replaying the journal redoes what was not stored)."""
+        st.vo = None
+        st.tiles = {}
+        self.report_error(stream, "internal", f"seq {seq} {what} ({type(exc).__name__}: {exc}); "
+                          "the stream resumes from the store at its next frame", keys.occupancy(stream), seq)
 
     # -- durable state --------------------------------------------------------------------------------------------
     def _queue_snapshot(self, stream: str, st: StreamState) -> None:
@@ -337,11 +372,18 @@ class RegistrationWorker(Worker):
         st.vo = vo
         st.ego_xy = vo.poses[-1][:2, 3].copy() if snap is not None and len(vo.poses) else None
         st.cold = self.store.cold_index(stream, as_of_seq=snap_seq if snap_seq is not None else -1)
-        st.cold_digest, st.pending_restored, st.tiles = {}, [], {}
+        st.cold_digest, st.pending_restored, st.tiles, st.restored_for_next = {}, [], {}, []
         journal = self.store.journal(stream, snap_seq)
+        if st.ego_xy is not None:  # a snapshot of a worker that restored the near map at the next frame: do it now
+            st.restored_for_next = self._restore(stream, st, self._near(st))
         worst = 0.0
-        for seq, frame in journal:  # the same restores and evictions as the first time, so the same poses
-            result = self._advance(stream, st, frame, seq, publish=False)[0]
+        st.send_all_tiles = True  # the map service may lack the last frames' tiles
+        for i, (seq, frame) in enumerate(journal):  # the same restores and evictions as the first time, so the same poses
+            last = i == len(journal) - 1
+            result, restored, evicted, (tiles, dirty) = self._advance(stream, st, frame, seq, publish=last)
+            if last:  # it may have stopped before its map update was stored or published: do both again
+                self._finish_last(stream, st, seq, result, evicted)
+                self._publish_map(stream, st, seq, False, tiles, dirty, evicted, restored)
             st.pending_restored = []
             stored = st.stored(seq)
             diff = float(np.abs(np.asarray(result.pose) - stored.pose).max()) if stored is not None else np.inf
@@ -353,25 +395,41 @@ class RegistrationWorker(Worker):
                               "the stored poses stand", keys.occupancy(stream))
             st.cold = now
         st.since_snapshot = len(journal)
-        st.send_all_tiles = True
         self.stats.inc("resumes")
         log_event(self.log, "stream resumed", stream=stream, snapshot_seq=snap_seq, journal_frames=len(journal),
                   last_seq=st.seqs[-1], cold_tiles=len(st.cold), ms=round((time.perf_counter() - t0) * 1000.0, 1))
 
+    def _finish_last(self, stream: str, st: StreamState, seq: int, result, evicted: dict) -> None:
+        """The journal's last frame may have been stopped between its pose and the rest (its map update, evictions,
+        a loop closure's relocalised pose): the replay just redid that part; store what the store lacks of it."""
+        stored = st.stored(seq)
+        pose = np.asarray(result.pose, float)
+        relocalised = result.loop_correction is not None and stored is not None and not np.array_equal(stored.pose, pose)
+        if not relocalised and self.store.cold_index(stream) == st.cold:
+            return
+        self.store.finish_frame(stream, seq, pose if relocalised else None,
+                                evicted={k: pack_arrays(b) for k, b in evicted.items()}, restored=st.pending_restored)
+        log_event(self.log, "finished the last journaled frame", stream=stream, seq=seq, relocalised=relocalised,
+                  evicted=len(evicted), restored=len(st.pending_restored))
+        if relocalised:
+            self._publish_pose(stream, st, seq, stored.stamp, pose, "relocalised", stored.digest, {}, False)
+
     # -- one step and the bounded working map ----------------------------------------------------------------------
     def _advance(self, stream: str, st: StreamState, frame: OccupancyFrame, seq: int, publish: bool):
-        """Restore near map, register, keep every tile wholly resident or wholly cold, evict far map. The same on a
-        resume's replay of the journal, so it reproduces the poses. Returns (result, restored tiles, evicted blocks,
-        tiles of the working map before eviction if publish)."""
-        t0 = time.perf_counter()
-        restored = self._restore(stream, st, self._near(st)) if st.ego_xy is not None else []
-        t1 = time.perf_counter()
-        result = st.vo.step(frame)
-        t2 = time.perf_counter()
+        """A whole frame as a live one goes (register, then _finish); a resume's replay of the journal uses it, so it
+        reproduces the poses."""
+        return self._finish(stream, st, st.vo.register(frame), frame, seq, publish)
+
+    def _finish(self, stream: str, st: StreamState, reg, frame: OccupancyFrame, seq: int, publish: bool):
+        """After the pose: loop closure and map update (OccVO.complete), keep every tile wholly resident or wholly
+        cold, evict far map, and bring back the cold map near the new pose, which the next frame registers against.
+        Returns (result, tiles restored, evicted blocks, tiles of the working map before eviction if publish)."""
+        result = st.vo.complete(reg)
         pose = np.asarray(result.pose, float)
+        t0 = time.perf_counter()
+        restored = list(st.restored_for_next)
         if st.cold:  # a frame that reached into an evicted tile: bring the rest back, so the tile stays whole
             restored += self._restore(stream, st, self._reached(st, frame, pose))
-        st.restore_ms = (t1 - t0 + time.perf_counter() - t2) * 1000.0
         t_map = time.perf_counter()
         tiles = dirty = None
         if publish:  # only the part of the map this frame changed is cut again (a replay leaves the region open)
@@ -381,6 +439,10 @@ class RegistrationWorker(Worker):
         evicted = self._evict_far(st, seq, pose)
         st.evict_ms = (time.perf_counter() - t_evict) * 1000.0
         st.ego_xy = pose[:2, 3].copy()
+        t_near = time.perf_counter()
+        # published with the next frame's tiles (they are cut then); committed with this frame
+        st.restored_for_next = self._restore(stream, st, self._near(st))
+        st.restore_ms = (t_map - t0 + time.perf_counter() - t_near) * 1000.0
         return result, restored, evicted, (tiles, dirty)
 
     def _reached(self, st: StreamState, frame: OccupancyFrame, pose: np.ndarray) -> list[tuple[int, int]]:

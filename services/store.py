@@ -177,6 +177,7 @@ class TrajectoryStore:
 
     def __init__(self, path: str | Path, synchronous: Literal["NORMAL", "FULL"] = "FULL", busy_timeout_s: float = 30.0):
         self.path, self.snapshot_path = str(path), snapshot_path(path)
+        self.synchronous = synchronous
         self.db = _connect(self.path, synchronous, busy_timeout_s, SCHEMA)
         self.snap_db = _connect(self.snapshot_path, synchronous, busy_timeout_s, SNAPSHOT_SCHEMA)
         self.lock, self.snap_lock = threading.Lock(), threading.Lock()
@@ -246,6 +247,30 @@ class TrajectoryStore:
             db.execute("UPDATE streams SET last_seq=? WHERE stream=?", (seq, stream))
 
         self._write(tx)
+
+    def finish_frame(self, stream: str, seq: int, pose: np.ndarray | None = None, evicted: dict | None = None,
+                     restored: Iterable[tuple[int, int, int]] = ()) -> None:
+        """What a committed frame did after its pose was published, atomically: its relocalised pose (a loop
+        closed; status "relocalised"), the tiles it evicted and the cold rows it restored. A frame stopped before
+        this is finished by the replay of the journal (the registration worker's resume), so this write need not
+        reach the disk before the next one does: no sync of its own (WAL commits are ordered, so the next frame's
+        synced commit carries it), one fsync a frame, not two."""
+
+        def tx(db):
+            if pose is not None:
+                db.execute("UPDATE poses SET status='relocalised', pose=? WHERE stream=? AND seq=?",
+                           (np.ascontiguousarray(pose, np.float64).reshape(4, 4).tobytes(), stream, seq))
+            db.executemany("UPDATE cold_tiles SET restored_seq=? WHERE stream=? AND ix=? AND iy=? AND evicted_seq=?",
+                           [(seq, stream, ix, iy, e) for ix, iy, e in restored])
+            db.executemany("INSERT OR REPLACE INTO cold_tiles VALUES (?, ?, ?, ?, NULL, ?)",
+                           [(stream, ix, iy, seq, blob) for (ix, iy), blob in (evicted or {}).items()])
+
+        with self.lock:
+            self.db.execute("PRAGMA synchronous=NORMAL")
+            try:
+                _transaction(self.db, tx)
+            finally:
+                self.db.execute(f"PRAGMA synchronous={self.synchronous}")
 
     # -- snapshots and journal
     def write_snapshot(self, stream: str, seq: int, state: dict[str, np.ndarray] | bytes, created: float | None = None) -> bool:

@@ -40,10 +40,24 @@ def _about(centre, drift: np.ndarray) -> np.ndarray:
     return _drift(0, centre) @ drift @ _drift(0, -np.asarray(centre))
 
 
-def _drive(loop, cfg: OccVOConfig, drift: np.ndarray | None, resume_at: int | None = None):
-    """Step the loop; at EVICT_AT take the start area out (as the registration worker does beyond its working
-    radius), move the working map and the last poses by `drift` about the ego, and bring the start area back once
-    the ego is within 40 m of it again."""
+def inject_drift(vo: OccVO, drift: np.ndarray) -> dict:
+    """What a long drive does by EVICT_AT: the start area goes wholly to the store (as the registration worker
+    evicts beyond its working radius) and the working map and the last poses drift by `drift` about the ego.
+    Returns the evicted start area, to restore when the ego is back within 40 m of the start."""
+    pose = vo.poses[-1]
+    cold = vo.evict_tiles(pose[:2, 3], 30.0, TILE_M)
+    d = _about(pose[:3, 3], drift)
+    n = vo.map._n
+    rows = np.flatnonzero(vo.map.alive[:n])
+    vo.map.move(rows, np.tile(d[:3, :3], (len(rows), 1, 1)), np.tile(d[:3, 3], (len(rows), 1)))
+    vo._poses[-2:] = [d @ p for p in vo._poses[-2:]]
+    return cold
+
+
+def _drive(loop, cfg: OccVOConfig, drift: np.ndarray | None, resume_at: int | None = None, halves: list | None = None):
+    """Step the loop; at EVICT_AT inject `drift` (inject_drift), and bring the start area back once the ego is
+    within 40 m of it again. With `halves` (a list), each frame goes through register() then complete() instead of
+    step(), and (frame, odometry pose, state unchanged by register) is appended per frame."""
     vo, cold, closures, maps = OccVO(cfg), {}, [], []
     start = loop.gt_poses[0, :2, 3]
     for i in range(FRAMES):
@@ -54,18 +68,19 @@ def _drive(loop, cfg: OccVOConfig, drift: np.ndarray | None, resume_at: int | No
             state = vo.state_dict()
             vo = OccVO(cfg)
             vo.load_state_dict({k: np.array(v) for k, v in state.items()})
-        r = vo.step(loop[i])
+        if halves is None:
+            r = vo.step(loop[i])
+        else:
+            before = (len(vo.poses), vo.map._n, vo.map.alive.sum())
+            reg = vo.register(loop[i])
+            halves.append((i, reg.pose, before == (len(vo.poses), vo.map._n, vo.map.alive.sum())))
+            r = vo.complete(reg)
         if r.loop_correction is not None:
             closures.append((i, r.loop_correction))
         if i in (EVICT_AT, EVICT_AT + LAP):
             maps.append(vo.map_points(tiles=START_TILES))  # the start as built on the first lap, and a lap later
         if i == EVICT_AT and drift is not None:
-            cold = vo.evict_tiles(r.pose[:2, 3], 30.0, TILE_M)  # the start area goes wholly to the store
-            d = _about(r.pose[:3, 3], drift)
-            n = vo.map._n
-            rows = np.flatnonzero(vo.map.alive[:n])
-            vo.map.move(rows, np.tile(d[:3, :3], (len(rows), 1, 1)), np.tile(d[:3, 3], (len(rows), 1)))
-            vo._poses[-2:] = [d @ p for p in vo._poses[-2:]]
+            cold = inject_drift(vo, drift)
     return vo, closures, cold, maps
 
 
@@ -108,6 +123,41 @@ def test_a_resume_after_a_loop_closure_goes_on_bit_for_bit(loop):
     assert np.array_equal(resumed.poses, whole.poses)
     for a, b in zip(resumed.map_points(), whole.map_points()):
         assert np.array_equal(a, b)
+
+
+def test_register_then_complete_is_step_and_a_closure_moves_the_registered_pose(loop):
+    """step() = complete(register()): the service publishes register()'s pose before the loop-closure search and
+    the map update. register() changes nothing; at a closure, complete() relocalises the pose it registered."""
+    drift = _drift(2.0, [6.0, -4.0, 0.0])
+    whole, closures, _, _ = _drive(loop, _config(True), drift)
+    halves: list = []
+    split, again, _, _ = _drive(loop, _config(True), drift, halves=halves)
+    assert [t for t, _ in again] == [t for t, _ in closures] and closures
+    assert np.array_equal(split.poses, whole.poses)
+    assert all(unchanged for _, _, unchanged in halves)
+    registered = {i: p for i, p, _ in halves}
+    for t, correction in closures:
+        assert np.allclose(correction @ registered[t], whole.poses[t])
+        assert np.linalg.norm(registered[t][:3, 3] - whole.poses[t][:3, 3]) > 1.0  # metres of drift taken out
+    others = [i for i in registered if i not in dict(closures) and i not in (EVICT_AT - 1, EVICT_AT)]  # drift moved those
+    assert all(np.array_equal(registered[i], whole.poses[i]) for i in others)
+
+
+def test_a_registration_is_completed_once_and_only_before_other_changes(loop):
+    vo = OccVO(_config(True))
+    for i in range(3):
+        vo.step(loop[i])
+    reg = vo.register(loop[3])
+    vo.complete(reg)
+    with pytest.raises(RuntimeError, match="complete"):
+        vo.complete(reg)  # the frame is already in
+    reg = vo.register(loop[4])
+    vo.restore_tiles(vo.evict_tiles(vo.poses[-1][:2, 3], 30.0, TILE_M))  # the map changed under it
+    with pytest.raises(RuntimeError, match="complete"):
+        vo.complete(reg)
+    assert len(vo.poses) == 4
+    vo.complete(vo.register(loop[4]))
+    assert len(vo.poses) == 5
 
 
 def test_the_ground_levels_a_frame_that_drifted_in_height_and_tilt():

@@ -403,3 +403,111 @@ def test_crash_with_eviction_resumes_exactly_and_the_map_service_keeps_far_tiles
             probe.close()
     finally:
         svc.close()
+
+
+def test_a_frame_stopped_between_its_pose_and_its_map_update_is_finished_by_the_resume(tmp_path, scene):
+    """The worker commits and publishes a frame's pose before its loop-closure search and map update, then stores
+    what those did (evicted tiles, restores). When that second write fails (disk full, injected once) or the worker
+    dies before it, the next frame's resume replays the journal and stores it: nothing evicted is lost and the
+    stream goes on exactly as the uninterrupted one."""
+    from services.client import OccVOClient
+
+    radius, tile_m = 30.0, 10.0
+    path = tmp_path / "state.sqlite"
+    svc = Pipeline(path, snapshot_every=3, snapshot_max_share=None, working_radius_m=radius, tile_m=tile_m)
+    try:
+        worker = svc.start_registration()
+        with OccVOClient(svc.endpoint, "ref") as ref, OccVOClient(svc.endpoint, "cut") as cut:
+            ref.reset()
+            want = np.array([ref.step(f).matrix() for f in scene])
+            _wait_map(ref, N - 1)
+            probe = TrajectoryStore(path)
+            evicted_at = sorted({e for seqs in probe.cold_index("ref", as_of_seq=N - 3).values() for e in seqs})
+            probe.close()
+            stop_at = next(e for e in evicted_at if 4 <= e < N - 2)
+            store_finish, failed = worker.store.finish_frame, []
+
+            def disk_full_once(stream, seq, *a, **kw):
+                if stream == "cut" and seq == stop_at and not failed:
+                    failed.append(seq)
+                    raise sqlite3.OperationalError("database or disk is full")
+                return store_finish(stream, seq, *a, **kw)
+
+            worker.store.finish_frame = disk_full_once
+            cut.reset()
+            for f in scene:
+                cut.step(f)
+            got = np.array([cut.poses[i].matrix() for i in range(N)])
+            assert failed == [stop_at] and np.array_equal(got, want)
+            errors = [e for e in cut.errors if e.code == "internal"]
+            assert len(errors) == 1 and errors[0].seq == stop_at and "map update not stored" in errors[0].message
+            c = worker.stats.snapshot()[0]
+            assert c["resumes"] == 1
+            _wait_map(cut, N - 1)  # the last frame's map update (and its evictions) come after its pose
+            probe = TrajectoryStore(path)
+            # the failed frame's evictions were stored by the resume: the same cold tiles, evicted at the same frames
+            assert probe.cold_index("cut") == probe.cold_index("ref") and stop_at in {
+                e for seqs in probe.cold_index("cut", as_of_seq=stop_at).values() for e in seqs}
+            a = {(t.ix, t.iy): t for t in ref.region()}
+            b = {(t.ix, t.iy): t for t in cut.region()}
+            assert set(a) == set(b)
+            for k in a:
+                assert np.array_equal(_sorted_rows(a[k]), _sorted_rows(b[k])), k
+            probe.close()
+    finally:
+        svc.close()
+
+
+def test_a_closed_loop_publishes_the_odometry_pose_then_the_relocalised_one(tmp_path):
+    """A frame that closes a loop is answered at once with its odometry pose; the search and the correction run
+    after it, and the relocalised pose follows (status "relocalised"), replacing it in the client, the store and
+    the trajectory query. Drift is injected as in test_loop_closure (what a long drive does)."""
+    from schemas import keys
+    from services.client import OccVOClient
+    from schemas.codec import decode
+    from schemas.models import PoseEstimate
+    from occvo_core.sim import SyntheticScene
+    from test_loop_closure import EVICT_AT, FRAMES, _config, _drift, _drive, inject_drift
+
+    loop = SyntheticScene(seed=1, frames=FRAMES, route="loop", loop_blocks=(1, 1))
+    cfg, drift = _config(True), _drift(2.0, [6.0, -4.0, 0.0])
+    offline, closures, _, _ = _drive(loop, cfg, drift)
+    (tmp_path / "occvo.json").write_text(cfg.model_dump_json())
+    svc = Pipeline(tmp_path / "state.sqlite", snapshot_every=10 ** 6, occvo_config=str(tmp_path / "occvo.json"))
+    heard: list[tuple[int, str]] = []
+    try:
+        worker = svc.start_registration()
+        with OccVOClient(svc.endpoint, "lap") as client:
+            sub = client.session.declare_subscriber(
+                keys.pose("lap"), lambda s: heard.append((lambda p: (p.seq, p.status))(decode(s.payload.to_bytes(), PoseEstimate))))
+            client.reset()
+            cold = {}
+            start = loop.gt_poses[0, :2, 3]
+            for i in range(FRAMES):
+                vo = worker.states["lap"].vo if i else None
+                if cold and np.linalg.norm(loop.gt_poses[i, :2, 3] - start) < 40.0:
+                    vo.restore_tiles(cold)  # between frames: the lane has finished the last one (its map is out)
+                    cold = {}
+                client.step(loop[i])
+                _wait_map(client, i)
+                if i == EVICT_AT:
+                    cold = inject_drift(worker.states["lap"].vo, drift)
+            deadline = time.monotonic() + 10
+            while len(heard) < FRAMES + len(closures) and time.monotonic() < deadline:
+                time.sleep(0.05)
+            sub.undeclare()
+            got = np.array([client.poses[i].matrix() for i in range(FRAMES)])
+            trajectory = client.trajectory()
+        assert closures and [s for s, st in heard if st == "relocalised"] == [t for t, _ in closures]
+        for t, correction in closures:
+            at = heard.index((t, "relocalised"))
+            assert heard[at - 1] == (t, "ok") and all(s < t for s, _ in heard[:at - 1])  # pose first, then the correction
+            assert client.poses[t].status == "relocalised"
+        same = [i for i in range(FRAMES) if i not in (EVICT_AT - 1, EVICT_AT)]  # their poses moved after publishing
+        assert np.array_equal(got[same], offline.poses[same])
+        assert np.array_equal(trajectory.poses.to_numpy(), got)
+        stored = {p.seq: p for p in TrajectoryStore(tmp_path / "state.sqlite").poses("lap")}
+        assert all(np.array_equal(stored[i].pose, got[i]) for i in range(FRAMES))
+        assert [s for s, p in stored.items() if p.status == "relocalised"] == [t for t, _ in closures]
+    finally:
+        svc.close()

@@ -441,6 +441,24 @@ def rotate_covariances(cov, rot):
 
 
 @njit(cache=_CACHE, nogil=True, parallel=True)
+def rigid_motions(pos, cov, rot, trans, group):
+    """Each point and covariance moved by the rotation and translation of its group: R p + t, R C R^T (a loop
+    closure moves each voxel with the frame that made it; numpy's batched 3x3 products are slow)."""
+    out_pos = np.empty_like(pos)
+    out_cov = np.empty_like(cov)
+    for n in prange(pos.shape[0]):
+        g = group[n]
+        for a in range(3):
+            out_pos[n, a] = rot[g, a, 0] * pos[n, 0] + rot[g, a, 1] * pos[n, 1] + rot[g, a, 2] * pos[n, 2] + trans[g, a]
+            t0 = rot[g, a, 0] * cov[n, 0, 0] + rot[g, a, 1] * cov[n, 1, 0] + rot[g, a, 2] * cov[n, 2, 0]
+            t1 = rot[g, a, 0] * cov[n, 0, 1] + rot[g, a, 1] * cov[n, 1, 1] + rot[g, a, 2] * cov[n, 2, 1]
+            t2 = rot[g, a, 0] * cov[n, 0, 2] + rot[g, a, 1] * cov[n, 1, 2] + rot[g, a, 2] * cov[n, 2, 2]
+            for b in range(3):
+                out_cov[n, a, b] = t0 * rot[g, b, 0] + t1 * rot[g, b, 1] + t2 * rot[g, b, 2]
+    return out_pos, out_cov
+
+
+@njit(cache=_CACHE, nogil=True, parallel=True)
 def merge_points(rows, pw, cw, labels, t, pos, cov, counts, label, t0, f, last, wacc, use_p_index, changed, parts):
     """Voxel PFilter merge, in place: each touched voxel becomes the weighted mean of its old point
     (weight f * p-index, or f without the filter) and the frame's points in it (weight 1 each).

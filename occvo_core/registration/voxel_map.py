@@ -99,9 +99,13 @@ class EgoMap:
                       np.full(len(pos), -1), weight, votes)
 
 
-def moved(pos: np.ndarray, cov: np.ndarray, rot: np.ndarray, trans: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Voxel positions and covariances moved rigidly, each by its own rotation (k,3,3) and translation (k,3)."""
-    return np.einsum("nij,nj->ni", rot, pos) + trans, np.einsum("nij,njk,nlk->nil", rot, cov, rot)
+def moved(pos: np.ndarray, cov: np.ndarray, rot: np.ndarray, trans: np.ndarray,
+          group: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Voxel positions and covariances moved rigidly, each by its own rotation (k,3,3) and translation (k,3), or by
+    those of its group (indices into rot and trans)."""
+    group = np.arange(len(pos)) if group is None else np.asarray(group, np.int64)
+    return kernels.rigid_motions(np.ascontiguousarray(pos, np.float64), np.ascontiguousarray(cov, np.float64),
+                                 np.ascontiguousarray(rot, np.float64), np.ascontiguousarray(trans, np.float64), group)
 
 
 def _older_name(arrays: dict, name: str) -> str:
@@ -343,8 +347,8 @@ class VoxelPFilterMap:
         moved_far = np.empty(len(rows), bool)
         for a in range(0, len(rows), _MOVE_CHUNK):  # in pieces: a whole lap's temporaries would spike the RSS
             r = rows[a: a + _MOVE_CHUNK]
-            g = slice(a, a + len(r)) if group is None else group[a: a + len(r)]
-            pos, self.cov[r] = moved(self.pos[r], self.cov[r], rot[g], trans[g])
+            g = np.arange(a, a + len(r)) if group is None else group[a: a + len(r)]
+            pos, self.cov[r] = moved(self.pos[r], self.cov[r], rot, trans, g)
             moved_far[a: a + len(r)] = np.linalg.norm(pos - self.pos[r], axis=1) > self.voxel
             self.pos[r] = pos
         pos = self.pos[rows]
@@ -357,10 +361,11 @@ class VoxelPFilterMap:
         keep &= held.grid[cells] < 0
         if ghost_radius_m > 0 and len(held):
             old = self.persistent_rows(held.rows, born_before)
-            d, j = held.nearest(pos, int(np.ceil(ghost_radius_m / self.voxel)), usable=old)
-            ghost = (j >= 0) & (d <= ghost_radius_m) & moved_far  # a voxel moved less than its size was there already
-            ghost[ghost] = held.labels[j[ghost]] == self.label[rows[ghost]]
-            keep &= ~ghost
+            judge = np.flatnonzero(keep & moved_far)  # a voxel moved less than its size was there already
+            d, j = held.nearest(pos[judge], int(np.ceil(ghost_radius_m / self.voxel)), usable=old)
+            ghost = (j >= 0) & (d <= ghost_radius_m)
+            ghost[ghost] = held.labels[j[ghost]] == self.label[rows[judge[ghost]]]
+            keep[judge[ghost]] = False
         self.alive[rows[keep]] = True
         self._changed = None  # voxels moved anywhere in the working set: re-tile it all
         return int(len(rows) - keep.sum())

@@ -16,6 +16,7 @@ import pytest
 from conftest import SERVICE_FRAMES as N  # frames of the `scene` fixture
 
 from occvo_core import OccVO
+from occvo_core.frame import OccupancyFrame
 from services.store import (
     TrajectoryStore, frame_digest, pack_arrays, pack_frame, snapshot_path, unpack_arrays, unpack_frame,
 )
@@ -84,6 +85,18 @@ def test_snapshot_and_journal_resume_bit_for_bit(tmp_path, scene, uninterrupted)
         vo.step(scene[i])
     assert np.array_equal(vo.poses, uninterrupted)  # bit for bit, as if never stopped
     store.close()
+
+
+def test_journal_frames_on_the_grid_are_kept_as_indices_exactly(scene):
+    f = scene[3]
+    blob = pack_frame(f)
+    back = unpack_frame(blob)
+    assert "ijk" in unpack_arrays(blob) and len(blob) < 0.25 * f.points.nbytes  # 3 bytes a voxel, not 24
+    assert np.array_equal(back.points, f.points) and np.array_equal(back.labels, f.labels)
+    assert (back.index, back.stamp) == (f.index, f.stamp)
+    off = OccupancyFrame(f.points + 0.01, f.labels, index=f.index, stamp=f.stamp)  # not voxel centres: kept as given
+    a = unpack_arrays(pack_frame(off))
+    assert "ijk" not in a and np.array_equal(unpack_frame(pack_frame(off)).points, off.points)
 
 
 def test_cold_tiles_round_trip(tmp_path, scene):

@@ -3,7 +3,7 @@
 from occvo_core.config import OccVOConfig
 from occvo_core.errors import ConfigError, DatasetError, InvalidFrameError, OccVOError
 from occvo_core.frame import OccupancyFrame
-from occvo_core.odometry import OccVO, StepResult
+from occvo_core.odometry import OccVO, Registration, StepResult
 
-__all__ = ["OccVO", "OccVOConfig", "StepResult", "OccupancyFrame", "OccVOError", "InvalidFrameError", "DatasetError",
+__all__ = ["OccVO", "OccVOConfig", "Registration", "StepResult", "OccupancyFrame", "OccVOError", "InvalidFrameError", "DatasetError",
            "ConfigError"]

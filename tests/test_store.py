@@ -5,6 +5,7 @@ a stream exactly, with and without eviction of far map."""
 
 from __future__ import annotations
 
+import contextlib
 import sqlite3
 import threading
 import time
@@ -261,6 +262,37 @@ def _sorted_rows(tile):
     return a[np.lexsort(a.T[::-1])]
 
 
+EVICT_RADIUS_M, EVICT_TILE_M = 30.0, 10.0  # smaller than a frame's reach: tiles leave and come back within 12 frames
+
+
+def _evicting_pipeline(tmp_path):
+    path = tmp_path / "state.sqlite"
+    return Pipeline(path, snapshot_every=3, snapshot_max_share=None, working_radius_m=EVICT_RADIUS_M,
+                    tile_m=EVICT_TILE_M), path
+
+
+@contextlib.contextmanager
+def _ref_and_cut(svc, scene):
+    """Two streams on the pipeline: `ref` driven through the scene (its poses given), `cut` reset for the test."""
+    from services.client import OccVOClient
+
+    with OccVOClient(svc.endpoint, "ref") as ref, OccVOClient(svc.endpoint, "cut") as cut:
+        ref.reset()
+        want = np.array([ref.step(f).matrix() for f in scene])
+        cut.reset()
+        yield ref, cut, want
+
+
+def _same_tiles(ref, cut) -> int:
+    """The map service holds the same tiles, voxel for voxel, for both streams; returns how many."""
+    a = {(t.ix, t.iy): t for t in ref.region()}
+    b = {(t.ix, t.iy): t for t in cut.region()}
+    assert set(a) == set(b)
+    for k in a:
+        assert np.array_equal(_sorted_rows(a[k]), _sorted_rows(b[k])), k
+    return len(a)
+
+
 def _wait_map(client, seq, timeout=20.0):
     deadline = time.monotonic() + timeout
     while time.monotonic() < deadline:
@@ -374,18 +406,13 @@ def test_frames_are_answered_while_the_snapshot_file_is_locked(tmp_path, scene, 
 
 
 def test_crash_with_eviction_resumes_exactly_and_the_map_service_keeps_far_tiles(tmp_path, scene):
-    from services.client import OccVOClient
     from occvo_core.map_tiles import tile_distance
 
-    radius, tile_m = 30.0, 10.0  # smaller than a frame's reach, so tiles leave and come back within 12 frames
-    path = tmp_path / "state.sqlite"
-    svc = Pipeline(path, snapshot_every=3, snapshot_max_share=None, working_radius_m=radius, tile_m=tile_m)
+    radius, tile_m = EVICT_RADIUS_M, EVICT_TILE_M
+    svc, path = _evicting_pipeline(tmp_path)
     try:
         first = svc.start_registration()
-        with OccVOClient(svc.endpoint, "ref") as ref, OccVOClient(svc.endpoint, "cut") as cut:
-            ref.reset()
-            want = np.array([ref.step(f).matrix() for f in scene])
-            cut.reset()
+        with _ref_and_cut(svc, scene) as (ref, cut, want):
             for i in range(8):
                 cut.step(scene[i])
             assert first.snapshots_written(30)
@@ -408,11 +435,7 @@ def test_crash_with_eviction_resumes_exactly_and_the_map_service_keeps_far_tiles
             # the map service holds resident and evicted tiles alike, equal to the uninterrupted stream's
             _wait_map(ref, N - 1)
             _wait_map(cut, N - 1)
-            a = {(t.ix, t.iy): t for t in ref.region()}
-            b = {(t.ix, t.iy): t for t in cut.region()}
-            assert set(a) == set(b) and len(a) > len(resident)
-            for k in a:
-                assert np.array_equal(_sorted_rows(a[k]), _sorted_rows(b[k])), k
+            assert _same_tiles(ref, cut) > len(resident)
             probe.close()
     finally:
         svc.close()
@@ -423,16 +446,10 @@ def test_a_frame_stopped_between_its_pose_and_its_map_update_is_finished_by_the_
     what those did (evicted tiles, restores). When that second write fails (disk full, injected once) or the worker
     dies before it, the next frame's resume replays the journal and stores it: nothing evicted is lost and the
     stream goes on exactly as the uninterrupted one."""
-    from services.client import OccVOClient
-
-    radius, tile_m = 30.0, 10.0
-    path = tmp_path / "state.sqlite"
-    svc = Pipeline(path, snapshot_every=3, snapshot_max_share=None, working_radius_m=radius, tile_m=tile_m)
+    svc, path = _evicting_pipeline(tmp_path)
     try:
         worker = svc.start_registration()
-        with OccVOClient(svc.endpoint, "ref") as ref, OccVOClient(svc.endpoint, "cut") as cut:
-            ref.reset()
-            want = np.array([ref.step(f).matrix() for f in scene])
+        with _ref_and_cut(svc, scene) as (ref, cut, want):
             _wait_map(ref, N - 1)
             probe = TrajectoryStore(path)
             evicted_at = sorted({e for seqs in probe.cold_index("ref", as_of_seq=N - 3).values() for e in seqs})
@@ -447,7 +464,6 @@ def test_a_frame_stopped_between_its_pose_and_its_map_update_is_finished_by_the_
                 return store_finish(stream, seq, *a, **kw)
 
             worker.store.finish_frame = disk_full_once
-            cut.reset()
             for f in scene:
                 cut.step(f)
             got = np.array([cut.poses[i].matrix() for i in range(N)])
@@ -461,11 +477,7 @@ def test_a_frame_stopped_between_its_pose_and_its_map_update_is_finished_by_the_
             # the failed frame's evictions were stored by the resume: the same cold tiles, evicted at the same frames
             assert probe.cold_index("cut") == probe.cold_index("ref") and stop_at in {
                 e for seqs in probe.cold_index("cut", as_of_seq=stop_at).values() for e in seqs}
-            a = {(t.ix, t.iy): t for t in ref.region()}
-            b = {(t.ix, t.iy): t for t in cut.region()}
-            assert set(a) == set(b)
-            for k in a:
-                assert np.array_equal(_sorted_rows(a[k]), _sorted_rows(b[k])), k
+            _same_tiles(ref, cut)
             probe.close()
     finally:
         svc.close()

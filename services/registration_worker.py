@@ -37,7 +37,7 @@ from schemas import keys
 from schemas.codec import encode
 from schemas.models import Array, MapTile, MapUpdate, OccupancyFrameMsg, PoseEstimate, Trajectory
 from services.runtime import Worker, WorkerConfig, log_event, worker_main
-from services.store import StoredPose, TrajectoryStore, frame_digest, pack_arrays, pack_frame, unpack_arrays
+from services.store import StoredPose, TrajectoryStore, frame_digest, pack_frame, unpack_arrays
 
 _STATUS = {"ok": "ok", "lost": "lost", "initialised": "reinitialised", "reinitialised": "reinitialised"}
 MIN_SAFE_RADIUS_M = 60.0  # a frame reaches ~57 m (the grid's corners): eviction closer than that changes registration
@@ -60,17 +60,17 @@ class StreamState:
         self.started = False  # a trajectory exists (in memory or in the store)
         self.cold: dict[tuple[int, int], list[int]] = {}  # evicted tile -> seqs it was evicted at (its store rows)
         self.cold_digest: dict[tuple[int, int], bytes] = {}  # published content of an evicted tile
-        self.pending_restored: list[tuple[int, int, int]] = []  # restored, not yet committed with a frame
+        self.pending_restored: list[tuple[int, int, int]] = []  # restored, not yet stored (finish_frame)
         self.since_snapshot = 0
         self.snapshot_due = 0.0  # time.monotonic() before which a snapshot would overrun snapshot_max_share
         self.snapshot_idle = threading.Event()  # no snapshot of this stream queued or being written
         self.snapshot_idle.set()
         self.snapshot_retry = False  # the last snapshot failed: take one at the next frame
-        self.send_all_tiles = False
+        self.send_all_tiles = False  # after a resume: the map service may lack the last frames' tiles
         self.tiling_ms = 0.0
         self.restore_ms = self.evict_ms = 0.0  # the last step's working-map restores and evictions
         self.restored_for_next: list[tuple[int, int]] = []  # tiles restored after the last frame, not yet published
-        self.ego_xy: np.ndarray | None = None  # x-y of the last registered pose (eviction and restore centre)  # after a resume: the map service may lack the last frames' tiles
+        self.ego_xy: np.ndarray | None = None  # x-y of the last registered pose (eviction and restore centre)
 
     def append(self, seq: int, stamp: float, pose: np.ndarray, status: str, digest: bytes) -> None:
         self.position[seq] = len(self.seqs)
@@ -267,7 +267,7 @@ class RegistrationWorker(Worker):
         if self.store is not None and (relocalised or evicted or st.pending_restored):
             try:
                 self.store.finish_frame(stream, msg.seq, np.asarray(result.pose, float) if relocalised else None,
-                                        evicted={k: pack_arrays(b) for k, b in evicted.items()}, restored=st.pending_restored)
+                                        evicted=evicted, restored=st.pending_restored)
             except Exception as exc:  # noqa: BLE001 - the journal has the frame: a resume redoes this part
                 return self._store_failed(stream, st, msg.seq, exc, "pose stored and published, its map update not stored")
         st.pending_restored = []
@@ -408,7 +408,7 @@ class RegistrationWorker(Worker):
         if not relocalised and self.store.cold_index(stream) == st.cold:
             return
         self.store.finish_frame(stream, seq, pose if relocalised else None,
-                                evicted={k: pack_arrays(b) for k, b in evicted.items()}, restored=st.pending_restored)
+                                evicted=evicted, restored=st.pending_restored)
         log_event(self.log, "finished the last journaled frame", stream=stream, seq=seq, relocalised=relocalised,
                   evicted=len(evicted), restored=len(st.pending_restored))
         if relocalised:

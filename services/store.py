@@ -243,10 +243,9 @@ class TrajectoryStore:
         return [_pose(r) for r in self._read("SELECT seq, stamp, digest, status, pose FROM poses WHERE stream=? ORDER BY seq", (stream,))]
 
     def commit_frame(self, stream: str, seq: int, stamp: float, digest: bytes, status: str, pose: np.ndarray,
-                     frame_blob: bytes, new_trajectory: bool = False, evicted: dict | None = None,
-                     restored: Iterable[tuple[int, int, int]] = ()) -> None:
-        """One frame, atomically: its pose, its journal entry, the tiles it evicted ({(ix, iy): block bytes}) and the
-        cold rows it restored ((ix, iy, evicted_seq)). new_trajectory first drops everything of the stream."""
+                     frame_blob: bytes, new_trajectory: bool = False) -> None:
+        """One frame, atomically, before its pose is published: the pose and the journal entry. new_trajectory first
+        drops everything of the stream. What the frame does to the map after that is finish_frame's."""
         pose_bytes = np.ascontiguousarray(pose, np.float64).reshape(4, 4).tobytes()
 
         def tx(db):
@@ -259,10 +258,6 @@ class TrajectoryStore:
             db.execute("INSERT OR REPLACE INTO poses VALUES (?, ?, ?, ?, ?, ?)",
                        (stream, seq, float(stamp), digest, status, pose_bytes))
             db.execute("INSERT OR REPLACE INTO journal VALUES (?, ?, ?)", (stream, seq, frame_blob))
-            db.executemany("UPDATE cold_tiles SET restored_seq=? WHERE stream=? AND ix=? AND iy=? AND evicted_seq=?",
-                           [(seq, stream, ix, iy, e) for ix, iy, e in restored])
-            db.executemany("INSERT OR REPLACE INTO cold_tiles VALUES (?, ?, ?, ?, NULL, ?)",
-                           [(stream, ix, iy, seq, blob) for (ix, iy), blob in (evicted or {}).items()])
             db.execute("UPDATE streams SET last_seq=? WHERE stream=?", (seq, stream))
 
         self._write(tx)
@@ -270,7 +265,8 @@ class TrajectoryStore:
     def finish_frame(self, stream: str, seq: int, pose: np.ndarray | None = None, evicted: dict | None = None,
                      restored: Iterable[tuple[int, int, int]] = ()) -> None:
         """What a committed frame did after its pose was published, atomically: its relocalised pose (a loop
-        closed; status "relocalised"), the tiles it evicted and the cold rows it restored. A frame stopped before
+        closed; status "relocalised"), the tiles it evicted ({(ix, iy): block arrays}) and the cold rows it restored
+        ((ix, iy, evicted_seq)). A frame stopped before
         this is finished by the replay of the journal (the registration worker's resume), so this write need not
         reach the disk before the next one does: no sync of its own (WAL commits are ordered, so the next frame's
         synced commit carries it), one fsync a frame, not two."""
@@ -282,8 +278,9 @@ class TrajectoryStore:
             db.executemany("UPDATE cold_tiles SET restored_seq=? WHERE stream=? AND ix=? AND iy=? AND evicted_seq=?",
                            [(seq, stream, ix, iy, e) for ix, iy, e in restored])
             db.executemany("INSERT OR REPLACE INTO cold_tiles VALUES (?, ?, ?, ?, NULL, ?)",
-                           [(stream, ix, iy, seq, blob) for (ix, iy), blob in (evicted or {}).items()])
+                           [(stream, ix, iy, seq, blob) for (ix, iy), blob in blobs.items()])
 
+        blobs = {k: pack_arrays(b) for k, b in (evicted or {}).items()}  # before the lock
         self._write_unsynced(tx)
 
     # -- snapshots and journal

@@ -108,7 +108,8 @@ def test_cold_tiles_round_trip(tmp_path, scene):
     resident = vo.resident_tiles(10.0)
     blocks = vo.evict_tiles(vo.poses[-1][:2, 3], 30.0, 10.0)
     assert blocks and not (set(blocks) & vo.resident_tiles(10.0)) and set(blocks) <= resident
-    _commit(store, "car", vo, scene[3], 3, evicted={k: pack_arrays(b) for k, b in blocks.items()})
+    _commit(store, "car", vo, scene[3], 3)
+    store.finish_frame("car", 3, evicted=blocks)
     cold = store.cold_index("car")
     assert cold == {k: [3] for k in blocks}
     for (ix, iy), block in blocks.items():
@@ -118,7 +119,8 @@ def test_cold_tiles_round_trip(tmp_path, scene):
     two = sorted(blocks)[:2]
     vo.restore_tiles({k: unpack_arrays(store.cold_block("car", *k, 3)) for k in two})
     assert set(two) <= vo.resident_tiles(10.0)
-    _commit(store, "car", vo, scene[4], 4, restored=[(ix, iy, 3) for ix, iy in two])
+    _commit(store, "car", vo, scene[4], 4)
+    store.finish_frame("car", 4, restored=[(ix, iy, 3) for ix, iy in two])
     assert set(store.cold_index("car")) == set(blocks) - set(two)
     assert set(store.cold_index("car", as_of_seq=3)) == set(blocks)
     assert store.cold_index("car", as_of_seq=2) == {}

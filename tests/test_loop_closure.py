@@ -54,10 +54,12 @@ def inject_drift(vo: OccVO, drift: np.ndarray) -> dict:
     return cold
 
 
-def _drive(loop, cfg: OccVOConfig, drift: np.ndarray | None, resume_at: int | None = None, halves: list | None = None):
+def _drive(loop, cfg: OccVOConfig, drift: np.ndarray | None, resume_at: int | None = None, halves: list | None = None,
+           each=None):
     """Step the loop; at EVICT_AT inject `drift` (inject_drift), and bring the start area back once the ego is
     within 40 m of it again. With `halves` (a list), each frame goes through register() then complete() instead of
-    step(), and (frame, odometry pose, state unchanged by register) is appended per frame."""
+    step(), and (frame, odometry pose, state unchanged by register) is appended per frame. `each(vo, i, r, evicted)`
+    is called after every frame (evicted: the tiles taken out at it)."""
     vo, cold, closures, maps = OccVO(cfg), {}, [], []
     start = loop.gt_poses[0, :2, 3]
     for i in range(FRAMES):
@@ -81,6 +83,8 @@ def _drive(loop, cfg: OccVOConfig, drift: np.ndarray | None, resume_at: int | No
             maps.append(vo.map_points(tiles=START_TILES))  # the start as built on the first lap, and a lap later
         if i == EVICT_AT and drift is not None:
             cold = inject_drift(vo, drift)
+        if each is not None:
+            each(vo, i, r, set(cold) if i == EVICT_AT else set())
     return vo, closures, cold, maps
 
 
@@ -141,6 +145,30 @@ def test_register_then_complete_is_step_and_a_closure_moves_the_registered_pose(
         assert np.linalg.norm(registered[t][:3, 3] - whole.poses[t][:3, 3]) > 1.0  # metres of drift taken out
     others = [i for i in registered if i not in dict(closures) and i not in (EVICT_AT - 1, EVICT_AT)]  # drift moved those
     assert all(np.array_equal(registered[i], whole.poses[i]) for i in others)
+
+
+def test_re_tiling_the_changed_region_after_a_closure_equals_tiling_the_whole_map(loop):
+    """A closure moves the map made since the anchor; the changed region holds where those voxels were and where
+    they went, so cutting only its tiles again (the registration worker after every frame) gives the whole map's
+    tiles: the closure's map update need not carry every tile."""
+    from occvo_core.map_tiles import retile_region, tiles_from_map
+
+    tiles: dict = {}
+    checked = []
+
+    def each(vo, i, r, evicted):
+        nonlocal tiles
+        tiles = {k: v for k, v in tiles.items() if k not in evicted}  # handed out: the caller keeps them
+        tiles, _ = retile_region(tiles, vo.map_points, vo.pop_changed_region(), TILE_M)
+        if r.loop_correction is not None or i in (EVICT_AT, FRAMES - 1):
+            whole = tiles_from_map(*vo.map_points(), TILE_M)
+            assert set(tiles) == set(whole), i
+            for k in whole:
+                assert all(np.array_equal(a, b) for a, b in zip(tiles[k], whole[k])), (i, k)
+            checked.append((i, r.loop_correction is not None))
+
+    _drive(loop, _config(True), _drift(2.0, [6.0, -4.0, 0.0]), each=each)
+    assert any(closed for _, closed in checked)
 
 
 def test_a_registration_is_completed_once_and_only_before_other_changes(loop):

@@ -344,6 +344,7 @@ class VoxelPFilterMap:
         rows = np.asarray(rows, np.int64)
         if len(rows) == 0:
             return 0
+        self._touch(self.pos[rows])  # where they were, and below where they went: only that part is re-tiled
         moved_far = np.empty(len(rows), bool)
         for a in range(0, len(rows), _MOVE_CHUNK):  # in pieces: a whole lap's temporaries would spike the RSS
             r = rows[a: a + _MOVE_CHUNK]
@@ -367,7 +368,7 @@ class VoxelPFilterMap:
             ghost[ghost] = held.labels[j[ghost]] == self.label[rows[judge[ghost]]]
             keep[judge[ghost]] = False
         self.alive[rows[keep]] = True
-        self._changed = None  # voxels moved anywhere in the working set: re-tile it all
+        self._touch(pos)
         return int(len(rows) - keep.sum())
 
     def persistent(self) -> np.ndarray:

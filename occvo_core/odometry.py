@@ -229,8 +229,7 @@ class OccVO:
         for _, frames, corrections in later:
             k = np.searchsorted(frames, born)
             mine = np.flatnonzero((k < len(frames)) & (frames[np.minimum(k, len(frames) - 1)] == born))
-            c = corrections[k[mine]]
-            pos[mine], cov[mine] = moved(pos[mine], cov[mine], c[:, :3, :3], c[:, :3, 3])
+            pos[mine], cov[mine] = moved(pos[mine], cov[mine], corrections[:, :3, :3], corrections[:, :3, 3], k[mine])
         block.update(pos=pos, cov=cov, keys=np.floor(pos / self.map.voxel).astype(np.int64))
         return block
 

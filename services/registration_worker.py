@@ -20,6 +20,7 @@ service keeps serving them) and come back when the ego is within working_radius_
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import logging
 import queue
@@ -115,6 +116,8 @@ class RegistrationWorker(Worker):
             raise ConfigError(f"working_radius_m ({radius}) must exceed tile_m ({config.tile_m}): tiles come back "
                               "within working_radius_m - tile_m")
         self.store = TrajectoryStore(config.store_path, config.store_sync.upper()) if config.store_path else None
+        slots = config.after_pose_slots
+        self._after_pose_slots = threading.BoundedSemaphore(slots) if slots else contextlib.nullcontext()
         self._snapshots: queue.Queue = queue.Queue()
         self._snapshot_writer = None
         if self.store is not None:
@@ -256,7 +259,19 @@ class RegistrationWorker(Worker):
         self.stats.observe("occupancy_hop", hop_ms)
         if self.store is not None:
             self.stats.observe("store_commit", store_ms)
-        # the pose is out: loop closure, the map update, eviction and the next frame's restores run off its latency
+        # the pose is out: loop closure, the map update, eviction and the next frame's restores run off its latency,
+        # as many lanes at once as after_pose_slots (the other cores keep registering other streams' frames)
+        t_wait = time.perf_counter()
+        with self._after_pose_slots:
+            self.stats.observe("after_pose_wait", (time.perf_counter() - t_wait) * 1000.0)
+            self._after_pose(stream, st, msg, reg, frame, digest, pose_m, restart, t0)
+        if restart:
+            log_event(self.log, "trajectory started", stream=stream, seq=msg.seq)
+
+    def _after_pose(self, stream: str, st: StreamState, msg, reg, frame: OccupancyFrame, digest: bytes,
+                    pose_m: np.ndarray, restart: bool, t0: float) -> None:
+        """A frame's work after its pose: OccVO.complete and _finish, their second store write, a relocalised pose,
+        the map update and the snapshot schedule."""
         t_tail = time.perf_counter()
         result, restored, evicted, (tiles, dirty) = self._finish(stream, st, reg, frame, msg.seq, publish=True)
         relocalised = result.loop_correction is not None
@@ -289,8 +304,6 @@ class RegistrationWorker(Worker):
             due = st.snapshot_retry or (st.since_snapshot >= self.config.snapshot_every and time.monotonic() >= st.snapshot_due)
             if due and st.snapshot_idle.is_set():
                 self._queue_snapshot(stream, st)
-        if restart:
-            log_event(self.log, "trajectory started", stream=stream, seq=msg.seq)
 
     def _publish_pose(self, stream: str, st: StreamState, seq: int, stamp: float, pose_m: np.ndarray, status: str,
                       digest: bytes, timings: dict, restart: bool) -> None:
@@ -561,6 +574,7 @@ def _args(p) -> None:
     p.add_argument("--store-path", help="SQLite file of the trajectories, snapshots and evicted map (default: none)")
     p.add_argument("--snapshot-every", type=int, help="frames between state snapshots")
     p.add_argument("--working-radius-m", type=float, help="evict map tiles farther than this from the ego to the store")
+    p.add_argument("--after-pose-slots", type=int, help="lanes running the work after a pose at once (0: every lane)")
     p.add_argument("--store-sync", choices=["full", "normal"], help="full: a published pose survives a power cut too")
 
 

@@ -241,6 +241,9 @@ class WorkerConfig(BaseModel):
     # registration: cores each stream's kernels may use, 0 = all. Streams already run side by side in threads, and
     # the inference worker wants a core; poses are the same for any value
     kernel_threads: int = Field(1, ge=0)
+    # registration: lanes that may run the work after a pose (loop closure, map update, eviction, restores) at once;
+    # the other cores stay free for other streams' poses. 0: every lane
+    after_pose_slots: int = Field(1, ge=0)
     # durable state (SQLite file; the registration worker and the map service may share one)
     store_path: str | None = None
     snapshot_every: int = Field(20, ge=1)  # registration: frames between state snapshots at least (a journal covers the rest)

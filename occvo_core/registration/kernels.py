@@ -458,6 +458,54 @@ def rigid_motions(pos, cov, rot, trans, group):
     return out_pos, out_cov
 
 
+@njit(cache=_CACHE, nogil=True)
+def move_rows(pos, cov, keys, rows, rot, trans, group, voxel, box):
+    """Map rows moved in place, each by the rotation and translation of its group (the arithmetic of rigid_motions),
+    and their keys recomputed. Returns which moved more than a voxel; box (xmin, ymin, xmax, ymax) grows to hold
+    them before and after. In place: a lap's rows would otherwise be gathered, moved and scattered in copies."""
+    far = np.empty(rows.shape[0], np.bool_)
+    c = np.empty((3, 3))
+    for n in range(rows.shape[0]):
+        r = rows[n]
+        g = group[n]
+        p0, p1, p2 = pos[r, 0], pos[r, 1], pos[r, 2]
+        box[0] = min(box[0], p0)
+        box[1] = min(box[1], p1)
+        box[2] = max(box[2], p0)
+        box[3] = max(box[3], p1)
+        c[:, :] = cov[r]
+        d2 = 0.0
+        for a in range(3):
+            q = rot[g, a, 0] * p0 + rot[g, a, 1] * p1 + rot[g, a, 2] * p2 + trans[g, a]
+            pos[r, a] = q
+            keys[r, a] = np.int64(np.floor(q / voxel))
+            t0 = rot[g, a, 0] * c[0, 0] + rot[g, a, 1] * c[1, 0] + rot[g, a, 2] * c[2, 0]
+            t1 = rot[g, a, 0] * c[0, 1] + rot[g, a, 1] * c[1, 1] + rot[g, a, 2] * c[2, 1]
+            t2 = rot[g, a, 0] * c[0, 2] + rot[g, a, 1] * c[1, 2] + rot[g, a, 2] * c[2, 2]
+            for b in range(3):
+                cov[r, a, b] = t0 * rot[g, b, 0] + t1 * rot[g, b, 1] + t2 * rot[g, b, 2]
+        d0, d1, dz = pos[r, 0] - p0, pos[r, 1] - p1, pos[r, 2] - p2
+        far[n] = np.sqrt(d0 * d0 + d1 * d1 + dz * dz) > voxel
+        box[0] = min(box[0], pos[r, 0])
+        box[1] = min(box[1], pos[r, 1])
+        box[2] = max(box[2], pos[r, 0])
+        box[3] = max(box[3], pos[r, 1])
+    return far
+
+
+@njit(cache=_CACHE, nogil=True)
+def claim_cells(keys, rows, grid, origin, dims):
+    """Which moved rows may stay: those whose cell holds no voxel of the window grid and no earlier moved row (in
+    row order: the first stands). Claimed cells are marked -2 in grid (an empty cell to nearest_in_window)."""
+    keep = np.empty(rows.shape[0], np.bool_)
+    for n in range(rows.shape[0]):
+        r = rows[n]
+        cell = ((keys[r, 0] - origin[0]) * dims[1] + keys[r, 1] - origin[1]) * dims[2] + keys[r, 2] - origin[2]
+        keep[n] = grid[cell] == -1
+        grid[cell] = -2 if keep[n] else grid[cell]
+    return keep
+
+
 @njit(cache=_CACHE, nogil=True, parallel=True)
 def merge_points(rows, pw, cw, labels, t, pos, cov, counts, label, t0, f, last, wacc, use_p_index, changed, parts):
     """Voxel PFilter merge, in place: each touched voxel becomes the weighted mean of its old point

@@ -11,7 +11,6 @@ import numpy as np
 from occvo_core.grid import NUM_CLASSES
 from occvo_core.registration import kernels
 
-_MOVE_CHUNK = 1 << 15  # rows moved at a time by VoxelPFilterMap.move
 _FIELDS = ("keys", "pos", "cov", "counts", "label", "t0", "f", "last", "wacc", "alive", "born", "in_window")
 
 
@@ -344,31 +343,26 @@ class VoxelPFilterMap:
         rows = np.asarray(rows, np.int64)
         if len(rows) == 0:
             return 0
-        self._touch(self.pos[rows])  # where they were, and below where they went: only that part is re-tiled
-        moved_far = np.empty(len(rows), bool)
-        for a in range(0, len(rows), _MOVE_CHUNK):  # in pieces: a whole lap's temporaries would spike the RSS
-            r = rows[a: a + _MOVE_CHUNK]
-            g = np.arange(a, a + len(r)) if group is None else group[a: a + len(r)]
-            pos, self.cov[r] = moved(self.pos[r], self.cov[r], rot, trans, g)
-            moved_far[a: a + len(r)] = np.linalg.norm(pos - self.pos[r], axis=1) > self.voxel
-            self.pos[r] = pos
-        pos = self.pos[rows]
-        self.keys[rows] = keys = np.floor(pos / self.voxel).astype(np.int64)
+        group = np.arange(len(rows)) if group is None else np.asarray(group, np.int64)
+        box = np.array([np.inf, np.inf, -np.inf, -np.inf])  # where they were and went: only that part is re-tiled
+        moved_far = kernels.move_rows(self.pos, self.cov, self.keys, rows, np.ascontiguousarray(rot, np.float64),
+                                      np.ascontiguousarray(trans, np.float64), group, self.voxel, box)
+        self._touch_box(box)
+        keys = self.keys[rows]
         self.alive[rows] = False  # judge the moved voxels against the others
         held = self.window(keys.min(axis=0) - 1, keys.max(axis=0) + 1)
-        cells = held.cells(keys)
-        keep = np.zeros(len(rows), bool)
-        keep[np.unique(cells, return_index=True)[1]] = True  # two moved voxels in one cell: the first row stands
-        keep &= held.grid[cells] < 0
+        keep = kernels.claim_cells(self.keys, rows, held.grid, held.origin, held.dims)
         if ghost_radius_m > 0 and len(held):
             old = self.persistent_rows(held.rows, born_before)
             judge = np.flatnonzero(keep & moved_far)  # a voxel moved less than its size was there already
-            d, j = held.nearest(pos[judge], int(np.ceil(ghost_radius_m / self.voxel)), usable=old)
+            pos = self.pos[rows[judge]]
+            near = kernels.near_any(pos, held.pos[old], ghost_radius_m)  # most of a lap is far from the old map: skip it
+            judge, pos = judge[near], pos[near]
+            d, j = held.nearest(pos, int(np.ceil(ghost_radius_m / self.voxel)), usable=old)
             ghost = (j >= 0) & (d <= ghost_radius_m)
             ghost[ghost] = held.labels[j[ghost]] == self.label[rows[judge[ghost]]]
             keep[judge[ghost]] = False
         self.alive[rows[keep]] = True
-        self._touch(pos)
         return int(len(rows) - keep.sum())
 
     def persistent(self) -> np.ndarray:

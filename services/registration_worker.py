@@ -20,13 +20,13 @@ service keeps serving them) and come back when the ego is within working_radius_
 
 from __future__ import annotations
 
-import contextlib
 import hashlib
 import logging
 import queue
 import sys
 import threading
 import time
+from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 import zenoh
@@ -37,7 +37,7 @@ from occvo_core.map_tiles import changed_tiles, pack_tiles, retile_region, tile_
 from schemas import keys
 from schemas.codec import encode
 from schemas.models import Array, MapTile, MapUpdate, OccupancyFrameMsg, PoseEstimate, Trajectory
-from services.runtime import Worker, WorkerConfig, log_event, worker_main
+from services.runtime import Worker, WorkerConfig, log_event, lower_priority, worker_main
 from services.store import StoredPose, TrajectoryStore, frame_digest, pack_frame, unpack_arrays
 
 _STATUS = {"ok": "ok", "lost": "lost", "initialised": "reinitialised", "reinitialised": "reinitialised"}
@@ -72,6 +72,8 @@ class StreamState:
         self.restore_ms = self.evict_ms = 0.0  # the last step's working-map restores and evictions
         self.restored_for_next: list[tuple[int, int]] = []  # tiles restored after the last frame, not yet published
         self.ego_xy: np.ndarray | None = None  # x-y of the last registered pose (eviction and restore centre)
+        self.after_pose: ThreadPoolExecutor | None = None  # the stream's thread for the work after a pose
+        self.tail = None  # Future of the last frame's work after its pose
 
     def append(self, seq: int, stamp: float, pose: np.ndarray, status: str, digest: bytes) -> None:
         self.position[seq] = len(self.seqs)
@@ -116,8 +118,6 @@ class RegistrationWorker(Worker):
             raise ConfigError(f"working_radius_m ({radius}) must exceed tile_m ({config.tile_m}): tiles come back "
                               "within working_radius_m - tile_m")
         self.store = TrajectoryStore(config.store_path, config.store_sync.upper()) if config.store_path else None
-        slots = config.after_pose_slots
-        self._after_pose_slots = threading.BoundedSemaphore(slots) if slots else contextlib.nullcontext()
         self._snapshots: queue.Queue = queue.Queue()
         self._snapshot_writer = None
         if self.store is not None:
@@ -201,8 +201,10 @@ class RegistrationWorker(Worker):
     # -- one frame ------------------------------------------------------------------------------------------------
     def _register(self, stream: str, item) -> None:
         msg, hop_ms, t_queued = item
-        t0 = time.perf_counter()
         st = self.state(stream)
+        if st.tail is not None:  # the previous frame's work after its pose: the odometry is that work's until it ends
+            st.tail.result()
+        t0 = time.perf_counter()
         frame = OccupancyFrame(msg.occupancy.to_points(), msg.occupancy.labels.to_numpy().copy(), index=msg.seq, stamp=msg.stamp,
                                meta={"stream": stream, "source": msg.source})
         try:
@@ -259,19 +261,31 @@ class RegistrationWorker(Worker):
         self.stats.observe("occupancy_hop", hop_ms)
         if self.store is not None:
             self.stats.observe("store_commit", store_ms)
-        # the pose is out: loop closure, the map update, eviction and the next frame's restores run off its latency,
-        # as many lanes at once as after_pose_slots (the other cores keep registering other streams' frames)
-        t_wait = time.perf_counter()
-        with self._after_pose_slots:
-            self.stats.observe("after_pose_wait", (time.perf_counter() - t_wait) * 1000.0)
-            self._after_pose(stream, st, msg, reg, frame, digest, pose_m, restart, t0)
         if restart:
             log_event(self.log, "trajectory started", stream=stream, seq=msg.seq)
+        # the pose is out: loop closure, the map update, eviction and the next frame's restores run off its latency,
+        # in the stream's after-pose thread, below the lanes' priority (other streams' poses go first on the cores)
+        if st.after_pose is None:
+            st.after_pose = ThreadPoolExecutor(1, f"after-pose-{stream}", initializer=lower_priority,
+                                               initargs=(self.config.after_pose_nice,))
+        st.tail = st.after_pose.submit(self._after_pose, stream, st, msg, reg, frame, digest, pose_m, restart, t0)
+        if self.stopping.is_set():
+            st.tail.result()
 
     def _after_pose(self, stream: str, st: StreamState, msg, reg, frame: OccupancyFrame, digest: bytes,
                     pose_m: np.ndarray, restart: bool, t0: float) -> None:
         """A frame's work after its pose: OccVO.complete and _finish, their second store write, a relocalised pose,
-        the map update and the snapshot schedule."""
+        the map update and the snapshot schedule. A failure is reported as the lane reports one; the stream resumes
+        from the store at its next frame (the journal has this one)."""
+        try:
+            self._after_pose_steps(stream, st, msg, reg, frame, digest, pose_m, restart, t0)
+        except Exception as exc:  # noqa: BLE001 - a worker never dies of one frame
+            st.vo, st.tiles = None, {}
+            self.report_error(stream, "internal", f"seq {msg.seq}: {type(exc).__name__}: {exc}", seq=msg.seq)
+            log_event(self.log, "after-pose work failed", logging.ERROR, stream=stream, error=repr(exc))
+
+    def _after_pose_steps(self, stream: str, st: StreamState, msg, reg, frame: OccupancyFrame, digest: bytes,
+                          pose_m: np.ndarray, restart: bool, t0: float) -> None:
         t_tail = time.perf_counter()
         result, restored, evicted, (tiles, dirty) = self._finish(stream, st, reg, frame, msg.seq, publish=True)
         relocalised = result.loop_correction is not None
@@ -343,6 +357,7 @@ class RegistrationWorker(Worker):
 
     def _write_snapshots(self) -> None:
         """The snapshot writer thread: one snapshot at a time, in queue order, until the None of shutdown."""
+        lower_priority(self.config.after_pose_nice)
         while (item := self._snapshots.get()) is not None:
             self._write_snapshot(*item)
             del item  # the copy goes before the next one is waited for
@@ -363,9 +378,16 @@ class RegistrationWorker(Worker):
         finally:
             st.snapshot_idle.set()
 
+    def drain(self) -> None:
+        """Wait for every stream's work after its last pose (its map update, loop closure, snapshot queueing)."""
+        for st in list(self.states.values()):
+            if st.tail is not None:
+                st.tail.result()
+
     def snapshots_written(self, timeout: float | None = None) -> bool:
         """Wait until no snapshot is queued or being written (tests and benchmarks)."""
         deadline = None if timeout is None else time.monotonic() + timeout
+        self.drain()
         for st in list(self.states.values()):
             left = None if deadline is None else max(0.0, deadline - time.monotonic())
             if not st.snapshot_idle.wait(left):
@@ -574,7 +596,7 @@ def _args(p) -> None:
     p.add_argument("--store-path", help="SQLite file of the trajectories, snapshots and evicted map (default: none)")
     p.add_argument("--snapshot-every", type=int, help="frames between state snapshots")
     p.add_argument("--working-radius-m", type=float, help="evict map tiles farther than this from the ego to the store")
-    p.add_argument("--after-pose-slots", type=int, help="lanes running the work after a pose at once (0: every lane)")
+    p.add_argument("--after-pose-nice", type=int, help="niceness of the work after a pose, relative to the lanes (0: same)")
     p.add_argument("--store-sync", choices=["full", "normal"], help="full: a published pose survives a power cut too")
 
 

@@ -241,9 +241,9 @@ class WorkerConfig(BaseModel):
     # registration: cores each stream's kernels may use, 0 = all. Streams already run side by side in threads, and
     # the inference worker wants a core; poses are the same for any value
     kernel_threads: int = Field(1, ge=0)
-    # registration: lanes that may run the work after a pose (loop closure, map update, eviction, restores) at once;
-    # the other cores stay free for other streams' poses. 0: every lane
-    after_pose_slots: int = Field(1, ge=0)
+    # registration: niceness added to the threads doing the work after a pose (loop closure, map update, eviction,
+    # restores) and writing snapshots, so that the cores go to other streams' poses first. 0: the lanes' priority
+    after_pose_nice: int = Field(10, ge=0, le=19)
     # durable state (SQLite file; the registration worker and the map service may share one)
     store_path: str | None = None
     snapshot_every: int = Field(20, ge=1)  # registration: frames between state snapshots at least (a journal covers the rest)
@@ -349,6 +349,7 @@ class Worker:
             left = lane.queue.qsize()
             if left:
                 self.stats.inc("abandoned_at_shutdown", left)
+        self.drain()
         for entity in (self.token, *self._declared):
             try:
                 entity.undeclare()
@@ -359,6 +360,9 @@ class Worker:
         self.after_leaving()
         counters, _ = self.stats.snapshot()
         log_event(self.log, "stopped", worker=self.worker_id, **counters)  # always the last line of a worker's log
+
+    def drain(self) -> None:
+        """Wait for work a lane handed to other threads (before leaving the network: it may publish)."""
 
     def after_leaving(self) -> None:
         """Shutdown work once off the network (e.g. the registration worker's last snapshots)."""
@@ -447,6 +451,18 @@ class Worker:
 
     def _on_stats(self, query: zenoh.Query) -> None:
         query.reply(keys.stats(self.worker_id), encode(self.health()))
+
+
+def lower_priority(nice: int) -> None:
+    """Run the calling thread `nice` steps below the thread that made it (Linux threads are tasks with their own
+    niceness; raising it needs no privilege). Elsewhere, or when refused, it keeps its priority."""
+    if nice <= 0:
+        return
+    try:
+        tid = threading.get_native_id()
+        os.setpriority(os.PRIO_PROCESS, tid, min(19, os.getpriority(os.PRIO_PROCESS, tid) + nice))
+    except (OSError, AttributeError):
+        pass
 
 
 def large_blocks_from_mmap(threshold: int = 128 * 1024) -> bool:

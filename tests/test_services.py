@@ -3,6 +3,7 @@ bad input of every kind is reported and survived, good frames give the offline p
 
 from __future__ import annotations
 
+import os
 import threading
 import time
 import warnings
@@ -338,3 +339,11 @@ def test_replay_of_a_synthetic_scene(service):
         assert np.abs(out["trajectory"] - offline([scene[i] for i in range(3)]).poses).max() <= 1e-9
     with pytest.raises(Exception, match="synthetic:<seed>"):
         load_scene("synthetic:x")
+    # the work after each pose (loop closure, map update, eviction) ran in the stream's own thread, 10 nicer than
+    # the lane that registers its frames: other streams' poses go first on the cores
+    worker = next(w for w in service.workers if w.role == "registration")
+    worker.drain()
+    st, lane = worker.states["synthetic"], worker.lanes["synthetic"]
+    (after_pose,) = st.after_pose._threads
+    assert os.getpriority(os.PRIO_PROCESS, after_pose.native_id) == os.getpriority(os.PRIO_PROCESS, lane.thread.native_id) + 10
+    assert st.tail.done() and st.tail.exception() is None

@@ -162,6 +162,8 @@ def run(args, scene: SyntheticScene) -> dict:
         log_dir = Path(args.log_dir or tmp)
         log_dir.mkdir(parents=True, exist_ok=True)
         reg_args = ["--store-path", str(Path(tmp) / "occvo.db"), "--working-radius-m", str(args.radius)] if eviction else []
+        if args.after_pose_nice is not None:
+            reg_args += ["--after-pose-nice", str(args.after_pose_nice)]
         svc = LocalService(worker_args={"registration": reg_args}, common_args=["--log-level", "WARNING"], log_dir=log_dir)
         svc.start()
         try:
@@ -359,6 +361,8 @@ def main() -> int:
     ap.add_argument("--blocks", default="4x4", help="loop around NXxNY city blocks (4x4: ~1.1 km a lap)")
     ap.add_argument("--radius", type=float, default=120.0, help="registration working radius, m (with a store)")
     ap.add_argument("--window", type=int, default=4)
+    ap.add_argument("--after-pose-nice", type=int, help="niceness of the registration worker's work after a pose "
+                    "(default: the worker's, 10; 0: the lanes', faster for one stream replayed as fast as it goes)")
     ap.add_argument("--no-store", action="store_true", help="run without the durable store and eviction")
     ap.add_argument("--timeout", type=float, default=300.0, help="s without a pose before the replay gives up")
     ap.add_argument("--log-dir", help="keep the workers' logs here (default: a temporary folder)")

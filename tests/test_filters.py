@@ -213,6 +213,49 @@ def test_moving_map_voxels_drops_ghosts_of_older_voxels_and_cell_clashes():
         assert m2.alive[recent[1]]
 
 
+def test_moving_map_voxels_in_place_matches_the_rule_written_out():
+    """VoxelPFilterMap.move (kernels.move_rows, claim_cells, a ghost search only near the old map) against its rule
+    in plain numpy, on random maps and random per-group motions: R p + t and R C R^T; a moved voxel whose cell holds
+    a voxel that did not move, or an earlier moved row, goes; one moved farther than a voxel whose nearest reliable
+    old voxel (born before born_before) lies within the ghost radius with its label goes."""
+    from scipy.spatial.transform import Rotation
+
+    rng = np.random.default_rng(3)
+    for trial in range(6):
+        m = VoxelPFilterMap(merge_radius_m=0.0)
+        for t in range(12):
+            pts = rng.uniform([-12, -12, 0], [12, 12, 3], (150, 3))
+            m.merge(pts, rng.integers(13, 16, len(pts)).astype(np.uint8), np.tile(np.eye(3) * 0.01, (len(pts), 1, 1)), t)
+        n = m._n
+        rows = np.flatnonzero(m.alive[:n] & (m.born[:n] >= 6))
+        groups = rng.integers(0, 4, len(rows))
+        rot = Rotation.from_rotvec(rng.normal(0, 0.05, (4, 3))).as_matrix()
+        trans = rng.normal(0, 1.0, (4, 3))
+        before = {k: v.copy() for k, v in m.state().items()}
+        dropped = m.move(rows, rot, trans, ghost_radius_m=1.0, born_before=6, group=groups)
+
+        pos = np.einsum("nij,nj->ni", rot[groups], before["pos"][rows]) + trans[groups]
+        cov = rot[groups] @ before["cov"][rows] @ rot[groups].transpose(0, 2, 1)
+        assert np.allclose(m.pos[rows], pos, atol=1e-12) and np.allclose(m.cov[rows], cov, atol=1e-12)
+        keys = np.floor(m.pos[rows] / m.voxel).astype(np.int64)
+        assert np.array_equal(m.keys[rows], keys)
+        still = np.setdiff1d(np.flatnonzero(before["alive"]), rows)
+        held = {tuple(k) for k in before["keys"][still]}
+        keep, claimed = np.zeros(len(rows), bool), set()
+        for a, k in enumerate(map(tuple, keys)):
+            keep[a] = k not in held and k not in claimed
+            claimed.add(k)
+        f, last, t0 = before["f"][still], before["last"][still], before["t0"][still]
+        old = still[(f / np.maximum(last - t0 + 1, 1) > m.p_index_threshold) & (before["born"][still] < 6)]
+        far = np.linalg.norm(m.pos[rows] - before["pos"][rows], axis=1) > m.voxel
+        for a in np.flatnonzero(keep & far):
+            d = np.linalg.norm(before["pos"][old] - m.pos[rows[a]], axis=1)
+            if len(d) and d.min() <= 1.0 and before["label"][old[d.argmin()]] == m.label[rows[a]]:
+                keep[a] = False
+        assert np.array_equal(m.alive[rows], keep), trial
+        assert dropped == int((~keep).sum()) and 0 < dropped < len(rows)
+
+
 def _window_of(m, t):
     return m.window(np.array([-100, -100, -10]), np.array([100, 100, 20]), t)
 

@@ -178,7 +178,8 @@ def _slope(t, y) -> float | None:
 
 def run_load(n: int, rate: float, minutes: float, policy: str, queue_size: int, scenes: dict, store: bool,
              sample_s: float, bucket_s: float, drain_s: float, log_dir: Path, working_radius: float = 0.0,
-             registration_workers: int = 1, after_pose_nice: int | None = None) -> dict:
+             registration_workers: int = 1, after_pose_nice: int | None = None,
+             snapshot_max_share: float | None = None) -> dict:
     import psutil
 
     total = int(round(minutes * 60 * rate))
@@ -189,6 +190,8 @@ def run_load(n: int, rate: float, minutes: float, policy: str, queue_size: int, 
                                        "--working-radius-m", str(working_radius)]
     if after_pose_nice is not None:
         worker_args.setdefault("registration", []).extend(["--after-pose-nice", str(after_pose_nice)])
+    if snapshot_max_share is not None:
+        worker_args.setdefault("registration", []).extend(["--snapshot-max-share", str(snapshot_max_share)])
     svc = LocalService(common_args=["--policy", policy, "--queue-size", str(queue_size)], worker_args=worker_args,
                        log_dir=log_dir, registration_shards=registration_workers).start(timeout=120)
     streams = [Stream(f"load{k}", scenes[k][:total], k / n) for k in range(n)]
@@ -336,6 +339,7 @@ def run_load(n: int, rate: float, minutes: float, policy: str, queue_size: int, 
     out = {
         "streams": n, "rate_hz": rate, "minutes": minutes, "policy": policy, "queue_size": queue_size, "store": store,
         "registration_workers": registration_workers, "after_pose_nice": after_pose_nice,
+        "snapshot_max_share": snapshot_max_share,
         "working_radius_m": working_radius or None,
         "offered_frames_per_s": offered, "due": due_total, "sent": sent, "received": received, "drained": drained,
         "drops": {"registration": int(smp[-1, 4]) if len(smp) else 0, "inference": int(smp[-1, 5]) if len(smp) else 0,
@@ -425,6 +429,8 @@ def main(argv=None) -> int:
                     "(shards, as `count: N` in occvo up)")
     ap.add_argument("--after-pose-nice", type=int, default=None, help="niceness of the registration worker's work "
                     "after a pose (0: the lanes'; default: the worker's, 10)")
+    ap.add_argument("--snapshot-max-share", type=float, default=None, help="the registration worker's snapshot_max_share "
+                    "(default: the worker's, 0.02)")
     ap.add_argument("--sample-s", type=float, default=3.0, help="seconds between worker stats samples")
     ap.add_argument("--bucket-s", type=float, default=None, help="report bucket (default 60 s; a third of the run when shorter than 3 min)")
     ap.add_argument("--drain-s", type=float, default=60.0, help="wait this long after the last send for outstanding poses")
@@ -443,7 +449,7 @@ def main(argv=None) -> int:
             log_dir.mkdir(parents=True, exist_ok=True)
             r = run_load(n, args.rate, args.minutes, args.policy, args.queue_size, scenes, not args.no_store,
                          args.sample_s, bucket_s, args.drain_s, log_dir, args.working_radius, args.registration_workers,
-                         args.after_pose_nice)
+                         args.after_pose_nice, args.snapshot_max_share)
         results.append(r)
         print_run(r, bucket_s)
         print(json.dumps({k: v for k, v in r.items() if k != "buckets"} | {"buckets": [

@@ -595,6 +595,7 @@ def _args(p) -> None:
     p.add_argument("--occvo-config")
     p.add_argument("--store-path", help="SQLite file of the trajectories, snapshots and evicted map (default: none)")
     p.add_argument("--snapshot-every", type=int, help="frames between state snapshots")
+    p.add_argument("--snapshot-max-share", type=float, help="snapshots take at most this share of a stream's time")
     p.add_argument("--working-radius-m", type=float, help="evict map tiles farther than this from the ego to the store")
     p.add_argument("--after-pose-nice", type=int, help="niceness of the work after a pose, relative to the lanes (0: same)")
     p.add_argument("--store-sync", choices=["full", "normal"], help="full: a published pose survives a power cut too")

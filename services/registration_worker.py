@@ -266,8 +266,7 @@ class RegistrationWorker(Worker):
         # the pose is out: loop closure, the map update, eviction and the next frame's restores run off its latency,
         # in the stream's after-pose thread, below the lanes' priority (other streams' poses go first on the cores)
         if st.after_pose is None:
-            st.after_pose = ThreadPoolExecutor(1, f"after-pose-{stream}", initializer=lower_priority,
-                                               initargs=(self.config.after_pose_nice,))
+            st.after_pose = ThreadPoolExecutor(1, f"after-pose-{stream}", initializer=self._background_thread)
         st.tail = st.after_pose.submit(self._after_pose, stream, st, msg, reg, frame, digest, pose_m, restart, t0)
         if self.stopping.is_set():
             st.tail.result()
@@ -275,14 +274,18 @@ class RegistrationWorker(Worker):
     def _after_pose(self, stream: str, st: StreamState, msg, reg, frame: OccupancyFrame, digest: bytes,
                     pose_m: np.ndarray, restart: bool, t0: float) -> None:
         """A frame's work after its pose: OccVO.complete and _finish, their second store write, a relocalised pose,
-        the map update and the snapshot schedule. A failure is reported as the lane reports one; the stream resumes
-        from the store at its next frame (the journal has this one)."""
+        the map update and the snapshot schedule. A failure is reported as a lane reports one."""
         try:
             self._after_pose_steps(stream, st, msg, reg, frame, digest, pose_m, restart, t0)
         except Exception as exc:  # noqa: BLE001 - a worker never dies of one frame
-            st.vo, st.tiles = None, {}
-            self.report_error(stream, "internal", f"seq {msg.seq}: {type(exc).__name__}: {exc}", seq=msg.seq)
-            log_event(self.log, "after-pose work failed", logging.ERROR, stream=stream, error=repr(exc))
+            self.report_error(stream, "internal", f"{type(exc).__name__}: {exc}", seq=msg.seq)
+            log_event(self.log, "stage failed", logging.ERROR, stream=stream, error=repr(exc))
+
+    def _background_thread(self) -> None:
+        """Start of a thread doing work off the poses' path: after_pose_nice below the lanes."""
+        if not lower_priority(self.config.after_pose_nice):
+            log_event(self.log, "cannot lower a background thread's priority here; it runs at the lanes'",
+                      logging.WARNING, thread=threading.current_thread().name)
 
     def _after_pose_steps(self, stream: str, st: StreamState, msg, reg, frame: OccupancyFrame, digest: bytes,
                           pose_m: np.ndarray, restart: bool, t0: float) -> None:
@@ -357,7 +360,7 @@ class RegistrationWorker(Worker):
 
     def _write_snapshots(self) -> None:
         """The snapshot writer thread: one snapshot at a time, in queue order, until the None of shutdown."""
-        lower_priority(self.config.after_pose_nice)
+        self._background_thread()
         while (item := self._snapshots.get()) is not None:
             self._write_snapshot(*item)
             del item  # the copy goes before the next one is waited for

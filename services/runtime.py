@@ -453,16 +453,17 @@ class Worker:
         query.reply(keys.stats(self.worker_id), encode(self.health()))
 
 
-def lower_priority(nice: int) -> None:
+def lower_priority(nice: int) -> bool:
     """Run the calling thread `nice` steps below the thread that made it (Linux threads are tasks with their own
-    niceness; raising it needs no privilege). Elsewhere, or when refused, it keeps its priority."""
+    niceness; raising it needs no privilege). False where that is not possible: the thread keeps its priority."""
     if nice <= 0:
-        return
+        return True
     try:
         tid = threading.get_native_id()
         os.setpriority(os.PRIO_PROCESS, tid, min(19, os.getpriority(os.PRIO_PROCESS, tid) + nice))
     except (OSError, AttributeError):
-        pass
+        return False
+    return True
 
 
 def large_blocks_from_mmap(threshold: int = 128 * 1024) -> bool:

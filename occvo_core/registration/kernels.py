@@ -474,7 +474,6 @@ def move_rows(pos, cov, keys, rows, rot, trans, group, voxel, box):
         box[2] = max(box[2], p0)
         box[3] = max(box[3], p1)
         c[:, :] = cov[r]
-        d2 = 0.0
         for a in range(3):
             q = rot[g, a, 0] * p0 + rot[g, a, 1] * p1 + rot[g, a, 2] * p2 + trans[g, a]
             pos[r, a] = q

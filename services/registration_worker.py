@@ -337,8 +337,10 @@ class RegistrationWorker(Worker):
             else:
                 st.append(seq, stamp, pose_m, status, digest)
             st.latest = pose
-        self.session.put(keys.pose(stream), encode(pose), congestion_control=zenoh.CongestionControl.BLOCK)
+        data = encode(pose)
+        # counted first: a client holding the pose (another thread may wake it before put returns) finds it counted
         self.stats.inc("relocalised" if status == "relocalised" else "frames_out")
+        self.session.put(keys.pose(stream), data, congestion_control=zenoh.CongestionControl.BLOCK)
 
     def _store_failed(self, stream: str, st: StreamState, seq: int, exc: Exception, what: str) -> None:
         """A write failed (e.g. disk full): drop the in-memory state; the stream resumes from the store at its next

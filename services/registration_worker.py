@@ -268,8 +268,6 @@ class RegistrationWorker(Worker):
         if st.after_pose is None:
             st.after_pose = ThreadPoolExecutor(1, f"after-pose-{stream}", initializer=self._background_thread)
         st.tail = st.after_pose.submit(self._after_pose, stream, st, msg, reg, frame, digest, pose_m, restart, t0)
-        if self.stopping.is_set():
-            st.tail.result()
 
     def _after_pose(self, stream: str, st: StreamState, msg, reg, frame: OccupancyFrame, digest: bytes,
                     pose_m: np.ndarray, restart: bool, t0: float) -> None:

@@ -440,6 +440,18 @@ def rotate_covariances(cov, rot):
     return out
 
 
+@njit(cache=_CACHE, nogil=True, inline="always")
+def _rigid_motion(rot, trans, g, p0, p1, p2, c, out_pos, out_cov):
+    """R p + t into out_pos (3,) and R C R^T into out_cov (3,3) for motion g; c must not be out_cov."""
+    for a in range(3):
+        out_pos[a] = rot[g, a, 0] * p0 + rot[g, a, 1] * p1 + rot[g, a, 2] * p2 + trans[g, a]
+        t0 = rot[g, a, 0] * c[0, 0] + rot[g, a, 1] * c[1, 0] + rot[g, a, 2] * c[2, 0]
+        t1 = rot[g, a, 0] * c[0, 1] + rot[g, a, 1] * c[1, 1] + rot[g, a, 2] * c[2, 1]
+        t2 = rot[g, a, 0] * c[0, 2] + rot[g, a, 1] * c[1, 2] + rot[g, a, 2] * c[2, 2]
+        for b in range(3):
+            out_cov[a, b] = t0 * rot[g, b, 0] + t1 * rot[g, b, 1] + t2 * rot[g, b, 2]
+
+
 @njit(cache=_CACHE, nogil=True, parallel=True)
 def rigid_motions(pos, cov, rot, trans, group):
     """Each point and covariance moved by the rotation and translation of its group: R p + t, R C R^T (a loop
@@ -447,48 +459,30 @@ def rigid_motions(pos, cov, rot, trans, group):
     out_pos = np.empty_like(pos)
     out_cov = np.empty_like(cov)
     for n in prange(pos.shape[0]):
-        g = group[n]
-        for a in range(3):
-            out_pos[n, a] = rot[g, a, 0] * pos[n, 0] + rot[g, a, 1] * pos[n, 1] + rot[g, a, 2] * pos[n, 2] + trans[g, a]
-            t0 = rot[g, a, 0] * cov[n, 0, 0] + rot[g, a, 1] * cov[n, 1, 0] + rot[g, a, 2] * cov[n, 2, 0]
-            t1 = rot[g, a, 0] * cov[n, 0, 1] + rot[g, a, 1] * cov[n, 1, 1] + rot[g, a, 2] * cov[n, 2, 1]
-            t2 = rot[g, a, 0] * cov[n, 0, 2] + rot[g, a, 1] * cov[n, 1, 2] + rot[g, a, 2] * cov[n, 2, 2]
-            for b in range(3):
-                out_cov[n, a, b] = t0 * rot[g, b, 0] + t1 * rot[g, b, 1] + t2 * rot[g, b, 2]
+        _rigid_motion(rot, trans, group[n], pos[n, 0], pos[n, 1], pos[n, 2], cov[n], out_pos[n], out_cov[n])
     return out_pos, out_cov
 
 
 @njit(cache=_CACHE, nogil=True)
 def move_rows(pos, cov, keys, rows, rot, trans, group, voxel, box):
-    """Map rows moved in place, each by the rotation and translation of its group (the arithmetic of rigid_motions),
-    and their keys recomputed. Returns which moved more than a voxel; box (xmin, ymin, xmax, ymax) grows to hold
-    them before and after. In place: a lap's rows would otherwise be gathered, moved and scattered in copies."""
+    """Map rows moved in place, each by the rotation and translation of its group (as rigid_motions), and their
+    keys recomputed. Returns which moved more than a voxel; box (xmin, ymin, xmax, ymax) grows to hold them before
+    and after. In place: a lap's rows would otherwise be gathered, moved and scattered in copies."""
     far = np.empty(rows.shape[0], np.bool_)
     c = np.empty((3, 3))
     for n in range(rows.shape[0]):
         r = rows[n]
-        g = group[n]
         p0, p1, p2 = pos[r, 0], pos[r, 1], pos[r, 2]
-        box[0] = min(box[0], p0)
-        box[1] = min(box[1], p1)
-        box[2] = max(box[2], p0)
-        box[3] = max(box[3], p1)
         c[:, :] = cov[r]
+        _rigid_motion(rot, trans, group[n], p0, p1, p2, c, pos[r], cov[r])
+        d0, d1, d2 = pos[r, 0] - p0, pos[r, 1] - p1, pos[r, 2] - p2
+        far[n] = np.sqrt(d0 * d0 + d1 * d1 + d2 * d2) > voxel
         for a in range(3):
-            q = rot[g, a, 0] * p0 + rot[g, a, 1] * p1 + rot[g, a, 2] * p2 + trans[g, a]
-            pos[r, a] = q
-            keys[r, a] = np.int64(np.floor(q / voxel))
-            t0 = rot[g, a, 0] * c[0, 0] + rot[g, a, 1] * c[1, 0] + rot[g, a, 2] * c[2, 0]
-            t1 = rot[g, a, 0] * c[0, 1] + rot[g, a, 1] * c[1, 1] + rot[g, a, 2] * c[2, 1]
-            t2 = rot[g, a, 0] * c[0, 2] + rot[g, a, 1] * c[1, 2] + rot[g, a, 2] * c[2, 2]
-            for b in range(3):
-                cov[r, a, b] = t0 * rot[g, b, 0] + t1 * rot[g, b, 1] + t2 * rot[g, b, 2]
-        d0, d1, dz = pos[r, 0] - p0, pos[r, 1] - p1, pos[r, 2] - p2
-        far[n] = np.sqrt(d0 * d0 + d1 * d1 + dz * dz) > voxel
-        box[0] = min(box[0], pos[r, 0])
-        box[1] = min(box[1], pos[r, 1])
-        box[2] = max(box[2], pos[r, 0])
-        box[3] = max(box[3], pos[r, 1])
+            keys[r, a] = np.int64(np.floor(pos[r, a] / voxel))
+        box[0] = min(box[0], p0, pos[r, 0])
+        box[1] = min(box[1], p1, pos[r, 1])
+        box[2] = max(box[2], p0, pos[r, 0])
+        box[3] = max(box[3], p1, pos[r, 1])
     return far
 
 

@@ -466,6 +466,15 @@ def lower_priority(nice: int) -> bool:
     return True
 
 
+def set_thread_nice(tid: int, nice: int) -> bool:
+    """Set a thread's niceness; False where not allowed (raising priority needs CAP_SYS_NICE or RLIMIT_NICE)."""
+    try:
+        os.setpriority(os.PRIO_PROCESS, tid, nice)
+    except (OSError, AttributeError):
+        return False
+    return True
+
+
 def large_blocks_from_mmap(threshold: int = 128 * 1024) -> bool:
     """Fix glibc's mmap threshold (False where malloc is not glibc's). By default it rises to the largest block
     freed, up to 32 MB: then the arrays each frame allocates and frees come from the heap, which fragments, and a

@@ -4,6 +4,7 @@ bad input of every kind is reported and survived, good frames give the offline p
 from __future__ import annotations
 
 import os
+import resource
 import threading
 import time
 import warnings
@@ -347,3 +348,43 @@ def test_replay_of_a_synthetic_scene(service):
     (after_pose,) = st.after_pose._threads
     assert os.getpriority(os.PRIO_PROCESS, after_pose.native_id) == os.getpriority(os.PRIO_PROCESS, lane.thread.native_id) + 10
     assert st.tail.done() and st.tail.exception() is None
+
+
+def test_a_lane_waiting_for_its_streams_after_pose_work_raises_it_to_the_lanes_priority(service):
+    """Priority inheritance: niced work a pose waits for runs at the lane's priority until it ends, then is niced again."""
+    from services.commands.replay import load_scene
+
+    if os.geteuid() != 0 and resource.getrlimit(resource.RLIMIT_NICE)[0] < 20:
+        pytest.skip("raising a thread's priority needs root or RLIMIT_NICE >= 20 (LimitNICE=+0)")
+    worker = next(w for w in service.workers if w.role == "registration")
+    scene = load_scene("synthetic:2", frames=3)
+    gate, seen = threading.Event(), []
+    steps = worker._after_pose_steps
+
+    def held(stream, st, msg, *args):  # the real work, held at frame 1 until the lane is seen waiting for it
+        if stream == "boost" and msg.seq == 1:
+            gate.wait(30)
+            seen.append(os.getpriority(os.PRIO_PROCESS, threading.get_native_id()))
+        return steps(stream, st, msg, *args)
+
+    worker._after_pose_steps = held
+    try:
+        with OccVOClient(service.endpoint, "boost") as c:
+            c.reset()
+            for i in range(3):
+                c.publish(scene[i])
+            st = worker.states["boost"]
+            lane_nice = os.getpriority(os.PRIO_PROCESS, worker.lanes["boost"].thread.native_id)
+            deadline = time.monotonic() + 30
+            while not st.tail_boosted and time.monotonic() < deadline:  # frame 2 waits in the lane for frame 1's work
+                time.sleep(0.01)
+            gate.set()
+            c.wait_pose(2, timeout=60)
+    finally:
+        gate.set()
+        worker._after_pose_steps = steps
+    worker.drain()
+    assert seen == [lane_nice]  # frame 1's work finished at the lane's priority
+    (thread,) = st.after_pose._threads
+    assert os.getpriority(os.PRIO_PROCESS, thread.native_id) == lane_nice + 10  # and was niced again
+    assert not st.tail_boosted and worker.stats.snapshot()[0]["after_pose_boosted"] >= 1

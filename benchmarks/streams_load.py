@@ -285,10 +285,11 @@ def run_load(n: int, rate: float, minutes: float, policy: str, queue_size: int, 
     # ---- per bucket of due time (when a camera would have captured the frame), over all streams
     n_buckets = max(1, int(np.ceil(minutes * 60 / bucket_s)))
     buckets = []
-    lat_t, lat_v, cap_v, stages = [], [], [], []  # due time - t0, sent_at -> pose, due -> pose, timings_ms
+    lat_t, lat_v, cap_v, stages, ids = [], [], [], [], []  # due time - t0, sent_at -> pose, due -> pose, timings_ms
     for st in streams:
         for i in range(st.last_sent + 1):
             if i in st.recv_at:
+                ids.append((st.name, i))
                 lat_t.append(st.due[i] - t0)
                 lat_v.append((st.recv_at[i] - st.sent_at[i]) * 1000.0)
                 cap_v.append((st.recv_at[i] - st.due[i]) * 1000.0)
@@ -321,6 +322,11 @@ def run_load(n: int, rate: float, minutes: float, policy: str, queue_size: int, 
             "in_flight_mean": float(sm[:, 3].mean()) if len(sm) else None, "in_flight_max": int(sm[:, 3].max()) if len(sm) else None,
             "slowest_1pct_stage_ms": _stage_medians([stages[j] for j in slow]),
             "wait_p50_ms": _pct(wait, 50), "wait_p99_ms": _pct(wait, 99),
+            # which poses they were: a burst on one stream (its loop closure) reads differently from one on all
+            "slowest_poses": [{"stream": ids[j][0], "seq": ids[j][1], "latency_ms": round(float(lat_v[j]), 1),
+                               **{k: round(float(stages[j][k]), 1) for k in ("registration_queue", "registration", "store_commit")
+                                  if k in stages[j]}}
+                              for j in sorted(slow, key=lambda j: -lat_v[j])[:8]],
         })
     sent = sum(st.last_sent + 1 for st in streams)
     received = sum(len([s for s in st.recv_at if s <= st.last_sent]) for st in streams)

@@ -191,6 +191,34 @@ class TrajectoryStore:
         self.snap_db = _connect(self.snapshot_path, synchronous, busy_timeout_s, SNAPSHOT_SCHEMA)
         self.lock, self.snap_lock = threading.Lock(), threading.Lock()
         self._move_old_snapshots()
+        self._checkpointer = None
+        if self.path != ":memory:":
+            # the frames' WAL is copied into the file by a thread of its own, not by the commit that crosses SQLite's
+            # autocheckpoint threshold: that commit held the store's lock, and every stream's commit behind it, for
+            # the copy and its fsync (70 to 200 ms beside a snapshot's flush, eight streams)
+            self.db.execute("PRAGMA wal_autocheckpoint=0")
+            self._stop = threading.Event()
+            self._checkpointer = threading.Thread(target=self._checkpoint_loop, args=(busy_timeout_s,),
+                                                  name="store-checkpointer", daemon=True)
+            self._checkpointer.start()
+
+    CHECKPOINT_EVERY_S = 1.0
+    WAL_BLOCK_PAGES = 65536  # a WAL this long (256 MB of 4 kB pages) after a pass: checkpoint it whole, writers waiting
+
+    def _checkpoint_loop(self, busy_timeout_s: float) -> None:
+        """PASSIVE checkpoints (they copy what no reader needs and never wait for a writer) every second, on their own
+        connection; the next commit after a complete one starts the WAL over."""
+        db = _connect(self.path, self.synchronous, busy_timeout_s, "")
+        try:
+            while not self._stop.wait(self.CHECKPOINT_EVERY_S):
+                try:
+                    _, log_pages, _ = db.execute("PRAGMA wal_checkpoint(PASSIVE)").fetchone()
+                    if log_pages >= self.WAL_BLOCK_PAGES:
+                        db.execute("PRAGMA wal_checkpoint(RESTART)")
+                except sqlite3.Error:  # busy or a transient I/O error: the next pass tries again
+                    pass
+        finally:
+            db.close()
 
     def _move_old_snapshots(self) -> None:
         """A store written before snapshots had their own file: move its snapshots there (its journal needs them).
@@ -377,6 +405,9 @@ class TrajectoryStore:
         return out
 
     def close(self) -> None:
+        if self._checkpointer is not None:
+            self._stop.set()
+            self._checkpointer.join()
         with self.lock, self.snap_lock:
             self.db.close()
             self.snap_db.close()
@@ -398,7 +429,8 @@ def _connect(path: str, synchronous: str, busy_timeout_s: float, schema: str) ->
         db.execute(f"PRAGMA synchronous={synchronous}")
         db.execute(f"PRAGMA busy_timeout={int(busy_timeout_s * 1000)}")
         db.execute("PRAGMA journal_size_limit=67108864")  # snapshots are big: truncate the WAL after checkpoints
-        db.executescript(schema)
+        if schema:
+            db.executescript(schema)
     except sqlite3.Error as exc:
         raise ConfigError(f"trajectory store {path}: {exc}") from None
     return db

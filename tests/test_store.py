@@ -538,3 +538,31 @@ def test_a_closed_loop_publishes_the_odometry_pose_then_the_relocalised_one(tmp_
         assert [s for s, p in stored.items() if p.status == "relocalised"] == [t for t, _ in closures]
     finally:
         svc.close()
+
+
+def test_frame_commits_leave_the_wal_checkpoint_to_the_stores_own_thread(tmp_path, monkeypatch):
+    """A commit only appends to the WAL (its copy into the file held every stream's commit behind the store's lock);
+    the checkpointer thread copies it, and the rows read back after a reopen."""
+    def commit_all(store, n=12):
+        for i in range(n):  # 1 MB journal entries: past SQLite's 4 MB autocheckpoint threshold
+            store.commit_frame("car", i, float(i), b"d" * 16, "ok", np.eye(4) * i, bytes([i]) * 2**20, new_trajectory=i == 0)
+
+    db = lambda p: Path(p).stat().st_size / 2**20  # noqa: E731
+    monkeypatch.setattr(TrajectoryStore, "CHECKPOINT_EVERY_S", 3600.0)  # no pass during this part
+    store = TrajectoryStore(tmp_path / "a.sqlite")
+    commit_all(store)
+    assert db(tmp_path / "a.sqlite") < 1 and db(tmp_path / "a.sqlite-wal") > 12  # nothing copied by the commits
+    store.close()
+
+    monkeypatch.setattr(TrajectoryStore, "CHECKPOINT_EVERY_S", 0.05)
+    store = TrajectoryStore(tmp_path / "b.sqlite")
+    commit_all(store)
+    deadline = time.monotonic() + 30
+    while db(tmp_path / "b.sqlite") < 12 and time.monotonic() < deadline:
+        time.sleep(0.05)
+    assert db(tmp_path / "b.sqlite") >= 12  # the checkpointer copied the WAL into the file
+    store.close()
+    store = TrajectoryStore(tmp_path / "b.sqlite")
+    assert [p.seq for p in store.poses("car")] == list(range(12)) and store.poses("car")[5].pose[0, 0] == 5
+    assert [s for s, _ in store._read("SELECT seq, frame FROM journal WHERE stream='car'")] == list(range(12))
+    store.close()

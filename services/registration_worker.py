@@ -38,7 +38,7 @@ from occvo_core.map_tiles import changed_tiles, pack_tiles, retile_region, tile_
 from schemas import keys
 from schemas.codec import encode
 from schemas.models import Array, MapTile, MapUpdate, OccupancyFrameMsg, PoseEstimate, Trajectory
-from services.runtime import Worker, WorkerConfig, log_event, lower_priority, set_thread_nice, worker_main
+from services.runtime import Worker, WorkerConfig, log_event, lower_priority, name_os_thread, set_thread_nice, worker_main
 from services.store import StoredPose, TrajectoryStore, frame_digest, pack_frame, unpack_arrays
 
 _STATUS = {"ok": "ok", "lost": "lost", "initialised": "reinitialised", "reinitialised": "reinitialised"}
@@ -275,7 +275,7 @@ class RegistrationWorker(Worker):
         # the pose is out: loop closure, the map update, eviction and the next frame's restores run off its latency,
         # in the stream's after-pose thread, below the lanes' priority (other streams' poses go first on the cores)
         if st.after_pose is None:
-            st.after_pose = ThreadPoolExecutor(1, f"after-pose-{stream}", initializer=self._background_thread)
+            st.after_pose = ThreadPoolExecutor(1, f"after-{stream}", initializer=self._background_thread)
         st.tail_running = True
         st.tail = st.after_pose.submit(self._after_pose, stream, st, msg, reg, frame, digest, pose_m, restart, t0)
 
@@ -314,6 +314,7 @@ class RegistrationWorker(Worker):
 
     def _background_thread(self) -> None:
         """Start of a thread doing work off the poses' path: after_pose_nice below the lanes."""
+        name_os_thread()
         if lower_priority(self.config.after_pose_nice):
             self._background_nice = os.getpriority(os.PRIO_PROCESS, threading.get_native_id())
         else:

@@ -34,6 +34,7 @@ import zenoh
 
 from occvo_core.errors import ConfigError, InvalidFrameError
 from occvo_core.frame import OccupancyFrame
+from occvo_core.registration.voxel_map import copied
 from occvo_core.map_tiles import changed_tiles, pack_tiles, retile_region, tile_distance
 from schemas import keys
 from schemas.codec import encode
@@ -388,7 +389,7 @@ class RegistrationWorker(Worker):
     def _queue_snapshot(self, stream: str, st: StreamState) -> None:
         """Copy the state for the snapshot writer (a few ms): the lane steps on while the copy is written."""
         t0 = time.perf_counter()
-        state = {k: np.array(v) for k, v in st.vo.state_dict(copy=False).items()}
+        state = {k: copied(v) for k, v in st.vo.state_dict(copy=False).items()}  # the big ones without the GIL
         st.snapshot_idle.clear()
         st.since_snapshot, st.snapshot_retry = 0, False
         self._snapshots.put((stream, st, st.seqs[-1], self.store.created(stream), state))

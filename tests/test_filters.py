@@ -308,3 +308,21 @@ def test_a_frame_off_the_old_map_leaves_it_alone_and_one_on_it_adds_no_second_la
     plain = old_map()  # without an old map both nearby points make voxels of their own
     plain.merge(np.array(points), np.full(3, 15, np.uint8), np.tile(np.eye(3), (3, 1, 1)), 200)
     assert len(plain) == 4
+
+
+def test_map_array_copies_and_compaction_without_the_gil_equal_numpys():
+    """copied() and the in-place row gather of compact() give numpy's bytes, for every dtype and shape the map holds."""
+    from occvo_core.registration import kernels
+    from occvo_core.registration.voxel_map import _row_bytes, copied
+
+    rng = np.random.default_rng(7)
+    n = 200_000  # over copied()'s 1 MB threshold, so the kernel runs
+    for a in (rng.random((n, 3, 3)), rng.integers(-9, 9, (n, 18)).astype(np.int32), rng.random(n) > 0.5,
+              rng.integers(0, 18, n).astype(np.uint8), rng.random(5), np.zeros((0, 3))):
+        b = copied(a)
+        assert b.dtype == a.dtype and b.shape == a.shape and np.array_equal(a, b) and not np.shares_memory(a, b)
+        if len(a):
+            keep = np.sort(rng.choice(len(a), len(a) // 3, replace=False))
+            arr = a.copy()
+            kernels.gather_row_bytes(_row_bytes(arr), keep)
+            assert np.array_equal(arr[: len(keep)], a[keep]) and np.array_equal(arr[len(keep):], a[len(keep):])

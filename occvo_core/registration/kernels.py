@@ -897,3 +897,25 @@ def window_voxels(keys, alive, f, t0, pos, label, n, lower, upper, t):
         r = rows[a]
         grid[((keys[r, 0] - lower[0]) * dims[1] + keys[r, 1] - lower[1]) * dims[2] + keys[r, 2] - lower[2]] = a
     return rows, out_pos, out_label, p_index, grid
+
+
+# -- copies of whole map arrays without the GIL: numpy's copies of a map's arrays (100 MB and more when its capacity
+# doubles, it is compacted or snapshotted) held the GIL for up to 100 ms, stalling every other thread of the worker
+
+@njit(cache=_CACHE, nogil=True)
+def copy_row_bytes(dst, src, n):
+    """dst[:n] = src[:n] for C-contiguous (rows, bytes per row) uint8 views."""
+    d, s = dst.reshape(-1), src.reshape(-1)
+    for k in range(n * src.shape[1]):
+        d[k] = s[k]
+
+
+@njit(cache=_CACHE, nogil=True)
+def gather_row_bytes(arr, keep):
+    """arr[i] = arr[keep[i]] in place for increasing keep (keep[i] >= i: no row is read after it was written)."""
+    w = arr.shape[1]
+    for i in range(keep.size):
+        k = keep[i]
+        if k != i:
+            for j in range(w):
+                arr[i, j] = arr[k, j]

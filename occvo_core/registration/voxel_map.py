@@ -115,6 +115,21 @@ def _older_name(arrays: dict, name: str) -> str:
     return name
 
 
+def _row_bytes(a: np.ndarray) -> np.ndarray:
+    """A C-contiguous array as (rows, bytes per row) uint8, no copy."""
+    return a.reshape(len(a), -1).view(np.uint8)
+
+
+def copied(a: np.ndarray) -> np.ndarray:
+    """A copy of an array, made without holding the GIL when it is big and C-contiguous (np.array holds it)."""
+    a = np.asarray(a)
+    if a.ndim == 0 or a.nbytes < (1 << 20) or not a.flags.c_contiguous:
+        return np.array(a)
+    out = np.empty_like(a)
+    kernels.copy_row_bytes(_row_bytes(out), _row_bytes(a), len(a))
+    return out
+
+
 class VoxelPFilterMap:
     def __init__(self, voxel_m: float = 0.4, p_index_threshold: float = 0.5, pfilter: bool = True,
                  merge_radius_m: float | None = None, observe_radius_m: float = 0.0):
@@ -141,7 +156,7 @@ class VoxelPFilterMap:
             # zeros come from calloc: pages cost nothing until touched, so doubling does not write the new half
             arr = np.zeros(shape, dtype) if fill == 0 else np.full(shape, fill, dtype)
             if old is not None:
-                arr[: self._n] = getattr(self, name)[: self._n]
+                kernels.copy_row_bytes(_row_bytes(arr), _row_bytes(getattr(self, name)), self._n)
             setattr(self, name, arr)
 
     def __len__(self) -> int:
@@ -274,15 +289,14 @@ class VoxelPFilterMap:
             return
         keep = np.flatnonzero(self.alive[:n])
         for name in _FIELDS:
-            arr = getattr(self, name)
-            arr[: len(keep)] = arr[keep]
+            kernels.gather_row_bytes(_row_bytes(getattr(self, name)), keep)
         self.alive[len(keep): n] = False
         self._n = len(keep)
 
     # -- state and paging (durable storage and bounded memory live outside occvo_core; these give them the arrays)
     def state(self, copy: bool = True) -> dict[str, np.ndarray]:
         """Every row (dropped ones too, so row order and thus tie-breaking survive a reload); copy=False: views."""
-        return {name: getattr(self, name)[: self._n].copy() if copy else getattr(self, name)[: self._n] for name in _FIELDS}
+        return {name: copied(getattr(self, name)[: self._n]) if copy else getattr(self, name)[: self._n] for name in _FIELDS}
 
     def load_state(self, state: dict[str, np.ndarray]) -> None:
         n = len(state["keys"])

@@ -388,3 +388,25 @@ def test_a_lane_waiting_for_its_streams_after_pose_work_raises_it_to_the_lanes_p
     (thread,) = st.after_pose._threads
     assert os.getpriority(os.PRIO_PROCESS, thread.native_id) == lane_nice + 10  # and was niced again
     assert not st.tail_boosted and worker.stats.snapshot()[0]["after_pose_boosted"] >= 1
+
+
+def test_worker_process_memory_settings_and_thread_names():
+    """glibc takes the workers' malloc settings, the trim thread runs under its OS name, and a lane's OS thread is
+    named after its stream (what `top -H` shows)."""
+    from services.runtime import large_blocks_from_mmap, name_os_thread, trim_free_memory_every
+
+    assert large_blocks_from_mmap()  # both mallopt calls accepted (glibc here)
+    stop = threading.Event()
+    thread = trim_free_memory_every(0.01, stop)
+    time.sleep(0.1)
+    assert thread.is_alive() and thread.daemon
+    assert Path(f"/proc/self/task/{thread.native_id}/comm").read_text().strip() == "malloc-trim"
+    stop.set()
+    thread.join(5)
+    assert not thread.is_alive()
+    seen = []
+    t = threading.Thread(target=lambda: (name_os_thread("lane-car7"), seen.append(
+        Path(f"/proc/self/task/{threading.get_native_id()}/comm").read_text().strip())))
+    t.start()
+    t.join()
+    assert seen == ["lane-car7"]

@@ -473,7 +473,7 @@ def name_os_thread(name: str | None = None) -> None:
     try:
         ctypes.CDLL(None).prctl(15, (name or threading.current_thread().name).encode()[:15], 0, 0, 0)  # PR_SET_NAME
     except (OSError, AttributeError):
-        pass
+        return  # no prctl (not Linux): the thread works the same, unnamed
 
 
 def set_thread_nice(tid: int, nice: int) -> bool:

@@ -500,27 +500,6 @@ def large_blocks_from_mmap(threshold: int = 16 << 20, trim: int = 64 << 20) -> b
         return False
 
 
-def trim_free_memory_every(seconds: float, stop: threading.Event | None = None) -> threading.Thread | None:
-    """A daemon thread calling glibc's malloc_trim(0) every `seconds` until `stop` is set: it hands back to the
-    system the free pages inside every arena's heap, not only at its top, which the frames' temporaries leave
-    scattered (3,600-frame drive: RSS medians 407 and 416 MB in the first half, 438 to 460 without it). None where
-    malloc is not glibc's."""
-    try:
-        trim = ctypes.CDLL("libc.so.6").malloc_trim
-    except (OSError, AttributeError):
-        return None
-    stop = stop or threading.Event()
-
-    def loop():
-        name_os_thread("malloc-trim")
-        while not stop.wait(seconds):
-            trim(0)
-
-    thread = threading.Thread(target=loop, name="malloc-trim", daemon=True)
-    thread.start()
-    return thread
-
-
 def worker_main(worker_cls: type[Worker], argv: list[str] | None = None, extra_args: Callable | None = None) -> int:
     """`python -m services.<role>_worker [--config deploy/x.json5] [--connect ...] ...`"""
     import argparse
@@ -538,5 +517,4 @@ def worker_main(worker_cls: type[Worker], argv: list[str] | None = None, extra_a
     args = vars(p.parse_args(argv))
     config = WorkerConfig.load(args.pop("config"), **args)
     large_blocks_from_mmap()
-    trim_free_memory_every(5.0)
     return worker_cls(config).run_forever()

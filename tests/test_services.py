@@ -391,19 +391,11 @@ def test_a_lane_waiting_for_its_streams_after_pose_work_raises_it_to_the_lanes_p
 
 
 def test_worker_process_memory_settings_and_thread_names():
-    """glibc takes the workers' malloc settings, the trim thread runs under its OS name, and a lane's OS thread is
-    named after its stream (what `top -H` shows)."""
-    from services.runtime import large_blocks_from_mmap, name_os_thread, trim_free_memory_every
+    """glibc takes the workers' malloc settings, and a lane's OS thread is named after its stream (what `top -H`
+    shows)."""
+    from services.runtime import large_blocks_from_mmap, name_os_thread
 
     assert large_blocks_from_mmap()  # both mallopt calls accepted (glibc here)
-    stop = threading.Event()
-    thread = trim_free_memory_every(0.01, stop)
-    time.sleep(0.1)
-    assert thread.is_alive() and thread.daemon
-    assert Path(f"/proc/self/task/{thread.native_id}/comm").read_text().strip() == "malloc-trim"
-    stop.set()
-    thread.join(5)
-    assert not thread.is_alive()
     seen = []
     t = threading.Thread(target=lambda: (name_os_thread("lane-car7"), seen.append(
         Path(f"/proc/self/task/{threading.get_native_id()}/comm").read_text().strip())))

@@ -326,3 +326,30 @@ def test_map_array_copies_and_compaction_without_the_gil_equal_numpys():
             arr = a.copy()
             kernels.gather_row_bytes(_row_bytes(arr), keep)
             assert np.array_equal(arr[: len(keep)], a[keep]) and np.array_equal(arr[len(keep):], a[len(keep):])
+
+
+def test_compaction_reclaims_dead_rows_before_the_map_would_have_to_grow():
+    """Dead rows are reclaimed once they are a third of the rows, or once the rows near the capacity (the arrays
+    would double otherwise); the live rows keep their order and content."""
+    from occvo_core.registration.voxel_map import VoxelPFilterMap
+
+    def filled(n, dead):
+        m = VoxelPFilterMap()
+        m._n = n
+        m.alive[:n] = True
+        m.keys[:n, 0] = np.arange(n)
+        m.alive[dead] = False
+        return m
+
+    cap = len(VoxelPFilterMap().pos)
+    rng = np.random.default_rng(3)
+    few = rng.choice(cap // 2, cap // 20, replace=False)  # 10% of the rows dead
+    m = filled(cap // 2, few)
+    m.compact()
+    assert m._n == cap // 2  # half full, few dead: left alone
+    near = rng.choice(cap - cap // 16, cap // 20, replace=False)
+    m = filled(cap - cap // 16, near)
+    m.compact()
+    live = np.setdiff1d(np.arange(cap - cap // 16), near)
+    assert m._n == len(live) and np.array_equal(m.keys[: m._n, 0], live) and m.alive[: m._n].all()
+    assert len(m.pos) == cap  # and it never grew

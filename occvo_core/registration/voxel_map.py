@@ -282,10 +282,14 @@ class VoxelPFilterMap:
         self._touch(self.pos[rows])
         self.alive[rows] = False
 
-    def compact(self, min_dead_share: float = 1 / 3) -> None:
-        """Reclaim the space of dropped voxels once they are a given share of the rows (renumbers rows)."""
+    def compact(self, min_dead_share: float = 1 / 3, headroom: float = 1 / 8) -> None:
+        """Reclaim the space of dropped voxels once they are a given share of the rows, or once the rows come within
+        `headroom` of the capacity: reclaiming them beats doubling every array (a 3,600-frame loop drive doubled
+        262,144 -> 524,288 rows at frame ~2,650 with 29% of its rows dead: +27 MB RSS for good). Renumbers rows,
+        keeping their order."""
         n = self._n
-        if n == 0 or np.count_nonzero(~self.alive[:n]) <= n * min_dead_share:
+        dead = np.count_nonzero(~self.alive[:n]) if n else 0
+        if dead == 0 or (dead <= n * min_dead_share and n <= (1 - headroom) * len(self.pos)):
             return
         keep = np.flatnonzero(self.alive[:n])
         for name in _FIELDS:

@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import hashlib
 import io
+import logging
 import sqlite3
 import threading
 import time
@@ -36,7 +37,9 @@ import numpy as np
 from occvo_core.errors import ConfigError
 from occvo_core.frame import OccupancyFrame
 from occvo_core.grid import OCC3D_GRID
-from services.runtime import lower_priority, name_os_thread
+from services.runtime import log_event, lower_priority, name_os_thread
+
+_LOG = logging.getLogger("occvo.registration.store")  # the worker's logger prints it
 
 SCHEMA = """
 CREATE TABLE IF NOT EXISTS streams (
@@ -217,14 +220,19 @@ class TrajectoryStore:
         connection; the next commit after a complete one starts the WAL over."""
         db = _connect(self.path, self.synchronous, busy_timeout_s, "")
         _background_thread("store-checkpoint")
+        failing = False
         try:
             while not self._stop.wait(self.CHECKPOINT_EVERY_S):
                 try:
                     _, log_pages, _ = db.execute("PRAGMA wal_checkpoint(PASSIVE)").fetchone()
                     if log_pages >= self.WAL_BLOCK_PAGES:
                         db.execute("PRAGMA wal_checkpoint(RESTART)")
-                except sqlite3.Error:  # busy or a transient I/O error: the next pass tries again
-                    pass
+                    failing = False
+                except sqlite3.Error as exc:  # busy or an I/O error: the next pass tries again; said once a run of them
+                    if not failing:
+                        log_event(_LOG, "WAL checkpoint failed; retrying every pass (the WAL grows meanwhile)",
+                                  logging.WARNING, path=self.path, error=repr(exc))
+                    failing = True
         finally:
             db.close()
 

@@ -92,10 +92,11 @@ def main() -> None:
                     peaks.append((full.sizes("s")["snapshots_bytes"] / 1e6, _status_mb("VmHWM:") - base))
         sizes = full.sizes("s")
         t0 = time.perf_counter()
-        seq, blob = full.snapshot("s")
+        snap = full.snapshot("s")  # None when the run was shorter than --snapshot-every: resume from the journal alone
         back = OccVO()
-        back.load_state_dict(unpack_arrays(blob))
-        journal = full.journal("s", seq)
+        if snap is not None:
+            back.load_state_dict(unpack_arrays(snap[1]))
+        journal = full.journal("s", None if snap is None else snap[0])
         for _, f in journal:
             back.step(f)
         resume_s = time.perf_counter() - t0

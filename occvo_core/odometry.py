@@ -319,6 +319,12 @@ class OccVO:
             raise InvalidFrameError(frame.index, f"{outside} points outside the occupancy grid "
                                     f"{OCC3D_GRID.lower}..{OCC3D_GRID.upper} (is the frame in ego coordinates?)")
         labels = np.asarray(frame.labels, np.uint8)
+        # the same points in any order give the same pose and map: sources are the first voxel of each block in
+        # grid order, i.e. the block's rear-most (lowest ego x), a choice that moves the along-track error (README)
+        cell = (ijk[:, 0] * shape[1] + ijk[:, 1]) * shape[2] + ijk[:, 2]
+        if len(cell) > 1 and not np.all(cell[1:] > cell[:-1]):
+            order = np.lexsort((points[:, 2], points[:, 1], points[:, 0], labels, cell))
+            points, labels, ijk = points[order], labels[order], ijk[order]
         max_range = self.config.max_range_m
         if max_range is not None:  # camera occupancy is least sure of what is far
             near = points[:, 0] ** 2 + points[:, 1] ** 2 <= max_range ** 2

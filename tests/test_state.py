@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import io
 
 import numba
@@ -156,6 +157,24 @@ def _same_run(a, b) -> None:
 
 needs_two_cores = pytest.mark.skipif(numba.config.NUMBA_NUM_THREADS < 2,
                                      reason="one core here: there is no second kernel thread to compare with")
+
+
+def test_the_order_of_a_frames_points_changes_nothing():
+    """A frame is a set of voxels: the same voxels in another order (a client, another reader) give the same poses
+    and map, bit for bit. Before the odometry put them in grid order, thinning kept the first voxel of each block in
+    the order given, and reversing scene-0101's points took its APE from 0.285 to 0.092 m (scene-0268: 0.103 to
+    0.575)."""
+    scene = SyntheticScene(seed=3, frames=10)
+    rng = np.random.default_rng(0)
+    given, shuffled = OccVO(), OccVO()
+    for i in range(len(scene)):
+        frame = scene[i]
+        order = rng.permutation(len(frame.points))
+        given.step(frame)
+        shuffled.step(dataclasses.replace(frame, points=frame.points[order], labels=frame.labels[order]))
+    assert np.array_equal(shuffled.poses, given.poses)
+    for a, b in zip(shuffled.map_points(), given.map_points()):
+        assert np.array_equal(a, b)
 
 
 @needs_two_cores

@@ -1,7 +1,7 @@
 """Where the real scenes' error lies: along the track, registration against a map built from ground-truth poses,
 and how well a time shift or a scale explains the odometry's trajectory.
 
-    python benchmarks/along_track.py [--scenes scene-0101 scene-0268]
+    python benchmarks/along_track.py [--scenes scene-0101 scene-0268] [--config CONFIG.json5]
 
 For each scene:
   odometry      the plain run: APE RMSE, and the sum of its step-length errors along the track;
@@ -100,18 +100,19 @@ def shifted(gt: np.ndarray, frames: float) -> np.ndarray:
     return out
 
 
-def measure(root: Path, name: str) -> dict:
+def measure(root: Path, name: str, config: OccVOConfig | None = None) -> dict:
     source = OccVOReleaseScene(root / "occupancy" / name)
     frames = [source[i] for i in range(len(source))]
     gt = read_kitti(root / "trajectory" / f"{name}.kitti")
     gt = np.linalg.inv(gt[0]) @ gt
-    vo = OccVO(OccVOConfig())
+    config = config or OccVOConfig()
+    vo = OccVO(config)
     for frame in frames:
         vo.step(frame)
     est = vo.poses
     err, length = along_errors(gt, est, est)
     moving = length > 0.3
-    ref = GroundTruthMapOdometry(OccVOConfig(), gt)
+    ref = GroundTruthMapOdometry(config, gt)
     for frame in frames:
         ref.step(frame)
     gt_err, _ = along_errors(gt, np.array(ref.estimates), gt)
@@ -143,11 +144,13 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--sample", type=Path, default=SAMPLE)
     ap.add_argument("--scenes", nargs="+", default=["scene-0101", "scene-0268"])
+    ap.add_argument("--config", type=Path, help="odometry config (JSON5), e.g. {gicp: {source_pick: 'balanced'}}")
     args = ap.parse_args(argv)
+    config = OccVOConfig.load(args.config) if args.config else OccVOConfig()
     if not (args.sample / "occupancy").is_dir():
         print(f"no sample data at {args.sample}", file=sys.stderr)
         return 2
-    report = {name: measure(args.sample, name) for name in args.scenes}
+    report = {name: measure(args.sample, name, config) for name in args.scenes}
     for name, r in report.items():
         print(f"{name}: APE {r['ape_rmse_m']:.3f} m; odometry steps sum {r['odometry_along_sum_cm']:+.1f} cm along "
               f"{r['distance_m']:.1f} m\n"

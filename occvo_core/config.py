@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Literal
 
 from pydantic import BaseModel, ConfigDict, Field
 
@@ -32,6 +33,10 @@ class GICPConfig(_Section):
     source_voxel_m: float = Field(0.8, gt=0, description="fine GICP uses one frame point per block of this size")
     ground_source_voxel_m: float = Field(1.6, gt=0, description="the same for ground classes, which hold only z, roll, pitch")
     coarse_source_voxel_m: float = Field(1.6, gt=0, description="coarse GICP uses one frame point per block of this size")
+    source_pick: Literal["first", "balanced"] = Field("first", description="which voxel of a block is its source: "
+                                                      "the first in grid order (the rear-most, lowest ego x), or "
+                                                      "balanced (the front-most in every other block, so the picks "
+                                                      "lean neither way along the track; README, issue 2)")
 
 
 class SemanticLabelFilterConfig(_Section):

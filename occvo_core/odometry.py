@@ -336,7 +336,8 @@ class OccVO:
         covs = kernels.plane_covariances(points, ijk, grid, shape, g.k_neighbours_radius_voxels, g.covariance_epsilon)
         wide, coarse, fine = kernels.thin_sources(
             ijk, np.isin(labels, GROUND_CLASSES), shape, _block_factor(g.wide_voxel_m) if g.wide_voxel_m > 0 else 0,
-            _block_factor(g.coarse_source_voxel_m), _block_factor(g.source_voxel_m), _block_factor(g.ground_source_voxel_m))
+            _block_factor(g.coarse_source_voxel_m), _block_factor(g.source_voxel_m), _block_factor(g.ground_source_voxel_m),
+            g.source_pick == "balanced")
         return _Prepared(points, labels, covs, wide, coarse, fine, np.flatnonzero(np.isin(labels, MOVABLE_CLASSES)), frame.index)
 
     def _initial_guess(self, frame: _Prepared) -> np.ndarray:

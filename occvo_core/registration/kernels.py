@@ -84,10 +84,14 @@ def surface_voxels(ijk, shape):
 
 
 @njit(cache=_CACHE, nogil=True)
-def thin_sources(ijk, ground, shape, wide, coarse, fine, fine_ground):
+def thin_sources(ijk, ground, shape, wide, coarse, fine, fine_ground, balanced=False):
     """The registration source sets in one pass, each the first point of every factor^3 block of voxels (0: no
     set): one point per wide and per coarse block, and for fine one per fine block off the ground and per fine_ground
-    block on it (the ground only holds z, roll and pitch). Indices ascending."""
+    block on it (the ground only holds z, roll and pitch). Indices ascending. Points in grid order make the first
+    the block's rear-most (lowest x); balanced: the last (front-most) in blocks of odd parity, so the picks lean
+    neither way."""
+    if balanced:
+        return _thin_sources_balanced(ijk, ground, shape, (wide, coarse, fine, fine_ground))
     factors = (wide, coarse, fine, fine_ground)
     seen = []
     for f in factors:
@@ -107,6 +111,26 @@ def thin_sources(ijk, ground, shape, wide, coarse, fine, fine_ground):
                 out[o, count[o]] = n
                 count[o] += 1
     return out[0, :count[0]].copy(), out[1, :count[1]].copy(), out[2, :count[2]].copy()
+
+
+@njit(cache=_CACHE, nogil=True)
+def _thin_sources_balanced(ijk, ground, shape, factors):
+    """thin_sources(balanced=True): per block the first point, or the last where its block parity is odd."""
+    picks = []
+    for f in factors:
+        g = max(f, 1)
+        picks.append(np.full(((shape[0] + g - 1) // g) * ((shape[1] + g - 1) // g) * ((shape[2] + g - 1) // g), -1, np.int64))
+    for n in range(ijk.shape[0]):
+        for s in range(4):
+            f = factors[s]
+            if f == 0 or (s == 2 and ground[n]) or (s == 3 and not ground[n]):
+                continue
+            bi, bj, bk = ijk[n, 0] // f, ijk[n, 1] // f, ijk[n, 2] // f
+            b = (bi * ((shape[1] + f - 1) // f) + bj) * ((shape[2] + f - 1) // f) + bk
+            if picks[s][b] < 0 or (bi + bj + bk) % 2 == 1:
+                picks[s][b] = n
+    fine = np.concatenate((picks[2][picks[2] >= 0], picks[3][picks[3] >= 0]))
+    return np.sort(picks[0][picks[0] >= 0]), np.sort(picks[1][picks[1] >= 0]), np.sort(fine)
 
 
 @njit(cache=_CACHE, nogil=True, inline="always")

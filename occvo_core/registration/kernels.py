@@ -83,20 +83,25 @@ def surface_voxels(ijk, shape):
     return keep, grid
 
 
+@njit(cache=_CACHE, nogil=True, inline="always")
+def _source_block(ijk, n, f, shape):
+    """(block of point n among the f^3 blocks of the grid, block parity)."""
+    bi, bj, bk = ijk[n, 0] // f, ijk[n, 1] // f, ijk[n, 2] // f
+    return (bi * ((shape[1] + f - 1) // f) + bj) * ((shape[2] + f - 1) // f) + bk, (bi + bj + bk) % 2
+
+
 @njit(cache=_CACHE, nogil=True)
 def thin_sources(ijk, ground, shape, wide, coarse, fine, fine_ground, balanced=False):
-    """The registration source sets in one pass, each the first point of every factor^3 block of voxels (0: no
-    set): one point per wide and per coarse block, and for fine one per fine block off the ground and per fine_ground
-    block on it (the ground only holds z, roll and pitch). Indices ascending. Points in grid order make the first
-    the block's rear-most (lowest x); balanced: the last (front-most) in blocks of odd parity, so the picks lean
-    neither way."""
-    if balanced:
-        return _thin_sources_balanced(ijk, ground, shape, (wide, coarse, fine, fine_ground))
+    """The registration source sets, each one point of every factor^3 block of voxels (0: no set): one point per wide
+    and per coarse block, and for fine one per fine block off the ground and per fine_ground block on it (the ground
+    only holds z, roll and pitch). The point is the block's first in the points' order, which grid order makes its
+    rear-most (lowest x); balanced: its last (front-most) in blocks of odd parity, so the picks lean neither way
+    along the track. Indices ascending."""
     factors = (wide, coarse, fine, fine_ground)
-    seen = []
+    picks = []
     for f in factors:
         g = max(f, 1)
-        seen.append(np.zeros(((shape[0] + g - 1) // g) * ((shape[1] + g - 1) // g) * ((shape[2] + g - 1) // g), np.bool_))
+        picks.append(np.full(((shape[0] + g - 1) // g) * ((shape[1] + g - 1) // g) * ((shape[2] + g - 1) // g), -1, np.int32))
     out = np.empty((3, ijk.shape[0]), np.int64)
     count = np.zeros(3, np.int64)
     for n in range(ijk.shape[0]):
@@ -104,33 +109,25 @@ def thin_sources(ijk, ground, shape, wide, coarse, fine, fine_ground, balanced=F
             f = factors[s]
             if f == 0 or (s == 2 and ground[n]) or (s == 3 and not ground[n]):
                 continue
-            b = ((ijk[n, 0] // f) * ((shape[1] + f - 1) // f) + ijk[n, 1] // f) * ((shape[2] + f - 1) // f) + ijk[n, 2] // f
-            if not seen[s][b]:
-                seen[s][b] = True
+            b, odd = _source_block(ijk, n, f, shape)
+            if picks[s][b] < 0 and not balanced:  # the first: listed at once, in point order
                 o = min(s, 2)
                 out[o, count[o]] = n
                 count[o] += 1
-    return out[0, :count[0]].copy(), out[1, :count[1]].copy(), out[2, :count[2]].copy()
-
-
-@njit(cache=_CACHE, nogil=True)
-def _thin_sources_balanced(ijk, ground, shape, factors):
-    """thin_sources(balanced=True): per block the first point, or the last where its block parity is odd."""
-    picks = []
-    for f in factors:
-        g = max(f, 1)
-        picks.append(np.full(((shape[0] + g - 1) // g) * ((shape[1] + g - 1) // g) * ((shape[2] + g - 1) // g), -1, np.int64))
-    for n in range(ijk.shape[0]):
-        for s in range(4):
-            f = factors[s]
-            if f == 0 or (s == 2 and ground[n]) or (s == 3 and not ground[n]):
-                continue
-            bi, bj, bk = ijk[n, 0] // f, ijk[n, 1] // f, ijk[n, 2] // f
-            b = (bi * ((shape[1] + f - 1) // f) + bj) * ((shape[2] + f - 1) // f) + bk
-            if picks[s][b] < 0 or (bi + bj + bk) % 2 == 1:
+            if picks[s][b] < 0 or (balanced and odd == 1):
                 picks[s][b] = n
-    fine = np.concatenate((picks[2][picks[2] >= 0], picks[3][picks[3] >= 0]))
-    return np.sort(picks[0][picks[0] >= 0]), np.sort(picks[1][picks[1] >= 0]), np.sort(fine)
+    if balanced:  # the picks are final only now: a second pass lists them in point order
+        for n in range(ijk.shape[0]):
+            for s in range(4):
+                f = factors[s]
+                if f == 0 or (s == 2 and ground[n]) or (s == 3 and not ground[n]):
+                    continue
+                b, _ = _source_block(ijk, n, f, shape)
+                if picks[s][b] == n:
+                    o = min(s, 2)
+                    out[o, count[o]] = n
+                    count[o] += 1
+    return out[0, :count[0]].copy(), out[1, :count[1]].copy(), out[2, :count[2]].copy()
 
 
 @njit(cache=_CACHE, nogil=True, inline="always")

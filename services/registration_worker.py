@@ -164,7 +164,12 @@ class RegistrationWorker(Worker):
                           working_radius_m=self.config.working_radius_m)
 
     def after_leaving(self) -> None:
-        """Off the network (the frames in hand finished): snapshot every stream with unsnapshotted frames."""
+        """Off the network (the frames in hand finished): end the streams' after-pose threads, then snapshot every
+        stream with unsnapshotted frames."""
+        for stream, st in list(self.states.items()):
+            lane = self.lanes.get(stream)
+            if st.after_pose is not None and not (lane is not None and lane.thread.is_alive()):
+                st.after_pose.shutdown(wait=True)  # drained already: its thread ends now, not at interpreter exit
         if self.store is None:
             return
         t0 = time.perf_counter()

@@ -321,6 +321,7 @@ def test_clean_restart_continues_the_stream_and_answers_resends(tmp_path, scene,
             for i in range(7):
                 client.step(scene[i])
             svc.reg.stop()  # clean: a snapshot of the frames since the last one
+            assert not [t.name for t in threading.enumerate() if t.name.startswith("after-car")]  # its thread ended
             probe = TrajectoryStore(path)
             rec = probe.record("car")
             assert (rec.last_seq, rec.snapshot_seq) == (6, 6) and probe.sizes("car")["journal_rows"] == 0

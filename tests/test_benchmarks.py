@@ -31,3 +31,13 @@ def test_durable_state_resumes_with_and_without_a_snapshot():
         assert report["resume"]["poses_equal"] is True
         assert report["resume"]["journal_frames"] == (10 if frames == "10" else 5)
         assert (report["snapshot_mb"] > 0) == (frames == "25")
+
+
+def test_working_map_counts_each_laps_voxels_at_every_lap_start():
+    report = _run("working_map.py", "--frames", "200", "--blocks", "2x2", "--radius", "60")
+    laps = report["laps"]
+    assert [row["lap"] for row in laps] == [1, 2, "end"]
+    for row in laps:
+        assert sum(row["by_lap"]) == row["alive"] <= row["rows"] <= row["capacity"]
+        assert row["later_within_layer_of_lap1"] <= row["later_laps"] == sum(row["by_lap"][1:])
+    assert laps[0]["later_laps"] == 0 and laps[-1]["later_laps"] > 0

@@ -41,3 +41,12 @@ def test_working_map_counts_each_laps_voxels_at_every_lap_start():
         assert sum(row["by_lap"]) == row["alive"] <= row["rows"] <= row["capacity"]
         assert row["later_within_layer_of_lap1"] <= row["later_laps"] == sum(row["by_lap"][1:])
     assert laps[0]["later_laps"] == 0 and laps[-1]["later_laps"] > 0
+
+
+def test_coarse_lean_scores_every_stage_of_scene_0101s_frames(sample_root):
+    report = _run("coarse_lean.py", "--sample", str(sample_root), "--scenes", "scene-0101")["scene-0101"]
+    assert [row["frame"] for row in report["frames"]] == list(range(9, 40))
+    assert report["moving_frames"] == 29 and report["slow_frames"] == 4
+    # the slow start: coarse GICP leans ahead of where fine GICP from the guess lands (README, issue 2)
+    slow = report["mean_slow_cm"]
+    assert slow["coarse"] > slow["fine_only"] + 5

@@ -1,0 +1,116 @@
+"""Where each stage of registration lands along the track, frame by frame, on a map built at ground-truth poses.
+
+    python benchmarks/coarse_lean.py [--scenes scene-0101 scene-0268] [--config C.json5]
+
+For every frame t >= 2 of a real scene: the map is the frames before t merged at their ground-truth poses, the guess
+is the ground truth's own constant-velocity motion, and each start is scored by its error along the true step (cm,
++ = ahead): the guess; fine GICP from the guess (no coarse stage); coarse GICP; fine GICP after it (the pipeline);
+fine GICP with every frame voxel a source, 1 m pairs and 60 iterations; open3d's GICP given the same static
+voxels, their covariances and the map's usable voxels. Prints a row a frame and the means over slow frames (step
+< 1 m) and moving ones (> 0.3 m), then one JSON line.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+import open3d as o3d
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+from along_track import SAMPLE, GroundTruthMapOdometry  # noqa: E402
+from occvo_core import OccVOConfig  # noqa: E402
+from occvo_core import odometry as od  # noqa: E402
+from occvo_core.datasets import OccVOReleaseScene  # noqa: E402
+from occvo_core.grid import MOVABLE_CLASSES  # noqa: E402
+from occvo_core.registration.voxel_map import EgoMap  # noqa: E402
+from occvo_core.trajectory import read_kitti  # noqa: E402
+
+COLUMNS = ("guess", "fine_only", "coarse", "coarse_fine", "every_voxel", "open3d")
+
+
+def _cloud(points: np.ndarray, covs: np.ndarray) -> o3d.geometry.PointCloud:
+    cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))
+    cloud.covariances = o3d.utility.Matrix3dVector(covs)
+    return cloud
+
+
+def stages(vo: GroundTruthMapOdometry, frame, t: int, guess: np.ndarray) -> dict[str, np.ndarray]:
+    """Poses each stage reaches for frame t from `guess`, against vo's map (frames before t)."""
+    g = vo.config.gicp
+    p = vo._preprocess(frame)
+    local = vo._local_map(guess, t)
+    ego = EgoMap.build(local, guess, od._EGO_LOWER - vo._margin, od._EGO_UPPER + vo._margin, vo.map.voxel)
+    coarse = vo._coarse_gicp(p, ego).pose
+    static = ~np.isin(p.labels, MOVABLE_CLASSES)
+    usable = local.usable & ~np.isin(local.labels, MOVABLE_CLASSES)
+    o3d_pose = o3d.pipelines.registration.registration_generalized_icp(
+        _cloud(p.points[static], p.covs[static]), _cloud(local.pos[usable], local.cov[usable]), 1.0, guess,
+        o3d.pipelines.registration.TransformationEstimationForGeneralizedICP(),
+        o3d.pipelines.registration.ICPConvergenceCriteria(max_iteration=60)).transformation
+    return {
+        "guess": guess,
+        "fine_only": guess @ vo._gicp(p, p.fine, ego, np.eye(4), g.fine_max_correspondence_m, g.fine_iterations).pose,
+        "coarse": guess @ coarse,
+        "coarse_fine": guess @ vo._gicp(p, p.fine, ego, coarse, g.fine_max_correspondence_m, g.fine_iterations).pose,
+        "every_voxel": guess @ vo._gicp(p, np.arange(len(p.points)), ego, np.eye(4), 1.0, 60).pose,
+        "open3d": o3d_pose,
+    }
+
+
+def measure(root: Path, name: str, config: OccVOConfig) -> dict:
+    source = OccVOReleaseScene(root / "occupancy" / name)
+    frames = [source[i] for i in range(len(source))]
+    gt = read_kitti(root / "trajectory" / f"{name}.kitti")
+    gt = np.linalg.inv(gt[0]) @ gt
+    vo = GroundTruthMapOdometry(config, gt)
+    rows = []
+    for t, frame in enumerate(frames):
+        if t >= 2:
+            step = gt[t][:3, 3] - gt[t - 1][:3, 3]
+            length = float(np.linalg.norm(step))
+            if length > 0.05:
+                guess = gt[t - 1] @ np.linalg.inv(gt[t - 2]) @ gt[t - 1]
+                along = {k: float((pose[:3, 3] - gt[t][:3, 3]) @ step / length * 100)
+                         for k, pose in stages(vo, frame, t, guess).items()}
+                rows.append({"frame": t, "step_m": round(length, 3), **{k: round(v, 1) for k, v in along.items()}})
+        vo.step(frame)
+    slow = [r for r in rows if r["step_m"] < 1.0]
+    moving = [r for r in rows if r["step_m"] > 0.3]
+    return {"frames": rows,
+            "mean_slow_cm": {k: round(float(np.mean([r[k] for r in slow])), 1) if slow else None for k in COLUMNS},
+            "mean_moving_cm": {k: round(float(np.mean([r[k] for r in moving])), 1) if moving else None for k in COLUMNS},
+            "slow_frames": len(slow), "moving_frames": len(moving)}
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--sample", type=Path, default=SAMPLE)
+    ap.add_argument("--scenes", nargs="+", default=["scene-0101", "scene-0268"])
+    ap.add_argument("--config", type=Path, help="odometry config (JSON5)")
+    args = ap.parse_args(argv)
+    if not (args.sample / "occupancy").is_dir():
+        print(f"no sample data at {args.sample}", file=sys.stderr)
+        return 2
+    config = OccVOConfig.load(args.config) if args.config else OccVOConfig()
+    report = {name: measure(args.sample, name, config) for name in args.scenes}
+    for name, r in report.items():
+        print(f"{name}: along-track error (cm, + = ahead) of each start, map at ground-truth poses")
+        print("  frame  step m  " + "  ".join(f"{c:>11s}" for c in COLUMNS))
+        for row in r["frames"]:
+            print(f"  {row['frame']:5d}  {row['step_m']:6.3f}  " + "  ".join(f"{row[c]:+11.1f}" for c in COLUMNS))
+        for label, key, n in (("slow (< 1 m)", "mean_slow_cm", r["slow_frames"]),
+                              ("moving (> 0.3 m)", "mean_moving_cm", r["moving_frames"])):
+            means = r[key]
+            print(f"  mean, {label}, {n} frames: " + "  ".join(f"{c} {means[c]:+.1f}" for c in COLUMNS if means[c] is not None))
+    print(json.dumps(report))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -140,17 +140,25 @@ def measure(root: Path, name: str, config: OccVOConfig | None = None) -> dict:
     }
 
 
-def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+def measure_scenes(argv, description: str, measure_one) -> dict | None:
+    """{scene: measure_one(sample, scene, config)} for the --sample, --scenes and --config of a benchmark on the real
+    scenes; None, after saying so, without the sample."""
+    ap = argparse.ArgumentParser(description=description, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--sample", type=Path, default=SAMPLE)
     ap.add_argument("--scenes", nargs="+", default=["scene-0101", "scene-0268"])
     ap.add_argument("--config", type=Path, help="odometry config (JSON5), e.g. {gicp: {source_pick: 'balanced'}}")
     args = ap.parse_args(argv)
-    config = OccVOConfig.load(args.config) if args.config else OccVOConfig()
     if not (args.sample / "occupancy").is_dir():
         print(f"no sample data at {args.sample}", file=sys.stderr)
+        return None
+    config = OccVOConfig.load(args.config) if args.config else OccVOConfig()
+    return {name: measure_one(args.sample, name, config) for name in args.scenes}
+
+
+def main(argv=None) -> int:
+    report = measure_scenes(argv, __doc__, measure)
+    if report is None:
         return 2
-    report = {name: measure(args.sample, name, config) for name in args.scenes}
     for name, r in report.items():
         print(f"{name}: APE {r['ape_rmse_m']:.3f} m; odometry steps sum {r['odometry_along_sum_cm']:+.1f} cm along "
               f"{r['distance_m']:.1f} m\n"

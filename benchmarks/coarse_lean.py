@@ -12,7 +12,6 @@ voxels, their covariances and the map's usable voxels. Prints a row a frame and 
 
 from __future__ import annotations
 
-import argparse
 import json
 import sys
 from pathlib import Path
@@ -23,7 +22,7 @@ import open3d as o3d
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from along_track import SAMPLE, GroundTruthMapOdometry  # noqa: E402
+from along_track import GroundTruthMapOdometry, measure_scenes  # noqa: E402
 from occvo_core import OccVOConfig  # noqa: E402
 from occvo_core import odometry as od  # noqa: E402
 from occvo_core.datasets import OccVOReleaseScene  # noqa: E402
@@ -89,16 +88,9 @@ def measure(root: Path, name: str, config: OccVOConfig) -> dict:
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--sample", type=Path, default=SAMPLE)
-    ap.add_argument("--scenes", nargs="+", default=["scene-0101", "scene-0268"])
-    ap.add_argument("--config", type=Path, help="odometry config (JSON5)")
-    args = ap.parse_args(argv)
-    if not (args.sample / "occupancy").is_dir():
-        print(f"no sample data at {args.sample}", file=sys.stderr)
+    report = measure_scenes(argv, __doc__, measure)
+    if report is None:
         return 2
-    config = OccVOConfig.load(args.config) if args.config else OccVOConfig()
-    report = {name: measure(args.sample, name, config) for name in args.scenes}
     for name, r in report.items():
         print(f"{name}: along-track error (cm, + = ahead) of each start, map at ground-truth poses")
         print("  frame  step m  " + "  ".join(f"{c:>11s}" for c in COLUMNS))

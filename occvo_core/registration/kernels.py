@@ -116,17 +116,9 @@ def thin_sources(ijk, ground, shape, wide, coarse, fine, fine_ground, balanced=F
                 count[o] += 1
             if picks[s][b] < 0 or (balanced and odd == 1):
                 picks[s][b] = n
-    if balanced:  # the picks are final only now: a second pass lists them in point order
-        for n in range(ijk.shape[0]):
-            for s in range(4):
-                f = factors[s]
-                if f == 0 or (s == 2 and ground[n]) or (s == 3 and not ground[n]):
-                    continue
-                b, _ = _source_block(ijk, n, f, shape)
-                if picks[s][b] == n:
-                    o = min(s, 2)
-                    out[o, count[o]] = n
-                    count[o] += 1
+    if balanced:  # the picks are final only now
+        sets = [np.sort(p[p >= 0]).astype(np.int64) for p in picks]
+        return sets[0], sets[1], np.sort(np.concatenate((sets[2], sets[3])))
     return out[0, :count[0]].copy(), out[1, :count[1]].copy(), out[2, :count[2]].copy()
 
 

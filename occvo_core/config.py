@@ -21,6 +21,10 @@ class GICPConfig(_Section):
     k_neighbours_radius_voxels: int = Field(1, ge=1, le=3, description="covariance from the (2r+1)^3 voxel neighbourhood on the grid")
     covariance_epsilon: float = Field(1e-3, gt=0, description="plane regularisation: eigenvalues (eps, 1, 1), Segal et al.")
     coarse_max_correspondence_m: float = Field(1.2, gt=0)
+    wide_trust_m: float = Field(0.6, ge=0, description="a wide pass that moves the guess less than this (and turns it "
+                                "under 2 degrees) is coarse GICP's only start; farther, coarse GICP also starts from the "
+                                "guess and the alignment keeping more pairs wins (a wide pass 1 m off can lead coarse "
+                                "GICP on into a neighbouring minimum: README, issue 2)")
     coarse_map_voxel_m: float = Field(1.2, gt=0, description="coarse GICP pairs with the map pooled on this grid")
     fine_max_correspondence_m: float = Field(0.6, gt=0)
     coarse_iterations: int = Field(12, ge=1)

@@ -387,8 +387,9 @@ class OccVO:
         if cfg.wide_voxel_m > 0:
             wide = self._gicp(frame, frame.wide, coarse_map.pooled(cfg.wide_voxel_m), np.eye(4), cfg.wide_voxel_m,
                               cfg.coarse_iterations).pose
-            # within coarse reach of the guess, coarse GICP would find the same minimum from either start
-            near = np.linalg.norm(wide[:3, 3]) < cfg.coarse_max_correspondence_m and \
+            # a wide pass that barely moved the guess leads coarse GICP to the minimum the guess would; one that moved
+            # it further may lead it on into a neighbouring one (scene-0101 turned 180 degrees, frame 18: 2.8 m off)
+            near = np.linalg.norm(wide[:3, 3]) < cfg.wide_trust_m and \
                 rotation_angle(wide[:3, :3]) < np.deg2rad(2.0)
             starts = [wide] if near else [np.eye(4), wide]
         results = [self._gicp(frame, frame.coarse, coarse_map, start, cfg.coarse_max_correspondence_m,

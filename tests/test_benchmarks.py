@@ -50,3 +50,17 @@ def test_coarse_lean_scores_every_stage_of_scene_0101s_frames(sample_root):
     # the slow start: coarse GICP leans ahead of where fine GICP from the guess lands (README, issue 2)
     slow = report["mean_slow_cm"]
     assert slow["coarse"] > slow["fine_only"] + 5
+
+
+def test_time_offset_reads_the_same_data_offset_from_four_runs_of_scene_0101(sample_root):
+    report = _run("time_offset.py", "--sample", str(sample_root), "--scenes", "scene-0101")["scene-0101"]
+    runs = report["runs"]
+    assert list(runs) == ["forward", "reversed", "turned", "turned+rev"]
+    shifts = [runs[r]["best_shift_ms"] for r in runs]
+    # the four contrasts are the four shifts again, rotated: nothing lost in the decomposition
+    assert abs(report["data_offset_ms"] + report["ego_lead_ms"] + report["travel_lead_ms"] + report["residual_ms"]
+               - shifts[0]) < 1e-6
+    # frames after their poses (README, issue 2): forward runs fit a later ground truth, reversed ones an earlier
+    assert report["data_offset_ms"] > 0 and shifts[0] > shifts[1] and shifts[2] > shifts[3]
+    assert all(runs[r]["ape_at_best_shift_m"] <= runs[r]["ape_rmse_m"] for r in runs)
+    assert report["exact_odometry_ape_m"] > 0

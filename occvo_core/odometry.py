@@ -380,7 +380,7 @@ class OccVO:
     def _coarse_gicp(self, frame: _Prepared, ego: EgoMap):
         """Coarse GICP against the map pooled on a coarse grid. A wide pass first (the map pooled wider still) reaches
         minima metres away; when it lands far from the guess, both starts are refined and the one whose alignment
-        keeps more pairs wins, since repeated structure (tree rows, lamp posts) can give the wide pass a wrong one."""
+        keeps clearly more pairs wins, since repeated structure (tree rows, lamp posts) can give the wide pass a wrong one."""
         cfg = self.config.gicp
         coarse_map = ego.pooled(cfg.coarse_map_voxel_m)
         starts = [np.eye(4)]
@@ -394,7 +394,11 @@ class OccVO:
             starts = [wide] if near else [np.eye(4), wide]
         results = [self._gicp(frame, frame.coarse, coarse_map, start, cfg.coarse_max_correspondence_m,
                               cfg.coarse_iterations) for start in starts]
-        return max(results, key=lambda r: (r.pairs_kept, -r.cost))
+        if len(results) == 1:
+            return results[0]
+        from_guess, from_wide = results
+        # the guess is the prior: the wide pass's minimum must be clearly better supported to replace it
+        return from_wide if from_wide.pairs_kept > (1 + cfg.wide_pairs_margin) * from_guess.pairs_kept else from_guess
 
     def _gicp(self, frame: _Prepared, idx: np.ndarray, local, pose: np.ndarray, max_dist: float, iterations: int):
         g = self.config.gicp

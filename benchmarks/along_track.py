@@ -155,22 +155,31 @@ def measure_scenes(argv, description: str, measure_one) -> dict | None:
     return {name: measure_one(args.sample, name, config) for name in args.scenes}
 
 
-def main(argv=None) -> int:
-    report = measure_scenes(argv, __doc__, measure)
+def benchmark_main(argv, description: str, measure_one, print_scene) -> int:
+    """A real-scene benchmark's main: measure_scenes, print_scene(name, result) for each, then one JSON line."""
+    report = measure_scenes(argv, description, measure_one)
     if report is None:
         return 2
     for name, r in report.items():
-        print(f"{name}: APE {r['ape_rmse_m']:.3f} m; odometry steps sum {r['odometry_along_sum_cm']:+.1f} cm along "
-              f"{r['distance_m']:.1f} m\n"
-              f"  gt-map registration: {r['gt_map_along_mean_cm']:+.1f} cm mean along the track "
-              f"({100 * r['gt_map_along_share']:+.2f}% of the distance), ahead in {r['gt_map_frames_ahead']} of "
-              f"{r['moving_frames']} moving frames\n"
-              f"  open3d GICP at ground-truth poses: {r['open3d_along_mean_cm']:+.1f} cm "
-              f"({100 * r['open3d_along_share']:+.2f}%), ahead in {r['open3d_frames_ahead']} of {r['moving_frames']}\n"
-              f"  best time shift {r['best_time_shift_ms']:+.0f} ms: APE {r['ape_at_best_shift_m']:.3f} m; "
-              f"best scale {r['best_scale']:.3f}: APE {r['ape_at_best_scale_m']:.3f} m")
+        print_scene(name, r)
     print(json.dumps(report))
     return 0
+
+
+def print_scene(name: str, r: dict) -> None:
+    print(f"{name}: APE {r['ape_rmse_m']:.3f} m; odometry steps sum {r['odometry_along_sum_cm']:+.1f} cm along "
+          f"{r['distance_m']:.1f} m\n"
+          f"  gt-map registration: {r['gt_map_along_mean_cm']:+.1f} cm mean along the track "
+          f"({100 * r['gt_map_along_share']:+.2f}% of the distance), ahead in {r['gt_map_frames_ahead']} of "
+          f"{r['moving_frames']} moving frames\n"
+          f"  open3d GICP at ground-truth poses: {r['open3d_along_mean_cm']:+.1f} cm "
+          f"({100 * r['open3d_along_share']:+.2f}%), ahead in {r['open3d_frames_ahead']} of {r['moving_frames']}\n"
+          f"  best time shift {r['best_time_shift_ms']:+.0f} ms: APE {r['ape_at_best_shift_m']:.3f} m; "
+          f"best scale {r['best_scale']:.3f}: APE {r['ape_at_best_scale_m']:.3f} m")
+
+
+def main(argv=None) -> int:
+    return benchmark_main(argv, __doc__, measure, print_scene)
 
 
 if __name__ == "__main__":

@@ -12,7 +12,6 @@ voxels, their covariances and the map's usable voxels. Prints a row a frame and 
 
 from __future__ import annotations
 
-import json
 import sys
 from pathlib import Path
 
@@ -22,7 +21,7 @@ import open3d as o3d
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from along_track import GroundTruthMapOdometry, measure_scenes  # noqa: E402
+from along_track import GroundTruthMapOdometry, benchmark_main  # noqa: E402
 from occvo_core import OccVOConfig  # noqa: E402
 from occvo_core import odometry as od  # noqa: E402
 from occvo_core.datasets import OccVOReleaseScene  # noqa: E402
@@ -87,21 +86,19 @@ def measure(root: Path, name: str, config: OccVOConfig) -> dict:
             "slow_frames": len(slow), "moving_frames": len(moving)}
 
 
+def print_scene(name: str, r: dict) -> None:
+    print(f"{name}: along-track error (cm, + = ahead) of each start, map at ground-truth poses")
+    print("  frame  step m  " + "  ".join(f"{c:>11s}" for c in COLUMNS))
+    for row in r["frames"]:
+        print(f"  {row['frame']:5d}  {row['step_m']:6.3f}  " + "  ".join(f"{row[c]:+11.1f}" for c in COLUMNS))
+    for label, key, n in (("slow (< 1 m)", "mean_slow_cm", r["slow_frames"]),
+                          ("moving (> 0.3 m)", "mean_moving_cm", r["moving_frames"])):
+        means = r[key]
+        print(f"  mean, {label}, {n} frames: " + "  ".join(f"{c} {means[c]:+.1f}" for c in COLUMNS if means[c] is not None))
+
+
 def main(argv=None) -> int:
-    report = measure_scenes(argv, __doc__, measure)
-    if report is None:
-        return 2
-    for name, r in report.items():
-        print(f"{name}: along-track error (cm, + = ahead) of each start, map at ground-truth poses")
-        print("  frame  step m  " + "  ".join(f"{c:>11s}" for c in COLUMNS))
-        for row in r["frames"]:
-            print(f"  {row['frame']:5d}  {row['step_m']:6.3f}  " + "  ".join(f"{row[c]:+11.1f}" for c in COLUMNS))
-        for label, key, n in (("slow (< 1 m)", "mean_slow_cm", r["slow_frames"]),
-                              ("moving (> 0.3 m)", "mean_moving_cm", r["moving_frames"])):
-            means = r[key]
-            print(f"  mean, {label}, {n} frames: " + "  ".join(f"{c} {means[c]:+.1f}" for c in COLUMNS if means[c] is not None))
-    print(json.dumps(report))
-    return 0
+    return benchmark_main(argv, __doc__, measure, print_scene)
 
 
 if __name__ == "__main__":

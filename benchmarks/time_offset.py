@@ -20,7 +20,6 @@ Prints a table and one JSON line.
 
 from __future__ import annotations
 
-import json
 import sys
 from pathlib import Path
 
@@ -29,7 +28,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from along_track import measure_scenes, shifted  # noqa: E402
+from along_track import benchmark_main, shifted  # noqa: E402
 from occvo_core import OccVO, OccVOConfig  # noqa: E402
 from occvo_core.datasets import OccVOReleaseScene  # noqa: E402
 from occvo_core.eval import ape_rmse  # noqa: E402
@@ -78,21 +77,16 @@ def measure(root: Path, name: str, config: OccVOConfig) -> dict:
     return out
 
 
-def main(argv=None) -> int:
-    report = measure_scenes(argv, __doc__, measure)
-    if report is None:
-        return 2
-    for name, r in report.items():
-        print(name)
-        for run_name, row in r["runs"].items():
-            print(f"  {run_name:<11} APE {row['ape_rmse_m']:.3f} m, best time shift {row['best_shift_ms']:+5.0f} ms "
-                  f"(APE there {row['ape_at_best_shift_m']:.3f} m)")
-        print(f"  data offset d {r['data_offset_ms']:+.0f} ms, lead fixed in the ego frame {r['ego_lead_ms']:+.0f} ms, "
-              f"lead along the travel {r['travel_lead_ms']:+.0f} ms, residual {r['residual_ms']:+.0f} ms;\n  an exact odometry of frames {r['data_offset_ms']:.0f}"
-              f" ms after their poses scores APE {r['exact_odometry_ape_m']:.3f} m")
-    print(json.dumps(report))
-    return 0
+def print_scene(name: str, r: dict) -> None:
+    print(name)
+    for run_name, row in r["runs"].items():
+        print(f"  {run_name:<11} APE {row['ape_rmse_m']:.3f} m, best time shift {row['best_shift_ms']:+5.0f} ms "
+              f"(APE there {row['ape_at_best_shift_m']:.3f} m)")
+    print(f"  data offset d {r['data_offset_ms']:+.0f} ms, lead fixed in the ego frame {r['ego_lead_ms']:+.0f} ms, "
+          f"lead along the travel {r['travel_lead_ms']:+.0f} ms, residual {r['residual_ms']:+.0f} ms;\n"
+          f"  an exact odometry of frames {r['data_offset_ms']:.0f} ms after their poses scores APE "
+          f"{r['exact_odometry_ape_m']:.3f} m")
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    sys.exit(benchmark_main(sys.argv[1:], __doc__, measure, print_scene))

@@ -60,8 +60,9 @@ def measure(root: Path, name: str, config: OccVOConfig) -> dict:
     gt = np.linalg.inv(gt[0]) @ gt
     turn = np.diag([-1.0, -1.0, 1.0, 1.0])
     turned = [OccupancyFrame(f.points * [-1.0, -1.0, 1.0], f.labels, f.index) for f in frames]
+    turned_gt = turn @ gt @ turn  # the turned ego's poses
     inputs = {"forward": (frames, gt), "reversed": (frames[::-1], gt[::-1]),
-              "turned": (turned, turn @ gt @ turn), "turned+rev": (turned[::-1], (turn @ gt @ turn)[::-1])}
+              "turned": (turned, turned_gt), "turned+rev": (turned[::-1], turned_gt[::-1])}
     out = {"runs": {}}
     for run_name, (seq, poses) in inputs.items():
         poses = np.linalg.inv(poses[0]) @ poses

@@ -93,9 +93,9 @@ class LoopClosureConfig(_Section):
     min_old_voxels: int = Field(3000, ge=1, description="reliable old voxels within the frame's box before a loop is looked for")
     lock_share: float = Field(0.3, ge=0, le=1, description="a frame with this share of its fine sources on the old map "
                               "(same label, within the fine correspondence distance) follows it: no search, the old map "
-                              "constrains the next registration whatever its p-index and counts the frame's points as "
-                              "sightings, adding none (a frame off it would only drag it), and the map made since "
-                              "drifted no more")
+                              "constrains the next registration whatever its p-index, the frame's points on it count as "
+                              "sightings, its other voxels are dropped before they would be old (a frame off it would "
+                              "only drag it), and the map made since drifted no more")
     accept_share: float = Field(0.6, ge=0, le=1, description="a loop is closed when the relocalised frame puts at least "
                                 "this share of its fine sources where the old map is on it (and twice the share of "
                                 "all its sources as before)")

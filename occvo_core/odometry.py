@@ -120,6 +120,7 @@ class OccVO:
         self._last_loop_search = -(1 << 30)  # frame of the last loop search
         self._on_old_map = False  # the last frame lay on the old map (loop closure's lock_share)
         self._anchor = 0  # the last frame on the old map (or the first): the map since then drifted with the poses
+        self._followed = np.zeros(0, bool)  # per frame: it followed the old map (its new voxels are recent map only)
         # per loop closed: the frames (anchor, t] and the world -> world correction of the map made at each
         self._map_corrections: list[tuple[int, np.ndarray, np.ndarray]] = []
 
@@ -156,6 +157,7 @@ class OccVO:
         out["last_loop_search"] = np.array(self._last_loop_search, np.int64)
         out["on_old_map"] = np.array(self._on_old_map)
         out["anchor"] = np.array(self._anchor, np.int64)
+        out["followed_frames"] = np.flatnonzero(self._followed).astype(np.int64)
         out["map_corrections"] = np.array([[t, b, *c.ravel()] for t, frames, cs in self._map_corrections
                                            for b, c in zip(frames, cs)], np.float64).reshape(-1, 18)
         if self._last is not None:
@@ -180,6 +182,8 @@ class OccVO:
         self._last_loop_search = int(state.get("last_loop_search", self._last_loop_search))
         self._on_old_map = bool(state.get("on_old_map", False))
         self._anchor = int(state.get("anchor", 0))
+        self._followed = np.zeros(len(self._poses), bool)
+        self._followed[np.asarray(state.get("followed_frames", np.zeros(0, np.int64)), np.int64)] = True
         rows = np.asarray(state.get("map_corrections", np.zeros((0, 18))))
         for t in np.unique(rows[:, 0]).astype(np.int64):
             mine = rows[rows[:, 0] == t]
@@ -515,6 +519,21 @@ class OccVO:
         self.map.move(rows, corrections[:, :3, :3], corrections[:, :3, 3], ghost_radius_m=lc.ghost_radius_m,
                       born_before=a + 1, group=self.map.born[rows] - a - 1)
 
+    def _drop_followed_voxels(self, t: int) -> None:
+        """Voxels made by frames that followed the old map are the recent map registration needs where that map is
+        thin, never old map themselves: dropped before they would be (min_gap_frames old). A lap that slipped along a
+        street of repeated structure made its copy of the place there, and as old map it pulled the next laps the
+        same way (README, Reliability: seed 1's start, laps 13 and 14)."""
+        gap = self.config.loop_closure.min_gap_frames
+        if not self._followed[: max(t - gap + 1, 0)].any():
+            return
+        n = self.map._n
+        born = self.map.born[:n]
+        rows = np.flatnonzero(self.map.alive[:n] & (born <= t - gap))
+        rows = rows[self._followed[np.minimum(born[rows], len(self._followed) - 1)]]
+        if len(rows):
+            self.map.remove(rows)
+
     def _share_on(self, frame: _Prepared, idx: np.ndarray, pose: np.ndarray, local, subset: np.ndarray) -> tuple[float, float]:
         """Shares of frame points idx that, at pose, have a voxel of subset with their label within the fine GICP
         correspondence distance, and that have one of any label within twice the coarse correspondence distance
@@ -544,6 +563,7 @@ class OccVO:
             self.map.entered(*entered, t)
         if searched:
             self._last_loop_search = t
+        self._drop_followed_voxels(t)
         if correction is not None:
             self._correct_map(np.linalg.inv(correction) @ pose, correction, t)
             self._loops.append((t, correction))
@@ -555,6 +575,7 @@ class OccVO:
         self.map.compact()
         if on_old_map:
             self._anchor = t
+        self._followed = np.append(self._followed, on_old_map)
         self._poses.append(pose)
         self._indices.append(frame.index)
         self._last = frame

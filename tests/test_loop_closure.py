@@ -233,3 +233,30 @@ def test_tiles_evicted_before_a_closure_come_back_as_corrected_as_the_working_ma
     made_since = paged.map.born[paged.map._n - added: paged.map._n] > 0  # the first frame's map is the anchor's
     d, _ = cKDTree(before).query(restored[made_since])
     assert made_since.mean() > 0.3 and np.mean(d < 1e-9) < 0.01  # and the map made since did move
+
+
+def test_voxels_made_while_following_the_old_map_are_dropped_before_they_would_be_old(loop):
+    """A frame on the old map still makes voxels where that map has none (registration's recent map), but they never
+    become old map: a lap that slipped along repeated structure would otherwise leave a copy of the place that pulls
+    every later lap the same way. The frames that followed are state: a restart drops the same voxels."""
+    gap = _config(True).loop_closure.min_gap_frames
+    seen = {"alive": 0, "dropped": 0}
+    made: dict[int, int] = {}  # followed frame -> voxels it made
+
+    def each(vo, i, r, evicted):
+        n = vo.map._n
+        born = vo.map.born[:n][vo.map.alive[:n]]
+        followed = np.flatnonzero(vo._followed)
+        if vo._followed[i]:
+            made[i] = int(np.count_nonzero(born == i))
+        live = np.isin(born, followed)
+        # the next frame's old map: voxels born before i + 1 - gap
+        assert not np.any(live & (born < i + 1 - gap)), f"frame {i}: a followed frame's voxel would be old map next"
+        seen["alive"] = max(seen["alive"], int(live.sum()))
+        seen["dropped"] += made.get(i - gap, 0)
+
+    whole, _, _, _ = _drive(loop, _config(True), None, each=each)
+    assert whole._followed.sum() > 10 and seen["alive"] > 0 and seen["dropped"] > 0, (whole._followed.sum(), seen)
+    resumed, _, _, _ = _drive(loop, _config(True), None, resume_at=FRAMES - 10)
+    assert np.array_equal(resumed.poses, whole.poses)
+    assert all(np.array_equal(a, b) for a, b in zip(resumed.map_points(), whole.map_points()))

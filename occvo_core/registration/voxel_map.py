@@ -226,11 +226,11 @@ class VoxelPFilterMap:
         """Add frame t's points (world frame) and return the map rows they landed in (-1: dropped). `local`, when it
         covers the points, saves building the window again (its grid is used up: new voxels are written into it).
         With old_born_before, the persistent voxels made before that frame are an old map (loop closure):
-        - a frame on it (on_old) neither moves them nor adds voxels: its points count as sightings of the voxels
-          within the observe radius and are dropped, but for those in the cells of voxels not old. Its pose came from
-          that map: merging would feed each lap's registration error back into the map every later lap follows, and
-          its new voxels, beside the old ones or where they are not, would be old min_gap_frames later (a frame that
-          slipped along a street of repeated structure left a layer 1.2 m off, which pulled the next laps further);
+        - a frame on it (on_old) neither moves them nor adds a voxel beside them: a point in an old voxel's cell, or
+          within the observe radius of one in an empty cell, counts as a sighting of it and is dropped (the frame's
+          pose came from that map: merging would feed each lap's registration error back into the map the next lap
+          follows, and a revisit must not grow a second layer beside it); its other points make voxels as usual
+          (the caller decides how long they live: OccVO drops them before they could be old map);
         - a frame off it leaves them as they are: not merged into, not counted as seen, and points in their cells
           are dropped (a frame that drifted would drag them and wear down their p-index by chance overlaps)."""
         keys = np.floor(points_world / self.voxel).astype(np.int64)
@@ -243,7 +243,10 @@ class VoxelPFilterMap:
             cells = local.cells(keys)
             held = local.grid[cells]
             if on_old:
-                take = (held >= 0) & ~old[np.maximum(held, 0)]
+                take = held < 0
+                d, _ = local.nearest(points_world[take], int(np.ceil(self.observe_radius / self.voxel)), usable=old)
+                take[take] = d > self.observe_radius
+                take |= (held >= 0) & ~old[np.maximum(held, 0)]
             else:
                 take = ~((held >= 0) & old[np.maximum(held, 0)])
                 alive &= ~old

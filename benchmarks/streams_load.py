@@ -295,6 +295,10 @@ def run_load(n: int, rate: float, minutes: float, policy: str, queue_size: int, 
                 cap_v.append((st.recv_at[i] - st.due[i]) * 1000.0)
                 stages.append(st.timings.get(i, {}))
     lat_t, lat_v, cap_v = np.array(lat_t), np.array(lat_v), np.array(cap_v)
+    with open(log_dir / "poses.jsonl", "w") as fp:  # every pose, to lay a burst beside the workers' logs (--log-dir)
+        for (name, i), t, lat, timing in zip(ids, lat_t, lat_v, stages):
+            fp.write(json.dumps({"stream": name, "seq": i, "due_s": round(float(t), 3), "due_unix": float(t + t0),
+                                 "latency_ms": round(float(lat), 1), "timings_ms": timing}) + "\n")
     smp = np.array(samples) if samples else np.zeros((0, 6))
     for b in range(n_buckets):
         lo, hi = b * bucket_s, (b + 1) * bucket_s

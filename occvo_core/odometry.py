@@ -120,9 +120,13 @@ class OccVO:
         self._last_loop_search = -(1 << 30)  # frame of the last loop search
         self._on_old_map = False  # the last frame lay on the old map (loop closure's lock_share)
         self._anchor = 0  # the last frame on the old map (or the first): the map since then drifted with the poses
-        self._followed = np.zeros(0, bool)  # per frame: it followed the old map (its new voxels are recent map only)
+        self._followed_buf = np.zeros(256, bool)  # per frame: it followed the old map (its new voxels are recent map only)
         # per loop closed: the frames (anchor, t] and the world -> world correction of the map made at each
         self._map_corrections: list[tuple[int, np.ndarray, np.ndarray]] = []
+
+    @property
+    def _followed(self) -> np.ndarray:
+        return self._followed_buf[: len(self._poses)]
 
     @property
     def loop_closures(self) -> list[tuple[int, np.ndarray]]:
@@ -182,8 +186,8 @@ class OccVO:
         self._last_loop_search = int(state.get("last_loop_search", self._last_loop_search))
         self._on_old_map = bool(state.get("on_old_map", False))
         self._anchor = int(state.get("anchor", 0))
-        self._followed = np.zeros(len(self._poses), bool)
-        self._followed[np.asarray(state.get("followed_frames", np.zeros(0, np.int64)), np.int64)] = True
+        self._followed_buf = np.zeros(max(256, 2 * len(self._poses)), bool)
+        self._followed_buf[np.asarray(state.get("followed_frames", np.zeros(0, np.int64)), np.int64)] = True
         rows = np.asarray(state.get("map_corrections", np.zeros((0, 18))))
         for t in np.unique(rows[:, 0]).astype(np.int64):
             mine = rows[rows[:, 0] == t]
@@ -219,7 +223,9 @@ class OccVO:
         returns the voxels restored."""
         t = len(self._poses)
         self._version += 1
-        return sum(self.map.put(self._corrected_block(block), t) for block in blocks.values())
+        restored = sum(self.map.put(self._corrected_block(block), t) for block in blocks.values())
+        self._drop_followed_voxels(t - 1, restored=True)  # taken before they came of age: as if never taken
+        return restored
 
     def _corrected_block(self, block: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
         """An evicted block as the loops closed since it was taken would have moved it (see _correct_map)."""
@@ -519,18 +525,22 @@ class OccVO:
         self.map.move(rows, corrections[:, :3, :3], corrections[:, :3, 3], ghost_radius_m=lc.ghost_radius_m,
                       born_before=a + 1, group=self.map.born[rows] - a - 1)
 
-    def _drop_followed_voxels(self, t: int) -> None:
+    def _drop_followed_voxels(self, t: int, restored: bool = False) -> None:
         """Voxels made by frames that followed the old map are the recent map registration needs where that map is
         thin, never old map themselves: dropped before they would be (min_gap_frames old). A lap that slipped along a
         street of repeated structure made its copy of the place there, and as old map it pulled the next laps the
-        same way (README, Reliability: seed 1's start, laps 13 and 14)."""
-        gap = self.config.loop_closure.min_gap_frames
-        if not self._followed[: max(t - gap + 1, 0)].any():
+        same way (README, Reliability: seed 1's start, laps 13 and 14). Per frame only frame t - min_gap_frames comes
+        of age (one scan, and only if it followed); tiles just restored may hold voxels of any earlier frame."""
+        b = t - self.config.loop_closure.min_gap_frames
+        if b < 0 or not (self._followed[: b + 1].any() if restored else self._followed[b]):
             return
         n = self.map._n
         born = self.map.born[:n]
-        rows = np.flatnonzero(self.map.alive[:n] & (born <= t - gap))
-        rows = rows[self._followed[np.minimum(born[rows], len(self._followed) - 1)]]
+        if restored:
+            rows = np.flatnonzero(self.map.alive[:n] & (born <= b))
+            rows = rows[self._followed[born[rows]]]
+        else:
+            rows = np.flatnonzero(self.map.alive[:n] & (born == b))
         if len(rows):
             self.map.remove(rows)
 
@@ -575,7 +585,9 @@ class OccVO:
         self.map.compact()
         if on_old_map:
             self._anchor = t
-        self._followed = np.append(self._followed, on_old_map)
+        if t == len(self._followed_buf):  # doubled: appending stays O(1) per frame on long drives
+            self._followed_buf = np.concatenate([self._followed_buf, np.zeros_like(self._followed_buf)])
+        self._followed_buf[t] = on_old_map
         self._poses.append(pose)
         self._indices.append(frame.index)
         self._last = frame

@@ -260,3 +260,36 @@ def test_voxels_made_while_following_the_old_map_are_dropped_before_they_would_b
     resumed, _, _, _ = _drive(loop, _config(True), None, resume_at=FRAMES - 10)
     assert np.array_equal(resumed.poses, whole.poses)
     assert all(np.array_equal(a, b) for a, b in zip(resumed.map_points(), whole.map_points()))
+
+
+def test_a_followed_frames_voxels_paged_out_young_come_back_only_while_still_young(loop):
+    """Voxels of a frame that followed the old map, evicted before they came of age and restored after, are dropped
+    on restore as the working map dropped them: eviction is no way into the old map. Restored young, they stay."""
+    gap = _config(True).loop_closure.min_gap_frames
+    pending: dict[int, dict] = {}  # followed frame -> its voxels, taken out at that frame
+    seen = {"old": 0, "young": 0}
+
+    def each(vo, i, r, evicted):
+        n = vo.map._n
+        for f, block in list(pending.items()):
+            if i == f + gap + 1:  # restored at frame i + 1: frame f's voxels would be old map next
+                made = vo.restore_tiles({(0, 0): block})
+                n = vo.map._n
+                assert made > 0 and not np.any(vo.map.alive[:n] & (vo.map.born[:n] == f)), (f, made)
+                seen["old"] += made
+                del pending[f]
+        if not vo._followed[i]:
+            return
+        rows = np.flatnonzero(vo.map.alive[:n] & (vo.map.born[:n] == i))
+        if len(rows) == 0:
+            return
+        block = vo.map.take(rows, len(vo.poses))
+        if i % 2:
+            pending[i] = block
+        else:  # taken and put straight back: still young, so it stays
+            assert vo.restore_tiles({(0, 0): block}) == len(rows)
+            assert np.count_nonzero(vo.map.alive[: vo.map._n] & (vo.map.born[: vo.map._n] == i)) == len(rows)
+            seen["young"] += len(rows)
+
+    _drive(loop, _config(True), None, each=each)
+    assert seen["old"] > 0 and seen["young"] > 0, seen

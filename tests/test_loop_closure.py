@@ -272,7 +272,7 @@ def test_a_followed_frames_voxels_paged_out_young_come_back_only_while_still_you
     def each(vo, i, r, evicted):
         n = vo.map._n
         for f, block in list(pending.items()):
-            if i == f + gap + 1:  # restored at frame i + 1: frame f's voxels would be old map next
+            if i == f + gap + 1:  # restored before frame i + 1: frame f came of age at frame f + gap
                 made = vo.restore_tiles({(0, 0): block})
                 n = vo.map._n
                 assert made > 0 and not np.any(vo.map.alive[:n] & (vo.map.born[:n] == f)), (f, made)

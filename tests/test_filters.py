@@ -355,3 +355,6 @@ def test_compaction_reclaims_dead_rows_before_the_map_would_have_to_grow():
     live = np.setdiff1d(np.arange(cap - cap // 16), near)
     assert m._n == len(live) and np.array_equal(m.keys[: m._n, 0], live) and m.alive[: m._n].all()
     assert len(m.pos) == cap  # and it never grew
+    m = filled(cap - cap // 16, near[:100])  # near the capacity, but too few dead rows to be worth a copy of it all
+    m.compact()
+    assert m._n == cap - cap // 16

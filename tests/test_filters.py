@@ -281,6 +281,27 @@ def test_a_voxel_back_in_the_registration_window_keeps_its_p_index():
     assert m.p_index(14)[0] == 4 / 8 and not _window_of(m, 14).usable[0]
 
 
+def test_a_place_seen_in_glimpses_on_two_visits_stays_in_the_served_map():
+    """The served map (persistent()) counts each visit from a voxel's first to its last sighting: the frames in view
+    after its last sighting on one visit and before its first on the next lie between visits, as those before its
+    first sighting do. Within a visit a voxel seen in few frames is still left out, and loop closure's old map
+    (persistent_rows) still counts every frame in view: a voxel seen only in glimpses is no anchor."""
+    m = VoxelPFilterMap()
+    glimpsed, blinking, elsewhere = [5.1, 5.1, 1.1], [7.1, 7.1, 1.1], [1000.1, 1000.1, 1.1]
+    far = np.array([990, 990, 0])
+    for t in range(30):  # visit 1: frames 0..9, away 10..19, visit 2: 20..29
+        window = m.window(far, far + 20, t) if 10 <= t < 20 else _window_of(m, t)
+        m.entered(*m.enter(window, t), t)
+        seen = ([glimpsed] if t in (0, 1, 25, 26) else []) + ([blinking] if t in (0, 8) else [])
+        _merge(m, seen or [elsewhere], t)
+    rows = {tuple(np.round(m.pos[r], 1)): r for r in range(m._n)}
+    g, b = rows[tuple(glimpsed)], rows[tuple(blinking)]
+    assert m.f[g] == 4 and m.between[g] == 13  # frames 2..9 and 20..24 were in view without a sighting
+    assert m.persistent()[g] and not m.persistent_rows(np.array([g]))[0]  # 4 of 4 in view; 4 of 17 for the old map
+    assert m.f[b] == 2 and not m.persistent()[b]  # 2 of 9 frames of one visit
+    assert len(m.points()[0]) == int(m.persistent().sum())
+
+
 def test_a_frame_off_the_old_map_leaves_it_alone_and_one_on_it_moves_none_of_it_and_adds_no_second_layer():
     """Loop closure's old map in the voxel pfilter merge: a drifted frame neither drags old voxels nor counts them
     seen; a frame following the old map counts its points in or near old voxels as sightings of them, neither

@@ -812,7 +812,7 @@ def mark_observed(points, map_pos, grid, origin, dims, voxel, radius_m, map_rows
 
 
 @njit(cache=_CACHE, nogil=True)
-def persistent_in_tiles(pos, alive, f, last, t0, n, threshold, use_p_index, lo, hi, tile_m):
+def persistent_in_tiles(pos, alive, f, last, t0, between, n, threshold, use_p_index, lo, hi, tile_m):
     """Rows < n of VoxelPFilterMap.persistent() whose x-y tile floor(pos / tile_m) lies in lo..hi, in row order."""
     out = np.empty(n, np.int64)
     n_out = 0
@@ -823,7 +823,7 @@ def persistent_in_tiles(pos, alive, f, last, t0, n, threshold, use_p_index, lo, 
         iy = np.floor(pos[r, 1] / tile_m)
         if ix < lo[0] or ix > hi[0] or iy < lo[1] or iy > hi[1]:
             continue
-        if use_p_index and not f[r] / max(last[r] - t0[r] + 1, 1) > threshold:
+        if use_p_index and not f[r] / max(last[r] - t0[r] + 1 - between[r], 1) > threshold:
             continue
         out[n_out] = r
         n_out += 1

@@ -11,7 +11,7 @@ import numpy as np
 from occvo_core.grid import NUM_CLASSES
 from occvo_core.registration import kernels
 
-_FIELDS = ("keys", "pos", "cov", "counts", "label", "t0", "f", "last", "wacc", "alive", "born", "in_window")
+_FIELDS = ("keys", "pos", "cov", "counts", "label", "t0", "f", "last", "wacc", "alive", "born", "in_window", "returning", "between")
 
 
 @dataclass
@@ -115,6 +115,13 @@ def _older_name(arrays: dict, name: str) -> str:
     return name
 
 
+def _field(arrays: dict, name: str) -> np.ndarray:
+    """A saved state's or block's array of a field (`returning` and `between`, added later, start at 0)."""
+    if name in ("returning", "between") and name not in arrays:
+        return np.zeros(len(arrays["keys"]), np.bool_ if name == "returning" else np.int32)
+    return np.asarray(arrays[_older_name(arrays, name)])
+
+
 def _row_bytes(a: np.ndarray) -> np.ndarray:
     """A C-contiguous array as (rows, bytes per row) uint8, no copy."""
     return a.reshape(len(a), -1).view(np.uint8)
@@ -151,6 +158,8 @@ class VoxelPFilterMap:
             "last": ((capacity,), np.int32, -1), "wacc": ((capacity,), np.float64, 0.0), "alive": ((capacity,), np.bool_, False),
             "born": ((capacity,), np.int32, 0),  # frame the voxel was made: unlike t0, not shifted by put()
             "in_window": ((capacity,), np.int32, 0),  # last frame whose registration window held it (enter())
+            "returning": ((capacity,), np.bool_, False),  # back in the window after frames away, not seen again yet
+            "between": ((capacity,), np.int32, 0),  # frames in view between two visits: the served map skips them
         }
         for name, (shape, dtype, fill) in spec.items():
             # zeros come from calloc: pages cost nothing until touched, so doubling does not write the new half
@@ -219,6 +228,7 @@ class VoxelPFilterMap:
         rows, away = rows[live], away[live]
         self.t0[rows] += away.astype(np.int32)
         self.last[rows] += away.astype(np.int32)
+        self.returning[rows[away > 0]] = True
         self.in_window[rows] = t
 
     def merge(self, points_world: np.ndarray, labels: np.ndarray, covs_world: np.ndarray, t: int,
@@ -252,6 +262,8 @@ class VoxelPFilterMap:
                 alive &= ~old
             out = np.full(len(keys), -1, np.int64)
             points_world, labels, covs_world, keys = points_world[take], labels[take], covs_world[take], keys[take]
+        back = local.rows[self.returning[local.rows]]
+        back_last = self.last[back].copy()
         rows, first_key = kernels.assign_voxels(points_world, keys, local.pos, local.grid, local.origin,
                                                 local.dims, self.voxel, self.merge_radius, local.rows, alive, self._n)
         n_new = len(first_key)
@@ -260,6 +272,8 @@ class VoxelPFilterMap:
         new = slice(self._n, self._n + n_new)
         self.keys[new] = keys[first_key]
         self.t0[new] = self.born[new] = self.in_window[new] = t
+        self.returning[new] = False
+        self.between[new] = 0
         self.f[new] = 0
         self.last[new] = -1
         self.counts[new] = 0
@@ -275,6 +289,12 @@ class VoxelPFilterMap:
         self._touch_box(changed)
         seen = local.rows[self.last[local.rows] == t]
         self.in_window[seen] = t  # a voxel seen is in view, whatever window this frame registered in
+        # seen again after a visit away: the frames in view since its last sighting (leaving, then coming back)
+        # lie between two visits, which the served map does not count, as it does not count those before a
+        # voxel's first sighting (a place seen in glimpses fell out of the served map at every revisit)
+        again = self.last[back] == t
+        self.between[back[again]] += ((t - 1) - back_last[again]).astype(np.int32)
+        self.returning[back[again]] = False
         if out is not None:
             out[take] = rows
             return out
@@ -314,7 +334,7 @@ class VoxelPFilterMap:
         self._changed = None
         self._alloc(max(1 << 16, n))
         for name in _FIELDS:
-            getattr(self, name)[:n] = state[_older_name(state, name)]
+            getattr(self, name)[:n] = _field(state, name)
         self._n = n
 
     def tile_ids(self, tile_m: float) -> np.ndarray:
@@ -349,9 +369,10 @@ class VoxelPFilterMap:
         rows = slice(self._n, self._n + n_new)
         for name in _FIELDS:
             if name != "alive":
-                getattr(self, name)[rows] = np.asarray(block[_older_name(block, name)])[new]
+                getattr(self, name)[rows] = _field(block, name)[new]
         self.t0[rows] += shift
         self.last[rows] = self.in_window[rows] = int(t) - 1
+        self.returning[rows] = True
         self.alive[rows] = True
         self._touch(self.pos[rows])
         self._n += n_new
@@ -392,12 +413,18 @@ class VoxelPFilterMap:
     def persistent(self) -> np.ndarray:
         """The voxel pfilter on the finished map, per live row: seen in more than the threshold's share of the frames
         from its first to its last sighting (the p-index over the time it was in view; the plain p-index would also
-        punish a voxel for every frame after the car drove past it)."""
-        return self.persistent_rows(slice(0, self._n))
+        punish a voxel for every frame after the car drove past it), each visit's from its first to its last sighting
+        there: the frames between two visits are skipped as the frames before the first sighting are."""
+        n = self._n
+        keep = self.alive[:n].copy()
+        if self.pfilter:
+            keep &= self.f[:n] / np.maximum(self.last[:n] - self.t0[:n] + 1 - self.between[:n], 1) > self.p_index_threshold
+        return keep
 
     def persistent_rows(self, rows: np.ndarray | slice, born_before: int | None = None) -> np.ndarray:
-        """persistent() for the given rows; with born_before, only voxels made before that frame (the old map of
-        loop closure)."""
+        """Loop closure's judge of the old map: persistent() over the whole span from the first to the last sighting
+        (the frames between visits too: a voxel seen only in glimpses is no anchor); with born_before, only voxels
+        made before that frame."""
         keep = self.alive[rows].copy()
         if self.pfilter:
             keep &= self.f[rows] / np.maximum(self.last[rows] - self.t0[rows] + 1, 1) > self.p_index_threshold
@@ -410,7 +437,7 @@ class VoxelPFilterMap:
         tile_m), those whose x-y tile floor(pos / tile_m) lies in lo..hi."""
         if tiles is not None:
             lo, hi, tile_m = tiles
-            rows = kernels.persistent_in_tiles(self.pos, self.alive, self.f, self.last, self.t0, self._n,
+            rows = kernels.persistent_in_tiles(self.pos, self.alive, self.f, self.last, self.t0, self.between, self._n,
                                                self.p_index_threshold, self.pfilter, np.asarray(lo, np.int64),
                                                np.asarray(hi, np.int64), float(tile_m))
             return self.pos[rows], self.label[rows]

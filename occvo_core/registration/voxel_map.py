@@ -415,19 +415,16 @@ class VoxelPFilterMap:
         from its first to its last sighting (the p-index over the time it was in view; the plain p-index would also
         punish a voxel for every frame after the car drove past it), each visit's from its first to its last sighting
         there: the frames between two visits are skipped as the frames before the first sighting are."""
-        n = self._n
-        keep = self.alive[:n].copy()
-        if self.pfilter:
-            keep &= self.f[:n] / np.maximum(self.last[:n] - self.t0[:n] + 1 - self.between[:n], 1) > self.p_index_threshold
-        return keep
+        return self.persistent_rows(slice(0, self._n), per_visit=True)
 
-    def persistent_rows(self, rows: np.ndarray | slice, born_before: int | None = None) -> np.ndarray:
-        """Loop closure's judge of the old map: persistent() over the whole span from the first to the last sighting
-        (the frames between visits too: a voxel seen only in glimpses is no anchor); with born_before, only voxels
-        made before that frame."""
+    def persistent_rows(self, rows: np.ndarray | slice, born_before: int | None = None, per_visit: bool = False) -> np.ndarray:
+        """persistent() for the given rows; by default loop closure's judge of the old map, over the whole span from
+        the first to the last sighting (the frames between visits too: a voxel seen only in glimpses is no anchor);
+        with born_before, only voxels made before that frame."""
         keep = self.alive[rows].copy()
         if self.pfilter:
-            keep &= self.f[rows] / np.maximum(self.last[rows] - self.t0[rows] + 1, 1) > self.p_index_threshold
+            span = self.last[rows] - self.t0[rows] + 1 - (self.between[rows] if per_visit else 0)
+            keep &= self.f[rows] / np.maximum(span, 1) > self.p_index_threshold
         if born_before is not None:
             keep &= self.born[rows] < born_before
         return keep

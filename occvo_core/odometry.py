@@ -17,7 +17,7 @@ from occvo_core.registration import kernels
 from occvo_core.registration.dynamic_object_filter import dynamic_object_filter
 from occvo_core.registration.gicp import gicp, rotation_angle
 from occvo_core.registration.initialisation import bev_first_motion, ground_height_correction, semantic_bev_motion
-from occvo_core.registration.voxel_map import EgoMap, VoxelPFilterMap, _older_name, moved
+from occvo_core.registration.voxel_map import EgoMap, VoxelPFilterMap, _field, moved
 
 _GRID_CORNERS = np.array(np.meshgrid(*zip(OCC3D_GRID.lower, OCC3D_GRID.upper), indexing="ij")).reshape(3, -1).T
 _EGO_LOWER, _EGO_UPPER = np.array(OCC3D_GRID.lower), np.array(OCC3D_GRID.upper)
@@ -234,7 +234,7 @@ class OccVO:
         if not later or len(block["keys"]) == 0:
             return block
         block = dict(block)
-        born = np.asarray(block[_older_name(block, "born")], np.int64)
+        born = _field(block, "born").astype(np.int64)
         pos, cov = np.array(block["pos"], np.float64), np.array(block["cov"], np.float64)
         for _, frames, corrections in later:
             k = np.searchsorted(frames, born)

@@ -107,19 +107,15 @@ def moved(pos: np.ndarray, cov: np.ndarray, rot: np.ndarray, trans: np.ndarray,
                                  np.ascontiguousarray(rot, np.float64), np.ascontiguousarray(trans, np.float64), group)
 
 
-def _older_name(arrays: dict, name: str) -> str:
-    """States and evicted blocks saved before `born` or `in_window` existed: a voxel's t0 is the best guess of its
-    birth, its last sighting of its last frame in a registration window."""
-    if name not in arrays:
-        return {"born": "t0", "in_window": "last"}.get(name, name)
-    return name
-
-
 def _field(arrays: dict, name: str) -> np.ndarray:
-    """A saved state's or block's array of a field (`returning` and `between`, added later, start at 0)."""
-    if name in ("returning", "between") and name not in arrays:
+    """A saved state's or evicted block's array of a field. Saved before `born` or `in_window` existed: a voxel's t0
+    is the best guess of its birth, its last sighting of its last frame in a registration window; before `returning`
+    and `between`: 0."""
+    if name in arrays:
+        return np.asarray(arrays[name])
+    if name in ("returning", "between"):
         return np.zeros(len(arrays["keys"]), np.bool_ if name == "returning" else np.int32)
-    return np.asarray(arrays[_older_name(arrays, name)])
+    return np.asarray(arrays[{"born": "t0", "in_window": "last"}.get(name, name)])
 
 
 def _row_bytes(a: np.ndarray) -> np.ndarray:

@@ -20,6 +20,7 @@ import numpy as np
 
 from occvo_core.errors import ConfigError
 from schemas.models import MapInfo, MapTileQuery, MapUpdate
+from services.sqlite_wal import enable_wal
 
 Bounds = MapTileQuery | None
 
@@ -141,9 +142,7 @@ class MapStore:
         # isolation_level=None: no implicit transactions; every transaction below is explicit and short
         c = sqlite3.connect(self.path, timeout=self._busy_ms / 1000, isolation_level=None, check_same_thread=False)
         c.execute(f"PRAGMA busy_timeout = {self._busy_ms}")
-        mode = c.execute("PRAGMA journal_mode = WAL").fetchone()[0]
-        if mode.lower() != "wal":
-            raise sqlite3.OperationalError(f"{self.path}: cannot use WAL journal mode (got {mode})")
+        enable_wal(c, self._busy_ms / 1000)
         c.execute("PRAGMA synchronous = NORMAL")
         c.execute("PRAGMA journal_size_limit = 67108864")  # truncate the WAL back to 64 MB after checkpoints
         return c

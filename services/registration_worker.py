@@ -331,6 +331,7 @@ class RegistrationWorker(Worker):
                           pose_m: np.ndarray, restart: bool, t0: float) -> None:
         t_tail = time.perf_counter()
         result, restored, evicted, (tiles, dirty) = self._finish(stream, st, reg, frame, msg.seq, publish=True)
+        t_finished = time.perf_counter()
         relocalised = result.loop_correction is not None
         if relocalised:
             self.stats.inc("loop_closures")
@@ -348,13 +349,21 @@ class RegistrationWorker(Worker):
             self._publish_pose(stream, st, msg.seq, msg.stamp, np.asarray(result.pose, float), "relocalised", digest,
                                timings, False)
         t_map = time.perf_counter()
-        self._publish_map(stream, st, msg.seq, restart, tiles, dirty, evicted, restored)
-        map_ms = (time.perf_counter() - t_map) * 1000.0 + st.tiling_ms
+        sent = self._publish_map(stream, st, msg.seq, restart, tiles, dirty, evicted, restored)
+        t_end = time.perf_counter()
+        map_ms = (t_end - t_map) * 1000.0 + st.tiling_ms
         self.stats.observe("map_update", map_ms)
         if self.store is not None:
             self.stats.observe("map_restore", st.restore_ms)
             self.stats.observe("map_evict", st.evict_ms)
-        self.stats.observe("frame_after_pose", (time.perf_counter() - t_tail) * 1000.0)
+        self.stats.observe("frame_after_pose", (t_end - t_tail) * 1000.0)
+        if t_end - t_tail > self.config.slow_after_pose_s:  # the next frame of the stream waits for this
+            log_event(self.log, "slow work after a pose", logging.WARNING, stream=stream, seq=msg.seq,
+                      ms=round((t_end - t_tail) * 1000.0), timings_ms={k: round(v, 1) for k, v in result.timings_ms.items()},
+                      finish_ms=round((t_finished - t_tail) * 1000.0), tiling_ms=round(st.tiling_ms, 1),
+                      restore_ms=round(st.restore_ms, 1), evict_ms=round(st.evict_ms, 1),
+                      store_ms=round((t_map - t_finished) * 1000.0), publish_map_ms=round((t_end - t_map) * 1000.0),
+                      tiles_sent=sent[0], map_update_bytes=sent[1], relocalised=relocalised)
         self.stats.observe("stage_total", (time.perf_counter() - t0) * 1000.0)
         if self.store is not None:
             st.since_snapshot += 1
@@ -594,7 +603,9 @@ class RegistrationWorker(Worker):
             MapTile(stream=stream, ix=ix, iy=iy, tile_m=tile_m, seq=seq,
                     points=Array.from_numpy(np.asarray(p, np.float64)), labels=Array.from_numpy(np.asarray(l, np.uint8)))
             for (ix, iy), (p, l) in sorted(changed.items())])
-        self.session.put(keys.map_updates(stream), encode(update, 1 << 30), congestion_control=zenoh.CongestionControl.BLOCK)
+        data = encode(update, 1 << 30)
+        self.session.put(keys.map_updates(stream), data, congestion_control=zenoh.CongestionControl.BLOCK)
+        return len(update.tiles), len(data)
 
     # -- queries --------------------------------------------------------------------------------------------------
     @staticmethod

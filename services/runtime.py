@@ -244,6 +244,9 @@ class WorkerConfig(BaseModel):
     # registration: niceness added to the threads doing the work after a pose (loop closure, map update, eviction,
     # restores) and writing snapshots, so that the cores go to other streams' poses first. 0: the lanes' priority
     after_pose_nice: int = Field(10, ge=0, le=19)
+    # registration: a frame's work after its pose taking longer than this is logged with its steps (its stream's next
+    # frame waits for it)
+    slow_after_pose_s: float = Field(0.5, gt=0)
     # durable state (SQLite file; the registration worker and the map service may share one)
     store_path: str | None = None
     snapshot_every: int = Field(20, ge=1)  # registration: frames between state snapshots at least (a journal covers the rest)

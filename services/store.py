@@ -38,6 +38,7 @@ from occvo_core.errors import ConfigError
 from occvo_core.frame import OccupancyFrame
 from occvo_core.grid import OCC3D_GRID
 from services.runtime import log_event, lower_priority, name_os_thread
+from services.sqlite_wal import enable_wal
 
 _LOG = logging.getLogger("occvo.registration.store")  # the worker's logger prints it
 
@@ -452,7 +453,7 @@ def _connect(path: str, synchronous: str, busy_timeout_s: float, schema: str, pa
         db = sqlite3.connect(path, timeout=busy_timeout_s, isolation_level=None, check_same_thread=False)
         if page_size:
             db.execute(f"PRAGMA page_size={int(page_size)}")  # only a new file takes it, and only before WAL mode
-        db.execute("PRAGMA journal_mode=WAL")
+        enable_wal(db, busy_timeout_s)
         db.execute(f"PRAGMA synchronous={synchronous}")
         db.execute(f"PRAGMA busy_timeout={int(busy_timeout_s * 1000)}")
         db.execute("PRAGMA journal_size_limit=67108864")  # snapshots are big: truncate the WAL after checkpoints

@@ -166,6 +166,33 @@ def test_two_connections_share_the_file(tmp_path, scene):
         s.close()
 
 
+def _open_at(kind: str, path: str, start: float) -> str:
+    """In a pool process: open a store of `kind` on `path` at wall-clock `start` (all openers at once)."""
+    from services.map_store import open_map_store
+    while time.time() < start:
+        pass
+    try:
+        (TrajectoryStore(path) if kind == "trajectory" else open_map_store(path)).close()
+        return "ok"
+    except Exception as exc:  # noqa: BLE001 - reported to the test
+        return f"{kind}: {exc}"
+
+
+def test_shards_and_the_map_service_open_a_new_store_at_once(tmp_path):
+    """Two registration shards and the map service started together open one new file: switching it to WAL needs it
+    alone, and SQLite refuses that at once (no busy wait); before the retry 13 of 30 such trials failed one opener."""
+    import multiprocessing as mp
+
+    kinds = ["trajectory", "trajectory", "map", "map"]
+    with mp.get_context("spawn").Pool(len(kinds)) as pool:
+        pool.map(abs, range(len(kinds)))  # the processes are up before the first start time
+        for trial in range(12):
+            path, start = str(tmp_path / f"t{trial}" / "occvo.sqlite"), time.time() + 0.3
+            results = pool.starmap(_open_at, [(k, path, start) for k in kinds], chunksize=1)
+            assert results == ["ok"] * len(kinds), (trial, results)
+            assert sqlite3.connect(path).execute("PRAGMA journal_mode").fetchone()[0] == "wal"
+
+
 def test_a_snapshot_of_an_older_trajectory_does_not_count(tmp_path, scene):
     store = TrajectoryStore(tmp_path / "s.sqlite")
     vo = OccVO()

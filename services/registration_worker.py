@@ -138,6 +138,10 @@ class RegistrationWorker(Worker):
                 st.started = bool(st.seqs)
                 if st.started:
                     st.latest = self._pose_msg(stream, st.stored(st.seqs[-1]))
+        if config.warm_up:  # before the worker is announced: no kernel compiles while frames wait (occvo_core.warm_up)
+            from occvo_core.warm_up import warm_up
+
+            log_event(self.log, "kernels ready", **warm_up(self.occvo_config, config.kernel_threads))
 
     def owns(self, stream: str) -> bool:
         """This worker's shard registers the stream (a malformed stream id is shard 0's to report)."""

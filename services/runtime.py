@@ -247,6 +247,9 @@ class WorkerConfig(BaseModel):
     # registration: a frame's work after its pose taking longer than this is logged with its steps (its stream's next
     # frame waits for it)
     slow_after_pose_s: float = Field(0.5, gt=0)
+    # registration: call every kernel once at start-up, before taking frames (compiled on a fresh install, else
+    # loaded from numba's cache; see occvo_core/warm_up.py)
+    warm_up: bool = True
     # durable state (SQLite file; the registration worker and the map service may share one)
     store_path: str | None = None
     snapshot_every: int = Field(20, ge=1)  # registration: frames between state snapshots at least (a journal covers the rest)

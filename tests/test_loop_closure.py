@@ -4,6 +4,8 @@ bounded memory: the start area is evicted, the working map and pose move by a fe
 
 from __future__ import annotations
 
+import json
+
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
@@ -293,3 +295,32 @@ def test_a_followed_frames_voxels_paged_out_young_come_back_only_while_still_you
 
     _drive(loop, _config(True), None, each=each)
     assert seen["old"] > 0 and seen["young"] > 0, seen
+
+
+def test_warm_up_compiles_every_kernel_a_drive_with_eviction_and_a_closure_uses():
+    """A service calls warm_up() before its first frame: a kernel it leaves out compiles minutes into a drive, at the
+    first loop search, closure or restore (seconds each: a stream's frames wait). In a fresh process (this one has
+    compiled everything by now): warm up, then drive the loop with eviction, drift and a closure, and serve the map
+    by tiles as the worker does; the drive must need no kernel, nor argument types, that the warm-up did not compile."""
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    code = f"""
+import json, sys
+sys.path.insert(0, {str(Path(__file__).parent)!r})
+from occvo_core.warm_up import kernels_ready, warm_up
+print(json.dumps(warm_up()))
+ready = kernels_ready()
+import test_loop_closure as t
+scene = t.SyntheticScene(seed=1, frames=t.FRAMES, route="loop", loop_blocks=(1, 1))
+_, closures, _, _ = t._drive(scene, t._config(True), t._drift(2.0, [6.0, -4.0, 0.0]),
+                             each=lambda vo, i, r, ev: vo.map_points(tiles=t.START_TILES))
+print(json.dumps({{"closures": len(closures), "compiled_after": sorted(map(list, kernels_ready() - ready))}}))
+"""
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=600)
+    assert out.returncode == 0, out.stderr[-3000:]
+    warm, drive = (json.loads(line) for line in out.stdout.strip().splitlines()[-2:])
+    assert warm["kernels"] >= 20
+    assert drive["closures"] >= 1, "the drive must reach a closure for this to test it"
+    assert drive["compiled_after"] == [], drive["compiled_after"]

@@ -39,7 +39,7 @@ from occvo_core.map_tiles import changed_tiles, pack_tiles, retile_region, tile_
 from schemas import keys
 from schemas.codec import encode
 from schemas.models import Array, MapTile, MapUpdate, OccupancyFrameMsg, PoseEstimate, Trajectory
-from services.runtime import Worker, WorkerConfig, log_event, lower_priority, name_os_thread, set_thread_nice, worker_main
+from services.runtime import Worker, WorkerConfig, log_event, lower_priority, name_os_thread, set_thread_nice, trim_heap, worker_main
 from services.store import StoredPose, TrajectoryStore, frame_digest, pack_frame, unpack_arrays
 
 _STATUS = {"ok": "ok", "lost": "lost", "initialised": "reinitialised", "reinitialised": "reinitialised"}
@@ -142,6 +142,7 @@ class RegistrationWorker(Worker):
             from occvo_core.warm_up import warm_up
 
             log_event(self.log, "kernels ready", **warm_up(self.occvo_config, config.kernel_threads))
+            trim_heap()
 
     def owns(self, stream: str) -> bool:
         """This worker's shard registers the stream (a malformed stream id is shard 0's to report)."""

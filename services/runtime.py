@@ -506,6 +506,16 @@ def large_blocks_from_mmap(threshold: int = 16 << 20, trim: int = 64 << 20) -> b
         return False
 
 
+def trim_heap() -> bool:
+    """Give the heap's free pages back to the system now (glibc's malloc_trim; False elsewhere). Once, after start-up
+    work whose temporaries are gone (the kernels' warm-up left 43 MB free but resident); not per frame: trimmed pages
+    fault in again (README, Reliability: eight-stream p99 42 to 64 ms with a trim every 5 s)."""
+    try:
+        return bool(ctypes.CDLL("libc.so.6").malloc_trim(0))
+    except (OSError, AttributeError):
+        return False
+
+
 def worker_main(worker_cls: type[Worker], argv: list[str] | None = None, extra_args: Callable | None = None) -> int:
     """`python -m services.<role>_worker [--config deploy/x.json5] [--connect ...] ...`"""
     import argparse

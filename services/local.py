@@ -45,8 +45,8 @@ class LocalService:
         self.router = None
 
     def start(self, timeout: float = 180.0) -> "LocalService":
-        """Until every worker is alive: a registration worker on a fresh install first compiles its kernels (36 s on
-        this 2-core machine, two shards side by side twice that; occvo_core/warm_up.py)."""
+        """Until every worker is alive: a registration worker on a fresh install first compiles its kernels (36 s
+        alone on this 2-core machine, 42 s for two shards side by side; occvo_core/warm_up.py)."""
         self.router = open_router(self.endpoint, self.router_config)
         env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(REPO), os.environ.get("PYTHONPATH", "")]).rstrip(os.pathsep))
         try:

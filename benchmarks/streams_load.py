@@ -5,6 +5,8 @@
     python benchmarks/streams_load.py --streams 8 --minutes 5 --working-radius 120 --registration-workers 2  # 2 shards
     python benchmarks/streams_load.py --streams 2 4 6 8 --minutes 1               # a sweep: one run per count
     python benchmarks/streams_load.py --streams 8 --policy latest --minutes 1     # what dropping the oldest does
+    python benchmarks/streams_load.py --streams 8 --minutes 5 --working-radius 120 --registration-workers 2 \
+        --neighbour-load 0.35                                                      # on a host shared with a busy neighbour
 
 Router in this process, the three workers as subprocesses (services.local.LocalService). Each stream replays its own
 synthetic scene (seed = stream number) open loop at --rate, as a live camera would: frame i leaves at t0 + i / rate
@@ -29,6 +31,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import multiprocessing
 import os
 import sys
 import tempfile
@@ -176,10 +179,19 @@ def _slope(t, y) -> float | None:
     return float(np.polyfit(t / 60.0, y, 1)[0]) if len(t) >= 3 and np.ptp(t) > 0 else None
 
 
+def _neighbour(duty: float) -> None:
+    """A noisy neighbour on one core: busy `duty` of every 100 ms (--neighbour-load; a stand-in for host steal)."""
+    while True:
+        t = time.perf_counter()
+        while time.perf_counter() - t < duty * 0.1:
+            pass
+        time.sleep((1.0 - duty) * 0.1)
+
+
 def run_load(n: int, rate: float, minutes: float, policy: str, queue_size: int, scenes: dict, store: bool,
              sample_s: float, bucket_s: float, drain_s: float, log_dir: Path, working_radius: float = 0.0,
              registration_workers: int = 1, after_pose_nice: int | None = None,
-             snapshot_max_share: float | None = None) -> dict:
+             snapshot_max_share: float | None = None, store_sync: str | None = None) -> dict:
     import psutil
 
     total = int(round(minutes * 60 * rate))
@@ -192,6 +204,8 @@ def run_load(n: int, rate: float, minutes: float, policy: str, queue_size: int, 
         worker_args.setdefault("registration", []).extend(["--after-pose-nice", str(after_pose_nice)])
     if snapshot_max_share is not None:
         worker_args.setdefault("registration", []).extend(["--snapshot-max-share", str(snapshot_max_share)])
+    if store_sync is not None:
+        worker_args.setdefault("registration", []).extend(["--store-sync", store_sync])
     svc = LocalService(common_args=["--policy", policy, "--queue-size", str(queue_size)], worker_args=worker_args,
                        log_dir=log_dir, registration_shards=registration_workers).start(timeout=120)
     streams = [Stream(f"load{k}", scenes[k][:total], k / n) for k in range(n)]
@@ -232,6 +246,7 @@ def run_load(n: int, rate: float, minutes: float, policy: str, queue_size: int, 
 
         procs = {role: psutil.Process(p.pid) for role, p in svc.procs.items()}
         cpu0 = {role: sum(p.cpu_times()[:2]) for role, p in procs.items()}
+        io0 = {role: p.io_counters().write_bytes for role, p in procs.items()}
         me0, wall0 = time.process_time(), time.time()
         t0 = time.time() + 1.0
         stop = threading.Event()
@@ -268,6 +283,7 @@ def run_load(n: int, rate: float, minutes: float, policy: str, queue_size: int, 
             time.sleep(0.1)
         drained = all(st.newest_back() >= st.last_sent for st in streams)
         cpu1 = {role: sum(p.cpu_times()[:2]) for role, p in procs.items()}
+        io1 = {role: p.io_counters().write_bytes for role, p in procs.items()}
         health, reg_health = {}, []
         for r in session.get(keys.stats("*"), timeout=5.0):
             if r.ok is not None:
@@ -349,7 +365,7 @@ def run_load(n: int, rate: float, minutes: float, policy: str, queue_size: int, 
     out = {
         "streams": n, "rate_hz": rate, "minutes": minutes, "policy": policy, "queue_size": queue_size, "store": store,
         "registration_workers": registration_workers, "after_pose_nice": after_pose_nice,
-        "snapshot_max_share": snapshot_max_share,
+        "snapshot_max_share": snapshot_max_share, "store_sync": store_sync,
         "working_radius_m": working_radius or None,
         "offered_frames_per_s": offered, "due": due_total, "sent": sent, "received": received, "drained": drained,
         "drops": {"registration": int(smp[-1, 4]) if len(smp) else 0, "inference": int(smp[-1, 5]) if len(smp) else 0,
@@ -367,6 +383,9 @@ def run_load(n: int, rate: float, minutes: float, policy: str, queue_size: int, 
         "registration_stage_mean_ms": reg.stages["stage_total"].mean_ms if reg and "stage_total" in reg.stages else None,
         "map_update_ms_p50": reg.stages["map_update"].p50_ms if reg and "map_update" in reg.stages else None,
         "worker_cpu_pct": {role: 100.0 * (cpu1[role] - cpu0[role]) / (time.time() - wall0) for role in cpu0},
+        "worker_disk_write_mb_per_s": {role: (io1[role] - io0[role]) / 2 ** 20 / (time.time() - wall0) for role in io0},
+        "registration_counters": {k: sum(h.counters.get(k, 0) for h in reg_health) for k in (
+            "loop_closures", "after_pose_boosted", "tiles_evicted", "tiles_restored")},
         "client_and_router_cpu_pct": 100.0 * (me1 - me0) / (wall1 - wall0),
         "client_build_ms_p50": _pct(build, 50), "client_build_ms_p99": _pct(build, 99),
         "client_put_ms_p50": _pct(put, 50), "client_put_ms_p99": _pct(put, 99),
@@ -389,7 +408,8 @@ def print_run(r: dict, bucket_s: float) -> None:
     print(f"\n== {r['streams']} streams x {r['rate_hz']:g} Hz, {r['minutes']:g} min, policy {r['policy']}, "
           f"queue {r['queue_size']}, map store {'sqlite' if r['store'] else 'memory'}, registration "
           + (f"store + eviction at {r['working_radius_m']:g} m" if r["working_radius_m"] else "in memory, no eviction")
-          + (f", {r['registration_workers']} registration workers (shards)" if r["registration_workers"] > 1 else ""))
+          + (f", {r['registration_workers']} registration workers (shards)" if r["registration_workers"] > 1 else "")
+          + (f", a neighbour busy {r['neighbour_load']:g} of every core" if r.get("neighbour_load") else ""))
     unit = "min" if bucket_s == 60 else f"{bucket_s:g}s"
     print(f"{unit:>5} {'due':>5} {'sent':>5} {'recv':>5} {'poses/s':>7} {'lat p50':>7} {'lat p99':>7} {'cap p50':>7} {'cap p99':>7} "
           f"{'lag max':>7} {'regQ':>5} {'regQmax':>7} {'inflight':>8}  per stream sent/recv")
@@ -423,6 +443,8 @@ def print_run(r: dict, bucket_s: float) -> None:
           f"put p50 {fmt(r['client_put_ms_p50'], '{:.2f}')} ms p99 {fmt(r['client_put_ms_p99'], '{:.2f}')} ms, send lag p50 "
           f"{r['send_lag_ms_p50']:.1f} ms max {fmt(r['send_lag_ms_max'], '{:.0f}')} ms; errors {r['errors'] or 'none'}; "
           f"exit codes {r['worker_exit_codes']}")
+    print(f"registration counters (all shards): {json.dumps(r['registration_counters'])}; disk writes MB/s "
+          f"{json.dumps({k: round(v, 1) for k, v in r['worker_disk_write_mb_per_s'].items()})}")
 
 
 def main(argv=None) -> int:
@@ -441,6 +463,10 @@ def main(argv=None) -> int:
                     "after a pose (0: the lanes'; default: the worker's, 10)")
     ap.add_argument("--snapshot-max-share", type=float, default=None, help="the registration worker's snapshot_max_share "
                     "(default: the worker's, 0.02)")
+    ap.add_argument("--store-sync", choices=["full", "normal"], default=None, help="the registration worker's "
+                    "store_sync (default: the worker's, full)")
+    ap.add_argument("--neighbour-load", type=float, default=0.0, help="a busy process per core, busy this share of "
+                    "every 100 ms (0.35: a host stealing about a third of the cores)")
     ap.add_argument("--sample-s", type=float, default=3.0, help="seconds between worker stats samples")
     ap.add_argument("--bucket-s", type=float, default=None, help="report bucket (default 60 s; a third of the run when shorter than 3 min)")
     ap.add_argument("--drain-s", type=float, default=60.0, help="wait this long after the last send for outstanding poses")
@@ -452,6 +478,12 @@ def main(argv=None) -> int:
     bucket_s = args.bucket_s or (60.0 if args.minutes >= 3 else args.minutes * 20.0)
     total = int(round(args.minutes * 60 * args.rate))
     scenes = load_scenes(list(range(max(args.streams))), total, args.rate, Path(args.cache_dir), args.render_jobs)
+    neighbours = []
+    if args.neighbour_load > 0:  # started after rendering: they load the run, not the scenes' preparation
+        ctx = multiprocessing.get_context("spawn")
+        neighbours = [ctx.Process(target=_neighbour, args=(args.neighbour_load,), daemon=True) for _ in range(os.cpu_count() or 1)]
+        for proc in neighbours:
+            proc.start()
     results = []
     for n in args.streams:
         with tempfile.TemporaryDirectory(prefix="occvo-load-") as tmp:
@@ -459,11 +491,14 @@ def main(argv=None) -> int:
             log_dir.mkdir(parents=True, exist_ok=True)
             r = run_load(n, args.rate, args.minutes, args.policy, args.queue_size, scenes, not args.no_store,
                          args.sample_s, bucket_s, args.drain_s, log_dir, args.working_radius, args.registration_workers,
-                         args.after_pose_nice, args.snapshot_max_share)
+                         args.after_pose_nice, args.snapshot_max_share, args.store_sync)
+        r["neighbour_load"] = args.neighbour_load
         results.append(r)
         print_run(r, bucket_s)
         print(json.dumps({k: v for k, v in r.items() if k != "buckets"} | {"buckets": [
             {k: v for k, v in b.items() if k != "per_stream"} | {"per_stream": b["per_stream"]} for b in r["buckets"]]}), flush=True)
+    for proc in neighbours:
+        proc.terminate()
     if len(results) > 1:
         ok = [r["streams"] for r in results if r["keeps_up"]]
         print(f"\nhighest stream count that keeps up at {args.rate:g} Hz ({args.policy}): {max(ok) if ok else 'none of'} "

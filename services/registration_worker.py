@@ -39,7 +39,8 @@ from occvo_core.map_tiles import changed_tiles, pack_tiles, retile_region, tile_
 from schemas import keys
 from schemas.codec import encode
 from schemas.models import Array, MapTile, MapUpdate, OccupancyFrameMsg, PoseEstimate, Trajectory
-from services.runtime import Worker, WorkerConfig, log_event, lower_priority, name_os_thread, set_thread_nice, trim_heap, worker_main
+from services.runtime import (Worker, WorkerConfig, hold_priority, log_event, lower_priority, name_os_thread,
+                              release_priority, trim_heap, worker_main)
 from services.store import StoredPose, TrajectoryStore, frame_digest, pack_frame, unpack_arrays
 
 _STATUS = {"ok": "ok", "lost": "lost", "initialised": "reinitialised", "reinitialised": "reinitialised"}
@@ -125,7 +126,6 @@ class RegistrationWorker(Worker):
                               "within working_radius_m - tile_m")
         self.store = TrajectoryStore(config.store_path, config.store_sync.upper()) if config.store_path else None
         self._snapshots: queue.Queue = queue.Queue()
-        self._background_nice = os.getpriority(os.PRIO_PROCESS, 0)  # the after-pose threads' niceness (set as they start)
         self._boost_refused = False
         self._snapshot_writer = None
         if self.store is not None:
@@ -265,16 +265,18 @@ class RegistrationWorker(Worker):
         pose_m = np.asarray(reg.pose, float)
         status = _STATUS.get(reg.status, "ok")
         t_store = time.perf_counter()
+        phases = {}
         if self.store is not None:
             try:
-                self.store.commit_frame(stream, msg.seq, msg.stamp, digest, status, pose_m, pack_frame(frame), new_trajectory=restart)
+                phases = self.store.commit_frame(stream, msg.seq, msg.stamp, digest, status, pose_m, pack_frame(frame),
+                                                 new_trajectory=restart)
             except Exception as exc:  # noqa: BLE001 - e.g. disk full: publish nothing the store lacks; rebuild from it
                 return self._store_failed(stream, st, msg.seq, exc, "not stored, pose not published")
         store_ms = (time.perf_counter() - t_store) * 1000.0
         timings = dict(msg.timings_ms)
         timings.update({"occupancy_hop": hop_ms, "registration_queue": (t0 - t_queued) * 1000.0, "registration": reg_ms})
-        if self.store is not None:
-            timings.update(store_commit=store_ms)
+        if self.store is not None:  # with where a slow commit waited: this worker's writers, another process, the sync
+            timings.update(store_commit=store_ms, **{f"store_commit.{k}": v for k, v in phases.items()})
         timings.update({f"registration.{k}": float(v) for k, v in reg.timings_ms.items()})
         self._publish_pose(stream, st, msg.seq, msg.stamp, pose_m, status, digest, timings, restart)
         self.stats.observe("registration", reg_ms)
@@ -304,7 +306,7 @@ class RegistrationWorker(Worker):
             with st.tail_lock:
                 st.tail_running = False
                 if st.tail_boosted:  # niced again for the next frame's work
-                    set_thread_nice(st.tail_tid, self._background_nice)
+                    release_priority(st.tail_tid)
                     st.tail_boosted = False
 
     def _boost_tail(self, st: StreamState) -> None:
@@ -315,7 +317,7 @@ class RegistrationWorker(Worker):
         with st.tail_lock:
             if not st.tail_running or st.tail_tid is None or st.tail_boosted:
                 return
-            if set_thread_nice(st.tail_tid, os.getpriority(os.PRIO_PROCESS, threading.get_native_id())):
+            if hold_priority(st.tail_tid, os.getpriority(os.PRIO_PROCESS, threading.get_native_id())):
                 st.tail_boosted = True
                 self.stats.inc("after_pose_boosted")
             elif not self._boost_refused:
@@ -326,9 +328,7 @@ class RegistrationWorker(Worker):
     def _background_thread(self) -> None:
         """Start of a thread doing work off the poses' path: after_pose_nice below the lanes."""
         name_os_thread()
-        if lower_priority(self.config.after_pose_nice):
-            self._background_nice = os.getpriority(os.PRIO_PROCESS, threading.get_native_id())
-        else:
+        if not lower_priority(self.config.after_pose_nice):
             log_event(self.log, "cannot lower a background thread's priority here; it runs at the lanes'",
                       logging.WARNING, thread=threading.current_thread().name)
 

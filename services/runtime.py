@@ -491,6 +491,45 @@ def set_thread_nice(tid: int, nice: int) -> bool:
     return True
 
 
+_held_lock = threading.Lock()
+_held: dict[int, tuple[int, int]] = {}  # tid -> (holds, its niceness once none is left)
+
+
+def hold_priority(tid: int, nice: int) -> bool:
+    """Keep thread `tid` at niceness `nice` or better until release_priority(tid). Holds nest: a niced after-pose
+    thread its waiting lane raised (priority inheritance) that also holds the store's write lock (a priority ceiling)
+    goes back to its niceness when both are over. True if the thread runs at `nice` or better now; False where
+    raising it is not allowed (CAP_SYS_NICE or RLIMIT_NICE)."""
+    with _held_lock:
+        if tid in _held:
+            count, rest = _held[tid]
+            _held[tid] = (count + 1, rest)
+            return True
+        try:
+            rest = os.getpriority(os.PRIO_PROCESS, tid)
+        except (OSError, AttributeError):
+            return False
+        if rest <= nice:
+            return True  # nothing to raise (and nothing for release_priority to undo)
+        if not set_thread_nice(tid, nice):
+            return False
+        _held[tid] = (1, rest)
+        return True
+
+
+def release_priority(tid: int) -> None:
+    """End one hold_priority(tid) that returned True; the last one puts the thread back to its niceness."""
+    with _held_lock:
+        if tid not in _held:
+            return
+        count, rest = _held[tid]
+        if count > 1:
+            _held[tid] = (count - 1, rest)
+        else:
+            del _held[tid]
+            set_thread_nice(tid, rest)
+
+
 def large_blocks_from_mmap(threshold: int = 16 << 20, trim: int = 64 << 20) -> bool:
     """Fix glibc's mmap threshold and heap trim threshold (False where malloc is not glibc's). By default the mmap
     threshold rises to the largest block freed, up to 32 MB: then even the map's big arrays come from the heap, which

@@ -166,6 +166,75 @@ def test_two_connections_share_the_file(tmp_path, scene):
         s.close()
 
 
+def test_a_commit_says_whether_it_waited_for_this_store_or_for_another_process(tmp_path, scene):
+    """commit_frame's phases (in a pose's timings as store_commit.lock / .begin / .commit) put a slow commit's time
+    where it went: behind this store's other writers, or behind another connection holding the file (another shard)."""
+    path = tmp_path / "s.sqlite"
+    store, other = TrajectoryStore(path), sqlite3.connect(path, isolation_level=None, check_same_thread=False)
+    blob = pack_frame(scene[0])
+    phases = store.commit_frame("car", 0, 0.0, bytes(16), "ok", np.eye(4), blob, new_trajectory=True)
+    assert set(phases) == {"lock", "begin", "commit"}
+    held = 0.3
+
+    def hold(enter, leave):
+        enter()
+        time.sleep(held)
+        leave()
+
+    cases = {"lock": (store.lock.acquire, store.lock.release),
+             "begin": (lambda: other.execute("BEGIN IMMEDIATE"), lambda: other.execute("COMMIT"))}
+    for seq, (phase, (enter, leave)) in enumerate(cases.items(), start=1):
+        entered = threading.Event()
+        holder = threading.Thread(target=hold, args=(lambda: (enter(), entered.set()), leave))
+        holder.start()
+        entered.wait(5)
+        phases = store.commit_frame("car", seq, float(seq), bytes(16), "ok", np.eye(4), blob)
+        holder.join(5)
+        waited = [k for k, ms in phases.items() if ms >= 1000 * held * 0.8]
+        assert waited == [phase], phases
+    other.close()
+    store.close()
+
+
+def test_a_niced_thread_writes_to_the_store_at_the_lanes_priority_and_goes_back(tmp_path):
+    """Priority ceiling: the after-pose threads and the snapshot writer run niced, and one of them holding the store's
+    write lock kept the lanes' commits waiting while other work took the cores. A writer runs at the niceness of the
+    thread that opened the store while it holds the lock, then goes back, also when its lane raised it meanwhile
+    (priority inheritance) and still waits for it."""
+    import os
+    from services.runtime import hold_priority, lower_priority, release_priority, set_thread_nice
+
+    store = TrajectoryStore(tmp_path / "s.sqlite")
+    lanes = os.getpriority(os.PRIO_PROCESS, 0)
+    seen: dict[str, int] = {}
+
+    def niced():
+        me = threading.get_native_id()
+        assert lower_priority(10)
+        niced_at = os.getpriority(os.PRIO_PROCESS, me)
+        if not set_thread_nice(me, lanes):
+            seen["refused"] = 1
+            return
+        set_thread_nice(me, niced_at)
+        seen["niced"] = niced_at
+        store._write(lambda db: seen.__setitem__("writing", os.getpriority(os.PRIO_PROCESS, me)))
+        seen["after"] = os.getpriority(os.PRIO_PROCESS, me)
+        assert hold_priority(me, lanes)  # its lane waits for it
+        store._write(lambda db: None)
+        seen["boosted_after_write"] = os.getpriority(os.PRIO_PROCESS, me)
+        release_priority(me)  # its work is over
+        seen["end"] = os.getpriority(os.PRIO_PROCESS, me)
+
+    t = threading.Thread(target=niced)
+    t.start()
+    t.join(10)
+    store.close()
+    if "refused" in seen:
+        pytest.skip("raising a thread's priority needs CAP_SYS_NICE or RLIMIT_NICE here")
+    assert seen == {"niced": lanes + 10, "writing": lanes, "after": lanes + 10, "boosted_after_write": lanes,
+                    "end": lanes + 10}
+
+
 def _open_at(kind: str, path: str, start: float) -> str:
     """In a pool process: open a store of `kind` on `path` at wall-clock `start` (all openers at once)."""
     from services.map_store import open_map_store

@@ -41,7 +41,7 @@ class GICPConfig(_Section):
     source_voxel_m: float = Field(0.8, gt=0, description="fine GICP uses one frame point per block of this size")
     ground_source_voxel_m: float = Field(1.6, gt=0, description="the same for ground classes, which hold only z, roll, pitch")
     coarse_source_voxel_m: float = Field(1.6, gt=0, description="coarse GICP uses one frame point per block of this size")
-    source_pick: Literal["first", "balanced"] = Field("first", description="which voxel of a block is its source: "
+    source_pick: Literal["first", "balanced", "uniform"] = Field("first", description="which voxel of a block is its source: "
                                                       "the first in grid order (the rear-most, lowest ego x), or "
                                                       "balanced (the front-most in every other block, so the picks "
                                                       "lean neither way along the track; README, issue 2)")

@@ -347,7 +347,7 @@ class OccVO:
         wide, coarse, fine = kernels.thin_sources(
             ijk, np.isin(labels, GROUND_CLASSES), shape, _block_factor(g.wide_voxel_m) if g.wide_voxel_m > 0 else 0,
             _block_factor(g.coarse_source_voxel_m), _block_factor(g.source_voxel_m), _block_factor(g.ground_source_voxel_m),
-            g.source_pick == "balanced")
+            ("first", "balanced", "uniform").index(g.source_pick))
         return _Prepared(points, labels, covs, wide, coarse, fine, np.flatnonzero(np.isin(labels, MOVABLE_CLASSES)), frame.index)
 
     def _initial_guess(self, frame: _Prepared) -> np.ndarray:

@@ -15,7 +15,9 @@ from occvo_core.errors import InvalidFrameError
 from occvo_core.eval import ape_rmse, success
 from occvo_core.io import plot_trajectory, write_ply
 from occvo_core.odometry import OccVO
+from occvo_core.time_fit import fit_time_offset
 from occvo_core.trajectory import write_kitti, write_tum
+from occvo_core.trajectory_stats import path_length, vertical_drift
 
 
 class OdometryPipeline:
@@ -47,6 +49,10 @@ class OdometryPipeline:
                     self.stage_ms.setdefault(stage, []).append(ms)
         return self
 
+    def stamps(self) -> np.ndarray:
+        """Seconds of the registered frames."""
+        return np.array(self.odometry.frame_indices, float) / self.source.rate_hz
+
     def gt_of_registered(self) -> np.ndarray | None:
         gt = self.source.gt_poses
         return None if gt is None else gt[self.odometry.frame_indices]
@@ -58,6 +64,11 @@ class OdometryPipeline:
         if gt is not None:
             rmse = ape_rmse(gt, poses)
             out.update(ape_rmse_m=rmse, success=success(rmse))
+            if len(poses) >= 3:  # how much of the APE is timing between the frames and their poses
+                fit = fit_time_offset(gt, poses, self.stamps())
+                out.update(ape_rmse_time_fitted_m=fit.ape_rmse_m, time_offset_ms=fit.offset_ms,
+                           time_fit_dropped_frames=fit.dropped_frames)
+        out.update(path_length_m=path_length(poses), **vertical_drift(poses))
         out["ms_per_frame_median"] = float(np.median(self.frame_ms)) if self.frame_ms else None
         out["ms_per_stage_median"] = {k: float(np.median(v)) for k, v in self.stage_ms.items()}
         out["map_voxels"] = len(self.odometry.map)
@@ -68,9 +79,8 @@ class OdometryPipeline:
         out = Path(out_dir)
         out.mkdir(parents=True, exist_ok=True)
         poses = self.odometry.poses
-        stamps = np.array(self.odometry.frame_indices, float) / self.source.rate_hz
         write_kitti(out / "trajectory.kitti", poses)
-        write_tum(out / "trajectory.tum", poses, stamps)
+        write_tum(out / "trajectory.tum", poses, self.stamps())
         points, labels = self.odometry.map_points()
         np.savez_compressed(out / "map.npz", points=points, labels=labels)
         np.savez_compressed(out / "map_voxels.npz", **self.odometry.map.arrays(len(poses)))

@@ -98,14 +98,32 @@ def test_kept_pairs_linearise_as_a_fresh_search_does():
 
 def test_source_pick_first_takes_each_blocks_rear_most_voxel_and_balanced_the_front_most_in_odd_blocks():
     """Two full 2x2x2 blocks along x, in grid order: block (0,0,0) has even parity, block (1,0,0) odd. 'first'
-    leans every pick to the rear (lowest x), which moved the real scenes' along-track error by 0.2 to 0.3% (README)."""
+    leans every pick to the rear (lowest x)."""
     shape = np.array(OCC3D_GRID.shape)
     ijk = np.array([(i, j, k) for i in range(4) for j in range(2) for k in range(2)], np.int64)
     off_ground = np.zeros(len(ijk), bool)
-    _, _, first = kernels.thin_sources(ijk, off_ground, shape, 0, 0, 2, 4)
-    _, _, balanced = kernels.thin_sources(ijk, off_ground, shape, 0, 0, 2, 4, True)
+    _, _, first = kernels.thin_sources(ijk, off_ground, shape, 0, 0, 2, 4, 0)
+    _, _, balanced = kernels.thin_sources(ijk, off_ground, shape, 0, 0, 2, 4, 1)
     assert ijk[first].tolist() == [[0, 0, 0], [2, 0, 0]]
     assert ijk[balanced].tolist() == [[0, 0, 0], [3, 1, 1]]
     # the ground's own block size: one block of 4, even parity, so its first voxel either way
     on_ground = np.ones(len(ijk), bool)
-    assert kernels.thin_sources(ijk, on_ground, shape, 0, 0, 2, 4, True)[2].tolist() == [0]
+    assert kernels.thin_sources(ijk, on_ground, shape, 0, 0, 2, 4, 1)[2].tolist() == [0]
+
+
+def test_uniform_source_pick_leans_no_way_and_does_not_depend_on_point_order():
+    """Every cell of a full 40x40x8 box: 'uniform' picks one voxel a 2x2x2 block, each of the block's eight
+    positions about as often, so the picks' mean offset from their blocks' centres is near zero on every axis
+    (where 'first' is half a voxel back on all three)."""
+    shape = np.array(OCC3D_GRID.shape)
+    ijk = np.array([(i, j, k) for i in range(40) for j in range(40) for k in range(8)], np.int64)
+    off_ground = np.zeros(len(ijk), bool)
+    _, _, uniform = kernels.thin_sources(ijk, off_ground, shape, 0, 0, 2, 4, 2)
+    _, _, first = kernels.thin_sources(ijk, off_ground, shape, 0, 0, 2, 4, 0)
+    assert len(uniform) == len(first) == 40 * 40 * 8 // 8
+    offset = ijk[uniform] - (ijk[uniform] // 2 * 2 + 0.5)  # -0.5 or +0.5 voxel on each axis
+    assert np.all(np.abs(offset.mean(axis=0)) < 0.05)
+    assert np.allclose((ijk[first] - (ijk[first] // 2 * 2 + 0.5)).mean(axis=0), -0.5)
+    order = np.random.default_rng(0).permutation(len(ijk))
+    _, _, shuffled = kernels.thin_sources(ijk[order], off_ground, shape, 0, 0, 2, 4, 2)
+    assert sorted(map(tuple, ijk[order][shuffled])) == sorted(map(tuple, ijk[uniform]))

@@ -1,0 +1,186 @@
+"""Accuracy on protocols that cannot overfit: real scenes four ways, synthetic seeds to choose and others to confirm.
+
+    python benchmarks/accuracy.py [--sets real choose confirm] [--config A.json5 ...] [--output FILE] [--jobs 2]
+
+real     every scene in ../shared/data/occvo-sample run four ways (benchmarks/time_offset.py's variants: forward,
+         reversed, turned 180 degrees, both). From the four best time shifts of a scene: its data offset d and the
+         lean e fixed in the ego frame (which a source selection that prefers a direction in the ego frame gives).
+choose   synthetic seeds 0-19 (default noise): where settings are compared.
+confirm  synthetic seeds 100-119: only to confirm a choice, never to make one.
+Per run: plain APE (the paper's metric), time-fitted APE (occvo_core.time_fit), path-length ratio (estimate over
+truth), best time shift; synthetic runs also map precision and completion. Per set: mean, worst, success ratio.
+Several --config files (JSON5 OccVOConfig overrides; "default" for the built-in one) are run side by side.
+Synthetic frames are rendered once into --cache (default /tmp/occvo-accuracy-cache) and reused.
+Prints a table and writes JSON to --output.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from concurrent.futures import ProcessPoolExecutor
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from occvo_core import OccVO, OccVOConfig  # noqa: E402
+from occvo_core.eval import ape_rmse, success  # noqa: E402
+from occvo_core.frame import OccupancyFrame  # noqa: E402
+from occvo_core.time_fit import fit_time_offset  # noqa: E402
+from occvo_core.trajectory_stats import path_length  # noqa: E402
+
+SAMPLE = Path(__file__).resolve().parents[2] / "shared" / "data" / "occvo-sample"
+SETS = {"choose": range(0, 20), "confirm": range(100, 120)}
+WAYS = {"forward": (1, 1), "reversed": (-1, -1), "turned": (1, -1), "turned+rev": (-1, 1)}  # signs of d, e
+TURN = np.diag([-1.0, -1.0, 1.0, 1.0])
+
+
+def load_config(spec: str) -> OccVOConfig:
+    return OccVOConfig() if spec == "default" else OccVOConfig.load(spec)
+
+
+def real_runs(name: str) -> dict:
+    """The four ways of one release scene: (frames, ground truth) each, stamps at 2 Hz."""
+    from occvo_core.datasets import OccVOReleaseScene
+
+    source = OccVOReleaseScene(SAMPLE / "occupancy" / name)
+    frames = [source[i] for i in range(len(source))]
+    gt = np.asarray(source.gt_poses)
+    turned = [OccupancyFrame(f.points * [-1.0, -1.0, 1.0], f.labels, f.index) for f in frames]
+    return {"forward": (frames, gt), "reversed": (frames[::-1], gt[::-1]),
+            "turned": (turned, TURN @ gt @ TURN), "turned+rev": (turned[::-1], (TURN @ gt @ TURN)[::-1])}
+
+
+def synthetic(seed: int, cache: Path) -> tuple[list, np.ndarray, tuple]:
+    """Frames, ground truth and true static map of a seed, rendered once."""
+    path = cache / f"seed{seed}.npz"
+    if not path.exists():
+        from occvo_core.sim import SyntheticScene
+
+        scene = SyntheticScene(seed=seed)
+        frames = [scene[i] for i in range(len(scene))]
+        points, labels = scene.static_map()
+        sizes = np.array([len(f.labels) for f in frames])
+        cache.mkdir(parents=True, exist_ok=True)
+        np.savez(path.with_suffix(".tmp.npz"), sizes=sizes, points=np.concatenate([f.points for f in frames]),
+                 labels=np.concatenate([f.labels for f in frames]), gt=scene.gt_poses, map_points=points,
+                 map_labels=labels)
+        path.with_suffix(".tmp.npz").rename(path)
+    z = np.load(path)
+    cut = np.cumsum(z["sizes"])[:-1]
+    frames = [OccupancyFrame(p, lab, i, i / 2.0)
+              for i, (p, lab) in enumerate(zip(np.split(z["points"], cut), np.split(z["labels"], cut)))]
+    return frames, z["gt"], (z["map_points"], z["map_labels"])
+
+
+def score(frames: list, gt: np.ndarray, config: OccVOConfig, truth_map=None) -> dict:
+    vo = OccVO(config, threads=1)
+    for frame in frames:
+        vo.step(frame)
+    est = vo.poses
+    world_gt, gt = gt, np.linalg.inv(gt[0]) @ gt
+    fit = fit_time_offset(gt, est, np.arange(len(gt)) / 2.0)
+    row = {"ape_m": ape_rmse(gt, est), "ape_time_fitted_m": fit.ape_rmse_m, "time_offset_ms": fit.offset_ms,
+           "path_ratio": path_length(est) / path_length(gt)}
+    if truth_map is not None:
+        from occvo_core.map_metrics import align_to_ground_truth, map_metrics
+
+        points, labels = vo.map_points()
+        m = map_metrics(align_to_ground_truth(points, est, world_gt), labels, *truth_map)  # the true map's frame
+        row.update(precision=m.precision, completion=m.completion)
+    return row
+
+
+def job(args: tuple) -> tuple:
+    spec, kind, key, cache = args
+    config = load_config(spec)
+    if kind == "real":
+        name, way = key
+        frames, gt = real_runs(name)[way]
+        return spec, kind, key, score(frames, gt, config)
+    frames, gt, truth = synthetic(key, Path(cache))
+    return spec, kind, key, score(frames, gt, config, truth)
+
+
+def summarise(rows: dict) -> dict:
+    apes = [r["ape_m"] for r in rows.values()]
+    out = {"mean_ape_m": float(np.mean(apes)), "worst_ape_m": float(np.max(apes)),
+           "success": float(np.mean([success(a) for a in apes])),
+           "mean_ape_time_fitted_m": float(np.mean([r["ape_time_fitted_m"] for r in rows.values()])),
+           "worst_ape_time_fitted_m": float(np.max([r["ape_time_fitted_m"] for r in rows.values()])),
+           "mean_path_ratio": float(np.mean([r["path_ratio"] for r in rows.values()]))}
+    for k in ("precision", "completion"):
+        if all(k in r for r in rows.values()):
+            out[f"mean_{k}"] = float(np.mean([r[k] for r in rows.values()]))
+    return out
+
+
+def leans(real: dict) -> dict:
+    """Per scene: data offset d and ego-frame lean e from its four runs' best shifts (time_offset.py's algebra)."""
+    out = {}
+    for name in sorted({k[0] for k in real}):
+        shifts = np.array([real[(name, w)]["time_offset_ms"] for w in WAYS])
+        signs = np.array(list(WAYS.values()), np.float64)
+        d, e = signs.T @ shifts / 4.0
+        out[name] = {"data_offset_ms": float(d), "ego_lean_ms": float(e)}
+    return out
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--sets", nargs="+", default=["real", "choose", "confirm"], choices=["real", "choose", "confirm"])
+    p.add_argument("--config", nargs="+", default=["default"], help="OccVOConfig JSON5 files, or 'default'")
+    p.add_argument("--seeds", type=int, default=20, help="seeds of each synthetic set (the first N)")
+    p.add_argument("--cache", default="/tmp/occvo-accuracy-cache")
+    p.add_argument("--jobs", type=int, default=2)
+    p.add_argument("--output", type=Path)
+    args = p.parse_args(argv)
+    scenes = sorted(d.name for d in (SAMPLE / "occupancy").iterdir()) if (SAMPLE / "occupancy").is_dir() else []
+    if "real" in args.sets and not scenes:
+        print(f"no real scenes at {SAMPLE}", file=sys.stderr)
+    jobs = [(c, "real", (s, w), args.cache) for c in args.config if "real" in args.sets for s in scenes for w in WAYS]
+    jobs += [(c, k, seed, args.cache) for c in args.config for k in ("choose", "confirm") if k in args.sets
+             for seed in list(SETS[k])[: args.seeds]]
+    results: dict = {c: {} for c in args.config}
+    with ProcessPoolExecutor(args.jobs) as pool:
+        for spec, kind, key, row in pool.map(job, jobs):
+            results[spec].setdefault(kind, {})[key] = row
+    report = {}
+    for spec, kinds in results.items():
+        report[spec] = {}
+        for kind, rows in kinds.items():
+            entry = {"runs": {"/".join(map(str, k)) if isinstance(k, tuple) else str(k): r for k, r in rows.items()},
+                     "summary": summarise(rows)}
+            if kind == "real":
+                entry["leans"] = leans(rows)
+            report[spec][kind] = entry
+    print_report(report)
+    if args.output:
+        args.output.write_text(json.dumps(report, indent=1) + "\n")
+    return 0
+
+
+def print_report(report: dict) -> None:
+    for spec, kinds in report.items():
+        print(f"== {spec}")
+        for kind, entry in kinds.items():
+            s = entry["summary"]
+            line = (f"  {kind:<8} APE mean {s['mean_ape_m']:.3f} worst {s['worst_ape_m']:.3f} | time-fitted mean "
+                    f"{s['mean_ape_time_fitted_m']:.3f} worst {s['worst_ape_time_fitted_m']:.3f} | path ratio "
+                    f"{s['mean_path_ratio']:.4f} | success {s['success']:.3f}")
+            if "mean_precision" in s:
+                line += f" | precision {s['mean_precision']:.3f} completion {s['mean_completion']:.3f}"
+            print(line)
+            if kind == "real":
+                for run, r in entry["runs"].items():
+                    print(f"    {run:<22} APE {r['ape_m']:.3f} fitted {r['ape_time_fitted_m']:.3f} "
+                          f"shift {r['time_offset_ms']:+4.0f} ms path {r['path_ratio']:.4f}")
+                for name, lean in entry["leans"].items():
+                    print(f"    {name}: data offset {lean['data_offset_ms']:+.0f} ms, ego lean {lean['ego_lean_ms']:+.0f} ms")
+
+
+if __name__ == "__main__":
+    sys.exit(main())

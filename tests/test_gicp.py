@@ -98,7 +98,8 @@ def test_kept_pairs_linearise_as_a_fresh_search_does():
 
 def test_source_pick_first_takes_each_blocks_rear_most_voxel_and_balanced_the_front_most_in_odd_blocks():
     """Two full 2x2x2 blocks along x, in grid order: block (0,0,0) has even parity, block (1,0,0) odd. 'first'
-    leans every pick to the rear (lowest x), which moved the real scenes' along-track error by 0.2 to 0.3% (README)."""
+    leans every pick to the rear (lowest x), which moves the real scenes' along-track error by 0.2 to 0.3%
+    (benchmarks/along_track.py)."""
     shape = np.array(OCC3D_GRID.shape)
     ijk = np.array([(i, j, k) for i in range(4) for j in range(2) for k in range(2)], np.int64)
     off_ground = np.zeros(len(ijk), bool)

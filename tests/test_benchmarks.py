@@ -20,7 +20,7 @@ def test_along_track_finds_scene_0101s_frames_ahead_of_their_poses(sample_root):
     report = _run("along_track.py", "--sample", str(sample_root), "--scenes", "scene-0101")["scene-0101"]
     assert 0.0 < report["ape_rmse_m"] < 0.45
     assert report["moving_frames"] == 29
-    # two GICPs at ground-truth poses: frames ahead along the track in most moving frames (README, issue 2)
+    # two GICPs at ground-truth poses: frames ahead along the track in most moving frames (docs/results.md, Accuracy)
     assert report["gt_map_along_share"] > 0 and report["open3d_along_share"] > 0
     assert report["open3d_frames_ahead"] > report["moving_frames"] / 2
 
@@ -47,7 +47,7 @@ def test_coarse_lean_scores_every_stage_of_scene_0101s_frames(sample_root):
     report = _run("coarse_lean.py", "--sample", str(sample_root), "--scenes", "scene-0101")["scene-0101"]
     assert [row["frame"] for row in report["frames"]] == list(range(9, 40))
     assert report["moving_frames"] == 29 and report["slow_frames"] == 4
-    # the slow start: coarse GICP leans ahead of where fine GICP from the guess lands (README, issue 2)
+    # the slow start: coarse GICP leans ahead of where fine GICP from the guess lands (docs/results.md, Accuracy)
     slow = report["mean_slow_cm"]
     assert slow["coarse"] > slow["fine_only"] + 5
 
@@ -60,7 +60,7 @@ def test_time_offset_reads_the_same_data_offset_from_four_runs_of_scene_0101(sam
     # the four contrasts are the four shifts again, rotated: nothing lost in the decomposition
     assert abs(report["data_offset_ms"] + report["ego_lead_ms"] + report["travel_lead_ms"] + report["residual_ms"]
                - shifts[0]) < 1e-6
-    # frames after their poses (README, issue 2): forward runs fit a later ground truth, reversed ones an earlier
+    # frames after their poses (docs/results.md): forward runs fit a later ground truth, reversed ones an earlier
     assert report["data_offset_ms"] > 0 and shifts[0] > shifts[1] and shifts[2] > shifts[3]
     assert all(runs[r]["ape_at_best_shift_m"] <= runs[r]["ape_rmse_m"] for r in runs)
     assert report["exact_odometry_ape_m"] > 0

@@ -97,7 +97,7 @@ def test_worker_serves_the_checkpoint_equal_to_the_predictor(checkpoint):
         subs = [session.declare_subscriber(keys.occupancy("cam"), lambda s: got.setdefault((m := decode(s.payload.to_bytes(), OccupancyFrameMsg)).seq, m)),
                 session.declare_subscriber(keys.errors("cam"), lambda s: errors.append(decode(s.payload.to_bytes(), ErrorEvent)))]
         # BLOCK, as OccVOClient: with zenoh's default DROP, a camera frame (many fragments) that meets a full queue
-        # towards the busy worker for 1-50 ms is dropped on the way, silently (the "stuck lane" of an earlier attempt)
+        # towards the busy worker for 1-50 ms is dropped on the way, silently
         pub = session.declare_publisher(keys.camera("cam"), congestion_control=zenoh.CongestionControl.BLOCK)
         assert wait_for(lambda: pub.matching_status.matching or worker.poll() is not None, 60), "worker never subscribed"
         assert worker.poll() is None, worker.communicate()[1]

@@ -11,10 +11,9 @@ from occvo_core.eval import ape_rmse
 from occvo_core.io import read_map
 from occvo_core.trajectory import read_kitti, read_tum
 
-# Measured (README, benchmarks/registration.py). The goal is 0.15 m on both scenes: scene-0268 meets it;
-# scene-0101 does not (0.278 m). The release's frames lie ~40 and ~100 ms after their poses, so an exact odometry
-# would score ~0.16 and ~0.35 m against them (README, benchmarks/time_offset.py). The bounds below catch
-# regressions from what we reach today.
+# Measured: 0.278 and 0.103 m (docs/results.md, Accuracy). The goal is 0.15 m on both scenes; the release's frames
+# lie ~40 and ~100 ms after their poses, so an exact odometry would score ~0.16 and ~0.35 m against them
+# (benchmarks/time_offset.py). The bounds below catch regressions from the current figures.
 RMSE_BOUND_M = {"scene-0101": 0.45, "scene-0268": 0.15}
 
 

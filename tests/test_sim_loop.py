@@ -67,7 +67,7 @@ def test_static_map_without_bookkeeping_is_the_same():
 
 
 def test_default_drive_is_unchanged():
-    # digest of poses, frames, static map and tracks recorded before the loop route was added (same code path since)
+    # digest of the default route's poses, frames, static map and tracks: the loop route leaves that drive unchanged
     s = SyntheticScene(seed=7, frames=6)
     assert s.route == "walk" and s.cache_frames is None and s.keep_static
     h = hashlib.sha256(s.gt_poses.tobytes())

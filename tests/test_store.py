@@ -527,7 +527,7 @@ def test_crash_with_eviction_resumes_exactly_and_the_map_service_keeps_far_tiles
             c1, c2 = first.stats.snapshot()[0], second.stats.snapshot()[0]
             assert c1["tiles_evicted"] > 0 and c1["tiles_restored"] > 0 and c2["resumes"] == 1 and not c2["errors"]
             # the last frame's map update (and its evictions) come after its pose: the odometry is that work's until
-            # its map is out (read before, a CI run once saw tiles up to 119 m away)
+            # its map is out (read earlier, it may still hold tiles beyond the radius)
             _wait_map(ref, N - 1)
             _wait_map(cut, N - 1)
             # the working map stays within the radius (checked when the ego changes half-tile cell)

@@ -28,6 +28,7 @@ class OdometryPipeline:
         self.frame_ms: list[float] = []
         self.stage_ms: dict[str, list[float]] = {}
         self.skipped: list[str] = []
+        self.stamp_of: dict[int, float] = {}  # frame index -> the data's stamp (s)
 
     def run(self) -> "OdometryPipeline":
         self.odometry.reset()
@@ -36,6 +37,7 @@ class OdometryPipeline:
                 frame = self.source[i]
                 start = time.perf_counter()
                 result = self.odometry.step(frame)
+                self.stamp_of[frame.index] = float(frame.stamp)
             except InvalidFrameError as exc:
                 if not self.skip_bad_frames:
                     raise
@@ -46,6 +48,10 @@ class OdometryPipeline:
                 for stage, ms in result.timings_ms.items():
                     self.stage_ms.setdefault(stage, []).append(ms)
         return self
+
+    def stamps(self) -> np.ndarray:
+        """Stamps of the registered frames as the data gave them (index / rate only where a source has no clock)."""
+        return np.array([self.stamp_of.get(i, i / self.source.rate_hz) for i in self.odometry.frame_indices], float)
 
     def gt_of_registered(self) -> np.ndarray | None:
         gt = self.source.gt_poses
@@ -68,7 +74,7 @@ class OdometryPipeline:
         out = Path(out_dir)
         out.mkdir(parents=True, exist_ok=True)
         poses = self.odometry.poses
-        stamps = np.array(self.odometry.frame_indices, float) / self.source.rate_hz
+        stamps = self.stamps()
         write_kitti(out / "trajectory.kitti", poses)
         write_tum(out / "trajectory.tum", poses, stamps)
         points, labels = self.odometry.map_points()

@@ -155,3 +155,33 @@ def test_token_tree_runs_like_the_release_format_and_the_original(tree, sample_r
           f"original release {theirs:.4f} m")
     assert difference <= 1e-9
     assert abs(ours - theirs) <= 0.05
+
+
+def test_service_carries_the_annotation_stamps_to_poses_trajectory_and_tum(tree, tmp_path, capsys):
+    """occvo replay of the token tree through the three workers: every pose, the trajectory query and the TUM file
+    carry annotations.json's timestamps."""
+    from services.client import OccVOClient
+    from services.local import InProcessService
+
+    root, stamps = tree
+    want = stamps["scene-0268"] / 1e6
+    with InProcessService() as svc:
+        code = _run_command("replay", [str(root), "--scene", "scene-0268", "--connect", svc.endpoint, "--stream", "occ3d",
+                                       "--tum", str(tmp_path / "t.tum"), "--timeout", "300"])
+        assert code == 0, capsys.readouterr().err
+        with OccVOClient(svc.endpoint, stream="occ3d") as client:
+            traj = client.trajectory()
+    assert np.allclose(traj.stamps.to_numpy(), want, rtol=0, atol=1e-9)
+    tum_stamps, _ = read_tum(tmp_path / "t.tum")
+    assert np.allclose(tum_stamps, want, rtol=0, atol=2e-6)
+
+
+def _run_command(name, argv):
+    import argparse
+    import importlib
+
+    mod = importlib.import_module(f"services.commands.{name}")
+    parser = argparse.ArgumentParser()
+    mod.add_parser(parser.add_subparsers())
+    args = parser.parse_args([name, *argv])
+    return args.func(args)

@@ -30,7 +30,8 @@ class OdometryPipeline:
         self.skipped: list[str] = []
         self.stamp_of: dict[int, float] = {}  # frame index -> the data's stamp (s)
 
-    def run(self) -> "OdometryPipeline":
+    def run(self, on_step=None) -> "OdometryPipeline":
+        """on_step(frame, result, odometry), when given, sees every registered frame (a live view logs it)."""
         self.odometry.reset()
         for i in tqdm(range(len(self.source)), desc=f"OCC-VO {self.source.name}", unit="frame", disable=not self.progress):
             try:
@@ -47,6 +48,8 @@ class OdometryPipeline:
                 self.frame_ms.append((time.perf_counter() - start) * 1e3)
                 for stage, ms in result.timings_ms.items():
                     self.stage_ms.setdefault(stage, []).append(ms)
+            if on_step is not None:
+                on_step(frame, result, self.odometry)
         return self
 
     def stamps(self) -> np.ndarray:

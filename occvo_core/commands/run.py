@@ -39,6 +39,9 @@ def add_parser(sub) -> None:
     p.add_argument("--motion-search", action=argparse.BooleanOptionalAction, default=None,
                    help="refine each frame's constant-velocity guess by the semantic BEV motion search "
                    "(initialisation.motion_search; default: on with --from-images, else as the config says)")
+    p.add_argument("--view", action="store_true", help="show the run live in a rerun viewer (pip install 'occvo[view]')")
+    p.add_argument("--rerun", type=Path, metavar="FILE.rrd", help="save the live view as a rerun recording")
+    p.add_argument("--map-every", type=int, default=5, help="--view/--rerun: log the global map every N frames")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=run)
 
@@ -79,8 +82,11 @@ def run(args) -> int:
                                                                      min_ground_confidence=args.min_ground_confidence))
     else:
         source = open_scene(args.input, gt=args.gt, scene=args.scene, mask=args.mask)
+    view = _open_view(args)
     pipeline = OdometryPipeline(source, config_from_args(args), skip_bad_frames=args.skip_bad_frames, threads=args.threads,
-                                progress=not args.quiet).run()
+                                progress=not args.quiet).run(on_step=view.step if view else None)
+    if view:
+        view.finish(pipeline.odometry)
     extra = {}
     if args.input is None:
         extra["map_metrics"] = _synthetic_map_metrics(truth, pipeline)
@@ -88,6 +94,20 @@ def run(args) -> int:
     print(json.dumps({k: summary[k] for k in summary if k not in ("skipped_frames",)}, indent=2, default=float))
     print(f"wrote {args.out}/: trajectory.kitti trajectory.tum map.ply map.npz map_voxels.npz trajectory.png summary.json")
     return 0
+
+
+def _open_view(args):
+    if not (args.view or args.rerun):
+        return None
+    from occvo_core.errors import ConfigError
+
+    try:
+        from occvo_core.viz.rerun_log import RerunView
+    except ModuleNotFoundError as exc:
+        if exc.name != "rerun":
+            raise
+        raise ConfigError("--view and --rerun need rerun-sdk: pip install 'occvo[view]'") from None
+    return RerunView.open("occvo", spawn=args.view, save=args.rerun, map_every=args.map_every)
 
 
 def _list_scenes(root) -> int:

@@ -72,9 +72,13 @@ def replay(client: OccVOClient, scene, rate_hz: float = 0.0, window: int = 4, fr
 
 def add_parser(subparsers) -> None:
     p = subparsers.add_parser("replay", help="publish a scene (folder or synthetic:<seed>) to the running service")
-    p.add_argument("scene", help="scene folder (OCC-VO release or Occ3D layout), Occ3D-nuScenes root with --scene, "
-                   "or synthetic:<seed>")
-    p.add_argument("--scene", dest="scene_name", help="the scene of an Occ3D-nuScenes root (annotations.json + gts/)")
+    p.add_argument("scene", nargs="?", help="scene folder (OCC-VO release or Occ3D layout), Occ3D-nuScenes root with "
+                   "--scene, or synthetic:<seed>; none with --nuscenes")
+    p.add_argument("--nuscenes", metavar="DATAROOT", help="publish a nuScenes scene's six keyframe camera images, with "
+                   "their calibration and timestamps, for the model source (nuscenes-devkit; --version, --scene)")
+    p.add_argument("--version", default="v1.0-mini", help="--nuscenes: the tables' version (default v1.0-mini)")
+    p.add_argument("--scene", dest="scene_name", help="the scene of an Occ3D-nuScenes root (annotations.json + gts/) "
+                   "or of --nuscenes (default scene-0061)")
     p.add_argument("--mask", choices=("camera", "lidar", "none"), default="camera", help="Occ3D input: visibility mask")
     add_connection(p)
     p.add_argument("--rate", type=float, default=0.0, help="frames per second; 0 = as fast as the pipeline takes")
@@ -90,7 +94,16 @@ def add_parser(subparsers) -> None:
 
 
 def run(args) -> int:
-    scene = load_scene(args.scene, args.frames, args.scene_name, args.mask)
+    if args.nuscenes:
+        from services.nuscenes_source import NuScenesCameraFrames
+
+        scene = NuScenesCameraFrames(args.nuscenes, args.version, args.scene_name or "scene-0061")
+    elif args.scene is None:
+        from occvo_core.errors import ConfigError
+
+        raise ConfigError("replay needs a scene (folder or synthetic:<seed>) or --nuscenes DATAROOT")
+    else:
+        scene = load_scene(args.scene, args.frames, args.scene_name, args.mask)
     with OccVOClient(endpoint(args), stream=args.stream, resend_after=args.resend_after or None) as client:
         client.wait_for_workers(timeout=args.timeout)
         out = replay(client, scene, args.rate, args.window, args.frames, args.timeout)

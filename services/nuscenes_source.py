@@ -33,8 +33,18 @@ class NuScenesCameraFrames:
                 raise DatasetError(path, f"unreadable camera image: {exc}") from None
             if fmt not in ("JPEG", "PNG"):
                 raise DatasetError(path, f"camera images are JPEG or PNG, this is {fmt}")
-            images.append(CameraImage(camera=name, encoding=fmt.lower(), width=width, height=height, data=data,
-                                      intrinsics=k.tolist(), extrinsics=t.tolist(), stamp=float(stamp)))
+            images.append(
+                CameraImage(
+                    camera=name,
+                    encoding=fmt.lower(),
+                    width=width,
+                    height=height,
+                    data=data,
+                    intrinsics=k.tolist(),
+                    extrinsics=t.tolist(),
+                    stamp=float(stamp),
+                )
+            )
         return CameraFrame(stream="default", seq=index, stamp=s.stamp, images=images)
 
     @property

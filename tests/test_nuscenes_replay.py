@@ -13,7 +13,9 @@ import torch
 from PIL import Image
 from scipy.spatial.transform import Rotation
 
-pytest.importorskip("nuscenes.nuscenes", reason="nuscenes-devkit is not installed (pip install --no-deps nuscenes-devkit)")
+pytest.importorskip(
+    "nuscenes.nuscenes", reason="nuscenes-devkit is not installed (pip install --no-deps nuscenes-devkit)"
+)
 
 from occvo_core.cameras import CAMERA_NAMES
 
@@ -39,29 +41,62 @@ def write_tiny_nuscenes(root, predictor):
 
     scene = SyntheticScene(seed=0, frames=SAMPLES)
     cams = ImageOccupancySource(scene, predictor)
-    tables = {k: [] for k in ("category", "attribute", "visibility", "instance", "sample_annotation", "sensor",
-                              "calibrated_sensor", "ego_pose", "log", "scene", "sample", "sample_data", "map")}
+    tables = {
+        k: []
+        for k in (
+            "category",
+            "attribute",
+            "visibility",
+            "instance",
+            "sample_annotation",
+            "sensor",
+            "calibrated_sensor",
+            "ego_pose",
+            "log",
+            "scene",
+            "sample",
+            "sample_data",
+            "map",
+        )
+    }
     log, scene_tok = _tok(), _tok()
     (root / "maps").mkdir(parents=True)
     Image.fromarray(np.zeros((8, 8), np.uint8)).save(root / "maps" / "tiny.png")
-    tables["map"].append({"token": _tok(), "log_tokens": [log], "category": "semantic_prior", "filename": "maps/tiny.png"})
-    tables["log"].append({"token": log, "logfile": "tiny", "vehicle": "n015", "date_captured": "2018-07-18",
-                          "location": "singapore-onenorth"})
+    tables["map"].append(
+        {"token": _tok(), "log_tokens": [log], "category": "semantic_prior", "filename": "maps/tiny.png"}
+    )
+    tables["log"].append(
+        {
+            "token": log,
+            "logfile": "tiny",
+            "vehicle": "n015",
+            "date_captured": "2018-07-18",
+            "location": "singapore-onenorth",
+        }
+    )
     _, k, e = cams.camera_frame(0)
     calib = []
     for c, name in enumerate(CAMERA_NAMES):
         sensor, cs = _tok(), _tok()
         tables["sensor"].append({"token": sensor, "channel": name, "modality": "camera"})
-        tables["calibrated_sensor"].append({"token": cs, "sensor_token": sensor, **_record(e[c]),
-                                            "camera_intrinsic": k[c].tolist()})
+        tables["calibrated_sensor"].append(
+            {"token": cs, "sensor_token": sensor, **_record(e[c]), "camera_intrinsic": k[c].tolist()}
+        )
         calib.append(cs)
     samples = [_tok() for _ in range(SAMPLES)]
     stamps = FIRST_US + np.arange(SAMPLES) * 500_000 + np.array([0, 1_733, -911])[:SAMPLES]
     sd_prev = {name: "" for name in CAMERA_NAMES}
     sd_tokens = [[_tok() for _ in CAMERA_NAMES] for _ in range(SAMPLES)]
     for i, tok in enumerate(samples):
-        tables["sample"].append({"token": tok, "timestamp": int(stamps[i]), "scene_token": scene_tok,
-                                 "prev": samples[i - 1] if i else "", "next": samples[i + 1] if i + 1 < SAMPLES else ""})
+        tables["sample"].append(
+            {
+                "token": tok,
+                "timestamp": int(stamps[i]),
+                "scene_token": scene_tok,
+                "prev": samples[i - 1] if i else "",
+                "next": samples[i + 1] if i + 1 < SAMPLES else "",
+            }
+        )
         images, _, _ = cams.camera_frame(i)
         for c, name in enumerate(CAMERA_NAMES):
             when = int(stamps[i] + CAMERA_LAG_US[c])
@@ -70,14 +105,34 @@ def write_tiny_nuscenes(root, predictor):
             Image.fromarray(images[c]).save(root / rel, quality=92)
             ego = _tok()
             tables["ego_pose"].append({"token": ego, "timestamp": when, **_record(scene.gt_poses[i])})
-            tables["sample_data"].append({
-                "token": sd_tokens[i][c], "sample_token": tok, "ego_pose_token": ego, "calibrated_sensor_token": calib[c],
-                "timestamp": when, "fileformat": "jpg", "is_key_frame": True, "height": images[c].shape[0],
-                "width": images[c].shape[1], "filename": rel, "prev": sd_prev[name],
-                "next": sd_tokens[i + 1][c] if i + 1 < SAMPLES else ""})
+            tables["sample_data"].append(
+                {
+                    "token": sd_tokens[i][c],
+                    "sample_token": tok,
+                    "ego_pose_token": ego,
+                    "calibrated_sensor_token": calib[c],
+                    "timestamp": when,
+                    "fileformat": "jpg",
+                    "is_key_frame": True,
+                    "height": images[c].shape[0],
+                    "width": images[c].shape[1],
+                    "filename": rel,
+                    "prev": sd_prev[name],
+                    "next": sd_tokens[i + 1][c] if i + 1 < SAMPLES else "",
+                }
+            )
             sd_prev[name] = sd_tokens[i][c]
-    tables["scene"].append({"token": scene_tok, "log_token": log, "nbr_samples": SAMPLES, "name": "scene-0061",
-                            "first_sample_token": samples[0], "last_sample_token": samples[-1], "description": "tiny"})
+    tables["scene"].append(
+        {
+            "token": scene_tok,
+            "log_token": log,
+            "nbr_samples": SAMPLES,
+            "name": "scene-0061",
+            "first_sample_token": samples[0],
+            "last_sample_token": samples[-1],
+            "description": "tiny",
+        }
+    )
     (root / "v1.0-mini").mkdir()
     for name, rows in tables.items():
         (root / "v1.0-mini" / f"{name}.json").write_text(json.dumps(rows))
@@ -137,10 +192,29 @@ def test_replay_nuscenes_through_the_three_workers_with_the_model_source(dataset
     got = {}
     with InProcessService(source="model", checkpoint=str(checkpoint)) as svc:
         session = open_session(svc.endpoint)
-        sub = session.declare_subscriber(keys.occupancy("nus"), lambda s: got.setdefault(
-            (m := decode(s.payload.to_bytes(), OccupancyFrameMsg)).seq, m))
-        code = _run("replay", ["--nuscenes", str(root), "--version", "v1.0-mini", "--scene", "scene-0061", "--connect",
-                               svc.endpoint, "--stream", "nus", "--tum", str(tmp_path / "t.tum"), "--timeout", "600"])
+        sub = session.declare_subscriber(
+            keys.occupancy("nus"),
+            lambda s: got.setdefault((m := decode(s.payload.to_bytes(), OccupancyFrameMsg)).seq, m),
+        )
+        code = _run(
+            "replay",
+            [
+                "--nuscenes",
+                str(root),
+                "--version",
+                "v1.0-mini",
+                "--scene",
+                "scene-0061",
+                "--connect",
+                svc.endpoint,
+                "--stream",
+                "nus",
+                "--tum",
+                str(tmp_path / "t.tum"),
+                "--timeout",
+                "600",
+            ],
+        )
         out = capsys.readouterr()
         assert code == 0, out.err
         with OccVOClient(svc.endpoint, stream="nus") as client:

@@ -52,21 +52,31 @@ def build_release_tree(root, sample_root, scenes, rng):
         for i, (tok, (sem, cam, lidar)) in enumerate(zip(tokens, _grids(src))):
             d = root / "gts" / name / tok
             d.mkdir(parents=True)
-            np.savez_compressed(d / "labels.npz", semantics=sem, mask_camera=cam.astype(np.uint8),
-                                mask_lidar=lidar.astype(np.uint8))
+            np.savez_compressed(
+                d / "labels.npz", semantics=sem, mask_camera=cam.astype(np.uint8), mask_lidar=lidar.astype(np.uint8)
+            )
             samples[tok] = {
-                "timestamp": int(us[i]), "ego_pose": _ego_pose(src.gt_poses[i]),
-                "prev": tokens[i - 1] if i else "EOF", "next": tokens[i + 1] if i + 1 < n else "EOF",
+                "timestamp": int(us[i]),
+                "ego_pose": _ego_pose(src.gt_poses[i]),
+                "prev": tokens[i - 1] if i else "EOF",
+                "next": tokens[i + 1] if i + 1 < n else "EOF",
                 "gt_path": f"./data/occ3d-nus/gts/{name}/{tok}/labels.npz",
-                "camera_sensor": {cam_name: {"img_path": f"./data/nuscenes/samples/{cam_name}/{tok}.jpg",
-                                             "intrinsics": [[1266.4, 0, 816.3], [0, 1266.4, 491.5], [0, 0, 1]],
-                                             "extrinsic": {"translation": [1.7, 0.0, 1.5], "rotation": [0.5, -0.5, 0.5, -0.5]},
-                                             "ego_pose": _ego_pose(src.gt_poses[i])} for cam_name in CAMERAS},
+                "camera_sensor": {
+                    cam_name: {
+                        "img_path": f"./data/nuscenes/samples/{cam_name}/{tok}.jpg",
+                        "intrinsics": [[1266.4, 0, 816.3], [0, 1266.4, 491.5], [0, 0, 1]],
+                        "extrinsic": {"translation": [1.7, 0.0, 1.5], "rotation": [0.5, -0.5, 0.5, -0.5]},
+                        "ego_pose": _ego_pose(src.gt_poses[i]),
+                    }
+                    for cam_name in CAMERAS
+                },
             }
         keys = list(samples)
         rng.shuffle(keys)  # dict order says nothing: only the chain does
         infos[name] = {k: samples[k] for k in keys}
-    (root / "annotations.json").write_text(json.dumps({"train_split": [], "val_split": list(scenes), "scene_infos": infos}))
+    (root / "annotations.json").write_text(
+        json.dumps({"train_split": [], "val_split": list(scenes), "scene_infos": infos})
+    )
     return stamps
 
 
@@ -105,9 +115,11 @@ def test_broken_chains_are_named(tmp_path, tree):
     infos = json.loads((root / "annotations.json").read_text())["scene_infos"]
     samples = infos["scene-0268"]
     first = next(t for t, s in samples.items() if s["prev"] == "EOF")
-    for case, edit, match in [("loop", lambda s: s[samples[first]["next"]].update(next=first), "loops"),
-                              ("two heads", lambda s: s[samples[first]["next"]].update(prev="EOF"), "one first sample"),
-                              ("no stamp", lambda s: s[first].pop("timestamp"), "timestamp")]:
+    for case, edit, match in [
+        ("loop", lambda s: s[samples[first]["next"]].update(next=first), "loops"),
+        ("two heads", lambda s: s[samples[first]["next"]].update(prev="EOF"), "one first sample"),
+        ("no stamp", lambda s: s[first].pop("timestamp"), "timestamp"),
+    ]:
         broken = json.loads(json.dumps(samples))
         edit(broken)
         d = tmp_path / case.replace(" ", "_")
@@ -120,13 +132,35 @@ def test_broken_chains_are_named(tmp_path, tree):
 
 def test_cli_lists_scenes_and_writes_the_annotation_stamps(tree, tmp_path):
     root, stamps = tree
-    listed = subprocess.run([sys.executable, "-m", "occvo_core.cli", "run", "--input", str(root), "--list-scenes"],
-                            check=False, capture_output=True, text=True, timeout=120)
+    listed = subprocess.run(
+        [sys.executable, "-m", "occvo_core.cli", "run", "--input", str(root), "--list-scenes"],
+        check=False,
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
     assert listed.returncode == 0, listed.stderr
     assert [json.loads(line)["scene"] for line in listed.stdout.splitlines()] == ["scene-0101", "scene-0268"]
     out = tmp_path / "out"
-    proc = subprocess.run([sys.executable, "-m", "occvo_core.cli", "run", "--input", str(root), "--scene", "scene-0268",
-                           "--out", str(out), "--quiet"], check=False, capture_output=True, text=True, timeout=600)
+    proc = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "occvo_core.cli",
+            "run",
+            "--input",
+            str(root),
+            "--scene",
+            "scene-0268",
+            "--out",
+            str(out),
+            "--quiet",
+        ],
+        check=False,
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
     assert proc.returncode == 0, proc.stderr
     tum_stamps, tum_poses = read_tum(out / "trajectory.tum")
     assert np.allclose(tum_stamps, stamps["scene-0268"] / 1e6, rtol=0, atol=2e-6)  # microseconds survive the file
@@ -151,8 +185,10 @@ def test_token_tree_runs_like_the_release_format_and_the_original(tree, sample_r
     original = OccVOReleaseScene(sample_root / "occupancy" / "scene-0101")
     theirs = ape_rmse(original.gt_poses, OdometryPipeline(original, progress=False).run().odometry.poses)
     ours = ape_rmse(token_scene.gt_poses, tokens)
-    print(f"scene-0101: token tree vs release format {difference:.3g} m; APE token tree {ours:.4f} m, "
-          f"original release {theirs:.4f} m")
+    print(
+        f"scene-0101: token tree vs release format {difference:.3g} m; APE token tree {ours:.4f} m, "
+        f"original release {theirs:.4f} m"
+    )
     assert difference <= 1e-9
     assert abs(ours - theirs) <= 0.05
 
@@ -166,8 +202,22 @@ def test_service_carries_the_annotation_stamps_to_poses_trajectory_and_tum(tree,
     root, stamps = tree
     want = stamps["scene-0268"] / 1e6
     with InProcessService() as svc:
-        code = _run_command("replay", [str(root), "--scene", "scene-0268", "--connect", svc.endpoint, "--stream", "occ3d",
-                                       "--tum", str(tmp_path / "t.tum"), "--timeout", "300"])
+        code = _run_command(
+            "replay",
+            [
+                str(root),
+                "--scene",
+                "scene-0268",
+                "--connect",
+                svc.endpoint,
+                "--stream",
+                "occ3d",
+                "--tum",
+                str(tmp_path / "t.tum"),
+                "--timeout",
+                "300",
+            ],
+        )
         assert code == 0, capsys.readouterr().err
         with OccVOClient(svc.endpoint, stream="occ3d") as client:
             traj = client.trajectory()

@@ -35,9 +35,27 @@ def test_occvo_run_rerun_writes_a_recording_rerun_reads_back(tmp_path):
     from occvo_core.sim import SyntheticScene
 
     out, rrd, n = tmp_path / "out", tmp_path / "out.rrd", 4
-    proc = subprocess.run([sys.executable, "-m", "occvo_core.cli", "run", "--frames", str(n), "--rerun", str(rrd),
-                           "--map-every", "2", "--out", str(out), "--quiet"], check=False, capture_output=True, text=True,
-                          timeout=600)
+    proc = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "occvo_core.cli",
+            "run",
+            "--frames",
+            str(n),
+            "--rerun",
+            str(rrd),
+            "--map-every",
+            "2",
+            "--out",
+            str(out),
+            "--quiet",
+        ],
+        check=False,
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
     assert proc.returncode == 0, proc.stderr
     rows, batches = _read(rrd)
     assert rows["/world/ego"] == rows["/world/ego/occupancy"] == rows["/world/trajectory"] == n
@@ -66,8 +84,10 @@ class _SlowPage(http.server.BaseHTTPRequestHandler):
             self.send_response(204)
             self.end_headers()
             return
-        body = (f'<html><body style="margin:0"><iframe src="{self.viewer}" style="border:0;width:100vw;height:100vh">'
-                '</iframe><img src="/wait" style="display:none"></body></html>').encode()
+        body = (
+            f'<html><body style="margin:0"><iframe src="{self.viewer}" style="border:0;width:100vw;height:100vh">'
+            '</iframe><img src="/wait" style="display:none"></body></html>'
+        ).encode()
         self.send_response(200)
         self.send_header("Content-Type", "text/html")
         self.send_header("Content-Length", str(len(body)))
@@ -94,9 +114,27 @@ def test_occvo_view_follows_the_service_into_the_web_viewer(tmp_path):
 
     n, port, rrd = 4, free_port(), tmp_path / "view.rrd"
     with InProcessService() as svc:
-        viewer = subprocess.Popen([sys.executable, "-m", "occvo_core.cli", "view", "--connect", svc.endpoint, "--stream",
-                                   "car0", "--web-port", str(port), "--rerun", str(rrd), "--seconds", "120"],
-                                  stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        viewer = subprocess.Popen(
+            [
+                sys.executable,
+                "-m",
+                "occvo_core.cli",
+                "view",
+                "--connect",
+                svc.endpoint,
+                "--stream",
+                "car0",
+                "--web-port",
+                str(port),
+                "--rerun",
+                str(rrd),
+                "--seconds",
+                "120",
+            ],
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+        )
         try:
             url = viewer.stdout.readline().strip().removeprefix("web viewer: ")
             assert url.startswith("http://127.0.0.1:"), viewer.stderr.read()
@@ -108,10 +146,21 @@ def test_occvo_view_follows_the_service_into_the_web_viewer(tmp_path):
             page = http.server.ThreadingHTTPServer(("127.0.0.1", 0), _SlowPage)
             threading.Thread(target=page.serve_forever, daemon=True).start()
             shot = tmp_path / "viewer.png"
-            proc = subprocess.run([_chromium(), "--headless=new", "--no-sandbox", "--use-angle=swiftshader",
-                                   "--enable-unsafe-swiftshader", "--window-size=1280,800", f"--screenshot={shot}",
-                                   f"http://127.0.0.1:{page.server_address[1]}/"], check=False, capture_output=True,
-                                  timeout=180)
+            proc = subprocess.run(
+                [
+                    _chromium(),
+                    "--headless=new",
+                    "--no-sandbox",
+                    "--use-angle=swiftshader",
+                    "--enable-unsafe-swiftshader",
+                    "--window-size=1280,800",
+                    f"--screenshot={shot}",
+                    f"http://127.0.0.1:{page.server_address[1]}/",
+                ],
+                check=False,
+                capture_output=True,
+                timeout=180,
+            )
             page.shutdown()
             assert shot.is_file(), proc.stderr.decode()[-2000:]
         finally:

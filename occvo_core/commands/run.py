@@ -13,7 +13,8 @@ def add_parser(sub) -> None:
     p = sub.add_parser("run", help="run OCC-VO over a scene (a synthetic one when no --input is given)")
     p.add_argument("--input", type=Path, help="scene folder: OCC-VO release occupancy/<scene>/ or Occ3D scene folder")
     p.add_argument("--scene", help="with an Occ3D-nuScenes root as --input (annotations.json + gts/): the scene to run")
-    p.add_argument("--list-scenes", action="store_true", help="list the scenes of the Occ3D-nuScenes root --input and exit")
+    p.add_argument("--list-scenes", action="store_true",
+                   help="list the scenes of the Occ3D-nuScenes root --input and exit")
     p.add_argument("--mask", choices=("camera", "lidar", "none"), default="camera",
                    help="Occ3D input: the visibility mask whose voxels make a frame (default: camera)")
     p.add_argument("--gt", type=Path, help="ground-truth trajectory (KITTI or TUM) for APE")
@@ -39,7 +40,8 @@ def add_parser(sub) -> None:
     p.add_argument("--motion-search", action=argparse.BooleanOptionalAction, default=None,
                    help="refine each frame's constant-velocity guess by the semantic BEV motion search "
                    "(initialisation.motion_search; default: on with --from-images, else as the config says)")
-    p.add_argument("--view", action="store_true", help="show the run live in a rerun viewer (pip install 'occvo[view]')")
+    p.add_argument("--view", action="store_true",
+                   help="show the run live in a rerun viewer (pip install 'occvo[view]')")
     p.add_argument("--rerun", type=Path, metavar="FILE.rrd", help="save the live view as a rerun recording")
     p.add_argument("--map-every", type=int, default=5, help="--view/--rerun: log the global map every N frames")
     p.add_argument("--quiet", action="store_true", help="no progress bar")

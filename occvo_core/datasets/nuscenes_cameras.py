@@ -45,8 +45,10 @@ class NuScenesCameraScene:
         try:
             from nuscenes.nuscenes import NuScenes
         except ModuleNotFoundError as exc:
-            raise ConfigError(f"nuScenes input needs nuscenes-devkit ({exc}): pip install --no-deps nuscenes-devkit "
-                              "and pip install 'occvo[nuscenes]'") from None
+            raise ConfigError(
+                f"nuScenes input needs nuscenes-devkit ({exc}): pip install --no-deps nuscenes-devkit "
+                "and pip install 'occvo[nuscenes]'"
+            ) from None
         self.root = Path(dataroot)
         if not (self.root / version).is_dir():
             raise DatasetError(self.root / version, f"no nuScenes tables of version {version!r} here")

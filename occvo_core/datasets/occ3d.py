@@ -24,8 +24,8 @@ class Occ3DScene:
     `poses` is a trajectory file or an (N,4,4) array; stamps are `stamps`, a TUM file's, or index / rate_hz."""
 
     def __init__(self, scene_dir: str | Path, poses: str | Path | np.ndarray | None = None,
-                 mask: Literal["none", "camera", "lidar"] = "camera", rate_hz: float = 2.0, frames: list[str] | None = None,
-                 files: list[Path] | None = None, stamps: np.ndarray | None = None, name: str | None = None):
+                 mask: Literal["none", "camera", "lidar"] = "camera", rate_hz: float = 2.0,
+                 frames: list[str] | None = None, files: list[Path] | None = None, stamps: np.ndarray | None = None, name: str | None = None):
         self.root = Path(scene_dir)
         if not self.root.is_dir():
             raise DatasetError(self.root, "scene folder does not exist")
@@ -62,8 +62,8 @@ class Occ3DScene:
             return [found[n] for n in frames]
         if all(n.isdigit() for n in found):
             return [found[n] for n in sorted(found, key=int)]
-        raise DatasetError(self.root, "frame folders are not all numbers (sample tokens?): open the release root, whose "
-                           "annotations.json orders them, or give their order with frames=[...]")
+        raise DatasetError(self.root, "frame folders are not all numbers (sample tokens?): open the release root, "
+                           "whose annotations.json orders them, or give their order with frames=[...]")
 
     def __len__(self) -> int:
         return len(self.files)

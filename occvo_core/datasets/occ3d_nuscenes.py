@@ -48,8 +48,14 @@ def list_scenes(root: str | Path) -> list[dict]:
     for name, samples in sorted(read_annotations(root).items()):
         stamps = [s.get("timestamp") for s in samples.values() if isinstance(s, dict)]
         stamps = [t / 1e6 for t in stamps if isinstance(t, (int, float))]
-        out.append({"scene": name, "samples": len(samples), "start": min(stamps, default=None),
-                    "end": max(stamps, default=None)})
+        out.append(
+            {
+                "scene": name,
+                "samples": len(samples),
+                "start": min(stamps, default=None),
+                "end": max(stamps, default=None),
+            }
+        )
     return out
 
 
@@ -57,7 +63,9 @@ def chain_order(samples: dict, where: object) -> list[str]:
     """Sample tokens in time order, following next from the one whose prev is "EOF"."""
     heads = [t for t, s in samples.items() if s.get("prev") == END]
     if len(heads) != 1:
-        raise DatasetError(where, f"a scene's prev/next chain needs one first sample (prev = \"EOF\"), found {len(heads)}")
+        raise DatasetError(
+            where, f'a scene\'s prev/next chain needs one first sample (prev = "EOF"), found {len(heads)}'
+        )
     order, token, seen = [], heads[0], set()
     while token != END:
         if token in seen:
@@ -92,7 +100,7 @@ def _label_file(root: Path, scene: str, token: str, info: dict) -> Path:
     """gts/<scene>/<token>/labels.npz; gt_path, written relative to the authors' checkout, is used from 'gts/' on."""
     parts = Path(str(info.get("gt_path", ""))).parts
     if "gts" in parts:
-        candidate = root.joinpath(*parts[parts.index("gts"):])
+        candidate = root.joinpath(*parts[parts.index("gts") :])
         if candidate.is_file():
             return candidate
     return root / "gts" / scene / token / "labels.npz"

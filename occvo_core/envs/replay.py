@@ -10,8 +10,8 @@ Reward: minus the translation error (m) of that estimate after aligning the call
     truth's first pose (est aligned = gt_0 @ inv(est_0) @ est); 0 when the scene has no ground truth.
 Episode: reset() shows frame 0; each step() scores the estimate of the shown frame and shows the next one;
     `terminated` once the last frame has been scored (the last observation is repeated).
-Info: frame_index, stamp (s, the data's clock), gt_pose (of the shown frame, None when unknown), and after a step: scored_index,
-    translation_error, gt_pose_scored, dropped_points (points outside the grid or beyond capacity).
+Info: frame_index, stamp (s, the data's clock), gt_pose (of the shown frame, None when unknown), and after a step:
+    scored_index, translation_error, gt_pose_scored, dropped_points (points outside the grid or beyond capacity).
 """
 
 from __future__ import annotations
@@ -71,8 +71,9 @@ class ReplayEnv(gym.Env):
 
     def __init__(self, source=None, capacity: int = DEFAULT_CAPACITY, scene_for_seed: Callable[[int], Any] | None = None,
                  scene: str | None = None):
-        """source: a SceneSource, a scene folder (with `scene`: an Occ3D-nuScenes root), or "synthetic:<seed>". scene_for_seed: when given, reset(seed=s)
-        replays scene_for_seed(s) instead (the synthetic environment uses it to draw a new town per seed)."""
+        """source: a SceneSource, a scene folder (with `scene`: an Occ3D-nuScenes root), or "synthetic:<seed>".
+        scene_for_seed: when given, reset(seed=s) replays scene_for_seed(s) instead (the synthetic environment uses it
+        to draw a new town per seed)."""
         if source is None and scene_for_seed is None:
             raise ValueError("ReplayEnv needs a source or scene_for_seed")
         self.capacity = int(capacity)
@@ -160,7 +161,8 @@ class ReplayEnv(gym.Env):
 
 def frame_from_observation(obs: dict, index: int = 0, stamp: float = 0.0) -> OccupancyFrame:
     n = int(obs["count"])
-    return OccupancyFrame(np.asarray(obs["points"][:n], np.float64), np.asarray(obs["labels"][:n], np.uint8), index, stamp)
+    return OccupancyFrame(np.asarray(obs["points"][:n], np.float64), np.asarray(obs["labels"][:n], np.uint8), index,
+                          stamp)
 
 
 def run_occvo_agent(env: gym.Env, config=None, seed: int | None = None, options: dict | None = None) -> dict:

@@ -21,9 +21,11 @@ class StreamFollower:
         self.counts = {"poses": 0, "occupancy": 0, "map_updates": 0, "tiles": 0, "undecodable": 0}
         self._lock = threading.Lock()  # one logger, three subscriber threads
         self._stamp_of: dict[int, float] = {}
-        self._subs = [session.declare_subscriber(keys.pose(stream), self._on_pose),
-                      session.declare_subscriber(keys.occupancy(stream), self._on_occupancy),
-                      session.declare_subscriber(keys.map_updates(stream), self._on_map)]
+        self._subs = [
+            session.declare_subscriber(keys.pose(stream), self._on_pose),
+            session.declare_subscriber(keys.occupancy(stream), self._on_occupancy),
+            session.declare_subscriber(keys.map_updates(stream), self._on_map),
+        ]
 
     def _decode(self, sample, model):
         from schemas.codec import CodecError, decode

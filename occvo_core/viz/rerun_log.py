@@ -45,8 +45,14 @@ class RerunView:
         self.rec.log("world", rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
 
     @classmethod
-    def open(cls, app: str = "occvo", spawn: bool = False, save: str | Path | None = None, map_every: int = 5,
-             web_port: int | None = None) -> RerunView:
+    def open(
+        cls,
+        app: str = "occvo",
+        spawn: bool = False,
+        save: str | Path | None = None,
+        map_every: int = 5,
+        web_port: int | None = None,
+    ) -> RerunView:
         """spawn: start a native viewer and stream to it; save: write an .rrd recording; web_port: serve the web
         viewer there (and the data over gRPC on web_port + 1) for a browser (any may be combined)."""
         rec = rr.RecordingStream(app)
@@ -98,8 +104,15 @@ class RerunView:
             self.rec.log(path, rr.Points3D(points, colors=_colors(labels), radii=VOXEL_RADIUS * 0.8))
 
     def moved_objects(self, points: np.ndarray, labels: np.ndarray) -> None:
-        self.rec.log("world/moved_objects", rr.Points3D(points, colors=[[255, 0, 255]] * len(points),
-                                                        radii=VOXEL_RADIUS * 1.2, class_ids=np.asarray(labels, np.uint16)))
+        self.rec.log(
+            "world/moved_objects",
+            rr.Points3D(
+                points,
+                colors=[[255, 0, 255]] * len(points),
+                radii=VOXEL_RADIUS * 1.2,
+                class_ids=np.asarray(labels, np.uint16),
+            ),
+        )
 
     def scalar(self, name: str, value: float) -> None:
         self.rec.log(f"stats/{name}", rr.Scalars(float(value)))

@@ -12,12 +12,16 @@ from services.commands._common import add_connection, endpoint
 
 
 def add_parser(subparsers) -> None:
-    p = subparsers.add_parser("view", help="follow a stream of the running service in a rerun viewer "
-                              "(pip install 'occvo[view]')")
+    p = subparsers.add_parser(
+        "view", help="follow a stream of the running service in a rerun viewer (pip install 'occvo[view]')"
+    )
     add_connection(p)
     p.add_argument("--rerun", type=Path, metavar="FILE.rrd", help="save what arrives as a rerun recording")
-    p.add_argument("--web-port", type=int, help="serve the web viewer on this port (the data on the next one) "
-                   "instead of spawning the native viewer")
+    p.add_argument(
+        "--web-port",
+        type=int,
+        help="serve the web viewer on this port (the data on the next one) instead of spawning the native viewer",
+    )
     p.add_argument("--seconds", type=float, default=0.0, help="stop after this long (0: until Ctrl-C)")
     p.set_defaults(func=run)
 
@@ -34,15 +38,19 @@ def run(args) -> int:
         raise ConfigError("occvo view needs rerun-sdk: pip install 'occvo[view]'") from None
     from services.runtime import open_session
 
-    view = RerunView.open(f"occvo-{args.stream}", spawn=not (args.rerun or args.web_port), save=args.rerun,
-                          web_port=args.web_port)
+    view = RerunView.open(
+        f"occvo-{args.stream}", spawn=not (args.rerun or args.web_port), save=args.rerun, web_port=args.web_port
+    )
     session = open_session(endpoint(args))
     follower = StreamFollower(session, args.stream, view)
     stop = threading.Event()
     signal.signal(signal.SIGTERM, lambda *_: stop.set())
     if args.web_port:
-        print(f"web viewer: http://127.0.0.1:{args.web_port}/?url=rerun%2Bhttp%3A%2F%2F127.0.0.1%3A{args.web_port + 1}"
-              "%2Fproxy", flush=True)
+        print(
+            f"web viewer: http://127.0.0.1:{args.web_port}/?url=rerun%2Bhttp%3A%2F%2F127.0.0.1%3A{args.web_port + 1}"
+            "%2Fproxy",
+            flush=True,
+        )
     try:
         deadline = time.monotonic() + args.seconds if args.seconds > 0 else None
         while not stop.wait(0.2):

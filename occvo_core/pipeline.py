@@ -30,14 +30,17 @@ class OdometryPipeline:
         self.frame_ms: list[float] = []
         self.stage_ms: dict[str, list[float]] = {}
         self.skipped: list[str] = []
+        self.stamp_of: dict[int, float] = {}  # frame index -> the data's stamp (s)
 
-    def run(self) -> "OdometryPipeline":
+    def run(self, on_step=None) -> "OdometryPipeline":
+        """on_step(frame, result, odometry), when given, sees every registered frame (a live view logs it)."""
         self.odometry.reset()
         for i in tqdm(range(len(self.source)), desc=f"OCC-VO {self.source.name}", unit="frame", disable=not self.progress):
             try:
                 frame = self.source[i]
                 start = time.perf_counter()
                 result = self.odometry.step(frame)
+                self.stamp_of[frame.index] = float(frame.stamp)
             except InvalidFrameError as exc:
                 if not self.skip_bad_frames:
                     raise
@@ -47,11 +50,13 @@ class OdometryPipeline:
                 self.frame_ms.append((time.perf_counter() - start) * 1e3)
                 for stage, ms in result.timings_ms.items():
                     self.stage_ms.setdefault(stage, []).append(ms)
+            if on_step is not None:
+                on_step(frame, result, self.odometry)
         return self
 
     def stamps(self) -> np.ndarray:
-        """Seconds of the registered frames."""
-        return np.array(self.odometry.frame_indices, float) / self.source.rate_hz
+        """Stamps of the registered frames as the data gave them (index / rate only where a source has no clock)."""
+        return np.array([self.stamp_of.get(i, i / self.source.rate_hz) for i in self.odometry.frame_indices], float)
 
     def gt_of_registered(self) -> np.ndarray | None:
         gt = self.source.gt_poses

@@ -55,6 +55,11 @@ def write_tum(path: str | Path, poses: np.ndarray, stamps: np.ndarray | None = N
 
 def read_trajectory(path: str | Path) -> np.ndarray:
     """Poses from a KITTI or TUM file, told apart by the number of columns."""
+    return read_stamped_trajectory(path)[1]
+
+
+def read_stamped_trajectory(path: str | Path) -> tuple[np.ndarray | None, np.ndarray]:
+    """(stamps, poses) from a TUM file, (None, poses) from a KITTI file (it has no stamps)."""
     path = Path(path)
     try:
         first = next(l for l in path.read_text().splitlines() if l.strip() and not l.startswith("#"))
@@ -64,7 +69,7 @@ def read_trajectory(path: str | Path) -> np.ndarray:
         raise DatasetError(path, "empty trajectory") from None
     width = len(first.split())
     if width == 12:
-        return read_kitti(path)
+        return None, read_kitti(path)
     if width == 8:
-        return read_tum(path)[1]
+        return read_tum(path)
     raise DatasetError(path, f"not a KITTI (12 numbers) or TUM (8 numbers) trajectory: first line has {width}")

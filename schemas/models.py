@@ -170,6 +170,8 @@ class CameraImage(_Model):
     data: bytes
     intrinsics: list[list[float]] = Field(description="3x3 pinhole K")
     extrinsics: list[list[float]] = Field(description="4x4 camera-to-ego")
+    stamp: Finite | None = Field(None, description="this image's own capture time (s), where the cameras are not "
+                                 "triggered together (nuScenes); the frame's stamp otherwise")
 
     @field_validator("intrinsics")
     @classmethod

@@ -12,6 +12,11 @@ from occvo_core.config import OccVOConfig
 def add_parser(sub) -> None:
     p = sub.add_parser("run", help="run OCC-VO over a scene (a synthetic one when no --input is given)")
     p.add_argument("--input", type=Path, help="scene folder: OCC-VO release occupancy/<scene>/ or Occ3D scene folder")
+    p.add_argument("--scene", help="with an Occ3D-nuScenes root as --input (annotations.json + gts/): the scene to run")
+    p.add_argument("--list-scenes", action="store_true",
+                   help="list the scenes of the Occ3D-nuScenes root --input and exit")
+    p.add_argument("--mask", choices=("camera", "lidar", "none"), default="camera",
+                   help="Occ3D input: the visibility mask whose voxels make a frame (default: camera)")
     p.add_argument("--gt", type=Path, help="ground-truth trajectory (KITTI or TUM) for APE")
     p.add_argument("--out", type=Path, default=Path("occvo-out"), help="output folder (default: occvo-out)")
     p.add_argument("--config", type=Path, help="OccVOConfig as JSON/JSON5")
@@ -35,6 +40,10 @@ def add_parser(sub) -> None:
     p.add_argument("--motion-search", action=argparse.BooleanOptionalAction, default=None,
                    help="refine each frame's constant-velocity guess by the semantic BEV motion search "
                    "(initialisation.motion_search; default: on with --from-images, else as the config says)")
+    p.add_argument("--view", action="store_true",
+                   help="show the run live in a rerun viewer (pip install 'occvo[view]')")
+    p.add_argument("--rerun", type=Path, metavar="FILE.rrd", help="save the live view as a rerun recording")
+    p.add_argument("--map-every", type=int, default=5, help="--view/--rerun: log the global map every N frames")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=run)
 
@@ -57,6 +66,8 @@ def run(args) -> int:
 
     from occvo_core.errors import ConfigError
 
+    if args.list_scenes:
+        return _list_scenes(args.input)
     if args.input is not None and (args.synthetic or args.from_images):
         raise ConfigError("--input reads a recorded scene; --synthetic and --from-images make one: give one or the other")
     if args.from_images and args.checkpoint is None:
@@ -72,15 +83,43 @@ def run(args) -> int:
             source = ImageOccupancySource(source, OccupancyPredictor(args.checkpoint, min_confidence=args.min_confidence,
                                                                      min_ground_confidence=args.min_ground_confidence))
     else:
-        source = open_scene(args.input, gt=args.gt)
+        source = open_scene(args.input, gt=args.gt, scene=args.scene, mask=args.mask)
+    view = _open_view(args)
     pipeline = OdometryPipeline(source, config_from_args(args), skip_bad_frames=args.skip_bad_frames, threads=args.threads,
-                                progress=not args.quiet).run()
+                                progress=not args.quiet).run(on_step=view.step if view else None)
+    if view:
+        view.finish(pipeline.odometry)
     extra = {}
     if args.input is None:
         extra["map_metrics"] = _synthetic_map_metrics(truth, pipeline)
     summary = pipeline.write(args.out, extra)
     print(json.dumps({k: summary[k] for k in summary if k not in ("skipped_frames",)}, indent=2, default=float))
     print(f"wrote {args.out}/: trajectory.kitti trajectory.tum map.ply map.npz map_voxels.npz trajectory.png summary.json")
+    return 0
+
+
+def _open_view(args):
+    if not (args.view or args.rerun):
+        return None
+    from occvo_core.errors import ConfigError
+
+    try:
+        from occvo_core.viz.rerun_log import RerunView
+    except ModuleNotFoundError as exc:
+        if exc.name != "rerun":
+            raise
+        raise ConfigError("--view and --rerun need rerun-sdk: pip install 'occvo[view]'") from None
+    return RerunView.open("occvo", spawn=args.view, save=args.rerun, map_every=args.map_every)
+
+
+def _list_scenes(root) -> int:
+    from occvo_core.datasets.occ3d_nuscenes import list_scenes, release_root
+    from occvo_core.errors import ConfigError
+
+    if root is None or release_root(root) != root:
+        raise ConfigError("--list-scenes needs --input OCC3D_ROOT (the folder holding annotations.json and gts/)")
+    for s in list_scenes(root):
+        print(json.dumps(s))
     return 0
 
 

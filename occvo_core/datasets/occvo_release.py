@@ -8,11 +8,12 @@ import numpy as np
 
 from occvo_core.errors import DatasetError, InvalidFrameError
 from occvo_core.frame import OccupancyFrame
-from occvo_core.trajectory import read_trajectory
+from occvo_core.trajectory import read_stamped_trajectory
 
 
 class OccVOReleaseScene:
-    """A folder of <i>.npy frames; ground truth from `gt` or, when absent, ../../trajectory/<scene>.kitti if present."""
+    """A folder of <i>.npy frames; ground truth from `gt` or, when absent, ../../trajectory/<scene>.kitti if present.
+    The release has no stamps: a TUM `gt` gives them, else they are index / rate_hz."""
 
     def __init__(self, scene_dir: str | Path, gt: str | Path | None = None, rate_hz: float = 2.0):
         self.root = Path(scene_dir)
@@ -27,7 +28,9 @@ class OccVOReleaseScene:
         if gt is None:
             guess = self.root.parent.parent / "trajectory" / f"{self.name}.kitti"
             gt = guess if guess.is_file() else None
-        self._gt = read_trajectory(gt) if gt is not None else None
+        self.stamps, self._gt = read_stamped_trajectory(gt) if gt is not None else (None, None)
+        if self.stamps is not None and len(self.stamps) < len(self.files):
+            self.stamps = None
         if self._gt is not None and len(self._gt) < len(self.files):
             raise DatasetError(gt, f"{len(self._gt)} poses for {len(self.files)} frames")
 
@@ -42,7 +45,8 @@ class OccVOReleaseScene:
             array = np.load(path, allow_pickle=False)
         except (OSError, ValueError) as exc:
             raise DatasetError(path, f"unreadable occupancy frame: {exc}") from None
-        frame = OccupancyFrame.from_array(array, index=index, stamp=index / self.rate_hz)
+        stamp = float(self.stamps[index]) if self.stamps is not None else index / self.rate_hz
+        frame = OccupancyFrame.from_array(array, index=index, stamp=stamp)
         frame.meta["path"] = str(path)
         try:
             return frame.validate()

@@ -10,8 +10,8 @@ Reward: minus the translation error (m) of that estimate after aligning the call
     truth's first pose (est aligned = gt_0 @ inv(est_0) @ est); 0 when the scene has no ground truth.
 Episode: reset() shows frame 0; each step() scores the estimate of the shown frame and shows the next one;
     `terminated` once the last frame has been scored (the last observation is repeated).
-Info: frame_index, gt_pose (of the shown frame, None when unknown), and after a step: scored_index,
-    translation_error, gt_pose_scored, dropped_points (points outside the grid or beyond capacity).
+Info: frame_index, stamp (s, the data's clock), gt_pose (of the shown frame, None when unknown), and after a step:
+    scored_index, translation_error, gt_pose_scored, dropped_points (points outside the grid or beyond capacity).
 """
 
 from __future__ import annotations
@@ -31,8 +31,9 @@ DEFAULT_CAPACITY = 65536
 MAX_TRANSLATION_M = 1e5  # action bound: any map frame on Earth's roads fits
 
 
-def open_source(spec) -> Any:
-    """A SceneSource from a source, a folder (OCC-VO release or Occ3D), or "synthetic:<seed>"."""
+def open_source(spec, scene: str | None = None) -> Any:
+    """A SceneSource from a source, a folder (OCC-VO release or Occ3D; an Occ3D-nuScenes root with `scene`), or
+    "synthetic:<seed>"."""
     if hasattr(spec, "__getitem__") and hasattr(spec, "__len__") and not isinstance(spec, (str, Path)):
         return spec
     if isinstance(spec, str) and spec.startswith("synthetic"):
@@ -42,7 +43,7 @@ def open_source(spec) -> Any:
         return SyntheticScene(seed=int(seed or 0))
     from occvo_core.datasets import open_scene
 
-    return open_scene(spec)
+    return open_scene(spec, scene=scene)
 
 
 def _copy(obs: dict) -> dict:
@@ -68,14 +69,16 @@ def action_from_pose(pose: np.ndarray) -> np.ndarray:
 class ReplayEnv(gym.Env):
     metadata = {"render_modes": []}
 
-    def __init__(self, source=None, capacity: int = DEFAULT_CAPACITY, scene_for_seed: Callable[[int], Any] | None = None):
-        """source: a SceneSource, a scene folder, or "synthetic:<seed>". scene_for_seed: when given, reset(seed=s)
-        replays scene_for_seed(s) instead (the synthetic environment uses it to draw a new town per seed)."""
+    def __init__(self, source=None, capacity: int = DEFAULT_CAPACITY, scene_for_seed: Callable[[int], Any] | None = None,
+                 scene: str | None = None):
+        """source: a SceneSource, a scene folder (with `scene`: an Occ3D-nuScenes root), or "synthetic:<seed>".
+        scene_for_seed: when given, reset(seed=s) replays scene_for_seed(s) instead (the synthetic environment uses it
+        to draw a new town per seed)."""
         if source is None and scene_for_seed is None:
             raise ValueError("ReplayEnv needs a source or scene_for_seed")
         self.capacity = int(capacity)
         self.scene_for_seed = scene_for_seed
-        self.source = open_source(source) if source is not None else scene_for_seed(0)
+        self.source = open_source(source, scene) if source is not None else scene_for_seed(0)
         lo, hi = np.array(OCC3D_GRID.lower), np.array(OCC3D_GRID.upper)
         self.observation_space = spaces.Dict({
             "points": spaces.Box(np.tile(lo, (self.capacity, 1)), np.tile(hi, (self.capacity, 1)), dtype=np.float64),
@@ -95,6 +98,7 @@ class ReplayEnv(gym.Env):
 
     def _observe(self, index: int) -> tuple[dict, int]:
         frame: OccupancyFrame = self.source[index]
+        self._stamp = float(frame.stamp)
         pts, labels = np.asarray(frame.points, np.float64), np.asarray(frame.labels, np.uint8)
         lo, hi = np.array(OCC3D_GRID.lower), np.array(OCC3D_GRID.upper)
         keep = np.all((pts >= lo) & (pts <= hi), axis=1)
@@ -110,7 +114,8 @@ class ReplayEnv(gym.Env):
         return obs, dropped
 
     def _info(self, index: int, dropped: int) -> dict:
-        return {"frame_index": index, "gt_pose": self._gt(index), "dropped_points": dropped, "scene": self.source.name}
+        return {"frame_index": index, "stamp": self._stamp, "gt_pose": self._gt(index), "dropped_points": dropped,
+                "scene": self.source.name}
 
     # -- Gymnasium API ----------------------------------------------------------------------------
     def reset(self, *, seed: int | None = None, options: dict | None = None):
@@ -154,9 +159,10 @@ class ReplayEnv(gym.Env):
         return obs, float(reward), bool(terminated), False, info
 
 
-def frame_from_observation(obs: dict, index: int = 0) -> OccupancyFrame:
+def frame_from_observation(obs: dict, index: int = 0, stamp: float = 0.0) -> OccupancyFrame:
     n = int(obs["count"])
-    return OccupancyFrame(np.asarray(obs["points"][:n], np.float64), np.asarray(obs["labels"][:n], np.uint8), index, 0.0)
+    return OccupancyFrame(np.asarray(obs["points"][:n], np.float64), np.asarray(obs["labels"][:n], np.uint8), index,
+                          stamp)
 
 
 def run_occvo_agent(env: gym.Env, config=None, seed: int | None = None, options: dict | None = None) -> dict:
@@ -170,7 +176,7 @@ def run_occvo_agent(env: gym.Env, config=None, seed: int | None = None, options:
     poses, rewards, errors, rejected = [], [], [], 0
     last = np.eye(4)
     while True:
-        frame = frame_from_observation(obs, info["frame_index"])
+        frame = frame_from_observation(obs, info["frame_index"], info.get("stamp", 0.0))
         try:
             last = vo.step(frame).pose
         except InvalidFrameError:

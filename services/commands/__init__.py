@@ -3,4 +3,4 @@
 occvo_core/cli.py imports services.commands.<name> for every name in COMMANDS.
 """
 
-COMMANDS = ["serve", "up", "replay", "poses", "tile", "map_info"]
+COMMANDS = ["serve", "up", "replay", "poses", "tile", "map_info", "view"]

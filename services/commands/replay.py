@@ -12,8 +12,8 @@ from services.client import OccVOClient, ServiceError
 from services.commands._common import add_connection, endpoint
 
 
-def load_scene(spec: str, frames: int | None = None):
-    """A scene folder (OCC-VO release or Occ3D layout), or `synthetic:<seed>` for a generated scene."""
+def load_scene(spec: str, frames: int | None = None, scene: str | None = None, mask: str = "camera"):
+    """A scene folder (OCC-VO release or Occ3D layout), an Occ3D-nuScenes root with `scene`, or `synthetic:<seed>`."""
     if spec.startswith("synthetic:"):
         from occvo_core.errors import ConfigError
         from occvo_core.sim import SyntheticScene
@@ -25,7 +25,7 @@ def load_scene(spec: str, frames: int | None = None):
         return SyntheticScene(seed=seed, frames=frames or 40)
     from occvo_core.datasets import open_scene
 
-    return open_scene(spec)
+    return open_scene(spec, scene=scene, mask=mask)
 
 
 def replay(client: OccVOClient, scene, rate_hz: float = 0.0, window: int = 4, frames: int | None = None,
@@ -72,7 +72,14 @@ def replay(client: OccVOClient, scene, rate_hz: float = 0.0, window: int = 4, fr
 
 def add_parser(subparsers) -> None:
     p = subparsers.add_parser("replay", help="publish a scene (folder or synthetic:<seed>) to the running service")
-    p.add_argument("scene", help="scene folder (OCC-VO release layout) or synthetic:<seed>")
+    p.add_argument("scene", nargs="?", help="scene folder (OCC-VO release or Occ3D layout), Occ3D-nuScenes root with "
+                   "--scene, or synthetic:<seed>; none with --nuscenes")
+    p.add_argument("--nuscenes", metavar="DATAROOT", help="publish a nuScenes scene's six keyframe camera images, with "
+                   "their calibration and timestamps, for the model source (nuscenes-devkit; --version, --scene)")
+    p.add_argument("--version", default="v1.0-mini", help="--nuscenes: the tables' version (default v1.0-mini)")
+    p.add_argument("--scene", dest="scene_name", help="the scene of an Occ3D-nuScenes root (annotations.json + gts/) "
+                   "or of --nuscenes (default scene-0061)")
+    p.add_argument("--mask", choices=("camera", "lidar", "none"), default="camera", help="Occ3D input: visibility mask")
     add_connection(p)
     p.add_argument("--rate", type=float, default=0.0, help="frames per second; 0 = as fast as the pipeline takes")
     p.add_argument("--window", type=int, default=4, help="frames in flight at most (lossless replay)")
@@ -82,11 +89,21 @@ def add_parser(subparsers) -> None:
                    help="send unanswered frames again after this many seconds without an answer (also when the "
                         "registration worker comes back); 0 = never")
     p.add_argument("--output", help="write the received trajectory (KITTI) here")
+    p.add_argument("--tum", help="write the received trajectory as TUM here, stamped with the frames' stamps")
     p.set_defaults(func=run)
 
 
 def run(args) -> int:
-    scene = load_scene(args.scene, args.frames)
+    if args.nuscenes:
+        from services.nuscenes_source import NuScenesCameraFrames
+
+        scene = NuScenesCameraFrames(args.nuscenes, args.version, args.scene_name or "scene-0061")
+    elif args.scene is None:
+        from occvo_core.errors import ConfigError
+
+        raise ConfigError("replay needs a scene (folder or synthetic:<seed>) or --nuscenes DATAROOT")
+    else:
+        scene = load_scene(args.scene, args.frames, args.scene_name, args.mask)
     with OccVOClient(endpoint(args), stream=args.stream, resend_after=args.resend_after or None) as client:
         client.wait_for_workers(timeout=args.timeout)
         out = replay(client, scene, args.rate, args.window, args.frames, args.timeout)
@@ -95,6 +112,11 @@ def run(args) -> int:
         from occvo_core.trajectory import write_kitti
 
         write_kitti(args.output, out["trajectory"])
+    if args.tum and len(out["trajectory"]):
+        from occvo_core.trajectory import write_tum
+
+        msgs = out["pose_msgs"]
+        write_tum(args.tum, out["trajectory"], np.array([msgs[s].stamp for s in sorted(msgs)]))
     for e in errors:
         print(json.dumps({"error": e.code, "seq": e.seq, "message": e.message}), file=sys.stderr)
     print(json.dumps({k: v for k, v in out.items() if k not in ("trajectory", "pose_msgs")}))

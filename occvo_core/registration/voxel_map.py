@@ -1,110 +1,23 @@
 """The global semantic map with the Voxel PFilter: per voxel, t0 (first frame seen) and f (frames seen);
-p-index = f / (t - t0) at frame t; only voxels with p-index above the threshold constrain registration."""
+p-index = f / (t - t0) at frame t (voxel_pfilter.p_index); only voxels with p-index above the threshold constrain
+registration."""
 
 from __future__ import annotations
-
-from dataclasses import dataclass
 
 import numba
 import numpy as np
 
 from occvo_core.grid import NUM_CLASSES
-from occvo_core.registration import kernels
+from occvo_core.map_tiles import pack_tiles
+from occvo_core.registration.kernels.map_rows import (claim_cells, copy_row_bytes, far_tile_rows, gather_row_bytes,
+                                                      move_rows)
+from occvo_core.registration.kernels.map_window import key_bounds, window_voxels
+from occvo_core.registration.kernels.nearest import near_any
+from occvo_core.registration.kernels.voxel_pfilter import assign_voxels, mark_observed, merge_points, persistent_in_tiles
+from occvo_core.registration.local_map import EgoMap, LocalMap, moved  # noqa: F401 - EgoMap, moved: older import path
+from occvo_core.registration.voxel_pfilter import p_index
 
 _FIELDS = ("keys", "pos", "cov", "counts", "label", "t0", "f", "last", "wacc", "alive", "born", "in_window", "returning", "between")
-
-
-@dataclass
-class LocalMap:
-    """The map voxels of a window, with a dense index grid over their integer keys for neighbour lookups.
-    `usable` says which of them registration may pair with (the voxel pfilter's reliable ones, less moved objects)."""
-
-    rows: np.ndarray  # map rows of these voxels
-    pos: np.ndarray
-    labels: np.ndarray
-    p_index: np.ndarray
-    usable: np.ndarray
-    grid: np.ndarray
-    origin: np.ndarray
-    dims: np.ndarray
-    voxel: float
-    map: "VoxelPFilterMap"  # the map these rows belong to (covariances are read from it on demand)
-
-    def __len__(self) -> int:
-        return len(self.rows)
-
-    @property
-    def cov(self) -> np.ndarray:
-        return self.map.cov[self.rows]
-
-    def contains(self, keys: np.ndarray) -> bool:
-        return bool(len(keys) == 0 or (np.all(keys.min(axis=0) >= self.origin)
-                                       and np.all(keys.max(axis=0) < self.origin + self.dims)))
-
-    def cells(self, keys: np.ndarray) -> np.ndarray:
-        """Index into `grid` of each voxel key (keys inside the window)."""
-        return ((keys - self.origin) * [self.dims[1] * self.dims[2], self.dims[2], 1]).sum(axis=1)
-
-    def nearest(self, queries: np.ndarray, radius_cells: int, usable: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
-        """(distance, local index or -1) of each query's nearest usable voxel (or of `usable`) within radius_cells voxels."""
-        return kernels.nearest_distances(np.ascontiguousarray(queries, np.float64), self.pos, self.grid, self.origin,
-                                         self.dims, self.voxel, radius_cells, self.usable if usable is None else usable)
-
-
-@dataclass
-class EgoMap:
-    """Usable map voxels moved into the frame of a predicted ego pose, on a grid aligned with that frame.
-
-    Registration runs here: the grid is the size of the frame's own box whatever the heading (a world-aligned box
-    of a frame turned 45 degrees holds twice the cells), and it stays in cache."""
-
-    pose: np.ndarray  # the predicted ego pose these coordinates are relative to
-    pos: np.ndarray
-    cov: np.ndarray
-    labels: np.ndarray
-    usable: np.ndarray
-    grid: np.ndarray
-    origin: np.ndarray
-    dims: np.ndarray
-    voxel: float
-    source: np.ndarray  # index into the LocalMap of each point (-1 for pooled points)
-    weight: np.ndarray | None = None  # map voxels behind each pooled point (None: not pooled)
-    votes: np.ndarray | None = None  # their label votes
-
-    def __len__(self) -> int:
-        return len(self.pos)
-
-    @classmethod
-    def build(cls, local: "LocalMap", pose: np.ndarray, lower: np.ndarray, upper: np.ndarray, voxel: float,
-              subset: np.ndarray | None = None) -> "EgoMap":
-        idx = np.flatnonzero(local.usable if subset is None else subset)
-        origin = np.floor(np.asarray(lower) / voxel).astype(np.int64)
-        dims = np.floor(np.asarray(upper) / voxel).astype(np.int64) - origin + 1
-        pos, cov, grid = kernels.ego_points(idx, local.rows, local.map.pos, local.map.cov,
-                                            np.ascontiguousarray(pose[:3, :3]), np.ascontiguousarray(pose[:3, 3]),
-                                            origin, dims, voxel)
-        return cls(pose, pos, cov, local.labels[idx], np.ones(len(idx), bool), grid, origin, dims, voxel, idx)
-
-    def pooled(self, voxel: float) -> "EgoMap":
-        """The same map averaged on a coarser grid (coarse GICP searches farther at the same cost). Pooling a pooled
-        map again equals pooling this one directly on the coarser grid, when the grids nest (sizes multiples)."""
-        origin = np.floor(self.origin * self.voxel / voxel).astype(np.int64)
-        dims = np.floor((self.origin + self.dims) * self.voxel / voxel).astype(np.int64) - origin + 1
-        empty_w, empty_v = np.zeros(0), np.zeros((0, NUM_CLASSES), np.int32)
-        pos, cov, labels, grid, weight, votes = kernels.pool_voxels(
-            self.pos, self.cov, self.labels, self.usable, empty_w if self.weight is None else self.weight,
-            empty_v if self.votes is None else self.votes, voxel, origin, dims, NUM_CLASSES, numba.get_num_threads())
-        return EgoMap(self.pose, pos, cov, labels, np.ones(len(pos), bool), grid, origin, dims, voxel,
-                      np.full(len(pos), -1), weight, votes)
-
-
-def moved(pos: np.ndarray, cov: np.ndarray, rot: np.ndarray, trans: np.ndarray,
-          group: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """Voxel positions and covariances moved rigidly, each by its own rotation (k,3,3) and translation (k,3), or by
-    those of its group (indices into rot and trans)."""
-    group = np.arange(len(pos)) if group is None else np.asarray(group, np.int64)
-    return kernels.rigid_motions(np.ascontiguousarray(pos, np.float64), np.ascontiguousarray(cov, np.float64),
-                                 np.ascontiguousarray(rot, np.float64), np.ascontiguousarray(trans, np.float64), group)
 
 
 def _field(arrays: dict, name: str) -> np.ndarray:
@@ -129,7 +42,7 @@ def copied(a: np.ndarray) -> np.ndarray:
     if a.ndim == 0 or a.nbytes < (1 << 20) or not a.flags.c_contiguous:
         return np.array(a)
     out = np.empty_like(a)
-    kernels.copy_row_bytes(_row_bytes(out), _row_bytes(a), len(a))
+    copy_row_bytes(_row_bytes(out), _row_bytes(a), len(a))
     return out
 
 
@@ -161,7 +74,7 @@ class VoxelPFilterMap:
             # zeros come from calloc: pages cost nothing until touched, so doubling does not write the new half
             arr = np.zeros(shape, dtype) if fill == 0 else np.full(shape, fill, dtype)
             if old is not None:
-                kernels.copy_row_bytes(_row_bytes(arr), _row_bytes(getattr(self, name)), self._n)
+                copy_row_bytes(_row_bytes(arr), _row_bytes(getattr(self, name)), self._n)
             setattr(self, name, arr)
 
     def __len__(self) -> int:
@@ -187,7 +100,7 @@ class VoxelPFilterMap:
     def p_index(self, t: int) -> np.ndarray:
         """p-index of every row at frame t (f counts frames before t; t0 < t for every existing voxel)."""
         n = self._n
-        return self.f[:n] / np.maximum(t - self.t0[:n], 1)
+        return p_index(self.f[:n], t - self.t0[:n])
 
     def window(self, lower: np.ndarray, upper: np.ndarray, t: int | None = None, tight: bool = False) -> LocalMap:
         """Every live voxel with key in [lower, upper]; `usable` marks those with p-index above the threshold at
@@ -195,9 +108,9 @@ class VoxelPFilterMap:
         whole box (a wide, tall search box is mostly empty: its dense grid would cost tens of MB)."""
         origin, upper = np.asarray(lower, np.int64), np.asarray(upper, np.int64)
         if tight:
-            lo, hi = kernels.key_bounds(self.keys, self.alive, self._n, origin, upper)
+            lo, hi = key_bounds(self.keys, self.alive, self._n, origin, upper)
             origin, upper = (lo, hi) if np.all(lo <= hi) else (origin, origin)
-        rows, pos, labels, p_index, grid = kernels.window_voxels(self.keys, self.alive, self.f, self.t0, self.pos, self.label,
+        rows, pos, labels, p_index, grid = window_voxels(self.keys, self.alive, self.f, self.t0, self.pos, self.label,
                                                                  self._n, origin, upper, t if t is not None else 0)
         usable = p_index > self.p_index_threshold if (t is not None and self.pfilter) else np.ones(len(rows), bool)
         return LocalMap(rows, pos, labels, p_index, usable, grid, origin, upper - origin + 1, self.voxel, self)
@@ -212,7 +125,7 @@ class VoxelPFilterMap:
         back = np.flatnonzero(gap > 0)
         if len(back):
             r = local.rows[back]
-            local.p_index[back] = self.f[r] / np.maximum(t - (self.t0[r] + gap[back]), 1)
+            local.p_index[back] = p_index(self.f[r], t - (self.t0[r] + gap[back]))
             if self.pfilter:
                 local.usable[back] = local.p_index[back] > self.p_index_threshold
         return local.rows, np.maximum(gap, 0)
@@ -260,7 +173,7 @@ class VoxelPFilterMap:
             points_world, labels, covs_world, keys = points_world[take], labels[take], covs_world[take], keys[take]
         back = local.rows[self.returning[local.rows]]
         back_last = self.last[back].copy()
-        rows, first_key = kernels.assign_voxels(points_world, keys, local.pos, local.grid, local.origin,
+        rows, first_key = assign_voxels(points_world, keys, local.pos, local.grid, local.origin,
                                                 local.dims, self.voxel, self.merge_radius, local.rows, alive, self._n)
         n_new = len(first_key)
         if self._n + n_new > len(self.pos):
@@ -276,11 +189,11 @@ class VoxelPFilterMap:
         self.alive[new] = True
         self._n += n_new
         changed = np.array([np.inf, np.inf, -np.inf, -np.inf])  # merged voxels before and after, observed ones
-        kernels.merge_points(rows, points_world, covs_world, labels.astype(np.int64), t, self.pos, self.cov, self.counts,
+        merge_points(rows, points_world, covs_world, labels.astype(np.int64), t, self.pos, self.cov, self.counts,
                              self.label, self.t0, self.f, self.last, self.wacc, self.pfilter, changed,
                              numba.get_num_threads())
         if self.observe_radius > 0:
-            kernels.mark_observed(seen_from, local.pos, local.grid, local.origin, local.dims, self.voxel,
+            mark_observed(seen_from, local.pos, local.grid, local.origin, local.dims, self.voxel,
                                   self.observe_radius, local.rows, alive, self.f, self.last, t, changed)
         self._touch_box(changed)
         seen = local.rows[self.last[local.rows] == t]
@@ -303,11 +216,9 @@ class VoxelPFilterMap:
 
     def compact(self, min_dead_share: float = 1 / 3, headroom: float = 1 / 8, min_reclaim: float = 1 / 32) -> None:
         """Reclaim the space of dropped voxels once they are a given share of the rows, or once the rows come within
-        `headroom` of the capacity: reclaiming them beats doubling every array (a 3,600-frame loop drive doubled
-        262,144 -> 524,288 rows at frame ~2,650 with 29% of its rows dead: +27 MB RSS for good). Near the capacity
-        only when at least `min_reclaim` of it comes back: a map full of live rows copied itself whole for a few
-        dozen dead ones at every frame until it doubled (seed 5's stream: 113 compactions in 600 frames). Renumbers
-        rows, keeping their order."""
+        `headroom` of the capacity: reclaiming them beats doubling every array. Near the capacity only when at least
+        `min_reclaim` of it comes back, or a map full of live rows would copy itself whole for a few dead ones at
+        every frame. Renumbers rows, keeping their order."""
         n = self._n
         dead = np.count_nonzero(~self.alive[:n]) if n else 0
         near_full = n > (1 - headroom) * len(self.pos) and dead >= min_reclaim * len(self.pos)
@@ -315,7 +226,7 @@ class VoxelPFilterMap:
             return
         keep = np.flatnonzero(self.alive[:n])
         for name in _FIELDS:
-            kernels.gather_row_bytes(_row_bytes(getattr(self, name)), keep)
+            gather_row_bytes(_row_bytes(getattr(self, name)), keep)
         self.alive[len(keep): n] = False
         self._n = len(keep)
 
@@ -333,9 +244,49 @@ class VoxelPFilterMap:
             getattr(self, name)[:n] = _field(state, name)
         self._n = n
 
-    def tile_ids(self, tile_m: float) -> np.ndarray:
-        """(n,2) x-y tile of every row: floor(pos / tile_m), as occvo_core.map_tiles cuts the served map."""
-        return np.floor(self.pos[: self._n, :2] / tile_m).astype(np.int64)
+    def tile_ids(self, tile_m: float, rows: np.ndarray | None = None) -> np.ndarray:
+        """(n,2) x-y tile of every row (or of `rows`): floor(pos / tile_m), as occvo_core.map_tiles cuts the map."""
+        pos = self.pos[: self._n] if rows is None else self.pos[rows]
+        return np.floor(pos[:, :2] / tile_m).astype(np.int64)
+
+    def resident_tiles(self, tile_m: float) -> set[tuple[int, int]]:
+        """Tiles with live voxels."""
+        tiles = self.tile_ids(tile_m)[self.alive[: self._n]]
+        if not len(tiles):
+            return set()
+        _, first = np.unique(pack_tiles(tiles), return_index=True)
+        return {(int(a), int(b)) for a, b in tiles[first]}
+
+    def take_far_tiles(self, center_xy, radius_m: float, tile_m: float, t: int) -> dict[tuple[int, int], dict]:
+        """take() every tile whose square lies wholly farther than radius_m from center_xy: {tile: its voxels}."""
+        center = np.asarray(center_xy, np.float64)
+        rows = far_tile_rows(self.pos, self.alive, self._n, center[0], center[1], float(tile_m), float(radius_m))
+        if len(rows) == 0:
+            return {}
+        tiles = self.tile_ids(tile_m, rows)
+        _, first, inverse = np.unique(pack_tiles(tiles), return_index=True, return_inverse=True)
+        uniq = tiles[first]
+        inverse = inverse.reshape(-1)
+        order = np.argsort(inverse, kind="stable")
+        bounds = np.searchsorted(inverse[order], np.arange(len(uniq) + 1))
+        out = {(int(uniq[u, 0]), int(uniq[u, 1])): self.take(rows[order[bounds[u]:bounds[u + 1]]], t)
+               for u in range(len(uniq))}
+        self.compact()
+        return out
+
+    def live_rows(self, born_after: int | None = None, born_at: int | None = None,
+                  born_up_to: int | None = None) -> np.ndarray:
+        """Live rows, ascending, of the voxels made after, at or up to a frame (loop closure's map correction)."""
+        n = self._n
+        keep = self.alive[:n].copy()
+        for bound, test in ((born_after, np.greater), (born_at, np.equal), (born_up_to, np.less_equal)):
+            if bound is not None:
+                keep &= test(self.born[:n], bound)
+        return np.flatnonzero(keep)
+
+    def born_of(self, rows: np.ndarray) -> np.ndarray:
+        """Frame each row's voxel was made."""
+        return self.born[rows]
 
     def take(self, rows: np.ndarray, t: int) -> dict[str, np.ndarray]:
         """Remove live rows and return their voxels with everything the voxel pfilter knows of them."""
@@ -386,18 +337,18 @@ class VoxelPFilterMap:
             return 0
         group = np.arange(len(rows)) if group is None else np.asarray(group, np.int64)
         box = np.array([np.inf, np.inf, -np.inf, -np.inf])  # where they were and went: only that part is re-tiled
-        moved_far = kernels.move_rows(self.pos, self.cov, self.keys, rows, np.ascontiguousarray(rot, np.float64),
+        moved_far = move_rows(self.pos, self.cov, self.keys, rows, np.ascontiguousarray(rot, np.float64),
                                       np.ascontiguousarray(trans, np.float64), group, self.voxel, box)
         self._touch_box(box)
         keys = self.keys[rows]
         self.alive[rows] = False  # judge the moved voxels against the others
         held = self.window(keys.min(axis=0) - 1, keys.max(axis=0) + 1)
-        keep = kernels.claim_cells(self.keys, rows, held.grid, held.origin, held.dims)
+        keep = claim_cells(self.keys, rows, held.grid, held.origin, held.dims)
         if ghost_radius_m > 0 and len(held):
             old = self.persistent_rows(held.rows, born_before)
             judge = np.flatnonzero(keep & moved_far)  # a voxel moved less than its size was there already
             pos = self.pos[rows[judge]]
-            near = kernels.near_any(pos, held.pos[old], ghost_radius_m)  # most of a lap is far from the old map: skip it
+            near = near_any(pos, held.pos[old], ghost_radius_m)  # most of a lap is far from the old map: skip it
             judge, pos = judge[near], pos[near]
             d, j = held.nearest(pos, int(np.ceil(ghost_radius_m / self.voxel)), usable=old)
             ghost = (j >= 0) & (d <= ghost_radius_m)
@@ -420,7 +371,7 @@ class VoxelPFilterMap:
         keep = self.alive[rows].copy()
         if self.pfilter:
             span = self.last[rows] - self.t0[rows] + 1 - (self.between[rows] if per_visit else 0)
-            keep &= self.f[rows] / np.maximum(span, 1) > self.p_index_threshold
+            keep &= p_index(self.f[rows], span) > self.p_index_threshold
         if born_before is not None:
             keep &= self.born[rows] < born_before
         return keep
@@ -430,7 +381,7 @@ class VoxelPFilterMap:
         tile_m), those whose x-y tile floor(pos / tile_m) lies in lo..hi."""
         if tiles is not None:
             lo, hi, tile_m = tiles
-            rows = kernels.persistent_in_tiles(self.pos, self.alive, self.f, self.last, self.t0, self.between, self._n,
+            rows = persistent_in_tiles(self.pos, self.alive, self.f, self.last, self.t0, self.between, self._n,
                                                self.p_index_threshold, self.pfilter, np.asarray(lo, np.int64),
                                                np.asarray(hi, np.int64), float(tile_m))
             return self.pos[rows], self.label[rows]

@@ -22,6 +22,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from along_track import GroundTruthMapOdometry, benchmark_main  # noqa: E402
+
 from occvo_core import OccVOConfig  # noqa: E402
 from occvo_core.datasets import OccVOReleaseScene  # noqa: E402
 from occvo_core.grid import MOVABLE_CLASSES  # noqa: E402

@@ -27,8 +27,8 @@ from long_drive import START_TILES, true_start_map  # noqa: E402
 from occvo_core import OccVO, OccVOConfig  # noqa: E402
 from occvo_core.eval import ape_rmse  # noqa: E402
 from occvo_core.map_metrics import map_metrics  # noqa: E402
-from occvo_core.working_map import tiles_near  # noqa: E402
 from occvo_core.sim import SyntheticScene  # noqa: E402
+from occvo_core.working_map import tiles_near  # noqa: E402
 
 TILE_M = 20.0
 

@@ -17,7 +17,8 @@ from occvo_core.registration.initialisation import bev_first_motion, ground_heig
 from occvo_core.registration.kernels.nearest import near_any
 from occvo_core.registration.local_map import EgoMap, LocalMap, frame_window, moved, transform, window_margin
 from occvo_core.registration.preprocess import Prepared
-from occvo_core.registration.voxel_map import VoxelPFilterMap, _field
+from occvo_core.registration.voxel_map import VoxelPFilterMap
+from occvo_core.registration.voxel_rows import _field
 
 
 class LoopClosure:

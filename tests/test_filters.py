@@ -1,14 +1,14 @@
 """The three filters of the paper on hand-built cases whose answers are known."""
 
 import numpy as np
+from scenes import box, car, frame, shell, town
 
 from occvo_core import OccVO, OccVOConfig
 from occvo_core.grid import OCC3D_GRID
+from occvo_core.registration.dynamic_object_filter import cluster_objects, dynamic_object_filter
 from occvo_core.registration.kernels.gicp import gicp_linearise
 from occvo_core.registration.kernels.grid import dense_index, surface_mask
-from occvo_core.registration.dynamic_object_filter import cluster_objects, dynamic_object_filter
 from occvo_core.registration.voxel_map import VoxelPFilterMap
-from scenes import box, car, frame, shell, town
 
 
 # -- semantic label filter --------------------------------------------------------------------------------------

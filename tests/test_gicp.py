@@ -1,15 +1,15 @@
 import numpy as np
 import pytest
-
 from conftest import random_pose
+from scenes import town
+
 from occvo_core.grid import OCC3D_GRID
+from occvo_core.registration.gicp import gicp
 from occvo_core.registration.kernels.covariance import _smallest_eigenvector, plane_covariances
 from occvo_core.registration.kernels.gicp import gicp_linearise, gicp_linearise_pairs
 from occvo_core.registration.kernels.grid import dense_index, surface_mask
 from occvo_core.registration.kernels.sources import thin_sources
-from occvo_core.registration.gicp import gicp
 from occvo_core.registration.voxel_map import VoxelPFilterMap
-from scenes import town
 
 
 def _surface_town():

@@ -225,7 +225,7 @@ def test_tiles_evicted_before_a_closure_come_back_as_corrected_as_the_working_ma
     assert len(before) > 1000
     correction = _about(resident.poses[-1][:3, 3], _drift(3.0, [4.0, -2.0, 0.5]))
     for vo in (resident, paged):  # what a closure at frame 30 does to the map
-        vo._correct_map(vo.poses[-1], correction, len(vo.poses))
+        vo.loop_closure.correct_map(list(vo.poses), vo.poses[-1], correction, len(vo.poses))
     added = paged.restore_tiles(blocks)
     assert added > 0.95 * len(before)
     restored = paged.map.pos[paged.map._n - added: paged.map._n]

@@ -60,7 +60,7 @@ def gicp(points: np.ndarray, covs: np.ndarray, labels: np.ndarray, local_map: Lo
     usable = local_map.usable if usable is None else usable
     map_labels = local_map.labels.astype(np.int64)
     verify = False
-    for it in range(1, iterations + 1):
+    for it in range(1, iterations + 1):  # noqa: B007 - the last `it` is the result's count
         rot, trans = pose[:3, :3].copy(), pose[:3, 3].copy()
         search = verify or searched_at is None or _moved(pose, searched_at, reach) > correspondence_reuse * local_map.voxel
         if search:

@@ -1,4 +1,5 @@
-"""Whole rows of the map: tiles paged out, rows moved by a loop closure, arrays copied without the GIL."""
+"""Whole rows of the map: tiles paged out, rows moved by a loop closure, and arrays copied without the GIL (numpy's
+copies of a big map's arrays hold it long enough to stall a worker's other threads)."""
 
 from __future__ import annotations
 

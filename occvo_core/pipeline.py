@@ -29,7 +29,7 @@ class OdometryPipeline:
         self.stage_ms: dict[str, list[float]] = {}
         self.skipped: list[str] = []
 
-    def run(self) -> "OdometryPipeline":
+    def run(self) -> OdometryPipeline:
         self.odometry.reset()
         for i in tqdm(range(len(self.source)), desc=f"OCC-VO {self.source.name}", unit="frame", disable=not self.progress):
             try:

@@ -99,3 +99,16 @@ class RoadGraph:
 
     def key(self, a: int, b: int) -> tuple[int, int]:
         return (a, b) if a < b else (b, a)
+
+
+def frames_along(poly: np.ndarray, step: float, offset: float = 0.0):
+    """Points every `step` m along a polyline with their arc length and left normal."""
+    seg = np.diff(poly, axis=0)
+    seglen = np.linalg.norm(seg, axis=1)
+    cum = np.concatenate([[0.0], np.cumsum(seglen)])
+    s = np.arange(offset, cum[-1], step)
+    x = np.interp(s, cum, poly[:, 0])
+    y = np.interp(s, cum, poly[:, 1])
+    idx = np.clip(np.searchsorted(cum, s, side="right") - 1, 0, len(seg) - 1)
+    tangent = seg[idx] / seglen[idx, None]
+    return s, np.column_stack([x, y]), np.column_stack([-tangent[:, 1], tangent[:, 0]]), cum[-1]

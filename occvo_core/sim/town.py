@@ -14,7 +14,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy import ndimage
 
-from occvo_core.sim.roads import RoadGraph, Terrain
+from occvo_core.sim.roads import RoadGraph, Terrain, frames_along
 
 # Occ3D class ids used here (names in occvo_core.grid.CLASS_NAMES).
 BARRIER, BICYCLE, BUS, CAR, CONSTRUCTION, MOTORCYCLE, PEDESTRIAN, CONE, TRAILER, TRUCK = 1, 2, 3, 4, 5, 6, 7, 8, 9, 10
@@ -119,19 +119,6 @@ class _Painter:
             self._write(win, inside, layer, label, z0, z1)
 
 
-def _frames_along(poly: np.ndarray, step: float, offset: float = 0.0):
-    """Points every `step` m along a polyline with their arc length and left normal."""
-    seg = np.diff(poly, axis=0)
-    seglen = np.linalg.norm(seg, axis=1)
-    cum = np.concatenate([[0.0], np.cumsum(seglen)])
-    s = np.arange(offset, cum[-1], step)
-    x = np.interp(s, cum, poly[:, 0])
-    y = np.interp(s, cum, poly[:, 1])
-    idx = np.clip(np.searchsorted(cum, s, side="right") - 1, 0, len(seg) - 1)
-    tangent = seg[idx] / seglen[idx, None]
-    return s, np.column_stack([x, y]), np.column_stack([-tangent[:, 1], tangent[:, 0]]), cum[-1]
-
-
 def build_town(seed: int, graph: RoadGraph, terrain: Terrain, lower: np.ndarray, upper: np.ndarray) -> Town:
     """Rasterise the town inside the world box [lower, upper] (x, y)."""
     rng = np.random.default_rng([seed, 7])
@@ -155,7 +142,7 @@ def build_town(seed: int, graph: RoadGraph, terrain: Terrain, lower: np.ndarray,
            poly[:, 1].max() < lower[1] - margin or poly[:, 1].min() > upper[1] + margin:
             continue
         edges.append(key)
-        s, pts, _, _ = _frames_along(poly, 0.1)
+        s, pts, _, _ = frames_along(poly, 0.1)
         u = np.floor((pts[:, 0] - origin[0]) / RES).astype(int)
         v = np.floor((pts[:, 1] - origin[1]) / RES).astype(int)
         ok = (u >= 0) & (u < w) & (v >= 0) & (v < h)
@@ -271,7 +258,7 @@ def build_town(seed: int, graph: RoadGraph, terrain: Terrain, lower: np.ndarray,
         for side in (-1.0, 1.0):
             sid = int(side > 0)
             r_side = hash_uniform(seed, e_id, sid, salt=32)
-            s, pts, nrm, length = _frames_along(poly, 1.0)
+            s, pts, nrm, length = frames_along(poly, 1.0)
             if length < 30:
                 continue
 

@@ -22,11 +22,13 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from along_track import GroundTruthMapOdometry, benchmark_main  # noqa: E402
+
 from occvo_core import OccVOConfig  # noqa: E402
-from occvo_core import odometry as od  # noqa: E402
 from occvo_core.datasets import OccVOReleaseScene  # noqa: E402
 from occvo_core.grid import MOVABLE_CLASSES  # noqa: E402
-from occvo_core.registration.voxel_map import EgoMap  # noqa: E402
+from occvo_core.registration.gicp import coarse_gicp, fine_gicp, register_sources  # noqa: E402
+from occvo_core.registration.local_map import EgoMap, frame_window  # noqa: E402
+from occvo_core.registration.preprocess import preprocess  # noqa: E402
 from occvo_core.trajectory import read_kitti  # noqa: E402
 
 COLUMNS = ("guess", "fine_only", "coarse", "coarse_fine", "every_voxel", "open3d")
@@ -40,11 +42,11 @@ def _cloud(points: np.ndarray, covs: np.ndarray) -> o3d.geometry.PointCloud:
 
 def stages(vo: GroundTruthMapOdometry, frame, t: int, guess: np.ndarray) -> dict[str, np.ndarray]:
     """Poses each stage reaches for frame t from `guess`, against vo's map (frames before t)."""
-    g = vo.config.gicp
-    p = vo._preprocess(frame)
-    local = vo._local_map(guess, t)
-    ego = EgoMap.build(local, guess, od._EGO_LOWER - vo._margin, od._EGO_UPPER + vo._margin, vo.map.voxel)
-    coarse = vo._coarse_gicp(p, ego).pose
+    cfg = vo.config
+    p = preprocess(frame, cfg)
+    local = frame_window(vo.map, guess, t, vo._margin)
+    ego = EgoMap.around(local, guess, vo._margin)
+    coarse = coarse_gicp(p, ego, cfg).pose
     static = ~np.isin(p.labels, MOVABLE_CLASSES)
     usable = local.usable & ~np.isin(local.labels, MOVABLE_CLASSES)
     o3d_pose = o3d.pipelines.registration.registration_generalized_icp(
@@ -53,10 +55,10 @@ def stages(vo: GroundTruthMapOdometry, frame, t: int, guess: np.ndarray) -> dict
         o3d.pipelines.registration.ICPConvergenceCriteria(max_iteration=60)).transformation
     return {
         "guess": guess,
-        "fine_only": guess @ vo._gicp(p, p.fine, ego, np.eye(4), g.fine_max_correspondence_m, g.fine_iterations).pose,
+        "fine_only": guess @ fine_gicp(p, p.fine, ego, np.eye(4), cfg).pose,
         "coarse": guess @ coarse,
-        "coarse_fine": guess @ vo._gicp(p, p.fine, ego, coarse, g.fine_max_correspondence_m, g.fine_iterations).pose,
-        "every_voxel": guess @ vo._gicp(p, np.arange(len(p.points)), ego, np.eye(4), 1.0, 60).pose,
+        "coarse_fine": guess @ fine_gicp(p, p.fine, ego, coarse, cfg).pose,
+        "every_voxel": guess @ register_sources(p, np.arange(len(p.points)), ego, np.eye(4), 1.0, 60, cfg).pose,
         "open3d": o3d_pose,
     }
 

@@ -27,8 +27,8 @@ from long_drive import START_TILES, true_start_map  # noqa: E402
 from occvo_core import OccVO, OccVOConfig  # noqa: E402
 from occvo_core.eval import ape_rmse  # noqa: E402
 from occvo_core.map_metrics import map_metrics  # noqa: E402
-from occvo_core.map_tiles import tile_distance  # noqa: E402
 from occvo_core.sim import SyntheticScene  # noqa: E402
+from occvo_core.working_map import tiles_near  # noqa: E402
 
 TILE_M = 20.0
 
@@ -69,9 +69,7 @@ def main(argv=None) -> int:
     vo, cold, ego, stage_ms, maps = OccVO(cfg), {}, None, [], {}
     for i in range(args.frames):
         if ego is not None and cold:  # the worker's restore: cold tiles within radius - tile of the last pose
-            keys = list(cold)
-            near = tile_distance(np.array(keys, np.int64), ego, TILE_M) <= args.radius - TILE_M
-            for k in [k for k, n in zip(keys, near) if n]:
+            for k in tiles_near(cold, ego, args.radius, TILE_M):
                 for block in cold.pop(k):
                     vo.restore_tiles({k: block})
         r = vo.step(scene[i])

@@ -57,7 +57,7 @@ class CameraRig:
     def height(self) -> int:
         return self.size[1]
 
-    def scaled(self, width: int, height: int) -> "CameraRig":
+    def scaled(self, width: int, height: int) -> CameraRig:
         """The same rig for images resized to (width, height); pixel centres stay consistent."""
         sx, sy = width / self.width, height / self.height
         k = self.intrinsics.copy()

@@ -23,12 +23,11 @@ class GICPConfig(_Section):
     coarse_max_correspondence_m: float = Field(1.2, gt=0)
     wide_trust_m: float = Field(0.6, ge=0, description="a wide pass that moves the guess less than this (and turns it "
                                 "under 2 degrees) is coarse GICP's only start; farther, coarse GICP also starts from the "
-                                "guess (see wide_pairs_margin; a wide pass 1 m off can lead coarse "
-                                "GICP on into a neighbouring minimum: README, issue 2)")
+                                "guess (see wide_pairs_margin): a wide pass far off can lead coarse GICP on into a "
+                                "neighbouring minimum")
     wide_pairs_margin: float = Field(0.1, ge=0, description="from two starts, the wide pass's alignment replaces the "
                                      "guess's only when it keeps this share more pairs (at about equal support the "
-                                     "guess, the prior, stays: on the long loop drive it was the nearer in 28 of 32 "
-                                     "such frames)")
+                                     "guess, the prior, stays)")
     coarse_map_voxel_m: float = Field(1.2, gt=0, description="coarse GICP pairs with the map pooled on this grid")
     fine_max_correspondence_m: float = Field(0.6, gt=0)
     coarse_iterations: int = Field(12, ge=1)
@@ -44,7 +43,7 @@ class GICPConfig(_Section):
     source_pick: Literal["first", "balanced", "uniform"] = Field("first", description="which voxel of a block is its source: "
                                                       "the first in grid order (the rear-most, lowest ego x), or "
                                                       "balanced (the front-most in every other block, so the picks "
-                                                      "lean neither way along the track; README, issue 2)")
+                                                      "lean neither way along the track)")
 
 
 class SemanticLabelFilterConfig(_Section):
@@ -75,7 +74,7 @@ class InitialisationConfig(_Section):
     motion_search: bool = Field(False, description="each frame, the constant-velocity guess is refined by a semantic "
                                 "BEV correlation with the previous frame (semantic_bev_motion): it follows turns "
                                 "that start or end between frames, which GICP on a network's occupancy does not. "
-                                "Off by default: it costs 16-21 ms a frame, and on ground-truth occupancy GICP "
+                                "Off by default: it costs time every frame, and on ground-truth occupancy GICP "
                                 "follows turns without it (occvo run --from-images switches it on)")
     motion_search_yaw_deg: float = Field(16.0, ge=0, description="the search turns the guess this far either way")
     motion_search_step_deg: float = Field(2.0, gt=0)
@@ -122,7 +121,7 @@ class OccVOConfig(_Section):
     loop_closure: LoopClosureConfig = LoopClosureConfig()
 
     @classmethod
-    def load(cls, path: str | Path) -> "OccVOConfig":
+    def load(cls, path: str | Path) -> OccVOConfig:
         """From a JSON or YAML-free JSON5 file; unknown keys are an error."""
         import json5
 
@@ -131,12 +130,12 @@ class OccVOConfig(_Section):
         except Exception as exc:  # noqa: BLE001 - one clear error for any bad config
             raise ConfigError(f"{path}: {exc}") from None
 
-    def with_filters(self, semantic: bool = True, dynamic: bool = True, pfilter: bool = True) -> "OccVOConfig":
+    def with_filters(self, semantic: bool = True, dynamic: bool = True, pfilter: bool = True) -> OccVOConfig:
         return self.model_copy(update={
             "semantic_label_filter": SemanticLabelFilterConfig(enabled=semantic),
             "dynamic_object_filter": self.dynamic_object_filter.model_copy(update={"enabled": dynamic}),
             "voxel_pfilter": self.voxel_pfilter.model_copy(update={"enabled": pfilter}),
         })
 
-    def with_motion_search(self, enabled: bool = True) -> "OccVOConfig":
+    def with_motion_search(self, enabled: bool = True) -> OccVOConfig:
         return self.model_copy(update={"initialisation": self.initialisation.model_copy(update={"motion_search": enabled})})

@@ -1,4 +1,5 @@
-"""Trajectory evaluation as evo does it: APE of translation after SE(3) Umeyama alignment; success = RMSE < 5 m."""
+"""Trajectory evaluation as evo does it: APE of translation after SE(3) Umeyama alignment; success = RMSE < 5 m.
+The paper's map metrics (Table IV) are in occvo_core.map_metrics."""
 
 from __future__ import annotations
 
@@ -44,9 +45,3 @@ def success_ratio(rmses) -> float:
     rmses = list(rmses)
     return sum(success(r) for r in rmses) / len(rmses) if rmses else float("nan")
 
-
-# The paper's map metrics (Table IV) live beside the trajectory ones.
-from occvo_core.map_metrics import (  # noqa: E402
-    MapCloud, MapMetrics, align_to_ground_truth, evaluate_map_against_truth, ground_truth_map, load_map, map_metrics,
-    reference_map_from_poses, save_map,
-)

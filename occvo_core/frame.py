@@ -19,7 +19,7 @@ class OccupancyFrame:
     meta: dict = field(default_factory=dict)
 
     @classmethod
-    def from_array(cls, array: np.ndarray, index: int = 0, stamp: float = 0.0) -> "OccupancyFrame":
+    def from_array(cls, array: np.ndarray, index: int = 0, stamp: float = 0.0) -> OccupancyFrame:
         """From the OCC-VO release layout: float (N,4) x, y, z, label."""
         array = np.asarray(array)
         if array.ndim != 2 or array.shape[1] != 4:
@@ -36,7 +36,7 @@ class OccupancyFrame:
         if labels.size and (labels.min() < 0 or labels.max() >= NUM_CLASSES):
             raise InvalidFrameError(self.index, f"labels outside 0..{NUM_CLASSES - 1}: min {labels.min()}, max {labels.max()}")
 
-    def validate(self) -> "OccupancyFrame":
+    def validate(self) -> OccupancyFrame:
         """Raise InvalidFrameError naming this frame and the problem; return self when sound."""
         p, l = np.asarray(self.points), np.asarray(self.labels)
         if p.ndim != 2 or p.shape[1] != 3:

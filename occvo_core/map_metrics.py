@@ -18,6 +18,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from occvo_core.errors import DatasetError
+from occvo_core.eval import umeyama_se3
 from occvo_core.grid import STATIC_CLASSES
 
 THRESHOLD_M = 0.4
@@ -130,8 +131,6 @@ def align_to_ground_truth(points: np.ndarray, est_poses: np.ndarray, gt_poses: n
     """Map points from the estimate's world frame to the ground truth's by an SE(3) Umeyama fit over the poses:
     each pose contributes its position and the tips of its three axes `lever_m` long. Orientation makes the fit
     well posed on straight drives, where positions alone (APE's alignment) leave the roll about the road free."""
-    from occvo_core.eval import umeyama_se3
-
     est_poses, gt_poses = np.asarray(est_poses, np.float64), np.asarray(gt_poses, np.float64)
     if est_poses.shape != gt_poses.shape or len(est_poses) == 0:
         raise ValueError(f"need matching (N,4,4) trajectories, got {est_poses.shape} and {gt_poses.shape}")

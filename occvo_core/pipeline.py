@@ -32,7 +32,7 @@ class OdometryPipeline:
         self.skipped: list[str] = []
         self.stamp_of: dict[int, float] = {}  # frame index -> the data's stamp (s)
 
-    def run(self, on_step=None) -> "OdometryPipeline":
+    def run(self, on_step=None) -> OdometryPipeline:
         """on_step(frame, result, odometry), when given, sees every registered frame (a live view logs it)."""
         self.odometry.reset()
         for i in tqdm(range(len(self.source)), desc=f"OCC-VO {self.source.name}", unit="frame", disable=not self.progress):

@@ -2,14 +2,14 @@
 
 numba compiles a kernel at its first call, or loads it from its cache, which a fresh install or an upgrade lacks.
 A worker meets some kernels only minutes into a drive: the first loop search, the first loop closure's map
-correction, the first restore of an evicted tile. On 2 cores those compiles held a stream's next frames for 1.2,
-6.6 and 1.6 s (README, Reliability). warm_up() calls them all on a made-up street, so a service pays once at start,
-before it takes frames.
+correction, the first restore of an evicted tile; compiling one then holds a stream's next frames for seconds.
+warm_up() calls them all on a made-up street, so a service pays once at start, before it takes frames.
 """
 
 from __future__ import annotations
 
 import time
+from importlib import import_module
 
 import numpy as np
 from scipy.spatial.transform import Rotation
@@ -18,7 +18,7 @@ from occvo_core.config import OccVOConfig
 from occvo_core.frame import OccupancyFrame
 from occvo_core.grid import OCC3D_GRID
 from occvo_core.odometry import OccVO
-from occvo_core.registration import kernels
+from occvo_core.registration import kernels, semantic_label_filter, voxel_pfilter
 from occvo_core.registration.voxel_map import copied
 
 _FRAMES = 4
@@ -81,7 +81,7 @@ def warm_up(config: OccVOConfig | None = None, threads: int = 1) -> dict[str, fl
     correction = np.eye(4)
     correction[:3, :3] = Rotation.from_euler("z", 0.01).as_matrix()
     correction[:3, 3] = [1.5, 0.2, 0.0]
-    vo._correct_map(correction @ vo.poses[-1], correction, len(vo.poses))
+    vo.loop_closure.correct_map(list(vo.poses), correction @ vo.poses[-1], correction, len(vo.poses))
     vo.step(_frame(world, labels, _FRAMES))
     vo.restore_tiles(blocks)
     # the served map, whole and by tiles; a snapshot's copy and its restore
@@ -94,6 +94,9 @@ def warm_up(config: OccVOConfig | None = None, threads: int = 1) -> dict[str, fl
 
 
 def kernels_ready() -> set[tuple[str, str]]:
-    """(kernel, argument types) of every compiled kernel of kernels.py. One that only other kernels call lists its
-    types when compiled in this process, not when its callers came from the cache (24 entries then, 32 compiled)."""
-    return {(name, str(sig)) for name, f in vars(kernels).items() if hasattr(f, "signatures") for sig in f.signatures}
+    """(kernel, argument types) of every compiled kernel of occvo_core.registration. One that only other kernels
+    call lists its types when compiled in this process, not when its callers came from the cache."""
+    modules = [import_module(f"{kernels.__name__}.{m}") for m in kernels.MODULES] + [semantic_label_filter,
+                                                                                       voxel_pfilter]
+    return {(f.py_func.__name__, str(sig)) for m in modules for f in vars(m).values() if hasattr(f, "signatures")
+            for sig in f.signatures}

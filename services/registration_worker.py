@@ -35,7 +35,8 @@ import zenoh
 from occvo_core.errors import ConfigError, InvalidFrameError
 from occvo_core.frame import OccupancyFrame
 from occvo_core.registration.voxel_map import copied
-from occvo_core.map_tiles import changed_tiles, pack_tiles, retile_region, tile_distance
+from occvo_core.map_tiles import changed_tiles, retile_region
+from occvo_core.working_map import tiles_near, tiles_reached
 from schemas import keys
 from schemas.codec import encode
 from schemas.models import Array, MapTile, MapUpdate, OccupancyFrameMsg, PoseEstimate, Trajectory
@@ -540,29 +541,15 @@ class RegistrationWorker(Worker):
         return result, restored, evicted, (tiles, dirty)
 
     def _reached(self, st: StreamState, frame: OccupancyFrame, pose: np.ndarray) -> list[tuple[int, int]]:
-        """Cold tiles the frame's points land in at `pose`, or within a merge of them (a map voxel averaged with a
-        point moves at most that far). Happens only when working_radius_m - tile_m is below a frame's reach (~57 m);
-        a bounding-box test first keeps it cheap otherwise."""
-        tile_m, margin = self.config.tile_m, 1.0
-        xy = frame.points @ pose[:2, :3].T + pose[:2, 3]
-        lo = np.floor((xy.min(axis=0) - margin) / tile_m)
-        hi = np.floor((xy.max(axis=0) + margin) / tile_m)
-        candidates = [k for k in st.cold if lo[0] <= k[0] <= hi[0] and lo[1] <= k[1] <= hi[1]]
-        if not candidates:
-            return []
-        ids = np.concatenate([np.floor((xy + d) / tile_m).astype(np.int64)
-                              for d in ((0, 0), (-margin, -margin), (-margin, margin), (margin, -margin), (margin, margin))])
-        packed = set(np.unique(pack_tiles(ids)).tolist())
-        return [k for k, code in zip(candidates, pack_tiles(np.array(candidates, np.int64)).tolist()) if code in packed]
+        """Cold tiles the frame's points reach at `pose` (occvo_core.working_map.tiles_reached)."""
+        return tiles_reached(st.cold, frame.points, pose, self.config.tile_m)
 
     def _near(self, st: StreamState) -> list[tuple[int, int]]:
-        """Cold tiles within working_radius_m - tile_m of the last pose (one tile of hysteresis: no flapping)."""
+        """Cold tiles near the last pose to bring back (occvo_core.working_map.tiles_near)."""
         radius = self.config.working_radius_m
         if radius is None or not st.cold:
             return []
-        keys_ = list(st.cold)
-        near = tile_distance(np.array(keys_, np.int64), st.ego_xy, self.config.tile_m) <= radius - self.config.tile_m
-        return [k for k, n in zip(keys_, near) if n]
+        return tiles_near(st.cold, st.ego_xy, radius, self.config.tile_m)
 
     def _restore(self, stream: str, st: StreamState, back: list[tuple[int, int]]) -> list[tuple[int, int]]:
         """Put cold tiles back into the working map (newest block first: put() keeps a cell's newer voxel)."""

@@ -1,5 +1,5 @@
 """Hypothesis strategies for every occvo wire message, and mutators of their bytes and of their msgpack structure.
-Shared by tests/test_fuzz_codec.py (in process) and tests/test_fuzz_workers.py (through real Zenoh workers)."""
+Shared by tests/service/test_fuzz_codec.py (in process) and tests/service/test_fuzz_workers.py (through real Zenoh workers)."""
 
 from __future__ import annotations
 

@@ -41,8 +41,8 @@ def car(x, y, label=4):
 
 def shell(points):
     """The voxels of points with an empty face neighbour (what the odometry keeps of solid objects)."""
-    from occvo_core.registration import kernels
+    from occvo_core.registration.kernels.grid import dense_index, surface_mask
 
     ijk = OCC3D_GRID.indices_of(points)
     shape = np.array(OCC3D_GRID.shape)
-    return points[kernels.surface_mask(ijk, kernels.dense_index(ijk, shape), shape)]
+    return points[surface_mask(ijk, dense_index(ijk, shape), shape)]

@@ -12,7 +12,13 @@ from collections import OrderedDict
 
 import gymnasium as gym
 
-from occvo_core.envs.replay import ReplayEnv, action_from_pose, frame_from_observation, pose_from_action, run_occvo_agent
+from occvo_core.envs.replay import (
+    ReplayEnv,
+    action_from_pose,
+    frame_from_observation,
+    pose_from_action,
+    run_occvo_agent,
+)
 
 ENV_IDS = ("occvo/Replay-v0", "occvo/Synthetic-v0")
 

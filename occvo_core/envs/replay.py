@@ -16,8 +16,9 @@ Info: frame_index, stamp (s, the data's clock), gt_pose (of the shown frame, Non
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 
 import gymnasium as gym
 import numpy as np

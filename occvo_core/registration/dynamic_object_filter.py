@@ -7,14 +7,19 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from occvo_core.registration import kernels
+from occvo_core.config import DynamicObjectFilterConfig
+from occvo_core.grid import MOVABLE_CLASSES, OCC3D_GRID
+from occvo_core.registration.kernels.clusters import grid_clusters
+from occvo_core.registration.kernels.nearest import near_any
+from occvo_core.registration.local_map import LocalMap, transform
+from occvo_core.registration.preprocess import Prepared
 
 
 def cluster_objects(points: np.ndarray, eps: float, min_points: int) -> np.ndarray:
     """Object id per point by single-linkage clustering at distance eps; -1 for clusters under min_points."""
     if len(points) == 0:
         return np.zeros(0, np.int64)
-    ids = kernels.grid_clusters(np.ascontiguousarray(points, np.float64), float(eps))
+    ids = grid_clusters(np.ascontiguousarray(points, np.float64), float(eps))
     sizes = np.bincount(ids, minlength=len(points))
     return np.where(sizes[ids] >= min_points, ids, -1)
 
@@ -25,8 +30,8 @@ def displaced_objects(points: np.ndarray, ids: np.ndarray, counterparts: np.ndar
     valid = np.flatnonzero(ids >= 0)
     if len(valid) == 0:
         return np.zeros(len(points), bool)
-    near = kernels.near_any(np.ascontiguousarray(points[valid], np.float64),
-                            np.ascontiguousarray(counterparts, np.float64).reshape(-1, 3), float(threshold_m))
+    near = near_any(np.ascontiguousarray(points[valid], np.float64),
+                    np.ascontiguousarray(counterparts, np.float64).reshape(-1, 3), float(threshold_m))
     objects, which, sizes = np.unique(ids[valid], return_inverse=True, return_counts=True)
     rank = np.minimum((quantile * (sizes - 1)).round().astype(np.int64), sizes - 1)
     # the distance at the quantile's rank exceeds the threshold exactly when no more than `rank` points are near
@@ -51,3 +56,27 @@ def dynamic_object_filter(frame_movable_world: np.ndarray, map_movable: np.ndarr
         displaced_objects(map_movable, map_ids, frame_movable_world, threshold_m, quantile),
         int(len(np.unique(frame_ids[frame_ids >= 0]))), int(len(np.unique(map_ids[map_ids >= 0]))),
     )
+
+
+def find_moved_objects(frame: Prepared, pose: np.ndarray, local: LocalMap,
+                       config: DynamicObjectFilterConfig) -> tuple[np.ndarray, np.ndarray, dict[str, int]]:
+    """The box of Fig. 2 at the coarse pose: (mask of frame points kept for fine GICP, mask of the window's voxels of
+    moved objects, counts)."""
+    keep = np.ones(len(frame.points), bool)
+    map_moved = np.zeros(len(local), bool)
+    if not config.enabled or len(frame.movable) == 0:
+        return keep, map_moved, {"dynamic_frame_objects": 0, "dynamic_map_objects": 0, "dynamic_points": 0,
+                                 "dynamic_map_voxels_removed": 0}
+    movable_world = transform(pose, frame.points[frame.movable])
+    # map objects are judged only where this frame can see them: inside its grid, after the coarse alignment
+    candidates = np.flatnonzero(np.isin(local.labels, MOVABLE_CLASSES))
+    in_view = OCC3D_GRID.inside(OCC3D_GRID.indices_of(transform(np.linalg.inv(pose), local.pos[candidates])))
+    candidates = candidates[in_view]
+    found = dynamic_object_filter(movable_world, local.pos[candidates], threshold_m=config.displacement_threshold_m,
+                                  cluster_eps_m=config.cluster_eps_m, min_cluster_points=config.min_cluster_voxels,
+                                  quantile=config.displacement_quantile)
+    keep[frame.movable[found.frame_moved]] = False
+    map_moved[candidates[found.map_moved]] = True
+    return keep, map_moved, {"dynamic_frame_objects": found.frame_objects, "dynamic_map_objects": found.map_objects,
+                             "dynamic_points": int(found.frame_moved.sum()),
+                             "dynamic_map_voxels_removed": int(found.map_moved.sum())}

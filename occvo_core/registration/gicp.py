@@ -1,4 +1,5 @@
-"""Generalized ICP (Segal, Haehnel, Thrun 2009) of a labelled frame against a LocalMap."""
+"""Coarse and fine GICP (the paper's Fig. 2): Generalized ICP (Segal, Haehnel, Thrun 2009) of a labelled frame
+against the map around it; the semantic label filter acts on its pairs (semantic_label_filter.py)."""
 
 from __future__ import annotations
 
@@ -7,8 +8,10 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from occvo_core.registration import kernels
-from occvo_core.registration.voxel_map import LocalMap
+from occvo_core.config import GICPConfig, OccVOConfig
+from occvo_core.registration.kernels.gicp import gicp_linearise, gicp_linearise_pairs
+from occvo_core.registration.local_map import EgoMap, LocalMap
+from occvo_core.registration.preprocess import Prepared
 
 
 @dataclass
@@ -57,18 +60,18 @@ def gicp(points: np.ndarray, covs: np.ndarray, labels: np.ndarray, local_map: Lo
     usable = local_map.usable if usable is None else usable
     map_labels = local_map.labels.astype(np.int64)
     verify = False
-    for it in range(1, iterations + 1):
+    for it in range(1, iterations + 1):  # noqa: B007 - the last `it` is the result's count
         rot, trans = pose[:3, :3].copy(), pose[:3, 3].copy()
         search = verify or searched_at is None or _moved(pose, searched_at, reach) > correspondence_reuse * local_map.voxel
         if search:
-            h, g, total, found, kept = kernels.gicp_linearise(
+            h, g, total, found, kept = gicp_linearise(
                 points, covs, labels, rot, trans, local_map.pos, local_map.cov, map_labels, usable, local_map.grid,
                 local_map.origin, local_map.dims, local_map.voxel, radius, max_correspondence_m, semantic_label_filter,
                 robust_scale, pairs)
             searched_at = pose
         else:
-            h, g, total, _, kept = kernels.gicp_linearise_pairs(points, covs, rot, trans, local_map.pos, local_map.cov,
-                                                                pairs, robust_scale)
+            h, g, total, _, kept = gicp_linearise_pairs(points, covs, rot, trans, local_map.pos, local_map.cov, pairs,
+                                                        robust_scale)
         if kept < 6:
             break
         cost = total / kept
@@ -81,3 +84,43 @@ def gicp(points: np.ndarray, covs: np.ndarray, labels: np.ndarray, local_map: Lo
         else:
             verify = False
     return GICPResult(pose, it, found, kept, cost)
+
+
+def register_sources(frame: Prepared, sources: np.ndarray, local_map: LocalMap | EgoMap, pose: np.ndarray,
+                     max_correspondence_m: float, iterations: int, config: OccVOConfig) -> GICPResult:
+    """GICP of the frame's points `sources` from `pose`, with the config's solver settings and label filter."""
+    g: GICPConfig = config.gicp
+    return gicp(frame.points[sources], frame.covs[sources], frame.labels[sources], local_map, pose,
+                max_correspondence_m=max_correspondence_m, iterations=iterations, robust_scale=g.robust_kernel_scale,
+                semantic_label_filter=config.semantic_label_filter.enabled,
+                convergence_rotation_rad=g.convergence_rotation_rad,
+                convergence_translation_m=g.convergence_translation_m, correspondence_reuse=g.correspondence_reuse)
+
+
+def coarse_gicp(frame: Prepared, ego: EgoMap, config: OccVOConfig) -> GICPResult:
+    """Coarse GICP against the map pooled on a coarse grid. A wide pass first (the map pooled wider still) reaches
+    minima metres away; when it lands far from the guess, both starts are refined and the one whose alignment keeps
+    clearly more pairs wins, since repeated structure (tree rows, lamp posts) can give the wide pass a wrong one."""
+    cfg = config.gicp
+    coarse_map = ego.pooled(cfg.coarse_map_voxel_m)
+    starts = [np.eye(4)]
+    if cfg.wide_voxel_m > 0:
+        wide = register_sources(frame, frame.wide, coarse_map.pooled(cfg.wide_voxel_m), np.eye(4), cfg.wide_voxel_m,
+                                cfg.coarse_iterations, config).pose
+        # a wide pass that barely moved the guess leads coarse GICP to the minimum the guess would; one that moved
+        # it further may lead it on into a neighbouring one
+        near = np.linalg.norm(wide[:3, 3]) < cfg.wide_trust_m and rotation_angle(wide[:3, :3]) < np.deg2rad(2.0)
+        starts = [wide] if near else [np.eye(4), wide]
+    results = [register_sources(frame, frame.coarse, coarse_map, start, cfg.coarse_max_correspondence_m,
+                                cfg.coarse_iterations, config) for start in starts]
+    if len(results) == 1:
+        return results[0]
+    from_guess, from_wide = results
+    # the guess is the prior: the wide pass's minimum must be clearly better supported to replace it
+    return from_wide if from_wide.pairs_kept > (1 + cfg.wide_pairs_margin) * from_guess.pairs_kept else from_guess
+
+
+def fine_gicp(frame: Prepared, sources: np.ndarray, ego: EgoMap, start: np.ndarray, config: OccVOConfig) -> GICPResult:
+    """Fine GICP of the frame's sources (the dynamic object filter's kept ones) against the unpooled map."""
+    g = config.gicp
+    return register_sources(frame, sources, ego, start, g.fine_max_correspondence_m, g.fine_iterations, config)

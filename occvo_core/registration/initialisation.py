@@ -1,6 +1,6 @@
 """First-motion guess without ground truth: correlate bird's-eye views of the static vertical structure.
 
-Geometry-only ICP slides along roads when the car starts fast (scene-0268 moves 4.8 m in the first frame);
+Geometry-only ICP slides along roads when the car starts fast (metres in the first frame);
 buildings, vegetation, poles and barriers seen from above pin down x, y and yaw in one FFT per yaw."""
 
 from __future__ import annotations

@@ -1,193 +1,32 @@
 """The global semantic map with the Voxel PFilter: per voxel, t0 (first frame seen) and f (frames seen);
-p-index = f / (t - t0) at frame t; only voxels with p-index above the threshold constrain registration."""
+p-index = f / (t - t0) at frame t (voxel_pfilter.p_index); only voxels with p-index above the threshold constrain
+registration."""
 
 from __future__ import annotations
-
-from dataclasses import dataclass
 
 import numba
 import numpy as np
 
-from occvo_core.grid import NUM_CLASSES
-from occvo_core.registration import kernels
-
-_FIELDS = ("keys", "pos", "cov", "counts", "label", "t0", "f", "last", "wacc", "alive", "born", "in_window", "returning", "between")
-
-
-@dataclass
-class LocalMap:
-    """The map voxels of a window, with a dense index grid over their integer keys for neighbour lookups.
-    `usable` says which of them registration may pair with (the voxel pfilter's reliable ones, less moved objects)."""
-
-    rows: np.ndarray  # map rows of these voxels
-    pos: np.ndarray
-    labels: np.ndarray
-    p_index: np.ndarray
-    usable: np.ndarray
-    grid: np.ndarray
-    origin: np.ndarray
-    dims: np.ndarray
-    voxel: float
-    map: "VoxelPFilterMap"  # the map these rows belong to (covariances are read from it on demand)
-
-    def __len__(self) -> int:
-        return len(self.rows)
-
-    @property
-    def cov(self) -> np.ndarray:
-        return self.map.cov[self.rows]
-
-    def contains(self, keys: np.ndarray) -> bool:
-        return bool(len(keys) == 0 or (np.all(keys.min(axis=0) >= self.origin)
-                                       and np.all(keys.max(axis=0) < self.origin + self.dims)))
-
-    def cells(self, keys: np.ndarray) -> np.ndarray:
-        """Index into `grid` of each voxel key (keys inside the window)."""
-        return ((keys - self.origin) * [self.dims[1] * self.dims[2], self.dims[2], 1]).sum(axis=1)
-
-    def nearest(self, queries: np.ndarray, radius_cells: int, usable: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
-        """(distance, local index or -1) of each query's nearest usable voxel (or of `usable`) within radius_cells voxels."""
-        return kernels.nearest_distances(np.ascontiguousarray(queries, np.float64), self.pos, self.grid, self.origin,
-                                         self.dims, self.voxel, radius_cells, self.usable if usable is None else usable)
+from occvo_core.registration.kernels import map_rows, map_window, nearest
+from occvo_core.registration.kernels import voxel_pfilter as pfilter_kernels
+from occvo_core.registration.local_map import EgoMap, LocalMap, moved  # noqa: F401 - EgoMap, moved: older import path
+from occvo_core.registration.voxel_pfilter import p_index
+from occvo_core.registration.voxel_rows import _FIELDS, VoxelRows, _field, _row_bytes, copied  # noqa: F401
 
 
-@dataclass
-class EgoMap:
-    """Usable map voxels moved into the frame of a predicted ego pose, on a grid aligned with that frame.
-
-    Registration runs here: the grid is the size of the frame's own box whatever the heading (a world-aligned box
-    of a frame turned 45 degrees holds twice the cells), and it stays in cache."""
-
-    pose: np.ndarray  # the predicted ego pose these coordinates are relative to
-    pos: np.ndarray
-    cov: np.ndarray
-    labels: np.ndarray
-    usable: np.ndarray
-    grid: np.ndarray
-    origin: np.ndarray
-    dims: np.ndarray
-    voxel: float
-    source: np.ndarray  # index into the LocalMap of each point (-1 for pooled points)
-    weight: np.ndarray | None = None  # map voxels behind each pooled point (None: not pooled)
-    votes: np.ndarray | None = None  # their label votes
-
-    def __len__(self) -> int:
-        return len(self.pos)
-
-    @classmethod
-    def build(cls, local: "LocalMap", pose: np.ndarray, lower: np.ndarray, upper: np.ndarray, voxel: float,
-              subset: np.ndarray | None = None) -> "EgoMap":
-        idx = np.flatnonzero(local.usable if subset is None else subset)
-        origin = np.floor(np.asarray(lower) / voxel).astype(np.int64)
-        dims = np.floor(np.asarray(upper) / voxel).astype(np.int64) - origin + 1
-        pos, cov, grid = kernels.ego_points(idx, local.rows, local.map.pos, local.map.cov,
-                                            np.ascontiguousarray(pose[:3, :3]), np.ascontiguousarray(pose[:3, 3]),
-                                            origin, dims, voxel)
-        return cls(pose, pos, cov, local.labels[idx], np.ones(len(idx), bool), grid, origin, dims, voxel, idx)
-
-    def pooled(self, voxel: float) -> "EgoMap":
-        """The same map averaged on a coarser grid (coarse GICP searches farther at the same cost). Pooling a pooled
-        map again equals pooling this one directly on the coarser grid, when the grids nest (sizes multiples)."""
-        origin = np.floor(self.origin * self.voxel / voxel).astype(np.int64)
-        dims = np.floor((self.origin + self.dims) * self.voxel / voxel).astype(np.int64) - origin + 1
-        empty_w, empty_v = np.zeros(0), np.zeros((0, NUM_CLASSES), np.int32)
-        pos, cov, labels, grid, weight, votes = kernels.pool_voxels(
-            self.pos, self.cov, self.labels, self.usable, empty_w if self.weight is None else self.weight,
-            empty_v if self.votes is None else self.votes, voxel, origin, dims, NUM_CLASSES, numba.get_num_threads())
-        return EgoMap(self.pose, pos, cov, labels, np.ones(len(pos), bool), grid, origin, dims, voxel,
-                      np.full(len(pos), -1), weight, votes)
-
-
-def moved(pos: np.ndarray, cov: np.ndarray, rot: np.ndarray, trans: np.ndarray,
-          group: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """Voxel positions and covariances moved rigidly, each by its own rotation (k,3,3) and translation (k,3), or by
-    those of its group (indices into rot and trans)."""
-    group = np.arange(len(pos)) if group is None else np.asarray(group, np.int64)
-    return kernels.rigid_motions(np.ascontiguousarray(pos, np.float64), np.ascontiguousarray(cov, np.float64),
-                                 np.ascontiguousarray(rot, np.float64), np.ascontiguousarray(trans, np.float64), group)
-
-
-def _field(arrays: dict, name: str) -> np.ndarray:
-    """A saved state's or evicted block's array of a field. Saved before `born` or `in_window` existed: a voxel's t0
-    is the best guess of its birth, its last sighting of its last frame in a registration window; before `returning`
-    and `between`: 0."""
-    if name in arrays:
-        return np.asarray(arrays[name])
-    if name in ("returning", "between"):
-        return np.zeros(len(arrays["keys"]), np.bool_ if name == "returning" else np.int32)
-    return np.asarray(arrays[{"born": "t0", "in_window": "last"}.get(name, name)])
-
-
-def _row_bytes(a: np.ndarray) -> np.ndarray:
-    """A C-contiguous array as (rows, bytes per row) uint8, no copy."""
-    return a.reshape(len(a), -1).view(np.uint8)
-
-
-def copied(a: np.ndarray) -> np.ndarray:
-    """A copy of an array, made without holding the GIL when it is big and C-contiguous (np.array holds it)."""
-    a = np.asarray(a)
-    if a.ndim == 0 or a.nbytes < (1 << 20) or not a.flags.c_contiguous:
-        return np.array(a)
-    out = np.empty_like(a)
-    kernels.copy_row_bytes(_row_bytes(out), _row_bytes(a), len(a))
-    return out
-
-
-class VoxelPFilterMap:
+class VoxelPFilterMap(VoxelRows):
     def __init__(self, voxel_m: float = 0.4, p_index_threshold: float = 0.5, pfilter: bool = True,
                  merge_radius_m: float | None = None, observe_radius_m: float = 0.0):
-        self.voxel = float(voxel_m)
         self.p_index_threshold = float(p_index_threshold)
         self.pfilter = pfilter
-        self.merge_radius = 0.5 * self.voxel if merge_radius_m is None else float(merge_radius_m)
+        self.merge_radius = 0.5 * float(voxel_m) if merge_radius_m is None else float(merge_radius_m)
         self.observe_radius = float(observe_radius_m)
-        self._n = 0
-        self._changed: np.ndarray | None = None  # x-y box of what changed since pop_changed_region(); None = anything
-        self._alloc(1 << 16)
-
-    def _alloc(self, capacity: int) -> None:
-        old = getattr(self, "pos", None)
-        spec = {
-            "keys": ((capacity, 3), np.int64, 0), "pos": ((capacity, 3), np.float64, 0.0),
-            "cov": ((capacity, 3, 3), np.float64, 0.0), "counts": ((capacity, NUM_CLASSES), np.int32, 0),
-            "label": ((capacity,), np.uint8, 0), "t0": ((capacity,), np.int32, 0), "f": ((capacity,), np.int32, 0),
-            "last": ((capacity,), np.int32, -1), "wacc": ((capacity,), np.float64, 0.0), "alive": ((capacity,), np.bool_, False),
-            "born": ((capacity,), np.int32, 0),  # frame the voxel was made: unlike t0, not shifted by put()
-            "in_window": ((capacity,), np.int32, 0),  # last frame whose registration window held it (enter())
-            "returning": ((capacity,), np.bool_, False),  # back in the window after frames away, not seen again yet
-            "between": ((capacity,), np.int32, 0),  # frames in view between two visits: the served map skips them
-        }
-        for name, (shape, dtype, fill) in spec.items():
-            # zeros come from calloc: pages cost nothing until touched, so doubling does not write the new half
-            arr = np.zeros(shape, dtype) if fill == 0 else np.full(shape, fill, dtype)
-            if old is not None:
-                kernels.copy_row_bytes(_row_bytes(arr), _row_bytes(getattr(self, name)), self._n)
-            setattr(self, name, arr)
-
-    def __len__(self) -> int:
-        return int(np.count_nonzero(self.alive[: self._n]))
-
-    def _touch(self, pos: np.ndarray) -> None:
-        if len(pos):
-            self._touch_box(np.concatenate([pos[:, :2].min(axis=0), pos[:, :2].max(axis=0)]))
-
-    def _touch_box(self, box: np.ndarray) -> None:
-        if self._changed is not None:
-            self._changed[:2] = np.minimum(self._changed[:2], box[:2])
-            self._changed[2:] = np.maximum(self._changed[2:], box[2:])
-
-    def pop_changed_region(self) -> np.ndarray | None:
-        """(xmin, ymin, xmax, ymax) holding, before and after, every voxel whose position, label, persistence or
-        presence changed since the last call (empty box: none; None: anything, e.g. after a reset or load). Lets a
-        caller re-tile only that part of the map. Voxels handed out by take() are not included: the caller has them."""
-        out = self._changed
-        self._changed = np.array([np.inf, np.inf, -np.inf, -np.inf])
-        return out
+        super().__init__(voxel_m)
 
     def p_index(self, t: int) -> np.ndarray:
         """p-index of every row at frame t (f counts frames before t; t0 < t for every existing voxel)."""
         n = self._n
-        return self.f[:n] / np.maximum(t - self.t0[:n], 1)
+        return p_index(self.f[:n], t - self.t0[:n])
 
     def window(self, lower: np.ndarray, upper: np.ndarray, t: int | None = None, tight: bool = False) -> LocalMap:
         """Every live voxel with key in [lower, upper]; `usable` marks those with p-index above the threshold at
@@ -195,9 +34,9 @@ class VoxelPFilterMap:
         whole box (a wide, tall search box is mostly empty: its dense grid would cost tens of MB)."""
         origin, upper = np.asarray(lower, np.int64), np.asarray(upper, np.int64)
         if tight:
-            lo, hi = kernels.key_bounds(self.keys, self.alive, self._n, origin, upper)
+            lo, hi = map_window.key_bounds(self.keys, self.alive, self._n, origin, upper)
             origin, upper = (lo, hi) if np.all(lo <= hi) else (origin, origin)
-        rows, pos, labels, p_index, grid = kernels.window_voxels(self.keys, self.alive, self.f, self.t0, self.pos, self.label,
+        rows, pos, labels, p_index, grid = map_window.window_voxels(self.keys, self.alive, self.f, self.t0, self.pos, self.label,
                                                                  self._n, origin, upper, t if t is not None else 0)
         usable = p_index > self.p_index_threshold if (t is not None and self.pfilter) else np.ones(len(rows), bool)
         return LocalMap(rows, pos, labels, p_index, usable, grid, origin, upper - origin + 1, self.voxel, self)
@@ -212,7 +51,7 @@ class VoxelPFilterMap:
         back = np.flatnonzero(gap > 0)
         if len(back):
             r = local.rows[back]
-            local.p_index[back] = self.f[r] / np.maximum(t - (self.t0[r] + gap[back]), 1)
+            local.p_index[back] = p_index(self.f[r], t - (self.t0[r] + gap[back]))
             if self.pfilter:
                 local.usable[back] = local.p_index[back] > self.p_index_threshold
         return local.rows, np.maximum(gap, 0)
@@ -260,7 +99,7 @@ class VoxelPFilterMap:
             points_world, labels, covs_world, keys = points_world[take], labels[take], covs_world[take], keys[take]
         back = local.rows[self.returning[local.rows]]
         back_last = self.last[back].copy()
-        rows, first_key = kernels.assign_voxels(points_world, keys, local.pos, local.grid, local.origin,
+        rows, first_key = pfilter_kernels.assign_voxels(points_world, keys, local.pos, local.grid, local.origin,
                                                 local.dims, self.voxel, self.merge_radius, local.rows, alive, self._n)
         n_new = len(first_key)
         if self._n + n_new > len(self.pos):
@@ -276,11 +115,11 @@ class VoxelPFilterMap:
         self.alive[new] = True
         self._n += n_new
         changed = np.array([np.inf, np.inf, -np.inf, -np.inf])  # merged voxels before and after, observed ones
-        kernels.merge_points(rows, points_world, covs_world, labels.astype(np.int64), t, self.pos, self.cov, self.counts,
+        pfilter_kernels.merge_points(rows, points_world, covs_world, labels.astype(np.int64), t, self.pos, self.cov, self.counts,
                              self.label, self.t0, self.f, self.last, self.wacc, self.pfilter, changed,
                              numba.get_num_threads())
         if self.observe_radius > 0:
-            kernels.mark_observed(seen_from, local.pos, local.grid, local.origin, local.dims, self.voxel,
+            pfilter_kernels.mark_observed(seen_from, local.pos, local.grid, local.origin, local.dims, self.voxel,
                                   self.observe_radius, local.rows, alive, self.f, self.last, t, changed)
         self._touch_box(changed)
         seen = local.rows[self.last[local.rows] == t]
@@ -295,54 +134,6 @@ class VoxelPFilterMap:
             out[take] = rows
             return out
         return rows
-
-    def remove(self, rows: np.ndarray) -> None:
-        """Drop voxels (the dynamic object filter's moved objects). Rows keep their numbers until compact()."""
-        self._touch(self.pos[rows])
-        self.alive[rows] = False
-
-    def compact(self, min_dead_share: float = 1 / 3, headroom: float = 1 / 8, min_reclaim: float = 1 / 32) -> None:
-        """Reclaim the space of dropped voxels once they are a given share of the rows, or once the rows come within
-        `headroom` of the capacity: reclaiming them beats doubling every array (a 3,600-frame loop drive doubled
-        262,144 -> 524,288 rows at frame ~2,650 with 29% of its rows dead: +27 MB RSS for good). Near the capacity
-        only when at least `min_reclaim` of it comes back: a map full of live rows copied itself whole for a few
-        dozen dead ones at every frame until it doubled (seed 5's stream: 113 compactions in 600 frames). Renumbers
-        rows, keeping their order."""
-        n = self._n
-        dead = np.count_nonzero(~self.alive[:n]) if n else 0
-        near_full = n > (1 - headroom) * len(self.pos) and dead >= min_reclaim * len(self.pos)
-        if dead == 0 or (dead <= n * min_dead_share and not near_full):
-            return
-        keep = np.flatnonzero(self.alive[:n])
-        for name in _FIELDS:
-            kernels.gather_row_bytes(_row_bytes(getattr(self, name)), keep)
-        self.alive[len(keep): n] = False
-        self._n = len(keep)
-
-    # -- state and paging (durable storage and bounded memory live outside occvo_core; these give them the arrays)
-    def state(self, copy: bool = True) -> dict[str, np.ndarray]:
-        """Every row (dropped ones too, so row order and thus tie-breaking survive a reload); copy=False: views."""
-        return {name: copied(getattr(self, name)[: self._n]) if copy else getattr(self, name)[: self._n] for name in _FIELDS}
-
-    def load_state(self, state: dict[str, np.ndarray]) -> None:
-        n = len(state["keys"])
-        self._n = 0
-        self._changed = None
-        self._alloc(max(1 << 16, n))
-        for name in _FIELDS:
-            getattr(self, name)[:n] = _field(state, name)
-        self._n = n
-
-    def tile_ids(self, tile_m: float) -> np.ndarray:
-        """(n,2) x-y tile of every row: floor(pos / tile_m), as occvo_core.map_tiles cuts the served map."""
-        return np.floor(self.pos[: self._n, :2] / tile_m).astype(np.int64)
-
-    def take(self, rows: np.ndarray, t: int) -> dict[str, np.ndarray]:
-        """Remove live rows and return their voxels with everything the voxel pfilter knows of them."""
-        block = {name: getattr(self, name)[rows].copy() for name in _FIELDS if name != "alive"}
-        block["taken_at"] = np.array(t, np.int64)
-        self.alive[rows] = False
-        return block
 
     def put(self, block: dict[str, np.ndarray], t: int) -> int:
         """Add back voxels taken at an earlier frame, as if last seen at frame t - 1: the frames a voxel spent out of
@@ -386,18 +177,18 @@ class VoxelPFilterMap:
             return 0
         group = np.arange(len(rows)) if group is None else np.asarray(group, np.int64)
         box = np.array([np.inf, np.inf, -np.inf, -np.inf])  # where they were and went: only that part is re-tiled
-        moved_far = kernels.move_rows(self.pos, self.cov, self.keys, rows, np.ascontiguousarray(rot, np.float64),
+        moved_far = map_rows.move_rows(self.pos, self.cov, self.keys, rows, np.ascontiguousarray(rot, np.float64),
                                       np.ascontiguousarray(trans, np.float64), group, self.voxel, box)
         self._touch_box(box)
         keys = self.keys[rows]
         self.alive[rows] = False  # judge the moved voxels against the others
         held = self.window(keys.min(axis=0) - 1, keys.max(axis=0) + 1)
-        keep = kernels.claim_cells(self.keys, rows, held.grid, held.origin, held.dims)
+        keep = map_rows.claim_cells(self.keys, rows, held.grid, held.origin, held.dims)
         if ghost_radius_m > 0 and len(held):
             old = self.persistent_rows(held.rows, born_before)
             judge = np.flatnonzero(keep & moved_far)  # a voxel moved less than its size was there already
             pos = self.pos[rows[judge]]
-            near = kernels.near_any(pos, held.pos[old], ghost_radius_m)  # most of a lap is far from the old map: skip it
+            near = nearest.near_any(pos, held.pos[old], ghost_radius_m)  # most of a lap is far from the old map: skip it
             judge, pos = judge[near], pos[near]
             d, j = held.nearest(pos, int(np.ceil(ghost_radius_m / self.voxel)), usable=old)
             ghost = (j >= 0) & (d <= ghost_radius_m)
@@ -420,7 +211,7 @@ class VoxelPFilterMap:
         keep = self.alive[rows].copy()
         if self.pfilter:
             span = self.last[rows] - self.t0[rows] + 1 - (self.between[rows] if per_visit else 0)
-            keep &= self.f[rows] / np.maximum(span, 1) > self.p_index_threshold
+            keep &= p_index(self.f[rows], span) > self.p_index_threshold
         if born_before is not None:
             keep &= self.born[rows] < born_before
         return keep
@@ -430,7 +221,7 @@ class VoxelPFilterMap:
         tile_m), those whose x-y tile floor(pos / tile_m) lies in lo..hi."""
         if tiles is not None:
             lo, hi, tile_m = tiles
-            rows = kernels.persistent_in_tiles(self.pos, self.alive, self.f, self.last, self.t0, self.between, self._n,
+            rows = pfilter_kernels.persistent_in_tiles(self.pos, self.alive, self.f, self.last, self.t0, self.between, self._n,
                                                self.p_index_threshold, self.pfilter, np.asarray(lo, np.int64),
                                                np.asarray(hi, np.int64), float(tile_m))
             return self.pos[rows], self.label[rows]

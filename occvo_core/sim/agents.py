@@ -42,7 +42,6 @@ def make_traffic(town: Town, rng: np.random.Generator, times: np.ndarray, ego_xy
     graph = town.graph
     duration = float(times[-1]) if len(times) else 0.0
     check_t = np.arange(0.0, duration + 1e-9, 0.25)
-    check_idx = np.clip(np.searchsorted(times, check_t), 0, len(times) - 1)
     ego_at = np.column_stack([np.interp(check_t, times, ego_xy[:, 0]), np.interp(check_t, times, ego_xy[:, 1])])
     near = np.nonzero(np.all((graph.nodes > lower + 20) & (graph.nodes < upper - 20), axis=1))[0]
     tracks: list[DynamicTrack] = []

@@ -50,14 +50,14 @@ class NoiseModel(BaseModel):
     patch_m: float = Field(0.8, gt=0, description="world cell size of the persistent draws: errors come in patches this big")
 
     @classmethod
-    def preset(cls, name: Literal["none", "default", "heavy"] | str) -> "NoiseModel":
+    def preset(cls, name: Literal["none", "default", "heavy"] | str) -> NoiseModel:
         try:
             return cls(**PRESETS[name])
         except KeyError:
             raise ValueError(f"unknown noise preset {name!r}; choose one of {sorted(PRESETS)}") from None
 
     @classmethod
-    def coerce(cls, noise: "NoiseModel | str | dict | None") -> "NoiseModel":
+    def coerce(cls, noise: NoiseModel | str | dict | None) -> NoiseModel:
         if noise is None:
             return cls.preset("none")
         if isinstance(noise, NoiseModel):

@@ -14,7 +14,8 @@ import numpy as np
 from numba import njit
 from scipy.ndimage import gaussian_filter1d
 
-from occvo_core.sim.town import LANE_OFFSET, RoadGraph
+from occvo_core.sim.roads import RoadGraph
+from occvo_core.sim.town import LANE_OFFSET
 
 DS = 0.2  # arc-length step of the motion tables, m
 

@@ -12,8 +12,9 @@ from occvo_core.grid import FREE, OCC3D_GRID
 from occvo_core.sim import render
 from occvo_core.sim.agents import DynamicTrack, boxes_in_ego, loop_traffic, make_traffic
 from occvo_core.sim.noise import NoiseModel, occupied_indices
+from occvo_core.sim.roads import RoadGraph, Terrain
 from occvo_core.sim.route import DS, block_loop, lane_path, random_walk, speed_profile
-from occvo_core.sim.town import RoadGraph, Terrain, Town, ZQ, build_town
+from occvo_core.sim.town import ZQ, Town, build_town
 
 # The six nuScenes cameras (ego frame, approximately their calibration): x, y, z, yaw, half horizontal FOV,
 # lowest and highest elevation. Front cameras: f = 1266 px on 1600x900 images; the back camera: f = 809 px.
@@ -136,7 +137,7 @@ class SyntheticScene:
         for a, b in zip(bounds[:-1], bounds[1:]):
             v_cruise[(s >= a) & (s < b)] = rng.uniform(8.0, 13.5)
         stops = []
-        for i, (node, ns) in enumerate(zip(nodes[1:-1], path.node_s)):
+        for i, (_node, ns) in enumerate(zip(nodes[1:-1], path.node_s)):
             stop_line = ns - 13.0  # just before the turn curve, which starts 12 m before the node
             if stop_line > 0 and (i == 0 or rng.random() < 0.25):
                 stops.append((stop_line, rng.uniform(2.0, 4.0) if i == 0 else rng.uniform(1.5, 3.0)))

@@ -62,7 +62,7 @@ class TPVFormerConfig(_Section):
     decoder_chunk: int = Field(25, ge=1, description="x-slices of the voxel grid decoded at once")
 
     @model_validator(mode="after")
-    def _check(self) -> "TPVFormerConfig":
+    def _check(self) -> TPVFormerConfig:
         for name, size, full in (("tpv_h", self.tpv_h, self.grid_shape[0]), ("tpv_w", self.tpv_w, self.grid_shape[1]),
                                  ("tpv_z", self.tpv_z, self.grid_shape[2])):
             if size > full:

@@ -10,9 +10,9 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from occvo_core.grid import FREE
 from occvo_core.models.tpvformer.attention import CrossViewHybridAttention, ImageCrossAttention
 from occvo_core.models.tpvformer.backbone import ImageBackbone
-from occvo_core.grid import FREE
 from occvo_core.models.tpvformer.config import TPVFormerConfig
 
 IMAGE_MEAN = (0.485, 0.456, 0.406)

@@ -36,7 +36,7 @@ class OccupancyPredictor:
     Images of another size than the checkpoint's input are resized and the intrinsics scaled to match.
     A voxel whose most likely class has a softmax probability below `min_confidence` (`min_ground_confidence` for
     the ground classes) is reported free: a network's unsure voxels are often ones it pins to the ego, and an
-    odometry fed with them is pulled towards "no motion" (README, TPV-Former).
+    odometry fed with them is pulled towards "no motion".
     """
 
     def __init__(self, checkpoint: str | Path, device: str | None = None, min_confidence: float = 0.0,

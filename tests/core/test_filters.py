@@ -1,13 +1,14 @@
 """The three filters of the paper on hand-built cases whose answers are known."""
 
 import numpy as np
+from scenes import box, car, frame, shell, town
 
 from occvo_core import OccVO, OccVOConfig
 from occvo_core.grid import OCC3D_GRID
-from occvo_core.registration import kernels
 from occvo_core.registration.dynamic_object_filter import cluster_objects, dynamic_object_filter
+from occvo_core.registration.kernels.gicp import gicp_linearise
+from occvo_core.registration.kernels.grid import dense_index, surface_mask
 from occvo_core.registration.voxel_map import VoxelPFilterMap
-from scenes import box, car, frame, shell, town
 
 
 # -- semantic label filter --------------------------------------------------------------------------------------
@@ -22,8 +23,8 @@ def test_semantic_label_filter_drops_exactly_the_pairs_whose_labels_differ():
     covs = np.tile(np.eye(3) * 0.1, (len(points), 1, 1))
     args = (points, covs, labels.astype(np.int64), np.eye(3), np.zeros(3), local.pos, m.cov[local.rows],
             local.labels.astype(np.int64), local.usable, local.grid, local.origin, local.dims, 0.4, 1, 0.3)
-    _, _, _, found_on, kept_on = kernels.gicp_linearise(*args, True, 0.0)
-    _, _, _, found_off, kept_off = kernels.gicp_linearise(*args, False, 0.0)
+    _, _, _, found_on, kept_on = gicp_linearise(*args, True, 0.0)
+    _, _, _, found_off, kept_off = gicp_linearise(*args, False, 0.0)
     assert found_on == found_off == len(points)
     assert kept_off == len(points)
     assert kept_on == len(points) - len(relabelled)
@@ -149,7 +150,7 @@ def test_surface_mask_keeps_the_shell_of_a_solid_block():
     ijk = OCC3D_GRID.indices_of(pts)
     sides = ijk.max(axis=0) - ijk.min(axis=0) + 1
     shape = np.array(OCC3D_GRID.shape)
-    keep = kernels.surface_mask(ijk, kernels.dense_index(ijk, shape), shape)
+    keep = surface_mask(ijk, dense_index(ijk, shape), shape)
     assert keep.sum() == np.prod(sides) - np.prod(sides - 2)
 
 
@@ -173,7 +174,7 @@ def test_finished_map_keeps_voxels_seen_in_most_frames_while_in_view():
 def test_near_any_agrees_with_a_kd_tree():
     from scipy.spatial import cKDTree
 
-    from occvo_core.registration import kernels
+    from occvo_core.registration.kernels.nearest import near_any
 
     rng = np.random.default_rng(7)
     for n_points, spread in ((0, 10.0), (1, 10.0), (300, 10.0), (2000, 40.0)):
@@ -181,7 +182,7 @@ def test_near_any_agrees_with_a_kd_tree():
         queries = np.concatenate([rng.uniform(-spread - 5, spread + 5, (500, 3)),
                                   points[:50] + rng.normal(0, 1.2, (min(50, n_points), 3))])
         want = (cKDTree(points).query(queries)[0] <= 2.0) if n_points else np.zeros(len(queries), bool)
-        assert np.array_equal(kernels.near_any(queries, points, 2.0), want)
+        assert np.array_equal(near_any(queries, points, 2.0), want)
 
 
 def test_moving_map_voxels_drops_ghosts_of_older_voxels_and_cell_clashes():
@@ -335,7 +336,7 @@ def test_a_frame_off_the_old_map_leaves_it_alone_and_one_on_it_moves_none_of_it_
 
 def test_map_array_copies_and_compaction_without_the_gil_equal_numpys():
     """copied() and the in-place row gather of compact() give numpy's bytes, for every dtype and shape the map holds."""
-    from occvo_core.registration import kernels
+    from occvo_core.registration.kernels.map_rows import gather_row_bytes
     from occvo_core.registration.voxel_map import _row_bytes, copied
 
     rng = np.random.default_rng(7)
@@ -347,7 +348,7 @@ def test_map_array_copies_and_compaction_without_the_gil_equal_numpys():
         if len(a):
             keep = np.sort(rng.choice(len(a), len(a) // 3, replace=False))
             arr = a.copy()
-            kernels.gather_row_bytes(_row_bytes(arr), keep)
+            gather_row_bytes(_row_bytes(arr), keep)
             assert np.array_equal(arr[: len(keep)], a[keep]) and np.array_equal(arr[len(keep):], a[len(keep):])
 
 

@@ -24,7 +24,7 @@ from services.local import wait_alive
 from services.map_store import MapStore, MemoryMapStore, open_map_store
 from services.runtime import WorkerConfig, free_port, open_router, open_session
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 
 
 def tile(stream, ix, iy, seq, points, labels=None, tile_m=20.0):

@@ -11,7 +11,7 @@ import occvo_core.envs  # noqa: F401  (registers the environments)
 from occvo_core.envs import ReplayEnv, action_from_pose, frame_from_observation, pose_from_action, run_occvo_agent
 from occvo_core.sim import SyntheticScene
 
-SAMPLE = Path(__file__).resolve().parents[2] / "shared/data/occvo-sample"
+SAMPLE = Path(__file__).resolve().parents[3] / "shared/data/occvo-sample"
 
 
 def test_registered_ids():

@@ -593,6 +593,9 @@ def test_a_closed_loop_publishes_the_odometry_pose_then_the_relocalised_one(tmp_
     from schemas.codec import decode
     from schemas.models import PoseEstimate
     from occvo_core.sim import SyntheticScene
+    import sys
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "core"))  # test_loop_closure's drive
     from test_loop_closure import EVICT_AT, FRAMES, _config, _drift, _drive, inject_drift
 
     loop = SyntheticScene(seed=1, frames=FRAMES, route="loop", loop_blocks=(1, 1))

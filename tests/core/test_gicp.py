@@ -1,26 +1,29 @@
 import numpy as np
 import pytest
-
 from conftest import random_pose
-from occvo_core.grid import OCC3D_GRID
-from occvo_core.registration import kernels
-from occvo_core.registration.gicp import gicp
-from occvo_core.registration.voxel_map import VoxelPFilterMap
 from scenes import town
+
+from occvo_core.grid import OCC3D_GRID
+from occvo_core.registration.gicp import gicp
+from occvo_core.registration.kernels.covariance import _smallest_eigenvector, plane_covariances
+from occvo_core.registration.kernels.gicp import gicp_linearise, gicp_linearise_pairs
+from occvo_core.registration.kernels.grid import dense_index, surface_mask
+from occvo_core.registration.kernels.sources import thin_sources
+from occvo_core.registration.voxel_map import VoxelPFilterMap
 
 
 def _surface_town():
     points, labels = town()
     ijk = OCC3D_GRID.indices_of(points)
-    keep = kernels.surface_mask(ijk, kernels.dense_index(ijk, np.array(OCC3D_GRID.shape)), np.array(OCC3D_GRID.shape))
+    keep = surface_mask(ijk, dense_index(ijk, np.array(OCC3D_GRID.shape)), np.array(OCC3D_GRID.shape))
     return points[keep], labels[keep]
 
 
 def _prepared(points):
     ijk = OCC3D_GRID.indices_of(points)
     shape = np.array(OCC3D_GRID.shape, np.int64)
-    grid = kernels.dense_index(ijk, shape)
-    return kernels.plane_covariances(points, ijk, grid, shape, 1, 1e-3)
+    grid = dense_index(ijk, shape)
+    return plane_covariances(points, ijk, grid, shape, 1, 1e-3)
 
 
 def _map_at(pose, points, labels, covs):
@@ -62,7 +65,7 @@ def test_smallest_eigenvector_matches_numpy():
     for _ in range(200):
         a = rng.normal(size=(3, 3))
         a = a @ a.T
-        n = np.array(kernels._smallest_eigenvector(a[0, 0], a[0, 1], a[0, 2], a[1, 1], a[1, 2], a[2, 2]))
+        n = np.array(_smallest_eigenvector(a[0, 0], a[0, 1], a[0, 2], a[1, 1], a[1, 2], a[2, 2]))
         w, v = np.linalg.eigh(a)
         assert abs(abs(n @ v[:, 0]) - 1) < 1e-6
 
@@ -88,10 +91,10 @@ def test_kept_pairs_linearise_as_a_fresh_search_does():
     local = _map_at(random_pose(np.random.default_rng(7), np.deg2rad(2), 0.3), points, labels, covs)
     rot, trans = np.eye(3), np.zeros(3)
     pairs = np.empty(len(points), np.int64)
-    h, g, cost, found, kept = kernels.gicp_linearise(
+    h, g, cost, found, kept = gicp_linearise(
         points, covs, labels.astype(np.int64), rot, trans, local.pos, local.cov, local.labels.astype(np.int64),
         local.usable, local.grid, local.origin, local.dims, local.voxel, 2, 0.8, True, 0.0, pairs)
-    h2, g2, cost2, _, kept2 = kernels.gicp_linearise_pairs(points, covs, rot, trans, local.pos, local.cov, pairs, 0.0)
+    h2, g2, cost2, _, kept2 = gicp_linearise_pairs(points, covs, rot, trans, local.pos, local.cov, pairs, 0.0)
     assert kept == kept2 == int((pairs >= 0).sum()) and 0 < kept <= found
     assert np.allclose(h, h2, rtol=1e-12, atol=0) and np.allclose(g, g2, rtol=1e-12, atol=0) and np.isclose(cost, cost2)
 
@@ -102,13 +105,13 @@ def test_source_pick_first_takes_each_blocks_rear_most_voxel_and_balanced_the_fr
     shape = np.array(OCC3D_GRID.shape)
     ijk = np.array([(i, j, k) for i in range(4) for j in range(2) for k in range(2)], np.int64)
     off_ground = np.zeros(len(ijk), bool)
-    _, _, first = kernels.thin_sources(ijk, off_ground, shape, 0, 0, 2, 4, 0)
-    _, _, balanced = kernels.thin_sources(ijk, off_ground, shape, 0, 0, 2, 4, 1)
+    _, _, first = thin_sources(ijk, off_ground, shape, 0, 0, 2, 4, 0)
+    _, _, balanced = thin_sources(ijk, off_ground, shape, 0, 0, 2, 4, 1)
     assert ijk[first].tolist() == [[0, 0, 0], [2, 0, 0]]
     assert ijk[balanced].tolist() == [[0, 0, 0], [3, 1, 1]]
     # the ground's own block size: one block of 4, even parity, so its first voxel either way
     on_ground = np.ones(len(ijk), bool)
-    assert kernels.thin_sources(ijk, on_ground, shape, 0, 0, 2, 4, 1)[2].tolist() == [0]
+    assert thin_sources(ijk, on_ground, shape, 0, 0, 2, 4, 1)[2].tolist() == [0]
 
 
 def test_uniform_source_pick_leans_no_way_and_does_not_depend_on_point_order():
@@ -118,12 +121,12 @@ def test_uniform_source_pick_leans_no_way_and_does_not_depend_on_point_order():
     shape = np.array(OCC3D_GRID.shape)
     ijk = np.array([(i, j, k) for i in range(40) for j in range(40) for k in range(8)], np.int64)
     off_ground = np.zeros(len(ijk), bool)
-    _, _, uniform = kernels.thin_sources(ijk, off_ground, shape, 0, 0, 2, 4, 2)
-    _, _, first = kernels.thin_sources(ijk, off_ground, shape, 0, 0, 2, 4, 0)
+    _, _, uniform = thin_sources(ijk, off_ground, shape, 0, 0, 2, 4, 2)
+    _, _, first = thin_sources(ijk, off_ground, shape, 0, 0, 2, 4, 0)
     assert len(uniform) == len(first) == 40 * 40 * 8 // 8
     offset = ijk[uniform] - (ijk[uniform] // 2 * 2 + 0.5)  # -0.5 or +0.5 voxel on each axis
     assert np.all(np.abs(offset.mean(axis=0)) < 0.05)
     assert np.allclose((ijk[first] - (ijk[first] // 2 * 2 + 0.5)).mean(axis=0), -0.5)
     order = np.random.default_rng(0).permutation(len(ijk))
-    _, _, shuffled = kernels.thin_sources(ijk[order], off_ground, shape, 0, 0, 2, 4, 2)
+    _, _, shuffled = thin_sources(ijk[order], off_ground, shape, 0, 0, 2, 4, 2)
     assert sorted(map(tuple, ijk[order][shuffled])) == sorted(map(tuple, ijk[uniform]))

@@ -25,7 +25,7 @@ from schemas.models import CameraFrame, ErrorEvent, OccupancyFrameMsg, WorkerHea
 from services.occupancy_model import camera_inputs, encode_image
 from services.runtime import WorkerConfig, free_port, open_router, open_session
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 ENV = dict(os.environ, PYTHONPATH=os.pathsep.join([str(REPO), os.environ.get("PYTHONPATH", "")]).rstrip(os.pathsep))
 
 

@@ -601,5 +601,5 @@ def test_zz_count_of_generated_messages(capsys, record_property):
     with capsys.disabled():
         print(f"\nfuzz total: {total} generated messages (codec {COUNT['codec']}, through workers {COUNT['workers'] - START})")
     assert COUNT["workers"] - START >= 2000 or COUNT["workers"] - START < 100  # the whole module ran, or only this test
-    if COUNT["codec"]:  # tests/test_fuzz_codec.py ran in this session too
+    if COUNT["codec"]:  # tests/service/test_fuzz_codec.py ran in this session too
         assert total >= 10_000, total

@@ -23,7 +23,7 @@ from services.client import OccVOClient, ServiceError, camera_frame_of
 from services.local import InProcessService
 from services.runtime import SeqTracker, StageQueue, open_session
 
-DATA = Path(__file__).resolve().parents[2] / "shared/data/occvo-sample"
+DATA = Path(__file__).resolve().parents[3] / "shared/data/occvo-sample"
 SCENE = DATA / "occupancy/scene-0101"
 needs_data = pytest.mark.skipif(not SCENE.is_dir(), reason=f"sample data not found at {SCENE}")
 warnings.filterwarnings("ignore", category=RuntimeWarning)

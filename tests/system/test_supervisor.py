@@ -23,7 +23,7 @@ from services.local import WORKERS, wait_alive
 from services.runtime import free_port, open_session
 from services.supervisor import Backoff, RestartSpec, UpConfig
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 warnings.filterwarnings("ignore", category=RuntimeWarning)
 
 

@@ -21,7 +21,7 @@ from services.client import OccVOClient
 from services.local import WORKERS, InProcessService
 from services.runtime import free_port
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 SCENE, FRAMES = "synthetic:3", 6
 warnings.filterwarnings("ignore", category=RuntimeWarning)
 

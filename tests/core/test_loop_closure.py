@@ -225,7 +225,7 @@ def test_tiles_evicted_before_a_closure_come_back_as_corrected_as_the_working_ma
     assert len(before) > 1000
     correction = _about(resident.poses[-1][:3, 3], _drift(3.0, [4.0, -2.0, 0.5]))
     for vo in (resident, paged):  # what a closure at frame 30 does to the map
-        vo._correct_map(vo.poses[-1], correction, len(vo.poses))
+        vo.loop_closure.correct_map(list(vo.poses), vo.poses[-1], correction, len(vo.poses))
     added = paged.restore_tiles(blocks)
     assert added > 0.95 * len(before)
     restored = paged.map.pos[paged.map._n - added: paged.map._n]
@@ -248,8 +248,8 @@ def test_voxels_made_while_following_the_old_map_are_dropped_before_they_would_b
     def each(vo, i, r, evicted):
         n = vo.map._n
         born = vo.map.born[:n][vo.map.alive[:n]]
-        followed = np.flatnonzero(vo._followed)
-        if vo._followed[i]:
+        followed = np.flatnonzero(vo.loop_closure.followed)
+        if vo.loop_closure.followed[i]:
             made[i] = int(np.count_nonzero(born == i))
         live = np.isin(born, followed)
         # the next frame's old map: voxels born before i + 1 - gap
@@ -258,7 +258,7 @@ def test_voxels_made_while_following_the_old_map_are_dropped_before_they_would_b
         seen["dropped"] += made.get(i - gap, 0)
 
     whole, _, _, _ = _drive(loop, _config(True), None, each=each)
-    assert whole._followed.sum() > 10 and seen["alive"] > 0 and seen["dropped"] > 0, (whole._followed.sum(), seen)
+    assert whole.loop_closure.followed.sum() > 10 and seen["alive"] > 0 and seen["dropped"] > 0, (whole.loop_closure.followed.sum(), seen)
     resumed, _, _, _ = _drive(loop, _config(True), None, resume_at=FRAMES - 10)
     assert np.array_equal(resumed.poses, whole.poses)
     assert all(np.array_equal(a, b) for a, b in zip(resumed.map_points(), whole.map_points()))
@@ -280,7 +280,7 @@ def test_a_followed_frames_voxels_paged_out_young_come_back_only_while_still_you
                 assert made > 0 and not np.any(vo.map.alive[:n] & (vo.map.born[:n] == f)), (f, made)
                 seen["old"] += made
                 del pending[f]
-        if not vo._followed[i]:
+        if not vo.loop_closure.followed[i]:
             return
         rows = np.flatnonzero(vo.map.alive[:n] & (vo.map.born[:n] == i))
         if len(rows) == 0:

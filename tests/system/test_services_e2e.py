@@ -23,7 +23,7 @@ from services.client import OccVOClient
 from services.local import REPO, LocalService
 from services.runtime import free_port
 
-DATA = Path(__file__).resolve().parents[2] / "shared/data/occvo-sample"
+DATA = Path(__file__).resolve().parents[3] / "shared/data/occvo-sample"
 SCENE = DATA / "occupancy/scene-0101"
 pytestmark = pytest.mark.skipif(not SCENE.is_dir(), reason=f"sample data not found at {SCENE}")
 warnings.filterwarnings("ignore", category=RuntimeWarning)

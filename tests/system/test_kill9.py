@@ -27,7 +27,7 @@ from services.runtime import free_port, open_router, open_session
 from services.store import TrajectoryStore
 
 warnings.filterwarnings("ignore", category=RuntimeWarning)
-DATA = Path(__file__).resolve().parents[2] / "shared/data/occvo-sample"
+DATA = Path(__file__).resolve().parents[3] / "shared/data/occvo-sample"
 SCENE = DATA / "occupancy/scene-0101"
 
 

@@ -19,7 +19,7 @@ import zenoh
 from services.router import router_config
 from services.runtime import WorkerConfig, free_port, zenoh_config
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 DEPLOY = REPO / "deploy"
 WORKER_FILES = sorted(p for p in DEPLOY.rglob("*.json5") if "worker" in p.name or p.name == "map_service.json5")
 ZENOH_FILES = sorted(p for p in DEPLOY.rglob("*.json5") if p.name.startswith(("router", "client", "session-")))

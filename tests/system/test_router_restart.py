@@ -19,7 +19,7 @@ from services.client import OccVOClient
 from services.local import WORKERS, wait_alive
 from services.runtime import free_port, open_session
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 warnings.filterwarnings("ignore", category=RuntimeWarning)
 
 

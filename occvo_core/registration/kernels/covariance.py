@@ -1,0 +1,132 @@
+"""GICP covariances: per-point planes from the grid neighbourhood, and covariances moved rigidly."""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import njit, prange
+
+from occvo_core.registration.kernels import CACHE
+
+
+@njit(cache=CACHE, nogil=True, inline="always")
+def _smallest_eigenvector(a00, a01, a02, a11, a12, a22):
+    """Unit eigenvector of the smallest eigenvalue of a symmetric 3x3 matrix (closed form, no allocation)."""
+    p1 = a01 * a01 + a02 * a02 + a12 * a12
+    q = (a00 + a11 + a22) / 3.0
+    p2 = (a00 - q) ** 2 + (a11 - q) ** 2 + (a22 - q) ** 2 + 2.0 * p1
+    p = np.sqrt(p2 / 6.0)
+    if p < 1e-12:
+        return 0.0, 0.0, 1.0  # isotropic: no preferred normal
+    b00, b11, b22 = (a00 - q) / p, (a11 - q) / p, (a22 - q) / p
+    b01, b02, b12 = a01 / p, a02 / p, a12 / p
+    r = (b00 * (b11 * b22 - b12 * b12) - b01 * (b01 * b22 - b12 * b02) + b02 * (b01 * b12 - b11 * b02)) / 2.0
+    r = min(1.0, max(-1.0, r))
+    lam = q + 2.0 * p * np.cos(np.arccos(r) / 3.0 + 2.0 * np.pi / 3.0)  # the smallest root
+    # rows of (A - lam I); their cross products are parallel to the eigenvector
+    r0x, r0y, r0z = a00 - lam, a01, a02
+    r1x, r1y, r1z = a01, a11 - lam, a12
+    r2x, r2y, r2z = a02, a12, a22 - lam
+    c0x, c0y, c0z = r0y * r1z - r0z * r1y, r0z * r1x - r0x * r1z, r0x * r1y - r0y * r1x
+    c1x, c1y, c1z = r0y * r2z - r0z * r2y, r0z * r2x - r0x * r2z, r0x * r2y - r0y * r2x
+    c2x, c2y, c2z = r1y * r2z - r1z * r2y, r1z * r2x - r1x * r2z, r1x * r2y - r1y * r2x
+    n0, n1, n2 = c0x * c0x + c0y * c0y + c0z * c0z, c1x * c1x + c1y * c1y + c1z * c1z, c2x * c2x + c2y * c2y + c2z * c2z
+    if n0 >= n1 and n0 >= n2 and n0 > 1e-24:
+        s = 1.0 / np.sqrt(n0)
+        return c0x * s, c0y * s, c0z * s
+    if n1 >= n2 and n1 > 1e-24:
+        s = 1.0 / np.sqrt(n1)
+        return c1x * s, c1y * s, c1z * s
+    if n2 > 1e-24:
+        s = 1.0 / np.sqrt(n2)
+        return c2x * s, c2y * s, c2z * s
+    return 0.0, 0.0, 1.0  # two smallest eigenvalues equal (a line): any normal across it will do
+
+
+@njit(cache=CACHE, nogil=True, parallel=True)
+def plane_covariances(points, ijk, grid, shape, radius, epsilon):
+    """GICP covariances (Segal et al.): the neighbourhood's plane, as eps along its normal and 1 across it."""
+    n_pts = points.shape[0]
+    covs = np.empty((n_pts, 3, 3))
+    for n in prange(n_pts):
+        sx = sy = sz = sxx = sxy = sxz = syy = syz = szz = 0.0
+        cnt = 0
+        for di in range(-radius, radius + 1):
+            i = ijk[n, 0] + di
+            if i < 0 or i >= shape[0]:
+                continue
+            for dj in range(-radius, radius + 1):
+                j = ijk[n, 1] + dj
+                if j < 0 or j >= shape[1]:
+                    continue
+                for dk in range(-radius, radius + 1):
+                    k = ijk[n, 2] + dk
+                    if k < 0 or k >= shape[2]:
+                        continue
+                    m = grid[(i * shape[1] + j) * shape[2] + k]
+                    if m < 0:
+                        continue
+                    x, y, z = points[m, 0], points[m, 1], points[m, 2]
+                    cnt += 1
+                    sx += x
+                    sy += y
+                    sz += z
+                    sxx += x * x
+                    sxy += x * y
+                    sxz += x * z
+                    syy += y * y
+                    syz += y * z
+                    szz += z * z
+        if cnt < 3:  # too few neighbours for a surface: isotropic
+            for a in range(3):
+                for b in range(3):
+                    covs[n, a, b] = 1.0 if a == b else 0.0
+            continue
+        mx, my, mz = sx / cnt, sy / cnt, sz / cnt
+        nx, ny, nz = _smallest_eigenvector(sxx / cnt - mx * mx, sxy / cnt - mx * my, sxz / cnt - mx * mz,
+                                           syy / cnt - my * my, syz / cnt - my * mz, szz / cnt - mz * mz)
+        s = 1.0 - epsilon
+        covs[n, 0, 0] = 1.0 - s * nx * nx
+        covs[n, 1, 1] = 1.0 - s * ny * ny
+        covs[n, 2, 2] = 1.0 - s * nz * nz
+        covs[n, 0, 1] = covs[n, 1, 0] = -s * nx * ny
+        covs[n, 0, 2] = covs[n, 2, 0] = -s * nx * nz
+        covs[n, 1, 2] = covs[n, 2, 1] = -s * ny * nz
+    return covs
+
+
+@njit(cache=CACHE, nogil=True, parallel=True)
+def rotate_covariances(cov, rot):
+    """R C R^T for each C (numpy's batched matmul is slow for 3x3)."""
+    out = np.empty_like(cov)
+    for n in prange(cov.shape[0]):
+        for a in range(3):
+            t0 = rot[a, 0] * cov[n, 0, 0] + rot[a, 1] * cov[n, 1, 0] + rot[a, 2] * cov[n, 2, 0]
+            t1 = rot[a, 0] * cov[n, 0, 1] + rot[a, 1] * cov[n, 1, 1] + rot[a, 2] * cov[n, 2, 1]
+            t2 = rot[a, 0] * cov[n, 0, 2] + rot[a, 1] * cov[n, 1, 2] + rot[a, 2] * cov[n, 2, 2]
+            for b in range(3):
+                out[n, a, b] = t0 * rot[b, 0] + t1 * rot[b, 1] + t2 * rot[b, 2]
+    return out
+
+
+@njit(cache=CACHE, nogil=True, inline="always")
+def rigid_motion(rot, trans, g, p0, p1, p2, c, out_pos, out_cov):
+    """R p + t into out_pos (3,) and R C R^T into out_cov (3,3) for motion g; c must not be out_cov."""
+    for a in range(3):
+        out_pos[a] = rot[g, a, 0] * p0 + rot[g, a, 1] * p1 + rot[g, a, 2] * p2 + trans[g, a]
+        t0 = rot[g, a, 0] * c[0, 0] + rot[g, a, 1] * c[1, 0] + rot[g, a, 2] * c[2, 0]
+        t1 = rot[g, a, 0] * c[0, 1] + rot[g, a, 1] * c[1, 1] + rot[g, a, 2] * c[2, 1]
+        t2 = rot[g, a, 0] * c[0, 2] + rot[g, a, 1] * c[1, 2] + rot[g, a, 2] * c[2, 2]
+        for b in range(3):
+            out_cov[a, b] = t0 * rot[g, b, 0] + t1 * rot[g, b, 1] + t2 * rot[g, b, 2]
+
+
+@njit(cache=CACHE, nogil=True, parallel=True)
+def rigid_motions(pos, cov, rot, trans, group):
+    """Each point and covariance moved by the rotation and translation of its group: R p + t, R C R^T (a loop
+    closure moves each voxel with the frame that made it; numpy's batched 3x3 products are slow)."""
+    out_pos = np.empty_like(pos)
+    out_cov = np.empty_like(cov)
+    for n in prange(pos.shape[0]):
+        rigid_motion(rot, trans, group[n], pos[n, 0], pos[n, 1], pos[n, 2], cov[n], out_pos[n], out_cov[n])
+    return out_pos, out_cov
+

@@ -1,0 +1,66 @@
+"""Preprocess: a frame's voxels on the dense ego grid (indices, the surface voxels of solid objects)."""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import njit
+
+from occvo_core.registration.kernels import CACHE
+
+
+@njit(cache=CACHE, nogil=True)
+def dense_index(ijk, shape):
+    """Flat dense grid holding each point's row index (-1 = empty); points outside the grid are left out."""
+    grid = np.full(shape[0] * shape[1] * shape[2], -1, np.int32)
+    for n in range(ijk.shape[0]):
+        i, j, k = ijk[n, 0], ijk[n, 1], ijk[n, 2]
+        if 0 <= i < shape[0] and 0 <= j < shape[1] and 0 <= k < shape[2]:
+            grid[(i * shape[1] + j) * shape[2] + k] = n
+    return grid
+
+
+@njit(cache=CACHE, nogil=True)
+def surface_mask(ijk, grid, shape):
+    """True for voxels with an empty face neighbour. Interior voxels of solid objects repeat every voxel, which
+    gives nearest-neighbour ICP a false minimum at every grid step, and have no surface normal."""
+    out = np.ones(ijk.shape[0], np.bool_)
+    for n in range(ijk.shape[0]):
+        i, j, k = ijk[n, 0], ijk[n, 1], ijk[n, 2]
+        if i <= 0 or j <= 0 or k <= 0 or i >= shape[0] - 1 or j >= shape[1] - 1 or k >= shape[2] - 1:
+            continue
+        s1, s2 = shape[1] * shape[2], shape[2]
+        c = (i * shape[1] + j) * shape[2] + k
+        if grid[c - s1] >= 0 and grid[c + s1] >= 0 and grid[c - s2] >= 0 and grid[c + s2] >= 0 and grid[c - 1] >= 0 and grid[c + 1] >= 0:
+            out[n] = False
+    return out
+
+
+@njit(cache=CACHE, nogil=True)
+def grid_indices(points, lower, voxel, shape):
+    """Voxel indices floor((p - lower) / voxel) of each point, and how many fall outside the grid."""
+    ijk = np.empty((points.shape[0], 3), np.int64)
+    outside = 0
+    for n in range(points.shape[0]):
+        inside = True
+        for a in range(3):
+            v = int(np.floor((points[n, a] - lower[a]) / voxel))
+            ijk[n, a] = v
+            inside = inside and 0 <= v < shape[a]
+        if not inside:
+            outside += 1
+    return ijk, outside
+
+
+@njit(cache=CACHE, nogil=True)
+def surface_voxels(ijk, shape):
+    """Indices of the points that are surface voxels (surface_mask) and the dense grid holding, for each, its rank
+    among them: dense_index of the surface points, without a second grid."""
+    grid = dense_index(ijk, shape)
+    keep = np.flatnonzero(surface_mask(ijk, grid, shape))
+    for n in range(ijk.shape[0]):
+        grid[(ijk[n, 0] * shape[1] + ijk[n, 1]) * shape[2] + ijk[n, 2]] = -1
+    for a in range(keep.shape[0]):
+        n = keep[a]
+        grid[(ijk[n, 0] * shape[1] + ijk[n, 1]) * shape[2] + ijk[n, 2]] = a
+    return keep, grid
+

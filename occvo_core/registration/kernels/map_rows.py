@@ -1,0 +1,86 @@
+"""Whole rows of the map: tiles paged out, rows moved by a loop closure, and arrays copied without the GIL (numpy's
+copies of a big map's arrays hold it long enough to stall a worker's other threads)."""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import njit
+
+from occvo_core.registration.kernels import CACHE
+from occvo_core.registration.kernels.covariance import rigid_motion
+
+
+@njit(cache=CACHE, nogil=True)
+def far_tile_rows(pos, alive, n, cx, cy, tile_m, radius):
+    """Live rows < n, ascending, whose x-y tile (floor(xy / tile_m)) lies wholly farther than radius from (cx, cy):
+    one pass, so the eviction check of a frame with nothing to evict costs no sort of the map."""
+    out = np.empty(n, np.int64)
+    m = 0
+    r2 = radius * radius
+    for r in range(n):
+        if not alive[r]:
+            continue
+        lo_x = np.floor(pos[r, 0] / tile_m) * tile_m
+        lo_y = np.floor(pos[r, 1] / tile_m) * tile_m
+        dx = max(max(lo_x - cx, 0.0), cx - (lo_x + tile_m))
+        dy = max(max(lo_y - cy, 0.0), cy - (lo_y + tile_m))
+        if dx * dx + dy * dy > r2:
+            out[m] = r
+            m += 1
+    return out[:m]
+
+
+@njit(cache=CACHE, nogil=True)
+def move_rows(pos, cov, keys, rows, rot, trans, group, voxel, box):
+    """Map rows moved in place, each by the rotation and translation of its group (as rigid_motions), and their
+    keys recomputed. Returns which moved more than a voxel; box (xmin, ymin, xmax, ymax) grows to hold them before
+    and after. In place: a lap's rows would otherwise be gathered, moved and scattered in copies."""
+    far = np.empty(rows.shape[0], np.bool_)
+    c = np.empty((3, 3))
+    for n in range(rows.shape[0]):
+        r = rows[n]
+        p0, p1, p2 = pos[r, 0], pos[r, 1], pos[r, 2]
+        c[:, :] = cov[r]
+        rigid_motion(rot, trans, group[n], p0, p1, p2, c, pos[r], cov[r])
+        d0, d1, d2 = pos[r, 0] - p0, pos[r, 1] - p1, pos[r, 2] - p2
+        far[n] = np.sqrt(d0 * d0 + d1 * d1 + d2 * d2) > voxel
+        for a in range(3):
+            keys[r, a] = np.int64(np.floor(pos[r, a] / voxel))
+        box[0] = min(box[0], p0, pos[r, 0])
+        box[1] = min(box[1], p1, pos[r, 1])
+        box[2] = max(box[2], p0, pos[r, 0])
+        box[3] = max(box[3], p1, pos[r, 1])
+    return far
+
+
+@njit(cache=CACHE, nogil=True)
+def claim_cells(keys, rows, grid, origin, dims):
+    """Which moved rows may stay: those whose cell holds no voxel of the window grid and no earlier moved row (in
+    row order: the first stands). Claimed cells are marked -2 in grid (an empty cell to nearest_in_window)."""
+    keep = np.empty(rows.shape[0], np.bool_)
+    for n in range(rows.shape[0]):
+        r = rows[n]
+        cell = ((keys[r, 0] - origin[0]) * dims[1] + keys[r, 1] - origin[1]) * dims[2] + keys[r, 2] - origin[2]
+        keep[n] = grid[cell] == -1
+        grid[cell] = -2 if keep[n] else grid[cell]
+    return keep
+
+
+@njit(cache=CACHE, nogil=True)
+def copy_row_bytes(dst, src, n):
+    """dst[:n] = src[:n] for C-contiguous (rows, bytes per row) uint8 views."""
+    d, s = dst.reshape(-1), src.reshape(-1)
+    for k in range(n * src.shape[1]):
+        d[k] = s[k]
+
+
+@njit(cache=CACHE, nogil=True)
+def gather_row_bytes(arr, keep):
+    """arr[i] = arr[keep[i]] in place for increasing keep (keep[i] >= i: no row is read after it was written)."""
+    w = arr.shape[1]
+    for i in range(keep.size):
+        k = keep[i]
+        if k != i:
+            for j in range(w):
+                arr[i, j] = arr[k, j]
+

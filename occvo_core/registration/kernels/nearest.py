@@ -1,0 +1,132 @@
+"""Nearest-neighbour search on dense voxel grids (no trees: every map lives on a fixed grid)."""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import njit
+
+from occvo_core.registration.kernels import CACHE
+
+
+@njit(cache=CACHE, nogil=True)
+def nearest_in_window(q, map_pos, grid, origin, dims, voxel, radius, usable):
+    """Nearest usable map point to q within `radius` voxel rings: (index or -1, squared distance).
+
+    Rings are searched outwards and the search stops as soon as the best distance is below the distance to the
+    faces of the cube searched so far."""
+    ci = int(np.floor(q[0] / voxel)) - origin[0]
+    cj = int(np.floor(q[1] / voxel)) - origin[1]
+    ck = int(np.floor(q[2] / voxel)) - origin[2]
+    best = -1
+    best_d2 = np.inf
+    for r in range(radius + 1):
+        for di in range(-r, r + 1):
+            i = ci + di
+            if i < 0 or i >= dims[0]:
+                continue
+            edge_i = di == -r or di == r
+            for dj in range(-r, r + 1):
+                j = cj + dj
+                if j < 0 or j >= dims[1]:
+                    continue
+                edge_ij = edge_i or dj == -r or dj == r
+                base = (i * dims[1] + j) * dims[2]
+                step = 1 if edge_ij else 2 * r  # inside the ring only the two z faces are new
+                dk = -r
+                while dk <= r:
+                    k = ck + dk
+                    if 0 <= k < dims[2]:
+                        m = grid[base + k]
+                        if m >= 0 and usable[m]:
+                            d0 = map_pos[m, 0] - q[0]
+                            d1 = map_pos[m, 1] - q[1]
+                            d2 = map_pos[m, 2] - q[2]
+                            d = d0 * d0 + d1 * d1 + d2 * d2
+                            if d < best_d2:
+                                best_d2 = d
+                                best = m
+                    dk += step if step > 0 else 1
+        if best >= 0:
+            # every unsearched point lies outside the searched cube: stop once the best is nearer than its faces
+            gap = np.inf
+            for a, c in ((0, ci), (1, cj), (2, ck)):
+                lo_face = (c + origin[a] - r) * voxel
+                hi_face = (c + origin[a] + r + 1) * voxel
+                gap = min(gap, q[a] - lo_face, hi_face - q[a])
+            if best_d2 <= gap * gap:
+                break
+    return best, best_d2
+
+
+@njit(cache=CACHE, nogil=True)
+def nearest_distances(queries, map_pos, grid, origin, dims, voxel, radius, usable):
+    out = np.empty(queries.shape[0])
+    idx = np.empty(queries.shape[0], np.int64)
+    for n in range(queries.shape[0]):
+        m, d2 = nearest_in_window(queries[n], map_pos, grid, origin, dims, voxel, radius, usable)
+        idx[n] = m
+        out[n] = np.sqrt(d2) if m >= 0 else np.inf
+    return out, idx
+
+
+@njit(cache=CACHE, nogil=True)
+def cell_sort(points, cell):
+    """Points bucketed in cubes of side `cell` from their lowest corner (counting sort): (lo, dims, start, order),
+    the points of cube c being order[start[c]:start[c + 1]]."""
+    n = points.shape[0]
+    lo = np.empty(3)
+    dims = np.empty(3, np.int64)
+    for a in range(3):
+        lo[a] = points[:, a].min()
+        dims[a] = int((points[:, a].max() - lo[a]) / cell) + 1
+    cell_of = np.empty(n, np.int64)
+    for i in range(n):
+        cell_of[i] = ((int((points[i, 0] - lo[0]) / cell) * dims[1] + int((points[i, 1] - lo[1]) / cell)) * dims[2]
+                      + int((points[i, 2] - lo[2]) / cell))
+    start = np.zeros(dims[0] * dims[1] * dims[2] + 1, np.int64)
+    for i in range(n):
+        start[cell_of[i] + 1] += 1
+    for c in range(start.shape[0] - 1):
+        start[c + 1] += start[c]
+    fill = start[:-1].copy()
+    order = np.empty(n, np.int64)
+    for i in range(n):
+        order[fill[cell_of[i]]] = i
+        fill[cell_of[i]] += 1
+    return lo, dims, start, order
+
+
+@njit(cache=CACHE, nogil=True)
+def near_any(queries, points, radius):
+    """For each query, whether some point lies within radius (distance not above it), through a grid of
+    radius-sized cells over the points (counting sort)."""
+    out = np.zeros(queries.shape[0], np.bool_)
+    if points.shape[0] == 0:
+        return out
+    lo, dims, start, order = cell_sort(points, radius)
+    for q in range(queries.shape[0]):
+        c = np.empty(3, np.int64)
+        for a in range(3):
+            c[a] = int(np.floor((queries[q, a] - lo[a]) / radius))
+        found = False
+        for i in range(max(c[0] - 1, 0), min(c[0] + 2, dims[0])):
+            for j in range(max(c[1] - 1, 0), min(c[1] + 2, dims[1])):
+                for k in range(max(c[2] - 1, 0), min(c[2] + 2, dims[2])):
+                    cell = (i * dims[1] + j) * dims[2] + k
+                    for s in range(start[cell], start[cell + 1]):
+                        p = order[s]
+                        d0 = queries[q, 0] - points[p, 0]
+                        d1 = queries[q, 1] - points[p, 1]
+                        d2 = queries[q, 2] - points[p, 2]
+                        if not np.sqrt(d0 * d0 + d1 * d1 + d2 * d2) > radius:
+                            found = True
+                            break
+                    if found:
+                        break
+                if found:
+                    break
+            if found:
+                break
+        out[q] = found
+    return out
+

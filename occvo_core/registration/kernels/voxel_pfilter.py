@@ -1,0 +1,175 @@
+"""Voxel pfilter: a frame merged into the map, sightings counted, the persistent voxels served."""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import njit, prange
+
+from occvo_core.registration.kernels import CACHE, CHUNKS
+from occvo_core.registration.kernels.nearest import nearest_in_window
+from occvo_core.registration.voxel_pfilter import p_index
+
+
+@njit(cache=CACHE, nogil=True, inline="always")
+def _grow_box(box, x, y):
+    box[0] = min(box[0], x)
+    box[1] = min(box[1], y)
+    box[2] = max(box[2], x)
+    box[3] = max(box[3], y)
+
+
+@njit(cache=CACHE, nogil=True, parallel=True)
+def assign_voxels(points, keys, map_pos, grid, origin, dims, voxel, merge_radius, map_rows, alive, n_map):
+    """Map row of each frame point: the live map voxel holding it; else the nearest live map point within
+    merge_radius (so a surface straddling a voxel boundary stays one voxel across frames and its p-index measures
+    persistence, not aliasing); else a new row, numbered from n_map on, for its voxel.
+    Returns (rows, first point of each new row). The grid is used up: new rows are written into it."""
+    n_pts = keys.shape[0]
+    out = np.empty(n_pts, np.int64)
+    near = np.empty(n_pts, np.int64)
+    cells = np.empty(n_pts, np.int64)
+    r2 = merge_radius * merge_radius
+    # lookups in the map's own voxels, in parallel (new rows never take part in them) ...
+    for n in prange(n_pts):
+        cell = ((keys[n, 0] - origin[0]) * dims[1] + keys[n, 1] - origin[1]) * dims[2] + keys[n, 2] - origin[2]
+        cells[n] = cell
+        out[n] = near[n] = -1
+        local = grid[cell]
+        if local >= 0 and alive[local]:
+            out[n] = map_rows[local]
+        elif r2 > 0.0:
+            m, d2 = nearest_in_window(points[n], map_pos, grid, origin, dims, voxel, 1, alive)
+            if m >= 0 and d2 <= r2:
+                near[n] = map_rows[m]
+    # ... then, in point order, a voxel this frame created before the nearest map point, else a new row
+    first_key = np.empty(n_pts, np.int64)
+    n_new = 0
+    for n in range(n_pts):
+        if out[n] >= 0:
+            continue
+        local = grid[cells[n]]
+        if local <= -3:
+            out[n] = n_map + (-3 - local)
+        elif near[n] >= 0:
+            out[n] = near[n]
+        else:
+            out[n] = n_map + n_new
+            first_key[n_new] = n
+            grid[cells[n]] = -3 - n_new  # later points in this voxel join the same new row
+            n_new += 1
+    return out, first_key[:n_new]
+
+
+@njit(cache=CACHE, nogil=True, parallel=True)
+def merge_points(rows, pw, cw, labels, t, pos, cov, counts, label, t0, f, last, wacc, use_p_index, changed, parts):
+    """Voxel PFilter merge, in place: each touched voxel becomes the weighted mean of its old point
+    (weight f * p-index, or f without the filter) and the frame's points in it (weight 1 each).
+    changed (xmin, ymin, xmax, ymax) grows to hold every touched voxel before and after."""
+    # part c (one a thread) owns the rows r with (r // 64) % parts == c and adds their points in point order, so every
+    # voxel sums the same numbers in the same order for any number of parts (blocks of 64 rows: no shared cache lines)
+    boxes = np.empty((parts, 4))
+    for c in prange(parts):
+        box = boxes[c]
+        box[0] = box[1] = np.inf
+        box[2] = box[3] = -np.inf
+        for n in range(rows.shape[0]):
+            r = rows[n]
+            if (r >> 6) % parts != c:
+                continue
+            if last[r] != t:  # first point of this frame in voxel r
+                if f[r] > 0:
+                    _grow_box(box, pos[r, 0], pos[r, 1])
+                    w = f[r] * p_index(f[r], t - t0[r]) if use_p_index else float(f[r])
+                else:
+                    w = 0.0
+                for a in range(3):
+                    pos[r, a] *= w
+                    for b in range(3):
+                        cov[r, a, b] *= w
+                wacc[r] = w
+                f[r] += 1
+                last[r] = t
+            for a in range(3):
+                pos[r, a] += pw[n, a]
+                for b in range(3):
+                    cov[r, a, b] += cw[n, a, b]
+            wacc[r] += 1.0
+            counts[r, labels[n]] += 1
+        for n in range(rows.shape[0]):
+            r = rows[n]
+            if (r >> 6) % parts != c or wacc[r] <= 0.0:
+                continue
+            inv = 1.0 / wacc[r]
+            for a in range(3):
+                pos[r, a] *= inv
+                for b in range(3):
+                    cov[r, a, b] *= inv
+            wacc[r] = 0.0
+            _grow_box(box, pos[r, 0], pos[r, 1])
+            best = 0
+            for k in range(counts.shape[1]):
+                if counts[r, k] > counts[r, best]:
+                    best = k
+            label[r] = best
+    for c in range(parts):
+        if boxes[c, 0] <= boxes[c, 2]:  # this part touched a voxel
+            _grow_box(changed, boxes[c, 0], boxes[c, 1])
+            _grow_box(changed, boxes[c, 2], boxes[c, 3])
+
+
+@njit(cache=CACHE, nogil=True, parallel=True)
+def mark_observed(points, map_pos, grid, origin, dims, voxel, radius_m, map_rows, alive, f, last, t, changed):
+    """Count as seen at frame t every live voxel within radius_m of a frame point (once a frame): a surface that
+    straddles a voxel boundary falls in either voxel from frame to frame, and must not lose its p-index for it.
+    changed grows to hold the voxels counted."""
+    r2 = radius_m * radius_m
+    n_win = map_rows.shape[0]
+    # window-local "already counted at t": neighbouring frame points test the same voxels many times over
+    counted = np.empty(n_win, np.bool_)
+    for m in range(n_win):
+        counted[m] = last[map_rows[m]] == t or not alive[m]
+    seen = counted.copy()  # threads only ever write True here, so any interleaving gives the same set
+    n_pts = points.shape[0]
+    for c in prange(CHUNKS):
+        for n in range(n_pts * c // CHUNKS, n_pts * (c + 1) // CHUNKS):
+            ci = int(np.floor(points[n, 0] / voxel)) - origin[0]
+            cj = int(np.floor(points[n, 1] / voxel)) - origin[1]
+            ck = int(np.floor(points[n, 2] / voxel)) - origin[2]
+            for i in range(max(ci - 1, 0), min(ci + 2, dims[0])):
+                for j in range(max(cj - 1, 0), min(cj + 2, dims[1])):
+                    base = (i * dims[1] + j) * dims[2]
+                    for k in range(max(ck - 1, 0), min(ck + 2, dims[2])):
+                        m = grid[base + k]
+                        if m < 0 or seen[m]:
+                            continue
+                        d0 = map_pos[m, 0] - points[n, 0]
+                        d1 = map_pos[m, 1] - points[n, 1]
+                        d2 = map_pos[m, 2] - points[n, 2]
+                        if d0 * d0 + d1 * d1 + d2 * d2 <= r2:
+                            seen[m] = True
+    for m in range(n_win):
+        if seen[m] and not counted[m]:
+            _grow_box(changed, map_pos[m, 0], map_pos[m, 1])
+            row = map_rows[m]
+            f[row] += 1
+            last[row] = t
+
+
+@njit(cache=CACHE, nogil=True)
+def persistent_in_tiles(pos, alive, f, last, t0, between, n, threshold, use_p_index, lo, hi, tile_m):
+    """Rows < n of VoxelPFilterMap.persistent() whose x-y tile floor(pos / tile_m) lies in lo..hi, in row order."""
+    out = np.empty(n, np.int64)
+    n_out = 0
+    for r in range(n):
+        if not alive[r]:
+            continue
+        ix = np.floor(pos[r, 0] / tile_m)
+        iy = np.floor(pos[r, 1] / tile_m)
+        if ix < lo[0] or ix > hi[0] or iy < lo[1] or iy > hi[1]:
+            continue
+        if use_p_index and not p_index(f[r], last[r] - t0[r] + 1 - between[r]) > threshold:
+            continue
+        out[n_out] = r
+        n_out += 1
+    return out[:n_out]
+

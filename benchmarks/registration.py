@@ -1,6 +1,7 @@
 """Registration speed: median ms per frame for each stage and in total, over repeated runs of real scenes.
 
-    python benchmarks/registration.py [--repeats 3] [--scenes scene-0101 scene-0268] [--threads 1 0] [--json out.json]
+    python benchmarks/registration.py [--repeats 3] [--scenes scene-0101 scene-0268] [--threads 1 0] [--config C.json5]
+        [--json out.json]
 
 Prints one table a scene (wall-clock medians, and CPU-time medians, which a busy machine disturbs less) and the
 ratio to the 40 ms/frame goal. The first frame only seeds the map and is left out; the first run compiles."""
@@ -48,11 +49,12 @@ def main(argv=None) -> int:
                     help="kernel thread counts to measure, 0 = all cores (e.g. --threads 1 0: one core, then all)")
     ap.add_argument("--json", type=Path)
     ap.add_argument("--motion-search", action="store_true", help="with the semantic BEV motion search (as --from-images)")
+    ap.add_argument("--config", type=Path, help="an OccVOConfig JSON5 file (default: the built-in defaults)")
     args = ap.parse_args(argv)
     if not (args.sample / "occupancy").is_dir():
         print(f"no sample data at {args.sample}", file=sys.stderr)
         return 2
-    config = OccVOConfig()
+    config = OccVOConfig.load(args.config) if args.config else OccVOConfig()
     if args.motion_search:
         config = config.with_motion_search()
     report = {}

@@ -38,12 +38,12 @@ class GICPConfig(_Section):
                                         "have moved this share of a map voxel since the last search; 0 = every iteration")
     robust_kernel_scale: float = Field(0.0, ge=0, description="Cauchy scale on the Mahalanobis error; 0 = least squares")
     source_voxel_m: float = Field(0.8, gt=0, description="fine GICP uses one frame point per block of this size")
-    ground_source_voxel_m: float = Field(1.6, gt=0, description="the same for ground classes, which hold only z, roll, pitch")
+    ground_source_voxel_m: float = Field(0.8, gt=0, description="the same for ground classes, which hold only z, roll, pitch")
     coarse_source_voxel_m: float = Field(1.6, gt=0, description="coarse GICP uses one frame point per block of this size")
-    source_pick: Literal["first", "balanced", "uniform"] = Field("first", description="which voxel of a block is its source: "
-                                                      "the first in grid order (the rear-most, lowest ego x), or "
-                                                      "balanced (the front-most in every other block, so the picks "
-                                                      "lean neither way along the track)")
+    source_pick: Literal["first", "balanced", "uniform"] = Field(
+        "uniform", description="which voxel of a block is its source: uniform (a fixed hash of the voxel's grid cell "
+        "decides, so every voxel is as likely and the picks lean no way in the ego frame), first (the first in grid "
+        "order: the rear-most, lowest ego x) or balanced (the front-most in every other block)")
 
 
 class SemanticLabelFilterConfig(_Section):

@@ -103,7 +103,7 @@ def test_cli_prints_one_line_and_exits_non_zero_without_traceback(tmp_path):
     scene = tmp_path / "scene-bad"
     scene.mkdir()
     np.save(scene / "0.npy", np.zeros((0, 4)))
-    out = subprocess.run([sys.executable, "-m", "occvo_core.cli", "run", "--input", str(scene), "--out", str(tmp_path / "o"),
+    out = subprocess.run([sys.executable, "-m", "occvo_cli", "run", "--input", str(scene), "--out", str(tmp_path / "o"),
                           "--quiet"], capture_output=True, text=True)
     assert out.returncode != 0
     assert "Traceback" not in out.stderr

@@ -2,14 +2,13 @@
 
 from __future__ import annotations
 
-import json
 import sys
 import time
 
 import numpy as np
 
 from services.client import OccVOClient, ServiceError
-from services.commands._common import add_connection, endpoint
+from services.commands._common import add_connection, add_json, client, emit
 
 
 def load_scene(spec: str, frames: int | None = None):
@@ -82,20 +81,40 @@ def add_parser(subparsers) -> None:
                    help="send unanswered frames again after this many seconds without an answer (also when the "
                         "registration worker comes back); 0 = never")
     p.add_argument("--output", help="write the received trajectory (KITTI) here")
+    add_json(p, "the summary")
+    p.add_argument("--quiet", action="store_true", help="no progress bar and no error events on stderr")
     p.set_defaults(func=run)
 
 
 def run(args) -> int:
+    from tqdm import tqdm
+
+    from occvo_core.errors import ConfigError
+
+    for name, value, low in (("--frames", args.frames, 1), ("--window", args.window, 1)):
+        if value is not None and value < low:
+            raise ConfigError(f"{name} must be at least {low}, not {value}")
+    if args.rate < 0 or args.timeout <= 0:
+        raise ConfigError("--rate must be 0 or more and --timeout more than 0")
     scene = load_scene(args.scene, args.frames)
-    with OccVOClient(endpoint(args), stream=args.stream, resend_after=args.resend_after or None) as client:
-        client.wait_for_workers(timeout=args.timeout)
-        out = replay(client, scene, args.rate, args.window, args.frames, args.timeout)
-        errors = list(client.errors)
+    with client(args, resend_after=args.resend_after or None) as c:
+        c.wait_for_workers(timeout=args.timeout)
+        n = len(scene) if args.frames is None else min(args.frames, len(scene))
+        with tqdm(total=n, desc=f"replay {c.stream}", unit="frame", disable=args.quiet, file=sys.stderr) as bar:
+            out = replay(c, scene, args.rate, args.window, args.frames, args.timeout, progress=lambda i, n: bar.update())
+        errors = list(c.errors)
     if args.output and len(out["trajectory"]):
         from occvo_core.trajectory import write_kitti
 
         write_kitti(args.output, out["trajectory"])
-    for e in errors:
-        print(json.dumps({"error": e.code, "seq": e.seq, "message": e.message}), file=sys.stderr)
-    print(json.dumps({k: v for k, v in out.items() if k not in ("trajectory", "pose_msgs")}))
-    return 0 if out["poses"] == out["frames"] else 1
+    if not args.quiet:
+        for e in errors:
+            print(f"occvo replay: frame {e.seq}: {e.code}: {e.message}", file=sys.stderr)
+    record = {k: v for k, v in out.items() if k not in ("trajectory", "pose_msgs")}
+    emit(args, record, f"{record['poses']} poses of {record['frames']} frames of stream {record['stream']} in "
+                       f"{record['seconds']:.1f} s ({record['fps']:.1f} frames/s), {record['errors']} errors, "
+                       f"{record['resends']} resends")
+    if out["poses"] != out["frames"]:
+        raise ServiceError(f"{out['frames'] - out['poses']} of {out['frames']} frames got no pose (see the error "
+                           "events above or the registration worker's log)")
+    return 0

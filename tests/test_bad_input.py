@@ -77,7 +77,7 @@ def test_unreadable_frame_file_names_the_file(tmp_path):
     np.save(scene / "2.npy", np.array([[0.2, 0.2, np.nan, 11.0]]))
     source = OccVOReleaseScene(scene)
     assert len(source[0]) == 1
-    with pytest.raises(DatasetError, match="1.npy: unreadable occupancy frame"):
+    with pytest.raises(InvalidFrameError, match=r"frame 1 .*1.npy\): unreadable occupancy frame"):
         source[1]
     with pytest.raises(InvalidFrameError, match="frame 2 .*2.npy.*non-finite"):
         source[2]

@@ -77,6 +77,8 @@ class ReadinessWatch:
     def __init__(self, ep: str, report, roles=ROLES):
         self.ep, self.report, self.roles = ep, report, roles
         self.t0 = time.monotonic()
+        self.seen: set[str] = set()
+        self._lock = threading.Lock()
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, name="occvo-readiness", daemon=True)
 
@@ -84,9 +86,20 @@ class ReadinessWatch:
         self._thread.start()
         return self
 
-    def stop(self) -> None:
+    def stop(self, all_ready: bool = False) -> None:
+        """Stop watching; all_ready: the caller saw every role alive, so report the ones not reported yet."""
         self._stop.set()
         self._thread.join(5)
+        if all_ready:
+            for role in self.roles:
+                self._seen(role)
+
+    def _seen(self, role: str) -> None:
+        with self._lock:
+            if role in self.seen:
+                return
+            self.seen.add(role)
+        self.report(role, round(time.monotonic() - self.t0, 1))
 
     def _run(self) -> None:
         from services.runtime import open_session
@@ -99,19 +112,17 @@ class ReadinessWatch:
                 session = None
         if session is None:
             return
-        seen: set[str] = set()
         warming = False
         try:
-            while not self._stop.is_set() and set(self.roles) - seen:
+            while not self._stop.is_set() and set(self.roles) - self.seen:
                 try:
                     alive = {str(r.ok.key_expr).split("/")[2] for r in
                              session.liveliness().get(keys.alive("*", "*"), timeout=1.0) if r.ok}
                 except Exception:  # noqa: BLE001 - a lost router ends the watch
                     return
-                for role in [r for r in self.roles if r in alive and r not in seen]:
-                    seen.add(role)
-                    self.report(role, round(time.monotonic() - self.t0, 1))
-                if not warming and "registration" not in seen and seen >= set(self.roles) - {"registration"}:
+                for role in [r for r in self.roles if r in alive]:
+                    self._seen(role)
+                if not warming and "registration" not in self.seen and self.seen >= set(self.roles) - {"registration"}:
                     warming = True
                     self.report("warm-up", round(time.monotonic() - self.t0, 1))
                 self._stop.wait(0.2)

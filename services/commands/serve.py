@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import signal
 import threading
+from pathlib import Path
 
 from occvo_core.errors import ConfigError
 from services import defaults
@@ -26,6 +27,8 @@ def add_parser(subparsers) -> None:
     p.add_argument("--registration-workers", type=int, default=1,
                    help="registration workers sharing the streams (shards by stream id, one core each)")
     p.add_argument("--log-dir", help="write each worker's JSON log lines to <dir>/<role>.log (default: stderr)")
+    p.add_argument("--start-timeout", type=float, default=300.0,
+                   help="seconds the workers may take to come up (a first start compiles the kernels)")
     add_json(p, "the endpoint and events (listening, worker ready, ready, stopped) as JSON lines")
     p.add_argument("--quiet", action="store_true", help="no progress lines and no worker logs on stderr")
     p.set_defaults(func=run)
@@ -35,8 +38,6 @@ def _worker_config(args, name: str) -> str:
     if not args.config_dir:
         return str(defaults.path(name))
     path = f"{args.config_dir}/{name}"
-    from pathlib import Path
-
     if not Path(path).is_file():
         raise ConfigError(f"--config-dir {args.config_dir} has no {name}")
     return path
@@ -48,6 +49,8 @@ def run(args) -> int:
     if args.queue_size < 1:
         raise ConfigError(f"--queue-size must be at least 1, not {args.queue_size}")
     router_config = args.router_config or str(defaults.path("router.json5"))
+    if args.log_dir:
+        Path(args.log_dir).mkdir(parents=True, exist_ok=True)
     ep = args.listen or endpoint(args)
     store = ["--store-path", args.store_path] if args.store_path else []
     service = LocalService(
@@ -73,10 +76,12 @@ def run(args) -> int:
         progress(args, f"{role} worker ready after {seconds} s")
 
     watch = ReadinessWatch(ep, ready).start()
+    started = False
     try:
-        service.start()
+        service.start(timeout=args.start_timeout)
+        started = True
     finally:
-        watch.stop()
+        watch.stop(all_ready=started)
     emit(args, {"event": "ready", "endpoint": ep, "workers": {r: p.pid for r, p in service.procs.items()}},
          f"ready: {', '.join(f'{r} (pid {p.pid})' for r, p in service.procs.items())}; Ctrl-C stops")
     try:

@@ -83,7 +83,7 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         print(f"occvo {args.command}: interrupted", file=sys.stderr)
         return INTERRUPTED
-    except Exception as exc:  # noqa: BLE001 - the one place every error becomes one line and an exit code
+    except Exception as exc:  # the one place every error becomes one line and an exit code
         if args.debug:
             raise
         print(f"occvo {args.command}: error: {error_line(exc)}", file=sys.stderr)

@@ -22,10 +22,9 @@ def add_parser(sub) -> None:
 def run(args) -> int:
     import torch
 
+    from occvo_core.errors import DatasetError
     from occvo_core.models.tpvformer import load_checkpoint, select_device
     from occvo_core.models.train import evaluate
-
-    from occvo_core.errors import DatasetError
 
     if not args.checkpoint.is_file():
         raise DatasetError(args.checkpoint, "no such checkpoint: give a file `occvo train-occ` wrote")

@@ -55,9 +55,8 @@ def config_from_args(args) -> OccVOConfig:
 
 def run(args) -> int:
     from occvo_core.datasets import open_scene
-    from occvo_core.pipeline import OdometryPipeline
-
     from occvo_core.errors import ConfigError
+    from occvo_core.pipeline import OdometryPipeline
 
     if args.input is not None and (args.synthetic or args.from_images):
         raise ConfigError("--input reads a recorded scene; --synthetic and --from-images make one: give one or the other")

@@ -28,10 +28,9 @@ def add_parser(sub) -> None:
 def run(args) -> int:
     import torch
 
+    from occvo_core.errors import ConfigError
     from occvo_core.models.tpvformer import preset
     from occvo_core.models.train import train
-
-    from occvo_core.errors import ConfigError
 
     if not args.minutes > 0:
         raise ConfigError(f"--minutes must be positive, got {args.minutes}")

@@ -82,7 +82,7 @@ class ReadinessWatch:
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, name="occvo-readiness", daemon=True)
 
-    def start(self) -> "ReadinessWatch":
+    def start(self) -> ReadinessWatch:
         self._thread.start()
         return self
 

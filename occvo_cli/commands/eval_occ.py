@@ -16,6 +16,7 @@ def add_parser(sub) -> None:
     p.add_argument("--threads", type=int, default=1, help="torch CPU threads")
     p.add_argument("--json", action="store_true", help="the metrics as JSON on stdout instead of the table")
     p.add_argument("--output", type=Path, help="also write the metrics as JSON to this file")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=run)
 
 
@@ -31,7 +32,8 @@ def run(args) -> int:
     torch.set_num_threads(args.threads)
     device = select_device(args.device)
     model = load_checkpoint(args.checkpoint, device=device)
-    metrics = evaluate(model, args.seeds, frames=args.frames, stride=args.stride, device=device)
+    metrics = evaluate(model, args.seeds, frames=args.frames, stride=args.stride, device=device,
+                       progress=not args.quiet)
     summary = metrics.summary()
     summary.update({"checkpoint": str(args.checkpoint), "seeds": args.seeds})
     if args.output:

@@ -22,6 +22,7 @@ def add_parser(sub) -> None:
     p.add_argument("--prerender", type=int, metavar="JOBS", help="first render every training frame into --cache in JOBS "
                    "processes, before the training clock starts (rendering is data making, not training)")
     p.add_argument("--json", action="store_true", help="steps, seconds, losses and the checkpoint path as JSON on stdout")
+    p.add_argument("--quiet", action="store_true", help="no progress bars")
     p.set_defaults(func=run)
 
 
@@ -41,10 +42,11 @@ def run(args) -> int:
             raise ConfigError("--prerender needs --cache DIR (the frames are rendered there)")
         from occvo_core.models.train import prerender
 
-        n = prerender(args.seeds, args.frames, args.stride, cfg.input_size, args.cache, args.prerender)
+        n = prerender(args.seeds, args.frames, args.stride, cfg.input_size, args.cache, args.prerender,
+                      progress=not args.quiet)
         print(f"occvo train-occ: prerendered {n} frames of {len(args.seeds)} seeds into {args.cache}", file=sys.stderr)
     result = train(cfg, args.out, args.minutes, args.seeds, frames=args.frames, stride=args.stride, lr=args.lr,
-                   max_steps=args.max_steps, preset_name=args.preset, cache_dir=args.cache)
+                   max_steps=args.max_steps, preset_name=args.preset, cache_dir=args.cache, progress=not args.quiet)
     tail = sum(result.losses[-20:]) / max(1, len(result.losses[-20:]))
     if args.json:
         print(json.dumps({"steps": result.steps, "seconds": result.seconds, "loss_first": result.losses[0],

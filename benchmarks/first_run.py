@@ -23,8 +23,13 @@ REPO = Path(__file__).resolve().parents[1]
 def occvo_run(args: list[str], cache: str, out: str) -> dict:
     path = os.pathsep.join(filter(None, [str(REPO), os.environ.get("PYTHONPATH")]))
     env = dict(os.environ, NUMBA_CACHE_DIR=cache, PYTHONPATH=path)
-    proc = subprocess.run([sys.executable, "-m", "occvo_cli", "run", "--json", "--quiet", "--out", out, *args],
-                          capture_output=True, text=True, env=env, check=True)
+    proc = subprocess.run(
+        [sys.executable, "-m", "occvo_cli", "run", "--json", "--quiet", "--out", out, *args],
+        capture_output=True,
+        text=True,
+        env=env,
+        check=True,
+    )
     return json.loads(proc.stdout)
 
 
@@ -37,9 +42,15 @@ def main() -> None:
     for _ in range(args.repeats):
         with tempfile.TemporaryDirectory() as cache, tempfile.TemporaryDirectory() as out:
             first, warm = (occvo_run(extra, cache, out) for _ in range(2))
-        print(json.dumps({"first": {k: first[k] for k in ("compile_s", "ms_per_frame_median")},
-                          "warm": {k: warm[k] for k in ("compile_s", "ms_per_frame_median")},
-                          "first_over_warm": round(first["ms_per_frame_median"] / warm["ms_per_frame_median"], 2)}))
+        print(
+            json.dumps(
+                {
+                    "first": {k: first[k] for k in ("compile_s", "ms_per_frame_median")},
+                    "warm": {k: warm[k] for k in ("compile_s", "ms_per_frame_median")},
+                    "first_over_warm": round(first["ms_per_frame_median"] / warm["ms_per_frame_median"], 2),
+                }
+            )
+        )
 
 
 if __name__ == "__main__":

@@ -27,7 +27,9 @@ def stream_id(text: str) -> str:
 
 
 def add_connection(p, stream: bool = True) -> None:
-    p.add_argument("--connect", help=f"router endpoint (default: listen endpoint of --router-config, else {DEFAULT_ENDPOINT})")
+    p.add_argument(
+        "--connect", help=f"router endpoint (default: listen endpoint of --router-config, else {DEFAULT_ENDPOINT})"
+    )
     p.add_argument("--router-config", default=None, help="router json5 config (default: the built-in one)")
     if stream:
         p.add_argument("--stream", type=stream_id, default="default", help="stream id (default: default)")
@@ -116,8 +118,11 @@ class ReadinessWatch:
         try:
             while not self._stop.is_set() and set(self.roles) - self.seen:
                 try:
-                    alive = {str(r.ok.key_expr).split("/")[2] for r in
-                             session.liveliness().get(keys.alive("*", "*"), timeout=1.0) if r.ok}
+                    alive = {
+                        str(r.ok.key_expr).split("/")[2]
+                        for r in session.liveliness().get(keys.alive("*", "*"), timeout=1.0)
+                        if r.ok
+                    }
                 except Exception:  # noqa: BLE001 - a lost router ends the watch
                     return
                 for role in [r for r in self.roles if r in alive]:

@@ -16,9 +16,17 @@ from services.commands._common import add_connection, client, progress
 def _line(p: PoseEstimate, fmt: str) -> str:
     if fmt == "kitti":
         return " ".join(f"{v:.9e}" for row in p.pose[:3] for v in row)
-    return json.dumps({"stream": p.stream, "seq": p.seq, "stamp": p.stamp, "status": p.status,
-                       "xyz": [p.pose[0][3], p.pose[1][3], p.pose[2][3]], "pose": p.pose,
-                       "timings_ms": {k: round(v, 3) for k, v in p.timings_ms.items()}})
+    return json.dumps(
+        {
+            "stream": p.stream,
+            "seq": p.seq,
+            "stamp": p.stamp,
+            "status": p.status,
+            "xyz": [p.pose[0][3], p.pose[1][3], p.pose[2][3]],
+            "pose": p.pose,
+            "timings_ms": {k: round(v, 3) for k, v in p.timings_ms.items()},
+        }
+    )
 
 
 def add_parser(subparsers) -> None:

@@ -36,9 +36,17 @@ def run(args) -> int:
     if args.output:
         np.save(args.output, np.column_stack([pts, labels.astype(np.float64)]))
     counts = np.bincount(labels, minlength=len(CLASS_NAMES))
-    record = {"stream": t.stream, "ix": t.ix, "iy": t.iy, "tile_m": t.tile_m, "seq": t.seq, "voxels": len(pts),
-              "labels": {CLASS_NAMES[c]: int(n) for c, n in enumerate(counts) if n}}
-    text = (f"tile ({t.ix}, {t.iy}) of stream {t.stream}, {t.tile_m} m, frame {t.seq}: {len(pts)} voxels\n"
-            + "\n".join(f"  {name}: {n}" for name, n in record["labels"].items()))
+    record = {
+        "stream": t.stream,
+        "ix": t.ix,
+        "iy": t.iy,
+        "tile_m": t.tile_m,
+        "seq": t.seq,
+        "voxels": len(pts),
+        "labels": {CLASS_NAMES[c]: int(n) for c, n in enumerate(counts) if n},
+    }
+    text = f"tile ({t.ix}, {t.iy}) of stream {t.stream}, {t.tile_m} m, frame {t.seq}: {len(pts)} voxels\n" + "\n".join(
+        f"  {name}: {n}" for name, n in record["labels"].items()
+    )
     emit(args, record, text)
     return 0

@@ -8,12 +8,17 @@ from services.commands._common import WARM_UP_NOTE, ReadinessWatch, add_json, em
 
 def add_parser(subparsers) -> None:
     p = subparsers.add_parser("up", help="run and supervise the router and workers named in a json5 file")
-    p.add_argument("--config", default=None, help="deployment json5 (default: the built-in one; deploy/occvo.json5 "
-                   "is the deployment copy)")
+    p.add_argument(
+        "--config",
+        default=None,
+        help="deployment json5 (default: the built-in one; deploy/occvo.json5 is the deployment copy)",
+    )
     p.add_argument("--listen", help="replace the router's listen endpoint, e.g. tcp/127.0.0.1:7447")
     p.add_argument("--log-dir", help="each child's log to <dir>/<name>.log (default: stderr)")
     add_json(p, "the endpoint and events (listening, worker ready, stopped) as JSON lines")
-    p.add_argument("--quiet", action="store_true", help="no progress lines and only warnings of the supervisor's log on stderr")
+    p.add_argument(
+        "--quiet", action="store_true", help="no progress lines and only warnings of the supervisor's log on stderr"
+    )
     p.set_defaults(func=run)
 
 

@@ -93,16 +93,25 @@ def test_no_router_is_one_line_and_exit_code_1(argv, capfd):
 def test_eval_map_refusals_name_what_to_do(files, capfd):
     assert main(["eval-map", "--est-map", str(files / "est.npz"), "--gt-map", str(files / "far.npz")]) == 2
     assert "do not overlap" in capfd.readouterr().err
-    assert main(["eval-map", "--est-map", str(files / "est.npz"), "--reference-scene",
-                 str(files / "occupancy" / "five")]) == 2
+    assert (
+        main(["eval-map", "--est-map", str(files / "est.npz"), "--reference-scene", str(files / "occupancy" / "five")])
+        == 2
+    )
     assert "give --est-traj" in capfd.readouterr().err
     assert main(["eval-map", "--est-map", str(files / "est.npz"), "--gt-map", str(files / "near.npz"), "--json"]) == 0
     assert json.loads(capfd.readouterr().out)["precision"] == 1.0
 
 
 def _occvo(*argv, **kw):
-    return subprocess.run([sys.executable, "-m", "occvo_cli", *argv], check=False, capture_output=True, text=True, env=ENV,
-                          timeout=600, **kw)
+    return subprocess.run(
+        [sys.executable, "-m", "occvo_cli", *argv],
+        check=False,
+        capture_output=True,
+        text=True,
+        env=ENV,
+        timeout=600,
+        **kw,
+    )
 
 
 def test_a_real_process_keeps_the_convention():
@@ -119,7 +128,9 @@ def test_run_json_is_one_json_document_on_stdout(tmp_path):
     out = tmp_path / "out"
     proc = _occvo("run", "--frames", "5", "--out", str(out), "--json")  # progress on stderr, JSON alone on stdout
     assert proc.returncode == 0, proc.stderr
-    tool = subprocess.run([sys.executable, "-m", "json.tool"], check=False, input=proc.stdout, capture_output=True, text=True)
+    tool = subprocess.run(
+        [sys.executable, "-m", "json.tool"], check=False, input=proc.stdout, capture_output=True, text=True
+    )
     assert tool.returncode == 0, proc.stdout
     summary = json.loads(proc.stdout)
     assert summary["frames"] == 5 and summary["compile_s"] >= 0 and summary["success"] is True
@@ -148,8 +159,16 @@ def test_a_run_failing_its_success_rule_exits_1(files, tmp_path):
     gt = read_trajectory(files / "trajectory" / "five.kitti")
     gt[:, :3, 3] *= 5.0  # no rigid alignment maps the estimate onto a drive five times as long
     write_kitti(tmp_path / "wrong.kitti", gt)
-    proc = _occvo("run", "--input", str(files / "occupancy" / "five"), "--gt", str(tmp_path / "wrong.kitti"),
-                  "--out", str(tmp_path / "o"), "--quiet")
+    proc = _occvo(
+        "run",
+        "--input",
+        str(files / "occupancy" / "five"),
+        "--gt",
+        str(tmp_path / "wrong.kitti"),
+        "--out",
+        str(tmp_path / "o"),
+        "--quiet",
+    )
     line = _check_one_line(proc.returncode, "", proc.stderr, 1)
     assert "success rule" in line
     assert json.loads((tmp_path / "o" / "summary.json").read_text())["success"] is False

@@ -39,13 +39,23 @@ def venv(tmp_path_factory) -> Path:
         else:
             shutil.copy2(REPO / name, src / name)
     wheels = root / "wheels"
-    subprocess.run([sys.executable, "-m", "pip", "wheel", "-q", "--no-deps", "--no-build-isolation", "-w", str(wheels),
-                    str(src)], check=True, env=_clean_env(), cwd=root, timeout=600)
+    subprocess.run(
+        [sys.executable, "-m", "pip", "wheel", "-q", "--no-deps", "--no-build-isolation", "-w", str(wheels), str(src)],
+        check=True,
+        env=_clean_env(),
+        cwd=root,
+        timeout=600,
+    )
     (wheel,) = wheels.glob("occvo-*.whl")
     env_dir = root / "venv"
     subprocess.run([sys.executable, "-m", "venv", "--system-site-packages", str(env_dir)], check=True, timeout=300)
-    subprocess.run([str(env_dir / "bin" / "python"), "-m", "pip", "install", "-q", "--no-deps", str(wheel)],
-                   check=True, env=_clean_env(), cwd=root, timeout=600)
+    subprocess.run(
+        [str(env_dir / "bin" / "python"), "-m", "pip", "install", "-q", "--no-deps", str(wheel)],
+        check=True,
+        env=_clean_env(),
+        cwd=root,
+        timeout=600,
+    )
     return env_dir / "bin"
 
 
@@ -64,15 +74,19 @@ def _free_port() -> int:
 
 def test_installed_wheel_serves_from_any_directory(venv, tmp_path):
     env, cwd = _clean_env(), tmp_path
-    code = f"import json, importlib; print(json.dumps({{p: importlib.import_module(p).__file__ for p in {PACKAGES!r}}}))"
-    where = subprocess.run([str(venv / "python"), "-c", code],
-                           capture_output=True, text=True, env=env, cwd=cwd, check=True)
+    code = (
+        f"import json, importlib; print(json.dumps({{p: importlib.import_module(p).__file__ for p in {PACKAGES!r}}}))"
+    )
+    where = subprocess.run(
+        [str(venv / "python"), "-c", code], capture_output=True, text=True, env=env, cwd=cwd, check=True
+    )
     for package, path in json.loads(where.stdout).items():
         assert Path(path).is_relative_to(venv.parent), f"{package} imported from {path}, not the installed wheel"
 
     def occvo(*argv, timeout=900):
-        proc = subprocess.run([str(venv / "occvo"), *argv], check=False, capture_output=True, text=True, env=env,
-                              cwd=cwd, timeout=timeout)
+        proc = subprocess.run(
+            [str(venv / "occvo"), *argv], check=False, capture_output=True, text=True, env=env, cwd=cwd, timeout=timeout
+        )
         assert proc.returncode == 0, (argv, proc.stderr[-2000:])
         return proc
 
@@ -82,8 +96,14 @@ def test_installed_wheel_serves_from_any_directory(venv, tmp_path):
     assert (cwd / "occvo-out" / "summary.json").is_file()
 
     ep = f"tcp/127.0.0.1:{_free_port()}"
-    serve = subprocess.Popen([str(venv / "occvo"), "serve", "--listen", ep, "--json", "--log-dir", str(tmp_path / "logs")],
-                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env, cwd=cwd)
+    serve = subprocess.Popen(
+        [str(venv / "occvo"), "serve", "--listen", ep, "--json", "--log-dir", str(tmp_path / "logs")],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        env=env,
+        cwd=cwd,
+    )
     events: list[dict] = []
 
     def read() -> None:
@@ -96,7 +116,10 @@ def test_installed_wheel_serves_from_any_directory(venv, tmp_path):
         deadline = time.monotonic() + 600
         while not any(e["event"] == "ready" for e in events) and time.monotonic() < deadline and serve.poll() is None:
             time.sleep(0.5)
-        assert any(e["event"] == "ready" for e in events), (events, serve.stderr.read() if serve.poll() is not None else "")
+        assert any(e["event"] == "ready" for e in events), (
+            events,
+            serve.stderr.read() if serve.poll() is not None else "",
+        )
         # the endpoint comes first, before the registration worker (announced after its kernels' warm-up)
         names = [(e["event"], e.get("role")) for e in events]
         assert events[0] == {"event": "listening", "endpoint": ep}

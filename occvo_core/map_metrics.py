@@ -172,7 +172,7 @@ def load_map(path: str | Path) -> MapCloud:
                     raise DatasetError(path, f"npz map needs a 'points' array, found {sorted(z.files)}")
                 points = np.asarray(z["points"], dtype=np.float64)
                 labels = np.asarray(z["labels"]) if "labels" in z else None
-        except (OSError, ValueError) as exc:
+        except (OSError, ValueError, EOFError) as exc:
             raise DatasetError(path, f"unreadable npz map: {exc}") from None
     elif suffix == ".ply":
         points, labels = _read_ply(path)

@@ -20,9 +20,10 @@ from pathlib import Path
 import zenoh
 
 from occvo_core.errors import ConfigError
+from services import defaults
 from services.runtime import log_event, structured_logger
 
-DEFAULT_CONFIG = Path(__file__).resolve().parents[1] / "deploy" / "router.json5"
+DEFAULT_CONFIG = defaults.path("router.json5")
 
 
 def router_config(path: str | Path | None = None, listen: list[str] | None = None, connect: list[str] | None = None) -> zenoh.Config:
@@ -44,7 +45,7 @@ def router_config(path: str | Path | None = None, listen: list[str] | None = Non
 
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="python -m services.router", description=__doc__.split("\n")[0])
-    p.add_argument("--config", default=str(DEFAULT_CONFIG), help="router json5 (default deploy/router.json5)")
+    p.add_argument("--config", default=str(DEFAULT_CONFIG), help="router json5 (default: the built-in one)")
     p.add_argument("--listen", action="append", help="listen endpoint, replaces the file's (repeatable)")
     p.add_argument("--connect", action="append", help="endpoint of another router to mesh with (repeatable)")
     p.add_argument("--log-level", default="INFO")

@@ -27,6 +27,7 @@ from typing import Literal
 from pydantic import BaseModel, ConfigDict, Field
 
 from occvo_core.errors import ConfigError
+from services import defaults
 from services.runtime import log_event, router_endpoint, structured_logger
 
 REPO = Path(__file__).resolve().parents[1]
@@ -93,7 +94,7 @@ class UpConfig(BaseModel):
         """The endpoint workers connect to."""
         if self.router.connect:
             return self.router.connect
-        ep = self.router.listen or router_endpoint(self.router.config or REPO / "deploy" / "router.json5")
+        ep = self.router.listen or router_endpoint(self.router.config or defaults.path("router.json5"))
         return ep.replace("0.0.0.0", "127.0.0.1").replace("[::]", "[::1]")
 
 
@@ -139,7 +140,7 @@ class Supervisor:
         env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(REPO), os.environ.get("PYTHONPATH", "")]).rstrip(os.pathsep))
         self.router: Child | None = None
         if config.router.enabled:
-            cmd = [sys.executable, "-m", "services.router", "--config", config.router.config or str(REPO / "deploy" / "router.json5")]
+            cmd = [sys.executable, "-m", "services.router", "--config", config.router.config or str(defaults.path("router.json5"))]
             if config.router.listen:
                 cmd += ["--listen", config.router.listen]
             self.router = Child("router", cmd, env, config.restart, "router")

@@ -100,7 +100,10 @@ class Occ3DScene:
         return sem.astype(np.uint8), masks[0], masks[1]
 
     def __getitem__(self, index: int) -> OccupancyFrame:
-        sem, cam, lidar = self.load(index)
+        try:
+            sem, cam, lidar = self.load(index)
+        except DatasetError as exc:  # one unreadable frame is a bad frame (--skip-bad-frames), not a bad scene
+            raise InvalidFrameError(f"{index} ({self.files[index]})", exc.reason) from None
         mask = {"none": None, "camera": cam, "lidar": lidar}[self.mask]
         points, labels = grid_to_points(sem, OCC3D_GRID, mask)
         stamp = float(self.stamps[index]) if self.stamps is not None else index / self.rate_hz

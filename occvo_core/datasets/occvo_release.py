@@ -43,8 +43,11 @@ class OccVOReleaseScene:
         path = self.files[index]
         try:
             array = np.load(path, allow_pickle=False)
-        except (OSError, ValueError) as exc:
-            raise DatasetError(path, f"unreadable occupancy frame: {exc}") from None
+        except EOFError:
+            raise InvalidFrameError(f"{index} ({path})", "unreadable occupancy frame: empty or truncated file") from None
+        except (OSError, ValueError) as exc:  # a text or pickle file named .npy: numpy's ValueError speaks of pickles
+            why = "not a .npy array" if "pickle" in str(exc) else str(exc)
+            raise InvalidFrameError(f"{index} ({path})", f"unreadable occupancy frame: {why}") from None
         stamp = float(self.stamps[index]) if self.stamps is not None else index / self.rate_hz
         frame = OccupancyFrame.from_array(array, index=index, stamp=stamp)
         frame.meta["path"] = str(path)

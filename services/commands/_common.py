@@ -1,23 +1,135 @@
-"""Arguments every service command shares: where the router is, which stream."""
+"""What every service command shares: where the router is, which stream, --json/--quiet, one-line errors, and the
+readiness of the workers as it comes."""
 
 from __future__ import annotations
 
+import argparse
+import json
+import sys
+import threading
+import time
 from pathlib import Path
 
+from occvo_core.errors import ConfigError
+from schemas import keys
+from services import defaults
 from services.runtime import DEFAULT_ENDPOINT, router_endpoint
 
-DEPLOY = Path(__file__).resolve().parents[2] / "deploy"
+ROLES = ("inference", "registration", "map")
+WARM_UP_NOTE = "compiles its kernels on a first start, ~40 s on 2 cores; loads them from the cache after"
+
+
+def stream_id(text: str) -> str:
+    try:
+        return keys.check_stream(text)
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
 
 
 def add_connection(p, stream: bool = True) -> None:
-    p.add_argument("--connect", help=f"router endpoint (default: listen endpoint of --router-config, else {DEFAULT_ENDPOINT})")
-    p.add_argument("--router-config", default=None, help="router json5 config (default deploy/router.json5)")
+    p.add_argument(
+        "--connect", help=f"router endpoint (default: listen endpoint of --router-config, else {DEFAULT_ENDPOINT})"
+    )
+    p.add_argument("--router-config", default=None, help="router json5 config (default: the built-in one)")
     if stream:
-        p.add_argument("--stream", default="default", help="stream id (default: default)")
+        p.add_argument("--stream", type=stream_id, default="default", help="stream id (default: default)")
+
+
+def add_json(p, what: str = "the result") -> None:
+    p.add_argument("--json", action="store_true", help=f"{what} as JSON on stdout")
 
 
 def endpoint(args) -> str:
     if getattr(args, "connect", None):
         return args.connect
-    cfg = args.router_config or (DEPLOY / "router.json5")
-    return router_endpoint(cfg) if Path(cfg).is_file() else DEFAULT_ENDPOINT
+    cfg = getattr(args, "router_config", None) or defaults.path("router.json5")
+    if not Path(cfg).is_file():
+        raise ConfigError(f"router config {cfg} not found: give an existing --router-config or --connect")
+    return router_endpoint(cfg)
+
+
+def client(args, **kw):
+    """An OccVOClient on the command's router, or one line saying that no router answers."""
+    import zenoh
+
+    from services.client import OccVOClient, ServiceError
+
+    ep = endpoint(args)
+    try:
+        return OccVOClient(ep, stream=getattr(args, "stream", "default"), **kw)
+    except zenoh.ZError:
+        raise ServiceError(f"no router at {ep}: start `occvo serve` or pass --connect") from None
+
+
+def emit(args, record: dict, text: str) -> None:
+    """One result on stdout: the record as JSON with --json, else the text."""
+    print(json.dumps(record) if args.json else text, flush=True)
+
+
+def progress(args, text: str) -> None:
+    """A progress line on stderr, unless --quiet."""
+    if not getattr(args, "quiet", False):
+        print(f"occvo {args.command}: {text}", file=sys.stderr, flush=True)
+
+
+class ReadinessWatch:
+    """Reports each worker role as its liveliness token appears (the registration worker announces itself after its
+    kernels' warm-up), from a thread with its own session, until stop()."""
+
+    def __init__(self, ep: str, report, roles=ROLES):
+        self.ep, self.report, self.roles = ep, report, roles
+        self.t0 = time.monotonic()
+        self.seen: set[str] = set()
+        self._lock = threading.Lock()
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name="occvo-readiness", daemon=True)
+
+    def start(self) -> ReadinessWatch:
+        self._thread.start()
+        return self
+
+    def stop(self, all_ready: bool = False) -> None:
+        """Stop watching; all_ready: the caller saw every role alive, so report the ones not reported yet."""
+        self._stop.set()
+        self._thread.join(5)
+        if all_ready:
+            for role in self.roles:
+                self._seen(role)
+
+    def _seen(self, role: str) -> None:
+        with self._lock:
+            if role in self.seen:
+                return
+            self.seen.add(role)
+        self.report(role, round(time.monotonic() - self.t0, 1))
+
+    def _run(self) -> None:
+        from services.runtime import open_session
+
+        session = None
+        while session is None and not self._stop.wait(0.2):
+            try:
+                session = open_session(self.ep)
+            except Exception:  # noqa: BLE001 - the router is not up yet
+                session = None
+        if session is None:
+            return
+        warming = False
+        try:
+            while not self._stop.is_set() and set(self.roles) - self.seen:
+                try:
+                    alive = {
+                        str(r.ok.key_expr).split("/")[2]
+                        for r in session.liveliness().get(keys.alive("*", "*"), timeout=1.0)
+                        if r.ok
+                    }
+                except Exception:  # noqa: BLE001 - a lost router ends the watch
+                    return
+                for role in [r for r in self.roles if r in alive]:
+                    self._seen(role)
+                if not warming and "registration" not in self.seen and self.seen >= set(self.roles) - {"registration"}:
+                    warming = True
+                    self.report("warm-up", round(time.monotonic() - self.t0, 1))
+                self._stop.wait(0.2)
+        finally:
+            session.close()

@@ -2,24 +2,19 @@
 
 from __future__ import annotations
 
-import json
-
-from services.client import OccVOClient, ServiceError
-from services.commands._common import add_connection, endpoint
+from services.commands._common import add_connection, add_json, client, emit
 
 
 def add_parser(subparsers) -> None:
     p = subparsers.add_parser("map-info", help="map bounds, tile count and size")
     add_connection(p)
+    add_json(p)
     p.set_defaults(func=run)
 
 
 def run(args) -> int:
-    with OccVOClient(endpoint(args), stream=args.stream) as client:
-        try:
-            info = client.map_info()
-        except ServiceError as exc:
-            print(json.dumps({"error": str(exc)}))
-            return 1
-    print(json.dumps(info.model_dump(exclude={"kind", "schema_version"})))
+    with client(args) as c:
+        info = c.map_info()  # ServiceError (no map yet, no map service): one line, exit code 1
+    record = info.model_dump(exclude={"kind", "schema_version"})
+    emit(args, record, "\n".join(f"{k}: {v}" for k, v in record.items()))
     return 0

@@ -4,22 +4,29 @@ from __future__ import annotations
 
 import json
 import signal
-import sys
 import threading
 
+from occvo_core.errors import ConfigError
 from schemas import keys
 from schemas.codec import decode
 from schemas.models import PoseEstimate
-from services.client import OccVOClient
-from services.commands._common import add_connection, endpoint
+from services.commands._common import add_connection, client, progress
 
 
 def _line(p: PoseEstimate, fmt: str) -> str:
     if fmt == "kitti":
         return " ".join(f"{v:.9e}" for row in p.pose[:3] for v in row)
-    return json.dumps({"stream": p.stream, "seq": p.seq, "stamp": p.stamp, "status": p.status,
-                       "xyz": [p.pose[0][3], p.pose[1][3], p.pose[2][3]], "pose": p.pose,
-                       "timings_ms": {k: round(v, 3) for k, v in p.timings_ms.items()}})
+    return json.dumps(
+        {
+            "stream": p.stream,
+            "seq": p.seq,
+            "stamp": p.stamp,
+            "status": p.status,
+            "xyz": [p.pose[0][3], p.pose[1][3], p.pose[2][3]],
+            "pose": p.pose,
+            "timings_ms": {k: round(v, 3) for k, v in p.timings_ms.items()},
+        }
+    )
 
 
 def add_parser(subparsers) -> None:
@@ -27,14 +34,18 @@ def add_parser(subparsers) -> None:
     add_connection(p)
     p.add_argument("--follow", action="store_true", help="print new poses as they arrive, until Ctrl-C")
     p.add_argument("--count", type=int, default=None, help="with --follow: stop after N poses")
-    p.add_argument("--format", choices=["json", "kitti"], default="json")
+    p.add_argument("--format", choices=["json", "kitti"], default="json", help="a JSON object or a KITTI row a pose")
+    p.add_argument("--json", action="store_const", const="json", dest="format", help="the same as --format json")
+    p.add_argument("--quiet", action="store_true", help="with --follow: no 'following' line on stderr")
     p.set_defaults(func=run)
 
 
 def run(args) -> int:
-    with OccVOClient(endpoint(args), stream=args.stream) as client:
+    if args.count is not None and args.count < 1:
+        raise ConfigError(f"--count must be at least 1, not {args.count}")
+    with client(args) as c:
         if not args.follow:
-            traj = client.trajectory()
+            traj = c.trajectory()
             seqs, poses = traj.seqs.to_numpy(), traj.poses.to_numpy()
             for s, T, st in zip(seqs, poses, traj.stamps.to_numpy()):
                 p = PoseEstimate(stream=traj.stream, seq=int(s), stamp=float(st), pose=T.tolist(), status="ok")
@@ -51,8 +62,8 @@ def run(args) -> int:
             if args.count is not None and n[0] >= args.count:
                 done.set()
 
-        sub = client.session.declare_subscriber(keys.pose(args.stream), on_pose)
-        print(json.dumps({"event": "following", "key": keys.pose(args.stream)}), file=sys.stderr, flush=True)
+        sub = c.session.declare_subscriber(keys.pose(args.stream), on_pose)
+        progress(args, f"following {keys.pose(args.stream)}; Ctrl-C stops")
         for sig in (signal.SIGINT, signal.SIGTERM):
             signal.signal(sig, lambda *_: done.set())
         done.wait()

@@ -2,14 +2,13 @@
 
 from __future__ import annotations
 
-import json
 import sys
 import time
 
 import numpy as np
 
 from services.client import OccVOClient, ServiceError
-from services.commands._common import add_connection, endpoint
+from services.commands._common import add_connection, add_json, client, emit
 
 
 def load_scene(spec: str, frames: int | None = None, scene: str | None = None, mask: str = "camera"):
@@ -28,8 +27,15 @@ def load_scene(spec: str, frames: int | None = None, scene: str | None = None, m
     return open_scene(spec, scene=scene, mask=mask)
 
 
-def replay(client: OccVOClient, scene, rate_hz: float = 0.0, window: int = 4, frames: int | None = None,
-           timeout: float = 120.0, progress=None) -> dict:
+def replay(
+    client: OccVOClient,
+    scene,
+    rate_hz: float = 0.0,
+    window: int = 4,
+    frames: int | None = None,
+    timeout: float = 120.0,
+    progress=None,
+) -> dict:
     """Publish frames 0..n-1 as one trajectory, keeping at most `window` frames in flight (application-level
     backpressure: the next frame goes out when an earlier pose or error came back). Frames in flight when the
     registration worker restarts are sent again by the client (OccVOClient.resend_after, its liveliness token), so a
@@ -41,7 +47,13 @@ def replay(client: OccVOClient, scene, rate_hz: float = 0.0, window: int = 4, fr
 
     def settled() -> int:
         with client._cv:
-            return len(client.poses) + len({e.seq for e in client.errors if e.seq is not None and e.seq not in client.poses and e.code != "missing_seq"})
+            return len(client.poses) + len(
+                {
+                    e.seq
+                    for e in client.errors
+                    if e.seq is not None and e.seq not in client.poses and e.code != "missing_seq"
+                }
+            )
 
     for i in range(n):
         frame = scene[i]
@@ -64,10 +76,17 @@ def replay(client: OccVOClient, scene, rate_hz: float = 0.0, window: int = 4, fr
             client._cv.wait(max(0.0, deadline - time.monotonic()))
     elapsed = time.perf_counter() - t0
     poses = dict(client.poses)
-    return {"stream": client.stream, "frames": n, "poses": len(poses), "errors": len(client.errors), "resends": client.resends,
-            "seconds": elapsed, "fps": len(poses) / elapsed if elapsed > 0 else 0.0,
-            "trajectory": np.array([poses[s].matrix() for s in sorted(poses)]) if poses else np.zeros((0, 4, 4)),
-            "pose_msgs": poses}
+    return {
+        "stream": client.stream,
+        "frames": n,
+        "poses": len(poses),
+        "errors": len(client.errors),
+        "resends": client.resends,
+        "seconds": elapsed,
+        "fps": len(poses) / elapsed if elapsed > 0 else 0.0,
+        "trajectory": np.array([poses[s].matrix() for s in sorted(poses)]) if poses else np.zeros((0, 4, 4)),
+        "pose_msgs": poses,
+    }
 
 
 def add_parser(subparsers) -> None:
@@ -85,29 +104,46 @@ def add_parser(subparsers) -> None:
     p.add_argument("--window", type=int, default=4, help="frames in flight at most (lossless replay)")
     p.add_argument("--frames", type=int, default=None, help="replay only the first N frames")
     p.add_argument("--timeout", type=float, default=120.0)
-    p.add_argument("--resend-after", type=float, default=5.0,
-                   help="send unanswered frames again after this many seconds without an answer (also when the "
-                        "registration worker comes back); 0 = never")
+    p.add_argument(
+        "--resend-after",
+        type=float,
+        default=5.0,
+        help="send unanswered frames again after this many seconds without an answer (also when the "
+        "registration worker comes back); 0 = never",
+    )
     p.add_argument("--output", help="write the received trajectory (KITTI) here")
     p.add_argument("--tum", help="write the received trajectory as TUM here, stamped with the frames' stamps")
+    add_json(p, "the summary")
+    p.add_argument("--quiet", action="store_true", help="no progress bar and no error events on stderr")
     p.set_defaults(func=run)
 
 
 def run(args) -> int:
+    from tqdm import tqdm
+
+    from occvo_core.errors import ConfigError
+
+    for name, value, low in (("--frames", args.frames, 1), ("--window", args.window, 1)):
+        if value is not None and value < low:
+            raise ConfigError(f"{name} must be at least {low}, not {value}")
+    if args.rate < 0 or args.timeout <= 0:
+        raise ConfigError("--rate must be 0 or more and --timeout more than 0")
     if args.nuscenes:
         from services.nuscenes_source import NuScenesCameraFrames
 
         scene = NuScenesCameraFrames(args.nuscenes, args.version, args.scene_name or "scene-0061")
     elif args.scene is None:
-        from occvo_core.errors import ConfigError
-
         raise ConfigError("replay needs a scene (folder or synthetic:<seed>) or --nuscenes DATAROOT")
     else:
         scene = load_scene(args.scene, args.frames, args.scene_name, args.mask)
-    with OccVOClient(endpoint(args), stream=args.stream, resend_after=args.resend_after or None) as client:
-        client.wait_for_workers(timeout=args.timeout)
-        out = replay(client, scene, args.rate, args.window, args.frames, args.timeout)
-        errors = list(client.errors)
+    with client(args, resend_after=args.resend_after or None) as c:
+        c.wait_for_workers(timeout=args.timeout)
+        n = len(scene) if args.frames is None else min(args.frames, len(scene))
+        with tqdm(total=n, desc=f"replay {c.stream}", unit="frame", disable=args.quiet, file=sys.stderr) as bar:
+            out = replay(
+                c, scene, args.rate, args.window, args.frames, args.timeout, progress=lambda i, n: bar.update()
+            )
+        errors = list(c.errors)
     if args.output and len(out["trajectory"]):
         from occvo_core.trajectory import write_kitti
 
@@ -117,7 +153,20 @@ def run(args) -> int:
 
         msgs = out["pose_msgs"]
         write_tum(args.tum, out["trajectory"], np.array([msgs[s].stamp for s in sorted(msgs)]))
-    for e in errors:
-        print(json.dumps({"error": e.code, "seq": e.seq, "message": e.message}), file=sys.stderr)
-    print(json.dumps({k: v for k, v in out.items() if k not in ("trajectory", "pose_msgs")}))
-    return 0 if out["poses"] == out["frames"] else 1
+    if not args.quiet:
+        for e in errors:
+            print(f"occvo replay: frame {e.seq}: {e.code}: {e.message}", file=sys.stderr)
+    record = {k: v for k, v in out.items() if k not in ("trajectory", "pose_msgs")}
+    emit(
+        args,
+        record,
+        f"{record['poses']} poses of {record['frames']} frames of stream {record['stream']} in "
+        f"{record['seconds']:.1f} s ({record['fps']:.1f} frames/s), {record['errors']} errors, "
+        f"{record['resends']} resends",
+    )
+    if out["poses"] != out["frames"]:
+        raise ServiceError(
+            f"{out['frames'] - out['poses']} of {out['frames']} frames got no pose (see the error "
+            "events above or the registration worker's log)"
+        )
+    return 0

@@ -2,14 +2,13 @@
 
 from __future__ import annotations
 
-import json
 import math
 
 import numpy as np
 
+from occvo_core.errors import ConfigError
 from occvo_core.grid import CLASS_NAMES
-from services.client import OccVOClient, ServiceError
-from services.commands._common import add_connection, endpoint
+from services.commands._common import add_connection, add_json, client, emit
 
 
 def add_parser(subparsers) -> None:
@@ -19,25 +18,35 @@ def add_parser(subparsers) -> None:
     add_connection(p)
     p.add_argument("--metres", action="store_true", help="X Y are world coordinates, not tile indices")
     p.add_argument("--output", help="save the tile as an (M,4) x,y,z,label .npy")
+    add_json(p)
     p.set_defaults(func=run)
 
 
 def run(args) -> int:
-    with OccVOClient(endpoint(args), stream=args.stream) as client:
+    if not args.metres and not (args.x.is_integer() and args.y.is_integer()):
+        raise ConfigError(f"tile indices are integers, got {args.x:g} {args.y:g}: pass --metres for world coordinates")
+    with client(args) as c:
         if args.metres:
-            tile_m = client.map_info().tile_m
+            tile_m = c.map_info().tile_m
             ix, iy = math.floor(args.x / tile_m), math.floor(args.y / tile_m)
         else:
             ix, iy = int(args.x), int(args.y)
-        try:
-            t = client.tile(ix, iy)
-        except ServiceError as exc:
-            print(json.dumps({"error": str(exc)}))
-            return 1
+        t = c.tile(ix, iy)  # ServiceError (tile_not_found, ...): one line, exit code 1
     pts, labels = t.points.to_numpy(), t.labels.to_numpy()
     if args.output:
         np.save(args.output, np.column_stack([pts, labels.astype(np.float64)]))
     counts = np.bincount(labels, minlength=len(CLASS_NAMES))
-    print(json.dumps({"stream": t.stream, "ix": t.ix, "iy": t.iy, "tile_m": t.tile_m, "seq": t.seq, "voxels": len(pts),
-                      "labels": {CLASS_NAMES[c]: int(n) for c, n in enumerate(counts) if n}}))
+    record = {
+        "stream": t.stream,
+        "ix": t.ix,
+        "iy": t.iy,
+        "tile_m": t.tile_m,
+        "seq": t.seq,
+        "voxels": len(pts),
+        "labels": {CLASS_NAMES[c]: int(n) for c, n in enumerate(counts) if n},
+    }
+    text = f"tile ({t.ix}, {t.iy}) of stream {t.stream}, {t.tile_m} m, frame {t.seq}: {len(pts)} voxels\n" + "\n".join(
+        f"  {name}: {n}" for name, n in record["labels"].items()
+    )
+    emit(args, record, text)
     return 0

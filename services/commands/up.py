@@ -2,32 +2,58 @@
 
 from __future__ import annotations
 
-import json
-
-from services.commands._common import DEPLOY
+from services import defaults
+from services.commands._common import WARM_UP_NOTE, ReadinessWatch, add_json, emit, progress
 
 
 def add_parser(subparsers) -> None:
     p = subparsers.add_parser("up", help="run and supervise the router and workers named in a json5 file")
-    p.add_argument("--config", default=str(DEPLOY / "occvo.json5"), help="deployment json5 (default deploy/occvo.json5)")
+    p.add_argument(
+        "--config",
+        default=None,
+        help="deployment json5 (default: the built-in one; deploy/occvo.json5 is the deployment copy)",
+    )
     p.add_argument("--listen", help="replace the router's listen endpoint, e.g. tcp/127.0.0.1:7447")
     p.add_argument("--log-dir", help="each child's log to <dir>/<name>.log (default: stderr)")
+    add_json(p, "the endpoint and events (listening, worker ready, stopped) as JSON lines")
+    p.add_argument(
+        "--quiet", action="store_true", help="no progress lines and only warnings of the supervisor's log on stderr"
+    )
     p.set_defaults(func=run)
 
 
 def run(args) -> int:
+    from services.runtime import structured_logger
     from services.supervisor import Supervisor, UpConfig
 
-    config = UpConfig.load(args.config)
+    config = UpConfig.load(args.config or defaults.path("occvo.json5"))
     if args.listen:
         config.router.listen, config.router.connect = args.listen, None
     if args.log_dir:
         config.log_dir = args.log_dir
-    sup = Supervisor(config)
+    sup = Supervisor(config, structured_logger("occvo.up", "WARNING") if args.quiet else None)
+    roles = tuple(dict.fromkeys(w.role for w in config.workers))
+    watch = None
 
-    def ready(s: Supervisor) -> None:
-        print(json.dumps({"event": "ready", "endpoint": s.endpoint, "pids": s.pids()}), flush=True)
+    def worker_ready(role: str, seconds: float) -> None:
+        if role == "warm-up":
+            progress(args, "registration worker: warming up its kernels")
+            return
+        if args.json:
+            emit(args, {"event": "worker ready", "role": role, "seconds": seconds}, "")
+        progress(args, f"{role} worker ready after {seconds} s")
 
-    code = sup.run(ready)
-    print(json.dumps({"event": "stopped", "code": code}), flush=True)
+    def started(s: Supervisor) -> None:
+        nonlocal watch
+        emit(args, {"event": "ready", "endpoint": s.endpoint, "pids": s.pids()}, f"listening on {s.endpoint}")
+        if "registration" in roles:
+            progress(args, f"workers started: {', '.join(roles)}; the registration worker {WARM_UP_NOTE}")
+        watch = ReadinessWatch(s.endpoint, worker_ready, roles).start()
+
+    try:
+        code = sup.run(started)
+    finally:
+        if watch is not None:
+            watch.stop()
+    emit(args, {"event": "stopped", "code": code}, f"stopped (exit code {code})")
     return code

@@ -77,7 +77,7 @@ def test_unreadable_frame_file_names_the_file(tmp_path):
     np.save(scene / "2.npy", np.array([[0.2, 0.2, np.nan, 11.0]]))
     source = OccVOReleaseScene(scene)
     assert len(source[0]) == 1
-    with pytest.raises(DatasetError, match="1.npy: unreadable occupancy frame"):
+    with pytest.raises(InvalidFrameError, match=r"frame 1 .*1.npy\): unreadable occupancy frame"):
         source[1]
     with pytest.raises(InvalidFrameError, match="frame 2 .*2.npy.*non-finite"):
         source[2]
@@ -103,7 +103,7 @@ def test_cli_prints_one_line_and_exits_non_zero_without_traceback(tmp_path):
     scene = tmp_path / "scene-bad"
     scene.mkdir()
     np.save(scene / "0.npy", np.zeros((0, 4)))
-    out = subprocess.run([sys.executable, "-m", "occvo_core.cli", "run", "--input", str(scene), "--out", str(tmp_path / "o"),
+    out = subprocess.run([sys.executable, "-m", "occvo_cli", "run", "--input", str(scene), "--out", str(tmp_path / "o"),
                           "--quiet"], capture_output=True, text=True)
     assert out.returncode != 0
     assert "Traceback" not in out.stderr

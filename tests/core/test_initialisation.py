@@ -36,7 +36,7 @@ def test_the_search_finds_a_turn_the_constant_velocity_guess_lacks(yaw_deg, x, y
 def test_occvo_run_searches_on_camera_occupancy_unless_told(from_images, flag, expected):
     from argparse import Namespace
 
-    from occvo_core.commands.run import config_from_args
+    from occvo_cli.commands.run import config_from_args
 
     args = Namespace(config=None, from_images=from_images, motion_search=flag, no_semantic_filter=False,
                      no_dynamic_filter=False, no_pfilter=False)

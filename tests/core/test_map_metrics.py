@@ -110,7 +110,7 @@ def test_reference_map_from_synthetic_poses_matches_the_frames():
 
 
 def test_eval_map_command(tmp_path, capsys):
-    from occvo_core.commands import eval_map
+    from occvo_cli.commands import eval_map
 
     gt = _line(10)
     save_map(tmp_path / "gt.npz", gt, np.full(10, 15))

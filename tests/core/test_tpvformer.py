@@ -284,13 +284,15 @@ def test_occvo_run_from_images_runs_the_whole_chain(tmp_path):
     torch.manual_seed(0)
     ckpt = save_checkpoint(tmp_path / "tiny.pt", TPVFormer(preset("tiny")))
     out = tmp_path / "out"
-    proc = subprocess.run([sys.executable, "-m", "occvo_core.cli", "run", "--synthetic", "--from-images", "--checkpoint",
+    proc = subprocess.run([sys.executable, "-m", "occvo_cli", "run", "--synthetic", "--from-images", "--checkpoint",
                            str(ckpt), "--frames", "3", "--out", str(out), "--quiet"], capture_output=True, text=True,
                           timeout=300)
-    assert proc.returncode == 0, proc.stderr
     summary = json.loads((out / "summary.json").read_text())
     assert summary["frames"] == 3 and summary["scene"].endswith("-from-images")
-    missing = subprocess.run([sys.executable, "-m", "occvo_core.cli", "run", "--from-images", "--out", str(out)],
+    # an untrained network may fail the run's success rule: then the exit code says so (1), with one line
+    assert proc.returncode == (0 if summary["success"] else 1), proc.stderr
+    assert "Traceback" not in proc.stderr
+    missing = subprocess.run([sys.executable, "-m", "occvo_cli", "run", "--from-images", "--out", str(out)],
                              capture_output=True, text=True)
     assert missing.returncode == 2 and "--from-images needs --checkpoint" in missing.stderr
 

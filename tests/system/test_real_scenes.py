@@ -21,7 +21,7 @@ RMSE_BOUND_M = {"scene-0101": 0.45, "scene-0268": 0.15}
 def test_occvo_run_on_real_scene_writes_everything_and_meets_its_bound(sample_root, tmp_path, scene):
     out = tmp_path / "out"
     gt = sample_root / "trajectory" / f"{scene}.kitti"
-    proc = subprocess.run([sys.executable, "-m", "occvo_core.cli", "run", "--input", str(sample_root / "occupancy" / scene),
+    proc = subprocess.run([sys.executable, "-m", "occvo_cli", "run", "--input", str(sample_root / "occupancy" / scene),
                            "--gt", str(gt), "--out", str(out), "--quiet"], capture_output=True, text=True, timeout=600)
     assert proc.returncode == 0, proc.stderr
     summary = json.loads((out / "summary.json").read_text())
@@ -37,7 +37,7 @@ def test_occvo_run_on_real_scene_writes_everything_and_meets_its_bound(sample_ro
     pts_ply, lab_ply = read_map(out / "map.ply")
     assert len(pts_npz) > 50_000 and np.array_equal(lab_npz, lab_ply) and np.allclose(pts_npz, pts_ply, atol=1e-4)
     assert (out / "trajectory.png").stat().st_size > 10_000
-    evals = subprocess.run([sys.executable, "-m", "occvo_core.cli", "eval", "--gt", str(gt), "--est",
+    evals = subprocess.run([sys.executable, "-m", "occvo_cli", "eval", "--gt", str(gt), "--est",
                             str(out / "trajectory.kitti"), "--json"], capture_output=True, text=True, check=True)
     assert abs(json.loads(evals.stdout)["rmse"] - summary["ape_rmse_m"]) < 1e-6
 

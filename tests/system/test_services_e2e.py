@@ -19,7 +19,7 @@ import numpy as np
 import pytest
 
 from occvo_core.map_tiles import tiles_from_map
-from services.client import OccVOClient
+from services.client import OccVOClient, ServiceError
 from services.local import REPO, LocalService
 from services.runtime import free_port
 
@@ -90,13 +90,13 @@ def test_scene_0101_through_separate_worker_processes_matches_offline(capsys):
             # the CLI commands against the running service
             ep = ["--connect", service.endpoint, "--stream", "e2e"]
             capsys.readouterr()
-            assert map_info.run(_cli("map_info", ["map-info", *ep])) == 0
+            assert map_info.run(_cli("map_info", ["map-info", "--json", *ep])) == 0
             assert json.loads(capsys.readouterr().out)["tile_count"] == len(want)
             ix, iy = next(iter(want))
-            assert tile.run(_cli("tile", ["tile", str(ix), str(iy), *ep])) == 0
+            assert tile.run(_cli("tile", ["tile", str(ix), str(iy), "--json", *ep])) == 0
             assert json.loads(capsys.readouterr().out)["voxels"] == len(want[(ix, iy)][0])
-            assert tile.run(_cli("tile", ["tile", "999", "999", *ep])) == 1
-            assert "tile_not_found" in capsys.readouterr().out
+            with pytest.raises(ServiceError, match="tile_not_found"):
+                tile.run(_cli("tile", ["tile", "999", "999", *ep]))
             assert poses.run(_cli("poses", ["poses", "--format", "kitti", *ep])) == 0
             rows = np.loadtxt(capsys.readouterr().out.splitlines())
             assert np.abs(rows.reshape(-1, 3, 4) - offline["poses"][:, :3, :4]).max() <= 1e-6
@@ -117,16 +117,20 @@ def test_scene_0101_through_separate_worker_processes_matches_offline(capsys):
 def test_serve_command_starts_and_stops_cleanly(tmp_path):
     port = free_port()
     env = dict(os.environ, PYTHONPATH=str(REPO))
-    proc = subprocess.Popen([sys.executable, "-m", "services.commands", "serve", "--connect", f"tcp/127.0.0.1:{port}",
+    proc = subprocess.Popen([sys.executable, "-m", "occvo_cli", "serve", "--json", "--listen", f"tcp/127.0.0.1:{port}",
                              "--log-dir", str(tmp_path)], cwd=REPO, env=env, stdout=subprocess.PIPE, text=True)
     try:
-        ready = json.loads(proc.stdout.readline())
+        events = [json.loads(proc.stdout.readline())]
+        while events[-1]["event"] != "ready":
+            events.append(json.loads(proc.stdout.readline()))
+        assert events[0] == {"event": "listening", "endpoint": f"tcp/127.0.0.1:{port}"}
+        ready = events[-1]
         assert ready["event"] == "ready" and set(ready["workers"]) == {"inference", "registration", "map"}
-        follow = subprocess.Popen([sys.executable, "-m", "services.commands", "poses", "--follow", "--count", "3", "--stream", "cli",
+        follow = subprocess.Popen([sys.executable, "-m", "occvo_cli", "poses", "--follow", "--count", "3", "--stream", "cli",
                                    "--connect", f"tcp/127.0.0.1:{port}"], cwd=REPO, env=env, stdout=subprocess.PIPE,
                                   stderr=subprocess.PIPE, text=True)
-        assert json.loads(follow.stderr.readline())["event"] == "following"
-        rc = subprocess.run([sys.executable, "-m", "services.commands", "replay", str(SCENE), "--connect",
+        assert "following" in follow.stderr.readline()
+        rc = subprocess.run([sys.executable, "-m", "occvo_cli", "replay", str(SCENE), "--json", "--connect",
                              f"tcp/127.0.0.1:{port}", "--frames", "3", "--stream", "cli"], cwd=REPO, env=env,
                             capture_output=True, text=True, timeout=120)
         assert rc.returncode == 0, rc.stderr

@@ -91,7 +91,7 @@ def test_up_restarts_a_killed_worker_and_stops_cleanly(tmp_path):
         "stop_timeout_s": 30, "log_dir": str(tmp_path / "logs")}))
     env = dict(os.environ, PYTHONPATH=str(REPO))
     err = open(tmp_path / "up.log", "w")
-    proc = subprocess.Popen([sys.executable, "-m", "services.commands", "up", "--config", str(tmp_path / "up.json5")],
+    proc = subprocess.Popen([sys.executable, "-m", "occvo_cli", "up", "--json", "--config", str(tmp_path / "up.json5")],
                             cwd=REPO, env=env, stdout=subprocess.PIPE, stderr=err, text=True)
     pids: dict = {}
     try:

@@ -4,9 +4,10 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
 from pathlib import Path
 
-from occvo_core.config import OccVOConfig
+from occvo_core import OccVOConfig
 
 
 def add_parser(sub) -> None:
@@ -44,6 +45,7 @@ def add_parser(sub) -> None:
                    help="show the run live in a rerun viewer (pip install 'occvo[view]')")
     p.add_argument("--rerun", type=Path, metavar="FILE.rrd", help="save the live view as a rerun recording")
     p.add_argument("--map-every", type=int, default=5, help="--view/--rerun: log the global map every N frames")
+    p.add_argument("--json", action="store_true", help="the summary as JSON on stdout")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=run)
 
@@ -62,9 +64,8 @@ def config_from_args(args) -> OccVOConfig:
 
 def run(args) -> int:
     from occvo_core.datasets import open_scene
-    from occvo_core.pipeline import OdometryPipeline
-
     from occvo_core.errors import ConfigError
+    from occvo_core.pipeline import OdometryPipeline
 
     if args.list_scenes:
         return _list_scenes(args.input)
@@ -84,17 +85,25 @@ def run(args) -> int:
                                                                      min_ground_confidence=args.min_ground_confidence))
     else:
         source = open_scene(args.input, gt=args.gt, scene=args.scene, mask=args.mask)
+    config = config_from_args(args)
+    extra = {"compile_s": _warm_up(config, args)}
     view = _open_view(args)
-    pipeline = OdometryPipeline(source, config_from_args(args), skip_bad_frames=args.skip_bad_frames, threads=args.threads,
+    pipeline = OdometryPipeline(source, config, skip_bad_frames=args.skip_bad_frames, threads=args.threads,
                                 progress=not args.quiet).run(on_step=view.step if view else None)
     if view:
         view.finish(pipeline.odometry)
-    extra = {}
     if args.input is None:
         extra["map_metrics"] = _synthetic_map_metrics(truth, pipeline)
     summary = pipeline.write(args.out, extra)
-    print(json.dumps({k: summary[k] for k in summary if k not in ("skipped_frames",)}, indent=2, default=float))
-    print(f"wrote {args.out}/: trajectory.kitti trajectory.tum map.ply map.npz map_voxels.npz trajectory.png summary.json")
+    shown = {k: summary[k] for k in summary if k not in ("skipped_frames",)}
+    if args.json:
+        print(json.dumps({**shown, "out": str(args.out)}, indent=2, default=float))
+    else:
+        print(_text(shown, args.out))
+    if summary.get("success") is False:  # the run's own rule (occvo_core.eval.success) says it failed
+        print(f"occvo run: error: the run failed its success rule: APE RMSE {summary['ape_rmse_m']:.2f} m "
+              f"(summary in {args.out}/summary.json)", file=sys.stderr)
+        return 1
     return 0
 
 
@@ -121,6 +130,27 @@ def _list_scenes(root) -> int:
     for s in list_scenes(root):
         print(json.dumps(s))
     return 0
+def _text(s: dict, out: Path) -> str:
+    lines = [f"scene {s['scene']}: {s['frames']} frames registered"]
+    if "ape_rmse_m" in s:
+        lines.append(f"APE RMSE {s['ape_rmse_m']:.3f} m ({'success' if s['success'] else 'FAILED'})")
+    if s.get("ms_per_frame_median") is not None:
+        ms, warm = s["ms_per_frame_median"], s.get("compile_s", 0.0)
+        lines.append(f"{ms:.1f} ms a frame (median); kernel warm-up before the frames {warm:.1f} s")
+    lines.append(f"map: {s['map_voxels']} voxels")
+    lines.append(f"wrote {out}/: trajectory.kitti trajectory.tum map.ply map.npz map_voxels.npz trajectory.png summary.json")
+    return "\n".join(lines)
+
+
+def _warm_up(config: OccVOConfig, args) -> float:
+    """Every registration kernel compiled (a first run after install) or loaded from numba's cache before the frames
+    are timed, so ms_per_frame_median is a frame's cost and the compile time is reported apart, as compile_s."""
+    from occvo_core.warm_up import warm_up
+
+    if not args.quiet:
+        print("occvo run: loading the registration kernels (a first run compiles them, ~40 s on 2 cores)",
+              file=sys.stderr, flush=True)
+    return float(warm_up(config, threads=args.threads)["seconds"])
 
 
 def _synthetic_map_metrics(source, pipeline) -> dict:

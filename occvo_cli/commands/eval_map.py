@@ -47,6 +47,9 @@ def run(args) -> int:
         gt_poses = source.gt_poses
         if args.save_reference:
             save_map(args.save_reference, truth.points, truth.labels)
+    if args.reference_scene and not args.est_traj:
+        raise ConfigError("--reference-scene builds the reference in the ground truth's frame and --est-map is in the "
+                          "estimate's own: give --est-traj (the run's trajectory.kitti) to align them")
     points = est.points
     if args.est_traj:
         if gt_poses is None:
@@ -54,6 +57,7 @@ def run(args) -> int:
         est_poses = read_trajectory(args.est_traj)
         n = min(len(est_poses), len(gt_poses))
         points = align_to_ground_truth(points, est_poses[:n], gt_poses[:n])
+    _check_overlap(points, truth.points, args)
     classes = None if args.all_classes else STATIC_CLASSES
     m = map_metrics(points, est.labels, truth.points, truth.labels, args.threshold, classes, reference)
     if args.json:
@@ -65,3 +69,25 @@ def run(args) -> int:
         print(f"precision:  {m.precision:.3f}  ({m.n_reconstructed} reconstructed points)")
         print(f"completion: {m.completion:.3f}  ({m.n_ground_truth} ground-truth points)")
     return 0
+
+
+OVERLAP_M = 2.0  # an estimate with no point this close to the reference is in another frame, not a poor map
+
+
+def _check_overlap(est, ref, args) -> None:
+    """Refuse maps that cannot be in one frame: metrics of such a pair are numbers without meaning."""
+    import numpy as np
+    from scipy.spatial import cKDTree
+
+    from occvo_core.errors import ConfigError
+
+    what = "--gt-map" if args.gt_map else "the reference built from --reference-scene"
+    if len(est) == 0 or len(ref) == 0:
+        raise ConfigError(f"{'--est-map' if len(est) == 0 else what} has no points")
+    sample = est[np.linspace(0, len(est) - 1, min(len(est), 20_000)).astype(int)]
+    near = np.isfinite(cKDTree(ref).query(sample, distance_upper_bound=OVERLAP_M)[0])
+    if not near.any():
+        hint = "" if args.est_traj else "; give --est-traj (and --gt) to align the estimate"
+        raise ConfigError(f"--est-map and {what} do not overlap (no point within {OVERLAP_M:g} m of the other): "
+                          f"they are not in one frame{hint}")
+

@@ -14,27 +14,36 @@ def add_parser(sub) -> None:
     p.add_argument("--stride", type=int, default=5, help="evaluate every n-th frame")
     p.add_argument("--device", help="cpu or cuda (default: cuda when present)")
     p.add_argument("--threads", type=int, default=1, help="torch CPU threads")
-    p.add_argument("--json", type=Path, help="also write the metrics as JSON here")
+    p.add_argument("--json", action="store_true", help="the metrics as JSON on stdout instead of the table")
+    p.add_argument("--output", type=Path, help="also write the metrics as JSON to this file")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=run)
 
 
 def run(args) -> int:
     import torch
 
+    from occvo_core.errors import DatasetError
     from occvo_core.models.tpvformer import load_checkpoint, select_device
     from occvo_core.models.train import evaluate
 
+    if not args.checkpoint.is_file():
+        raise DatasetError(args.checkpoint, "no such checkpoint: give a file `occvo train-occ` wrote")
     torch.set_num_threads(args.threads)
     device = select_device(args.device)
     model = load_checkpoint(args.checkpoint, device=device)
-    metrics = evaluate(model, args.seeds, frames=args.frames, stride=args.stride, device=device)
+    metrics = evaluate(model, args.seeds, frames=args.frames, stride=args.stride, device=device,
+                       progress=not args.quiet)
     summary = metrics.summary()
     summary.update({"checkpoint": str(args.checkpoint), "seeds": args.seeds})
+    if args.output:
+        args.output.write_text(json.dumps(summary, indent=1))
+    if args.json:
+        print(json.dumps(summary, indent=1))
+        return 0
     width = max(len(k) for k in summary["per_class_iou"])
     for name, iou in summary["per_class_iou"].items():
         print(f"  {name:<{width}}  {'   n/a' if iou is None else f'{100 * iou:6.2f}'}")
     print(f"mIoU (17 classes): {100 * summary['miou']:.2f}   geometry IoU: {100 * summary['geometry_iou']:.2f}   "
           f"({summary['frames']} frames, seeds {args.seeds}, inside the camera mask)")
-    if args.json:
-        args.json.write_text(json.dumps(summary, indent=1))
     return 0

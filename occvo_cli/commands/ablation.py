@@ -13,7 +13,9 @@ def add_parser(sub) -> None:
     p.add_argument("--seeds", type=int, nargs="+", help="synthetic scene seeds (instead of --input), with map metrics")
     p.add_argument("--frames", type=int, default=40, help="synthetic scene length")
     p.add_argument("--noise", default="default", help="synthetic prediction noise preset")
-    p.add_argument("--json", type=Path, help="also write the rows as JSON here")
+    p.add_argument("--json", action="store_true", help="the rows as JSON on stdout instead of the table")
+    p.add_argument("--output", type=Path, help="also write the rows as JSON to this file")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=run)
 
 
@@ -39,10 +41,10 @@ def run(args) -> int:
             raise ConfigError(f"no ground truth for {', '.join(missing)}: give --gt-dir with <scene>.kitti files")
     else:
         raise ConfigError("give scene folders with --input (and --gt-dir) or synthetic --seeds")
-    bar = tqdm(total=len(sources) * len(filter_combinations()), desc="ablation", unit="run")
+    bar = tqdm(total=len(sources) * len(filter_combinations()), desc="ablation", unit="run", disable=args.quiet)
     rows = run_ablation(sources, map_metrics=map_metrics, progress=bar.update)
     bar.close()
-    print(format_table(rows))
-    if args.json:
-        args.json.write_text(json.dumps(rows, indent=2) + "\n")
+    print(json.dumps(rows, indent=2, default=float) if args.json else format_table(rows))
+    if args.output:
+        args.output.write_text(json.dumps(rows, indent=2, default=float) + "\n")
     return 0

@@ -25,7 +25,7 @@ def run(args) -> int:
         raise DatasetError(args.est, f"{len(est)} poses against {len(gt)} in {args.gt}")
     err = ape_errors(gt, est)
     stats = {"rmse": float(np.sqrt(np.mean(err ** 2))), "mean": float(err.mean()), "median": float(np.median(err)),
-             "max": float(err.max()), "poses": int(len(err))}
+             "max": float(err.max()), "poses": len(err)}
     stats["success"] = success(stats["rmse"])
     if args.json:
         print(json.dumps(stats))

@@ -1,0 +1,94 @@
+"""The `occvo` command: parser and dispatch. One subcommand a module, each with add_parser(subparsers) and
+run(args) -> int.
+
+Every command keeps one convention: results on stdout (`--json`: machine-readable), progress and errors on stderr,
+an error as one line naming what is wrong and what to do, exit code 2 for bad input or usage, 1 for a failure at
+run time, no traceback unless --debug.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import os
+import sys
+
+from occvo_cli import __version__
+from occvo_cli.commands import COMMANDS
+from occvo_core import OccVOError
+
+BAD_INPUT, FAILED, INTERRUPTED = 2, 1, 130
+
+
+class Parser(argparse.ArgumentParser):
+    """argparse with its usage errors on one line (argparse prints the whole usage block first)."""
+
+    def error(self, message: str):
+        self.exit(BAD_INPUT, f"{self.prog}: error: {message.splitlines()[0]} (see {self.prog} --help)\n")
+
+
+def _command_modules():
+    for name in COMMANDS:
+        yield importlib.import_module(f"occvo_cli.commands.{name}")
+    try:  # the service commands live with the services, which need the transport (zenoh)
+        services = importlib.import_module("services.commands")
+    except ModuleNotFoundError as exc:
+        if exc.name not in ("services", "services.commands", "zenoh"):
+            raise
+        return
+    for name in services.COMMANDS:
+        yield importlib.import_module(f"services.commands.{name}")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = Parser(prog="occvo", description="OCC-VO: 3D-occupancy visual odometry and semantic mapping")
+    parser.add_argument("--version", action="version", version=f"occvo {__version__}")
+    parser.add_argument("--debug", action="store_true", help="show the traceback of an error")
+    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND", parser_class=Parser)
+    for module in _command_modules():
+        module.add_parser(sub)
+    for p in sub.choices.values():  # --debug also after the command
+        p.add_argument("--debug", action="store_true", default=argparse.SUPPRESS, help="show the traceback of an error")
+    return parser
+
+
+def exit_code(exc: BaseException) -> int:
+    """2 when the input was wrong (occvo's own typed errors say so), 1 for anything failing at run time."""
+    return BAD_INPUT if isinstance(exc, OccVOError) else FAILED
+
+
+def _worded() -> tuple[type, ...]:
+    """Errors whose message is already the line for the user: occvo's own and the service client's."""
+    try:
+        from services.client import ServiceError
+    except ModuleNotFoundError:
+        return (OccVOError,)
+    return OccVOError, ServiceError
+
+
+def error_line(exc: BaseException) -> str:
+    text = (str(exc).strip().splitlines() or [""])[0]
+    if isinstance(exc, _worded()):
+        return text
+    return f"{text or type(exc).__name__} ({type(exc).__name__}; --debug shows the traceback)"
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    try:
+        return int(args.func(args) or 0)
+    except BrokenPipeError:  # `occvo poses | head`: the reader has what it wanted
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return 0
+    except KeyboardInterrupt:
+        print(f"occvo {args.command}: interrupted", file=sys.stderr)
+        return INTERRUPTED
+    except Exception as exc:  # the one place every error becomes one line and an exit code
+        if args.debug:
+            raise
+        print(f"occvo {args.command}: error: {error_line(exc)}", file=sys.stderr)
+        return exit_code(exc)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

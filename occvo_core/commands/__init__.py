@@ -1,1 +1,0 @@
-"""Subcommands of `occvo`; occvo_core.cli lists them."""

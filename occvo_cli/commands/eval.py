@@ -11,6 +11,10 @@ def add_parser(sub) -> None:
     p = sub.add_parser("eval", help="APE RMSE (SE(3) Umeyama-aligned) of an estimate against ground truth")
     p.add_argument("--gt", required=True, help="ground-truth trajectory, KITTI or TUM")
     p.add_argument("--est", required=True, help="estimated trajectory, KITTI or TUM")
+    p.add_argument("--fit-time-offset", action="store_true", help="also the APE against the ground truth moved in "
+                   "time by the one shift (within +-250 ms) that fits best: how much of the APE is timing")
+    p.add_argument("--rate", type=float, default=2.0, help="--fit-time-offset: frames/s where a file has no stamps "
+                   "(KITTI); TUM files carry their own")
     p.add_argument("--json", action="store_true", help="print JSON")
     p.set_defaults(func=run)
 
@@ -18,15 +22,17 @@ def add_parser(sub) -> None:
 def run(args) -> int:
     from occvo_core.errors import DatasetError
     from occvo_core.eval import ape_errors, success
-    from occvo_core.trajectory import read_trajectory
+    from occvo_core.trajectory import read_stamped_trajectory
 
-    gt, est = read_trajectory(args.gt), read_trajectory(args.est)
+    (gt_stamps, gt), (est_stamps, est) = read_stamped_trajectory(args.gt), read_stamped_trajectory(args.est)
     if len(gt) != len(est):
         raise DatasetError(args.est, f"{len(est)} poses against {len(gt)} in {args.gt}")
     err = ape_errors(gt, est)
     stats = {"rmse": float(np.sqrt(np.mean(err ** 2))), "mean": float(err.mean()), "median": float(np.median(err)),
              "max": float(err.max()), "poses": len(err)}
     stats["success"] = success(stats["rmse"])
+    if args.fit_time_offset:
+        stats.update(_time_fit(gt, est, gt_stamps if gt_stamps is not None else est_stamps, args))
     if args.json:
         print(json.dumps(stats))
     else:
@@ -34,4 +40,23 @@ def run(args) -> int:
         for k in ("rmse", "mean", "median", "max"):
             print(f"{k:>8}  {stats[k]:.6f}")
         print(f"{'poses':>8}  {stats['poses']}\n{'success':>8}  {stats['success']} (RMSE < 5 m)")
+        if args.fit_time_offset:
+            print(f"time-fitted APE RMSE {stats['ape_rmse_time_fitted_m']:.6f} m at a shift of "
+                  f"{stats['time_offset_ms']:+.0f} ms ({stats['time_fit_dropped_frames']} end frames outside)")
     return 0
+
+
+def _time_fit(gt, est, stamps, args) -> dict:
+    from occvo_core.errors import ConfigError
+    from occvo_core.time_fit import fit_time_offset
+
+    if stamps is None:
+        if args.rate <= 0:
+            raise ConfigError(f"--rate must be more than 0, not {args.rate}")
+        stamps = np.arange(len(gt)) / args.rate
+    try:
+        fit = fit_time_offset(gt, est, stamps)
+    except ValueError as exc:
+        raise ConfigError(f"--fit-time-offset: {exc}") from None
+    return {"ape_rmse_time_fitted_m": fit.ape_rmse_m, "time_offset_ms": fit.offset_ms,
+            "time_fit_dropped_frames": fit.dropped_frames}

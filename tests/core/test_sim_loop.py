@@ -80,7 +80,7 @@ def test_default_drive_is_unchanged():
     h.update(lab.tobytes())
     for tr in s.tracks:
         h.update(tr.poses.tobytes())
-    assert h.hexdigest() == "2d2520ec01c80785b4c18a7c515eafde3dd0f6e5b01047a45907d936038cc469"
+    assert h.hexdigest() == "6204d9210474a3374e4716a1999360aebb1f0a2a9699912fdf6ec7f4e4e14a70"
 
 
 def test_bad_route_arguments_are_config_errors():

@@ -131,7 +131,8 @@ def _die_with_parent() -> None:
 
 
 class Supervisor:
-    def __init__(self, config: UpConfig, log: logging.Logger | None = None):
+    def __init__(self, config: UpConfig, log: logging.Logger | None = None, role_names: bool = False):
+        """role_names: a role with one replica is named after the role (`occvo serve`'s logs and exit codes)."""
         self.config = config
         self.log = log or structured_logger("occvo.up")
         self.endpoint = config.endpoint()
@@ -146,7 +147,7 @@ class Supervisor:
         self.workers: list[Child] = []
         for w in config.workers:
             for i in range(w.count):
-                name = f"{w.role}-{i}"
+                name = w.role if role_names and w.count == 1 else f"{w.role}-{i}"
                 # registration replicas share the streams: replica i registers shard i of count
                 shard = ["--shard", str(i), "--shards", str(w.count)] if w.role == "registration" and w.count > 1 else []
                 cmd = [sys.executable, "-m", MODULES[w.role], *(["--config", w.config] if w.config else []),

@@ -254,6 +254,7 @@ class MapTileQuery(_StreamMessage):
     ix_max: int | None = None
     iy_min: int | None = None
     iy_max: int | None = None
+    page: int = Field(0, ge=0, description="a region is answered max_query_tiles tiles at a time: which of them")
 
 
 class MapTile(_StreamMessage):
@@ -301,6 +302,7 @@ ErrorCode = Literal[
     "malformed", "unknown_kind", "unsupported_version", "invalid_message", "oversize", "stream_mismatch",
     "out_of_order", "missing_seq", "invalid_frame", "tile_not_found", "bad_query", "internal",
     "seq_jump", "stream_limit",  # a seq beyond the stream's window (not adopted); a worker's or client's streams full
+    "truncated",  # a region's page is full: more tiles on the next page
 ]
 
 

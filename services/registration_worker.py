@@ -654,7 +654,8 @@ class RegistrationWorker(Worker):
         q = query.key_expr
         with self._states_lock:
             items = list(self.states.items())
-        return [(s, st) for s, st in items if st.started and q.intersects(zenoh.KeyExpr(key_of(s)))]
+        found = [(s, st) for s, st in sorted(items, key=lambda i: i[0]) if st.started and q.intersects(zenoh.KeyExpr(key_of(s)))]
+        return found[:self.config.max_query_streams]  # a wildcard asks for every stream: the first ones answer
 
     def _on_pose_latest(self, query: zenoh.Query) -> None:
         found = self._matching(query, keys.pose_latest)

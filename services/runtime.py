@@ -247,6 +247,8 @@ class WorkerConfig(BaseModel):
     max_seq_jump: int = Field(100_000, ge=1)  # a seq this far beyond the next expected is reported, not adopted
     error_events_per_s: float = Field(20.0, gt=0)  # error events a stream may cause a second (bursts of error_burst)
     error_burst: int = Field(100, ge=1)
+    max_query_tiles: int = Field(64, ge=1)  # map: tiles in one reply to a region or wildcard query (a page)
+    max_query_streams: int = Field(16, ge=1)  # registration: trajectories in one reply to a wildcard query
     # inference worker
     source: Literal["replay", "model"] = "replay"
     device: Literal["auto", "cpu", "cuda"] = "auto"

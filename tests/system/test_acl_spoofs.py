@@ -17,7 +17,14 @@ import zenoh
 
 from schemas import keys
 from schemas.codec import decode, encode
-from schemas.models import Array, ErrorEvent, MapTile, MapUpdate, OccupancyFrameMsg, PoseEstimate
+from schemas.models import (
+    Array,
+    ErrorEvent,
+    MapTile,
+    MapUpdate,
+    OccupancyFrameMsg,
+    PoseEstimate,
+)
 from services.client import OccVOClient, camera_frame_of
 from services.router import router_config
 from services.runtime import ZENOH_CONFIG_ENV, WorkerConfig, free_port, zenoh_config
@@ -178,7 +185,7 @@ def test_rogue_queryable_gets_no_query(acl):
     for rogue_user, asker in (("viewer", "camera"), ("camera", "viewer")):  # a session's own queryable answers it locally
         answered = []
         rogue = acl["s"][rogue_user].declare_queryable(keys.map_tile(STREAM, "*", "*"),
-                                                       lambda q: (answered.append(1), q.reply(str(q.key_expr), b"rogue")))
+                                                       lambda q, seen=answered: (seen.append(1), q.reply(str(q.key_expr), b"rogue")))
         try:
             time.sleep(0.5)
             for ix, iy in info.tiles[:10]:

@@ -128,17 +128,20 @@ def main() -> int:
              rss_vs_baseline=({r: round(after[r]["rss_mb"] / base[r]["rss_mb"], 2) for r in base}),
              threads_vs_baseline=({r: after[r]["threads"] - base[r]["threads"] for r in base}))
 
-        hostile = msgpack.packb({"kind": "camera_frame", "schema_version": 1, "stream": "legit2",
-                                 "x": [[{"a": 1, "b": 2} for _ in range(60000)] for _ in range(38)]})
-        with OccVOClient(ep, "legit2", timeout=120) as c:
-            c.reset()
-            t = time.perf_counter()
-            c.step(frames[0])
-            plain_ms = (time.perf_counter() - t) * 1000
-            session.put(keys.camera("legit2"), hostile, congestion_control=BLOCK)
-            t = time.perf_counter()
-            c.step(frames[1])
-            after_ms = (time.perf_counter() - t) * 1000
+        hostile = msgpack.packb({"kind": "camera_frame", "schema_version": 1, "stream": "legit2h0",
+                                 "x": [[{"a": 1, "b": 2} for _ in range(60000)] for _ in range(35)]})
+        def second_frame_ms(stream: str, hostile_between: bool) -> float:
+            with OccVOClient(ep, stream, timeout=120) as c:
+                c.reset()
+                c.step(frames[0])
+                if hostile_between:
+                    session.put(keys.camera(stream), hostile, congestion_control=BLOCK)
+                t = time.perf_counter()
+                c.step(frames[1])
+                return (time.perf_counter() - t) * 1000
+
+        plain_ms = float(np.median([second_frame_ms(f"legit2p{i}", False) for i in range(3)]))
+        after_ms = float(np.median([second_frame_ms(f"legit2h{i}", True) for i in range(3)]))
         emit("msgpack", payload_mb=round(len(hostile) / 1e6, 1), frame_ms_alone=round(plain_ms, 1),
              frame_ms_after_hostile=round(after_ms, 1), delay_ms=round(after_ms - plain_ms, 1))
 

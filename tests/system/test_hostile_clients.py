@@ -109,7 +109,7 @@ def test_pathological_msgpack_is_refused_before_work_and_frames_keep_their_order
         got += steps(c, scene[1:3], 1)
     assert events.wait(lambda: events.of(code="malformed"))
     [bad] = events.of(code="malformed")
-    assert "list and map entries" in bad.message
+    assert "list and map entries" in bad.message or "max_array_len" in bad.message
     assert np.allclose(np.array(got), np.array(uninterrupted[:3]), atol=1e-9)
 
 
@@ -190,26 +190,27 @@ def test_idle_stream_gives_back_its_lane_and_resumes_from_the_store(service, ses
 def test_region_and_wildcard_queries_are_paged(tmp_path, scene):
     """A get on occvo/** is answered a page at a time (max_query_tiles); the client's region() pages through the
     whole map, equal to the tiles asked one by one."""
-    with InProcessService(warm_up=False, max_query_tiles=4, max_query_streams=1) as svc:
-        with OccVOClient(svc.endpoint, "h7.map", timeout=60) as c, OccVOClient(svc.endpoint, "h7.other", timeout=60) as d:
-            for client in (c, d):
-                client.reset()
-                steps(client, scene[:2], 0)
-            svc.worker("registration").drain()
-            deadline = time.monotonic() + 10
-            while not (svc.worker("map").store.info("h7.map") and svc.worker("map").store.info("h7.map").last_seq == 1):
-                assert time.monotonic() < deadline
-                time.sleep(0.05)
-            info = c.map_info()
-            assert info.tile_count > 4
-            replies = list(c.session.get("occvo/**", timeout=10.0))
-            tiles = [r for r in replies if r.ok is not None and "/map/tile/" in str(r.ok.key_expr)]
-            trajectories = [r for r in replies if r.ok is not None and str(r.ok.key_expr).endswith("/trajectory")]
-            truncated = [decode(r.err.payload.to_bytes(), ErrorEvent) for r in replies if r.err is not None]
-            assert len(tiles) == 4 and len(trajectories) == 1
-            assert [e.code for e in truncated if e.code == "truncated"] == ["truncated"]
-            region = c.region()
-            assert sorted((t.ix, t.iy) for t in region) == sorted(info.tiles)
-            for t in region[:3]:
-                one = c.tile(t.ix, t.iy)
-                assert np.array_equal(one.points.to_numpy(), t.points.to_numpy())
+    with (InProcessService(warm_up=False, max_query_tiles=4, max_query_streams=1) as svc,
+          OccVOClient(svc.endpoint, "h7.map", timeout=60) as c, OccVOClient(svc.endpoint, "h7.other", timeout=60) as d):
+        for client in (c, d):
+            client.reset()
+            steps(client, scene[:2], 0)
+        svc.worker("registration").drain()
+        deadline = time.monotonic() + 10
+        while not (svc.worker("map").store.info("h7.map") and svc.worker("map").store.info("h7.map").last_seq == 1):
+            assert time.monotonic() < deadline
+            time.sleep(0.05)
+        info = c.map_info()
+        assert info.tile_count > 4
+        replies = list(c.session.get("occvo/**", timeout=10.0))
+        tiles = [r for r in replies if r.ok is not None and "/map/tile/" in str(r.ok.key_expr)]
+        trajectories = [r for r in replies if r.ok is not None and str(r.ok.key_expr).endswith("/trajectory")]
+        truncated = [decode(r.err.payload.to_bytes(), ErrorEvent) for r in replies if r.err is not None]
+        assert len(tiles) == 4 and len(trajectories) == 1
+        assert [e.code for e in truncated if e.code == "truncated"] == ["truncated"]
+        region = c.region()
+        assert sorted((t.ix, t.iy) for t in region) == sorted(info.tiles)
+        for t in region[:3]:
+            one = c.tile(t.ix, t.iy)
+            assert np.array_equal(one.points.to_numpy(), t.points.to_numpy())
+

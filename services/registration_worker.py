@@ -222,8 +222,7 @@ class RegistrationWorker(Worker):
         if st.since_snapshot > 0 or st.snapshot_retry:
             st.snapshot_idle.clear()
             self._write_snapshot(stream, st, st.seqs[-1], self.store.created(stream), st.vo.state_dict(copy=False))
-        st.vo, st.tiles, st.cold, st.cold_digest, st.restored_for_next = None, {}, {}, {}, []
-        trim_heap()  # the map's arrays are mmapped (large_blocks_from_mmap); the rest of the heap goes back here
+        st.vo, st.tiles, st.cold, st.cold_digest, st.restored_for_next = None, {}, {}, {}, []  # heap trimmed by the caller
 
     def check_seq(self, stream: str, seq: int, key: str) -> bool:
         return True  # judged in the lane against the stream's trajectory: a step back may be a resend

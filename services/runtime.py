@@ -461,6 +461,7 @@ class Worker:
                     self.admission.release(lane.stream)
         self.stats.inc("streams_retired")
         log_event(self.log, "idle stream retired", stream=lane.stream, idle_s=self.config.idle_stream_s)
+        trim_heap()  # the lane thread's malloc arena keeps its free pages otherwise (inference +28% after 300 streams)
         return True
 
     def retire_stream(self, stream: str) -> None:

@@ -307,6 +307,8 @@ class RegistrationWorker(Worker):
             self.stats.observe("store_commit", store_ms)
         if restart:
             log_event(self.log, "trajectory started", stream=stream, seq=msg.seq)
+            if self.store is not None:
+                self._snapshots.put(lambda: self.store.drop_old_snapshots(stream))
         # the pose is out: loop closure, the map update, eviction and the next frame's restores run off its latency,
         # in the stream's after-pose thread, below the lanes' priority (other streams' poses go first on the cores)
         if st.after_pose is None:
@@ -440,6 +442,12 @@ class RegistrationWorker(Worker):
         """The snapshot writer thread: one snapshot at a time, in queue order, until the None of shutdown."""
         self._background_thread()
         while (item := self._snapshots.get()) is not None:
+            if callable(item):  # a reset stream's old snapshot to delete, in order with its writes
+                try:
+                    item()
+                except Exception as exc:  # noqa: BLE001 - only space is lost; the writer goes on
+                    log_event(self.log, "deleting an old snapshot failed", logging.WARNING, error=repr(exc))
+                continue
             self._write_snapshot(*item)
             del item  # the copy goes before the next one is waited for
 

@@ -214,3 +214,23 @@ def test_region_and_wildcard_queries_are_paged(tmp_path, scene):
             one = c.tile(t.ix, t.iy)
             assert np.array_equal(one.points.to_numpy(), t.points.to_numpy())
 
+
+
+def test_snapshot_of_a_reset_stream_is_deleted(service, session, scene):
+    reg = service.worker("registration")
+    with OccVOClient(service.endpoint, "h8.reset", timeout=60, session=session) as c:
+        c.reset()
+        steps(c, scene[:2], 0)
+        deadline = time.monotonic() + LIMITS["idle_stream_s"] + 10  # retired: its state snapshotted
+        while reg.states["h8.reset"].vo is not None and time.monotonic() < deadline:
+            time.sleep(0.1)
+        old = reg.store.created("h8.reset")
+        rows = reg.store.snap_db.execute("SELECT created FROM snapshots WHERE stream='h8.reset'").fetchall()
+        assert rows == [(old,)]
+        c.reset()
+        steps(c, scene[2:3], 0)  # a new trajectory (scene[0] again would be answered as a resend)
+        deadline = time.monotonic() + 10  # the snapshot writer deletes it, after what it had queued
+        while (rows := reg.store.snap_db.execute("SELECT created FROM snapshots WHERE stream='h8.reset'").fetchall()) \
+                and time.monotonic() < deadline:
+            time.sleep(0.1)
+    assert rows == [] and reg.store.created("h8.reset") != old, (rows, old, reg.store.created("h8.reset"))

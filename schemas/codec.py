@@ -13,6 +13,14 @@ from pydantic import BaseModel, ValidationError
 from schemas.models import MESSAGES, SCHEMA_VERSION
 
 DEFAULT_MAX_BYTES = 16 * 1024 * 1024  # 6 JPEG images or a 640k-voxel frame fit with room to spare
+# Decode limits, checked by msgpack before it builds anything: no message has long strings, long lists or big maps
+# (arrays travel as bin). A 13.7 MB payload of 1.9M two-key maps took 5.3 s to unpack without them.
+MAX_STR_LEN = 64 * 1024
+MAX_ARRAY_LEN = 65536  # MapInfo.tiles, WorkerHealth.streams
+MAX_MAP_LEN = 4096  # timings_ms, counters
+MAX_ELEMENTS = 1 << 16  # all lists' and maps' entries together: many short containers cost as much as one long one
+# (MapInfo of a 10 km drive: ~20k); 2^18 let a 16 MB payload of small maps cost 70 to 90 ms before its refusal
+# nesting: msgpack's own stack stops at 1024 levels (StackError, reported as malformed)
 T = TypeVar("T", bound=BaseModel)
 
 
@@ -42,12 +50,30 @@ def _summary(exc: ValidationError) -> str:
     return "; ".join(parts) + more
 
 
+def _unpack(data: bytes, max_bytes: int):
+    left = [MAX_ELEMENTS]
+
+    def count(container):  # called as each list or map is complete: stops a message of many small ones early
+        left[0] -= len(container) + 1
+        if left[0] < 0:
+            raise CodecError("malformed", f"more than {MAX_ELEMENTS} list and map entries in one message")
+        return container
+
+    return msgpack.unpackb(data, raw=False, strict_map_key=True, max_str_len=MAX_STR_LEN, max_bin_len=max_bytes,
+                           max_array_len=MAX_ARRAY_LEN, max_map_len=MAX_MAP_LEN, max_ext_len=0,
+                           list_hook=count, object_hook=count)
+
+
 def decode(data: bytes, expect: type[T] | tuple[type, ...] | None = None, max_bytes: int = DEFAULT_MAX_BYTES) -> T:
     """bytes -> a validated message; `expect` restricts which models are accepted."""
     if len(data) > max_bytes:
         raise CodecError("oversize", f"payload of {len(data)} bytes exceeds the limit of {max_bytes}")
     try:
-        obj = msgpack.unpackb(data, raw=False, strict_map_key=True)
+        obj = _unpack(data, max_bytes)
+    except CodecError:
+        raise
+    except msgpack.StackError:
+        raise CodecError("malformed", "not a msgpack message: nested deeper than 1024 levels") from None
     except Exception as exc:  # noqa: BLE001 - msgpack raises several unrelated types on garbage
         raise CodecError("malformed", f"not a msgpack message: {type(exc).__name__}: {exc}") from None
     if not isinstance(obj, dict):

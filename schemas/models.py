@@ -17,6 +17,7 @@ from occvo_core.grid import NUM_CLASSES, GridSpec
 SCHEMA_VERSION = 1
 ALLOWED_DTYPES = ("uint8", "uint16", "int32", "int64", "float32", "float64")
 Finite = Annotated[float, Field(allow_inf_nan=False)]
+SEQ_LIMIT = 2**63  # seq is a signed 64-bit integer in the store and in Trajectory.seqs: 0 <= seq < 2^63
 
 
 class _Model(BaseModel):
@@ -195,7 +196,7 @@ class CameraFrame(_StreamMessage):
     or besides, the images: the `replay` inference source uses it (the paper's ground-truth occupancy row)."""
 
     kind: Literal["camera_frame"] = "camera_frame"
-    seq: int = Field(ge=0, description="0 starts a new trajectory")
+    seq: int = Field(ge=0, lt=SEQ_LIMIT, description="0 starts a new trajectory")
     stamp: Finite
     images: list[CameraImage] = Field(default_factory=list, description="0 or 6 images")
     gt_occupancy: SparseOccupancy | None = None
@@ -211,7 +212,7 @@ class CameraFrame(_StreamMessage):
 
 class OccupancyFrameMsg(_StreamMessage):
     kind: Literal["occupancy_frame"] = "occupancy_frame"
-    seq: int = Field(ge=0)
+    seq: int = Field(ge=0, lt=SEQ_LIMIT)
     stamp: Finite
     source: str = Field(description="replay | model:<name>")
     occupancy: SparseOccupancy
@@ -224,7 +225,7 @@ Status = Literal["ok", "lost", "reinitialised", "relocalised"]  # relocalised: a
 
 class PoseEstimate(_StreamMessage):
     kind: Literal["pose_estimate"] = "pose_estimate"
-    seq: int = Field(ge=0)
+    seq: int = Field(ge=0, lt=SEQ_LIMIT)
     stamp: Finite
     pose: list[list[float]] = Field(description="4x4 ego-to-world, first frame of a trajectory = identity")
     status: Status
@@ -255,6 +256,7 @@ class MapTileQuery(_StreamMessage):
     ix_max: int | None = None
     iy_min: int | None = None
     iy_max: int | None = None
+    page: int = Field(0, ge=0, description="a region is answered max_query_tiles tiles at a time: which of them")
 
 
 class MapTile(_StreamMessage):
@@ -262,7 +264,7 @@ class MapTile(_StreamMessage):
     ix: int
     iy: int
     tile_m: Finite = Field(gt=0)
-    seq: int = Field(ge=0, description="frame whose registration last changed the tile")
+    seq: int = Field(ge=0, lt=SEQ_LIMIT, description="frame whose registration last changed the tile")
     points: Array = Field(description="(M,3) float64 world-frame voxel centres")
     labels: Array = Field(description="(M,) uint8")
 
@@ -281,7 +283,7 @@ class MapUpdate(_StreamMessage):
     """Registration worker -> map service after each frame: the tiles that changed (empty points = tile removed)."""
 
     kind: Literal["map_update"] = "map_update"
-    seq: int = Field(ge=0)
+    seq: int = Field(ge=0, lt=SEQ_LIMIT)
     reset: bool = Field(False, description="a new trajectory started: drop every tile of the stream first")
     tile_m: Finite = Field(gt=0)
     tiles: list[MapTile] = Field(default_factory=list)
@@ -301,6 +303,8 @@ class MapInfo(_StreamMessage):
 ErrorCode = Literal[
     "malformed", "unknown_kind", "unsupported_version", "invalid_message", "oversize", "stream_mismatch",
     "out_of_order", "missing_seq", "invalid_frame", "tile_not_found", "bad_query", "internal",
+    "seq_jump", "stream_limit",  # a seq beyond the stream's window (not adopted); a worker's or client's streams full
+    "truncated",  # a region's page is full: more tiles on the next page
 ]
 
 

@@ -216,8 +216,21 @@ class OccVOClient:
         return found[0]
 
     def region(self, ix_min: int | None = None, ix_max: int | None = None, iy_min: int | None = None, iy_max: int | None = None) -> list[MapTile]:
-        q = MapTileQuery(stream=self.stream, ix_min=ix_min, ix_max=ix_max, iy_min=iy_min, iy_max=iy_max)
-        return self._get(keys.map_tile(self.stream, "*", "*"), MapTile, payload=encode(q))
+        tiles, page = [], 0
+        while True:  # the map service answers a page of tiles at a time; a "truncated" error says more follow
+            q = MapTileQuery(stream=self.stream, ix_min=ix_min, ix_max=ix_max, iy_min=iy_min, iy_max=iy_max, page=page)
+            out, errs = [], []
+            for reply in self.session.get(keys.map_tile(self.stream, "*", "*"), payload=encode(q), timeout=10.0):
+                if reply.ok is not None:
+                    out.append(decode(reply.ok.payload.to_bytes(), MapTile, 1 << 30))
+                else:
+                    errs.append(decode(reply.err.payload.to_bytes(), ErrorEvent))
+            tiles += out
+            if not any(e.code == "truncated" for e in errs):
+                if not tiles and errs:
+                    raise ServiceError(f"region of {self.stream}: {errs[0].code}: {errs[0].message}", errs[0])
+                return tiles
+            page += 1
 
     def map_points(self) -> tuple[np.ndarray, np.ndarray]:
         tiles = self.region()

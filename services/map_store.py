@@ -89,8 +89,9 @@ class MemoryMapStore:
         with self.lock:
             return sorted(self.maps)
 
-    def tiles(self, stream: str, ix: int | None = None, iy: int | None = None, bounds: Bounds = None) -> list[tuple[int, int, bytes]]:
-        """Encoded tiles of a stream: the one at (ix, iy) when both are given, else all within bounds."""
+    def tiles(self, stream: str, ix: int | None = None, iy: int | None = None, bounds: Bounds = None,
+              limit: int | None = None) -> list[tuple[int, int, bytes]]:
+        """Encoded tiles of a stream: the one at (ix, iy) when both are given, else the first `limit` within bounds."""
         with self.lock:
             m = self.maps.get(stream)
             if m is None:
@@ -98,7 +99,7 @@ class MemoryMapStore:
             if ix is not None and iy is not None:
                 t = m["tiles"].get((ix, iy))
                 return [(ix, iy, t[0])] if t and _in_bounds(ix, iy, bounds) else []
-            return [(x, y, t[0]) for (x, y), t in sorted(m["tiles"].items()) if _in_bounds(x, y, bounds)]
+            return [(x, y, t[0]) for (x, y), t in sorted(m["tiles"].items()) if _in_bounds(x, y, bounds)][:limit]
 
     def info(self, stream: str) -> MapInfo | None:
         with self.lock:
@@ -174,8 +175,9 @@ class MapStore:
         with self._rlock:
             return [r[0] for r in self._r.execute("SELECT stream FROM map_streams ORDER BY stream")]
 
-    def tiles(self, stream: str, ix: int | None = None, iy: int | None = None, bounds: Bounds = None) -> list[tuple[int, int, bytes]]:
-        """Encoded tiles of a stream: the one at (ix, iy) when both are given, else all within bounds."""
+    def tiles(self, stream: str, ix: int | None = None, iy: int | None = None, bounds: Bounds = None,
+              limit: int | None = None) -> list[tuple[int, int, bytes]]:
+        """Encoded tiles of a stream: the one at (ix, iy) when both are given, else the first `limit` within bounds."""
         where, args = ["stream = ?"], [stream]
         if ix is not None and iy is not None:
             where += ["ix = ?", "iy = ?"]
@@ -187,7 +189,8 @@ class MapStore:
                     args.append(v)
         with self._rlock:
             return [(x, y, bytes(d)) for x, y, d in
-                    self._r.execute(f"SELECT ix, iy, data FROM map_tiles WHERE {' AND '.join(where)} ORDER BY ix, iy", args)]
+                    self._r.execute(f"SELECT ix, iy, data FROM map_tiles WHERE {' AND '.join(where)} ORDER BY ix, iy LIMIT ?",
+                                    [*args, -1 if limit is None else limit])]
 
     def info(self, stream: str) -> MapInfo | None:
         with self._rlock:

@@ -206,6 +206,25 @@ class RegistrationWorker(Worker):
                 self.states[stream] = StreamState()
             return self.states[stream]
 
+    def retire_stream(self, stream: str) -> None:
+        """An idle stream: its after-pose thread ends; with a store its OccVO is snapshotted and dropped (the next
+        frame resumes it from the store), without one it stays in memory (it is the only copy)."""
+        st = self.states.get(stream)
+        if st is None:
+            return
+        if st.tail is not None:
+            st.tail.result()
+        if st.after_pose is not None:
+            st.after_pose.shutdown(wait=True)
+            st.after_pose, st.tail = None, None
+        if self.store is None or st.vo is None:
+            return
+        st.snapshot_idle.wait()
+        if st.since_snapshot > 0 or st.snapshot_retry:
+            st.snapshot_idle.clear()
+            self._write_snapshot(stream, st, st.seqs[-1], self.store.created(stream), st.vo.state_dict(copy=False))
+        st.vo, st.tiles, st.cold, st.cold_digest, st.restored_for_next = None, {}, {}, {}, []  # heap trimmed by the caller
+
     def check_seq(self, stream: str, seq: int, key: str) -> bool:
         return True  # judged in the lane against the stream's trajectory: a step back may be a resend
 
@@ -245,6 +264,9 @@ class RegistrationWorker(Worker):
             if msg.seq <= last:
                 what = "differs from the registered frame" if known is not None else "is older than the trajectory"
                 return self._seq_error(stream, "out_of_order", f"seq {msg.seq} arrived after seq {last} and {what}; dropped", msg.seq)
+            if msg.seq - last > self.config.max_seq_jump:  # adopted, one stray seq would make every real frame old
+                return self._seq_error(stream, "seq_jump", f"seq {msg.seq} is {msg.seq - last} after seq {last}, beyond "
+                                       f"the window of {self.config.max_seq_jump}; dropped", msg.seq)
             if msg.seq > last + 1:
                 self._seq_error(stream, "missing_seq", f"missing seq {last + 1}..{msg.seq - 1} ({msg.seq - last - 1} frames) "
                                 f"before seq {msg.seq}", msg.seq)
@@ -286,6 +308,8 @@ class RegistrationWorker(Worker):
             self.stats.observe("store_commit", store_ms)
         if restart:
             log_event(self.log, "trajectory started", stream=stream, seq=msg.seq)
+            if self.store is not None:
+                self._snapshots.put(lambda: self.store.drop_old_snapshots(stream))
         # the pose is out: loop closure, the map update, eviction and the next frame's restores run off its latency,
         # in the stream's after-pose thread, below the lanes' priority (other streams' poses go first on the cores)
         if st.after_pose is None:
@@ -419,6 +443,12 @@ class RegistrationWorker(Worker):
         """The snapshot writer thread: one snapshot at a time, in queue order, until the None of shutdown."""
         self._background_thread()
         while (item := self._snapshots.get()) is not None:
+            if callable(item):  # a reset stream's old snapshot to delete, in order with its writes
+                try:
+                    item()
+                except Exception as exc:  # noqa: BLE001 - only space is lost; the writer goes on
+                    log_event(self.log, "deleting an old snapshot failed", logging.WARNING, error=repr(exc))
+                continue
             self._write_snapshot(*item)
             del item  # the copy goes before the next one is waited for
 
@@ -595,9 +625,18 @@ class RegistrationWorker(Worker):
             MapTile(stream=stream, ix=ix, iy=iy, tile_m=tile_m, seq=seq,
                     points=Array.from_numpy(np.asarray(p, np.float64)), labels=Array.from_numpy(np.asarray(l, np.uint8)))
             for (ix, iy), (p, l) in sorted(changed.items())])
+        return len(update.tiles), self._put_update(stream, update)
+
+    def _put_update(self, stream: str, update: MapUpdate) -> int:
+        """Publish a map update; one over max_message_bytes goes as several (the transport drops bigger messages),
+        the reset with the first. Returns the bytes sent."""
         data = encode(update, 1 << 30)
+        if len(data) > self.config.max_message_bytes and len(update.tiles) > 1:
+            half = len(update.tiles) // 2
+            return (self._put_update(stream, update.model_copy(update={"tiles": update.tiles[:half]}))
+                    + self._put_update(stream, update.model_copy(update={"tiles": update.tiles[half:], "reset": False})))
         self.session.put(keys.map_updates(stream), data, congestion_control=zenoh.CongestionControl.BLOCK)
-        return len(update.tiles), len(data)
+        return len(data)
 
     # -- queries --------------------------------------------------------------------------------------------------
     @staticmethod
@@ -609,7 +648,8 @@ class RegistrationWorker(Worker):
         q = query.key_expr
         with self._states_lock:
             items = list(self.states.items())
-        return [(s, st) for s, st in items if st.started and q.intersects(zenoh.KeyExpr(key_of(s)))]
+        found = [(s, st) for s, st in sorted(items, key=lambda i: i[0]) if st.started and q.intersects(zenoh.KeyExpr(key_of(s)))]
+        return found[:self.config.max_query_streams]  # a wildcard asks for every stream: the first ones answer
 
     def _on_pose_latest(self, query: zenoh.Query) -> None:
         found = self._matching(query, keys.pose_latest)

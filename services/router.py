@@ -21,7 +21,7 @@ import zenoh
 
 from occvo_core.errors import ConfigError
 from services import defaults
-from services.runtime import log_event, structured_logger
+from services.runtime import limit_messages, log_event, structured_logger
 
 DEFAULT_CONFIG = defaults.path("router.json5")
 
@@ -40,7 +40,7 @@ def router_config(path: str | Path | None = None, listen: list[str] | None = Non
         c.insert_json5("listen/endpoints", json.dumps(list(listen)))
     if connect:
         c.insert_json5("connect/endpoints", json.dumps(list(connect)))
-    return c
+    return limit_messages(c)
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -26,6 +26,7 @@ from occvo_core.errors import ConfigError
 from schemas import keys
 from schemas.codec import DEFAULT_MAX_BYTES, CodecError, decode, encode
 from schemas.models import ErrorEvent, StageStats, WorkerHealth
+from services.limits import MAX_KEY_CHARS, MAX_MESSAGE_CHARS, Admission, ErrorBudget, clip
 
 DEFAULT_ENDPOINT = "tcp/127.0.0.1:7447"
 Policy = Literal["lossless", "latest"]
@@ -41,6 +42,18 @@ def free_port() -> int:
 
 ZENOH_CONFIG_ENV = "OCCVO_ZENOH_CONFIG"  # a zenoh json5 for client sessions: TLS certificates, credentials (deploy/)
 CLIENT_RETRY = '{period_init_ms: 100, period_max_ms: 500, period_increase_factor: 2}'
+# Zenoh reassembles a fragmented message up to this many bytes and drops it beyond (its default, 1 GiB, let a 512 MiB
+# put cost the router and a worker 500 MB before the codec's check). The codec's limit, so every message that reaches
+# a worker's decode is within it; the registration worker splits bigger map updates (deploy/*.json5 set it too)
+TRANSPORT_MAX_BYTES = DEFAULT_MAX_BYTES
+_ZENOH_DEFAULT_MAX = 1 << 30
+
+
+def limit_messages(c: zenoh.Config, max_bytes: int = TRANSPORT_MAX_BYTES) -> zenoh.Config:
+    """Set the transport's largest reassembled message, unless the config file set its own."""
+    if json.loads(c.get_json("transport/link/rx/max_message_size")) == _ZENOH_DEFAULT_MAX:
+        c.insert_json5("transport/link/rx/max_message_size", str(max_bytes))
+    return c
 
 
 def zenoh_config(mode: str = "client", connect: str | None = None, listen: str | None = None,
@@ -61,7 +74,7 @@ def zenoh_config(mode: str = "client", connect: str | None = None, listen: str |
         c.insert_json5("listen/endpoints", json.dumps([listen]))
     if mode == "client" and json.loads(c.get_json("connect/retry")) is None:
         c.insert_json5("connect/retry", CLIENT_RETRY)
-    return c
+    return limit_messages(c)
 
 
 def open_session(connect: str = DEFAULT_ENDPOINT, base: str | Path | None = None) -> zenoh.Session:
@@ -74,7 +87,7 @@ def open_router(listen: str | None = None, config_path: str | Path | None = None
         c = zenoh.Config.from_file(str(config_path))
         if listen:
             c.insert_json5("listen/endpoints", json.dumps([listen]))
-        return zenoh.open(c)
+        return zenoh.open(limit_messages(c))
     return zenoh.open(zenoh_config("router", listen=listen or DEFAULT_ENDPOINT))
 
 
@@ -195,14 +208,19 @@ class StageQueue:
 class SeqTracker:
     """Per-stream sequence check. seq 0 starts a new trajectory; a gap is reported as missing, a step back as out of order."""
 
-    def __init__(self):
+    def __init__(self, max_jump: int | None = None):
         self.expected: int | None = None
+        self.max_jump = max_jump
 
     def check(self, seq: int) -> tuple[bool, str | None, str | None]:
-        """(accept, error code, message)."""
+        """(accept, error code, message). A step forward of more than max_jump is reported and not adopted: one
+        stray seq must not make every following real frame a step back."""
         if self.expected is None or seq == 0 or seq == self.expected:
             self.expected = seq + 1
             return True, None, None
+        if self.max_jump is not None and seq - self.expected >= self.max_jump:
+            return False, "seq_jump", (f"seq {seq} is {seq - self.expected + 1} after seq {self.expected - 1}, beyond "
+                                       f"the window of {self.max_jump}; dropped")
         if seq > self.expected:
             msg = f"missing seq {self.expected}..{seq - 1} ({seq - self.expected} frames) before seq {seq}"
             self.expected = seq + 1
@@ -222,6 +240,15 @@ class WorkerConfig(BaseModel):
     queue_size: int = Field(4, ge=1, le=1024)
     max_message_bytes: int = Field(DEFAULT_MAX_BYTES, ge=1024)
     log_level: str = "INFO"
+    # what one client may cost (services/limits.py); the defaults fit a 2-core machine
+    max_streams: int = Field(64, ge=1)  # streams a worker serves at once; more get a stream_limit error event
+    max_streams_per_client: int = Field(16, ge=1)  # of them, per client (the stream id's prefix before its first '.')
+    idle_stream_s: float = Field(30.0, gt=0)  # a stream without frames this long gives back its lane (and its memory)
+    max_seq_jump: int = Field(100_000, ge=1)  # a seq this far beyond the next expected is reported, not adopted
+    error_events_per_s: float = Field(20.0, gt=0)  # error events a stream may cause a second (bursts of error_burst)
+    error_burst: int = Field(100, ge=1)
+    max_query_tiles: int = Field(64, ge=1)  # map: tiles in one reply to a region or wildcard query (a page)
+    max_query_streams: int = Field(16, ge=1)  # registration: trajectories in one reply to a wildcard query
     # inference worker
     source: Literal["replay", "model"] = "replay"
     device: Literal["auto", "cpu", "cuda"] = "auto"
@@ -286,9 +313,12 @@ class WorkerConfig(BaseModel):
 class StreamLane:
     """One stream's bounded queue and the thread that runs the stage on it, in arrival (= sequence) order."""
 
-    def __init__(self, worker: "Worker", stream: str, handler: Callable[[str, object], None]):
+    def __init__(self, worker: "Worker", stream: str, handler: Callable[[str, object], None],
+                 after: "StreamLane | None" = None):
         self.worker, self.stream, self.handler = worker, stream, handler
         self.busy = False
+        self.pending = 0  # frames handed to this lane and not yet in its queue (Worker.enqueue); guarded by _lanes_lock
+        self.after = after  # the stream's retired lane, still giving back its state: this one starts when it is done
         self.queue = StageQueue(worker.config.queue_size, worker.config.policy, self._dropped, worker.stopping)
         self.thread = threading.Thread(target=self._run, name=f"{worker.role}-{stream}", daemon=True)
         self.thread.start()
@@ -299,10 +329,17 @@ class StreamLane:
 
     def _run(self) -> None:
         name_os_thread(f"lane-{self.stream}")
+        if self.after is not None:
+            self.after.thread.join()
+            self.after = None
         while not self.worker.stopping.is_set():
-            try:
-                item = self.queue.get(timeout=0.1)
+            try:  # blocks: a stop puts None, an idle stream's lane ends (no polling: 500 idle lanes cost 16% of a core)
+                item = self.queue.get(timeout=self.worker.config.idle_stream_s)
             except queue.Empty:
+                if self.worker.retire_lane(self):
+                    return
+                continue
+            if item is None:
                 continue
             self.busy = True
             try:
@@ -329,9 +366,12 @@ class Worker:
         self.stopping = threading.Event()
         self.started = time.time()
         self.lanes: dict[str, StreamLane] = {}
-        self.trackers: dict[str, SeqTracker] = defaultdict(SeqTracker)
+        self.trackers: dict[str, SeqTracker] = defaultdict(lambda: SeqTracker(config.max_seq_jump))
         self._lanes_lock = threading.Lock()
+        self.admission = Admission(config.max_streams, config.max_streams_per_client)
+        self.error_budget = ErrorBudget(config.error_events_per_s, config.error_burst)
         self._declared: list = []
+        self._retired: dict[str, StreamLane] = {}
         self.session: zenoh.Session | None = None
 
     # -- lifecycle
@@ -351,6 +391,11 @@ class Worker:
         if self.stopping.is_set():
             return
         self.stopping.set()
+        for lane in list(self.lanes.values()):
+            try:
+                lane.queue.q.put_nowait(None)  # wakes a lane waiting for a frame; a full queue's lane is busy anyway
+            except queue.Full:
+                pass
         for lane in list(self.lanes.values()):
             lane.thread.join(timeout=60)
             left = lane.queue.qsize()
@@ -391,9 +436,36 @@ class Worker:
         with self._lanes_lock:
             lane = self.lanes.get(stream)
             if lane is None:
-                lane = self.lanes[stream] = StreamLane(self, stream, handler)
+                lane = self.lanes[stream] = StreamLane(self, stream, handler, self._retired.pop(stream, None))
                 log_event(self.log, "new stream", stream=stream)
+            lane.pending += 1
             return lane
+
+    def retire_lane(self, lane: StreamLane) -> bool:
+        """An idle lane's end: unless a frame is on its way to it, it leaves, the stream's state is given back
+        (retire_stream) and its place in the admission frees up. True if the lane's thread is to end."""
+        with self._lanes_lock:
+            if lane.pending or lane.queue.qsize() or self.lanes.get(lane.stream) is not lane:
+                return False
+            del self.lanes[lane.stream]
+            self._retired[lane.stream] = lane  # a new lane of the stream waits for this one's thread
+        try:
+            self.retire_stream(lane.stream)
+        except Exception as exc:  # noqa: BLE001 - the state stays in memory then; the worker goes on
+            log_event(self.log, "retiring an idle stream failed", logging.ERROR, stream=lane.stream, error=repr(exc))
+        finally:
+            with self._lanes_lock:
+                if self._retired.get(lane.stream) is lane:
+                    del self._retired[lane.stream]
+                if lane.stream not in self.lanes:
+                    self.admission.release(lane.stream)
+        self.stats.inc("streams_retired")
+        log_event(self.log, "idle stream retired", stream=lane.stream, idle_s=self.config.idle_stream_s)
+        trim_heap()  # the lane thread's malloc arena keeps its free pages otherwise (inference +28% after 300 streams)
+        return True
+
+    def retire_stream(self, stream: str) -> None:
+        """Give back an idle stream's per-stream state (roles override); its lane is gone already."""
 
     def enqueue(self, sample: zenoh.Sample, expect, handler: Callable[[str, object], None]) -> None:
         """Decode a stream message, check its sequence number and queue it on its stream's lane with its hop
@@ -402,11 +474,24 @@ class Worker:
         msg = self.decode_input(sample, expect)
         if msg is None or self.stopping.is_set():
             return
+        refused = self.admission.admit(msg.stream)
+        if refused is not None:
+            self.stats.inc("streams_refused")
+            self.report_error(msg.stream, "stream_limit", refused, str(sample.key_expr), msg.seq)
+            return
         if not self.check_seq(msg.stream, msg.seq, str(sample.key_expr)):
+            with self._lanes_lock:
+                if msg.stream not in self.lanes:  # admitted for nothing: its place goes back
+                    self.admission.release(msg.stream)
             return
         # a sent_at a day off (e.g. 1e308) would give an infinite hop: no hop latency then, not a failed stage
         hop_ms = (t_recv - msg.sent_at) * 1000.0 if 0 < msg.sent_at and abs(t_recv - msg.sent_at) < 86400 else 0.0
-        self.lane(msg.stream, handler).queue.put((msg, hop_ms, time.perf_counter()))
+        lane = self.lane(msg.stream, handler)
+        try:
+            lane.queue.put((msg, hop_ms, time.perf_counter()))
+        finally:
+            with self._lanes_lock:
+                lane.pending -= 1
 
     def decode_input(self, sample: zenoh.Sample, expect):
         """Decode and check a sample; on any problem report it and return None."""
@@ -431,9 +516,19 @@ class Worker:
         return ok
 
     def report_error(self, stream: str, code: str, message: str, key: str = "", seq: int | None = None) -> ErrorEvent:
+        """Log and publish an error event, keys and messages clipped, at most error_events_per_s a stream (the
+        rest counted as errors_suppressed and named in the next event)."""
         self.stats.inc("errors")
-        event = ErrorEvent(stream=stream if keys.STREAM_RE.match(stream) else "*", worker=self.worker_id, code=code,
-                           message=message, key=key, seq=seq, stamp=time.time())
+        stream = stream if keys.STREAM_RE.match(stream) else "*"
+        suppressed = self.error_budget.take(stream)
+        message = clip(message, MAX_MESSAGE_CHARS)
+        if suppressed:
+            message += f" (+{suppressed} error events of this stream suppressed before this one)"
+        event = ErrorEvent(stream=stream, worker=self.worker_id, code=code, message=message,
+                           key=clip(key, MAX_KEY_CHARS), seq=seq, stamp=time.time())
+        if suppressed is None:
+            self.stats.inc("errors_suppressed")
+            return event
         log_event(self.log, "error", logging.WARNING, **event.model_dump(exclude={"kind", "schema_version"}))
         if self.session is not None and not self.session.is_closed():
             try:

@@ -132,7 +132,11 @@ def _die_with_parent() -> None:
 
 
 class Supervisor:
-    def __init__(self, config: UpConfig, log: logging.Logger | None = None):
+    def __init__(self, config: UpConfig, log: logging.Logger | None = None, role_names: bool = False,
+                 quiet: bool = False):
+        """role_names: a role with one replica is named after the role (`occvo serve`'s logs and exit codes);
+        quiet: without a log_dir, the children's logs go nowhere instead of to this stderr."""
+        self.quiet = quiet
         self.config = config
         self.log = log or structured_logger("occvo.up")
         self.endpoint = config.endpoint()
@@ -147,7 +151,7 @@ class Supervisor:
         self.workers: list[Child] = []
         for w in config.workers:
             for i in range(w.count):
-                name = f"{w.role}-{i}"
+                name = w.role if role_names and w.count == 1 else f"{w.role}-{i}"
                 # registration replicas share the streams: replica i registers shard i of count
                 shard = ["--shard", str(i), "--shards", str(w.count)] if w.role == "registration" and w.count > 1 else []
                 cmd = [sys.executable, "-m", MODULES[w.role], *(["--config", w.config] if w.config else []),
@@ -156,14 +160,14 @@ class Supervisor:
 
     # -- children
     def _spawn(self, child: Child) -> None:
-        err = None
+        err = subprocess.DEVNULL if self.quiet else None
         if self.config.log_dir:
             Path(self.config.log_dir).mkdir(parents=True, exist_ok=True)
             err = open(Path(self.config.log_dir) / f"{child.name}.log", "a")
         # own process group: a terminal's Ctrl-C reaches only the supervisor, which stops workers before the router
         child.proc = subprocess.Popen(child.cmd, cwd=REPO, env=child.env, stdout=err, stderr=err, process_group=0,
                                       preexec_fn=_die_with_parent)
-        if err is not None:
+        if err not in (None, subprocess.DEVNULL):
             err.close()
         child.started_at = time.monotonic()
         child.restart_at = None

@@ -133,3 +133,41 @@ class ReadinessWatch:
                 self._stop.wait(0.2)
         finally:
             session.close()
+
+
+LOOPBACK_HOSTS = ("localhost", "::1", "[::1]")
+
+
+def is_loopback(ep: str) -> bool:
+    """tcp/127.0.0.1:7447, tls/localhost:7447, tcp/[::1]:7447; unix sockets are local too."""
+    proto, _, addr = ep.split("#")[0].partition("/")
+    if proto.startswith("unix"):
+        return True
+    host = addr.rpartition(":")[0] or addr
+    return host in LOOPBACK_HOSTS or host.startswith("127.")
+
+
+def check_listen_secure(router_config: str | Path, listen: list[str], insecure: bool) -> None:
+    """A router listening beyond loopback must authenticate (user/password or mutual TLS, deploy/acl, deploy/tls):
+    without it anyone on the network may replace a stored map or reset a stream. --insecure says it is meant."""
+    import json
+
+    import zenoh
+
+    from occvo_core.errors import ConfigError
+
+    open_eps = [ep for ep in listen if not is_loopback(ep)]
+    if not open_eps or insecure:
+        return
+    c = zenoh.Config.from_file(str(router_config))
+    usrpwd = json.loads(c.get_json("transport/auth/usrpwd/dictionary_file"))
+    mtls = json.loads(c.get_json("transport/link/tls/enable_mtls"))
+    if not usrpwd and not mtls:
+        raise ConfigError(f"the router would listen on {', '.join(open_eps)} without authentication ({router_config} "
+                          "has neither transport/auth/usrpwd nor mutual TLS): use deploy/acl/router.json5 or "
+                          "deploy/tls/router.json5, listen on loopback, or pass --insecure")
+
+
+def deploy_dir() -> Path:
+    """The source tree's deploy/ folder (deployment files; the package's built-in defaults live in services/defaults)."""
+    return Path(__file__).resolve().parents[2] / "deploy"

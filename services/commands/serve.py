@@ -1,15 +1,24 @@
-"""occvo serve: a Zenoh router and the three workers on this machine, in one command; Ctrl-C stops them cleanly."""
+"""occvo serve: a Zenoh router and the three workers on this machine, in one command, restarted when one crashes
+(services/supervisor.py, as `occvo up`); Ctrl-C stops them cleanly."""
 
 from __future__ import annotations
 
 import signal
-import threading
+import time
 from pathlib import Path
 
 from occvo_core.errors import ConfigError
 from services import defaults
-from services.commands._common import WARM_UP_NOTE, ReadinessWatch, add_json, emit, endpoint, progress
-from services.local import LocalService
+from services.client import ServiceError
+from services.commands._common import (
+    WARM_UP_NOTE,
+    ReadinessWatch,
+    add_json,
+    check_listen_secure,
+    emit,
+    endpoint,
+    progress,
+)
 
 
 def add_parser(subparsers) -> None:
@@ -21,6 +30,7 @@ def add_parser(subparsers) -> None:
         help="a folder with inference_worker.json5, registration_worker.json5 and "
         "map_service.json5 overriding the built-in worker configs (e.g. deploy)",
     )
+    p.add_argument("--insecure", action="store_true", help="allow a non-loopback listen endpoint without authentication")
     p.add_argument("--source", choices=["replay", "model"], default="replay", help="inference source")
     p.add_argument("--device", choices=["auto", "cpu", "cuda"], default="auto")
     p.add_argument("--checkpoint", help="TPV-Former checkpoint for --source model (occvo train-occ)")
@@ -54,7 +64,32 @@ def _worker_config(args, name: str) -> str:
     return path
 
 
+def _wait_alive(sup, timeout: float) -> None:
+    """Until every worker's liveliness token is up (a fresh install compiles kernels first), restarting crashes."""
+    from schemas import keys
+    from services.runtime import open_session
+
+    roles = {"inference", "registration", "map"}
+    probe = open_session(sup.endpoint)
+    try:
+        deadline = time.monotonic() + timeout
+        while not sup.stopping.is_set():
+            sup.poll()
+            alive = {str(r.ok.key_expr).split("/")[2] for r in probe.liveliness().get(keys.alive(), timeout=1.0) if r.ok}
+            shards = [r for r in probe.liveliness().get(keys.registration_shard(), timeout=1.0) if r.ok]
+            if roles <= alive and len(shards) >= sum(c.role == "registration" for c in sup.workers):
+                return
+            if time.monotonic() > deadline:
+                raise ServiceError(f"workers {sorted(roles - alive)} not up after {timeout:.0f} s (see --log-dir)")
+            time.sleep(0.1)
+    finally:
+        probe.close()
+
+
 def run(args) -> int:
+    from services.runtime import structured_logger
+    from services.supervisor import RouterSpec, Supervisor, UpConfig, WorkerSpec
+
     if args.registration_workers < 1:
         raise ConfigError(f"--registration-workers must be at least 1, not {args.registration_workers}")
     if args.queue_size < 1:
@@ -63,31 +98,28 @@ def run(args) -> int:
     if args.log_dir:
         Path(args.log_dir).mkdir(parents=True, exist_ok=True)
     ep = args.listen or endpoint(args)
+    check_listen_secure(router_config, [ep], args.insecure)
     store = ["--store-path", args.store_path] if args.store_path else []
-    service = LocalService(
-        endpoint=ep,
-        router_config=router_config if not args.listen else None,
+    common = ["--policy", args.policy, "--queue-size", str(args.queue_size)]
+    model = ["--source", args.source, "--device", args.device, *(["--checkpoint", args.checkpoint] if args.checkpoint else [])]
+    config = UpConfig(
+        router=RouterSpec(config=router_config, listen=args.listen),
         log_dir=args.log_dir,
-        quiet=args.quiet,
-        registration_shards=args.registration_workers,
-        common_args=["--policy", args.policy, "--queue-size", str(args.queue_size)],
-        worker_args={
-            "inference": [
-                "--config",
-                _worker_config(args, "inference_worker.json5"),
-                "--source",
-                args.source,
-                "--device",
-                args.device,
-                *(["--checkpoint", args.checkpoint] if args.checkpoint else []),
-            ],
-            "registration": ["--config", _worker_config(args, "registration_worker.json5"), *store],
-            "map": ["--config", _worker_config(args, "map_service.json5"), *store],
-        },
+        workers=[
+            WorkerSpec(role="inference", config=_worker_config(args, "inference_worker.json5"), args=[*common, *model]),
+            WorkerSpec(
+                role="registration",
+                config=_worker_config(args, "registration_worker.json5"),
+                args=[*common, *store],
+                count=args.registration_workers,
+            ),
+            WorkerSpec(role="map", config=_worker_config(args, "map_service.json5"), args=[*common, *store]),
+        ],
     )
-    stop = threading.Event()
+    sup = Supervisor(config, structured_logger("occvo.serve", "WARNING") if args.quiet else None, role_names=True,
+                     quiet=args.quiet)
     for sig in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(sig, lambda *_: stop.set())
+        signal.signal(sig, lambda *_: sup.stopping.set())
     emit(args, {"event": "listening", "endpoint": ep}, f"listening on {ep}")
     progress(args, f"starting the inference, registration and map workers; the registration worker {WARM_UP_NOTE}")
 
@@ -100,28 +132,28 @@ def run(args) -> int:
         progress(args, f"{role} worker ready after {seconds} s")
 
     watch = ReadinessWatch(ep, ready).start()
-    started = False
     try:
-        service.start(timeout=args.start_timeout)
-        started = True
+        sup.start()
+        try:
+            _wait_alive(sup, args.start_timeout)
+        finally:
+            watch.stop(all_ready=not sup.stopping.is_set())
+        if not sup.stopping.is_set():
+            workers = {c.name: c.proc.pid for c in sup.workers}
+            emit(
+                args,
+                {"event": "ready", "endpoint": ep, "workers": workers},
+                f"ready: {', '.join(f'{r} (pid {pid})' for r, pid in workers.items())}; Ctrl-C stops",
+            )
+        while not sup.stopping.wait(0.1):
+            sup.poll()  # a crashed worker is started again after its backoff
     finally:
-        watch.stop(all_ready=started)
-    emit(
-        args,
-        {"event": "ready", "endpoint": ep, "workers": {r: p.pid for r, p in service.procs.items()}},
-        f"ready: {', '.join(f'{r} (pid {p.pid})' for r, p in service.procs.items())}; Ctrl-C stops",
-    )
-    try:
-        while not stop.wait(0.5):
-            dead = {r: p.returncode for r, p in service.procs.items() if p.poll() is not None}
-            if dead:
-                progress(args, f"workers exited: {dead}")
-                break
-    finally:
-        codes = service.stop()
+        codes = sup.stop()
+        worker_codes = {c.name: codes.get(c.name) for c in sup.workers}
         emit(
             args,
-            {"event": "stopped", "exit_codes": codes},
-            f"stopped: {', '.join(f'{r} exit code {c}' for r, c in codes.items())}",
+            {"event": "stopped", "exit_codes": worker_codes},
+            f"stopped: {', '.join(f'{r} exit code {c}' for r, c in worker_codes.items())}",
         )
-    return 0 if all(c == 0 for c in codes.values()) else 1
+    # -SIGTERM: a worker stopped while still importing, before it had anything in hand
+    return 0 if all(c in (0, None, -signal.SIGTERM) for c in codes.values()) else 1

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from services import defaults
-from services.commands._common import WARM_UP_NOTE, ReadinessWatch, add_json, emit, progress
+from services.commands._common import WARM_UP_NOTE, ReadinessWatch, add_json, check_listen_secure, emit, progress
 
 
 def add_parser(subparsers) -> None:
@@ -19,6 +19,7 @@ def add_parser(subparsers) -> None:
     p.add_argument(
         "--quiet", action="store_true", help="no progress lines and only warnings of the supervisor's log on stderr"
     )
+    p.add_argument("--insecure", action="store_true", help="allow a non-loopback listen endpoint without authentication")
     p.set_defaults(func=run)
 
 
@@ -31,6 +32,13 @@ def run(args) -> int:
         config.router.listen, config.router.connect = args.listen, None
     if args.log_dir:
         config.log_dir = args.log_dir
+    if config.router.enabled:
+        import json5
+
+        router_file = config.router.config or str(defaults.path("router.json5"))
+        with open(router_file) as f:
+            listen = [config.router.listen] if config.router.listen else json5.load(f)["listen"]["endpoints"]
+        check_listen_secure(router_file, listen, args.insecure)
     sup = Supervisor(config, structured_logger("occvo.up", "WARNING") if args.quiet else None)
     roles = tuple(dict.fromkeys(w.role for w in config.workers))
     watch = None

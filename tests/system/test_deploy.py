@@ -195,11 +195,11 @@ def test_access_control_router_file(tmp_path):
         s = {u: _client(ep, DEPLOY / f"acl/session-{u}.json5", transport__auth__usrpwd__password=f"pw-{u}") for u in users}
         try:
             # the pipeline's own flows pass
-            assert _delivered(s["camera"], s["inference"], "occvo/car/camera")
+            assert _delivered(s["camera"], s["inference"], "occvo/camera.car/camera")  # under its own prefix
             assert _delivered(s["inference"], s["registration"], "occvo/car/occupancy")
             assert _delivered(s["registration"], s["map"], "occvo/car/map/updates")
             assert _delivered(s["registration"], s["viewer"], "occvo/car/pose")
-            assert _delivered(s["registration"], s["camera"], "occvo/car/pose")
+            assert _delivered(s["registration"], s["camera"], "occvo/camera.car/pose")
             # a worker may put only on its outputs, a viewer may not publish at all
             assert not _delivered(s["map"], s["viewer"], "occvo/car/pose", timeout=1)
             assert not _delivered(s["inference"], s["camera"], "occvo/car/pose", timeout=1)

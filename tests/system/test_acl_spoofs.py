@@ -1,0 +1,229 @@
+"""The shipped access control (deploy/acl/router.json5) against every spoof the issue found on an open router: the
+pipeline's workers run as their users, a camera user drives a stream, and a camera or viewer session then tries a fake
+map update, occupancy frame, pose, error event, queryable, liveliness token, and a frame on another camera user's
+stream. Each is refused: nothing reaches the workers or the clients, the stream's map and trajectory are unchanged.
+Each check has a positive control (the legitimate message on the same key arrives), so it cannot pass by accident."""
+
+from __future__ import annotations
+
+import json
+import os
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+import zenoh
+
+from schemas import keys
+from schemas.codec import decode, encode
+from schemas.models import (
+    Array,
+    ErrorEvent,
+    MapTile,
+    MapUpdate,
+    OccupancyFrameMsg,
+    PoseEstimate,
+)
+from services.client import OccVOClient, camera_frame_of
+from services.router import router_config
+from services.runtime import ZENOH_CONFIG_ENV, WorkerConfig, free_port, zenoh_config
+
+DEPLOY = Path(__file__).resolve().parents[2] / "deploy"
+USERS = ["inference", "registration", "map", "camera", "camera2", "viewer"]
+STREAM = "camera.car"  # user camera's prefix
+SETTLE_S = 1.5  # how long a refused message is waited for
+
+
+def _session_file(tmp: Path, user: str) -> Path:
+    text = (DEPLOY / f"acl/session-{user}.json5").read_text().replace("CHANGE-ME", f"pw-{user}")
+    path = tmp / f"session-{user}.json5"
+    path.write_text(text)
+    return path
+
+
+@pytest.fixture(scope="module")
+def acl(tmp_path_factory, scene):
+    from services.inference_worker import InferenceWorker
+    from services.map_service import MapService
+    from services.registration_worker import RegistrationWorker
+
+    tmp = tmp_path_factory.mktemp("acl")
+    (tmp / "users.txt").write_text("".join(f"{u}:pw-{u}\n" for u in USERS))
+    ep = f"tcp/127.0.0.1:{free_port()}"
+    rc = router_config(DEPLOY / "acl/router.json5", listen=[ep])
+    rc.insert_json5("transport/auth/usrpwd/dictionary_file", json.dumps(str(tmp / "users.txt")))
+    router = zenoh.open(rc)
+    files = {u: _session_file(tmp, u) for u in USERS}
+    workers, sessions = [], {}
+    saved = os.environ.get(ZENOH_CONFIG_ENV)
+    try:
+        for cls in (MapService, RegistrationWorker, InferenceWorker):  # each worker's session as its user
+            os.environ[ZENOH_CONFIG_ENV] = str(files[cls.role])
+            workers.append(cls(WorkerConfig(connect=ep, worker_id=f"{cls.role}-acl", warm_up=False, log_level="ERROR")).start())
+        if saved is None:
+            os.environ.pop(ZENOH_CONFIG_ENV)
+        else:
+            os.environ[ZENOH_CONFIG_ENV] = saved
+        sessions = {u: zenoh.open(zenoh_config("client", connect=ep, base=files[u])) for u in ("camera", "camera2", "viewer")}
+        deadline = time.monotonic() + 30  # clients of this ACL get no liveliness replies (zenoh 1.10): ask the router
+        while len(_alive(router, "occvo/@alive/**")) < 3 and time.monotonic() < deadline:
+            time.sleep(0.1)
+        with OccVOClient(ep, STREAM, timeout=60, session=sessions["camera"]) as c:
+            c.reset()
+            poses = [c.step(f).matrix() for f in scene[:3]]
+        workers[1].drain()  # the last frame's map update is out
+        mapper = workers[0]
+        deadline = time.monotonic() + 10
+        while mapper.store.info(STREAM) is None or mapper.store.info(STREAM).last_seq != 2:
+            assert time.monotonic() < deadline, "the map service did not get the last frame's update"
+            time.sleep(0.05)
+        yield {"endpoint": ep, "router": router, "s": sessions, "workers": {w.role: w for w in workers}, "poses": poses}
+    finally:
+        for s in sessions.values():
+            s.close()
+        for w in reversed(workers):
+            w.stop()
+        router.close()
+
+
+def _alive(session, selector):
+    return [str(r.ok.key_expr) for r in session.liveliness().get(selector, timeout=2.0) if r.ok]
+
+
+def _received(session, key, send, marker, timeout=SETTLE_S):
+    """Payloads with `marker` that `session`'s subscriber on `key` gets while `send()` is called every 0.1 s."""
+    got = []
+    sub = session.declare_subscriber(key, lambda s: got.append(s.payload.to_bytes()))
+    try:
+        time.sleep(0.3)
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            send()
+            time.sleep(0.1)
+        return [g for g in got if marker in g]
+    finally:
+        sub.undeclare()
+
+
+def _map_info(acl):
+    replies = [r for r in acl["s"]["viewer"].get(keys.map_info(STREAM), timeout=5.0) if r.ok]
+    return [decode(r.ok.payload.to_bytes()) for r in replies]
+
+
+def _trajectory(acl):
+    replies = [r for r in acl["s"]["viewer"].get(keys.trajectory(STREAM), timeout=5.0) if r.ok]
+    return [decode(r.ok.payload.to_bytes(), None, 1 << 30) for r in replies]
+
+
+def test_fake_map_update_is_refused(acl):
+    before = _map_info(acl)
+    assert len(before) == 1 and before[0].voxel_count > 1000
+    pts = np.zeros((3, 3))
+    fake = encode(MapUpdate(stream=STREAM, seq=0, reset=True, tile_m=20.0, tiles=[
+        MapTile(stream=STREAM, ix=0, iy=0, tile_m=20.0, seq=0, points=Array.from_numpy(pts),
+                labels=Array.from_numpy(np.zeros(3, np.uint8)))]))
+    for user in ("camera", "viewer"):
+        for _ in range(5):
+            acl["s"][user].put(keys.map_updates(STREAM), fake)
+    time.sleep(SETTLE_S)
+    after = _map_info(acl)
+    assert after[0].voxel_count == before[0].voxel_count and after[0].tile_count == before[0].tile_count
+    assert acl["workers"]["map"].stats.snapshot()[0]["errors"] == 0
+
+
+def test_fake_occupancy_frame_is_refused(acl, scene):
+    good = camera_frame_of(scene[0], STREAM, 0)
+    fake = encode(OccupancyFrameMsg(stream=STREAM, seq=0, stamp=0.0, source="replay", occupancy=good.gt_occupancy))
+    reg = acl["workers"]["registration"]
+    n_in = reg.stats.snapshot()[0]["frames_in"]
+    for user in ("camera", "camera2", "viewer"):
+        acl["s"][user].put(keys.occupancy(STREAM), fake)
+    time.sleep(SETTLE_S)
+    assert reg.stats.snapshot()[0]["frames_in"] == n_in
+    [traj] = _trajectory(acl)
+    assert traj.seqs.to_numpy().tolist() == [0, 1, 2]
+    assert np.array_equal(traj.poses.to_numpy(), np.array(acl["poses"]))
+
+
+def test_fake_relocalised_pose_is_refused(acl, scene):
+    shifted = np.eye(4)
+    shifted[0, 3] = 1000.0
+    fake = encode(PoseEstimate(stream=STREAM, seq=1, stamp=0.0, pose=shifted.tolist(), status="relocalised"))
+    for user, observer in (("camera", "viewer"), ("viewer", "camera")):  # a session's own puts reach it locally
+        got = _received(acl["s"][observer], keys.pose(STREAM), lambda u=user: acl["s"][u].put(keys.pose(STREAM), fake),
+                        b"relocalised")
+        assert got == [], user
+    # the control: the registration worker's poses do reach the viewer
+    with OccVOClient(acl["endpoint"], STREAM, timeout=30, session=acl["s"]["camera"]) as c:
+        got = []
+        sub = acl["s"]["viewer"].declare_subscriber(keys.pose(STREAM), lambda s: got.append(decode(s.payload.to_bytes(), PoseEstimate)))
+        time.sleep(0.3)
+        c._seq = 3
+        c.step(scene[3])
+        deadline = time.monotonic() + 10
+        while not got and time.monotonic() < deadline:
+            time.sleep(0.05)
+        sub.undeclare()
+    assert [p.seq for p in got] == [3]
+
+
+def test_fake_error_event_is_refused(acl):
+    fake = encode(ErrorEvent(stream=STREAM, worker="registration-acl", code="internal", message="spoofed", seq=5))
+    for user, observer in (("camera", "viewer"), ("viewer", "camera")):
+        got = _received(acl["s"][observer], keys.errors(STREAM), lambda u=user: acl["s"][u].put(keys.errors(STREAM), fake),
+                        b"spoofed")
+        assert got == [], user
+    # the control: a worker's error event reaches the viewer
+    got = _received(acl["s"]["viewer"], keys.errors(STREAM),
+                    lambda: acl["s"]["camera"].put(keys.camera(STREAM), b"\xc1"), b"malformed")
+    assert got
+
+
+def test_rogue_queryable_gets_no_query(acl):
+    info = _map_info(acl)[0]
+    for rogue_user, asker in (("viewer", "camera"), ("camera", "viewer")):  # a session's own queryable answers it locally
+        answered = []
+        rogue = acl["s"][rogue_user].declare_queryable(keys.map_tile(STREAM, "*", "*"),
+                                                       lambda q, seen=answered: (seen.append(1), q.reply(str(q.key_expr), b"rogue")))
+        try:
+            time.sleep(0.5)
+            for ix, iy in info.tiles[:10]:
+                replies = list(acl["s"][asker].get(keys.map_tile(STREAM, ix, iy), timeout=5.0))
+                assert len(replies) == 1 and replies[0].ok is not None, rogue_user
+                tile = decode(replies[0].ok.payload.to_bytes(), MapTile, 1 << 30)  # the map service's, not b"rogue"
+                assert (tile.ix, tile.iy) == (ix, iy)
+            assert answered == [], rogue_user
+        finally:
+            rogue.undeclare()
+
+
+def test_fake_liveliness_token_is_refused(acl):
+    tokens = [acl["s"][u].liveliness().declare_token(keys.alive("registration", f"fake-{u}")) for u in ("camera", "viewer")]
+    shard = acl["s"]["camera"].liveliness().declare_token(keys.registration_shard(0, 1, "fake-shard"))
+    try:
+        time.sleep(SETTLE_S)
+        # the router's table is what every client is told (its own clients get no liveliness replies under this ACL)
+        alive, shards = _alive(acl["router"], "occvo/@alive/**"), _alive(acl["router"], "occvo/@shard/**")
+        assert keys.alive("registration", "registration-acl") in alive  # the control: the real worker's token
+        assert not [k for k in alive + shards if "fake" in k], alive + shards
+        assert len(shards) == 1
+    finally:
+        for t in (*tokens, shard):
+            t.undeclare()
+
+
+def test_camera_cannot_reset_another_users_stream(acl, scene):
+    inf = acl["workers"]["inference"]
+    n_in = inf.stats.snapshot()[0]["frames_in"]
+    reset = encode(camera_frame_of(scene[0], STREAM, 0))
+    for _ in range(5):
+        acl["s"]["camera2"].put(keys.camera(STREAM), reset)
+    time.sleep(SETTLE_S)
+    assert inf.stats.snapshot()[0]["frames_in"] == n_in
+    [traj] = _trajectory(acl)
+    assert traj.seqs.to_numpy().tolist()[:3] == [0, 1, 2]
+    # camera2 may use its own streams
+    with OccVOClient(acl["endpoint"], "camera2.bus", timeout=60, session=acl["s"]["camera2"]) as c:
+        c.reset()
+        assert c.step(scene[0]).seq == 0

@@ -1,0 +1,236 @@
+"""A hostile or careless client against the service on loopback (router + workers as threads, real Zenoh): each
+case sends what the issue found harmful, then checks that one error event names it and that a legitimate stream's
+frames still give the offline poses. Counts are small and every wait is bounded; timings are in
+benchmarks/hostile_clients.py, not asserted here."""
+
+from __future__ import annotations
+
+import threading
+import time
+
+import msgpack
+import numpy as np
+import pytest
+import zenoh
+
+from schemas import keys
+from schemas.codec import decode, encode
+from schemas.models import ErrorEvent
+from services.client import OccVOClient, camera_frame_of
+from services.local import InProcessService
+from services.runtime import open_session
+
+BLOCK = zenoh.CongestionControl.BLOCK
+LIMITS = {"max_streams": 6, "max_streams_per_client": 2, "max_seq_jump": 1000, "idle_stream_s": 2.0,
+          "error_events_per_s": 2.0, "error_burst": 10}
+
+
+class Events:
+    def __init__(self, session, stream="*"):
+        self.items: list[ErrorEvent] = []
+        self.sub = session.declare_subscriber(keys.errors(stream), lambda s: self.items.append(decode(s.payload.to_bytes(), ErrorEvent)))
+
+    def of(self, stream=None, code=None):
+        return [e for e in self.items if (stream is None or e.stream == stream) and (code is None or e.code == code)]
+
+    def wait(self, done, timeout=20.0):
+        deadline = time.monotonic() + timeout
+        while not done() and time.monotonic() < deadline:
+            time.sleep(0.02)
+        return done()
+
+
+@pytest.fixture(scope="module")
+def service(tmp_path_factory):
+    store = tmp_path_factory.mktemp("store") / "occvo.sqlite"
+    with InProcessService(warm_up=False, store_path=str(store), **LIMITS) as svc:
+        yield svc
+
+
+@pytest.fixture
+def session(service):
+    s = open_session(service.endpoint)
+    time.sleep(0.3)
+    yield s
+    s.close()
+
+
+def steps(client, frames, first_seq):
+    client._seq = first_seq
+    return [client.step(f).matrix() for f in frames]
+
+
+def raw_frame(frame, stream, seq):
+    """A camera frame's msgpack with any seq (the model would refuse to build one out of range)."""
+    d = msgpack.unpackb(encode(camera_frame_of(frame, stream, 0)), raw=False)
+    d["seq"] = seq
+    return msgpack.packb(d, use_bin_type=True)
+
+
+def test_seq_beyond_int64_is_one_error_and_the_stream_goes_on(service, session, scene, uninterrupted):
+    events = Events(session, "h1.seq")
+    with OccVOClient(service.endpoint, "h1.seq", timeout=60, session=session) as c:
+        c.reset()
+        got = steps(c, scene[:2], 0)
+        session.put(keys.camera("h1.seq"), raw_frame(scene[2], "h1.seq", 2**64 - 1), congestion_control=BLOCK)
+        assert events.wait(lambda: events.of(code="invalid_message"))
+        got += steps(c, scene[2:4], 2)
+    bad = events.of(code="invalid_message")
+    assert len(bad) == 1 and "seq" in bad[0].message and "9223372036854775808" in bad[0].message, bad
+    assert not events.of(code="out_of_order") and not events.of(code="internal")
+    assert np.allclose(np.array(got), np.array(uninterrupted[:4]), atol=1e-9)
+
+
+def test_seq_jump_beyond_the_window_is_reported_and_not_adopted(service, session, scene, uninterrupted):
+    events = Events(session, "h1.jump")
+    with OccVOClient(service.endpoint, "h1.jump", timeout=60, session=session) as c:
+        c.reset()
+        got = steps(c, scene[:2], 0)
+        session.put(keys.camera("h1.jump"), raw_frame(scene[2], "h1.jump", 1 + 5000), congestion_control=BLOCK)
+        assert events.wait(lambda: events.of(code="seq_jump"))
+        got += steps(c, scene[2:4], 2)  # the next real frames are not "out of order"
+    jumps = events.of(code="seq_jump")
+    assert len(jumps) == 1 and jumps[0].seq == 5001 and "window of 1000" in jumps[0].message
+    assert not events.of(code="out_of_order") and not events.of(code="missing_seq")
+    assert np.allclose(np.array(got), np.array(uninterrupted[:4]), atol=1e-9)
+
+
+def test_pathological_msgpack_is_refused_before_work_and_frames_keep_their_order(service, session, scene, uninterrupted):
+    """A 13.7 MB payload of small maps (it froze the inference worker 5.3 s) is refused by the decode limits; the
+    legitimate frame sent right after it gets its pose, in order."""
+    events = Events(session, "h2.msgpack")
+    hostile = msgpack.packb({"kind": "camera_frame", "schema_version": 1, "stream": "h2.msgpack",
+                             "x": [[{"a": 1, "b": 2} for _ in range(60000)] for _ in range(35)]})
+    assert 13_000_000 < len(hostile) < 16 * 1024 * 1024
+    with OccVOClient(service.endpoint, "h2.msgpack", timeout=60, session=session) as c:
+        c.reset()
+        got = steps(c, scene[:1], 0)
+        session.put(keys.camera("h2.msgpack"), hostile, congestion_control=BLOCK)
+        got += steps(c, scene[1:3], 1)
+    assert events.wait(lambda: events.of(code="malformed"))
+    [bad] = events.of(code="malformed")
+    assert "list and map entries" in bad.message or "max_array_len" in bad.message
+    assert np.allclose(np.array(got), np.array(uninterrupted[:3]), atol=1e-9)
+
+
+def test_put_over_the_transport_limit_is_not_delivered(service, session, scene, uninterrupted):
+    """64 MiB on a camera key: the router's transport refuses it before reassembly (no worker sees it, so no error
+    event either), and the stream's next frames get their poses."""
+    inference = service.worker("inference")
+    before = inference.stats.snapshot()[0]["frames_in"]
+    events = Events(session, "h2.big")
+    session.put(keys.camera("h2.big"), b"\x00" * (64 << 20), congestion_control=BLOCK)
+    with OccVOClient(service.endpoint, "h2.big", timeout=60, session=session) as c:
+        c.reset()
+        got = steps(c, scene[:2], 0)
+    assert np.allclose(np.array(got), np.array(uninterrupted[:2]), atol=1e-9)
+    assert inference.stats.snapshot()[0]["frames_in"] - before == 2  # the 64 MiB put never reached it
+    assert not events.of(code="oversize")
+
+
+def test_error_events_are_rate_limited_and_keys_clipped(service, session):
+    events = Events(session, "*")
+    long_key = f"occvo/{'x' * 60000}/camera"
+    session.put(long_key, b"\xc1", congestion_control=BLOCK)
+    assert events.wait(lambda: events.of(stream="*"))
+    [ev] = events.of(stream="*")
+    assert len(ev.key) < 300 and "60013 chars" in ev.key
+    inference = service.worker("inference")
+    suppressed0 = inference.stats.snapshot()[0].get("errors_suppressed", 0)
+    t0 = time.monotonic()
+    for _ in range(200):
+        session.put(keys.camera("h3.noisy"), b"\xc1", congestion_control=BLOCK)
+    assert events.wait(lambda: inference.stats.snapshot()[0].get("errors_suppressed", 0) - suppressed0 > 0)
+    time.sleep(0.5)
+    elapsed = time.monotonic() - t0
+    sent = events.of(stream="h3.noisy")
+    assert 10 <= len(sent) <= 10 + 2.0 * elapsed + 1, (len(sent), elapsed)  # a burst of 10, then 2 a second
+    counters = inference.stats.snapshot()[0]
+    assert counters["errors_suppressed"] - suppressed0 + len(sent) == 200
+
+
+def test_streams_over_the_limits_are_refused_with_an_error_naming_the_limit(service, session, scene):
+    events = Events(session, "*")
+    inference = service.worker("inference")
+    time.sleep(LIMITS["idle_stream_s"] + 1.0)  # the other tests' streams retired: their places are free
+    assert not inference.lanes
+    for s in ("h4.a", "h4.b", "h4.c"):  # client h4 may have 2
+        session.put(keys.camera(s), encode(camera_frame_of(scene[0], s, 0)), congestion_control=BLOCK)
+    assert events.wait(lambda: events.of("h4.c", "stream_limit"))
+    [ev] = events.of("h4.c", "stream_limit")
+    assert "max_streams_per_client=2" in ev.message
+    for i in range(5):  # the worker may serve 6 in all
+        s = f"h5x{i}.a"
+        session.put(keys.camera(s), encode(camera_frame_of(scene[0], s, 0)), congestion_control=BLOCK)
+    assert events.wait(lambda: events.of("h5x4.a", "stream_limit"))
+    assert "max_streams=6" in events.of("h5x4.a", "stream_limit")[0].message
+    assert not events.of("h5x3.a", "stream_limit") and not events.of("h4.a") and not events.of("h4.b")
+    assert inference.stats.snapshot()[0]["streams_refused"] >= 2
+
+
+def test_idle_stream_gives_back_its_lane_and_resumes_from_the_store(service, session, scene, uninterrupted):
+    reg = service.worker("registration")
+    time.sleep(LIMITS["idle_stream_s"] + 1.0)
+    with OccVOClient(service.endpoint, "h6.idle", timeout=60, session=session) as c:
+        c.reset()
+        got = steps(c, scene[:3], 0)
+        assert "h6.idle" in reg.lanes and reg.states["h6.idle"].vo is not None
+        deadline = time.monotonic() + LIMITS["idle_stream_s"] + 10
+        while ("h6.idle" in reg.lanes or reg.states["h6.idle"].vo is not None) and time.monotonic() < deadline:
+            time.sleep(0.1)
+        assert "h6.idle" not in reg.lanes and reg.states["h6.idle"].vo is None  # threads and the OccVO given back
+        assert reg.states["h6.idle"].after_pose is None
+        time.sleep(0.5)
+        assert not [t.name for t in threading.enumerate() if "h6.idle" in t.name and "resend" not in t.name]
+        got += steps(c, scene[3:6], 3)  # resumed from the store
+    assert np.allclose(np.array(got), np.array(uninterrupted[:6]), atol=1e-9)
+    assert reg.stats.snapshot()[0]["resumes"] >= 1
+
+
+def test_region_and_wildcard_queries_are_paged(tmp_path, scene):
+    """A get on occvo/** is answered a page at a time (max_query_tiles); the client's region() pages through the
+    whole map, equal to the tiles asked one by one."""
+    with (InProcessService(warm_up=False, max_query_tiles=4, max_query_streams=1) as svc,
+          OccVOClient(svc.endpoint, "h7.map", timeout=60) as c, OccVOClient(svc.endpoint, "h7.other", timeout=60) as d):
+        for client in (c, d):
+            client.reset()
+            steps(client, scene[:2], 0)
+        svc.worker("registration").drain()
+        deadline = time.monotonic() + 10
+        while not (svc.worker("map").store.info("h7.map") and svc.worker("map").store.info("h7.map").last_seq == 1):
+            assert time.monotonic() < deadline
+            time.sleep(0.05)
+        info = c.map_info()
+        assert info.tile_count > 4
+        replies = list(c.session.get("occvo/**", timeout=10.0))
+        tiles = [r for r in replies if r.ok is not None and "/map/tile/" in str(r.ok.key_expr)]
+        trajectories = [r for r in replies if r.ok is not None and str(r.ok.key_expr).endswith("/trajectory")]
+        truncated = [decode(r.err.payload.to_bytes(), ErrorEvent) for r in replies if r.err is not None]
+        assert len(tiles) == 4 and len(trajectories) == 1
+        assert [e.code for e in truncated if e.code == "truncated"] == ["truncated"]
+        region = c.region()
+        assert sorted((t.ix, t.iy) for t in region) == sorted(info.tiles)
+        for t in region[:3]:
+            one = c.tile(t.ix, t.iy)
+            assert np.array_equal(one.points.to_numpy(), t.points.to_numpy())
+
+
+
+def test_snapshot_of_a_reset_stream_is_deleted(service, session, scene):
+    reg = service.worker("registration")
+    with OccVOClient(service.endpoint, "h8.reset", timeout=60, session=session) as c:
+        c.reset()
+        steps(c, scene[:2], 0)
+        deadline = time.monotonic() + LIMITS["idle_stream_s"] + 10  # retired: its state snapshotted
+        while reg.states["h8.reset"].vo is not None and time.monotonic() < deadline:
+            time.sleep(0.1)
+        old = reg.store.created("h8.reset")
+        rows = reg.store.snap_db.execute("SELECT created FROM snapshots WHERE stream='h8.reset'").fetchall()
+        assert rows == [(old,)]
+        c.reset()
+        steps(c, scene[2:3], 0)  # a new trajectory (scene[0] again would be answered as a resend)
+        deadline = time.monotonic() + 10  # the snapshot writer deletes it, after what it had queued
+        while (rows := reg.store.snap_db.execute("SELECT created FROM snapshots WHERE stream='h8.reset'").fetchall()) \
+                and time.monotonic() < deadline:
+            time.sleep(0.1)
+    assert rows == [] and reg.store.created("h8.reset") != old, (rows, old, reg.store.created("h8.reset"))

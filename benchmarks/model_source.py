@@ -21,7 +21,6 @@ import threading
 import time
 from pathlib import Path
 
-import numpy as np
 import torch
 import zenoh
 
@@ -70,7 +69,7 @@ def paired(predictor, checkpoint, frames, threads) -> dict:
             t = time.perf_counter()
             pub.put(encode(CameraFrame(stream="bench", seq=seq, stamp=0.5 * seq, images=imgs, sent_at=time.time())))
             with cv:
-                if not cv.wait_for(lambda: seq in done, 120):
+                if not cv.wait_for(lambda s=seq: s in done, 120):
                     raise TimeoutError(f"no occupancy for seq {seq}")
             if not isinstance(done[seq], OccupancyFrameMsg):
                 raise RuntimeError(done[seq].message)

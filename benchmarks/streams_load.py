@@ -52,7 +52,6 @@ from schemas.models import Array, CameraFrame, ErrorEvent, GridSpecModel, PoseEs
 from services.local import LocalService  # noqa: E402
 from services.runtime import open_session  # noqa: E402
 
-
 # ---------------------------------------------------------------- scenes, rendered once
 
 def _render(args: tuple[int, int, float, str]) -> str:

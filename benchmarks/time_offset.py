@@ -29,6 +29,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from along_track import benchmark_main, shifted  # noqa: E402
+
 from occvo_core import OccVO, OccVOConfig  # noqa: E402
 from occvo_core.datasets import OccVOReleaseScene  # noqa: E402
 from occvo_core.eval import ape_rmse  # noqa: E402

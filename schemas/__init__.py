@@ -2,8 +2,21 @@
 
 from schemas.codec import CodecError, decode, encode
 from schemas.models import (
-    SCHEMA_VERSION, Array, CameraFrame, CameraImage, ErrorEvent, GridSpecModel, MapInfo, MapTile, MapTileQuery,
-    MapUpdate, OccupancyFrameMsg, PoseEstimate, SparseOccupancy, Trajectory, WorkerHealth,
+    SCHEMA_VERSION,
+    Array,
+    CameraFrame,
+    CameraImage,
+    ErrorEvent,
+    GridSpecModel,
+    MapInfo,
+    MapTile,
+    MapTileQuery,
+    MapUpdate,
+    OccupancyFrameMsg,
+    PoseEstimate,
+    SparseOccupancy,
+    Trajectory,
+    WorkerHealth,
 )
 
 __all__ = [

@@ -32,7 +32,7 @@ class Array(_Model):
     data: bytes
 
     @model_validator(mode="after")
-    def _size_matches(self) -> "Array":
+    def _size_matches(self) -> Array:
         itemsize = np.dtype(self.dtype).itemsize
         if len(self.shape) > 32 or math.prod(d for d in self.shape if d) * itemsize >= 2**63:  # numpy could not hold it
             raise ValueError(f"array shape {self.shape} is too large for numpy, even with no elements")
@@ -42,7 +42,7 @@ class Array(_Model):
         return self
 
     @classmethod
-    def from_numpy(cls, a: np.ndarray) -> "Array":
+    def from_numpy(cls, a: np.ndarray) -> Array:
         a = np.asarray(a)
         if a.dtype.name not in ALLOWED_DTYPES:
             raise ValueError(f"dtype {a.dtype} cannot travel; use one of {ALLOWED_DTYPES}")
@@ -59,7 +59,7 @@ class GridSpecModel(_Model):
     voxel_size: Finite = Field(0.4, gt=0)
 
     @model_validator(mode="after")
-    def _extent(self) -> "GridSpecModel":
+    def _extent(self) -> GridSpecModel:
         n = [(u - l) / self.voxel_size for l, u in zip(self.lower, self.upper)]
         if not all(0.5 <= x <= 65536 for x in n):  # also catches inf and NaN; indices travel as uint16 at most
             raise ValueError(f"grid {self.lower}..{self.upper} of {self.voxel_size} m voxels must span 1..65536 voxels per axis")
@@ -69,7 +69,7 @@ class GridSpecModel(_Model):
         return GridSpec(tuple(self.lower), tuple(self.upper), self.voxel_size)
 
     @classmethod
-    def from_grid(cls, g: GridSpec) -> "GridSpecModel":
+    def from_grid(cls, g: GridSpec) -> GridSpecModel:
         return cls(lower=tuple(g.lower), upper=tuple(g.upper), voxel_size=g.voxel_size)
 
 
@@ -90,7 +90,7 @@ class SparseOccupancy(_Model):
     labels: Array = Field(description="(N,) uint8 Occ3D class ids 0..17")
 
     @model_validator(mode="after")
-    def _check(self) -> "SparseOccupancy":
+    def _check(self) -> SparseOccupancy:
         if (self.voxels is None) == (self.points is None):
             raise ValueError("set exactly one of voxels (grid indices) and points (coordinates)")
         l = self.labels
@@ -126,7 +126,7 @@ class SparseOccupancy(_Model):
         return self
 
     @classmethod
-    def from_points(cls, points: np.ndarray, labels: np.ndarray, grid: GridSpec, exact: bool = True) -> "SparseOccupancy":
+    def from_points(cls, points: np.ndarray, labels: np.ndarray, grid: GridSpec, exact: bool = True) -> SparseOccupancy:
         """exact: send the coordinates as they are; else snap them to voxel indices (compact)."""
         labels = Array.from_numpy(np.asarray(labels, dtype=np.uint8))
         if exact:
@@ -185,7 +185,7 @@ class CameraImage(_Model):
         return _finite_matrix(v, 4, 4, "extrinsics")
 
     @model_validator(mode="after")
-    def _raw_size(self) -> "CameraImage":
+    def _raw_size(self) -> CameraImage:
         if self.encoding == "raw_rgb8" and len(self.data) != self.width * self.height * 3:
             raise ValueError(f"raw_rgb8 image {self.camera} needs {self.width * self.height * 3} bytes, got {len(self.data)}")
         return self
@@ -269,7 +269,7 @@ class MapTile(_StreamMessage):
     labels: Array = Field(description="(M,) uint8")
 
     @model_validator(mode="after")
-    def _check(self) -> "MapTile":
+    def _check(self) -> MapTile:
         if self.points.dtype != "float64" or len(self.points.shape) != 2 or self.points.shape[1] != 3:
             raise ValueError(f"tile points must be (M,3) float64, got {self.points.dtype} {self.points.shape}")
         if self.labels.dtype != "uint8" or self.labels.shape != [self.points.shape[0]]:

@@ -26,7 +26,15 @@ from occvo_core.grid import OCC3D_GRID, GridSpec
 from schemas import keys
 from schemas.codec import CodecError, decode, encode
 from schemas.models import (
-    CameraFrame, ErrorEvent, MapInfo, MapTile, MapTileQuery, PoseEstimate, SparseOccupancy, Trajectory, WorkerHealth,
+    CameraFrame,
+    ErrorEvent,
+    MapInfo,
+    MapTile,
+    MapTileQuery,
+    PoseEstimate,
+    SparseOccupancy,
+    Trajectory,
+    WorkerHealth,
 )
 from services.runtime import DEFAULT_ENDPOINT, open_session
 
@@ -281,7 +289,7 @@ class OccVOClient:
         if self._own:
             self.session.close()
 
-    def __enter__(self) -> "OccVOClient":
+    def __enter__(self) -> OccVOClient:
         return self
 
     def __exit__(self, *exc) -> None:

@@ -19,10 +19,10 @@ from collections import deque
 import numpy as np
 import zenoh
 
+from occvo_core.errors import ConfigError
 from schemas import keys
 from schemas.codec import encode
 from schemas.models import CameraFrame, OccupancyFrameMsg, SparseOccupancy
-from occvo_core.errors import ConfigError
 from services.runtime import Worker, WorkerConfig, log_event, worker_main
 
 

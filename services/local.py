@@ -10,8 +10,8 @@ import sys
 import time
 from pathlib import Path
 
-from services.runtime import WorkerConfig, free_port, open_router, open_session
 from schemas import keys
+from services.runtime import WorkerConfig, free_port, open_router, open_session
 
 REPO = Path(__file__).resolve().parents[1]
 WORKERS = {"inference": "services.inference_worker", "registration": "services.registration_worker", "map": "services.map_service"}
@@ -44,7 +44,7 @@ class LocalService:
         self.procs: dict[str, subprocess.Popen] = {}  # by role, or registration-<shard> when sharded
         self.router = None
 
-    def start(self, timeout: float = 180.0) -> "LocalService":
+    def start(self, timeout: float = 180.0) -> LocalService:
         """Until every worker is alive: a registration worker on a fresh install first compiles its kernels (36 s
         alone on this 2-core machine, 42 s for two shards side by side; occvo_core/warm_up.py)."""
         self.router = open_router(self.endpoint, self.router_config)
@@ -104,7 +104,7 @@ class LocalService:
         self.procs.clear()
         return codes
 
-    def __enter__(self) -> "LocalService":
+    def __enter__(self) -> LocalService:
         return self.start()
 
     def __exit__(self, *exc) -> None:
@@ -120,7 +120,7 @@ class InProcessService:
         self.workers = []
         self.router = None
 
-    def start(self, timeout: float = 30.0) -> "InProcessService":
+    def start(self, timeout: float = 30.0) -> InProcessService:
         from services.inference_worker import InferenceWorker
         from services.map_service import MapService
         from services.registration_worker import RegistrationWorker
@@ -151,7 +151,7 @@ class InProcessService:
             self.router.close()
             self.router = None
 
-    def __enter__(self) -> "InProcessService":
+    def __enter__(self) -> InProcessService:
         return self.start()
 
     def __exit__(self, *exc) -> None:

@@ -20,7 +20,6 @@ from occvo_core.errors import ConfigError
 from occvo_core.grid import FREE, NUM_CLASSES, OCC3D_GRID, GridSpec
 from schemas.models import CameraImage
 
-
 RGB_MODES = ("RGB", "RGBA")  # 8 bits a channel; alpha is dropped. Grey or 16-bit images are refused, not guessed at.
 
 

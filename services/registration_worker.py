@@ -34,14 +34,23 @@ import zenoh
 
 from occvo_core.errors import ConfigError, InvalidFrameError
 from occvo_core.frame import OccupancyFrame
-from occvo_core.registration.voxel_map import copied
 from occvo_core.map_tiles import changed_tiles, retile_region
+from occvo_core.registration.voxel_map import copied
 from occvo_core.working_map import tiles_near, tiles_reached
 from schemas import keys
 from schemas.codec import encode
 from schemas.models import Array, MapTile, MapUpdate, OccupancyFrameMsg, PoseEstimate, Trajectory
-from services.runtime import (Worker, WorkerConfig, hold_priority, log_event, lower_priority, name_os_thread,
-                              release_priority, trim_heap, worker_main)
+from services.runtime import (
+    Worker,
+    WorkerConfig,
+    hold_priority,
+    log_event,
+    lower_priority,
+    name_os_thread,
+    release_priority,
+    trim_heap,
+    worker_main,
+)
 from services.store import StoredPose, TrajectoryStore, frame_digest, pack_frame, unpack_arrays
 
 _STATUS = {"ok": "ok", "lost": "lost", "initialised": "reinitialised", "reinitialised": "reinitialised"}

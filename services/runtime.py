@@ -15,8 +15,9 @@ import threading
 import time
 import uuid
 from collections import defaultdict, deque
+from collections.abc import Callable
 from pathlib import Path
-from typing import Callable, Literal
+from typing import Literal
 
 import numpy as np
 import zenoh
@@ -288,13 +289,13 @@ class WorkerConfig(BaseModel):
     store_sync: Literal["full", "normal"] = "full"  # registration: SQLite synchronous; normal survives kill -9, not power loss
 
     @model_validator(mode="after")
-    def _shard_in_range(self) -> "WorkerConfig":
+    def _shard_in_range(self) -> WorkerConfig:
         if self.shard >= self.shards:
             raise ValueError(f"shard {self.shard} is not one of shards 0..{self.shards - 1}")
         return self
 
     @classmethod
-    def load(cls, path: str | Path | None, **overrides) -> "WorkerConfig":
+    def load(cls, path: str | Path | None, **overrides) -> WorkerConfig:
         import json5
 
         data = {}
@@ -313,8 +314,8 @@ class WorkerConfig(BaseModel):
 class StreamLane:
     """One stream's bounded queue and the thread that runs the stage on it, in arrival (= sequence) order."""
 
-    def __init__(self, worker: "Worker", stream: str, handler: Callable[[str, object], None],
-                 after: "StreamLane | None" = None):
+    def __init__(self, worker: Worker, stream: str, handler: Callable[[str, object], None],
+                 after: StreamLane | None = None):
         self.worker, self.stream, self.handler = worker, stream, handler
         self.busy = False
         self.pending = 0  # frames handed to this lane and not yet in its queue (Worker.enqueue); guarded by _lanes_lock
@@ -375,7 +376,7 @@ class Worker:
         self.session: zenoh.Session | None = None
 
     # -- lifecycle
-    def start(self) -> "Worker":
+    def start(self) -> Worker:
         self.session = open_session(self.config.connect)
         self._declared.append(self.session.declare_queryable(keys.stats(self.worker_id), self._on_stats))
         self.declare()

@@ -67,7 +67,7 @@ class UpConfig(BaseModel):
     log_dir: str | None = None              # each child's stderr to <log_dir>/<name>.log (default: this stderr)
 
     @classmethod
-    def load(cls, path: str | Path) -> "UpConfig":
+    def load(cls, path: str | Path) -> UpConfig:
         """Read the json5 file; relative paths in it are relative to the file."""
         import json5
 
@@ -192,7 +192,7 @@ class Supervisor:
         if not self.stopping.is_set():
             raise TimeoutError(f"router not accepting connections on {self.endpoint} after {timeout} s")
 
-    def start(self, timeout: float = 60.0) -> "Supervisor":
+    def start(self, timeout: float = 60.0) -> Supervisor:
         log_event(self.log, "up", endpoint=self.endpoint, workers=[c.name for c in self.workers], pid=os.getpid())
         if self.router is not None:
             self._spawn(self.router)

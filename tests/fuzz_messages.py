@@ -18,8 +18,23 @@ from pydantic import BaseModel
 from occvo_core.grid import NUM_CLASSES, OCC3D_GRID
 from schemas.codec import CodecError, decode, encode
 from schemas.models import (
-    MESSAGES, Array, CameraFrame, CameraImage, ErrorCode, ErrorEvent, GridSpecModel, MapInfo, MapTile, MapTileQuery,
-    MapUpdate, OccupancyFrameMsg, PoseEstimate, SparseOccupancy, StageStats, Trajectory, WorkerHealth,
+    MESSAGES,
+    Array,
+    CameraFrame,
+    CameraImage,
+    ErrorCode,
+    ErrorEvent,
+    GridSpecModel,
+    MapInfo,
+    MapTile,
+    MapTileQuery,
+    MapUpdate,
+    OccupancyFrameMsg,
+    PoseEstimate,
+    SparseOccupancy,
+    StageStats,
+    Trajectory,
+    WorkerHealth,
 )
 
 # hypothesis keeps caches (and patches of failing examples) in its home dir: keep them out of the repository

@@ -5,11 +5,11 @@ import sys
 
 import numpy as np
 import pytest
+from scenes import frame, town
 
 from occvo_core import InvalidFrameError, OccupancyFrame, OccVO
 from occvo_core.datasets import OccVOReleaseScene, open_scene
 from occvo_core.errors import DatasetError
-from scenes import frame, town
 
 
 @pytest.fixture(scope="module")

@@ -3,8 +3,8 @@ import subprocess
 
 import numpy as np
 import pytest
-
 from conftest import random_pose
+
 from occvo_core.eval import ape_rmse, success, success_ratio, umeyama_se3
 from occvo_core.trajectory import read_kitti, read_trajectory, write_kitti, write_tum
 

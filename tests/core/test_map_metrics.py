@@ -4,8 +4,15 @@ import numpy as np
 import pytest
 
 from occvo_core.errors import DatasetError
-from occvo_core.map_metrics import (REFERENCE_MAP, align_to_ground_truth, load_map, map_metrics, reference_map_from_poses,
-                                    save_map, voxel_downsample)
+from occvo_core.map_metrics import (
+    REFERENCE_MAP,
+    align_to_ground_truth,
+    load_map,
+    map_metrics,
+    reference_map_from_poses,
+    save_map,
+    voxel_downsample,
+)
 
 
 def _line(n, z=0.0):

@@ -8,8 +8,7 @@ import pytest
 from occvo_core.datasets.base import SceneSource
 from occvo_core.errors import ConfigError
 from occvo_core.grid import FREE, MOVABLE_CLASSES, OCC3D_GRID, STATIC_CLASSES
-from occvo_core.sim import CAMERAS, NoiseModel, SyntheticScene
-from occvo_core.sim import render
+from occvo_core.sim import CAMERAS, NoiseModel, SyntheticScene, render
 from occvo_core.sim.noise import false_positive_candidates
 
 

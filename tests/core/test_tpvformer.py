@@ -10,8 +10,16 @@ from occvo_core.cameras import CAMERA_NAMES, nuscenes_rig
 from occvo_core.errors import ConfigError, OccVOError
 from occvo_core.grid import FREE, OCC3D_GRID
 from occvo_core.models.metrics import OccMetrics
-from occvo_core.models.tpvformer import (CheckpointError, CheckpointMismatchError, InvalidCameraFrameError, OccupancyPredictor, TPVFormer, load_checkpoint,
-                                         preset, save_checkpoint)
+from occvo_core.models.tpvformer import (
+    CheckpointError,
+    CheckpointMismatchError,
+    InvalidCameraFrameError,
+    OccupancyPredictor,
+    TPVFormer,
+    load_checkpoint,
+    preset,
+    save_checkpoint,
+)
 from occvo_core.models.tpvformer.attention import ImageCrossAttention
 from occvo_core.models.train import lovasz_softmax, make_sample, train
 

@@ -9,7 +9,14 @@ from hypothesis import strategies as st
 from occvo_core.grid import OCC3D_GRID
 from schemas.codec import CodecError, decode, encode
 from schemas.models import (
-    SCHEMA_VERSION, Array, CameraFrame, ErrorEvent, MapTile, OccupancyFrameMsg, PoseEstimate, SparseOccupancy,
+    SCHEMA_VERSION,
+    Array,
+    CameraFrame,
+    ErrorEvent,
+    MapTile,
+    OccupancyFrameMsg,
+    PoseEstimate,
+    SparseOccupancy,
 )
 
 

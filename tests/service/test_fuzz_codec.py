@@ -9,15 +9,33 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from fuzz_messages import (
+    COUNT,
+    KINDS,
+    STRATEGIES,
+    check_decode,
+    mutate_bytes,
+    mutate_structure,
+    pack,
+    rng_garbage,
+    rng_seeds,
+    unpack,
+)
 from hypothesis import HealthCheck, Phase, given, settings
 from hypothesis import strategies as st
 
-from fuzz_messages import (
-    COUNT, KINDS, STRATEGIES, check_decode, mutate_bytes, mutate_structure, pack, rng_garbage, rng_seeds, unpack,
-)
 from occvo_core.grid import OCC3D_GRID
 from schemas.codec import CodecError, encode
-from schemas.models import MESSAGES, SCHEMA_VERSION, Array, MapTileQuery, OccupancyFrameMsg, PoseEstimate, SparseOccupancy, Trajectory
+from schemas.models import (
+    MESSAGES,
+    SCHEMA_VERSION,
+    Array,
+    MapTileQuery,
+    OccupancyFrameMsg,
+    PoseEstimate,
+    SparseOccupancy,
+    Trajectory,
+)
 
 # deterministic for CI, no .hypothesis folder left in the repo
 FUZZ = dict(deadline=None, database=None, derandomize=True, suppress_health_check=list(HealthCheck),

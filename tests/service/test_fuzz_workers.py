@@ -17,19 +17,39 @@ from collections import Counter, defaultdict
 import numpy as np
 import pytest
 import zenoh
+from fuzz_messages import (
+    COUNT,
+    KINDS,
+    STRATEGIES,
+    camera_frames,
+    map_tile_queries,
+    map_updates,
+    mutate_bytes,
+    mutate_structure,
+    occupancy_frames,
+    pack,
+    rng_seeds,
+    unpack,
+)
 from hypothesis import HealthCheck, Phase, given, settings
 from hypothesis import strategies as st
 
-from fuzz_messages import (
-    COUNT, KINDS, STRATEGIES, camera_frames, map_tile_queries, map_updates, mutate_bytes, mutate_structure,
-    occupancy_frames, pack, rng_seeds, unpack,
-)
 from occvo_core.grid import OCC3D_GRID
 from schemas import keys
 from schemas.codec import CodecError, decode, encode
 from schemas.models import (
-    CameraFrame, ErrorEvent, GridSpecModel, MapInfo, MapTile, MapTileQuery, MapUpdate, OccupancyFrameMsg, PoseEstimate,
-    SparseOccupancy, Trajectory, WorkerHealth,
+    CameraFrame,
+    ErrorEvent,
+    GridSpecModel,
+    MapInfo,
+    MapTile,
+    MapTileQuery,
+    MapUpdate,
+    OccupancyFrameMsg,
+    PoseEstimate,
+    SparseOccupancy,
+    Trajectory,
+    WorkerHealth,
 )
 from services.local import InProcessService
 from services.runtime import open_session
@@ -493,7 +513,7 @@ def test_fuzzed_input_is_answered_and_counted(fuzz, what, prefix, examples, caps
     run(fuzz)
     check_counts_and_survival(fuzz, what, lanes, _good(what))
     outcomes = Counter()
-    for (op, pre), v in log.items():
+    for (_op, pre), v in log.items():
         outcomes[pre] += v
     with capsys.disabled():
         print(f"\nfuzz {ROLE[what]} worker: {COUNT['workers'] - before} messages in {time.monotonic() - t0:.1f} s; "

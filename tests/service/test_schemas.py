@@ -10,8 +10,19 @@ from occvo_core.grid import OCC3D_GRID
 from schemas import keys
 from schemas.export import JSON_DIR, drift, rendered
 from schemas.models import (
-    MESSAGES, SCHEMA_VERSION, Array, CameraFrame, CameraImage, ErrorEvent, MapInfo, MapTile, MapUpdate,
-    OccupancyFrameMsg, PoseEstimate, SparseOccupancy, WorkerHealth,
+    MESSAGES,
+    SCHEMA_VERSION,
+    Array,
+    CameraFrame,
+    CameraImage,
+    ErrorEvent,
+    MapInfo,
+    MapTile,
+    MapUpdate,
+    OccupancyFrameMsg,
+    PoseEstimate,
+    SparseOccupancy,
+    WorkerHealth,
 )
 
 

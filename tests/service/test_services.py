@@ -18,7 +18,7 @@ import zenoh
 from occvo_core.map_tiles import changed_tiles, tiles_from_map
 from schemas import keys
 from schemas.codec import decode, encode
-from schemas.models import CameraFrame, ErrorEvent, OccupancyFrameMsg, SparseOccupancy
+from schemas.models import ErrorEvent, OccupancyFrameMsg
 from services.client import OccVOClient, ServiceError, camera_frame_of
 from services.local import InProcessService
 from services.runtime import SeqTracker, StageQueue, open_session
@@ -90,7 +90,7 @@ def test_tiles_partition_the_map_and_diff():
     labels = rng.integers(0, 17, 5000).astype(np.uint8)
     tiles = tiles_from_map(pts, labels, 20.0)
     assert sum(len(p) for p, _ in tiles.values()) == len(pts)
-    for (ix, iy), (p, l) in tiles.items():
+    for (ix, iy), (p, _labels) in tiles.items():
         assert np.all(np.floor(p[:, :2] / 20.0) == [ix, iy])
     back = np.concatenate([p for p, _ in tiles.values()])
     assert np.array_equal(np.unique(back, axis=0), np.unique(pts, axis=0))
@@ -308,9 +308,10 @@ def test_latest_policy_drops_oldest_and_counts():
 
 
 def test_device_selection():
+    import torch
+
     from occvo_core.errors import ConfigError
     from services.occupancy_model import select_device
-    import torch
 
     assert select_device("cpu").type == "cpu"
     assert select_device("auto").type == ("cuda" if torch.cuda.is_available() else "cpu")

@@ -19,7 +19,13 @@ from conftest import SERVICE_FRAMES as N  # frames of the `scene` fixture
 from occvo_core import OccVO
 from occvo_core.frame import OccupancyFrame
 from services.store import (
-    TrajectoryStore, frame_digest, pack_arrays, pack_frame, snapshot_path, unpack_arrays, unpack_frame,
+    TrajectoryStore,
+    frame_digest,
+    pack_arrays,
+    pack_frame,
+    snapshot_path,
+    unpack_arrays,
+    unpack_frame,
 )
 
 warnings.filterwarnings("ignore", category=RuntimeWarning)
@@ -185,7 +191,7 @@ def test_a_commit_says_whether_it_waited_for_this_store_or_for_another_process(t
              "begin": (lambda: other.execute("BEGIN IMMEDIATE"), lambda: other.execute("COMMIT"))}
     for seq, (phase, (enter, leave)) in enumerate(cases.items(), start=1):
         entered = threading.Event()
-        holder = threading.Thread(target=hold, args=(lambda: (enter(), entered.set()), leave))
+        holder = threading.Thread(target=hold, args=(lambda enter=enter, entered=entered: (enter(), entered.set()), leave))
         holder.start()
         entered.wait(5)
         phases = store.commit_frame("car", seq, float(seq), bytes(16), "ok", np.eye(4), blob)
@@ -202,6 +208,7 @@ def test_a_niced_thread_writes_to_the_store_at_the_lanes_priority_and_goes_back(
     thread that opened the store while it holds the lock, then goes back, also when its lane raised it meanwhile
     (priority inheritance) and still waits for it."""
     import os
+
     from services.runtime import hold_priority, lower_priority, release_priority, set_thread_nice
 
     store = TrajectoryStore(tmp_path / "s.sqlite")
@@ -588,12 +595,13 @@ def test_a_closed_loop_publishes_the_odometry_pose_then_the_relocalised_one(tmp_
     """A frame that closes a loop is answered at once with its odometry pose; the search and the correction run
     after it, and the relocalised pose follows (status "relocalised"), replacing it in the client, the store and
     the trajectory query. Drift is injected as in test_loop_closure (what a long drive does)."""
+    import sys
+
+    from occvo_core.sim import SyntheticScene
     from schemas import keys
-    from services.client import OccVOClient
     from schemas.codec import decode
     from schemas.models import PoseEstimate
-    from occvo_core.sim import SyntheticScene
-    import sys
+    from services.client import OccVOClient
 
     sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "core"))  # test_loop_closure's drive
     from test_loop_closure import EVICT_AT, FRAMES, _config, _drift, _drive, inject_drift
@@ -628,7 +636,7 @@ def test_a_closed_loop_publishes_the_odometry_pose_then_the_relocalised_one(tmp_
             got = np.array([client.poses[i].matrix() for i in range(FRAMES)])
             trajectory = client.trajectory()
         assert closures and [s for s, st in heard if st == "relocalised"] == [t for t, _ in closures]
-        for t, correction in closures:
+        for t, _correction in closures:
             at = heard.index((t, "relocalised"))
             assert heard[at - 1] == (t, "ok") and all(s < t for s, _ in heard[:at - 1])  # pose first, then the correction
             assert client.poses[t].status == "relocalised"

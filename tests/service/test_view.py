@@ -15,7 +15,7 @@ import pytest
 from occvo_core.trajectory import read_kitti, read_tum
 
 rr = pytest.importorskip("rerun", reason="rerun-sdk is not installed (pip install 'occvo[view]')")
-from rerun.chunk import RrdReader
+from rerun.chunk import RrdReader  # noqa: E402 - only where rerun-sdk is installed
 
 
 def _read(path):

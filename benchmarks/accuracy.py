@@ -50,8 +50,12 @@ def real_runs(name: str) -> dict:
     frames = [source[i] for i in range(len(source))]
     gt = np.asarray(source.gt_poses)
     turned = [OccupancyFrame(f.points * [-1.0, -1.0, 1.0], f.labels, f.index) for f in frames]
-    return {"forward": (frames, gt), "reversed": (frames[::-1], gt[::-1]),
-            "turned": (turned, TURN @ gt @ TURN), "turned+rev": (turned[::-1], (TURN @ gt @ TURN)[::-1])}
+    return {
+        "forward": (frames, gt),
+        "reversed": (frames[::-1], gt[::-1]),
+        "turned": (turned, TURN @ gt @ TURN),
+        "turned+rev": (turned[::-1], (TURN @ gt @ TURN)[::-1]),
+    }
 
 
 def synthetic(seed: int, cache: Path) -> tuple[list, np.ndarray, tuple]:
@@ -65,14 +69,22 @@ def synthetic(seed: int, cache: Path) -> tuple[list, np.ndarray, tuple]:
         points, labels = scene.static_map()
         sizes = np.array([len(f.labels) for f in frames])
         cache.mkdir(parents=True, exist_ok=True)
-        np.savez(path.with_suffix(".tmp.npz"), sizes=sizes, points=np.concatenate([f.points for f in frames]),
-                 labels=np.concatenate([f.labels for f in frames]), gt=scene.gt_poses, map_points=points,
-                 map_labels=labels)
+        np.savez(
+            path.with_suffix(".tmp.npz"),
+            sizes=sizes,
+            points=np.concatenate([f.points for f in frames]),
+            labels=np.concatenate([f.labels for f in frames]),
+            gt=scene.gt_poses,
+            map_points=points,
+            map_labels=labels,
+        )
         path.with_suffix(".tmp.npz").rename(path)
     z = np.load(path)
     cut = np.cumsum(z["sizes"])[:-1]
-    frames = [OccupancyFrame(p, lab, i, i / 2.0)
-              for i, (p, lab) in enumerate(zip(np.split(z["points"], cut), np.split(z["labels"], cut)))]
+    frames = [
+        OccupancyFrame(p, lab, i, i / 2.0)
+        for i, (p, lab) in enumerate(zip(np.split(z["points"], cut), np.split(z["labels"], cut)))
+    ]
     return frames, z["gt"], (z["map_points"], z["map_labels"])
 
 
@@ -83,8 +95,12 @@ def score(frames: list, gt: np.ndarray, config: OccVOConfig, truth_map=None) -> 
     est = vo.poses
     world_gt, gt = gt, np.linalg.inv(gt[0]) @ gt
     fit = fit_time_offset(gt, est, np.arange(len(gt)) / 2.0)
-    row = {"ape_m": ape_rmse(gt, est), "ape_time_fitted_m": fit.ape_rmse_m, "time_offset_ms": fit.offset_ms,
-           "path_ratio": path_length(est) / path_length(gt)}
+    row = {
+        "ape_m": ape_rmse(gt, est),
+        "ape_time_fitted_m": fit.ape_rmse_m,
+        "time_offset_ms": fit.offset_ms,
+        "path_ratio": path_length(est) / path_length(gt),
+    }
     if truth_map is not None:
         from occvo_core.map_metrics import align_to_ground_truth, map_metrics
 
@@ -107,11 +123,14 @@ def job(args: tuple) -> tuple:
 
 def summarise(rows: dict) -> dict:
     apes = [r["ape_m"] for r in rows.values()]
-    out = {"mean_ape_m": float(np.mean(apes)), "worst_ape_m": float(np.max(apes)),
-           "success": float(np.mean([success(a) for a in apes])),
-           "mean_ape_time_fitted_m": float(np.mean([r["ape_time_fitted_m"] for r in rows.values()])),
-           "worst_ape_time_fitted_m": float(np.max([r["ape_time_fitted_m"] for r in rows.values()])),
-           "mean_path_ratio": float(np.mean([r["path_ratio"] for r in rows.values()]))}
+    out = {
+        "mean_ape_m": float(np.mean(apes)),
+        "worst_ape_m": float(np.max(apes)),
+        "success": float(np.mean([success(a) for a in apes])),
+        "mean_ape_time_fitted_m": float(np.mean([r["ape_time_fitted_m"] for r in rows.values()])),
+        "worst_ape_time_fitted_m": float(np.max([r["ape_time_fitted_m"] for r in rows.values()])),
+        "mean_path_ratio": float(np.mean([r["path_ratio"] for r in rows.values()])),
+    }
     for k in ("precision", "completion"):
         if all(k in r for r in rows.values()):
             out[f"mean_{k}"] = float(np.mean([r[k] for r in rows.values()]))
@@ -142,8 +161,13 @@ def main(argv=None) -> int:
     if "real" in args.sets and not scenes:
         print(f"no real scenes at {SAMPLE}", file=sys.stderr)
     jobs = [(c, "real", (s, w), args.cache) for c in args.config if "real" in args.sets for s in scenes for w in WAYS]
-    jobs += [(c, k, seed, args.cache) for c in args.config for k in ("choose", "confirm") if k in args.sets
-             for seed in list(SETS[k])[: args.seeds]]
+    jobs += [
+        (c, k, seed, args.cache)
+        for c in args.config
+        for k in ("choose", "confirm")
+        if k in args.sets
+        for seed in list(SETS[k])[: args.seeds]
+    ]
     results: dict = {c: {} for c in args.config}
     with ProcessPoolExecutor(args.jobs) as pool:
         for spec, kind, key, row in pool.map(job, jobs):
@@ -152,8 +176,10 @@ def main(argv=None) -> int:
     for spec, kinds in results.items():
         report[spec] = {}
         for kind, rows in kinds.items():
-            entry = {"runs": {"/".join(map(str, k)) if isinstance(k, tuple) else str(k): r for k, r in rows.items()},
-                     "summary": summarise(rows)}
+            entry = {
+                "runs": {"/".join(map(str, k)) if isinstance(k, tuple) else str(k): r for k, r in rows.items()},
+                "summary": summarise(rows),
+            }
             if kind == "real":
                 entry["leans"] = leans(rows)
             report[spec][kind] = entry
@@ -168,18 +194,24 @@ def print_report(report: dict) -> None:
         print(f"== {spec}")
         for kind, entry in kinds.items():
             s = entry["summary"]
-            line = (f"  {kind:<8} APE mean {s['mean_ape_m']:.3f} worst {s['worst_ape_m']:.3f} | time-fitted mean "
-                    f"{s['mean_ape_time_fitted_m']:.3f} worst {s['worst_ape_time_fitted_m']:.3f} | path ratio "
-                    f"{s['mean_path_ratio']:.4f} | success {s['success']:.3f}")
+            line = (
+                f"  {kind:<8} APE mean {s['mean_ape_m']:.3f} worst {s['worst_ape_m']:.3f} | time-fitted mean "
+                f"{s['mean_ape_time_fitted_m']:.3f} worst {s['worst_ape_time_fitted_m']:.3f} | path ratio "
+                f"{s['mean_path_ratio']:.4f} | success {s['success']:.3f}"
+            )
             if "mean_precision" in s:
                 line += f" | precision {s['mean_precision']:.3f} completion {s['mean_completion']:.3f}"
             print(line)
             if kind == "real":
                 for run, r in entry["runs"].items():
-                    print(f"    {run:<22} APE {r['ape_m']:.3f} fitted {r['ape_time_fitted_m']:.3f} "
-                          f"shift {r['time_offset_ms']:+4.0f} ms path {r['path_ratio']:.4f}")
+                    print(
+                        f"    {run:<22} APE {r['ape_m']:.3f} fitted {r['ape_time_fitted_m']:.3f} "
+                        f"shift {r['time_offset_ms']:+4.0f} ms path {r['path_ratio']:.4f}"
+                    )
                 for name, lean in entry["leans"].items():
-                    print(f"    {name}: data offset {lean['data_offset_ms']:+.0f} ms, ego lean {lean['ego_lean_ms']:+.0f} ms")
+                    print(
+                        f"    {name}: data offset {lean['data_offset_ms']:+.0f} ms, ego lean {lean['ego_lean_ms']:+.0f} ms"
+                    )
 
 
 if __name__ == "__main__":

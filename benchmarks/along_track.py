@@ -70,8 +70,11 @@ def along_errors(gt: np.ndarray, est: np.ndarray, relative_to: np.ndarray) -> tu
 def open3d_along_errors(frames, gt: np.ndarray, previous: int = 3) -> tuple[np.ndarray, np.ndarray]:
     """Per step t: open3d GICP of frame t's static points to frames t-previous..t-1 at their ground-truth poses,
     from the ground-truth motion; (error along the ground-truth step, step length)."""
+
     def cloud(frame):
-        return o3d.geometry.PointCloud(o3d.utility.Vector3dVector(frame.points[~np.isin(frame.labels, MOVABLE_CLASSES)]))
+        return o3d.geometry.PointCloud(
+            o3d.utility.Vector3dVector(frame.points[~np.isin(frame.labels, MOVABLE_CLASSES)])
+        )
 
     err, length = [], []
     for t in range(1, len(frames)):
@@ -80,9 +83,13 @@ def open3d_along_errors(frames, gt: np.ndarray, previous: int = 3) -> tuple[np.n
             target += cloud(frames[j]).transform(np.linalg.inv(gt[t - 1]) @ gt[j])
         truth = np.linalg.inv(gt[t - 1]) @ gt[t]
         got = o3d.pipelines.registration.registration_generalized_icp(
-            cloud(frames[t]), target.voxel_down_sample(0.4), 1.0, truth,
+            cloud(frames[t]),
+            target.voxel_down_sample(0.4),
+            1.0,
+            truth,
             o3d.pipelines.registration.TransformationEstimationForGeneralizedICP(),
-            o3d.pipelines.registration.ICPConvergenceCriteria(max_iteration=60)).transformation
+            o3d.pipelines.registration.ICPConvergenceCriteria(max_iteration=60),
+        ).transformation
         n = np.linalg.norm(truth[:3, 3])
         err.append((got[:3, 3] - truth[:3, 3]) @ (truth[:3, 3] / max(n, 1e-9)))
         length.append(n)
@@ -128,15 +135,19 @@ def measure(root: Path, name: str, config: OccVOConfig | None = None) -> dict:
     best_shift, best_scale = int(np.argmin(shift_ape)), int(np.argmin(scale_ape))
     return {
         "ape_rmse_m": ape_rmse(gt, est),
-        "odometry_along_sum_cm": float(err[moving].sum() * 100), "distance_m": float(length[moving].sum()),
+        "odometry_along_sum_cm": float(err[moving].sum() * 100),
+        "distance_m": float(length[moving].sum()),
         "gt_map_along_mean_cm": float(gt_err[moving].mean() * 100),
         "gt_map_along_share": float(gt_err[moving].sum() / length[moving].sum()),
-        "gt_map_frames_ahead": int((gt_err[moving] > 0).sum()), "moving_frames": int(moving.sum()),
+        "gt_map_frames_ahead": int((gt_err[moving] > 0).sum()),
+        "moving_frames": int(moving.sum()),
         "open3d_along_mean_cm": float(o3d_err[moving].mean() * 100),
         "open3d_along_share": float(o3d_err[moving].sum() / length[moving].sum()),
         "open3d_frames_ahead": int((o3d_err[moving] > 0).sum()),
-        "best_time_shift_ms": float(shifts[best_shift] * PERIOD_S * 1e3), "ape_at_best_shift_m": float(shift_ape[best_shift]),
-        "best_scale": float(scales[best_scale]), "ape_at_best_scale_m": float(scale_ape[best_scale]),
+        "best_time_shift_ms": float(shifts[best_shift] * PERIOD_S * 1e3),
+        "ape_at_best_shift_m": float(shift_ape[best_shift]),
+        "best_scale": float(scales[best_scale]),
+        "ape_at_best_scale_m": float(scale_ape[best_scale]),
     }
 
 
@@ -167,15 +178,17 @@ def benchmark_main(argv, description: str, measure_one, print_scene) -> int:
 
 
 def print_scene(name: str, r: dict) -> None:
-    print(f"{name}: APE {r['ape_rmse_m']:.3f} m; odometry steps sum {r['odometry_along_sum_cm']:+.1f} cm along "
-          f"{r['distance_m']:.1f} m\n"
-          f"  gt-map registration: {r['gt_map_along_mean_cm']:+.1f} cm mean along the track "
-          f"({100 * r['gt_map_along_share']:+.2f}% of the distance), ahead in {r['gt_map_frames_ahead']} of "
-          f"{r['moving_frames']} moving frames\n"
-          f"  open3d GICP at ground-truth poses: {r['open3d_along_mean_cm']:+.1f} cm "
-          f"({100 * r['open3d_along_share']:+.2f}%), ahead in {r['open3d_frames_ahead']} of {r['moving_frames']}\n"
-          f"  best time shift {r['best_time_shift_ms']:+.0f} ms: APE {r['ape_at_best_shift_m']:.3f} m; "
-          f"best scale {r['best_scale']:.3f}: APE {r['ape_at_best_scale_m']:.3f} m")
+    print(
+        f"{name}: APE {r['ape_rmse_m']:.3f} m; odometry steps sum {r['odometry_along_sum_cm']:+.1f} cm along "
+        f"{r['distance_m']:.1f} m\n"
+        f"  gt-map registration: {r['gt_map_along_mean_cm']:+.1f} cm mean along the track "
+        f"({100 * r['gt_map_along_share']:+.2f}% of the distance), ahead in {r['gt_map_frames_ahead']} of "
+        f"{r['moving_frames']} moving frames\n"
+        f"  open3d GICP at ground-truth poses: {r['open3d_along_mean_cm']:+.1f} cm "
+        f"({100 * r['open3d_along_share']:+.2f}%), ahead in {r['open3d_frames_ahead']} of {r['moving_frames']}\n"
+        f"  best time shift {r['best_time_shift_ms']:+.0f} ms: APE {r['ape_at_best_shift_m']:.3f} m; "
+        f"best scale {r['best_scale']:.3f}: APE {r['ape_at_best_scale_m']:.3f} m"
+    )
 
 
 def main(argv=None) -> int:

@@ -50,9 +50,13 @@ def stages(vo: GroundTruthMapOdometry, frame, t: int, guess: np.ndarray) -> dict
     static = ~np.isin(p.labels, MOVABLE_CLASSES)
     usable = local.usable & ~np.isin(local.labels, MOVABLE_CLASSES)
     o3d_pose = o3d.pipelines.registration.registration_generalized_icp(
-        _cloud(p.points[static], p.covs[static]), _cloud(local.pos[usable], local.cov[usable]), 1.0, guess,
+        _cloud(p.points[static], p.covs[static]),
+        _cloud(local.pos[usable], local.cov[usable]),
+        1.0,
+        guess,
         o3d.pipelines.registration.TransformationEstimationForGeneralizedICP(),
-        o3d.pipelines.registration.ICPConvergenceCriteria(max_iteration=60)).transformation
+        o3d.pipelines.registration.ICPConvergenceCriteria(max_iteration=60),
+    ).transformation
     return {
         "guess": guess,
         "fine_only": guess @ fine_gicp(p, p.fine, ego, np.eye(4), cfg).pose,
@@ -76,16 +80,21 @@ def measure(root: Path, name: str, config: OccVOConfig) -> dict:
             length = float(np.linalg.norm(step))
             if length > 0.05:
                 guess = gt[t - 1] @ np.linalg.inv(gt[t - 2]) @ gt[t - 1]
-                along = {k: float((pose[:3, 3] - gt[t][:3, 3]) @ step / length * 100)
-                         for k, pose in stages(vo, frame, t, guess).items()}
+                along = {
+                    k: float((pose[:3, 3] - gt[t][:3, 3]) @ step / length * 100)
+                    for k, pose in stages(vo, frame, t, guess).items()
+                }
                 rows.append({"frame": t, "step_m": round(length, 3), **{k: round(v, 1) for k, v in along.items()}})
         vo.step(frame)
     slow = [r for r in rows if r["step_m"] < 1.0]
     moving = [r for r in rows if r["step_m"] > 0.3]
-    return {"frames": rows,
-            "mean_slow_cm": {k: round(float(np.mean([r[k] for r in slow])), 1) if slow else None for k in COLUMNS},
-            "mean_moving_cm": {k: round(float(np.mean([r[k] for r in moving])), 1) if moving else None for k in COLUMNS},
-            "slow_frames": len(slow), "moving_frames": len(moving)}
+    return {
+        "frames": rows,
+        "mean_slow_cm": {k: round(float(np.mean([r[k] for r in slow])), 1) if slow else None for k in COLUMNS},
+        "mean_moving_cm": {k: round(float(np.mean([r[k] for r in moving])), 1) if moving else None for k in COLUMNS},
+        "slow_frames": len(slow),
+        "moving_frames": len(moving),
+    }
 
 
 def print_scene(name: str, r: dict) -> None:
@@ -93,10 +102,15 @@ def print_scene(name: str, r: dict) -> None:
     print("  frame  step m  " + "  ".join(f"{c:>11s}" for c in COLUMNS))
     for row in r["frames"]:
         print(f"  {row['frame']:5d}  {row['step_m']:6.3f}  " + "  ".join(f"{row[c]:+11.1f}" for c in COLUMNS))
-    for label, key, n in (("slow (< 1 m)", "mean_slow_cm", r["slow_frames"]),
-                          ("moving (> 0.3 m)", "mean_moving_cm", r["moving_frames"])):
+    for label, key, n in (
+        ("slow (< 1 m)", "mean_slow_cm", r["slow_frames"]),
+        ("moving (> 0.3 m)", "mean_moving_cm", r["moving_frames"]),
+    ):
         means = r[key]
-        print(f"  mean, {label}, {n} frames: " + "  ".join(f"{c} {means[c]:+.1f}" for c in COLUMNS if means[c] is not None))
+        print(
+            f"  mean, {label}, {n} frames: "
+            + "  ".join(f"{c} {means[c]:+.1f}" for c in COLUMNS if means[c] is not None)
+        )
 
 
 def main(argv=None) -> int:

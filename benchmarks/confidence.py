@@ -61,7 +61,11 @@ def main() -> int:
     for a, b in pairs:
         r = ape[(a, b)]
         print(f"{a:>14g} {b:>6g}  {sum(x < 5.0 for x in r)} of {len(r):<5}  {' '.join(f'{x:.2f}' for x in r)}")
-    print(json.dumps({"seeds": args.seeds, "ape_rmse_m": {f"{a},{b}": [round(x, 3) for x in ape[(a, b)]] for a, b in pairs}}))
+    print(
+        json.dumps(
+            {"seeds": args.seeds, "ape_rmse_m": {f"{a},{b}": [round(x, 3) for x in ape[(a, b)]] for a, b in pairs}}
+        )
+    )
     return 0
 
 

@@ -61,11 +61,20 @@ def main() -> None:
         scene, name = SyntheticScene(seed=args.synthetic, frames=args.frames), f"synthetic:{args.synthetic}"
     n = min(args.frames, len(scene))
     frames = [scene[i] for i in range(n)]
-    t = {"step": [], "commit_full": [], "commit_normal": [], "snapshot_copy": [], "snapshot_write": [],
-         "evict_check": []}
+    t = {
+        "step": [],
+        "commit_full": [],
+        "commit_normal": [],
+        "snapshot_copy": [],
+        "snapshot_write": [],
+        "evict_check": [],
+    }
     peaks = []  # per snapshot: MB written, peak RSS above the process's before it
     with tempfile.TemporaryDirectory() as tmp:
-        full, normal = TrajectoryStore(Path(tmp) / "full.sqlite", "FULL"), TrajectoryStore(Path(tmp) / "normal.sqlite", "NORMAL")
+        full, normal = (
+            TrajectoryStore(Path(tmp) / "full.sqlite", "FULL"),
+            TrajectoryStore(Path(tmp) / "normal.sqlite", "NORMAL"),
+        )
         vo = OccVO()
         for i, f in enumerate(frames):
             t0 = time.perf_counter()
@@ -104,11 +113,20 @@ def main() -> None:
         full.close()
         normal.close()
     med = {k: round(float(np.median(v)) * 1000, 2) for k, v in t.items() if v}
-    print(json.dumps({"scene": name, "frames": n, "median_ms": med, "map_voxels": len(vo.map),
-                      "snapshot_mb": round(sizes["snapshots_bytes"] / 1e6, 2),
-                      "journal_frame_kb": round(sizes["journal_bytes"] / max(sizes["journal_rows"], 1) / 1e3, 1),
-                      "resume": {"journal_frames": len(journal), "seconds": round(resume_s, 2), "poses_equal": True},
-                      "snapshot_peak_rss_mb": [{"state": round(a, 1), "above_before": round(b, 1)} for a, b in peaks]}))
+    print(
+        json.dumps(
+            {
+                "scene": name,
+                "frames": n,
+                "median_ms": med,
+                "map_voxels": len(vo.map),
+                "snapshot_mb": round(sizes["snapshots_bytes"] / 1e6, 2),
+                "journal_frame_kb": round(sizes["journal_bytes"] / max(sizes["journal_rows"], 1) / 1e3, 1),
+                "resume": {"journal_frames": len(journal), "seconds": round(resume_s, 2), "poses_equal": True},
+                "snapshot_peak_rss_mb": [{"state": round(a, 1), "above_before": round(b, 1)} for a, b in peaks],
+            }
+        )
+    )
 
 
 if __name__ == "__main__":

@@ -84,9 +84,14 @@ def main() -> int:
     scene = OccVOReleaseScene(DATA)
     frames = [scene[i] for i in range(min(args.frames, len(scene)))]
     store = ["--store-path", str(Path(tempfile.mkdtemp()) / "occvo.sqlite")]  # idle streams' state goes there
-    svc = LocalService(quiet=True, worker_args={"registration": ["--config", "deploy/registration_worker.json5", *store],
-                                                "inference": ["--config", "deploy/inference_worker.json5"],
-                                                "map": ["--config", "deploy/map_service.json5", *store]}).start()
+    svc = LocalService(
+        quiet=True,
+        worker_args={
+            "registration": ["--config", "deploy/registration_worker.json5", *store],
+            "inference": ["--config", "deploy/inference_worker.json5"],
+            "map": ["--config", "deploy/map_service.json5", *store],
+        },
+    ).start()
     try:
         ep = svc.endpoint
         alone_s, alone = run_replay(ep, "legit0", frames)
@@ -116,20 +121,38 @@ def main() -> int:
         flooder.join()
         flood_end = time.perf_counter()
         stop.set()
-        emit("flood", streams=args.streams, flood_took_s=round(flood_end - t0, 1), replay_s=round(flood_s, 2),
-             ratio_to_alone=round(flood_s / alone_s, 2), poses_equal=bool(np.array_equal(flooded, alone)),
-             registration_peak_rss_mb=peak["rss_mb"])
+        emit(
+            "flood",
+            streams=args.streams,
+            flood_took_s=round(flood_end - t0, 1),
+            replay_s=round(flood_s, 2),
+            ratio_to_alone=round(flood_s / alone_s, 2),
+            poses_equal=bool(np.array_equal(flooded, alone)),
+            registration_peak_rss_mb=peak["rss_mb"],
+        )
         time.sleep(max(0.0, args.settle_s - (time.perf_counter() - flood_end)))
         cpu0 = {r: cpu_s(p.pid) for r, p in svc.procs.items()}
         time.sleep(5.0)
         idle = {r: round(100 * (cpu_s(p.pid) - cpu0[r]) / 5.0, 1) for r, p in svc.procs.items()}
         after = workers(svc)
-        emit("settled", after_s=args.settle_s, workers=after, idle_cpu_pct=idle,
-             rss_vs_baseline=({r: round(after[r]["rss_mb"] / base[r]["rss_mb"], 2) for r in base}),
-             threads_vs_baseline=({r: after[r]["threads"] - base[r]["threads"] for r in base}))
+        emit(
+            "settled",
+            after_s=args.settle_s,
+            workers=after,
+            idle_cpu_pct=idle,
+            rss_vs_baseline=({r: round(after[r]["rss_mb"] / base[r]["rss_mb"], 2) for r in base}),
+            threads_vs_baseline=({r: after[r]["threads"] - base[r]["threads"] for r in base}),
+        )
 
-        hostile = msgpack.packb({"kind": "camera_frame", "schema_version": 1, "stream": "legit2h0",
-                                 "x": [[{"a": 1, "b": 2} for _ in range(60000)] for _ in range(35)]})
+        hostile = msgpack.packb(
+            {
+                "kind": "camera_frame",
+                "schema_version": 1,
+                "stream": "legit2h0",
+                "x": [[{"a": 1, "b": 2} for _ in range(60000)] for _ in range(35)],
+            }
+        )
+
         def second_frame_ms(stream: str, hostile_between: bool) -> float:
             with OccVOClient(ep, stream, timeout=120) as c:
                 c.reset()
@@ -142,16 +165,25 @@ def main() -> int:
 
         plain_ms = float(np.median([second_frame_ms(f"legit2p{i}", False) for i in range(3)]))
         after_ms = float(np.median([second_frame_ms(f"legit2h{i}", True) for i in range(3)]))
-        emit("msgpack", payload_mb=round(len(hostile) / 1e6, 1), frame_ms_alone=round(plain_ms, 1),
-             frame_ms_after_hostile=round(after_ms, 1), delay_ms=round(after_ms - plain_ms, 1))
+        emit(
+            "msgpack",
+            payload_mb=round(len(hostile) / 1e6, 1),
+            frame_ms_alone=round(plain_ms, 1),
+            frame_ms_after_hostile=round(after_ms, 1),
+            delay_ms=round(after_ms - plain_ms, 1),
+        )
 
         me = os.getpid()
         before = {**workers(svc), "router": proc_status(me)}
         session.put(keys.camera("legit3"), b"\x00" * (args.big_mb << 20), congestion_control=BLOCK)
         time.sleep(3.0)
         after = {**workers(svc), "router": proc_status(me)}
-        emit("oversize", put_mb=args.big_mb, rss_rise_mb={r: round(after[r]["rss_mb"] - before[r]["rss_mb"], 1) for r in after},
-             note="router rise includes this process's own put buffer")
+        emit(
+            "oversize",
+            put_mb=args.big_mb,
+            rss_rise_mb={r: round(after[r]["rss_mb"] - before[r]["rss_mb"], 1) for r in after},
+            note="router rise includes this process's own put buffer",
+        )
 
         with OccVOClient(ep, "legit0", timeout=60) as c:
             ix, iy = c.map_info().tiles[0]

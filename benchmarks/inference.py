@@ -27,7 +27,9 @@ def child(preset_name: str, device_name: str, repeats: int, warmup: int, threads
 
     torch.set_num_threads(threads)
     device = torch.device(device_name)
-    model = (load_checkpoint(checkpoint, device=device) if checkpoint else TPVFormer(preset(preset_name)).to(device).eval())
+    model = (
+        load_checkpoint(checkpoint, device=device) if checkpoint else TPVFormer(preset(preset_name)).to(device).eval()
+    )
     cfg = model.cfg
     w, h = cfg.input_size
     rig = nuscenes_rig(w, h)
@@ -48,9 +50,18 @@ def child(preset_name: str, device_name: str, repeats: int, warmup: int, threads
             if i >= warmup:
                 times.append((time.perf_counter() - t0) * 1e3)
     assert tuple(labels.shape) == tuple(cfg.grid_shape)
-    out = {"preset": preset_name, "device": device_name, "threads": threads, "input": f"6x{w}x{h}",
-           "params": model.num_parameters(), "repeats": repeats, "ms_median": statistics.median(times), "ms_min": min(times),
-           "rss_before_mb": rss_before / 2**20, "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024}
+    out = {
+        "preset": preset_name,
+        "device": device_name,
+        "threads": threads,
+        "input": f"6x{w}x{h}",
+        "params": model.num_parameters(),
+        "repeats": repeats,
+        "ms_median": statistics.median(times),
+        "ms_min": min(times),
+        "rss_before_mb": rss_before / 2**20,
+        "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
+    }
     if device.type == "cuda":
         out["peak_cuda_mb"] = torch.cuda.max_memory_allocated(device) / 2**20
     return out
@@ -76,18 +87,35 @@ def main() -> int:
     rows = []
     for preset_name in args.presets:
         for device in devices:
-            cmd = [sys.executable, __file__, "--_child", preset_name, device, "--repeats", str(args.repeats), "--warmup",
-                   str(args.warmup), "--threads", str(args.threads)] + (["--checkpoint", args.checkpoint] if args.checkpoint else [])
+            cmd = [
+                sys.executable,
+                __file__,
+                "--_child",
+                preset_name,
+                device,
+                "--repeats",
+                str(args.repeats),
+                "--warmup",
+                str(args.warmup),
+                "--threads",
+                str(args.threads),
+            ] + (["--checkpoint", args.checkpoint] if args.checkpoint else [])
             proc = subprocess.run(cmd, capture_output=True, text=True)
             if proc.returncode:
                 print(f"{preset_name}/{device} failed:\n{proc.stderr[-2000:]}", file=sys.stderr)
                 continue
             row = json.loads(proc.stdout.strip().splitlines()[-1])
             rows.append(row)
-            mem = f"peak cuda {row['peak_cuda_mb']:.0f} MB" if "peak_cuda_mb" in row else \
-                f"peak RSS {row['peak_rss_mb']:.0f} MB (before forward {row['rss_before_mb']:.0f} MB)"
-            print(f"{preset_name:>6} {device:>5} x{row['threads']} thread(s)  input {row['input']:>12}  params {row['params'] / 1e6:7.2f} M  "
-                  f"{row['ms_median']:9.1f} ms/frame median (min {row['ms_min']:.1f}, n={row['repeats']})  {mem}", flush=True)
+            mem = (
+                f"peak cuda {row['peak_cuda_mb']:.0f} MB"
+                if "peak_cuda_mb" in row
+                else f"peak RSS {row['peak_rss_mb']:.0f} MB (before forward {row['rss_before_mb']:.0f} MB)"
+            )
+            print(
+                f"{preset_name:>6} {device:>5} x{row['threads']} thread(s)  input {row['input']:>12}  params {row['params'] / 1e6:7.2f} M  "
+                f"{row['ms_median']:9.1f} ms/frame median (min {row['ms_min']:.1f}, n={row['repeats']})  {mem}",
+                flush=True,
+            )
     if args.json:
         with open(args.json, "w") as f:
             json.dump(rows, f, indent=1)

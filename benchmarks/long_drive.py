@@ -51,8 +51,13 @@ START_TILES = dict(ix_min=-1, ix_max=0, iy_min=-1, iy_max=0)  # 20 m tiles: [-20
 
 
 def worker_has_store() -> bool:
-    out = subprocess.run([sys.executable, "-m", "services.registration_worker", "--help"], cwd=REPO,
-                         capture_output=True, text=True, timeout=60)
+    out = subprocess.run(
+        [sys.executable, "-m", "services.registration_worker", "--help"],
+        cwd=REPO,
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
     return "--store-path" in out.stdout and "--working-radius-m" in out.stdout
 
 
@@ -68,8 +73,10 @@ def snapshot_frames(scene: SyntheticScene, away_m: float = 80.0) -> tuple[list[i
     """For each full lap, its last frame at which the ego is still at least `away_m` (or 80 % of the lap's
     farthest distance) from its start, i.e. just before it comes back there; and that distance in lap 1."""
     if len(scene.lap_starts) < 3:
-        raise SystemExit(f"the drive must do at least 2 full laps, this one does {len(scene.lap_starts) - 1} "
-                         f"(laps start at frames {scene.lap_starts.tolist()}): more --frames or smaller --blocks")
+        raise SystemExit(
+            f"the drive must do at least 2 full laps, this one does {len(scene.lap_starts) - 1} "
+            f"(laps start at frames {scene.lap_starts.tolist()}): more --frames or smaller --blocks"
+        )
     xy = scene.gt_poses[:, :2, 3]
     d = np.linalg.norm(xy - xy[0], axis=1)
 
@@ -126,7 +133,7 @@ class RssSampler(threading.Thread):
         t0 = time.perf_counter()
         while not self.halt.is_set():
             try:
-                rss = self.proc.memory_info().rss / 2 ** 20
+                rss = self.proc.memory_info().rss / 2**20
             except psutil.Error:
                 return
             self.samples.append((time.perf_counter() - t0, self.done(), rss))
@@ -162,10 +169,14 @@ def run(args, scene: SyntheticScene) -> dict:
     with tempfile.TemporaryDirectory(prefix="occvo-long-") as tmp:
         log_dir = Path(args.log_dir or tmp)
         log_dir.mkdir(parents=True, exist_ok=True)
-        reg_args = ["--store-path", str(Path(tmp) / "occvo.db"), "--working-radius-m", str(args.radius)] if eviction else []
+        reg_args = (
+            ["--store-path", str(Path(tmp) / "occvo.db"), "--working-radius-m", str(args.radius)] if eviction else []
+        )
         if args.after_pose_nice is not None:
             reg_args += ["--after-pose-nice", str(args.after_pose_nice)]
-        svc = LocalService(worker_args={"registration": reg_args}, common_args=["--log-level", "WARNING"], log_dir=log_dir)
+        svc = LocalService(
+            worker_args={"registration": reg_args}, common_args=["--log-level", "WARNING"], log_dir=log_dir
+        )
         svc.start()
         try:
             with OccVOClient(svc.endpoint, stream="loop") as client:
@@ -185,8 +196,11 @@ def run(args, scene: SyntheticScene) -> dict:
                         marks["hwm_half"] = vm_hwm_mb(pid)
                         marks["voxels_half"] = client.map_info().voxel_count
                     if i % 300 == 0:
-                        print(f"  frame {i}/{total}  {time.perf_counter() - t_run:.0f} s  registration rss "
-                              f"{psutil.Process(pid).memory_info().rss / 2 ** 20:.0f} MB  hwm {vm_hwm_mb(pid):.0f} MB", flush=True)
+                        print(
+                            f"  frame {i}/{total}  {time.perf_counter() - t_run:.0f} s  registration rss "
+                            f"{psutil.Process(pid).memory_info().rss / 2**20:.0f} MB  hwm {vm_hwm_mb(pid):.0f} MB",
+                            flush=True,
+                        )
 
                 sampler.start()
                 try:
@@ -195,10 +209,18 @@ def run(args, scene: SyntheticScene) -> dict:
                     sent = int(stop.args[0]) + 1
                     client.wait_pose(sent - 1, args.timeout)
                     poses = dict(client.poses)
-                    out = {"frames": sent, "poses": len(poses), "errors": len(client.errors), "seconds": time.perf_counter() - t_run,
-                           "trajectory": np.array([poses[q].matrix() for q in sorted(poses)]), "budget_stop": True}
+                    out = {
+                        "frames": sent,
+                        "poses": len(poses),
+                        "errors": len(client.errors),
+                        "seconds": time.perf_counter() - t_run,
+                        "trajectory": np.array([poses[q].matrix() for q in sorted(poses)]),
+                        "budget_stop": True,
+                    }
                     out["fps"] = out["poses"] / out["seconds"]
-                    print(f"  time budget of {args.budget_s:g} s reached: the drive stops after {sent} frames", flush=True)
+                    print(
+                        f"  time budget of {args.budget_s:g} s reached: the drive stops after {sent} frames", flush=True
+                    )
                 finally:
                     sampler.halt.set()
                     sampler.join()
@@ -213,12 +235,22 @@ def run(args, scene: SyntheticScene) -> dict:
             for p in sorted(log_dir.glob("*.log")):
                 print(p.name, p.read_text()[-2000:], file=sys.stderr)
     return {
-        "n": n_done, "n_planned": n, "eviction": eviction, "snapshot_frames": laps, "away_m": away,
-        "out": {k: v for k, v in out.items() if k != "pose_msgs"}, "samples": sampler.samples, "snaps": snaps,
-        "marks": marks, "hwm_end": hwm_end, "voxels_end": info_end.voxel_count, "tiles_end": info_end.tile_count,
+        "n": n_done,
+        "n_planned": n,
+        "eviction": eviction,
+        "snapshot_frames": laps,
+        "away_m": away,
+        "out": {k: v for k, v in out.items() if k != "pose_msgs"},
+        "samples": sampler.samples,
+        "snaps": snaps,
+        "marks": marks,
+        "hwm_end": hwm_end,
+        "voxels_end": info_end.voxel_count,
+        "tiles_end": info_end.tile_count,
         "registration_counters": dict(reg.counters) if reg else {},
         "registration_stages_ms": {k: v.mean_ms for k, v in reg.stages.items()} if reg else {},
-        "exit_codes": codes, "bench_rss_mb": psutil.Process().memory_info().rss / 2 ** 20,
+        "exit_codes": codes,
+        "bench_rss_mb": psutil.Process().memory_info().rss / 2**20,
     }
 
 
@@ -227,8 +259,12 @@ def analyse(raw: dict, scene: SyntheticScene, args, t_build: float) -> dict:
     eviction = raw["eviction"]
     laps_done = sorted(k for k in raw["snaps"] if k != "end")
     snaps, frame_of = {}, {}
-    for name, k in (("first", laps_done[0] if laps_done else None), ("second", laps_done[1] if len(laps_done) > 2 else None),
-                    ("last", laps_done[-1] if len(laps_done) > 1 else None), ("end", "end")):
+    for name, k in (
+        ("first", laps_done[0] if laps_done else None),
+        ("second", laps_done[1] if len(laps_done) > 2 else None),
+        ("last", laps_done[-1] if len(laps_done) > 1 else None),
+        ("end", "end"),
+    ):
         if k is not None and k in raw["snaps"]:
             frame_of[name], *snaps[name] = raw["snaps"][k]
     k_first, k_last = frame_of.get("first"), frame_of.get("last")
@@ -242,7 +278,9 @@ def analyse(raw: dict, scene: SyntheticScene, args, t_build: float) -> dict:
     rev_end = map_metrics(*snaps.get("end", empty), *snaps.get("first", empty))
     rev2 = map_metrics(*snaps["last"], *snaps["second"]) if "second" in snaps and "last" in snaps else None
     truth = true_start_map(scene)
-    vs_truth = {k: round(map_metrics(*snaps[k], *truth).precision, 4) for k in ("first", "second", "last", "end") if k in snaps}
+    vs_truth = {
+        k: round(map_metrics(*snaps[k], *truth).precision, 4) for k in ("first", "second", "last", "end") if k in snaps
+    }
     # what the revisit added beyond lap 1's map: structure lap 1 did not see (on the true map), or misplaced
     new_on_truth = float("nan")
     if "last" in snaps and "first" in snaps and len(snaps["first"][0]) and len(snaps["last"][0]):
@@ -264,66 +302,115 @@ def analyse(raw: dict, scene: SyntheticScene, args, t_build: float) -> dict:
         rev_seen_shifted, _ = where_seen(snaps["last"][0] + [0.4, 0.0, 0.0], snaps["last"][1])  # a map one voxel off
     stages = raw["registration_stages_ms"]
     res = {
-        "frames": n, "frames_planned": raw["n_planned"], "budget_stop": bool(out.get("budget_stop")), "poses": out["poses"], "errors": out["errors"], "seed": args.seed, "blocks": args.blocks,
-        "lap_m": round(scene.lap_length_m, 1), "laps": len(scene.lap_starts) - 1, "eviction": eviction,
-        "radius_m": args.radius if eviction else None, "wall_s": round(out["seconds"], 1), "fps": round(out["fps"], 3),
+        "frames": n,
+        "frames_planned": raw["n_planned"],
+        "budget_stop": bool(out.get("budget_stop")),
+        "poses": out["poses"],
+        "errors": out["errors"],
+        "seed": args.seed,
+        "blocks": args.blocks,
+        "lap_m": round(scene.lap_length_m, 1),
+        "laps": len(scene.lap_starts) - 1,
+        "eviction": eviction,
+        "radius_m": args.radius if eviction else None,
+        "wall_s": round(out["seconds"], 1),
+        "fps": round(out["fps"], 3),
         "scene_build_s": round(t_build, 1),
         "rss_first_median_mb": round(statistics.median(first), 1) if first else None,
         "rss_first_peak_mb": round(max(first), 1) if first else None,
         "rss_last_median_mb": round(statistics.median(last), 1) if last else None,
         "rss_last_peak_mb": round(max(last), 1) if last else None,
         "rss_peak_ratio": round(max(last) / max(first), 3) if first and last else None,
-        "vmhwm_half_mb": round(marks.get("hwm_half", float("nan")), 1), "vmhwm_end_mb": round(raw["hwm_end"], 1),
+        "vmhwm_half_mb": round(marks.get("hwm_half", float("nan")), 1),
+        "vmhwm_end_mb": round(raw["hwm_end"], 1),
         "rss_samples": len(raw["samples"]),
-        "map_voxels_half": marks.get("voxels_half"), "map_voxels_end": raw["voxels_end"], "map_tiles_end": raw["tiles_end"],
+        "map_voxels_half": marks.get("voxels_half"),
+        "map_voxels_end": raw["voxels_end"],
+        "map_tiles_end": raw["tiles_end"],
         "registration_counters": raw["registration_counters"],
         "registration_stage_mean_ms": {k: round(v, 1) for k, v in stages.items()},
         "ape_rmse_m": round(ape, 3),
-        "start_snapshot_frames": {k: int(v) for k, v in frame_of.items()}, "full_laps_done": len(laps_done),
+        "start_snapshot_frames": {k: int(v) for k, v in frame_of.items()},
+        "full_laps_done": len(laps_done),
         "start_snapshot_away_m": round(raw["away_m"], 1),
         "start_voxels": {k: int(len(v[0])) for k, v in snaps.items()},
-        "revisit_precision": round(rev.precision, 4), "revisit_completion": round(rev.completion, 4),
-        "end_precision": round(rev_end.precision, 4), "end_completion": round(rev_end.completion, 4),
+        "revisit_precision": round(rev.precision, 4),
+        "revisit_completion": round(rev.completion, 4),
+        "end_precision": round(rev_end.precision, 4),
+        "end_completion": round(rev_end.completion, 4),
         "revisit_beyond_lap1_on_truth": round(new_on_truth, 4),
         "revisit_precision_where_lap1_looked": round(rev_seen.precision, 4) if rev_seen else None,
         "revisit_share_where_lap1_looked": round(seen_share, 4) if seen_share is not None else None,
-        "revisit_precision_where_lap1_looked_shifted_0_4m": round(rev_seen_shifted.precision, 4) if rev_seen_shifted else None,
+        "revisit_precision_where_lap1_looked_shifted_0_4m": round(rev_seen_shifted.precision, 4)
+        if rev_seen_shifted
+        else None,
         "lap2_vs_last_precision": round(rev2.precision, 4) if rev2 else None,
         "lap2_vs_last_completion": round(rev2.completion, 4) if rev2 else None,
-        "start_precision_vs_truth": vs_truth, "start_truth_voxels": int(len(truth[0])),
-        "bench_process_rss_mb": round(raw["bench_rss_mb"], 1), "worker_exit_codes": raw["exit_codes"],
+        "start_precision_vs_truth": vs_truth,
+        "start_truth_voxels": int(len(truth[0])),
+        "bench_process_rss_mb": round(raw["bench_rss_mb"], 1),
+        "worker_exit_codes": raw["exit_codes"],
     }
     edges = list(scene.lap_starts) + [n]
-    res["rss_peak_by_lap_mb"] = [round(max(r for _, f, r in raw["samples"] if a <= f < b), 1)
-                                 for a, b in zip(edges[:-1], edges[1:]) if a < n and any(a <= f < b for _, f, _ in raw["samples"])]
+    res["rss_peak_by_lap_mb"] = [
+        round(max(r for _, f, r in raw["samples"] if a <= f < b), 1)
+        for a, b in zip(edges[:-1], edges[1:])
+        if a < n and any(a <= f < b for _, f, _ in raw["samples"])
+    ]
     res["flat_memory"] = bool(res["rss_peak_ratio"] is not None and res["rss_peak_ratio"] <= 1.1)
     # the goal is judged where lap 1's cameras looked: there lap 1 built a map to match; elsewhere the last lap's
     # voxels are structure lap 1 never saw (its map of the start is taken before it came back), with nothing to match
     res["revisit_ok"] = bool(rev_seen is not None and rev_seen.precision >= 0.9)
     sv = res["start_voxels"]
     rows = [
-        ("frames (poses / errors)", f"{n} of {raw['n_planned']} ({out['poses']} / {out['errors']})"
-                                    + (" - stopped by the time budget" if out.get("budget_stop") else "")),
+        (
+            "frames (poses / errors)",
+            f"{n} of {raw['n_planned']} ({out['poses']} / {out['errors']})"
+            + (" - stopped by the time budget" if out.get("budget_stop") else ""),
+        ),
         ("loop", f"{args.blocks} blocks, {scene.lap_length_m:.0f} m a lap, {len(laps_done)} full laps driven"),
-        ("eviction", f"on, working radius {args.radius:g} m, SQLite store" if eviction else "off (no store in the registration worker)"),
+        (
+            "eviction",
+            f"on, working radius {args.radius:g} m, SQLite store"
+            if eviction
+            else "off (no store in the registration worker)",
+        ),
         ("wall time", f"{out['seconds']:.0f} s ({out['fps']:.2f} frames/s)"),
-        ("registration mean ms: registration / map_update / stage_total",
-         " / ".join(f"{stages.get(k, float('nan')):.0f}" for k in ("registration", "map_update", "stage_total"))),
-        ("registration RSS median, first / last half", f"{res['rss_first_median_mb']} / {res['rss_last_median_mb']} MB"),
+        (
+            "registration mean ms: registration / map_update / stage_total",
+            " / ".join(f"{stages.get(k, float('nan')):.0f}" for k in ("registration", "map_update", "stage_total")),
+        ),
+        (
+            "registration RSS median, first / last half",
+            f"{res['rss_first_median_mb']} / {res['rss_last_median_mb']} MB",
+        ),
         ("registration RSS peak, first / last half", f"{res['rss_first_peak_mb']} / {res['rss_last_peak_mb']} MB"),
         ("peak ratio last / first (goal <= 1.10)", f"{res['rss_peak_ratio']}"),
         ("registration RSS peak by lap", " ".join(f"{v:.0f}" for v in res["rss_peak_by_lap_mb"]) + " MB"),
         ("VmHWM at half / end", f"{res['vmhwm_half_mb']} / {res['vmhwm_end_mb']} MB"),
         ("map voxels served at half / end", f"{res['map_voxels_half']} / {res['map_voxels_end']}"),
         ("APE RMSE (whole drive)", f"{ape:.3f} m"),
-        ("start map last lap vs lap 1 where lap 1's cameras looked: precision (goal >= 0.9)",
-         f"{rev_seen.precision:.4f} ({seen_share:.4f} of the last lap's voxels; the last lap moved 0.4 m in x: "
-         f"{rev_seen_shifted.precision:.4f})" if rev_seen else "n/a"),
-        ("the same over the whole start area", f"{rev.precision:.4f} (completion {rev.completion:.4f}, "
-         f"{sv.get('last')} vs {sv.get('first')} voxels, frames {k_last} vs {k_first})"),
+        (
+            "start map last lap vs lap 1 where lap 1's cameras looked: precision (goal >= 0.9)",
+            f"{rev_seen.precision:.4f} ({seen_share:.4f} of the last lap's voxels; the last lap moved 0.4 m in x: "
+            f"{rev_seen_shifted.precision:.4f})"
+            if rev_seen
+            else "n/a",
+        ),
+        (
+            "the same over the whole start area",
+            f"{rev.precision:.4f} (completion {rev.completion:.4f}, "
+            f"{sv.get('last')} vs {sv.get('first')} voxels, frames {k_last} vs {k_first})",
+        ),
         ("last lap's start voxels beyond 0.4 m of lap 1's: share on the true map", f"{new_on_truth:.4f}"),
-        ("start map end of drive vs lap 1: precision", f"{rev_end.precision:.4f} (completion {rev_end.completion:.4f})"),
-        ("start map last lap vs lap 2: precision", f"{rev2.precision:.4f} (completion {rev2.completion:.4f})" if rev2 else "n/a (< 3 laps)"),
+        (
+            "start map end of drive vs lap 1: precision",
+            f"{rev_end.precision:.4f} (completion {rev_end.completion:.4f})",
+        ),
+        (
+            "start map last lap vs lap 2: precision",
+            f"{rev2.precision:.4f} (completion {rev2.completion:.4f})" if rev2 else "n/a (< 3 laps)",
+        ),
         ("start map precision vs the true static map", ", ".join(f"{k} {v:.4f}" for k, v in vs_truth.items())),
     ]
     w = max(len(r[0]) for r in rows)
@@ -342,19 +429,33 @@ def generate_only(scene: SyntheticScene, t_build: float) -> dict:
         scene[i]
         ms.append((time.perf_counter() - t) * 1000.0)
         if i % 10 == 0:
-            rss.append((i, proc.memory_info().rss / 2 ** 20))
+            rss.append((i, proc.memory_info().rss / 2**20))
         if i % 300 == 299:
-            print(f"  frame {i + 1}/{n}  median {statistics.median(ms[-300:]):.0f} ms a frame  rss {rss[-1][1]:.0f} MB  "
-                  f"hwm {vm_hwm_mb(proc.pid):.0f} MB  cached {len(scene._frames)}", flush=True)
+            print(
+                f"  frame {i + 1}/{n}  median {statistics.median(ms[-300:]):.0f} ms a frame  rss {rss[-1][1]:.0f} MB  "
+                f"hwm {vm_hwm_mb(proc.pid):.0f} MB  cached {len(scene._frames)}",
+                flush=True,
+            )
     first = [r for i, r in rss if i < n / 2]
     last = [r for i, r in rss if i >= n / 2]
-    res = {"mode": "generate", "frames": n, "scene_build_s": round(t_build, 1), "ms_per_frame_median": round(statistics.median(ms), 1),
-           "ms_per_frame_mean": round(statistics.fmean(ms), 1), "rss_first_peak_mb": round(max(first), 1),
-           "rss_last_peak_mb": round(max(last), 1), "rss_peak_ratio": round(max(last) / max(first), 3),
-           "vmhwm_mb": round(vm_hwm_mb(proc.pid), 1), "frames_cached": len(scene._frames), "town_mb": round(scene.town.nbytes() / 1e6, 1),
-           "tracks": len(scene.tracks)}
-    print(f"generated {n} frames: median {res['ms_per_frame_median']} ms a frame (build {t_build:.1f} s); RSS peak first / last "
-          f"half {res['rss_first_peak_mb']} / {res['rss_last_peak_mb']} MB (ratio {res['rss_peak_ratio']}), VmHWM {res['vmhwm_mb']} MB")
+    res = {
+        "mode": "generate",
+        "frames": n,
+        "scene_build_s": round(t_build, 1),
+        "ms_per_frame_median": round(statistics.median(ms), 1),
+        "ms_per_frame_mean": round(statistics.fmean(ms), 1),
+        "rss_first_peak_mb": round(max(first), 1),
+        "rss_last_peak_mb": round(max(last), 1),
+        "rss_peak_ratio": round(max(last) / max(first), 3),
+        "vmhwm_mb": round(vm_hwm_mb(proc.pid), 1),
+        "frames_cached": len(scene._frames),
+        "town_mb": round(scene.town.nbytes() / 1e6, 1),
+        "tracks": len(scene.tracks),
+    }
+    print(
+        f"generated {n} frames: median {res['ms_per_frame_median']} ms a frame (build {t_build:.1f} s); RSS peak first / last "
+        f"half {res['rss_first_peak_mb']} / {res['rss_last_peak_mb']} MB (ratio {res['rss_peak_ratio']}), VmHWM {res['vmhwm_mb']} MB"
+    )
     return res
 
 
@@ -365,15 +466,21 @@ def main() -> int:
     ap.add_argument("--blocks", default="4x4", help="loop around NXxNY city blocks (4x4: ~1.1 km a lap)")
     ap.add_argument("--radius", type=float, default=120.0, help="registration working radius, m (with a store)")
     ap.add_argument("--window", type=int, default=4)
-    ap.add_argument("--after-pose-nice", type=int, help="niceness of the registration worker's work after a pose "
-                    "(default: the worker's, 10; 0: the lanes', faster for one stream replayed as fast as it goes)")
+    ap.add_argument(
+        "--after-pose-nice",
+        type=int,
+        help="niceness of the registration worker's work after a pose "
+        "(default: the worker's, 10; 0: the lanes', faster for one stream replayed as fast as it goes)",
+    )
     ap.add_argument("--no-store", action="store_true", help="run without the durable store and eviction")
     ap.add_argument("--timeout", type=float, default=300.0, help="s without a pose before the replay gives up")
     ap.add_argument("--log-dir", help="keep the workers' logs here (default: a temporary folder)")
     ap.add_argument("--budget-s", type=float, default=0.0, help="stop the drive after this many seconds (0: none)")
     ap.add_argument("--raw", help="pickle the raw measurements here (default: a temporary file)")
     ap.add_argument("--analyse", metavar="RAW", help="only analyse a pickle written by an earlier run (same flags)")
-    ap.add_argument("--generate-only", action="store_true", help="only time the scene's frames and this process's memory")
+    ap.add_argument(
+        "--generate-only", action="store_true", help="only time the scene's frames and this process's memory"
+    )
     args = ap.parse_args()
     blocks = tuple(int(v) for v in args.blocks.lower().split("x"))
     t_build = time.perf_counter()

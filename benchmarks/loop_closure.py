@@ -49,7 +49,9 @@ def start_area(vo: OccVO, cold: dict) -> tuple[np.ndarray, np.ndarray]:
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--frames", type=int, default=700)
-    ap.add_argument("--scene-frames", type=int, help="build the scene this long (the town depends on it); default --frames")
+    ap.add_argument(
+        "--scene-frames", type=int, help="build the scene this long (the town depends on it); default --frames"
+    )
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--blocks", default="2x2")
     ap.add_argument("--radius", type=float, default=100.0, help="working radius of the eviction, m")
@@ -58,11 +60,16 @@ def main(argv=None) -> int:
     blocks = tuple(int(x) for x in args.blocks.split("x"))
     scene = SyntheticScene(seed=args.seed, frames=args.scene_frames or args.frames, route="loop", loop_blocks=blocks)
     cfg = OccVOConfig()
-    cfg = cfg.model_copy(update={"loop_closure": cfg.loop_closure.model_copy(update={"enabled": not args.no_loop_closure})})
+    cfg = cfg.model_copy(
+        update={"loop_closure": cfg.loop_closure.model_copy(update={"enabled": not args.no_loop_closure})}
+    )
     gt = scene.gt_poses
     away = np.linalg.norm(gt[:, :2, 3] - gt[0, :2, 3], axis=1)
-    refs = [max(k for k in range(a, b) if away[k] > 85.0)
-            for a, b in zip(scene.lap_starts[:-1], scene.lap_starts[1:]) if b <= args.frames]
+    refs = [
+        max(k for k in range(a, b) if away[k] > 85.0)
+        for a, b in zip(scene.lap_starts[:-1], scene.lap_starts[1:])
+        if b <= args.frames
+    ]
     refs.append(args.frames - 1)
     truth = true_start_map(scene)
     print(f"lap {scene.lap_length_m:.0f} m, laps start at {scene.lap_starts.tolist()}, reference frames {refs}")
@@ -76,9 +83,12 @@ def main(argv=None) -> int:
         if r.loop_correction is not None:
             true = (np.linalg.inv(gt[0]) @ gt[i])[:3, 3]  # in the odometry's frame, the first pose's
             before = (np.linalg.inv(r.loop_correction) @ r.pose)[:3, 3]
-            print(f"frame {i}: loop closed {away[i]:.0f} m from the start, position error {np.linalg.norm(before - true):.2f} m "
-                  f"-> {np.linalg.norm(r.pose[:3, 3] - true):.2f} m; search {r.timings_ms['loop_closure']:.0f} ms, "
-                  f"map correction and merge {r.timings_ms['voxel_pfilter']:.0f} ms", flush=True)
+            print(
+                f"frame {i}: loop closed {away[i]:.0f} m from the start, position error {np.linalg.norm(before - true):.2f} m "
+                f"-> {np.linalg.norm(r.pose[:3, 3] - true):.2f} m; search {r.timings_ms['loop_closure']:.0f} ms, "
+                f"map correction and merge {r.timings_ms['voxel_pfilter']:.0f} ms",
+                flush=True,
+            )
         stage_ms.append(r.timings_ms.get("loop_closure", 0.0))
         for k, block in vo.evict_tiles(r.pose[:2, 3], args.radius, TILE_M).items():
             cold.setdefault(k, []).insert(0, block)  # newest first, as the worker restores them
@@ -86,15 +96,27 @@ def main(argv=None) -> int:
         if i in refs:
             maps[i] = start_area(vo, cold)
             vs_truth = map_metrics(*maps[i], *truth)
-            print(f"frame {i}: start area {len(maps[i][0])} voxels, working map {len(vo.map)}, "
-                  f"APE {ape_rmse(gt[: i + 1], vo.poses):.2f} m, start vs true map: precision {vs_truth.precision:.3f} "
-                  f"completion {vs_truth.completion:.3f}", flush=True)
+            print(
+                f"frame {i}: start area {len(maps[i][0])} voxels, working map {len(vo.map)}, "
+                f"APE {ape_rmse(gt[: i + 1], vo.poses):.2f} m, start vs true map: precision {vs_truth.precision:.3f} "
+                f"completion {vs_truth.completion:.3f}",
+                flush=True,
+            )
     revisit = map_metrics(*maps[refs[-1]], *maps[refs[0]])
-    print(f"start area at frame {refs[-1]} against lap 1 (frame {refs[0]}): precision {revisit.precision:.3f}, "
-          f"completion {revisit.completion:.3f}")
-    print("loops closed (frame, correction at the ego in m):",
-          [(t, round(float(np.linalg.norm((c @ vo.poses[t - 1])[:3, 3] - vo.poses[t - 1][:3, 3])), 2)) for t, c in vo.loop_closures])
-    print(f"loop_closure stage: median {np.median(stage_ms):.1f} ms, mean {np.mean(stage_ms):.1f}, max {np.max(stage_ms):.1f}")
+    print(
+        f"start area at frame {refs[-1]} against lap 1 (frame {refs[0]}): precision {revisit.precision:.3f}, "
+        f"completion {revisit.completion:.3f}"
+    )
+    print(
+        "loops closed (frame, correction at the ego in m):",
+        [
+            (t, round(float(np.linalg.norm((c @ vo.poses[t - 1])[:3, 3] - vo.poses[t - 1][:3, 3])), 2))
+            for t, c in vo.loop_closures
+        ],
+    )
+    print(
+        f"loop_closure stage: median {np.median(stage_ms):.1f} ms, mean {np.mean(stage_ms):.1f}, max {np.max(stage_ms):.1f}"
+    )
     return 0
 
 

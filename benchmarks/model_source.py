@@ -42,9 +42,25 @@ from services.runtime import free_port, open_router, open_session  # noqa: E402
 def paired(predictor, checkpoint, frames, threads) -> dict:
     ep = f"tcp/127.0.0.1:{free_port()}"
     router = open_router(ep)
-    cmd = [sys.executable, "-m", "services.inference_worker", "--connect", ep, "--source", "model", "--checkpoint",
-           str(checkpoint), "--device", "cpu", "--torch-threads", str(threads), "--worker-id", "inference-bench",
-           "--log-level", "WARNING"]
+    cmd = [
+        sys.executable,
+        "-m",
+        "services.inference_worker",
+        "--connect",
+        ep,
+        "--source",
+        "model",
+        "--checkpoint",
+        str(checkpoint),
+        "--device",
+        "cpu",
+        "--torch-threads",
+        str(threads),
+        "--worker-id",
+        "inference-bench",
+        "--log-level",
+        "WARNING",
+    ]
     proc = subprocess.Popen(cmd, cwd=REPO)
     session = open_session(ep)
     try:
@@ -57,7 +73,10 @@ def paired(predictor, checkpoint, frames, threads) -> dict:
                 done[msg.seq] = msg
                 cv.notify_all()
 
-        subs = [session.declare_subscriber(keys.occupancy("bench"), on_out), session.declare_subscriber(keys.errors("bench"), on_out)]
+        subs = [
+            session.declare_subscriber(keys.occupancy("bench"), on_out),
+            session.declare_subscriber(keys.errors("bench"), on_out),
+        ]
         pub = session.declare_publisher(keys.camera("bench"), congestion_control=zenoh.CongestionControl.BLOCK)
         time.sleep(1.0)  # our subscribers reach the router
         rtt, direct = [], []
@@ -74,7 +93,9 @@ def paired(predictor, checkpoint, frames, threads) -> dict:
             if not isinstance(done[seq], OccupancyFrameMsg):
                 raise RuntimeError(done[seq].message)
             rtt.append((time.perf_counter() - t) * 1000.0)
-        health = decode(next(iter(session.get(keys.stats("inference-bench"), timeout=10))).ok.payload.to_bytes(), WorkerHealth)
+        health = decode(
+            next(iter(session.get(keys.stats("inference-bench"), timeout=10))).ok.payload.to_bytes(), WorkerHealth
+        )
         for s in subs:
             s.undeclare()
     finally:
@@ -83,8 +104,13 @@ def paired(predictor, checkpoint, frames, threads) -> dict:
         proc.wait(60)
         router.close()
     st = health.stages
-    return {"direct_predict_median": statistics.median(direct[2:]), "model_p50": st["model"].p50_ms, "decode_images_p50": st["decode_images"].p50_ms,
-            "inference_p50": st["inference"].p50_ms, "round_trip_median": statistics.median(rtt[2:])}
+    return {
+        "direct_predict_median": statistics.median(direct[2:]),
+        "model_p50": st["model"].p50_ms,
+        "decode_images_p50": st["decode_images"].p50_ms,
+        "inference_p50": st["inference"].p50_ms,
+        "round_trip_median": statistics.median(rtt[2:]),
+    }
 
 
 def main() -> None:
@@ -108,9 +134,19 @@ def main() -> None:
         print(json.dumps({"repeat": r, **{k: round(v, 1) for k, v in runs[-1].items()}}), flush=True)
     med = {k: statistics.median(run[k] for run in runs) for k in runs[0]}
     med["worker_model_over_direct"] = med["model_p50"] / med["direct_predict_median"]
-    print(json.dumps({"checkpoint": args.checkpoint, "frames": args.frames, "repeats": args.repeats,
-                      "encoding": args.encoding, "torch_threads": args.threads,
-                      **{k: round(v, 3 if "over" in k else 1) for k, v in med.items()}}, indent=2))
+    print(
+        json.dumps(
+            {
+                "checkpoint": args.checkpoint,
+                "frames": args.frames,
+                "repeats": args.repeats,
+                "encoding": args.encoding,
+                "torch_threads": args.threads,
+                **{k: round(v, 3 if "over" in k else 1) for k, v in med.items()},
+            },
+            indent=2,
+        )
+    )
 
 
 if __name__ == "__main__":

@@ -93,10 +93,20 @@ def run_scene(scene_dir: Path, window: int) -> dict:
             client.tile(ix, iy)
             tq.append((time.perf_counter() - t0) * 1000.0)
         hops = {k: v for k, v in out["pose_msgs"][len(scene) - 1].timings_ms.items() if k.endswith("_hop")}
-    return {"scene": scene.name, "frames": out["frames"], "poses": out["poses"], "fps": out["fps"],
-            "stage_mean_ms": busy, "slowest": slowest, "efficiency": out["fps"] * busy[slowest] / 1000.0,
-            "tile_query_p50_ms": float(np.percentile(tq, 50)), "tile_query_p99_ms": float(np.percentile(tq, 99)),
-            "tile_voxels": int(tile_voxels), "map_voxels": info.voxel_count, "last_frame_hops_ms": hops}
+    return {
+        "scene": scene.name,
+        "frames": out["frames"],
+        "poses": out["poses"],
+        "fps": out["fps"],
+        "stage_mean_ms": busy,
+        "slowest": slowest,
+        "efficiency": out["fps"] * busy[slowest] / 1000.0,
+        "tile_query_p50_ms": float(np.percentile(tq, 50)),
+        "tile_query_p99_ms": float(np.percentile(tq, 99)),
+        "tile_voxels": int(tile_voxels),
+        "map_voxels": info.voxel_count,
+        "last_frame_hops_ms": hops,
+    }
 
 
 def main(argv=None) -> int:
@@ -117,7 +127,10 @@ def main(argv=None) -> int:
         p50 = float(np.median([np.percentile(r, 50) for r in runs]))
         p99 = float(np.median([np.percentile(r, 99) for r in runs]))
         results["hop"][name] = {"p50_ms": p50, "p99_ms": p99, "bytes": size}
-        print(f"hop 30k voxels {name:16s} {size / 1e6:5.2f} MB  p50 {p50:6.2f} ms  p99 {p99:6.2f} ms  (goal p50 <= 5 ms)", flush=True)
+        print(
+            f"hop 30k voxels {name:16s} {size / 1e6:5.2f} MB  p50 {p50:6.2f} ms  p99 {p99:6.2f} ms  (goal p50 <= 5 ms)",
+            flush=True,
+        )
 
     for name in args.scenes:
         d = DATA / name
@@ -125,12 +138,21 @@ def main(argv=None) -> int:
             print(f"{name}: not found at {d}, skipped")
             continue
         runs = [run_scene(d, args.window) for _ in range(args.repeats)]
-        med = {k: float(np.median([r[k] for r in runs])) for k in ("fps", "efficiency", "tile_query_p50_ms", "tile_query_p99_ms")}
-        stage = {role: float(np.median([r["stage_mean_ms"].get(role, np.nan) for r in runs])) for role in runs[0]["stage_mean_ms"]}
+        med = {
+            k: float(np.median([r[k] for r in runs]))
+            for k in ("fps", "efficiency", "tile_query_p50_ms", "tile_query_p99_ms")
+        }
+        stage = {
+            role: float(np.median([r["stage_mean_ms"].get(role, np.nan) for r in runs]))
+            for role in runs[0]["stage_mean_ms"]
+        }
         results["scenes"][name] = {"median": med, "stage_mean_ms": stage, "runs": runs}
-        print(f"{name}: {runs[0]['frames']} frames  {med['fps']:.2f} frames/s  efficiency {med['efficiency']:.3f} (goal >= 0.9)  "
-              f"stage mean ms {json.dumps({k: round(v, 1) for k, v in stage.items()})}  "
-              f"tile query p50 {med['tile_query_p50_ms']:.2f} ms p99 {med['tile_query_p99_ms']:.2f} ms (goal p50 <= 10 ms)", flush=True)
+        print(
+            f"{name}: {runs[0]['frames']} frames  {med['fps']:.2f} frames/s  efficiency {med['efficiency']:.3f} (goal >= 0.9)  "
+            f"stage mean ms {json.dumps({k: round(v, 1) for k, v in stage.items()})}  "
+            f"tile query p50 {med['tile_query_p50_ms']:.2f} ms p99 {med['tile_query_p99_ms']:.2f} ms (goal p50 <= 10 ms)",
+            flush=True,
+        )
     if args.output:
         Path(args.output).write_text(json.dumps(results, indent=2, default=float))
     return 0

@@ -45,10 +45,17 @@ def main(argv=None) -> int:
     ap.add_argument("--sample", type=Path, default=SAMPLE)
     ap.add_argument("--scenes", nargs="+", default=["scene-0101", "scene-0268"])
     ap.add_argument("--repeats", type=int, default=3)
-    ap.add_argument("--threads", type=int, nargs="+", default=[0],
-                    help="kernel thread counts to measure, 0 = all cores (e.g. --threads 1 0: one core, then all)")
+    ap.add_argument(
+        "--threads",
+        type=int,
+        nargs="+",
+        default=[0],
+        help="kernel thread counts to measure, 0 = all cores (e.g. --threads 1 0: one core, then all)",
+    )
     ap.add_argument("--json", type=Path)
-    ap.add_argument("--motion-search", action="store_true", help="with the semantic BEV motion search (as --from-images)")
+    ap.add_argument(
+        "--motion-search", action="store_true", help="with the semantic BEV motion search (as --from-images)"
+    )
     ap.add_argument("--config", type=Path, help="an OccVOConfig JSON5 file (default: the built-in defaults)")
     args = ap.parse_args(argv)
     if not (args.sample / "occupancy").is_dir():
@@ -73,10 +80,16 @@ def main(argv=None) -> int:
                 rmses.append(ape_rmse(source.gt_poses, vo.poses))
             stage_median = {k: float(np.median([r[k] for r in stage_runs])) for k in stage_runs[0]}
             total = float(np.median(walls))
-            report[key] = {"frames": len(frames), "repeats": args.repeats, "threads": threads,
-                           "ms_per_frame_median": total, "cpu_ms_per_frame_median": float(np.median(cpus)),
-                           "ms_per_stage_median": stage_median, "ratio_to_goal": total / GOAL_MS,
-                           "ape_rmse_m": float(np.median(rmses))}
+            report[key] = {
+                "frames": len(frames),
+                "repeats": args.repeats,
+                "threads": threads,
+                "ms_per_frame_median": total,
+                "cpu_ms_per_frame_median": float(np.median(cpus)),
+                "ms_per_stage_median": stage_median,
+                "ratio_to_goal": total / GOAL_MS,
+                "ape_rmse_m": float(np.median(rmses)),
+            }
             print(f"\n{key}: {len(frames)} frames, {args.repeats} runs (median of per-run medians)")
             print(f"  {'stage':<24}{'ms':>9}")
             for stage, ms in stage_median.items():

@@ -38,8 +38,10 @@ def main() -> None:
         times.append(generate(args.seed + r, args.frames))
         print(f"  seed {args.seed + r}: {times[-1]:.2f} s")
     med = statistics.median(times)
-    print(f"median {med:.2f} s for {args.frames} frames ({1000 * med / args.frames:.0f} ms/frame); "
-          f"ratio to the 5 s budget: {med / 5.0:.2f}")
+    print(
+        f"median {med:.2f} s for {args.frames} frames ({1000 * med / args.frames:.0f} ms/frame); "
+        f"ratio to the 5 s budget: {med / 5.0:.2f}"
+    )
 
 
 if __name__ == "__main__":

@@ -54,6 +54,7 @@ from services.runtime import open_session  # noqa: E402
 
 # ---------------------------------------------------------------- scenes, rendered once
 
+
 def _render(args: tuple[int, int, float, str]) -> str:
     """Render one synthetic scene to an npz of voxel indices (synthetic frames lie on the grid: nothing is lost)."""
     seed, frames, rate, path = args
@@ -70,7 +71,9 @@ def _render(args: tuple[int, int, float, str]) -> str:
         stamps.append(f.stamp)
         scene._frames.clear()  # the scene caches frames; we keep only the compact copy
     tmp = path + ".tmp.npz"
-    np.savez(tmp, idx=np.concatenate(idx), labels=np.concatenate(labels), counts=np.array(counts), stamps=np.array(stamps))
+    np.savez(
+        tmp, idx=np.concatenate(idx), labels=np.concatenate(labels), counts=np.array(counts), stamps=np.array(stamps)
+    )
     os.replace(tmp, path)
     return path
 
@@ -88,7 +91,9 @@ def _cached(cache_dir: Path, seed: int, frames: int, rate: float) -> Path:
     return min(have)[1] if have else cache_dir / f"synthetic-{seed}-{frames}f-{rate:g}hz.npz"
 
 
-def load_scenes(seeds: list[int], frames: int, rate: float, cache_dir: Path, jobs: int) -> dict[int, list[SparseOccupancy]]:
+def load_scenes(
+    seeds: list[int], frames: int, rate: float, cache_dir: Path, jobs: int
+) -> dict[int, list[SparseOccupancy]]:
     cache_dir.mkdir(parents=True, exist_ok=True)
     paths = {s: _cached(cache_dir, s, frames, rate) for s in seeds}
     todo = [(s, frames, rate, str(p)) for s, p in paths.items() if not p.exists()]
@@ -103,12 +108,15 @@ def load_scenes(seeds: list[int], frames: int, rate: float, cache_dir: Path, job
     for s, p in paths.items():
         with np.load(p) as z:  # an npz reads an array on every z[...]: once each
             idx, labels, ends = z["idx"], z["labels"], np.cumsum(z["counts"])
-        out[s] = [SparseOccupancy(grid=grid, voxels=Array.from_numpy(idx[a:b]), labels=Array.from_numpy(labels[a:b]))
-                  for a, b in list(zip(np.r_[0, ends[:-1]], ends))[:frames]]
+        out[s] = [
+            SparseOccupancy(grid=grid, voxels=Array.from_numpy(idx[a:b]), labels=Array.from_numpy(labels[a:b]))
+            for a, b in list(zip(np.r_[0, ends[:-1]], ends))[:frames]
+        ]
     return out
 
 
 # ---------------------------------------------------------------- one run
+
 
 class Stream:
     """One stream's sender: frame i leaves at t0 + (i + offset) / rate, open loop."""
@@ -185,33 +193,57 @@ def _neighbour(duty: float) -> None:
         time.sleep((1.0 - duty) * 0.1)
 
 
-def run_load(n: int, rate: float, minutes: float, policy: str, queue_size: int, scenes: dict, store: bool,
-             sample_s: float, bucket_s: float, drain_s: float, log_dir: Path, working_radius: float = 0.0,
-             registration_workers: int = 1, after_pose_nice: int | None = None,
-             snapshot_max_share: float | None = None, store_sync: str | None = None) -> dict:
+def run_load(
+    n: int,
+    rate: float,
+    minutes: float,
+    policy: str,
+    queue_size: int,
+    scenes: dict,
+    store: bool,
+    sample_s: float,
+    bucket_s: float,
+    drain_s: float,
+    log_dir: Path,
+    working_radius: float = 0.0,
+    registration_workers: int = 1,
+    after_pose_nice: int | None = None,
+    snapshot_max_share: float | None = None,
+    store_sync: str | None = None,
+) -> dict:
     import psutil
 
     total = int(round(minutes * 60 * rate))
     load0 = os.getloadavg()[0]  # other jobs on the machine change everything below: say how busy it was
     worker_args = {"map": ["--store-path", str(log_dir / "occvo.sqlite")]} if store else {}
     if working_radius > 0:  # as deployed (deploy/registration_worker.json5): each stream's working map is bounded
-        worker_args["registration"] = ["--store-path", str(log_dir / "registration.sqlite"),
-                                       "--working-radius-m", str(working_radius)]
+        worker_args["registration"] = [
+            "--store-path",
+            str(log_dir / "registration.sqlite"),
+            "--working-radius-m",
+            str(working_radius),
+        ]
     if after_pose_nice is not None:
         worker_args.setdefault("registration", []).extend(["--after-pose-nice", str(after_pose_nice)])
     if snapshot_max_share is not None:
         worker_args.setdefault("registration", []).extend(["--snapshot-max-share", str(snapshot_max_share)])
     if store_sync is not None:
         worker_args.setdefault("registration", []).extend(["--store-sync", store_sync])
-    svc = LocalService(common_args=["--policy", policy, "--queue-size", str(queue_size)], worker_args=worker_args,
-                       log_dir=log_dir, registration_shards=registration_workers).start(timeout=120)
+    svc = LocalService(
+        common_args=["--policy", policy, "--queue-size", str(queue_size)],
+        worker_args=worker_args,
+        log_dir=log_dir,
+        registration_shards=registration_workers,
+    ).start(timeout=120)
     streams = [Stream(f"load{k}", scenes[k][:total], k / n) for k in range(n)]
     subs, pubs, session = [], [], None
     try:
         session = open_session(svc.endpoint)
         for st in streams:
             subs.append(session.declare_subscriber(keys.pose(st.name), st.on_pose))
-            pubs.append(session.declare_publisher(keys.camera(st.name), congestion_control=zenoh.CongestionControl.BLOCK))
+            pubs.append(
+                session.declare_publisher(keys.camera(st.name), congestion_control=zenoh.CongestionControl.BLOCK)
+            )
 
         def on_error(sample):
             try:
@@ -221,6 +253,7 @@ def run_load(n: int, rate: float, minutes: float, policy: str, queue_size: int, 
             for st in streams:
                 if st.name == e.stream:
                     st.errors[e.code] = st.errors.get(e.code, 0) + 1
+
         subs.append(session.declare_subscriber(keys.errors("*"), on_error))
         deadline = time.monotonic() + 30
         while not all(p.matching_status.matching for p in pubs) and time.monotonic() < deadline:
@@ -247,7 +280,10 @@ def run_load(n: int, rate: float, minutes: float, policy: str, queue_size: int, 
         me0, wall0 = time.process_time(), time.time()
         t0 = time.time() + 1.0
         stop = threading.Event()
-        senders = [threading.Thread(target=st.send_all, args=(pub, t0, rate, stop), daemon=True) for st, pub in zip(streams, pubs)]
+        senders = [
+            threading.Thread(target=st.send_all, args=(pub, t0, rate, stop), daemon=True)
+            for st, pub in zip(streams, pubs)
+        ]
         for th in senders:
             th.start()
 
@@ -310,8 +346,19 @@ def run_load(n: int, rate: float, minutes: float, policy: str, queue_size: int, 
     lat_t, lat_v, cap_v = np.array(lat_t), np.array(lat_v), np.array(cap_v)
     with open(log_dir / "poses.jsonl", "w") as fp:  # every pose, to lay a burst beside the workers' logs (--log-dir)
         for (name, i), t, lat, timing in zip(ids, lat_t, lat_v, stages):
-            fp.write(json.dumps({"stream": name, "seq": i, "due_s": round(float(t), 3), "due_unix": float(t + t0),
-                                 "latency_ms": round(float(lat), 1), "timings_ms": timing}) + "\n")
+            fp.write(
+                json.dumps(
+                    {
+                        "stream": name,
+                        "seq": i,
+                        "due_s": round(float(t), 3),
+                        "due_unix": float(t + t0),
+                        "latency_ms": round(float(lat), 1),
+                        "timings_ms": timing,
+                    }
+                )
+                + "\n"
+            )
     smp = np.array(samples) if samples else np.zeros((0, 6))
     for b in range(n_buckets):
         lo, hi = b * bucket_s, (b + 1) * bucket_s
@@ -322,29 +369,55 @@ def run_load(n: int, rate: float, minutes: float, policy: str, queue_size: int, 
             sent = [i for i in due if st.sent_at[i] == st.sent_at[i]]
             lags += [st.lag[i] for i in sent]
             arrived = sum(1 for t in st.recv_at.values() if lo <= t - t0 < hi)
-            per.append({"due": len(due), "sent": len(sent), "received": sum(1 for i in sent if i in st.recv_at), "arrived": arrived})
+            per.append(
+                {
+                    "due": len(due),
+                    "sent": len(sent),
+                    "received": sum(1 for i in sent if i in st.recv_at),
+                    "arrived": arrived,
+                }
+            )
         in_b = (lat_t >= lo) & (lat_t < hi)
         slow = np.flatnonzero(in_b & (lat_v >= (_pct(lat_v[in_b], 99) or np.inf)))
         # waiting (hops between processes, time in a worker's queue) vs working: a backlog shows in the first
         wait = [sum(v for k, v in stages[j].items() if k.endswith(("_hop", "_queue"))) for j in np.flatnonzero(in_b)]
         sm = smp[(smp[:, 0] >= lo) & (smp[:, 0] < hi)] if len(smp) else smp
-        buckets.append({
-            "t0_s": lo, "due": sum(p["due"] for p in per), "sent": sum(p["sent"] for p in per),
-            "received": sum(p["received"] for p in per), "poses_per_s": sum(p["arrived"] for p in per) / bucket_s,
-            "per_stream": {st.name: f"{p['sent']}/{p['received']}" for st, p in zip(streams, per)},
-            "latency_p50_ms": _pct(lat_v[in_b], 50), "latency_p99_ms": _pct(lat_v[in_b], 99),
-            "capture_latency_p50_ms": _pct(cap_v[in_b], 50), "capture_latency_p99_ms": _pct(cap_v[in_b], 99),
-            "send_lag_max_ms": float(max(lags) * 1000.0) if lags else None,
-            "reg_queue_mean": float(sm[:, 1].mean()) if len(sm) else None, "reg_queue_max": int(sm[:, 1].max()) if len(sm) else None,
-            "in_flight_mean": float(sm[:, 3].mean()) if len(sm) else None, "in_flight_max": int(sm[:, 3].max()) if len(sm) else None,
-            "slowest_1pct_stage_ms": _stage_medians([stages[j] for j in slow]),
-            "wait_p50_ms": _pct(wait, 50), "wait_p99_ms": _pct(wait, 99),
-            # which poses they were: a burst on one stream (its loop closure) reads differently from one on all
-            "slowest_poses": [{"stream": ids[j][0], "seq": ids[j][1], "latency_ms": round(float(lat_v[j]), 1),
-                               **{k: round(float(stages[j][k]), 1) for k in ("registration_queue", "registration", "store_commit")
-                                  if k in stages[j]}}
-                              for j in sorted(slow, key=lambda j: -lat_v[j])[:8]],
-        })
+        buckets.append(
+            {
+                "t0_s": lo,
+                "due": sum(p["due"] for p in per),
+                "sent": sum(p["sent"] for p in per),
+                "received": sum(p["received"] for p in per),
+                "poses_per_s": sum(p["arrived"] for p in per) / bucket_s,
+                "per_stream": {st.name: f"{p['sent']}/{p['received']}" for st, p in zip(streams, per)},
+                "latency_p50_ms": _pct(lat_v[in_b], 50),
+                "latency_p99_ms": _pct(lat_v[in_b], 99),
+                "capture_latency_p50_ms": _pct(cap_v[in_b], 50),
+                "capture_latency_p99_ms": _pct(cap_v[in_b], 99),
+                "send_lag_max_ms": float(max(lags) * 1000.0) if lags else None,
+                "reg_queue_mean": float(sm[:, 1].mean()) if len(sm) else None,
+                "reg_queue_max": int(sm[:, 1].max()) if len(sm) else None,
+                "in_flight_mean": float(sm[:, 3].mean()) if len(sm) else None,
+                "in_flight_max": int(sm[:, 3].max()) if len(sm) else None,
+                "slowest_1pct_stage_ms": _stage_medians([stages[j] for j in slow]),
+                "wait_p50_ms": _pct(wait, 50),
+                "wait_p99_ms": _pct(wait, 99),
+                # which poses they were: a burst on one stream (its loop closure) reads differently from one on all
+                "slowest_poses": [
+                    {
+                        "stream": ids[j][0],
+                        "seq": ids[j][1],
+                        "latency_ms": round(float(lat_v[j]), 1),
+                        **{
+                            k: round(float(stages[j][k]), 1)
+                            for k in ("registration_queue", "registration", "store_commit")
+                            if k in stages[j]
+                        },
+                    }
+                    for j in sorted(slow, key=lambda j: -lat_v[j])[:8]
+                ],
+            }
+        )
     sent = sum(st.last_sent + 1 for st in streams)
     received = sum(len([s for s in st.recv_at if s <= st.last_sent]) for st in streams)
     due_total = sum(len(st.frames) for st in streams)
@@ -360,13 +433,27 @@ def run_load(n: int, rate: float, minutes: float, policy: str, queue_size: int, 
     offered = n * rate
     last_rate = buckets[-1]["poses_per_s"]
     out = {
-        "streams": n, "rate_hz": rate, "minutes": minutes, "policy": policy, "queue_size": queue_size, "store": store,
-        "registration_workers": registration_workers, "after_pose_nice": after_pose_nice,
-        "snapshot_max_share": snapshot_max_share, "store_sync": store_sync,
+        "streams": n,
+        "rate_hz": rate,
+        "minutes": minutes,
+        "policy": policy,
+        "queue_size": queue_size,
+        "store": store,
+        "registration_workers": registration_workers,
+        "after_pose_nice": after_pose_nice,
+        "snapshot_max_share": snapshot_max_share,
+        "store_sync": store_sync,
         "working_radius_m": working_radius or None,
-        "offered_frames_per_s": offered, "due": due_total, "sent": sent, "received": received, "drained": drained,
-        "drops": {"registration": int(smp[-1, 4]) if len(smp) else 0, "inference": int(smp[-1, 5]) if len(smp) else 0,
-                  "registration_final": sum(h.counters.get("drops", 0) for h in reg_health) if reg_health else None},
+        "offered_frames_per_s": offered,
+        "due": due_total,
+        "sent": sent,
+        "received": received,
+        "drained": drained,
+        "drops": {
+            "registration": int(smp[-1, 4]) if len(smp) else 0,
+            "inference": int(smp[-1, 5]) if len(smp) else 0,
+            "registration_final": sum(h.counters.get("drops", 0) for h in reg_health) if reg_health else None,
+        },
         "errors": {st.name: st.errors for st in streams if st.errors},
         "p99_ratio_last_first": (last / first) if first and last else None,
         "capture_p99_ratio_last_first": (clast / cfirst) if cfirst and clast else None,
@@ -377,96 +464,169 @@ def run_load(n: int, rate: float, minutes: float, policy: str, queue_size: int, 
         "slope_latency_ms_per_min": _slope(lat_t, lat_v),
         "last_bucket_poses_per_s": last_rate,
         "registration_ms_p50": reg.stages["registration"].p50_ms if reg and "registration" in reg.stages else None,
-        "registration_stage_mean_ms": reg.stages["stage_total"].mean_ms if reg and "stage_total" in reg.stages else None,
+        "registration_stage_mean_ms": reg.stages["stage_total"].mean_ms
+        if reg and "stage_total" in reg.stages
+        else None,
         "map_update_ms_p50": reg.stages["map_update"].p50_ms if reg and "map_update" in reg.stages else None,
         "worker_cpu_pct": {role: 100.0 * (cpu1[role] - cpu0[role]) / (time.time() - wall0) for role in cpu0},
-        "worker_disk_write_mb_per_s": {role: (io1[role] - io0[role]) / 2 ** 20 / (time.time() - wall0) for role in io0},
-        "registration_counters": {k: sum(h.counters.get(k, 0) for h in reg_health) for k in (
-            "loop_closures", "after_pose_boosted", "tiles_evicted", "tiles_restored")},
+        "worker_disk_write_mb_per_s": {role: (io1[role] - io0[role]) / 2**20 / (time.time() - wall0) for role in io0},
+        "registration_counters": {
+            k: sum(h.counters.get(k, 0) for h in reg_health)
+            for k in ("loop_closures", "after_pose_boosted", "tiles_evicted", "tiles_restored")
+        },
         "client_and_router_cpu_pct": 100.0 * (me1 - me0) / (wall1 - wall0),
-        "client_build_ms_p50": _pct(build, 50), "client_build_ms_p99": _pct(build, 99),
-        "client_put_ms_p50": _pct(put, 50), "client_put_ms_p99": _pct(put, 99),
-        "send_lag_ms_p50": (_pct(lag, 50) or 0) * 1000.0, "send_lag_ms_max": float(np.nanmax(lag) * 1000.0) if len(lag) else None,
+        "client_build_ms_p50": _pct(build, 50),
+        "client_build_ms_p99": _pct(build, 99),
+        "client_put_ms_p50": _pct(put, 50),
+        "client_put_ms_p99": _pct(put, 99),
+        "send_lag_ms_p50": (_pct(lag, 50) or 0) * 1000.0,
+        "send_lag_ms_max": float(np.nanmax(lag) * 1000.0) if len(lag) else None,
         "map_apply_ms_p50": mp.stages["apply_update"].p50_ms if mp and "apply_update" in mp.stages else None,
         "map_apply_ms_p99": mp.stages["apply_update"].p99_ms if mp and "apply_update" in mp.stages else None,
         "loadavg_1min_start_end": [load0, os.getloadavg()[0]],
-        "worker_exit_codes": codes, "buckets": buckets, "send_seconds": send_end - t0,
+        "worker_exit_codes": codes,
+        "buckets": buckets,
+        "send_seconds": send_end - t0,
     }
     # keeps up: every frame sent on time and answered, poses come back at the offered rate, frames in flight grow by
     # less than one per stream per minute, and the median latency does not double (p99 of a short bucket is its max)
     c50 = [b["capture_latency_p50_ms"] for b in buckets]
     out["capture_p50_ratio_last_first"] = c50[-1] / c50[0] if c50[0] and c50[-1] else None
-    out["keeps_up"] = bool(sent == due_total and received >= 0.99 * sent and drained and last_rate >= 0.95 * offered
-                           and (out["slope_in_flight_per_min"] or 0) <= n and (out["capture_p50_ratio_last_first"] or 99) <= 2.0)
+    out["keeps_up"] = bool(
+        sent == due_total
+        and received >= 0.99 * sent
+        and drained
+        and last_rate >= 0.95 * offered
+        and (out["slope_in_flight_per_min"] or 0) <= n
+        and (out["capture_p50_ratio_last_first"] or 99) <= 2.0
+    )
     return out
 
 
 def print_run(r: dict, bucket_s: float) -> None:
-    print(f"\n== {r['streams']} streams x {r['rate_hz']:g} Hz, {r['minutes']:g} min, policy {r['policy']}, "
-          f"queue {r['queue_size']}, map store {'sqlite' if r['store'] else 'memory'}, registration "
-          + (f"store + eviction at {r['working_radius_m']:g} m" if r["working_radius_m"] else "in memory, no eviction")
-          + (f", {r['registration_workers']} registration workers (shards)" if r["registration_workers"] > 1 else "")
-          + (f", a neighbour busy {r['neighbour_load']:g} of every core" if r.get("neighbour_load") else ""))
+    print(
+        f"\n== {r['streams']} streams x {r['rate_hz']:g} Hz, {r['minutes']:g} min, policy {r['policy']}, "
+        f"queue {r['queue_size']}, map store {'sqlite' if r['store'] else 'memory'}, registration "
+        + (f"store + eviction at {r['working_radius_m']:g} m" if r["working_radius_m"] else "in memory, no eviction")
+        + (f", {r['registration_workers']} registration workers (shards)" if r["registration_workers"] > 1 else "")
+        + (f", a neighbour busy {r['neighbour_load']:g} of every core" if r.get("neighbour_load") else "")
+    )
     unit = "min" if bucket_s == 60 else f"{bucket_s:g}s"
-    print(f"{unit:>5} {'due':>5} {'sent':>5} {'recv':>5} {'poses/s':>7} {'lat p50':>7} {'lat p99':>7} {'cap p50':>7} {'cap p99':>7} "
-          f"{'lag max':>7} {'regQ':>5} {'regQmax':>7} {'inflight':>8}  per stream sent/recv")
+    print(
+        f"{unit:>5} {'due':>5} {'sent':>5} {'recv':>5} {'poses/s':>7} {'lat p50':>7} {'lat p99':>7} {'cap p50':>7} {'cap p99':>7} "
+        f"{'lag max':>7} {'regQ':>5} {'regQmax':>7} {'inflight':>8}  per stream sent/recv"
+    )
     fmt = lambda v, f="{:.0f}": "-" if v is None else f.format(v)  # noqa: E731
     for b, x in enumerate(r["buckets"]):
-        print(f"{b + 1:>5} {x['due']:>5} {x['sent']:>5} {x['received']:>5} {x['poses_per_s']:>7.2f} {fmt(x['latency_p50_ms']):>7} "
-              f"{fmt(x['latency_p99_ms']):>7} {fmt(x['capture_latency_p50_ms']):>7} {fmt(x['capture_latency_p99_ms']):>7} "
-              f"{fmt(x['send_lag_max_ms']):>7} {fmt(x['reg_queue_mean'], '{:.1f}'):>5} {fmt(x['reg_queue_max']):>7} "
-              f"{fmt(x['in_flight_max']):>8}  {' '.join(x['per_stream'].values())}")
-    print("waiting (hops + worker queues) p50/p99, and the slowest 1%: median ms of the stages that took most (timings_ms):")
+        print(
+            f"{b + 1:>5} {x['due']:>5} {x['sent']:>5} {x['received']:>5} {x['poses_per_s']:>7.2f} {fmt(x['latency_p50_ms']):>7} "
+            f"{fmt(x['latency_p99_ms']):>7} {fmt(x['capture_latency_p50_ms']):>7} {fmt(x['capture_latency_p99_ms']):>7} "
+            f"{fmt(x['send_lag_max_ms']):>7} {fmt(x['reg_queue_mean'], '{:.1f}'):>5} {fmt(x['reg_queue_max']):>7} "
+            f"{fmt(x['in_flight_max']):>8}  {' '.join(x['per_stream'].values())}"
+        )
+    print(
+        "waiting (hops + worker queues) p50/p99, and the slowest 1%: median ms of the stages that took most (timings_ms):"
+    )
     for b, x in enumerate(r["buckets"]):
         top = list(x.get("slowest_1pct_stage_ms", {}).items())[:6]
-        print(f"{b + 1:>5}  wait {fmt(x.get('wait_p50_ms'))}/{fmt(x.get('wait_p99_ms'))}  slowest: " + ", ".join(f"{k} {v:.0f}" for k, v in top))
-    print("(ms; lat = client send -> pose; cap = due time -> pose, what a live camera sees; lag = send - due; regQ = registration "
-          "queue depth summed over streams, sampled)")
-    print(f"due {r['due']} sent {r['sent']} received {r['received']} (offered {r['offered_frames_per_s']:g} frames/s, last bucket "
-          f"{r['last_bucket_poses_per_s']:.2f} poses/s), drops reg/inf {r['drops']['registration_final']}/{r['drops']['inference']}, "
-          f"drained {r['drained']}")
-    print(f"backlog: p99 last/first: wait {fmt(r.get('wait_p99_ratio_last_first'), '{:.2f}')}, latency {fmt(r['p99_ratio_last_first'], '{:.2f}')}, capture latency "
-          f"{fmt(r['capture_p99_ratio_last_first'], '{:.2f}')} (p50 {fmt(r['capture_p50_ratio_last_first'], '{:.2f}')}); slopes per minute: capture latency "
-          f"{fmt(r['slope_capture_latency_ms_per_min'], '{:+.0f}')} ms, registration queue "
-          f"{fmt(r['slope_reg_queue_per_min'], '{:+.2f}')}, frames in flight {fmt(r['slope_in_flight_per_min'], '{:+.2f}')}, "
-          f"latency {fmt(r['slope_latency_ms_per_min'], '{:+.0f}')} ms  ->  keeps up: {r['keeps_up']}")
+        print(
+            f"{b + 1:>5}  wait {fmt(x.get('wait_p50_ms'))}/{fmt(x.get('wait_p99_ms'))}  slowest: "
+            + ", ".join(f"{k} {v:.0f}" for k, v in top)
+        )
+    print(
+        "(ms; lat = client send -> pose; cap = due time -> pose, what a live camera sees; lag = send - due; regQ = registration "
+        "queue depth summed over streams, sampled)"
+    )
+    print(
+        f"due {r['due']} sent {r['sent']} received {r['received']} (offered {r['offered_frames_per_s']:g} frames/s, last bucket "
+        f"{r['last_bucket_poses_per_s']:.2f} poses/s), drops reg/inf {r['drops']['registration_final']}/{r['drops']['inference']}, "
+        f"drained {r['drained']}"
+    )
+    print(
+        f"backlog: p99 last/first: wait {fmt(r.get('wait_p99_ratio_last_first'), '{:.2f}')}, latency {fmt(r['p99_ratio_last_first'], '{:.2f}')}, capture latency "
+        f"{fmt(r['capture_p99_ratio_last_first'], '{:.2f}')} (p50 {fmt(r['capture_p50_ratio_last_first'], '{:.2f}')}); slopes per minute: capture latency "
+        f"{fmt(r['slope_capture_latency_ms_per_min'], '{:+.0f}')} ms, registration queue "
+        f"{fmt(r['slope_reg_queue_per_min'], '{:+.2f}')}, frames in flight {fmt(r['slope_in_flight_per_min'], '{:+.2f}')}, "
+        f"latency {fmt(r['slope_latency_ms_per_min'], '{:+.0f}')} ms  ->  keeps up: {r['keeps_up']}"
+    )
     busiest = " (busiest shard)" if r["registration_workers"] > 1 else ""
-    print(f"registration{busiest} p50 {fmt(r['registration_ms_p50'], '{:.1f}')} ms, stage mean {fmt(r['registration_stage_mean_ms'], '{:.1f}')} ms, "
-          f"map tiling p50 {fmt(r['map_update_ms_p50'], '{:.1f}')} ms; map service apply p50/p99 {fmt(r['map_apply_ms_p50'], '{:.1f}')}/"
-          f"{fmt(r['map_apply_ms_p99'], '{:.1f}')} ms; load avg start/end {r['loadavg_1min_start_end'][0]:.1f}/"
-          f"{r['loadavg_1min_start_end'][1]:.1f}; CPU % "
-          f"{json.dumps({k: round(v) for k, v in r['worker_cpu_pct'].items()})}, client+router {r['client_and_router_cpu_pct']:.0f}%")
-    print(f"client per frame: build+encode p50 {fmt(r['client_build_ms_p50'], '{:.2f}')} ms p99 {fmt(r['client_build_ms_p99'], '{:.2f}')} ms, "
-          f"put p50 {fmt(r['client_put_ms_p50'], '{:.2f}')} ms p99 {fmt(r['client_put_ms_p99'], '{:.2f}')} ms, send lag p50 "
-          f"{r['send_lag_ms_p50']:.1f} ms max {fmt(r['send_lag_ms_max'], '{:.0f}')} ms; errors {r['errors'] or 'none'}; "
-          f"exit codes {r['worker_exit_codes']}")
-    print(f"registration counters (all shards): {json.dumps(r['registration_counters'])}; disk writes MB/s "
-          f"{json.dumps({k: round(v, 1) for k, v in r['worker_disk_write_mb_per_s'].items()})}")
+    print(
+        f"registration{busiest} p50 {fmt(r['registration_ms_p50'], '{:.1f}')} ms, stage mean {fmt(r['registration_stage_mean_ms'], '{:.1f}')} ms, "
+        f"map tiling p50 {fmt(r['map_update_ms_p50'], '{:.1f}')} ms; map service apply p50/p99 {fmt(r['map_apply_ms_p50'], '{:.1f}')}/"
+        f"{fmt(r['map_apply_ms_p99'], '{:.1f}')} ms; load avg start/end {r['loadavg_1min_start_end'][0]:.1f}/"
+        f"{r['loadavg_1min_start_end'][1]:.1f}; CPU % "
+        f"{json.dumps({k: round(v) for k, v in r['worker_cpu_pct'].items()})}, client+router {r['client_and_router_cpu_pct']:.0f}%"
+    )
+    print(
+        f"client per frame: build+encode p50 {fmt(r['client_build_ms_p50'], '{:.2f}')} ms p99 {fmt(r['client_build_ms_p99'], '{:.2f}')} ms, "
+        f"put p50 {fmt(r['client_put_ms_p50'], '{:.2f}')} ms p99 {fmt(r['client_put_ms_p99'], '{:.2f}')} ms, send lag p50 "
+        f"{r['send_lag_ms_p50']:.1f} ms max {fmt(r['send_lag_ms_max'], '{:.0f}')} ms; errors {r['errors'] or 'none'}; "
+        f"exit codes {r['worker_exit_codes']}"
+    )
+    print(
+        f"registration counters (all shards): {json.dumps(r['registration_counters'])}; disk writes MB/s "
+        f"{json.dumps({k: round(v, 1) for k, v in r['worker_disk_write_mb_per_s'].items()})}"
+    )
 
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--streams", type=int, nargs="+", default=[8], help="stream counts; several = a sweep, one run each")
+    ap.add_argument(
+        "--streams", type=int, nargs="+", default=[8], help="stream counts; several = a sweep, one run each"
+    )
     ap.add_argument("--rate", type=float, default=2.0, help="frames per second per stream")
     ap.add_argument("--minutes", type=float, default=5.0)
     ap.add_argument("--policy", choices=["lossless", "latest"], default="lossless")
     ap.add_argument("--queue-size", type=int, default=4)
     ap.add_argument("--no-store", action="store_true", help="map service in memory (default: a SQLite store per run)")
-    ap.add_argument("--working-radius", type=float, default=0.0, help="registration worker with a SQLite store and "
-                    "eviction beyond this many m, as deploy/registration_worker.json5 (120); 0: in memory, maps grow")
-    ap.add_argument("--registration-workers", type=int, default=1, help="registration workers sharing the streams "
-                    "(shards, as `count: N` in occvo up)")
-    ap.add_argument("--after-pose-nice", type=int, default=None, help="niceness of the registration worker's work "
-                    "after a pose (0: the lanes'; default: the worker's, 10)")
-    ap.add_argument("--snapshot-max-share", type=float, default=None, help="the registration worker's snapshot_max_share "
-                    "(default: the worker's, 0.02)")
-    ap.add_argument("--store-sync", choices=["full", "normal"], default=None, help="the registration worker's "
-                    "store_sync (default: the worker's, full)")
-    ap.add_argument("--neighbour-load", type=float, default=0.0, help="a busy process per core, busy this share of "
-                    "every 100 ms (0.35: a host stealing about a third of the cores)")
+    ap.add_argument(
+        "--working-radius",
+        type=float,
+        default=0.0,
+        help="registration worker with a SQLite store and "
+        "eviction beyond this many m, as deploy/registration_worker.json5 (120); 0: in memory, maps grow",
+    )
+    ap.add_argument(
+        "--registration-workers",
+        type=int,
+        default=1,
+        help="registration workers sharing the streams (shards, as `count: N` in occvo up)",
+    )
+    ap.add_argument(
+        "--after-pose-nice",
+        type=int,
+        default=None,
+        help="niceness of the registration worker's work after a pose (0: the lanes'; default: the worker's, 10)",
+    )
+    ap.add_argument(
+        "--snapshot-max-share",
+        type=float,
+        default=None,
+        help="the registration worker's snapshot_max_share (default: the worker's, 0.02)",
+    )
+    ap.add_argument(
+        "--store-sync",
+        choices=["full", "normal"],
+        default=None,
+        help="the registration worker's store_sync (default: the worker's, full)",
+    )
+    ap.add_argument(
+        "--neighbour-load",
+        type=float,
+        default=0.0,
+        help="a busy process per core, busy this share of "
+        "every 100 ms (0.35: a host stealing about a third of the cores)",
+    )
     ap.add_argument("--sample-s", type=float, default=3.0, help="seconds between worker stats samples")
-    ap.add_argument("--bucket-s", type=float, default=None, help="report bucket (default 60 s; a third of the run when shorter than 3 min)")
-    ap.add_argument("--drain-s", type=float, default=60.0, help="wait this long after the last send for outstanding poses")
+    ap.add_argument(
+        "--bucket-s",
+        type=float,
+        default=None,
+        help="report bucket (default 60 s; a third of the run when shorter than 3 min)",
+    )
+    ap.add_argument(
+        "--drain-s", type=float, default=60.0, help="wait this long after the last send for outstanding poses"
+    )
     ap.add_argument("--cache-dir", default=str(Path(tempfile.gettempdir()) / "occvo-streams-cache"))
     ap.add_argument("--render-jobs", type=int, default=2)
     ap.add_argument("--log-dir", help="keep the workers' logs and the map store here (default: a temporary folder)")
@@ -478,7 +638,9 @@ def main(argv=None) -> int:
     neighbours = []
     if args.neighbour_load > 0:  # started after rendering: they load the run, not the scenes' preparation
         ctx = multiprocessing.get_context("spawn")
-        neighbours = [ctx.Process(target=_neighbour, args=(args.neighbour_load,), daemon=True) for _ in range(os.cpu_count() or 1)]
+        neighbours = [
+            ctx.Process(target=_neighbour, args=(args.neighbour_load,), daemon=True) for _ in range(os.cpu_count() or 1)
+        ]
         for proc in neighbours:
             proc.start()
     results = []
@@ -486,20 +648,47 @@ def main(argv=None) -> int:
         with tempfile.TemporaryDirectory(prefix="occvo-load-") as tmp:
             log_dir = Path(args.log_dir) / f"{n}-streams" if args.log_dir else Path(tmp)
             log_dir.mkdir(parents=True, exist_ok=True)
-            r = run_load(n, args.rate, args.minutes, args.policy, args.queue_size, scenes, not args.no_store,
-                         args.sample_s, bucket_s, args.drain_s, log_dir, args.working_radius, args.registration_workers,
-                         args.after_pose_nice, args.snapshot_max_share, args.store_sync)
+            r = run_load(
+                n,
+                args.rate,
+                args.minutes,
+                args.policy,
+                args.queue_size,
+                scenes,
+                not args.no_store,
+                args.sample_s,
+                bucket_s,
+                args.drain_s,
+                log_dir,
+                args.working_radius,
+                args.registration_workers,
+                args.after_pose_nice,
+                args.snapshot_max_share,
+                args.store_sync,
+            )
         r["neighbour_load"] = args.neighbour_load
         results.append(r)
         print_run(r, bucket_s)
-        print(json.dumps({k: v for k, v in r.items() if k != "buckets"} | {"buckets": [
-            {k: v for k, v in b.items() if k != "per_stream"} | {"per_stream": b["per_stream"]} for b in r["buckets"]]}), flush=True)
+        print(
+            json.dumps(
+                {k: v for k, v in r.items() if k != "buckets"}
+                | {
+                    "buckets": [
+                        {k: v for k, v in b.items() if k != "per_stream"} | {"per_stream": b["per_stream"]}
+                        for b in r["buckets"]
+                    ]
+                }
+            ),
+            flush=True,
+        )
     for proc in neighbours:
         proc.terminate()
     if len(results) > 1:
         ok = [r["streams"] for r in results if r["keeps_up"]]
-        print(f"\nhighest stream count that keeps up at {args.rate:g} Hz ({args.policy}): {max(ok) if ok else 'none of'} "
-              f"{'' if ok else args.streams}")
+        print(
+            f"\nhighest stream count that keeps up at {args.rate:g} Hz ({args.policy}): {max(ok) if ok else 'none of'} "
+            f"{'' if ok else args.streams}"
+        )
     if args.output:
         Path(args.output).write_text(json.dumps(results, indent=2, default=float))
     return 0

@@ -37,8 +37,12 @@ from occvo_core.frame import OccupancyFrame  # noqa: E402
 
 FRAME_MS = 500.0  # nuScenes keyframes, 2 Hz
 SHIFTS = np.arange(-0.6, 0.6001, 0.01)  # keyframes: -300..300 ms
-RUNS = {"forward": (1, 1, 1, 1), "reversed": (-1, -1, 1, 1), "turned": (1, -1, 1, -1),  # signs of d, e, l, residual
-        "turned+rev": (-1, 1, 1, -1)}
+RUNS = {
+    "forward": (1, 1, 1, 1),
+    "reversed": (-1, -1, 1, 1),
+    "turned": (1, -1, 1, -1),  # signs of d, e, l, residual
+    "turned+rev": (-1, 1, 1, -1),
+}
 
 
 def best_shift_ms(gt: np.ndarray, est: np.ndarray) -> tuple[float, float]:
@@ -62,32 +66,48 @@ def measure(root: Path, name: str, config: OccVOConfig) -> dict:
     turn = np.diag([-1.0, -1.0, 1.0, 1.0])
     turned = [OccupancyFrame(f.points * [-1.0, -1.0, 1.0], f.labels, f.index) for f in frames]
     turned_gt = turn @ gt @ turn  # the turned ego's poses
-    inputs = {"forward": (frames, gt), "reversed": (frames[::-1], gt[::-1]),
-              "turned": (turned, turned_gt), "turned+rev": (turned[::-1], turned_gt[::-1])}
+    inputs = {
+        "forward": (frames, gt),
+        "reversed": (frames[::-1], gt[::-1]),
+        "turned": (turned, turned_gt),
+        "turned+rev": (turned[::-1], turned_gt[::-1]),
+    }
     out = {"runs": {}}
     for run_name, (seq, poses) in inputs.items():
         poses = np.linalg.inv(poses[0]) @ poses
         est = run(seq, config)
         shift, ape_shifted = best_shift_ms(poses, est)
-        out["runs"][run_name] = {"ape_rmse_m": ape_rmse(poses, est), "best_shift_ms": shift,
-                                 "ape_at_best_shift_m": ape_shifted}
+        out["runs"][run_name] = {
+            "ape_rmse_m": ape_rmse(poses, est),
+            "best_shift_ms": shift,
+            "ape_at_best_shift_m": ape_shifted,
+        }
     signs = np.array([RUNS[r] for r in inputs], np.float64)
     shifts = np.array([out["runs"][r]["best_shift_ms"] for r in inputs])
     d, e, lead, residual = signs.T @ shifts / 4.0  # the sign columns are orthogonal
-    out.update(data_offset_ms=float(d), ego_lead_ms=float(e), travel_lead_ms=float(lead), residual_ms=float(residual),
-               exact_odometry_ape_m=ape_rmse(gt, shifted(gt, d / FRAME_MS)))
+    out.update(
+        data_offset_ms=float(d),
+        ego_lead_ms=float(e),
+        travel_lead_ms=float(lead),
+        residual_ms=float(residual),
+        exact_odometry_ape_m=ape_rmse(gt, shifted(gt, d / FRAME_MS)),
+    )
     return out
 
 
 def print_scene(name: str, r: dict) -> None:
     print(name)
     for run_name, row in r["runs"].items():
-        print(f"  {run_name:<11} APE {row['ape_rmse_m']:.3f} m, best time shift {row['best_shift_ms']:+5.0f} ms "
-              f"(APE there {row['ape_at_best_shift_m']:.3f} m)")
-    print(f"  data offset d {r['data_offset_ms']:+.0f} ms, lead fixed in the ego frame {r['ego_lead_ms']:+.0f} ms, "
-          f"lead along the travel {r['travel_lead_ms']:+.0f} ms, residual {r['residual_ms']:+.0f} ms;\n"
-          f"  an exact odometry of frames {r['data_offset_ms']:.0f} ms after their poses scores APE "
-          f"{r['exact_odometry_ape_m']:.3f} m")
+        print(
+            f"  {run_name:<11} APE {row['ape_rmse_m']:.3f} m, best time shift {row['best_shift_ms']:+5.0f} ms "
+            f"(APE there {row['ape_at_best_shift_m']:.3f} m)"
+        )
+    print(
+        f"  data offset d {r['data_offset_ms']:+.0f} ms, lead fixed in the ego frame {r['ego_lead_ms']:+.0f} ms, "
+        f"lead along the travel {r['travel_lead_ms']:+.0f} ms, residual {r['residual_ms']:+.0f} ms;\n"
+        f"  an exact odometry of frames {r['data_offset_ms']:.0f} ms after their poses scores APE "
+        f"{r['exact_odometry_ape_m']:.3f} m"
+    )
 
 
 if __name__ == "__main__":

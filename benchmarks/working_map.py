@@ -34,7 +34,7 @@ LAYER_M = 0.45  # one voxel pitch and a bit: a frame's own quantisation keeps re
 
 
 def rss_mb() -> float:
-    return int(Path("/proc/self/statm").read_text().split()[1]) * 4096 / 2 ** 20
+    return int(Path("/proc/self/statm").read_text().split()[1]) * 4096 / 2**20
 
 
 def census(vo: OccVO, lap_starts: np.ndarray) -> dict:
@@ -50,9 +50,15 @@ def census(vo: OccVO, lap_starts: np.ndarray) -> dict:
         hit = np.isfinite(d)
         hit[hit] = labels[first][j[hit]] == labels[later][hit]
         layered = int(hit.sum())
-    return {"rows": int(n), "capacity": int(len(m.pos)), "alive": int(alive.sum()),
-            "by_lap": np.bincount(lap, minlength=len(lap_starts)).tolist(), "later_laps": int(later.sum()),
-            "later_within_layer_of_lap1": layered, "rss_mb": round(rss_mb(), 1)}
+    return {
+        "rows": int(n),
+        "capacity": int(len(m.pos)),
+        "alive": int(alive.sum()),
+        "by_lap": np.bincount(lap, minlength=len(lap_starts)).tolist(),
+        "later_laps": int(later.sum()),
+        "later_within_layer_of_lap1": layered,
+        "rss_mb": round(rss_mb(), 1),
+    }
 
 
 def main() -> int:
@@ -77,8 +83,16 @@ def main() -> int:
         for i in range(args.frames):
             frame = scene[i]
             reg = st.vo.register(frame)
-            worker.store.commit_frame("s", i, frame.stamp, frame_digest(frame.points, frame.labels, frame.stamp), "ok",
-                                      np.asarray(reg.pose), pack_frame(frame), new_trajectory=i == 0)
+            worker.store.commit_frame(
+                "s",
+                i,
+                frame.stamp,
+                frame_digest(frame.points, frame.labels, frame.stamp),
+                "ok",
+                np.asarray(reg.pose),
+                pack_frame(frame),
+                new_trajectory=i == 0,
+            )
             st.append(i, frame.stamp, np.asarray(reg.pose), "ok", b"")
             _, _, evicted, _ = worker._finish("s", st, reg, frame, i, publish=True)
             if evicted or st.pending_restored:
@@ -87,13 +101,18 @@ def main() -> int:
             if i in marks:
                 row = {"frame": i, "lap": marks[i], **census(st.vo, lap_starts)}
                 rows.append(row)
-                print(f"frame {i:5d} lap {row['lap']!s:>3}  rows {row['rows']:7d} of {row['capacity']:7d}  live "
-                      f"{row['alive']:7d}  made in later laps {row['later_laps']:6d}, of them within {LAYER_M} m of "
-                      f"a lap-1 voxel of their label {row['later_within_layer_of_lap1']:6d}  rss {row['rss_mb']:6.1f} MB",
-                      flush=True)
+                print(
+                    f"frame {i:5d} lap {row['lap']!s:>3}  rows {row['rows']:7d} of {row['capacity']:7d}  live "
+                    f"{row['alive']:7d}  made in later laps {row['later_laps']:6d}, of them within {LAYER_M} m of "
+                    f"a lap-1 voxel of their label {row['later_within_layer_of_lap1']:6d}  rss {row['rss_mb']:6.1f} MB",
+                    flush=True,
+                )
         worker.store.close()
-    print(json.dumps({"frames": args.frames, "seed": args.seed, "blocks": args.blocks, "radius_m": args.radius,
-                      "laps": rows}))
+    print(
+        json.dumps(
+            {"frames": args.frames, "seed": args.seed, "blocks": args.blocks, "radius_m": args.radius, "laps": rows}
+        )
+    )
     return 0
 
 

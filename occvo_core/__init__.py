@@ -6,9 +6,15 @@ compiled odometry."""
 from importlib import import_module
 
 _EXPORTS = {
-    "OccVO": "occvo_core.odometry", "Registration": "occvo_core.odometry", "StepResult": "occvo_core.odometry",
-    "OccVOConfig": "occvo_core.config", "OccupancyFrame": "occvo_core.frame", "OccVOError": "occvo_core.errors",
-    "InvalidFrameError": "occvo_core.errors", "DatasetError": "occvo_core.errors", "ConfigError": "occvo_core.errors",
+    "OccVO": "occvo_core.odometry",
+    "Registration": "occvo_core.odometry",
+    "StepResult": "occvo_core.odometry",
+    "OccVOConfig": "occvo_core.config",
+    "OccupancyFrame": "occvo_core.frame",
+    "OccVOError": "occvo_core.errors",
+    "InvalidFrameError": "occvo_core.errors",
+    "DatasetError": "occvo_core.errors",
+    "ConfigError": "occvo_core.errors",
 }
 __all__ = list(_EXPORTS)
 

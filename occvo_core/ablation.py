@@ -36,8 +36,12 @@ def run_ablation(sources, base: OccVOConfig | None = None, map_metrics=None, pro
                 maps.append(map_metrics(source, vo))
             if progress:
                 progress()
-        row = {**combo, "rmse": rmses, "success_ratio": success_ratio(rmses.values()),
-               "mean_rmse": float(np.mean(list(rmses.values())))}
+        row = {
+            **combo,
+            "rmse": rmses,
+            "success_ratio": success_ratio(rmses.values()),
+            "mean_rmse": float(np.mean(list(rmses.values()))),
+        }
         if maps:
             row["map"] = {k: float(np.mean([m[k] for m in maps])) for k in ("accuracy", "precision", "completion")}
         rows.append(row)
@@ -54,8 +58,10 @@ def format_table(rows: list[dict]) -> str:
         head += "".join(f" {s} |" for s in scenes)
     lines = [head, "|" + "|".join("---" for _ in head.split("|")[1:-1]) + "|"]
     for r in rows:
-        line = (f"| {mark(r['semantic'])} | {mark(r['dynamic'])} | {mark(r['pfilter'])} | {r['success_ratio']:.3f} |"
-                f" {r['mean_rmse']:.3f} |")
+        line = (
+            f"| {mark(r['semantic'])} | {mark(r['dynamic'])} | {mark(r['pfilter'])} | {r['success_ratio']:.3f} |"
+            f" {r['mean_rmse']:.3f} |"
+        )
         if "map" in r:
             line += f" {r['map']['accuracy']:.3f} | {r['map']['precision']:.3f} | {r['map']['completion']:.3f} |"
         if len(scenes) <= 6:

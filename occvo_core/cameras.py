@@ -15,7 +15,12 @@ from numba import njit
 from occvo_core.grid import CLASS_COLORS, FREE, OCC3D_GRID, GridSpec
 
 CAMERA_NAMES: tuple[str, ...] = (
-    "CAM_FRONT", "CAM_FRONT_LEFT", "CAM_FRONT_RIGHT", "CAM_BACK", "CAM_BACK_LEFT", "CAM_BACK_RIGHT",
+    "CAM_FRONT",
+    "CAM_FRONT_LEFT",
+    "CAM_FRONT_RIGHT",
+    "CAM_BACK",
+    "CAM_BACK_LEFT",
+    "CAM_BACK_RIGHT",
 )
 FULL_SIZE = (1600, 900)  # width, height of a nuScenes image
 
@@ -80,7 +85,12 @@ class CameraRig:
         depth = cam[..., 2]
         with np.errstate(divide="ignore", invalid="ignore"):
             uv = cam[..., :2] / depth[..., None]
-        in_image = (uv[..., 0] >= -0.5) & (uv[..., 0] < self.width - 0.5) & (uv[..., 1] >= -0.5) & (uv[..., 1] < self.height - 0.5)
+        in_image = (
+            (uv[..., 0] >= -0.5)
+            & (uv[..., 0] < self.width - 0.5)
+            & (uv[..., 1] >= -0.5)
+            & (uv[..., 1] < self.height - 0.5)
+        )
         return uv, depth, (depth > min_depth) & in_image
 
     def ray_directions(self) -> np.ndarray:
@@ -229,7 +239,18 @@ def render(
     axis = np.zeros((n, h, w), np.int8)
     cell = np.zeros((n, h, w, 3), np.int64)
     visible = np.zeros(grid.shape, np.bool_)
-    _cast_rays(origins, dirs, semantics, np.asarray(grid.lower, np.float64), float(grid.voxel_size), label, depth, axis, cell, visible)
+    _cast_rays(
+        origins,
+        dirs,
+        semantics,
+        np.asarray(grid.lower, np.float64),
+        float(grid.voxel_size),
+        label,
+        depth,
+        axis,
+        cell,
+        visible,
+    )
 
     hit = label != 255
     colours = CLASS_COLORS.astype(np.float32)

@@ -34,7 +34,7 @@ def ape_errors(gt_poses: np.ndarray, est_poses: np.ndarray, align: bool = True) 
 
 def ape_rmse(gt_poses: np.ndarray, est_poses: np.ndarray, align: bool = True) -> float:
     err = ape_errors(gt_poses, est_poses, align)
-    return float(np.sqrt(np.mean(err ** 2)))
+    return float(np.sqrt(np.mean(err**2)))
 
 
 def success(rmse: float) -> bool:
@@ -44,4 +44,3 @@ def success(rmse: float) -> bool:
 def success_ratio(rmses) -> float:
     rmses = list(rmses)
     return sum(success(r) for r in rmses) / len(rmses) if rmses else float("nan")
-

@@ -34,7 +34,9 @@ class OccupancyFrame:
 
     def _check_label_range(self, labels: np.ndarray) -> None:
         if labels.size and (labels.min() < 0 or labels.max() >= NUM_CLASSES):
-            raise InvalidFrameError(self.index, f"labels outside 0..{NUM_CLASSES - 1}: min {labels.min()}, max {labels.max()}")
+            raise InvalidFrameError(
+                self.index, f"labels outside 0..{NUM_CLASSES - 1}: min {labels.min()}, max {labels.max()}"
+            )
 
     def validate(self) -> OccupancyFrame:
         """Raise InvalidFrameError naming this frame and the problem; return self when sound."""
@@ -46,7 +48,9 @@ class OccupancyFrame:
         if len(p) == 0:
             raise InvalidFrameError(self.index, "frame is empty (no occupied voxels)")
         if not np.issubdtype(p.dtype, np.number) or not np.all(np.isfinite(p)):
-            raise InvalidFrameError(self.index, f"{int(np.sum(~np.isfinite(p.astype(float))))} non-finite coordinates (NaN or inf)")
+            raise InvalidFrameError(
+                self.index, f"{int(np.sum(~np.isfinite(p.astype(float))))} non-finite coordinates (NaN or inf)"
+            )
         if not np.issubdtype(l.dtype, np.integer):
             raise InvalidFrameError(self.index, f"labels must be integers, got dtype {l.dtype}")
         self._check_label_range(l)

@@ -7,9 +7,24 @@ from dataclasses import dataclass
 import numpy as np
 
 CLASS_NAMES: tuple[str, ...] = (
-    "others", "barrier", "bicycle", "bus", "car", "construction_vehicle", "motorcycle", "pedestrian",
-    "traffic_cone", "trailer", "truck", "driveable_surface", "other_flat", "sidewalk", "terrain",
-    "manmade", "vegetation", "free",
+    "others",
+    "barrier",
+    "bicycle",
+    "bus",
+    "car",
+    "construction_vehicle",
+    "motorcycle",
+    "pedestrian",
+    "traffic_cone",
+    "trailer",
+    "truck",
+    "driveable_surface",
+    "other_flat",
+    "sidewalk",
+    "terrain",
+    "manmade",
+    "vegetation",
+    "free",
 )
 NUM_CLASSES = len(CLASS_NAMES)  # 18
 FREE = 17
@@ -19,11 +34,29 @@ STATIC_CLASSES: tuple[int, ...] = tuple(c for c in range(FREE) if c not in MOVAB
 GROUND_CLASSES: tuple[int, ...] = (11, 12, 13, 14)  # driveable surface, other flat, sidewalk, terrain
 
 # Occ3D-nuScenes palette (RGB, 0..255), as used by the benchmark's visualiser.
-CLASS_COLORS = np.array([
-    [0, 0, 0], [255, 120, 50], [255, 192, 203], [255, 255, 0], [0, 150, 245], [0, 255, 255],
-    [200, 180, 0], [255, 0, 0], [255, 240, 150], [135, 60, 0], [160, 32, 240], [255, 0, 255],
-    [139, 137, 137], [75, 0, 75], [150, 240, 80], [230, 230, 250], [0, 175, 0], [255, 255, 255],
-], dtype=np.uint8)
+CLASS_COLORS = np.array(
+    [
+        [0, 0, 0],
+        [255, 120, 50],
+        [255, 192, 203],
+        [255, 255, 0],
+        [0, 150, 245],
+        [0, 255, 255],
+        [200, 180, 0],
+        [255, 0, 0],
+        [255, 240, 150],
+        [135, 60, 0],
+        [160, 32, 240],
+        [255, 0, 255],
+        [139, 137, 137],
+        [75, 0, 75],
+        [150, 240, 80],
+        [230, 230, 250],
+        [0, 175, 0],
+        [255, 255, 255],
+    ],
+    dtype=np.uint8,
+)
 
 
 @dataclass(frozen=True)
@@ -40,7 +73,9 @@ class GridSpec:
 
     def indices_of(self, points: np.ndarray) -> np.ndarray:
         """Integer voxel indices (N,3) of points (N,3); may fall outside the grid."""
-        return np.floor((np.asarray(points, dtype=np.float64) - np.array(self.lower)) / self.voxel_size).astype(np.int64)
+        return np.floor((np.asarray(points, dtype=np.float64) - np.array(self.lower)) / self.voxel_size).astype(
+            np.int64
+        )
 
     def centres_of(self, indices: np.ndarray) -> np.ndarray:
         return np.array(self.lower) + (np.asarray(indices, dtype=np.float64) + 0.5) * self.voxel_size
@@ -52,7 +87,9 @@ class GridSpec:
 OCC3D_GRID = GridSpec()
 
 
-def grid_to_points(semantics: np.ndarray, grid: GridSpec = OCC3D_GRID, mask: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+def grid_to_points(
+    semantics: np.ndarray, grid: GridSpec = OCC3D_GRID, mask: np.ndarray | None = None
+) -> tuple[np.ndarray, np.ndarray]:
     """Occupied voxels (label != free, and mask true where given) of a dense label grid -> (points (N,3), labels (N,))."""
     semantics = np.asarray(semantics)
     if semantics.shape != grid.shape:

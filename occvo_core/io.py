@@ -12,16 +12,28 @@ from occvo_core.grid import CLASS_COLORS, CLASS_NAMES
 def write_ply(path: str | Path, points: np.ndarray, labels: np.ndarray) -> None:
     """Binary PLY with x, y, z, the class colour and the class label, readable by open3d, CloudCompare, MeshLab."""
     labels = np.asarray(labels, np.uint8)
-    rows = np.empty(len(points), dtype=[("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("red", "u1"), ("green", "u1"),
-                                        ("blue", "u1"), ("label", "u1")])
+    rows = np.empty(
+        len(points),
+        dtype=[
+            ("x", "<f4"),
+            ("y", "<f4"),
+            ("z", "<f4"),
+            ("red", "u1"),
+            ("green", "u1"),
+            ("blue", "u1"),
+            ("label", "u1"),
+        ],
+    )
     rows["x"], rows["y"], rows["z"] = np.asarray(points, np.float32).T
     rgb = CLASS_COLORS[labels]
     rows["red"], rows["green"], rows["blue"] = rgb.T
     rows["label"] = labels
-    header = ("ply\nformat binary_little_endian 1.0\n"
-              f"comment classes: {' '.join(f'{i}={n}' for i, n in enumerate(CLASS_NAMES))}\n"
-              f"element vertex {len(rows)}\nproperty float x\nproperty float y\nproperty float z\n"
-              "property uchar red\nproperty uchar green\nproperty uchar blue\nproperty uchar label\nend_header\n")
+    header = (
+        "ply\nformat binary_little_endian 1.0\n"
+        f"comment classes: {' '.join(f'{i}={n}' for i, n in enumerate(CLASS_NAMES))}\n"
+        f"element vertex {len(rows)}\nproperty float x\nproperty float y\nproperty float z\n"
+        "property uchar red\nproperty uchar green\nproperty uchar blue\nproperty uchar label\nend_header\n"
+    )
     with open(path, "wb") as fh:
         fh.write(header.encode("ascii"))
         fh.write(rows.tobytes())
@@ -51,7 +63,15 @@ def plot_trajectory(path: str | Path, est: np.ndarray, gt: np.ndarray | None = N
         rot, trans = umeyama_se3(p, g)
         p = p @ rot.T + trans
         ax.plot(g[:, 0], g[:, 1], "-", color="0.4", lw=2, label="ground truth")
-    ax.plot(p[:, 0], p[:, 1], "-o", color="tab:red", ms=2, lw=1, label="OCC-VO estimate" + (" (aligned)" if gt is not None else ""))
+    ax.plot(
+        p[:, 0],
+        p[:, 1],
+        "-o",
+        color="tab:red",
+        ms=2,
+        lw=1,
+        label="OCC-VO estimate" + (" (aligned)" if gt is not None else ""),
+    )
     ax.set_aspect("equal")
     ax.set_xlabel("x [m]")
     ax.set_ylabel("y [m]")

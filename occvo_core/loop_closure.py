@@ -63,8 +63,9 @@ class LoopClosure:
         lc = self.config.loop_closure
         return t - lc.min_gap_frames if lc.enabled and t > lc.min_gap_frames else None
 
-    def search(self, frame: Prepared, pose: np.ndarray, t: int, local: LocalMap,
-               old: np.ndarray | None) -> tuple[np.ndarray | None, dict[str, int]]:
+    def search(
+        self, frame: Prepared, pose: np.ndarray, t: int, local: LocalMap, old: np.ndarray | None
+    ) -> tuple[np.ndarray | None, dict[str, int]]:
         """Find the frame on the old map (a BEV correlation over metres, then coarse and fine GICP against the old
         voxels alone) and return the correction (world -> world) when it puts far more of the frame on the old map
         than the registered pose does. info["loop_on_old"]: the frame (relocalised or not) lies on the old map."""
@@ -89,8 +90,11 @@ class LoopClosure:
         found, covered = self.share_on(frame, src, relocalised, local, old)
         jump = float(np.linalg.norm(relocalised[:3, 3] - pose[:3, 3]))
         on_covered = found / max(covered, 1e-9)
-        info.update(loop_found_pct=int(round(100 * found)), loop_covered_pct=int(round(100 * covered)),
-                    loop_jump_mm=int(round(1000 * jump)))
+        info.update(
+            loop_found_pct=int(round(100 * found)),
+            loop_covered_pct=int(round(100 * covered)),
+            loop_jump_mm=int(round(1000 * jump)),
+        )
         # judged where the old map is: coming back, a frame still sees the road it came by, which the old map lacks
         if on_covered < lc.accept_share or covered < lc.min_overlap or found < 2 * share or jump < lc.min_correction_m:
             return None, info
@@ -101,37 +105,48 @@ class LoopClosure:
         """Mask of the frame's points the recent map does not explain at pose. What it explains is the road just
         driven: the rest is what must be found on the old map (the trail's trees and houses would alias the search)."""
         reach = self.config.gicp.fine_max_correspondence_m
-        d, _ = local.nearest(transform(pose, frame.points), int(np.ceil(reach / local.voxel)),
-                             usable=local.alive() & ~old)
+        d, _ = local.nearest(
+            transform(pose, frame.points), int(np.ceil(reach / local.voxel)), usable=local.alive() & ~old
+        )
         return d > reach
 
     def _search_window(self, pose: np.ndarray, t: int) -> LocalMap:
         """The old map as far around the frame as the search reaches, not just its registration window."""
         lc = self.config.loop_closure
-        return frame_window(self.map, pose, t, self.margin + [lc.search_radius_m, lc.search_radius_m,
-                                                              lc.search_height_m], tight=True)
+        return frame_window(
+            self.map, pose, t, self.margin + [lc.search_radius_m, lc.search_radius_m, lc.search_height_m], tight=True
+        )
 
-    def _relocalise(self, frame: Prepared, pose: np.ndarray, unexplained: np.ndarray, local: LocalMap,
-                    old: np.ndarray) -> np.ndarray:
+    def _relocalise(
+        self, frame: Prepared, pose: np.ndarray, unexplained: np.ndarray, local: LocalMap, old: np.ndarray
+    ) -> np.ndarray:
         """The frame's pose on the old map: its unexplained points correlated with the old map in BEV, levelled on
         its ground, then coarse and fine GICP against it."""
         lc = self.config.loop_closure
-        motion, _ = bev_first_motion(transform(np.linalg.inv(pose), local.pos[old]), local.labels[old],
-                                     frame.points[unexplained], frame.labels[unexplained],
-                                     search_radius_m=lc.search_radius_m, yaw_steps_deg=lc.yaw_steps_deg)
+        motion, _ = bev_first_motion(
+            transform(np.linalg.inv(pose), local.pos[old]),
+            local.labels[old],
+            frame.points[unexplained],
+            frame.labels[unexplained],
+            search_radius_m=lc.search_radius_m,
+            yaw_steps_deg=lc.yaw_steps_deg,
+        )
         candidate = pose @ motion
         # height, roll and pitch drift too on a long drive: level the frame's ground on the old map's
-        level = ground_height_correction(local.pos[old & np.isin(local.labels, GROUND_CLASSES)],
-                                         transform(candidate, frame.points[np.isin(frame.labels, GROUND_CLASSES)]),
-                                         candidate[:3, 3])
+        level = ground_height_correction(
+            local.pos[old & np.isin(local.labels, GROUND_CLASSES)],
+            transform(candidate, frame.points[np.isin(frame.labels, GROUND_CLASSES)]),
+            candidate[:3, 3],
+        )
         if level is not None:
             candidate = level @ candidate
         ego = EgoMap.around(local, candidate, self.margin, subset=old)
         coarse = coarse_gicp(frame, ego, self.config)  # with its wide pass: the BEV peak can be metres off
         return candidate @ fine_gicp(frame, frame.fine, ego, coarse.pose, self.config).pose
 
-    def share_on(self, frame: Prepared, idx: np.ndarray, pose: np.ndarray, local: LocalMap,
-                 subset: np.ndarray) -> tuple[float, float]:
+    def share_on(
+        self, frame: Prepared, idx: np.ndarray, pose: np.ndarray, local: LocalMap, subset: np.ndarray
+    ) -> tuple[float, float]:
         """Shares of frame points idx that, at pose, have a voxel of subset with their label within the fine GICP
         correspondence distance, and that have one of any label within twice the coarse correspondence distance
         (the part of the frame the subset covers)."""
@@ -150,8 +165,15 @@ class LoopClosure:
         return float(hit.mean()), float(covered.mean())
 
     # -- the map update --------------------------------------------------------------------------------------
-    def before_merge(self, poses: list[np.ndarray], pose: np.ndarray, t: int, correction: np.ndarray | None,
-                     searched: bool, on_old_map: bool) -> bool:
+    def before_merge(
+        self,
+        poses: list[np.ndarray],
+        pose: np.ndarray,
+        t: int,
+        correction: np.ndarray | None,
+        searched: bool,
+        on_old_map: bool,
+    ) -> bool:
         """Frame t is committed at `pose` (after `poses`): drop the voxels of followed frames that come of age and
         spread a closed loop's correction over the map. Returns whether the map moved (windows are stale)."""
         self.on_old_map = on_old_map
@@ -195,9 +217,14 @@ class LoopClosure:
         corrections[:, :3, 3] = path[1:] - np.einsum("nij,nj->ni", rot[1:], ego[1:])
         self.map_corrections.append((t, frames, corrections))
         rows = self.map.live_rows(born_after=a)
-        self.map.move(rows, corrections[:, :3, :3], corrections[:, :3, 3],
-                      ghost_radius_m=self.config.loop_closure.ghost_radius_m, born_before=a + 1,
-                      group=self.map.born_of(rows) - a - 1)
+        self.map.move(
+            rows,
+            corrections[:, :3, :3],
+            corrections[:, :3, 3],
+            ghost_radius_m=self.config.loop_closure.ghost_radius_m,
+            born_before=a + 1,
+            group=self.map.born_of(rows) - a - 1,
+        )
 
     def drop_followed_voxels(self, t: int, restored: bool = False) -> None:
         """Voxels made by frames that followed the old map are the recent map registration needs where that map is
@@ -235,11 +262,14 @@ class LoopClosure:
     # -- state -----------------------------------------------------------------------------------------------
     def state(self) -> dict[str, np.ndarray]:
         rows = [[t, b, *c.ravel()] for t, frames, cs in self.map_corrections for b, c in zip(frames, cs)]
-        return {"loops": np.array([[t, *c.ravel()] for t, c in self.loops], np.float64).reshape(-1, 17),
-                "last_loop_search": np.array(self.last_search, np.int64), "on_old_map": np.array(self.on_old_map),
-                "anchor": np.array(self.anchor, np.int64),
-                "followed_frames": np.flatnonzero(self.followed).astype(np.int64),
-                "map_corrections": np.array(rows, np.float64).reshape(-1, 18)}
+        return {
+            "loops": np.array([[t, *c.ravel()] for t, c in self.loops], np.float64).reshape(-1, 17),
+            "last_loop_search": np.array(self.last_search, np.int64),
+            "on_old_map": np.array(self.on_old_map),
+            "anchor": np.array(self.anchor, np.int64),
+            "followed_frames": np.flatnonzero(self.followed).astype(np.int64),
+            "map_corrections": np.array(rows, np.float64).reshape(-1, 18),
+        }
 
     def load_state(self, state: dict[str, np.ndarray], frames: int) -> None:
         """state() of a run with `frames` frames committed; keys it lacks keep their start values."""

@@ -52,9 +52,15 @@ class MapMetrics:
     reference: str = ""  # what the ground-truth map was
 
     def as_dict(self) -> dict:
-        return {"accuracy": self.accuracy, "precision": self.precision, "completion": self.completion,
-                "n_reconstructed": self.n_reconstructed, "n_ground_truth": self.n_ground_truth,
-                "threshold_m": self.threshold, "reference": self.reference}
+        return {
+            "accuracy": self.accuracy,
+            "precision": self.precision,
+            "completion": self.completion,
+            "n_reconstructed": self.n_reconstructed,
+            "n_ground_truth": self.n_ground_truth,
+            "threshold_m": self.threshold,
+            "reference": self.reference,
+        }
 
 
 def _select(points, labels, classes) -> np.ndarray:
@@ -67,8 +73,15 @@ def _select(points, labels, classes) -> np.ndarray:
     return points[np.isin(labels, np.asarray(classes))]
 
 
-def map_metrics(est_points: np.ndarray, est_labels: np.ndarray | None, gt_points: np.ndarray, gt_labels: np.ndarray | None,
-                threshold: float = THRESHOLD_M, classes=STATIC_CLASSES, reference: str = "") -> MapMetrics:
+def map_metrics(
+    est_points: np.ndarray,
+    est_labels: np.ndarray | None,
+    gt_points: np.ndarray,
+    gt_labels: np.ndarray | None,
+    threshold: float = THRESHOLD_M,
+    classes=STATIC_CLASSES,
+    reference: str = "",
+) -> MapMetrics:
     """Compare a reconstructed map with a ground-truth map in the same frame. classes=None keeps every point;
     a map without labels is compared whole. Empty maps give NaN accuracy and zero precision / completion."""
     est = _select(est_points, est_labels, classes)
@@ -80,11 +93,20 @@ def map_metrics(est_points: np.ndarray, est_labels: np.ndarray | None, gt_points
     d_est, _ = cKDTree(gt).query(est, k=1)
     d_gt, _ = cKDTree(est).query(gt, k=1)
     tol = threshold + 1e-9
-    return MapMetrics(float(np.sqrt(np.mean(d_est ** 2))), float(np.mean(d_est <= tol)), float(np.mean(d_gt <= tol)),
-                      len(est), len(gt), threshold, reference)
+    return MapMetrics(
+        float(np.sqrt(np.mean(d_est**2))),
+        float(np.mean(d_est <= tol)),
+        float(np.mean(d_gt <= tol)),
+        len(est),
+        len(gt),
+        threshold,
+        reference,
+    )
 
 
-def voxel_downsample(points: np.ndarray, labels: np.ndarray | None, voxel: float = 0.4) -> tuple[np.ndarray, np.ndarray | None]:
+def voxel_downsample(
+    points: np.ndarray, labels: np.ndarray | None, voxel: float = 0.4
+) -> tuple[np.ndarray, np.ndarray | None]:
     """One point per world voxel (its centre); the label most often seen in that voxel (ties: lowest class id)."""
     points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
     if len(points) == 0:
@@ -100,7 +122,9 @@ def voxel_downsample(points: np.ndarray, labels: np.ndarray | None, voxel: float
     return centres, counts.argmax(axis=1).astype(np.uint8)
 
 
-def reference_map_from_poses(source, poses: np.ndarray | None = None, voxel: float = 0.4, classes=STATIC_CLASSES) -> MapCloud:
+def reference_map_from_poses(
+    source, poses: np.ndarray | None = None, voxel: float = 0.4, classes=STATIC_CLASSES
+) -> MapCloud:
     """Stand-in map for scenes with no true map: every frame's occupied voxels of `classes`, moved to the world
     by the ground-truth poses (source.gt_poses unless given) and voxel-downsampled. It inherits the occupancy's
     errors, so metrics against it measure consistency with the scene's own predictions, not truth."""
@@ -127,7 +151,9 @@ def ground_truth_map(source) -> MapCloud:
     return reference_map_from_poses(source)
 
 
-def align_to_ground_truth(points: np.ndarray, est_poses: np.ndarray, gt_poses: np.ndarray, lever_m: float = 10.0) -> np.ndarray:
+def align_to_ground_truth(
+    points: np.ndarray, est_poses: np.ndarray, gt_poses: np.ndarray, lever_m: float = 10.0
+) -> np.ndarray:
     """Map points from the estimate's world frame to the ground truth's by an SE(3) Umeyama fit over the poses:
     each pose contributes its position and the tips of its three axes `lever_m` long. Orientation makes the fit
     well posed on straight drives, where positions alone (APE's alignment) leave the roll about the road free."""
@@ -159,6 +185,7 @@ def evaluate_map_against_truth(source, odometry, threshold: float = THRESHOLD_M,
 
 
 # -- map files: .npz (points, labels) or .ply (x, y, z and optionally label / class / semantic) ----------------
+
 
 def load_map(path: str | Path) -> MapCloud:
     path = Path(path)
@@ -205,9 +232,24 @@ def save_map(path: str | Path, points: np.ndarray, labels: np.ndarray | None = N
         np.savez_compressed(path, **arrays)
 
 
-_PLY_TYPES = {"char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1", "short": "i2", "int16": "i2", "ushort": "u2",
-              "uint16": "u2", "int": "i4", "int32": "i4", "uint": "u4", "uint32": "u4", "float": "f4", "float32": "f4",
-              "double": "f8", "float64": "f8"}
+_PLY_TYPES = {
+    "char": "i1",
+    "int8": "i1",
+    "uchar": "u1",
+    "uint8": "u1",
+    "short": "i2",
+    "int16": "i2",
+    "ushort": "u2",
+    "uint16": "u2",
+    "int": "i4",
+    "int32": "i4",
+    "uint": "u4",
+    "uint32": "u4",
+    "float": "f4",
+    "float32": "f4",
+    "double": "f8",
+    "float64": "f8",
+}
 _LABEL_NAMES = ("label", "class", "semantic", "semantics", "scalar_label")
 
 
@@ -217,7 +259,7 @@ def _read_ply(path: Path) -> tuple[np.ndarray, np.ndarray | None]:
     if not data.startswith(b"ply") or end < 0:
         raise DatasetError(path, "not a PLY file (no 'ply' magic or end_header)")
     header = data[:end].decode("ascii", "replace").splitlines()
-    body = data[end + len(b"end_header"):]
+    body = data[end + len(b"end_header") :]
     body = body[1:] if body[:1] == b"\n" else body[2:] if body[:2] == b"\r\n" else body
     fmt, count, props, in_vertex = None, 0, [], False
     for line in header:

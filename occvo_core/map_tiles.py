@@ -28,7 +28,9 @@ def tile_distance(tiles: np.ndarray, xy, tile_m: float) -> np.ndarray:
     return np.hypot(d[:, 0], d[:, 1])
 
 
-def tiles_from_map(points: np.ndarray, labels: np.ndarray, tile_m: float = DEFAULT_TILE_M) -> dict[tuple[int, int], tuple[np.ndarray, np.ndarray]]:
+def tiles_from_map(
+    points: np.ndarray, labels: np.ndarray, tile_m: float = DEFAULT_TILE_M
+) -> dict[tuple[int, int], tuple[np.ndarray, np.ndarray]]:
     """Map (points (M,3), labels (M,)) -> {(ix, iy): (points, labels)}; each tile keeps the map's point order."""
     points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
     labels = np.asarray(labels, dtype=np.uint8).reshape(-1)
@@ -50,8 +52,9 @@ def tiles_from_map(points: np.ndarray, labels: np.ndarray, tile_m: float = DEFAU
     return out
 
 
-def retile_region(tiles: dict, map_points, region: np.ndarray | None,
-                  tile_m: float = DEFAULT_TILE_M) -> tuple[dict, set]:
+def retile_region(
+    tiles: dict, map_points, region: np.ndarray | None, tile_m: float = DEFAULT_TILE_M
+) -> tuple[dict, set]:
     """`tiles` (an earlier tiles_from_map of the map) brought up to date after a change confined to `region` (x-y box
     xmin, ymin, xmax, ymax; None = anywhere): the tiles the box overlaps are cut again, the others kept. map_points()
     gives the whole map, map_points((lo, hi, tile_m)) the points in tiles lo..hi (as OccVO.map_points). Returns

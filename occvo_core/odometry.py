@@ -99,8 +99,13 @@ class OccVO:
     def reset(self) -> None:
         self._version = getattr(self, "_version", 0) + 1  # any change: a pending Registration is stale (complete())
         pf = self.config.voxel_pfilter
-        self.map = VoxelPFilterMap(pf.map_voxel_m, pf.p_index_threshold, pfilter=pf.enabled,
-                                   merge_radius_m=pf.merge_radius_m, observe_radius_m=pf.observe_radius_m)
+        self.map = VoxelPFilterMap(
+            pf.map_voxel_m,
+            pf.p_index_threshold,
+            pfilter=pf.enabled,
+            merge_radius_m=pf.merge_radius_m,
+            observe_radius_m=pf.observe_radius_m,
+        )
         self.loop_closure = LoopClosure(self.config, self.map)
         self._poses: list[np.ndarray] = []
         self._indices: list[int] = []
@@ -171,8 +176,9 @@ class OccVO:
         watch.lap("preprocess")
         t = len(self._poses)
         if t == 0:
-            return Registration(frame.index, np.eye(4), "initialised", _pending=_Pending(prepared, t, watch,
-                                                                                          self._version))
+            return Registration(
+                frame.index, np.eye(4), "initialised", _pending=_Pending(prepared, t, watch, self._version)
+            )
         return self.register_frame(prepared, t, watch)
 
     def register_frame(self, frame: Prepared, t: int, watch: Stopwatch) -> Registration:
@@ -195,8 +201,13 @@ class OccVO:
         fine = fine_gicp(frame, frame.fine[keep[frame.fine]], ego, coarse.pose, cfg)
         pose = guess @ fine.pose
         watch.lap("fine_gicp")
-        pairs = {"coarse_found": coarse.pairs_found, "coarse_semantic_kept": coarse.pairs_kept,
-                 "fine_found": fine.pairs_found, "fine_semantic_kept": fine.pairs_kept, **dynamic}
+        pairs = {
+            "coarse_found": coarse.pairs_found,
+            "coarse_semantic_kept": coarse.pairs_kept,
+            "fine_found": fine.pairs_found,
+            "fine_semantic_kept": fine.pairs_kept,
+            **dynamic,
+        }
         pending = _Pending(frame, t, watch, self._version, local, old, map_moved, entered)
         return Registration(frame.index, pose, "ok", pairs, _pending=pending)
 
@@ -205,8 +216,10 @@ class OccVO:
         relocalised one when a loop closes (StepResult.loop_correction)."""
         p = reg._pending
         if p is None or p.version != self._version:
-            raise RuntimeError("complete() takes the registration of the frame just registered, before any other "
-                               "change to the odometry (step, complete, evict_tiles, restore_tiles, reset, load)")
+            raise RuntimeError(
+                "complete() takes the registration of the frame just registered, before any other "
+                "change to the odometry (step, complete, evict_tiles, restore_tiles, reset, load)"
+            )
         p.watch.restart()  # the time between the halves (a service publishing the pose) is no stage's
         if p.t == 0:
             self._commit(p.frame, np.eye(4), np.zeros(0, np.int64))
@@ -215,20 +228,43 @@ class OccVO:
         correction, loop = self.loop_closure.search(p.frame, reg.pose, p.t, p.local, p.old)
         p.watch.lap("loop_closure")
         pose = reg.pose if correction is None else correction @ reg.pose
-        self._commit(p.frame, pose, p.local.rows[p.map_moved], p.local, correction, searched="loop_searched" in loop,
-                     on_old_map=loop.get("loop_on_old", 0) == 1, entered=p.entered)
+        self._commit(
+            p.frame,
+            pose,
+            p.local.rows[p.map_moved],
+            p.local,
+            correction,
+            searched="loop_searched" in loop,
+            on_old_map=loop.get("loop_on_old", 0) == 1,
+            entered=p.entered,
+        )
         p.watch.lap("voxel_pfilter")
         pairs = {**reg.pairs, "reliable_voxels": int(p.local.usable.sum()), "map_voxels": len(self.map), **loop}
-        return StepResult(p.frame.index, pose, "ok", p.watch.ms, pairs, None if correction is None else correction.copy())
+        return StepResult(
+            p.frame.index, pose, "ok", p.watch.ms, pairs, None if correction is None else correction.copy()
+        )
 
     def _initial_guess(self, frame: Prepared) -> np.ndarray:
         t = len(self._poses)
-        return initial_guess(self._poses, self._last, frame, self.config.initialisation,
-                             relocalised_by=self.loop_closure.correction_at(t - 1))
+        return initial_guess(
+            self._poses,
+            self._last,
+            frame,
+            self.config.initialisation,
+            relocalised_by=self.loop_closure.correction_at(t - 1),
+        )
 
-    def _commit(self, frame: Prepared, pose: np.ndarray, moved_rows: np.ndarray, local: LocalMap | None = None,
-                correction: np.ndarray | None = None, searched: bool = False, on_old_map: bool = False,
-                entered: tuple[np.ndarray, np.ndarray] | None = None) -> None:
+    def _commit(
+        self,
+        frame: Prepared,
+        pose: np.ndarray,
+        moved_rows: np.ndarray,
+        local: LocalMap | None = None,
+        correction: np.ndarray | None = None,
+        searched: bool = False,
+        on_old_map: bool = False,
+        entered: tuple[np.ndarray, np.ndarray] | None = None,
+    ) -> None:
         """The only place state changes: drop moved objects from the map, record the registration window, let loop
         closure correct the map, merge the frame (as loop closure's old map allows: see VoxelPFilterMap.merge),
         append the pose."""
@@ -241,8 +277,15 @@ class OccVO:
         if self.loop_closure.before_merge(self._poses, pose, t, correction, searched, on_old_map):
             local = None  # the closure moved the map: the window's rows and grid are stale
         covs_world = rotate_covariances(frame.covs, np.ascontiguousarray(pose[:3, :3]))
-        self.map.merge(transform(pose, frame.points), frame.labels, covs_world, t, local,
-                       self.loop_closure.old_born_before(t), on_old_map)
+        self.map.merge(
+            transform(pose, frame.points),
+            frame.labels,
+            covs_world,
+            t,
+            local,
+            self.loop_closure.old_born_before(t),
+            on_old_map,
+        )
         self.map.compact()
         self.loop_closure.after_merge(t, on_old_map)
         self._poses.append(pose)

@@ -21,8 +21,14 @@ from occvo_core.trajectory_stats import path_length, vertical_drift
 
 
 class OdometryPipeline:
-    def __init__(self, source, config: OccVOConfig | None = None, skip_bad_frames: bool = False, progress: bool = True,
-                 threads: int = 0):
+    def __init__(
+        self,
+        source,
+        config: OccVOConfig | None = None,
+        skip_bad_frames: bool = False,
+        progress: bool = True,
+        threads: int = 0,
+    ):
         self.source = source
         self.odometry = OccVO(config, threads=threads)
         self.skip_bad_frames = skip_bad_frames
@@ -35,7 +41,9 @@ class OdometryPipeline:
     def run(self, on_step=None) -> OdometryPipeline:
         """on_step(frame, result, odometry), when given, sees every registered frame (a live view logs it)."""
         self.odometry.reset()
-        for i in tqdm(range(len(self.source)), desc=f"OCC-VO {self.source.name}", unit="frame", disable=not self.progress):
+        for i in tqdm(
+            range(len(self.source)), desc=f"OCC-VO {self.source.name}", unit="frame", disable=not self.progress
+        ):
             try:
                 frame = self.source[i]
                 start = time.perf_counter()
@@ -71,8 +79,11 @@ class OdometryPipeline:
             out.update(ape_rmse_m=rmse, success=success(rmse))
             if len(poses) >= 3:  # how much of the APE is timing between the frames and their poses
                 fit = fit_time_offset(gt, poses, self.stamps())
-                out.update(ape_rmse_time_fitted_m=fit.ape_rmse_m, time_offset_ms=fit.offset_ms,
-                           time_fit_dropped_frames=fit.dropped_frames)
+                out.update(
+                    ape_rmse_time_fitted_m=fit.ape_rmse_m,
+                    time_offset_ms=fit.offset_ms,
+                    time_fit_dropped_frames=fit.dropped_frames,
+                )
         out.update(path_length_m=path_length(poses), **vertical_drift(poses))
         out["ms_per_frame_median"] = float(np.median(self.frame_ms)) if self.frame_ms else None
         out["ms_per_stage_median"] = {k: float(np.median(v)) for k, v in self.stage_ms.items()}

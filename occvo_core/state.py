@@ -18,8 +18,11 @@ if TYPE_CHECKING:
 def state_dict(vo: OccVO, copy: bool = True) -> dict[str, np.ndarray]:
     """Everything needed to resume. copy=False gives views of the map arrays, for a caller that writes them out
     before the next step."""
-    out = {"config_json": np.frombuffer(vo.config.model_dump_json().encode(), np.uint8),
-           "poses": vo.poses, "indices": np.array(vo.frame_indices, np.int64)}
+    out = {
+        "config_json": np.frombuffer(vo.config.model_dump_json().encode(), np.uint8),
+        "poses": vo.poses,
+        "indices": np.array(vo.frame_indices, np.int64),
+    }
     out.update({f"map.{k}": v for k, v in vo.map.state(copy).items()})
     out.update(vo.loop_closure.state())
     if vo._last is not None:
@@ -35,8 +38,9 @@ def check_config(state: dict[str, np.ndarray], config: OccVOConfig) -> None:
     except ValueError:
         same = False
     if not same:
-        raise ConfigError("saved odometry state was made with another OccVOConfig; refusing to mix them "
-                          f"(saved: {saved})")
+        raise ConfigError(
+            f"saved odometry state was made with another OccVOConfig; refusing to mix them (saved: {saved})"
+        )
 
 
 def load_state_dict(vo: OccVO, state: dict[str, np.ndarray]) -> None:

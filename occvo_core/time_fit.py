@@ -56,8 +56,9 @@ def interpolate_poses(stamps: np.ndarray, poses: np.ndarray, query: np.ndarray) 
     return poses[i] @ step
 
 
-def fit_time_offset(gt: np.ndarray, est: np.ndarray, stamps: np.ndarray, max_offset_ms: float = MAX_OFFSET_MS,
-                    step_ms: float = 1.0) -> TimeFit:
+def fit_time_offset(
+    gt: np.ndarray, est: np.ndarray, stamps: np.ndarray, max_offset_ms: float = MAX_OFFSET_MS, step_ms: float = 1.0
+) -> TimeFit:
     """The shift of the ground truth in time (within +-max_offset_ms) that best explains est; gt and est are (N,4,4)
     at the same stamps (seconds, increasing). The shift is chosen on the frames that stay inside the ground truth at
     every shift searched, so that dropping an end frame cannot make a shift look better."""

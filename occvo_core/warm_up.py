@@ -46,8 +46,9 @@ def _street() -> tuple[np.ndarray, np.ndarray]:
         pts.append(np.column_stack([np.full(ty.size, tx), ty.ravel(), tz.ravel()]))
         labels.append(np.full(ty.size, 16, np.uint8))  # vegetation
     for cx, cy in ((4.0, 3.2), (-14.0, -3.2)):
-        bx, by, bz = np.meshgrid(np.arange(cx - 2.0, cx + 2.0, v), np.arange(cy - 0.8, cy + 0.8, v),
-                                 np.arange(-0.6, 0.8, v), indexing="ij")
+        bx, by, bz = np.meshgrid(
+            np.arange(cx - 2.0, cx + 2.0, v), np.arange(cy - 0.8, cy + 0.8, v), np.arange(-0.6, 0.8, v), indexing="ij"
+        )
         pts.append(np.column_stack([bx.ravel(), by.ravel(), bz.ravel()]) + v / 2)
         labels.append(np.full(bx.size, 4, np.uint8))  # car
     return np.concatenate(pts), np.concatenate(labels)
@@ -69,8 +70,9 @@ def warm_up(config: OccVOConfig | None = None, threads: int = 1) -> dict[str, fl
     before = kernels_ready()
     config = config or OccVOConfig()
     # loop closure from the second frame on, searching at every frame, so a few frames reach its search
-    lc = config.loop_closure.model_copy(update={"enabled": True, "min_gap_frames": 1, "min_old_voxels": 1,
-                                                 "lock_share": 1.0, "search_every_frames": 1})
+    lc = config.loop_closure.model_copy(
+        update={"enabled": True, "min_gap_frames": 1, "min_old_voxels": 1, "lock_share": 1.0, "search_every_frames": 1}
+    )
     vo = OccVO(config.model_copy(update={"loop_closure": lc}), threads=threads)
     world, labels = _street()
     for i in range(_FRAMES):
@@ -96,7 +98,14 @@ def warm_up(config: OccVOConfig | None = None, threads: int = 1) -> dict[str, fl
 def kernels_ready() -> set[tuple[str, str]]:
     """(kernel, argument types) of every compiled kernel of occvo_core.registration. One that only other kernels
     call lists its types when compiled in this process, not when its callers came from the cache."""
-    modules = [import_module(f"{kernels.__name__}.{m}") for m in kernels.MODULES] + [semantic_label_filter,
-                                                                                       voxel_pfilter]
-    return {(f.py_func.__name__, str(sig)) for m in modules for f in vars(m).values() if hasattr(f, "signatures")
-            for sig in f.signatures}
+    modules = [import_module(f"{kernels.__name__}.{m}") for m in kernels.MODULES] + [
+        semantic_label_filter,
+        voxel_pfilter,
+    ]
+    return {
+        (f.py_func.__name__, str(sig))
+        for m in modules
+        for f in vars(m).values()
+        if hasattr(f, "signatures")
+        for sig in f.signatures
+    }

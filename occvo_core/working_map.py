@@ -57,7 +57,11 @@ def tiles_reached(cold: Iterable[Tile], points: np.ndarray, pose: np.ndarray, ti
     candidates = [k for k in cold if lo[0] <= k[0] <= hi[0] and lo[1] <= k[1] <= hi[1]]
     if not candidates:
         return []
-    ids = np.concatenate([np.floor((xy + d) / tile_m).astype(np.int64)
-                          for d in ((0, 0), (-margin, -margin), (-margin, margin), (margin, -margin), (margin, margin))])
+    ids = np.concatenate(
+        [
+            np.floor((xy + d) / tile_m).astype(np.int64)
+            for d in ((0, 0), (-margin, -margin), (-margin, margin), (margin, -margin), (margin, margin))
+        ]
+    )
     packed = set(np.unique(pack_tiles(ids)).tolist())
     return [k for k, code in zip(candidates, pack_tiles(np.array(candidates, np.int64)).tolist()) if code in packed]

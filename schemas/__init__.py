@@ -20,7 +20,22 @@ from schemas.models import (
 )
 
 __all__ = [
-    "SCHEMA_VERSION", "Array", "CameraFrame", "CameraImage", "CodecError", "ErrorEvent", "GridSpecModel", "MapInfo",
-    "MapTile", "MapTileQuery", "MapUpdate", "OccupancyFrameMsg", "PoseEstimate", "SparseOccupancy", "Trajectory",
-    "WorkerHealth", "decode", "encode",
+    "SCHEMA_VERSION",
+    "Array",
+    "CameraFrame",
+    "CameraImage",
+    "CodecError",
+    "ErrorEvent",
+    "GridSpecModel",
+    "MapInfo",
+    "MapTile",
+    "MapTileQuery",
+    "MapUpdate",
+    "OccupancyFrameMsg",
+    "PoseEstimate",
+    "SparseOccupancy",
+    "Trajectory",
+    "WorkerHealth",
+    "decode",
+    "encode",
 ]

@@ -35,7 +35,9 @@ def encode(message: BaseModel, max_bytes: int = DEFAULT_MAX_BYTES) -> bytes:
     try:
         data = msgpack.packb(message.model_dump(mode="python"), use_bin_type=True)
     except (OverflowError, TypeError, ValueError) as exc:  # e.g. an int beyond msgpack's 64 bits
-        raise CodecError("invalid_message", f"{getattr(message, 'kind', type(message).__name__)} cannot be encoded: {exc}") from None
+        raise CodecError(
+            "invalid_message", f"{getattr(message, 'kind', type(message).__name__)} cannot be encoded: {exc}"
+        ) from None
     if len(data) > max_bytes:
         raise CodecError("oversize", f"{message.kind} of {len(data)} bytes exceeds the limit of {max_bytes}")
     return data
@@ -59,9 +61,18 @@ def _unpack(data: bytes, max_bytes: int):
             raise CodecError("malformed", f"more than {MAX_ELEMENTS} list and map entries in one message")
         return container
 
-    return msgpack.unpackb(data, raw=False, strict_map_key=True, max_str_len=MAX_STR_LEN, max_bin_len=max_bytes,
-                           max_array_len=MAX_ARRAY_LEN, max_map_len=MAX_MAP_LEN, max_ext_len=0,
-                           list_hook=count, object_hook=count)
+    return msgpack.unpackb(
+        data,
+        raw=False,
+        strict_map_key=True,
+        max_str_len=MAX_STR_LEN,
+        max_bin_len=max_bytes,
+        max_array_len=MAX_ARRAY_LEN,
+        max_map_len=MAX_MAP_LEN,
+        max_ext_len=0,
+        list_hook=count,
+        object_hook=count,
+    )
 
 
 def decode(data: bytes, expect: type[T] | tuple[type, ...] | None = None, max_bytes: int = DEFAULT_MAX_BYTES) -> T:
@@ -86,7 +97,9 @@ def decode(data: bytes, expect: type[T] | tuple[type, ...] | None = None, max_by
     if not isinstance(version, int) or isinstance(version, bool):
         raise CodecError("unsupported_version", f"{kind}: schema_version missing or not an integer ({version!r})")
     if version > SCHEMA_VERSION:
-        raise CodecError("unsupported_version", f"{kind}: schema_version {version} is newer than this build's {SCHEMA_VERSION}")
+        raise CodecError(
+            "unsupported_version", f"{kind}: schema_version {version} is newer than this build's {SCHEMA_VERSION}"
+        )
     if version < 1:
         raise CodecError("unsupported_version", f"{kind}: schema_version {version} is not a valid version")
     if expect is not None:

@@ -1,7 +1,7 @@
 """Write the JSON Schema of every message to schemas/json/<kind>.json, for clients in other languages.
 
-    python -m schemas.export            # write
-    python -m schemas.export --check    # exit 1 when the files drift from the models
+python -m schemas.export            # write
+python -m schemas.export --check    # exit 1 when the files drift from the models
 """
 
 from __future__ import annotations

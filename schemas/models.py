@@ -38,7 +38,9 @@ class Array(_Model):
             raise ValueError(f"array shape {self.shape} is too large for numpy, even with no elements")
         expected = math.prod(self.shape) * itemsize  # Python ints: a huge shape cannot wrap to 0
         if len(self.data) != expected:
-            raise ValueError(f"array of dtype {self.dtype} and shape {self.shape} needs {expected} bytes, got {len(self.data)}")
+            raise ValueError(
+                f"array of dtype {self.dtype} and shape {self.shape} needs {expected} bytes, got {len(self.data)}"
+            )
         return self
 
     @classmethod
@@ -62,7 +64,9 @@ class GridSpecModel(_Model):
     def _extent(self) -> GridSpecModel:
         n = [(u - l) / self.voxel_size for l, u in zip(self.lower, self.upper)]
         if not all(0.5 <= x <= 65536 for x in n):  # also catches inf and NaN; indices travel as uint16 at most
-            raise ValueError(f"grid {self.lower}..{self.upper} of {self.voxel_size} m voxels must span 1..65536 voxels per axis")
+            raise ValueError(
+                f"grid {self.lower}..{self.upper} of {self.voxel_size} m voxels must span 1..65536 voxels per axis"
+            )
         return self
 
     def to_grid(self) -> GridSpec:
@@ -130,7 +134,11 @@ class SparseOccupancy(_Model):
         """exact: send the coordinates as they are; else snap them to voxel indices (compact)."""
         labels = Array.from_numpy(np.asarray(labels, dtype=np.uint8))
         if exact:
-            return cls(grid=GridSpecModel.from_grid(grid), points=Array.from_numpy(np.asarray(points, np.float64)), labels=labels)
+            return cls(
+                grid=GridSpecModel.from_grid(grid),
+                points=Array.from_numpy(np.asarray(points, np.float64)),
+                labels=labels,
+            )
         idx = grid.indices_of(points)
         if len(idx) and not grid.inside(idx).all():
             raise ValueError(f"{int((~grid.inside(idx)).sum())} points fall outside the grid")
@@ -171,8 +179,11 @@ class CameraImage(_Model):
     data: bytes
     intrinsics: list[list[float]] = Field(description="3x3 pinhole K")
     extrinsics: list[list[float]] = Field(description="4x4 camera-to-ego")
-    stamp: Finite | None = Field(None, description="this image's own capture time (s), where the cameras are not "
-                                 "triggered together (nuScenes); the frame's stamp otherwise")
+    stamp: Finite | None = Field(
+        None,
+        description="this image's own capture time (s), where the cameras are not "
+        "triggered together (nuScenes); the frame's stamp otherwise",
+    )
 
     @field_validator("intrinsics")
     @classmethod
@@ -187,7 +198,9 @@ class CameraImage(_Model):
     @model_validator(mode="after")
     def _raw_size(self) -> CameraImage:
         if self.encoding == "raw_rgb8" and len(self.data) != self.width * self.height * 3:
-            raise ValueError(f"raw_rgb8 image {self.camera} needs {self.width * self.height * 3} bytes, got {len(self.data)}")
+            raise ValueError(
+                f"raw_rgb8 image {self.camera} needs {self.width * self.height * 3} bytes, got {len(self.data)}"
+            )
         return self
 
 
@@ -220,7 +233,9 @@ class OccupancyFrameMsg(_StreamMessage):
     sent_at: Finite = 0.0
 
 
-Status = Literal["ok", "lost", "reinitialised", "relocalised"]  # relocalised: a loop closed; replaces the seq's earlier pose
+Status = Literal[
+    "ok", "lost", "reinitialised", "relocalised"
+]  # relocalised: a loop closed; replaces the seq's earlier pose
 
 
 class PoseEstimate(_StreamMessage):
@@ -229,7 +244,9 @@ class PoseEstimate(_StreamMessage):
     stamp: Finite
     pose: list[list[float]] = Field(description="4x4 ego-to-world, first frame of a trajectory = identity")
     status: Status
-    timings_ms: dict[str, Finite] = Field(default_factory=dict, description="per-stage timings, inference to registration")
+    timings_ms: dict[str, Finite] = Field(
+        default_factory=dict, description="per-stage timings, inference to registration"
+    )
     sent_at: Finite = 0.0
 
     @field_validator("pose")
@@ -301,9 +318,20 @@ class MapInfo(_StreamMessage):
 
 
 ErrorCode = Literal[
-    "malformed", "unknown_kind", "unsupported_version", "invalid_message", "oversize", "stream_mismatch",
-    "out_of_order", "missing_seq", "invalid_frame", "tile_not_found", "bad_query", "internal",
-    "seq_jump", "stream_limit",  # a seq beyond the stream's window (not adopted); a worker's or client's streams full
+    "malformed",
+    "unknown_kind",
+    "unsupported_version",
+    "invalid_message",
+    "oversize",
+    "stream_mismatch",
+    "out_of_order",
+    "missing_seq",
+    "invalid_frame",
+    "tile_not_found",
+    "bad_query",
+    "internal",
+    "seq_jump",
+    "stream_limit",  # a seq beyond the stream's window (not adopted); a worker's or client's streams full
     "truncated",  # a region's page is full: more tiles on the next page
 ]
 
@@ -342,6 +370,16 @@ class WorkerHealth(_Message):
 
 MESSAGES: dict[str, type[_Message]] = {
     m.model_fields["kind"].default: m
-    for m in (CameraFrame, OccupancyFrameMsg, PoseEstimate, Trajectory, MapTileQuery, MapTile, MapUpdate, MapInfo,
-              ErrorEvent, WorkerHealth)
+    for m in (
+        CameraFrame,
+        OccupancyFrameMsg,
+        PoseEstimate,
+        Trajectory,
+        MapTileQuery,
+        MapTile,
+        MapUpdate,
+        MapInfo,
+        ErrorEvent,
+        WorkerHealth,
+    )
 }

@@ -47,16 +47,30 @@ class ServiceError(RuntimeError):
         super().__init__(message)
 
 
-def camera_frame_of(frame: OccupancyFrame, stream: str, seq: int, grid: GridSpec = OCC3D_GRID, exact: bool = True) -> CameraFrame:
+def camera_frame_of(
+    frame: OccupancyFrame, stream: str, seq: int, grid: GridSpec = OCC3D_GRID, exact: bool = True
+) -> CameraFrame:
     """A recorded occupancy frame as a camera-frame message for the replay source (no images, its occupancy);
     exact keeps the recorded coordinates bit for bit, else they are snapped to compact voxel indices."""
-    return CameraFrame(stream=stream, seq=seq, stamp=float(frame.stamp),
-                       gt_occupancy=SparseOccupancy.from_points(frame.points, frame.labels, grid, exact), sent_at=time.time())
+    return CameraFrame(
+        stream=stream,
+        seq=seq,
+        stamp=float(frame.stamp),
+        gt_occupancy=SparseOccupancy.from_points(frame.points, frame.labels, grid, exact),
+        sent_at=time.time(),
+    )
 
 
 class OccVOClient:
-    def __init__(self, connect: str = DEFAULT_ENDPOINT, stream: str = "default", timeout: float = 60.0,
-                 session: zenoh.Session | None = None, exact: bool = True, resend_after: float | None = 5.0):
+    def __init__(
+        self,
+        connect: str = DEFAULT_ENDPOINT,
+        stream: str = "default",
+        timeout: float = 60.0,
+        session: zenoh.Session | None = None,
+        exact: bool = True,
+        resend_after: float | None = 5.0,
+    ):
         self.exact = exact
         self.resend_after = resend_after
         self.stream = keys.check_stream(stream)
@@ -74,10 +88,14 @@ class OccVOClient:
         self._down = False  # the registration worker left: hold new frames until it is back and the lost ones resent
         self._back_at: float | None = None
         self.resends = 0
-        self._subs = [self.session.declare_subscriber(keys.pose(stream), self._on_pose),
-                      self.session.declare_subscriber(keys.errors(stream), self._on_error),
-                      self.session.liveliness().declare_subscriber(keys.registration_shard(), self._on_alive, history=True)]
-        self._pub = self.session.declare_publisher(keys.camera(stream), congestion_control=zenoh.CongestionControl.BLOCK)
+        self._subs = [
+            self.session.declare_subscriber(keys.pose(stream), self._on_pose),
+            self.session.declare_subscriber(keys.errors(stream), self._on_error),
+            self.session.liveliness().declare_subscriber(keys.registration_shard(), self._on_alive, history=True),
+        ]
+        self._pub = self.session.declare_publisher(
+            keys.camera(stream), congestion_control=zenoh.CongestionControl.BLOCK
+        )
         self._closed = threading.Event()
         self._resender = threading.Thread(target=self._resend_loop, name=f"occvo-resend-{stream}", daemon=True)
         self._resender.start()
@@ -168,8 +186,11 @@ class OccVOClient:
     def publish(self, frame: OccupancyFrame | CameraFrame) -> int:
         """Send one frame without waiting; returns its seq."""
         seq = self._seq
-        msg = frame.model_copy(update={"stream": self.stream, "seq": seq, "sent_at": time.time()}) if isinstance(frame, CameraFrame) \
+        msg = (
+            frame.model_copy(update={"stream": self.stream, "seq": seq, "sent_at": time.time()})
+            if isinstance(frame, CameraFrame)
             else camera_frame_of(frame, self.stream, seq, exact=self.exact)
+        )
         payload = encode(msg)
         self._seq += 1
         with self._cv:  # while the registration worker is away, a new frame would overtake the lost ones
@@ -196,7 +217,9 @@ class OccVOClient:
                     raise ServiceError(f"seq {seq}: {bad[0].code}: {bad[0].message}", bad[0])
                 left = deadline - time.monotonic()
                 if left <= 0:
-                    raise ServiceError(f"no pose for seq {seq} of stream {self.stream} within {timeout or self.timeout} s")
+                    raise ServiceError(
+                        f"no pose for seq {seq} of stream {self.stream} within {timeout or self.timeout} s"
+                    )
                 self._cv.wait(left)
 
     def step(self, frame: OccupancyFrame | CameraFrame) -> PoseEstimate:
@@ -212,7 +235,14 @@ class OccVOClient:
                 try:
                     errs.append(decode(reply.err.payload.to_bytes(), ErrorEvent))
                 except CodecError:
-                    errs.append(ErrorEvent(stream=self.stream, worker="?", code="internal", message=reply.err.payload.to_bytes().decode(errors="replace")))
+                    errs.append(
+                        ErrorEvent(
+                            stream=self.stream,
+                            worker="?",
+                            code="internal",
+                            message=reply.err.payload.to_bytes().decode(errors="replace"),
+                        )
+                    )
         if not out and errs:
             raise ServiceError(f"{selector}: {errs[0].code}: {errs[0].message}", errs[0])
         return out
@@ -223,7 +253,9 @@ class OccVOClient:
             raise ServiceError(f"no reply for tile {ix},{iy} (is the map service up?)")
         return found[0]
 
-    def region(self, ix_min: int | None = None, ix_max: int | None = None, iy_min: int | None = None, iy_max: int | None = None) -> list[MapTile]:
+    def region(
+        self, ix_min: int | None = None, ix_max: int | None = None, iy_min: int | None = None, iy_max: int | None = None
+    ) -> list[MapTile]:
         tiles, page = [], 0
         while True:  # the map service answers a page of tiles at a time; a "truncated" error says more follow
             q = MapTileQuery(stream=self.stream, ix_min=ix_min, ix_max=ix_max, iy_min=iy_min, iy_max=iy_max, page=page)
@@ -244,7 +276,10 @@ class OccVOClient:
         tiles = self.region()
         if not tiles:
             return np.zeros((0, 3)), np.zeros(0, np.uint8)
-        return (np.concatenate([t.points.to_numpy() for t in tiles]), np.concatenate([t.labels.to_numpy() for t in tiles]))
+        return (
+            np.concatenate([t.points.to_numpy() for t in tiles]),
+            np.concatenate([t.labels.to_numpy() for t in tiles]),
+        )
 
     def map_info(self) -> MapInfo:
         found = self._get(keys.map_info(self.stream), MapInfo)
@@ -269,7 +304,9 @@ class OccVOClient:
 
     def workers(self) -> list[str]:
         """Keys of the live workers' liveliness tokens."""
-        return sorted(str(r.ok.key_expr) for r in self.session.liveliness().get(keys.alive("*", "*"), timeout=5.0) if r.ok)
+        return sorted(
+            str(r.ok.key_expr) for r in self.session.liveliness().get(keys.alive("*", "*"), timeout=5.0) if r.ok
+        )
 
     def wait_for_workers(self, roles=("inference", "registration", "map"), timeout: float = 30.0) -> None:
         deadline = time.monotonic() + timeout

@@ -42,11 +42,23 @@ class InferenceWorker(Worker):
             from services.occupancy_model import load_occupancy_model
 
             torch.set_num_threads(config.torch_threads)
-            self.model = load_occupancy_model(config.checkpoint, config.model_weights, config.device,
-                                              config.min_confidence, config.min_ground_confidence)
-            log_event(self.log, "model loaded", model=self.model.name, device=str(self.model.device),
-                      checkpoint=config.checkpoint, torch_threads=config.torch_threads,
-                      min_confidence=config.min_confidence, min_ground_confidence=config.min_ground_confidence)
+            self.model = load_occupancy_model(
+                config.checkpoint,
+                config.model_weights,
+                config.device,
+                config.min_confidence,
+                config.min_ground_confidence,
+            )
+            log_event(
+                self.log,
+                "model loaded",
+                model=self.model.name,
+                device=str(self.model.device),
+                checkpoint=config.checkpoint,
+                torch_threads=config.torch_threads,
+                min_confidence=config.min_confidence,
+                min_ground_confidence=config.min_ground_confidence,
+            )
 
     def declare(self) -> None:
         self._declared.append(self.session.declare_subscriber(keys.camera("*"), self._on_camera))
@@ -72,7 +84,13 @@ class InferenceWorker(Worker):
         key = keys.camera(stream)
         if self.config.source == "replay":
             if msg.gt_occupancy is None:
-                self.report_error(stream, "invalid_frame", f"seq {msg.seq}: the replay source needs the frame's recorded occupancy (gt_occupancy)", key, msg.seq)
+                self.report_error(
+                    stream,
+                    "invalid_frame",
+                    f"seq {msg.seq}: the replay source needs the frame's recorded occupancy (gt_occupancy)",
+                    key,
+                    msg.seq,
+                )
                 return
             occupancy, source = msg.gt_occupancy, "replay"
         else:
@@ -92,19 +110,38 @@ class InferenceWorker(Worker):
             self.stats.observe("decode_images", (t1 - t0) * 1000.0)
             self.stats.observe("model", model_ms)
             dtype = np.uint8 if max(self.model.grid.shape) <= 256 else np.uint16
-            occupancy = SparseOccupancy.model_validate({
-                "grid": {"lower": self.model.grid.lower, "upper": self.model.grid.upper, "voxel_size": self.model.grid.voxel_size},
-                "voxels": {"dtype": np.dtype(dtype).name, "shape": [len(idx), 3], "data": idx.astype(dtype).tobytes()},
-                "labels": {"dtype": "uint8", "shape": [len(labels)], "data": labels.astype(np.uint8).tobytes()},
-            })
+            occupancy = SparseOccupancy.model_validate(
+                {
+                    "grid": {
+                        "lower": self.model.grid.lower,
+                        "upper": self.model.grid.upper,
+                        "voxel_size": self.model.grid.voxel_size,
+                    },
+                    "voxels": {
+                        "dtype": np.dtype(dtype).name,
+                        "shape": [len(idx), 3],
+                        "data": idx.astype(dtype).tobytes(),
+                    },
+                    "labels": {"dtype": "uint8", "shape": [len(labels)], "data": labels.astype(np.uint8).tobytes()},
+                }
+            )
             source = f"model:{self.model.name}"
         infer_ms = (time.perf_counter() - t0) * 1000.0
         queue_ms = (t0 - t_queued) * 1000.0
-        out = OccupancyFrameMsg(stream=stream, seq=msg.seq, stamp=msg.stamp, source=source, occupancy=occupancy,
-                                timings_ms={"camera_hop": hop_ms, "inference_queue": queue_ms, "inference": infer_ms},
-                                sent_at=time.time())
-        self.session.put(keys.occupancy(stream), encode(out, self.config.max_message_bytes),
-                         congestion_control=zenoh.CongestionControl.BLOCK)
+        out = OccupancyFrameMsg(
+            stream=stream,
+            seq=msg.seq,
+            stamp=msg.stamp,
+            source=source,
+            occupancy=occupancy,
+            timings_ms={"camera_hop": hop_ms, "inference_queue": queue_ms, "inference": infer_ms},
+            sent_at=time.time(),
+        )
+        self.session.put(
+            keys.occupancy(stream),
+            encode(out, self.config.max_message_bytes),
+            congestion_control=zenoh.CongestionControl.BLOCK,
+        )
         self.stats.inc("frames_out")
         self.stats.observe("inference", infer_ms)
         self.stats.observe("camera_hop", hop_ms)

@@ -71,8 +71,10 @@ class Admission:
                 return f"stream {stream!r} refused: this worker serves max_streams={self.max_streams} streams already"
             client = client_of(stream)
             if self.clients.get(client, 0) >= self.per_client:
-                return (f"stream {stream!r} refused: client {client!r} has max_streams_per_client={self.per_client} "
-                        "streams on this worker already")
+                return (
+                    f"stream {stream!r} refused: client {client!r} has max_streams_per_client={self.per_client} "
+                    "streams on this worker already"
+                )
             self.streams.add(stream)
             self.clients[client] = self.clients.get(client, 0) + 1
             return None

@@ -14,14 +14,22 @@ from schemas import keys
 from services.runtime import WorkerConfig, free_port, open_router, open_session
 
 REPO = Path(__file__).resolve().parents[1]
-WORKERS = {"inference": "services.inference_worker", "registration": "services.registration_worker", "map": "services.map_service"}
+WORKERS = {
+    "inference": "services.inference_worker",
+    "registration": "services.registration_worker",
+    "map": "services.map_service",
+}
 
 
 def wait_alive(session, roles, timeout: float) -> None:
     deadline = time.monotonic() + timeout
     alive: set[str] = set()
     while time.monotonic() < deadline:
-        alive = {str(r.ok.key_expr).split("/")[2] for r in session.liveliness().get(keys.alive("*", "*"), timeout=2.0) if r.ok}
+        alive = {
+            str(r.ok.key_expr).split("/")[2]
+            for r in session.liveliness().get(keys.alive("*", "*"), timeout=2.0)
+            if r.ok
+        }
         if set(roles) <= alive:
             return
         time.sleep(0.1)
@@ -31,9 +39,16 @@ def wait_alive(session, roles, timeout: float) -> None:
 class LocalService:
     """Router in this process, workers as child processes (`python -m services.<module>`)."""
 
-    def __init__(self, endpoint: str | None = None, router_config: str | None = None, worker_args: dict | None = None,
-                 common_args: list[str] | None = None, log_dir: str | Path | None = None, quiet: bool = False,
-                 registration_shards: int = 1):
+    def __init__(
+        self,
+        endpoint: str | None = None,
+        router_config: str | None = None,
+        worker_args: dict | None = None,
+        common_args: list[str] | None = None,
+        log_dir: str | Path | None = None,
+        quiet: bool = False,
+        registration_shards: int = 1,
+    ):
         self.endpoint = endpoint or f"tcp/127.0.0.1:{free_port()}"
         self.router_config = router_config
         self.worker_args = worker_args or {}
@@ -48,15 +63,33 @@ class LocalService:
         """Until every worker is alive: a registration worker on a fresh install first compiles its kernels (36 s
         alone on this 2-core machine, 42 s for two shards side by side; occvo_core/warm_up.py)."""
         self.router = open_router(self.endpoint, self.router_config)
-        env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(REPO), os.environ.get("PYTHONPATH", "")]).rstrip(os.pathsep))
+        env = dict(
+            os.environ, PYTHONPATH=os.pathsep.join([str(REPO), os.environ.get("PYTHONPATH", "")]).rstrip(os.pathsep)
+        )
         try:
             n = self.registration_shards
             for name, role, shard in [("inference", "inference", []), ("map", "map", [])] + (
-                    [("registration", "registration", [])] if n == 1 else
-                    [(f"registration-{i}", "registration", ["--shard", str(i), "--shards", str(n)]) for i in range(n)]):
-                cmd = [sys.executable, "-m", WORKERS[role], "--connect", self.endpoint, "--worker-id", f"{name}-{os.getpid()}",
-                       *shard, *self.common_args, *self.worker_args.get(role, [])]
-                err = open(self.log_dir / f"{name}.log", "w") if self.log_dir else (subprocess.DEVNULL if self.quiet else None)
+                [("registration", "registration", [])]
+                if n == 1
+                else [(f"registration-{i}", "registration", ["--shard", str(i), "--shards", str(n)]) for i in range(n)]
+            ):
+                cmd = [
+                    sys.executable,
+                    "-m",
+                    WORKERS[role],
+                    "--connect",
+                    self.endpoint,
+                    "--worker-id",
+                    f"{name}-{os.getpid()}",
+                    *shard,
+                    *self.common_args,
+                    *self.worker_args.get(role, []),
+                ]
+                err = (
+                    open(self.log_dir / f"{name}.log", "w")
+                    if self.log_dir
+                    else (subprocess.DEVNULL if self.quiet else None)
+                )
                 self.procs[name] = subprocess.Popen(cmd, cwd=REPO, env=env, stderr=err, stdout=err)
             probe = open_session(self.endpoint)
             try:

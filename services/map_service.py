@@ -50,8 +50,13 @@ class MapService(Worker):
         try:
             self.store.apply(msg, encoded)
         except Exception as exc:  # noqa: BLE001 - e.g. the disk is full: report it, keep serving what is stored
-            self.report_error(msg.stream, "internal", f"map update seq {msg.seq} not stored: {type(exc).__name__}: {exc}",
-                              str(sample.key_expr), msg.seq)
+            self.report_error(
+                msg.stream,
+                "internal",
+                f"map update seq {msg.seq} not stored: {type(exc).__name__}: {exc}",
+                str(sample.key_expr),
+                msg.seq,
+            )
             return
         self.stats.inc("frames_out")
         self.stats.observe("apply_update", (time.perf_counter() - t0) * 1000.0)
@@ -83,7 +88,9 @@ class MapService(Worker):
             for s in sorted(self._matching_streams(qkey, lambda s: keys.map_tile(s, "*", "*"))):
                 if len(replies) >= end:
                     break
-                for ix, iy, data in self.store.tiles(s, *(tile or (None, None)), bounds=bounds, limit=end - len(replies)):
+                for ix, iy, data in self.store.tiles(
+                    s, *(tile or (None, None)), bounds=bounds, limit=end - len(replies)
+                ):
                     tkey = keys.map_tile(s, ix, iy)
                     if qkey.intersects(zenoh.KeyExpr(tkey)):
                         replies.append((tkey, data))
@@ -91,24 +98,37 @@ class MapService(Worker):
             return self.reply_error(query, stream, "internal", f"reading the map store: {type(exc).__name__}: {exc}")
         if not replies:
             what = f"tile {tile[0]},{tile[1]}" if tile else "any tile"
-            return self.reply_error(query, stream, "tile_not_found", f"no map {what} for {qkey} (streams with maps: {self.streams()})")
+            return self.reply_error(
+                query, stream, "tile_not_found", f"no map {what} for {qkey} (streams with maps: {self.streams()})"
+            )
         more = len(replies) > (page + 1) * cap
-        replies = replies[page * cap:(page + 1) * cap]
+        replies = replies[page * cap : (page + 1) * cap]
         if not replies:
             return self.reply_error(query, stream, "bad_query", f"page {page} of {qkey} is past its last tile")
         for tkey, data in replies:
             query.reply(tkey, data)
         if more:  # not an error of anyone's: the querier pages on
             self.stats.inc("query_pages_truncated")
-            query.reply_err(encode(ErrorEvent(stream=stream if keys.STREAM_RE.match(stream) else "*", worker=self.worker_id,
-                                              code="truncated", key=str(qkey)[:200], stamp=time.time(),
-                                              message=f"{cap} tiles sent (page {page}); ask page {page + 1} for more")))
+            query.reply_err(
+                encode(
+                    ErrorEvent(
+                        stream=stream if keys.STREAM_RE.match(stream) else "*",
+                        worker=self.worker_id,
+                        code="truncated",
+                        key=str(qkey)[:200],
+                        stamp=time.time(),
+                        message=f"{cap} tiles sent (page {page}); ask page {page + 1} for more",
+                    )
+                )
+            )
         self.stats.observe("tile_query", (time.perf_counter() - t0) * 1000.0)
 
     def _on_info(self, query: zenoh.Query) -> None:
         found = self._matching_streams(query.key_expr, keys.map_info)
         if not found:
-            return self.reply_error(query, keys.stream_of(str(query.key_expr)), "tile_not_found", f"no map for {query.key_expr}")
+            return self.reply_error(
+                query, keys.stream_of(str(query.key_expr)), "tile_not_found", f"no map for {query.key_expr}"
+            )
         for s in found:
             info = self.store.info(s)
             if info is not None:

@@ -44,8 +44,12 @@ CREATE TABLE IF NOT EXISTS map_tiles (
 
 
 def _in_bounds(ix: int, iy: int, b: Bounds) -> bool:
-    return b is None or ((b.ix_min is None or ix >= b.ix_min) and (b.ix_max is None or ix <= b.ix_max)
-                         and (b.iy_min is None or iy >= b.iy_min) and (b.iy_max is None or iy <= b.iy_max))
+    return b is None or (
+        (b.ix_min is None or ix >= b.ix_min)
+        and (b.ix_max is None or ix <= b.ix_max)
+        and (b.iy_min is None or iy >= b.iy_min)
+        and (b.iy_max is None or iy <= b.iy_max)
+    )
 
 
 def _tile_rows(update: MapUpdate, encoded: list[bytes]):
@@ -59,10 +63,19 @@ def _tile_rows(update: MapUpdate, encoded: list[bytes]):
             yield tile.ix, tile.iy, n, p.min(0).tolist(), p.max(0).tolist(), data
 
 
-def _info(stream: str, tile_m: float, last_seq: int | None, tiles: list[tuple[int, int]], voxels: int, lo, hi) -> MapInfo:
-    return MapInfo(stream=stream, tile_m=tile_m, tile_count=len(tiles), voxel_count=voxels, last_seq=last_seq,
-                   bounds_min=tuple(lo) if lo is not None else None, bounds_max=tuple(hi) if hi is not None else None,
-                   tiles=sorted(tiles))
+def _info(
+    stream: str, tile_m: float, last_seq: int | None, tiles: list[tuple[int, int]], voxels: int, lo, hi
+) -> MapInfo:
+    return MapInfo(
+        stream=stream,
+        tile_m=tile_m,
+        tile_count=len(tiles),
+        voxel_count=voxels,
+        last_seq=last_seq,
+        bounds_min=tuple(lo) if lo is not None else None,
+        bounds_max=tuple(hi) if hi is not None else None,
+        tiles=sorted(tiles),
+    )
 
 
 class MemoryMapStore:
@@ -89,8 +102,9 @@ class MemoryMapStore:
         with self.lock:
             return sorted(self.maps)
 
-    def tiles(self, stream: str, ix: int | None = None, iy: int | None = None, bounds: Bounds = None,
-              limit: int | None = None) -> list[tuple[int, int, bytes]]:
+    def tiles(
+        self, stream: str, ix: int | None = None, iy: int | None = None, bounds: Bounds = None, limit: int | None = None
+    ) -> list[tuple[int, int, bytes]]:
         """Encoded tiles of a stream: the one at (ix, iy) when both are given, else the first `limit` within bounds."""
         with self.lock:
             m = self.maps.get(stream)
@@ -157,9 +171,11 @@ class MapStore:
             try:
                 if update.reset:
                     c.execute("DELETE FROM map_tiles WHERE stream = ?", (update.stream,))
-                c.execute("INSERT INTO map_streams (stream, tile_m, last_seq) VALUES (?, ?, ?) "
-                          "ON CONFLICT(stream) DO UPDATE SET tile_m = excluded.tile_m, last_seq = excluded.last_seq",
-                          (update.stream, update.tile_m, update.seq))
+                c.execute(
+                    "INSERT INTO map_streams (stream, tile_m, last_seq) VALUES (?, ?, ?) "
+                    "ON CONFLICT(stream) DO UPDATE SET tile_m = excluded.tile_m, last_seq = excluded.last_seq",
+                    (update.stream, update.tile_m, update.seq),
+                )
                 gone = [(update.stream, ix, iy) for ix, iy, n, *_ in rows if n == 0]
                 kept = [(update.stream, ix, iy, n, *lo, *hi, data) for ix, iy, n, lo, hi, data in rows if n]
                 if gone:
@@ -175,22 +191,32 @@ class MapStore:
         with self._rlock:
             return [r[0] for r in self._r.execute("SELECT stream FROM map_streams ORDER BY stream")]
 
-    def tiles(self, stream: str, ix: int | None = None, iy: int | None = None, bounds: Bounds = None,
-              limit: int | None = None) -> list[tuple[int, int, bytes]]:
+    def tiles(
+        self, stream: str, ix: int | None = None, iy: int | None = None, bounds: Bounds = None, limit: int | None = None
+    ) -> list[tuple[int, int, bytes]]:
         """Encoded tiles of a stream: the one at (ix, iy) when both are given, else the first `limit` within bounds."""
         where, args = ["stream = ?"], [stream]
         if ix is not None and iy is not None:
             where += ["ix = ?", "iy = ?"]
             args += [ix, iy]
         if bounds is not None:
-            for col, op, v in (("ix", ">=", bounds.ix_min), ("ix", "<=", bounds.ix_max), ("iy", ">=", bounds.iy_min), ("iy", "<=", bounds.iy_max)):
+            for col, op, v in (
+                ("ix", ">=", bounds.ix_min),
+                ("ix", "<=", bounds.ix_max),
+                ("iy", ">=", bounds.iy_min),
+                ("iy", "<=", bounds.iy_max),
+            ):
                 if v is not None:
                     where.append(f"{col} {op} ?")
                     args.append(v)
         with self._rlock:
-            return [(x, y, bytes(d)) for x, y, d in
-                    self._r.execute(f"SELECT ix, iy, data FROM map_tiles WHERE {' AND '.join(where)} ORDER BY ix, iy LIMIT ?",
-                                    [*args, -1 if limit is None else limit])]
+            return [
+                (x, y, bytes(d))
+                for x, y, d in self._r.execute(
+                    f"SELECT ix, iy, data FROM map_tiles WHERE {' AND '.join(where)} ORDER BY ix, iy LIMIT ?",
+                    [*args, -1 if limit is None else limit],
+                )
+            ]
 
     def info(self, stream: str) -> MapInfo | None:
         with self._rlock:
@@ -200,8 +226,11 @@ class MapStore:
                 row = c.execute("SELECT tile_m, last_seq FROM map_streams WHERE stream = ?", (stream,)).fetchone()
                 if row is None:
                     return None
-                agg = c.execute("SELECT COALESCE(SUM(voxels), 0), MIN(xmin), MIN(ymin), MIN(zmin), MAX(xmax), MAX(ymax), MAX(zmax) "
-                                "FROM map_tiles WHERE stream = ?", (stream,)).fetchone()
+                agg = c.execute(
+                    "SELECT COALESCE(SUM(voxels), 0), MIN(xmin), MIN(ymin), MIN(zmin), MAX(xmax), MAX(ymax), MAX(zmax) "
+                    "FROM map_tiles WHERE stream = ?",
+                    (stream,),
+                ).fetchone()
                 tiles = c.execute("SELECT ix, iy FROM map_tiles WHERE stream = ?", (stream,)).fetchall()
             finally:
                 c.execute("COMMIT")

@@ -110,7 +110,9 @@ class StreamState:
 
 def _tile_digest(tile) -> bytes:
     p, l = tile
-    return hashlib.blake2b(np.ascontiguousarray(p).tobytes() + np.ascontiguousarray(l).tobytes(), digest_size=16).digest()
+    return hashlib.blake2b(
+        np.ascontiguousarray(p).tobytes() + np.ascontiguousarray(l).tobytes(), digest_size=16
+    ).digest()
 
 
 class RegistrationWorker(Worker):
@@ -132,8 +134,10 @@ class RegistrationWorker(Worker):
             self.config = config = config.model_copy(update={"working_radius_m": None})
             radius = None
         if radius is not None and radius <= config.tile_m:
-            raise ConfigError(f"working_radius_m ({radius}) must exceed tile_m ({config.tile_m}): tiles come back "
-                              "within working_radius_m - tile_m")
+            raise ConfigError(
+                f"working_radius_m ({radius}) must exceed tile_m ({config.tile_m}): tiles come back "
+                "within working_radius_m - tile_m"
+            )
         self.store = TrajectoryStore(config.store_path, config.store_sync.upper()) if config.store_path else None
         self._snapshots: queue.Queue = queue.Queue()
         self._boost_refused = False
@@ -167,16 +171,26 @@ class RegistrationWorker(Worker):
             s.declare_queryable(keys.trajectory("*"), self._on_trajectory),
         ]
         # clients watch their shard's token: frames sent while their stream's worker is away are resent when it is back
-        self._declared.append(s.liveliness().declare_token(keys.registration_shard(self.config.shard, self.config.shards,
-                                                                                    self.worker_id)))
+        self._declared.append(
+            s.liveliness().declare_token(keys.registration_shard(self.config.shard, self.config.shards, self.worker_id))
+        )
         if self.evict_off:
             log_event(self.log, "working_radius_m ignored: eviction needs store_path (the evicted map goes there)")
         if self.store is not None:
-            log_event(self.log, "trajectory store", path=self.config.store_path, streams=sorted(self.states),
-                      working_radius_m=self.config.working_radius_m, snapshot_every=self.config.snapshot_every)
+            log_event(
+                self.log,
+                "trajectory store",
+                path=self.config.store_path,
+                streams=sorted(self.states),
+                working_radius_m=self.config.working_radius_m,
+                snapshot_every=self.config.snapshot_every,
+            )
             if self.config.working_radius_m is not None and self.config.working_radius_m < MIN_SAFE_RADIUS_M:
-                log_event(self.log, "working radius below a frame's reach: eviction changes registration",
-                          working_radius_m=self.config.working_radius_m)
+                log_event(
+                    self.log,
+                    "working radius below a frame's reach: eviction changes registration",
+                    working_radius_m=self.config.working_radius_m,
+                )
 
     def after_leaving(self) -> None:
         """Off the network (the frames in hand finished): end the streams' after-pose threads, then snapshot every
@@ -232,7 +246,13 @@ class RegistrationWorker(Worker):
         if st.since_snapshot > 0 or st.snapshot_retry:
             st.snapshot_idle.clear()
             self._write_snapshot(stream, st, st.seqs[-1], self.store.created(stream), st.vo.state_dict(copy=False))
-        st.vo, st.tiles, st.cold, st.cold_digest, st.restored_for_next = None, {}, {}, {}, []  # heap trimmed by the caller
+        st.vo, st.tiles, st.cold, st.cold_digest, st.restored_for_next = (
+            None,
+            {},
+            {},
+            {},
+            [],
+        )  # heap trimmed by the caller
 
     def check_seq(self, stream: str, seq: int, key: str) -> bool:
         return True  # judged in the lane against the stream's trajectory: a step back may be a resend
@@ -254,8 +274,13 @@ class RegistrationWorker(Worker):
                 self._boost_tail(st)
             st.tail.result()
         t0 = time.perf_counter()
-        frame = OccupancyFrame(msg.occupancy.to_points(), msg.occupancy.labels.to_numpy().copy(), index=msg.seq, stamp=msg.stamp,
-                               meta={"stream": stream, "source": msg.source})
+        frame = OccupancyFrame(
+            msg.occupancy.to_points(),
+            msg.occupancy.labels.to_numpy().copy(),
+            index=msg.seq,
+            stamp=msg.stamp,
+            meta={"stream": stream, "source": msg.source},
+        )
         try:
             frame.validate()  # before any reset, so a bad first frame leaves the old trajectory and map intact
         except InvalidFrameError as exc:
@@ -265,20 +290,35 @@ class RegistrationWorker(Worker):
         known = st.stored(msg.seq)
         if known is not None and known.digest == digest:  # a resend: answer it, register nothing twice
             self.stats.inc("republished")
-            self.session.put(keys.pose(stream), encode(self._pose_msg(stream, known)), congestion_control=zenoh.CongestionControl.BLOCK)
+            self.session.put(
+                keys.pose(stream),
+                encode(self._pose_msg(stream, known)),
+                congestion_control=zenoh.CongestionControl.BLOCK,
+            )
             return
         restart = msg.seq == 0 or not st.started
         if not restart:
             last = st.seqs[-1]
             if msg.seq <= last:
                 what = "differs from the registered frame" if known is not None else "is older than the trajectory"
-                return self._seq_error(stream, "out_of_order", f"seq {msg.seq} arrived after seq {last} and {what}; dropped", msg.seq)
+                return self._seq_error(
+                    stream, "out_of_order", f"seq {msg.seq} arrived after seq {last} and {what}; dropped", msg.seq
+                )
             if msg.seq - last > self.config.max_seq_jump:  # adopted, one stray seq would make every real frame old
-                return self._seq_error(stream, "seq_jump", f"seq {msg.seq} is {msg.seq - last} after seq {last}, beyond "
-                                       f"the window of {self.config.max_seq_jump}; dropped", msg.seq)
+                return self._seq_error(
+                    stream,
+                    "seq_jump",
+                    f"seq {msg.seq} is {msg.seq - last} after seq {last}, beyond "
+                    f"the window of {self.config.max_seq_jump}; dropped",
+                    msg.seq,
+                )
             if msg.seq > last + 1:
-                self._seq_error(stream, "missing_seq", f"missing seq {last + 1}..{msg.seq - 1} ({msg.seq - last - 1} frames) "
-                                f"before seq {msg.seq}", msg.seq)
+                self._seq_error(
+                    stream,
+                    "missing_seq",
+                    f"missing seq {last + 1}..{msg.seq - 1} ({msg.seq - last - 1} frames) before seq {msg.seq}",
+                    msg.seq,
+                )
             if st.vo is None:
                 self._resume(stream, st)
         if restart:  # only this lane's thread touches st.vo; queries read the lists under st.lock
@@ -300,13 +340,16 @@ class RegistrationWorker(Worker):
         phases = {}
         if self.store is not None:
             try:
-                phases = self.store.commit_frame(stream, msg.seq, msg.stamp, digest, status, pose_m, pack_frame(frame),
-                                                 new_trajectory=restart)
+                phases = self.store.commit_frame(
+                    stream, msg.seq, msg.stamp, digest, status, pose_m, pack_frame(frame), new_trajectory=restart
+                )
             except Exception as exc:  # noqa: BLE001 - e.g. disk full: publish nothing the store lacks; rebuild from it
                 return self._store_failed(stream, st, msg.seq, exc, "not stored, pose not published")
         store_ms = (time.perf_counter() - t_store) * 1000.0
         timings = dict(msg.timings_ms)
-        timings.update({"occupancy_hop": hop_ms, "registration_queue": (t0 - t_queued) * 1000.0, "registration": reg_ms})
+        timings.update(
+            {"occupancy_hop": hop_ms, "registration_queue": (t0 - t_queued) * 1000.0, "registration": reg_ms}
+        )
         if self.store is not None:  # with where a slow commit waited: this worker's writers, another process, the sync
             timings.update(store_commit=store_ms, **{f"store_commit.{k}": v for k, v in phases.items()})
         timings.update({f"registration.{k}": float(v) for k, v in reg.timings_ms.items()})
@@ -326,8 +369,18 @@ class RegistrationWorker(Worker):
         st.tail_running = True
         st.tail = st.after_pose.submit(self._after_pose, stream, st, msg, reg, frame, digest, pose_m, restart, t0)
 
-    def _after_pose(self, stream: str, st: StreamState, msg, reg, frame: OccupancyFrame, digest: bytes,
-                    pose_m: np.ndarray, restart: bool, t0: float) -> None:
+    def _after_pose(
+        self,
+        stream: str,
+        st: StreamState,
+        msg,
+        reg,
+        frame: OccupancyFrame,
+        digest: bytes,
+        pose_m: np.ndarray,
+        restart: bool,
+        t0: float,
+    ) -> None:
         """A frame's work after its pose: OccVO.complete and _finish, their second store write, a relocalised pose,
         the map update and the snapshot schedule. A failure is reported as a lane reports one."""
         st.tail_tid = threading.get_native_id()
@@ -356,37 +409,68 @@ class RegistrationWorker(Worker):
                 self.stats.inc("after_pose_boosted")
             elif not self._boost_refused:
                 self._boost_refused = True
-                log_event(self.log, "cannot raise a waited-for after-pose thread to the lanes' priority (needs "
-                          "CAP_SYS_NICE or RLIMIT_NICE, e.g. LimitNICE=+0): it finishes niced", logging.WARNING)
+                log_event(
+                    self.log,
+                    "cannot raise a waited-for after-pose thread to the lanes' priority (needs "
+                    "CAP_SYS_NICE or RLIMIT_NICE, e.g. LimitNICE=+0): it finishes niced",
+                    logging.WARNING,
+                )
 
     def _background_thread(self) -> None:
         """Start of a thread doing work off the poses' path: after_pose_nice below the lanes."""
         name_os_thread()
         if not lower_priority(self.config.after_pose_nice):
-            log_event(self.log, "cannot lower a background thread's priority here; it runs at the lanes'",
-                      logging.WARNING, thread=threading.current_thread().name)
+            log_event(
+                self.log,
+                "cannot lower a background thread's priority here; it runs at the lanes'",
+                logging.WARNING,
+                thread=threading.current_thread().name,
+            )
 
-    def _after_pose_steps(self, stream: str, st: StreamState, msg, reg, frame: OccupancyFrame, digest: bytes,
-                          pose_m: np.ndarray, restart: bool, t0: float) -> None:
+    def _after_pose_steps(
+        self,
+        stream: str,
+        st: StreamState,
+        msg,
+        reg,
+        frame: OccupancyFrame,
+        digest: bytes,
+        pose_m: np.ndarray,
+        restart: bool,
+        t0: float,
+    ) -> None:
         t_tail = time.perf_counter()
         result, restored, evicted, (tiles, dirty) = self._finish(stream, st, reg, frame, msg.seq, publish=True)
         t_finished = time.perf_counter()
         relocalised = result.loop_correction is not None
         if relocalised:
             self.stats.inc("loop_closures")
-            log_event(self.log, "loop closed", stream=stream, seq=msg.seq,
-                      correction_m=round(float(np.linalg.norm(result.pose[:3, 3] - pose_m[:3, 3])), 3))
+            log_event(
+                self.log,
+                "loop closed",
+                stream=stream,
+                seq=msg.seq,
+                correction_m=round(float(np.linalg.norm(result.pose[:3, 3] - pose_m[:3, 3])), 3),
+            )
         if self.store is not None and (relocalised or evicted or st.pending_restored):
             try:
-                self.store.finish_frame(stream, msg.seq, np.asarray(result.pose, float) if relocalised else None,
-                                        evicted=evicted, restored=st.pending_restored)
+                self.store.finish_frame(
+                    stream,
+                    msg.seq,
+                    np.asarray(result.pose, float) if relocalised else None,
+                    evicted=evicted,
+                    restored=st.pending_restored,
+                )
             except Exception as exc:  # noqa: BLE001 - the journal has the frame: a resume redoes this part
-                return self._store_failed(stream, st, msg.seq, exc, "pose stored and published, its map update not stored")
+                return self._store_failed(
+                    stream, st, msg.seq, exc, "pose stored and published, its map update not stored"
+                )
         st.pending_restored = []
         if relocalised:  # supersedes the pose published above
             timings = {"loop_closure": float(result.timings_ms.get("loop_closure", 0.0))}
-            self._publish_pose(stream, st, msg.seq, msg.stamp, np.asarray(result.pose, float), "relocalised", digest,
-                               timings, False)
+            self._publish_pose(
+                stream, st, msg.seq, msg.stamp, np.asarray(result.pose, float), "relocalised", digest, timings, False
+            )
         t_map = time.perf_counter()
         sent = self._publish_map(stream, st, msg.seq, restart, tiles, dirty, evicted, restored)
         t_end = time.perf_counter()
@@ -397,24 +481,55 @@ class RegistrationWorker(Worker):
             self.stats.observe("map_evict", st.evict_ms)
         self.stats.observe("frame_after_pose", (t_end - t_tail) * 1000.0)
         if t_end - t_tail > self.config.slow_after_pose_s:  # the next frame of the stream waits for this
-            log_event(self.log, "slow work after a pose", logging.WARNING, stream=stream, seq=msg.seq,
-                      ms=round((t_end - t_tail) * 1000.0), timings_ms={k: round(v, 1) for k, v in result.timings_ms.items()},
-                      finish_ms=round((t_finished - t_tail) * 1000.0), tiling_ms=round(st.tiling_ms, 1),
-                      restore_ms=round(st.restore_ms, 1), evict_ms=round(st.evict_ms, 1),
-                      store_ms=round((t_map - t_finished) * 1000.0), publish_map_ms=round((t_end - t_map) * 1000.0),
-                      tiles_sent=sent[0], map_update_bytes=sent[1], relocalised=relocalised)
+            log_event(
+                self.log,
+                "slow work after a pose",
+                logging.WARNING,
+                stream=stream,
+                seq=msg.seq,
+                ms=round((t_end - t_tail) * 1000.0),
+                timings_ms={k: round(v, 1) for k, v in result.timings_ms.items()},
+                finish_ms=round((t_finished - t_tail) * 1000.0),
+                tiling_ms=round(st.tiling_ms, 1),
+                restore_ms=round(st.restore_ms, 1),
+                evict_ms=round(st.evict_ms, 1),
+                store_ms=round((t_map - t_finished) * 1000.0),
+                publish_map_ms=round((t_end - t_map) * 1000.0),
+                tiles_sent=sent[0],
+                map_update_bytes=sent[1],
+                relocalised=relocalised,
+            )
         self.stats.observe("stage_total", (time.perf_counter() - t0) * 1000.0)
         if self.store is not None:
             st.since_snapshot += 1
-            due = st.snapshot_retry or (st.since_snapshot >= self.config.snapshot_every and time.monotonic() >= st.snapshot_due)
+            due = st.snapshot_retry or (
+                st.since_snapshot >= self.config.snapshot_every and time.monotonic() >= st.snapshot_due
+            )
             if due and st.snapshot_idle.is_set():
                 self._queue_snapshot(stream, st)
 
-    def _publish_pose(self, stream: str, st: StreamState, seq: int, stamp: float, pose_m: np.ndarray, status: str,
-                      digest: bytes, timings: dict, restart: bool) -> None:
+    def _publish_pose(
+        self,
+        stream: str,
+        st: StreamState,
+        seq: int,
+        stamp: float,
+        pose_m: np.ndarray,
+        status: str,
+        digest: bytes,
+        timings: dict,
+        restart: bool,
+    ) -> None:
         """Record the pose for queries and publish it; a relocalised pose replaces the one of its seq."""
-        pose = PoseEstimate(stream=stream, seq=seq, stamp=stamp, pose=pose_m.tolist(), status=status, timings_ms=timings,
-                            sent_at=time.time())
+        pose = PoseEstimate(
+            stream=stream,
+            seq=seq,
+            stamp=stamp,
+            pose=pose_m.tolist(),
+            status=status,
+            timings_ms=timings,
+            sent_at=time.time(),
+        )
         with st.lock:
             if restart:
                 st.clear()
@@ -435,8 +550,13 @@ class RegistrationWorker(Worker):
         frame (replaying the journal redoes what was not stored)."""
         st.vo = None
         st.tiles = {}
-        self.report_error(stream, "internal", f"seq {seq} {what} ({type(exc).__name__}: {exc}); "
-                          "the stream resumes from the store at its next frame", keys.occupancy(stream), seq)
+        self.report_error(
+            stream,
+            "internal",
+            f"seq {seq} {what} ({type(exc).__name__}: {exc}); the stream resumes from the store at its next frame",
+            keys.occupancy(stream),
+            seq,
+        )
 
     # -- durable state --------------------------------------------------------------------------------------------
     def _queue_snapshot(self, stream: str, st: StreamState) -> None:
@@ -472,8 +592,13 @@ class RegistrationWorker(Worker):
             self.stats.observe("snapshot", took * 1000.0)
         except Exception as exc:  # noqa: BLE001 - the journal keeps the frames; retried at the stream's next frame
             st.snapshot_retry = True
-            self.report_error(stream, "internal", f"snapshot after seq {seq} failed: {type(exc).__name__}: {exc}",
-                              keys.occupancy(stream), seq)
+            self.report_error(
+                stream,
+                "internal",
+                f"snapshot after seq {seq} failed: {type(exc).__name__}: {exc}",
+                keys.occupancy(stream),
+                seq,
+            )
         finally:
             st.snapshot_idle.set()
 
@@ -512,7 +637,9 @@ class RegistrationWorker(Worker):
             st.restored_for_next = self._restore(stream, st, self._near(st))
         worst = 0.0
         st.send_all_tiles = True  # the map service may lack the last frames' tiles
-        for i, (seq, frame) in enumerate(journal):  # the same restores and evictions as the first time, so the same poses
+        for i, (seq, frame) in enumerate(
+            journal
+        ):  # the same restores and evictions as the first time, so the same poses
             last = i == len(journal) - 1
             result, restored, evicted, (tiles, dirty) = self._advance(stream, st, frame, seq, publish=last)
             if last:  # it may have stopped before its map update was stored or published: do both again
@@ -524,27 +651,50 @@ class RegistrationWorker(Worker):
             worst = max(worst, diff)
         now = self.store.cold_index(stream)
         if worst > 0 or now != st.cold:
-            self.report_error(stream, "internal", f"resume replayed {len(journal)} journaled frames: max pose difference "
-                              f"{worst:.3e} m, cold tiles {'equal' if now == st.cold else 'differ'} (expected 0 and equal); "
-                              "the stored poses stand", keys.occupancy(stream))
+            self.report_error(
+                stream,
+                "internal",
+                f"resume replayed {len(journal)} journaled frames: max pose difference "
+                f"{worst:.3e} m, cold tiles {'equal' if now == st.cold else 'differ'} (expected 0 and equal); "
+                "the stored poses stand",
+                keys.occupancy(stream),
+            )
             st.cold = now
         st.since_snapshot = len(journal)
         self.stats.inc("resumes")
-        log_event(self.log, "stream resumed", stream=stream, snapshot_seq=snap_seq, journal_frames=len(journal),
-                  last_seq=st.seqs[-1], cold_tiles=len(st.cold), ms=round((time.perf_counter() - t0) * 1000.0, 1))
+        log_event(
+            self.log,
+            "stream resumed",
+            stream=stream,
+            snapshot_seq=snap_seq,
+            journal_frames=len(journal),
+            last_seq=st.seqs[-1],
+            cold_tiles=len(st.cold),
+            ms=round((time.perf_counter() - t0) * 1000.0, 1),
+        )
 
     def _finish_last(self, stream: str, st: StreamState, seq: int, result, evicted: dict) -> None:
         """The journal's last frame may have been stopped between its pose and the rest (its map update, evictions,
         a loop closure's relocalised pose): the replay just redid that part; store what the store lacks of it."""
         stored = st.stored(seq)
         pose = np.asarray(result.pose, float)
-        relocalised = result.loop_correction is not None and stored is not None and not np.array_equal(stored.pose, pose)
+        relocalised = (
+            result.loop_correction is not None and stored is not None and not np.array_equal(stored.pose, pose)
+        )
         if not relocalised and self.store.cold_index(stream) == st.cold:
             return
-        self.store.finish_frame(stream, seq, pose if relocalised else None,
-                                evicted=evicted, restored=st.pending_restored)
-        log_event(self.log, "finished the last journaled frame", stream=stream, seq=seq, relocalised=relocalised,
-                  evicted=len(evicted), restored=len(st.pending_restored))
+        self.store.finish_frame(
+            stream, seq, pose if relocalised else None, evicted=evicted, restored=st.pending_restored
+        )
+        log_event(
+            self.log,
+            "finished the last journaled frame",
+            stream=stream,
+            seq=seq,
+            relocalised=relocalised,
+            evicted=len(evicted),
+            restored=len(st.pending_restored),
+        )
         if relocalised:
             self._publish_pose(stream, st, seq, stored.stamp, pose, "relocalised", stored.digest, {}, False)
 
@@ -612,14 +762,25 @@ class RegistrationWorker(Worker):
             self.stats.inc("tiles_evicted", len(blocks))
         return blocks
 
-    def _publish_map(self, stream: str, st: StreamState, seq: int, restart: bool, tiles: dict, dirty: set,
-                     evicted: dict, restored: list) -> None:
+    def _publish_map(
+        self,
+        stream: str,
+        st: StreamState,
+        seq: int,
+        restart: bool,
+        tiles: dict,
+        dirty: set,
+        evicted: dict,
+        restored: list,
+    ) -> None:
         """Changed tiles of the working map as it was before this frame's eviction (an evicted tile goes out with its
         last content, then is not sent as emptied: the map service keeps it); a restored tile only if it changed."""
         if restart or st.send_all_tiles:
             changed = dict(tiles)
         else:
-            changed = changed_tiles({k: st.tiles[k] for k in dirty if k in st.tiles}, {k: tiles[k] for k in dirty if k in tiles})
+            changed = changed_tiles(
+                {k: st.tiles[k] for k in dirty if k in st.tiles}, {k: tiles[k] for k in dirty if k in tiles}
+            )
             for k in restored:
                 was = st.cold_digest.pop(k, None)
                 if k in changed and was is not None and _tile_digest(changed[k]) == was:
@@ -630,10 +791,24 @@ class RegistrationWorker(Worker):
         st.send_all_tiles = False
         st.tiles = {k: v for k, v in tiles.items() if k not in evicted} if evicted else tiles
         tile_m = self.config.tile_m
-        update = MapUpdate(stream=stream, seq=seq, reset=restart, tile_m=tile_m, tiles=[
-            MapTile(stream=stream, ix=ix, iy=iy, tile_m=tile_m, seq=seq,
-                    points=Array.from_numpy(np.asarray(p, np.float64)), labels=Array.from_numpy(np.asarray(l, np.uint8)))
-            for (ix, iy), (p, l) in sorted(changed.items())])
+        update = MapUpdate(
+            stream=stream,
+            seq=seq,
+            reset=restart,
+            tile_m=tile_m,
+            tiles=[
+                MapTile(
+                    stream=stream,
+                    ix=ix,
+                    iy=iy,
+                    tile_m=tile_m,
+                    seq=seq,
+                    points=Array.from_numpy(np.asarray(p, np.float64)),
+                    labels=Array.from_numpy(np.asarray(l, np.uint8)),
+                )
+                for (ix, iy), (p, l) in sorted(changed.items())
+            ],
+        )
         return len(update.tiles), self._put_update(stream, update)
 
     def _put_update(self, stream: str, update: MapUpdate) -> int:
@@ -642,29 +817,43 @@ class RegistrationWorker(Worker):
         data = encode(update, 1 << 30)
         if len(data) > self.config.max_message_bytes and len(update.tiles) > 1:
             half = len(update.tiles) // 2
-            return (self._put_update(stream, update.model_copy(update={"tiles": update.tiles[:half]}))
-                    + self._put_update(stream, update.model_copy(update={"tiles": update.tiles[half:], "reset": False})))
+            return self._put_update(
+                stream, update.model_copy(update={"tiles": update.tiles[:half]})
+            ) + self._put_update(stream, update.model_copy(update={"tiles": update.tiles[half:], "reset": False}))
         self.session.put(keys.map_updates(stream), data, congestion_control=zenoh.CongestionControl.BLOCK)
         return len(data)
 
     # -- queries --------------------------------------------------------------------------------------------------
     @staticmethod
     def _pose_msg(stream: str, p: StoredPose) -> PoseEstimate:
-        return PoseEstimate(stream=stream, seq=p.seq, stamp=p.stamp, pose=np.asarray(p.pose, float).tolist(), status=p.status,
-                            timings_ms={}, sent_at=time.time())
+        return PoseEstimate(
+            stream=stream,
+            seq=p.seq,
+            stamp=p.stamp,
+            pose=np.asarray(p.pose, float).tolist(),
+            status=p.status,
+            timings_ms={},
+            sent_at=time.time(),
+        )
 
     def _matching(self, query: zenoh.Query, key_of) -> list[tuple[str, StreamState]]:
         q = query.key_expr
         with self._states_lock:
             items = list(self.states.items())
-        found = [(s, st) for s, st in sorted(items, key=lambda i: i[0]) if st.started and q.intersects(zenoh.KeyExpr(key_of(s)))]
-        return found[:self.config.max_query_streams]  # a wildcard asks for every stream: the first ones answer
+        found = [
+            (s, st)
+            for s, st in sorted(items, key=lambda i: i[0])
+            if st.started and q.intersects(zenoh.KeyExpr(key_of(s)))
+        ]
+        return found[: self.config.max_query_streams]  # a wildcard asks for every stream: the first ones answer
 
     def _on_pose_latest(self, query: zenoh.Query) -> None:
         found = self._matching(query, keys.pose_latest)
         if not found:  # one worker answers a miss: the stream's shard's (shard 0's for a wildcard)
             if self.owns(keys.stream_of(str(query.key_expr))):
-                self.reply_error(query, keys.stream_of(str(query.key_expr)), "bad_query", f"no poses for {query.key_expr}")
+                self.reply_error(
+                    query, keys.stream_of(str(query.key_expr)), "bad_query", f"no poses for {query.key_expr}"
+                )
             return
         for s, st in found:
             with st.lock:
@@ -675,13 +864,18 @@ class RegistrationWorker(Worker):
         found = self._matching(query, keys.trajectory)
         if not found:  # one worker answers a miss: the stream's shard's (shard 0's for a wildcard)
             if self.owns(keys.stream_of(str(query.key_expr))):
-                self.reply_error(query, keys.stream_of(str(query.key_expr)), "bad_query", f"no trajectory for {query.key_expr}")
+                self.reply_error(
+                    query, keys.stream_of(str(query.key_expr)), "bad_query", f"no trajectory for {query.key_expr}"
+                )
             return
         for s, st in found:
             with st.lock:
-                traj = Trajectory(stream=s, seqs=Array.from_numpy(np.array(st.seqs, np.int64)),
-                                  stamps=Array.from_numpy(np.array(st.stamps, np.float64)),
-                                  poses=Array.from_numpy(np.array(st.poses, np.float64).reshape(-1, 4, 4)))
+                traj = Trajectory(
+                    stream=s,
+                    seqs=Array.from_numpy(np.array(st.seqs, np.int64)),
+                    stamps=Array.from_numpy(np.array(st.stamps, np.float64)),
+                    poses=Array.from_numpy(np.array(st.poses, np.float64).reshape(-1, 4, 4)),
+                )
             query.reply(keys.trajectory(s), encode(traj, 1 << 30))
 
 
@@ -694,7 +888,9 @@ def _args(p) -> None:
     p.add_argument("--snapshot-every", type=int, help="frames between state snapshots")
     p.add_argument("--snapshot-max-share", type=float, help="snapshots take at most this share of a stream's time")
     p.add_argument("--working-radius-m", type=float, help="evict map tiles farther than this from the ego to the store")
-    p.add_argument("--after-pose-nice", type=int, help="niceness of the work after a pose, relative to the lanes (0: same)")
+    p.add_argument(
+        "--after-pose-nice", type=int, help="niceness of the work after a pose, relative to the lanes (0: same)"
+    )
     p.add_argument("--store-sync", choices=["full", "normal"], help="full: a published pose survives a power cut too")
 
 

@@ -26,7 +26,9 @@ from services.runtime import limit_messages, log_event, structured_logger
 DEFAULT_CONFIG = defaults.path("router.json5")
 
 
-def router_config(path: str | Path | None = None, listen: list[str] | None = None, connect: list[str] | None = None) -> zenoh.Config:
+def router_config(
+    path: str | Path | None = None, listen: list[str] | None = None, connect: list[str] | None = None
+) -> zenoh.Config:
     """The router's zenoh.Config: the json5 file (mode forced to router), endpoints replaced when given."""
     path = Path(path or DEFAULT_CONFIG)
     if not path.is_file():
@@ -60,8 +62,15 @@ def main(argv: list[str] | None = None) -> int:
     except Exception as exc:  # noqa: BLE001 - one line naming the problem, no traceback
         log_event(log, "router failed", logging.ERROR, config=args.config, error=str(exc))
         return 2
-    log_event(log, "router ready", zid=str(session.info.zid()), config=args.config, pid=os.getpid(),
-              listen=json.loads(config.get_json("listen/endpoints")), connect=json.loads(config.get_json("connect/endpoints")))
+    log_event(
+        log,
+        "router ready",
+        zid=str(session.info.zid()),
+        config=args.config,
+        pid=os.getpid(),
+        listen=json.loads(config.get_json("listen/endpoints")),
+        connect=json.loads(config.get_json("connect/endpoints")),
+    )
     while not stop.wait(0.2):  # short waits keep the main thread responsive to signals
         continue
     log_event(log, "router stopping", pid=os.getpid())

@@ -35,6 +35,7 @@ Policy = Literal["lossless", "latest"]
 
 # ---------------------------------------------------------------- sessions
 
+
 def free_port() -> int:
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
@@ -42,7 +43,7 @@ def free_port() -> int:
 
 
 ZENOH_CONFIG_ENV = "OCCVO_ZENOH_CONFIG"  # a zenoh json5 for client sessions: TLS certificates, credentials (deploy/)
-CLIENT_RETRY = '{period_init_ms: 100, period_max_ms: 500, period_increase_factor: 2}'
+CLIENT_RETRY = "{period_init_ms: 100, period_max_ms: 500, period_increase_factor: 2}"
 # Zenoh reassembles a fragmented message up to this many bytes and drops it beyond (its default, 1 GiB, let a 512 MiB
 # put cost the router and a worker 500 MB before the codec's check). The codec's limit, so every message that reaches
 # a worker's decode is within it; the registration worker splits bigger map updates (deploy/*.json5 set it too)
@@ -57,8 +58,9 @@ def limit_messages(c: zenoh.Config, max_bytes: int = TRANSPORT_MAX_BYTES) -> zen
     return c
 
 
-def zenoh_config(mode: str = "client", connect: str | None = None, listen: str | None = None,
-                 base: str | Path | None = None) -> zenoh.Config:
+def zenoh_config(
+    mode: str = "client", connect: str | None = None, listen: str | None = None, base: str | Path | None = None
+) -> zenoh.Config:
     """Loopback-friendly config: no multicast scouting, explicit endpoints only. Client sessions start from
     `base` (default: the file named by $OCCVO_ZENOH_CONFIG) and retry a lost router every 0.5 s at most, so
     workers and clients reconnect within half a second of a router restart (zenoh's default waits up to 4 s)."""
@@ -105,10 +107,15 @@ def router_endpoint(config_path: str | Path) -> str:
 
 # ---------------------------------------------------------------- logs
 
+
 class _JsonFormatter(logging.Formatter):
     def format(self, record: logging.LogRecord) -> str:
-        out = {"ts": round(record.created, 6), "level": record.levelname.lower(), "logger": record.name,
-               "event": record.getMessage()}
+        out = {
+            "ts": round(record.created, 6),
+            "level": record.levelname.lower(),
+            "logger": record.name,
+            "event": record.getMessage(),
+        }
         out.update(getattr(record, "fields", {}))
         return json.dumps(out, default=str)
 
@@ -129,6 +136,7 @@ def log_event(log: logging.Logger, event: str, level: int = logging.INFO, **fiel
 
 
 # ---------------------------------------------------------------- counters and latencies
+
 
 class LatencyWindow:
     """The last `size` samples of one stage, in milliseconds."""
@@ -169,6 +177,7 @@ class Stats:
 
 
 # ---------------------------------------------------------------- flow
+
 
 class StageQueue:
     """Bounded queue between two stages. lossless: put blocks (backpressure); latest: the oldest item is dropped."""
@@ -220,8 +229,14 @@ class SeqTracker:
             self.expected = seq + 1
             return True, None, None
         if self.max_jump is not None and seq - self.expected >= self.max_jump:
-            return False, "seq_jump", (f"seq {seq} is {seq - self.expected + 1} after seq {self.expected - 1}, beyond "
-                                       f"the window of {self.max_jump}; dropped")
+            return (
+                False,
+                "seq_jump",
+                (
+                    f"seq {seq} is {seq - self.expected + 1} after seq {self.expected - 1}, beyond "
+                    f"the window of {self.max_jump}; dropped"
+                ),
+            )
         if seq > self.expected:
             msg = f"missing seq {self.expected}..{seq - 1} ({seq - self.expected} frames) before seq {seq}"
             self.expected = seq + 1
@@ -230,6 +245,7 @@ class SeqTracker:
 
 
 # ---------------------------------------------------------------- worker base
+
 
 class WorkerConfig(BaseModel):
     """One config for every worker; fields a role does not use are ignored by it (deploy/*.json5)."""
@@ -280,13 +296,17 @@ class WorkerConfig(BaseModel):
     warm_up: bool = True
     # durable state (SQLite file; the registration worker and the map service may share one)
     store_path: str | None = None
-    snapshot_every: int = Field(20, ge=1)  # registration: frames between state snapshots at least (a journal covers the rest)
+    snapshot_every: int = Field(
+        20, ge=1
+    )  # registration: frames between state snapshots at least (a journal covers the rest)
     # registration: snapshots of a stream take at most this share of its time; a big map is snapshotted less often
     # (a resume replays more journal) instead of stalling every stream (a 10^6-voxel state is ~200 MB, ~1 s to write);
     # None: every snapshot_every frames whatever they cost
     snapshot_max_share: float | None = Field(0.02, gt=0, le=1)
     working_radius_m: float | None = Field(None, gt=0)  # registration: map farther from the ego goes to the store
-    store_sync: Literal["full", "normal"] = "full"  # registration: SQLite synchronous; normal survives kill -9, not power loss
+    store_sync: Literal["full", "normal"] = (
+        "full"  # registration: SQLite synchronous; normal survives kill -9, not power loss
+    )
 
     @model_validator(mode="after")
     def _shard_in_range(self) -> WorkerConfig:
@@ -314,8 +334,9 @@ class WorkerConfig(BaseModel):
 class StreamLane:
     """One stream's bounded queue and the thread that runs the stage on it, in arrival (= sequence) order."""
 
-    def __init__(self, worker: Worker, stream: str, handler: Callable[[str, object], None],
-                 after: StreamLane | None = None):
+    def __init__(
+        self, worker: Worker, stream: str, handler: Callable[[str, object], None], after: StreamLane | None = None
+    ):
         self.worker, self.stream, self.handler = worker, stream, handler
         self.busy = False
         self.pending = 0  # frames handed to this lane and not yet in its queue (Worker.enqueue); guarded by _lanes_lock
@@ -348,7 +369,9 @@ class StreamLane:
             except Exception as exc:  # noqa: BLE001 - a worker never dies of one frame
                 seq = getattr(item[0], "seq", None) if isinstance(item, tuple) and item else None
                 if isinstance(exc, CodecError):  # e.g. an output over the size limit: the frame's problem, named so
-                    self.worker.report_error(self.stream, exc.code, f"seq {seq}: output not sent: {exc.message}", seq=seq)
+                    self.worker.report_error(
+                        self.stream, exc.code, f"seq {seq}: output not sent: {exc.message}", seq=seq
+                    )
                 else:
                     self.worker.report_error(self.stream, "internal", f"{type(exc).__name__}: {exc}", seq=seq)
                 log_event(self.worker.log, "stage failed", logging.ERROR, stream=self.stream, error=repr(exc))
@@ -381,7 +404,14 @@ class Worker:
         self._declared.append(self.session.declare_queryable(keys.stats(self.worker_id), self._on_stats))
         self.declare()
         self.token = self.session.liveliness().declare_token(keys.alive(self.role, self.worker_id))
-        log_event(self.log, "started", worker=self.worker_id, connect=self.config.connect, policy=self.config.policy, pid=os.getpid())
+        log_event(
+            self.log,
+            "started",
+            worker=self.worker_id,
+            connect=self.config.connect,
+            policy=self.config.policy,
+            pid=os.getpid(),
+        )
         return self
 
     def declare(self) -> None:
@@ -505,7 +535,13 @@ class Worker:
             self.report_error(stream, exc.code, exc.message, key)
             return None
         if getattr(msg, "stream", stream) != stream:
-            self.report_error(stream, "stream_mismatch", f"message says stream {msg.stream!r} but came on {key}", key, getattr(msg, "seq", None))
+            self.report_error(
+                stream,
+                "stream_mismatch",
+                f"message says stream {msg.stream!r} but came on {key}",
+                key,
+                getattr(msg, "seq", None),
+            )
             return None
         return msg
 
@@ -525,16 +561,26 @@ class Worker:
         message = clip(message, MAX_MESSAGE_CHARS)
         if suppressed:
             message += f" (+{suppressed} error events of this stream suppressed before this one)"
-        event = ErrorEvent(stream=stream, worker=self.worker_id, code=code, message=message,
-                           key=clip(key, MAX_KEY_CHARS), seq=seq, stamp=time.time())
+        event = ErrorEvent(
+            stream=stream,
+            worker=self.worker_id,
+            code=code,
+            message=message,
+            key=clip(key, MAX_KEY_CHARS),
+            seq=seq,
+            stamp=time.time(),
+        )
         if suppressed is None:
             self.stats.inc("errors_suppressed")
             return event
         log_event(self.log, "error", logging.WARNING, **event.model_dump(exclude={"kind", "schema_version"}))
         if self.session is not None and not self.session.is_closed():
             try:
-                self.session.put(keys.errors(event.stream if event.stream != "*" else "_"), encode(event),
-                                 congestion_control=zenoh.CongestionControl.BLOCK)  # a report is never dropped
+                self.session.put(
+                    keys.errors(event.stream if event.stream != "*" else "_"),
+                    encode(event),
+                    congestion_control=zenoh.CongestionControl.BLOCK,
+                )  # a report is never dropped
             except Exception as exc:  # noqa: BLE001
                 log_event(self.log, "cannot publish error event", logging.ERROR, error=repr(exc))
         return event
@@ -545,9 +591,17 @@ class Worker:
 
     def health(self) -> WorkerHealth:
         counters, stages = self.stats.snapshot()
-        return WorkerHealth(worker=self.worker_id, role=self.role, pid=os.getpid(), uptime_s=time.time() - self.started,
-                            policy=self.config.policy, streams=self.streams(),
-                            counters=counters, queue_depth={s: l.queue.qsize() for s, l in self.lanes.items()}, stages=stages)
+        return WorkerHealth(
+            worker=self.worker_id,
+            role=self.role,
+            pid=os.getpid(),
+            uptime_s=time.time() - self.started,
+            policy=self.config.policy,
+            streams=self.streams(),
+            counters=counters,
+            queue_depth={s: l.queue.qsize() for s, l in self.lanes.items()},
+            stages=stages,
+        )
 
     def streams(self) -> list[str]:
         return sorted(set(self.lanes) | set(self.trackers))

@@ -213,8 +213,9 @@ class TrajectoryStore:
             # the copy and its fsync (70 to 200 ms beside a snapshot's flush, eight streams)
             self.db.execute("PRAGMA wal_autocheckpoint=0")
             self._stop = threading.Event()
-            self._checkpointer = threading.Thread(target=self._checkpoint_loop, args=(busy_timeout_s,),
-                                                  name="store-checkpointer", daemon=True)
+            self._checkpointer = threading.Thread(
+                target=self._checkpoint_loop, args=(busy_timeout_s,), name="store-checkpointer", daemon=True
+            )
             self._checkpointer.start()
 
     CHECKPOINT_EVERY_S = 1.0
@@ -235,8 +236,13 @@ class TrajectoryStore:
                     failing = False
                 except sqlite3.Error as exc:  # busy or an I/O error: the next pass tries again; said once a run of them
                     if not failing:
-                        log_event(_LOG, "WAL checkpoint failed; retrying every pass (the WAL grows meanwhile)",
-                                  logging.WARNING, path=self.path, error=repr(exc))
+                        log_event(
+                            _LOG,
+                            "WAL checkpoint failed; retrying every pass (the WAL grows meanwhile)",
+                            logging.WARNING,
+                            path=self.path,
+                            error=repr(exc),
+                        )
                     failing = True
         finally:
             db.close()
@@ -244,14 +250,22 @@ class TrajectoryStore:
     def _move_old_snapshots(self) -> None:
         """A store written before snapshots had their own file: move its snapshots there (its journal needs them).
         In one transaction of the frames' file, so two workers opening the store at once move them once."""
+
         def old_table(db) -> bool:
-            return db.execute("SELECT 1 FROM sqlite_master WHERE type='table' AND name='snapshots'").fetchone() is not None
+            return (
+                db.execute("SELECT 1 FROM sqlite_master WHERE type='table' AND name='snapshots'").fetchone() is not None
+            )
 
         def tx(db):
             if not old_table(db):  # the other worker moved them
                 return
-            rows = db.execute("SELECT s.stream, t.created, s.seq, s.state FROM snapshots s JOIN streams t USING (stream)").fetchall()
-            _transaction(self.snap_db, lambda snap: snap.executemany("INSERT OR REPLACE INTO snapshots VALUES (?, ?, ?, ?)", rows))
+            rows = db.execute(
+                "SELECT s.stream, t.created, s.seq, s.state FROM snapshots s JOIN streams t USING (stream)"
+            ).fetchall()
+            _transaction(
+                self.snap_db,
+                lambda snap: snap.executemany("INSERT OR REPLACE INTO snapshots VALUES (?, ?, ?, ?)", rows),
+            )
             db.execute("DROP TABLE snapshots")
 
         if old_table(self.db):  # an open takes no write lock otherwise
@@ -307,10 +321,24 @@ class TrajectoryStore:
         return _pose(rows[0]) if rows else None
 
     def poses(self, stream: str) -> list[StoredPose]:
-        return [_pose(r) for r in self._read("SELECT seq, stamp, digest, status, pose FROM poses WHERE stream=? ORDER BY seq", (stream,))]
+        return [
+            _pose(r)
+            for r in self._read(
+                "SELECT seq, stamp, digest, status, pose FROM poses WHERE stream=? ORDER BY seq", (stream,)
+            )
+        ]
 
-    def commit_frame(self, stream: str, seq: int, stamp: float, digest: bytes, status: str, pose: np.ndarray,
-                     frame_blob: bytes, new_trajectory: bool = False) -> dict[str, float]:
+    def commit_frame(
+        self,
+        stream: str,
+        seq: int,
+        stamp: float,
+        digest: bytes,
+        status: str,
+        pose: np.ndarray,
+        frame_blob: bytes,
+        new_trajectory: bool = False,
+    ) -> dict[str, float]:
         """One frame, atomically, before its pose is published: the pose and the journal entry. new_trajectory first
         drops everything of the stream. What the frame does to the map after that is finish_frame's. Returns where
         the time went, in ms: "lock" (this store's other writers), "begin" (other processes'), "commit"."""
@@ -323,8 +351,10 @@ class TrajectoryStore:
                 db.execute("INSERT OR REPLACE INTO streams VALUES (?, ?, NULL, NULL)", (stream, time.time()))
             elif db.execute("SELECT 1 FROM streams WHERE stream=?", (stream,)).fetchone() is None:
                 db.execute("INSERT INTO streams VALUES (?, ?, NULL, NULL)", (stream, time.time()))
-            db.execute("INSERT OR REPLACE INTO poses VALUES (?, ?, ?, ?, ?, ?)",
-                       (stream, seq, float(stamp), digest, status, pose_bytes))
+            db.execute(
+                "INSERT OR REPLACE INTO poses VALUES (?, ?, ?, ?, ?, ?)",
+                (stream, seq, float(stamp), digest, status, pose_bytes),
+            )
             db.execute("INSERT OR REPLACE INTO journal VALUES (?, ?, ?)", (stream, seq, frame_blob))
             db.execute("UPDATE streams SET last_seq=? WHERE stream=?", (seq, stream))
 
@@ -332,8 +362,14 @@ class TrajectoryStore:
         self._write(tx, phases)
         return phases
 
-    def finish_frame(self, stream: str, seq: int, pose: np.ndarray | None = None, evicted: dict | None = None,
-                     restored: Iterable[tuple[int, int, int]] = ()) -> None:
+    def finish_frame(
+        self,
+        stream: str,
+        seq: int,
+        pose: np.ndarray | None = None,
+        evicted: dict | None = None,
+        restored: Iterable[tuple[int, int, int]] = (),
+    ) -> None:
         """What a committed frame did after its pose was published, atomically: its relocalised pose (a loop
         closed; status "relocalised"), the tiles it evicted ({(ix, iy): block arrays}) and the cold rows it restored
         ((ix, iy, evicted_seq)). A frame stopped before
@@ -343,18 +379,26 @@ class TrajectoryStore:
 
         def tx(db):
             if pose is not None:
-                db.execute("UPDATE poses SET status='relocalised', pose=? WHERE stream=? AND seq=?",
-                           (np.ascontiguousarray(pose, np.float64).reshape(4, 4).tobytes(), stream, seq))
-            db.executemany("UPDATE cold_tiles SET restored_seq=? WHERE stream=? AND ix=? AND iy=? AND evicted_seq=?",
-                           [(seq, stream, ix, iy, e) for ix, iy, e in restored])
-            db.executemany("INSERT OR REPLACE INTO cold_tiles VALUES (?, ?, ?, ?, NULL, ?)",
-                           [(stream, ix, iy, seq, blob) for (ix, iy), blob in blobs.items()])
+                db.execute(
+                    "UPDATE poses SET status='relocalised', pose=? WHERE stream=? AND seq=?",
+                    (np.ascontiguousarray(pose, np.float64).reshape(4, 4).tobytes(), stream, seq),
+                )
+            db.executemany(
+                "UPDATE cold_tiles SET restored_seq=? WHERE stream=? AND ix=? AND iy=? AND evicted_seq=?",
+                [(seq, stream, ix, iy, e) for ix, iy, e in restored],
+            )
+            db.executemany(
+                "INSERT OR REPLACE INTO cold_tiles VALUES (?, ?, ?, ?, NULL, ?)",
+                [(stream, ix, iy, seq, blob) for (ix, iy), blob in blobs.items()],
+            )
 
         blobs = {k: pack_arrays(b) for k, b in (evicted or {}).items()}  # before the lock
         self._write_unsynced(tx)
 
     # -- snapshots and journal
-    def write_snapshot(self, stream: str, seq: int, state: dict[str, np.ndarray] | bytes, created: float | None = None) -> bool:
+    def write_snapshot(
+        self, stream: str, seq: int, state: dict[str, np.ndarray] | bytes, created: float | None = None
+    ) -> bool:
         """The state after frame `seq` (arrays, or pack_arrays' bytes) replaces the older snapshot; then the journal
         up to it and the cold rows restored by then go. Arrays are written into the row in place (Python >= 3.11):
         packing them first would hold a copy of the whole state, and the worker's peak RSS with it. Frame commits
@@ -372,8 +416,9 @@ class TrajectoryStore:
 
         def snap_tx(db):
             if in_place:
-                rowid = db.execute("INSERT OR REPLACE INTO snapshots VALUES (?, ?, ?, zeroblob(?))",
-                                   (stream, created, seq, size.size)).lastrowid
+                rowid = db.execute(
+                    "INSERT OR REPLACE INTO snapshots VALUES (?, ?, ?, zeroblob(?))", (stream, created, seq, size.size)
+                ).lastrowid
                 with db.blobopen("snapshots", "state", rowid) as blob:
                     write(_BlobFile(blob))
             else:
@@ -386,7 +431,9 @@ class TrajectoryStore:
             if db.execute("SELECT created FROM streams WHERE stream=?", (stream,)).fetchone() != (created,):
                 return False
             db.execute("DELETE FROM journal WHERE stream=? AND seq<=?", (stream, seq))
-            db.execute("DELETE FROM cold_tiles WHERE stream=? AND restored_seq IS NOT NULL AND restored_seq<=?", (stream, seq))
+            db.execute(
+                "DELETE FROM cold_tiles WHERE stream=? AND restored_seq IS NOT NULL AND restored_seq<=?", (stream, seq)
+            )
             db.execute("UPDATE streams SET snapshot_seq=? WHERE stream=?", (seq, stream))
             return True
 
@@ -397,8 +444,12 @@ class TrajectoryStore:
         5 MB or more each. Returns the rows deleted."""
         created = self.created(stream)
         with self.snap_lock:
-            return _transaction(self.snap_db, lambda db: db.execute(
-                "DELETE FROM snapshots WHERE stream=? AND created IS NOT ?", (stream, created)).rowcount)
+            return _transaction(
+                self.snap_db,
+                lambda db: (
+                    db.execute("DELETE FROM snapshots WHERE stream=? AND created IS NOT ?", (stream, created)).rowcount
+                ),
+            )
 
     def created(self, stream: str) -> float | None:
         """Identifies the stream's current trajectory (its creation time)."""
@@ -410,14 +461,24 @@ class TrajectoryStore:
         between its write and the new trajectory's first commit) or of an uncommitted frame does not count."""
         record = self.record(stream)
         with self.snap_lock:
-            rows = self.snap_db.execute("SELECT created, seq, state FROM snapshots WHERE stream=?", (stream,)).fetchall()
-        if not rows or record is None or rows[0][0] != record.created or record.last_seq is None or rows[0][1] > record.last_seq:
+            rows = self.snap_db.execute(
+                "SELECT created, seq, state FROM snapshots WHERE stream=?", (stream,)
+            ).fetchall()
+        if (
+            not rows
+            or record is None
+            or rows[0][0] != record.created
+            or record.last_seq is None
+            or rows[0][1] > record.last_seq
+        ):
             return None
         return int(rows[0][1]), rows[0][2]
 
     def journal(self, stream: str, after_seq: int | None) -> list[tuple[int, OccupancyFrame]]:
-        rows = self._read("SELECT seq, frame FROM journal WHERE stream=? AND seq>? ORDER BY seq",
-                          (stream, -1 if after_seq is None else after_seq))
+        rows = self._read(
+            "SELECT seq, frame FROM journal WHERE stream=? AND seq>? ORDER BY seq",
+            (stream, -1 if after_seq is None else after_seq),
+        )
         return [(int(s), unpack_frame(b)) for s, b in rows]
 
     # -- evicted map
@@ -425,18 +486,25 @@ class TrajectoryStore:
         """{(ix, iy): [evicted_seq, ...]} of the tiles out of the working set: now, or just after frame as_of_seq.
         (One block a tile, unless a frame reached into a tile already evicted.)"""
         if as_of_seq is None:
-            rows = self._read("SELECT ix, iy, evicted_seq FROM cold_tiles WHERE stream=? AND restored_seq IS NULL", (stream,))
+            rows = self._read(
+                "SELECT ix, iy, evicted_seq FROM cold_tiles WHERE stream=? AND restored_seq IS NULL", (stream,)
+            )
         else:
-            rows = self._read("SELECT ix, iy, evicted_seq FROM cold_tiles WHERE stream=? AND evicted_seq<=? "
-                              "AND (restored_seq IS NULL OR restored_seq>?)", (stream, as_of_seq, as_of_seq))
+            rows = self._read(
+                "SELECT ix, iy, evicted_seq FROM cold_tiles WHERE stream=? AND evicted_seq<=? "
+                "AND (restored_seq IS NULL OR restored_seq>?)",
+                (stream, as_of_seq, as_of_seq),
+            )
         out: dict[tuple[int, int], list[int]] = {}
         for ix, iy, e in sorted(rows):
             out.setdefault((int(ix), int(iy)), []).append(int(e))
         return out
 
     def cold_block(self, stream: str, ix: int, iy: int, evicted_seq: int) -> bytes:
-        rows = self._read("SELECT block FROM cold_tiles WHERE stream=? AND ix=? AND iy=? AND evicted_seq=?",
-                          (stream, ix, iy, evicted_seq))
+        rows = self._read(
+            "SELECT block FROM cold_tiles WHERE stream=? AND ix=? AND iy=? AND evicted_seq=?",
+            (stream, ix, iy, evicted_seq),
+        )
         if not rows:
             raise KeyError(f"stream {stream}: no cold tile {ix},{iy} evicted at seq {evicted_seq}")
         return rows[0][0]
@@ -467,8 +535,12 @@ class TrajectoryStore:
 
     def file_sizes_mb(self) -> dict[str, float]:
         """Sizes of the SQLite files and their WALs, MB (for logs)."""
-        paths = {"db_mb": Path(self.path), "wal_mb": Path(f"{self.path}-wal"),
-                 "snapshots_mb": Path(self.snapshot_path), "snapshots_wal_mb": Path(f"{self.snapshot_path}-wal")}
+        paths = {
+            "db_mb": Path(self.path),
+            "wal_mb": Path(f"{self.path}-wal"),
+            "snapshots_mb": Path(self.snapshot_path),
+            "snapshots_wal_mb": Path(f"{self.snapshot_path}-wal"),
+        }
         # an in-memory store has neither file, a checkpointed WAL may be gone: only what exists is reported
         return {name: round(path.stat().st_size / 2**20, 1) for name, path in paths.items() if path.is_file()}
 
@@ -479,7 +551,9 @@ def _background_thread(name: str, nice: int = 10) -> None:
     lower_priority(nice)
 
 
-def _connect(path: str, synchronous: str, busy_timeout_s: float, schema: str, page_size: int | None = None) -> sqlite3.Connection:
+def _connect(
+    path: str, synchronous: str, busy_timeout_s: float, schema: str, page_size: int | None = None
+) -> sqlite3.Connection:
     try:
         if path != ":memory:":
             Path(path).parent.mkdir(parents=True, exist_ok=True)
@@ -517,4 +591,6 @@ def _transaction(db: sqlite3.Connection, fn, phases: dict | None = None):
 
 def _pose(row) -> StoredPose:
     seq, stamp, digest, status, blob = row
-    return StoredPose(int(seq), float(stamp), bytes(digest), status, np.frombuffer(blob, np.float64).reshape(4, 4).copy())
+    return StoredPose(
+        int(seq), float(stamp), bytes(digest), status, np.frombuffer(blob, np.float64).reshape(4, 4).copy()
+    )

@@ -31,15 +31,19 @@ from services import defaults
 from services.runtime import log_event, router_endpoint, structured_logger
 
 REPO = Path(__file__).resolve().parents[1]
-MODULES = {"inference": "services.inference_worker", "registration": "services.registration_worker", "map": "services.map_service"}
+MODULES = {
+    "inference": "services.inference_worker",
+    "registration": "services.registration_worker",
+    "map": "services.map_service",
+}
 
 
 class RouterSpec(BaseModel):
     model_config = ConfigDict(extra="forbid")
-    config: str | None = None               # router json5; default deploy/router.json5
-    listen: str | None = None               # replaces the file's listen endpoint
-    connect: str | None = None              # what workers dial; default: the listen endpoint (0.0.0.0 -> 127.0.0.1)
-    enabled: bool = True                    # false: the router runs elsewhere (another host), only workers here
+    config: str | None = None  # router json5; default deploy/router.json5
+    listen: str | None = None  # replaces the file's listen endpoint
+    connect: str | None = None  # what workers dial; default: the listen endpoint (0.0.0.0 -> 127.0.0.1)
+    enabled: bool = True  # false: the router runs elsewhere (another host), only workers here
 
 
 class WorkerSpec(BaseModel):
@@ -47,7 +51,9 @@ class WorkerSpec(BaseModel):
     role: Literal["inference", "registration", "map"]
     config: str | None = None
     args: list[str] = []
-    count: int = Field(1, ge=1, le=64)      # replicas: registration ones share the streams (shards), others each handle every stream
+    count: int = Field(
+        1, ge=1, le=64
+    )  # replicas: registration ones share the streams (shards), others each handle every stream
     env: dict[str, str] = {}
 
 
@@ -64,7 +70,7 @@ class UpConfig(BaseModel):
     workers: list[WorkerSpec]
     restart: RestartSpec = RestartSpec()
     stop_timeout_s: float = Field(60.0, gt=0)
-    log_dir: str | None = None              # each child's stderr to <log_dir>/<name>.log (default: this stderr)
+    log_dir: str | None = None  # each child's stderr to <log_dir>/<name>.log (default: this stderr)
 
     @classmethod
     def load(cls, path: str | Path) -> UpConfig:
@@ -132,8 +138,9 @@ def _die_with_parent() -> None:
 
 
 class Supervisor:
-    def __init__(self, config: UpConfig, log: logging.Logger | None = None, role_names: bool = False,
-                 quiet: bool = False):
+    def __init__(
+        self, config: UpConfig, log: logging.Logger | None = None, role_names: bool = False, quiet: bool = False
+    ):
         """role_names: a role with one replica is named after the role (`occvo serve`'s logs and exit codes);
         quiet: without a log_dir, the children's logs go nowhere instead of to this stderr."""
         self.quiet = quiet
@@ -141,10 +148,18 @@ class Supervisor:
         self.log = log or structured_logger("occvo.up")
         self.endpoint = config.endpoint()
         self.stopping = threading.Event()
-        env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(REPO), os.environ.get("PYTHONPATH", "")]).rstrip(os.pathsep))
+        env = dict(
+            os.environ, PYTHONPATH=os.pathsep.join([str(REPO), os.environ.get("PYTHONPATH", "")]).rstrip(os.pathsep)
+        )
         self.router: Child | None = None
         if config.router.enabled:
-            cmd = [sys.executable, "-m", "services.router", "--config", config.router.config or str(defaults.path("router.json5"))]
+            cmd = [
+                sys.executable,
+                "-m",
+                "services.router",
+                "--config",
+                config.router.config or str(defaults.path("router.json5")),
+            ]
             if config.router.listen:
                 cmd += ["--listen", config.router.listen]
             self.router = Child("router", cmd, env, config.restart, "router")
@@ -153,9 +168,21 @@ class Supervisor:
             for i in range(w.count):
                 name = w.role if role_names and w.count == 1 else f"{w.role}-{i}"
                 # registration replicas share the streams: replica i registers shard i of count
-                shard = ["--shard", str(i), "--shards", str(w.count)] if w.role == "registration" and w.count > 1 else []
-                cmd = [sys.executable, "-m", MODULES[w.role], *(["--config", w.config] if w.config else []),
-                       "--connect", self.endpoint, "--worker-id", name, *shard, *w.args]
+                shard = (
+                    ["--shard", str(i), "--shards", str(w.count)] if w.role == "registration" and w.count > 1 else []
+                )
+                cmd = [
+                    sys.executable,
+                    "-m",
+                    MODULES[w.role],
+                    *(["--config", w.config] if w.config else []),
+                    "--connect",
+                    self.endpoint,
+                    "--worker-id",
+                    name,
+                    *shard,
+                    *w.args,
+                ]
                 self.workers.append(Child(name, cmd, {**env, **w.env}, config.restart, w.role))
 
     # -- children
@@ -165,8 +192,9 @@ class Supervisor:
             Path(self.config.log_dir).mkdir(parents=True, exist_ok=True)
             err = open(Path(self.config.log_dir) / f"{child.name}.log", "a")
         # own process group: a terminal's Ctrl-C reaches only the supervisor, which stops workers before the router
-        child.proc = subprocess.Popen(child.cmd, cwd=REPO, env=child.env, stdout=err, stderr=err, process_group=0,
-                                      preexec_fn=_die_with_parent)
+        child.proc = subprocess.Popen(
+            child.cmd, cwd=REPO, env=child.env, stdout=err, stderr=err, process_group=0, preexec_fn=_die_with_parent
+        )
         if err not in (None, subprocess.DEVNULL):
             err.close()
         child.started_at = time.monotonic()
@@ -202,8 +230,10 @@ class Supervisor:
         return self
 
     def pids(self) -> dict[str, int | None]:
-        return {c.name: (c.proc.pid if c.proc and c.proc.poll() is None else None)
-                for c in ([self.router] if self.router else []) + self.workers}
+        return {
+            c.name: (c.proc.pid if c.proc and c.proc.poll() is None else None)
+            for c in ([self.router] if self.router else []) + self.workers
+        }
 
     def poll(self) -> None:
         """Notice exited children and restart them when their backoff has passed."""
@@ -226,8 +256,18 @@ class Supervisor:
             delay = child.backoff.next(uptime)
             child.restart_at = now + delay
             how = f"signal {signal.Signals(-code).name}" if code < 0 else f"code {code}"
-            log_event(self.log, "crashed", logging.WARNING, name=child.name, role=child.role, pid=child.proc.pid,
-                      code=code, how=how, uptime_s=round(uptime, 3), restart_in_s=delay)
+            log_event(
+                self.log,
+                "crashed",
+                logging.WARNING,
+                name=child.name,
+                role=child.role,
+                pid=child.proc.pid,
+                code=code,
+                how=how,
+                uptime_s=round(uptime, 3),
+                restart_in_s=delay,
+            )
 
     def run(self, ready=None) -> int:
         """Start, supervise until SIGINT/SIGTERM, stop; returns 0 when every child stopped cleanly."""
@@ -264,7 +304,9 @@ class Supervisor:
             try:
                 codes[c.name] = c.proc.wait(timeout=max(0.1, deadline - time.monotonic()))
             except subprocess.TimeoutExpired:
-                log_event(self.log, "kill", logging.WARNING, name=c.name, pid=c.proc.pid, after_s=self.config.stop_timeout_s)
+                log_event(
+                    self.log, "kill", logging.WARNING, name=c.name, pid=c.proc.pid, after_s=self.config.stop_timeout_s
+                )
                 c.proc.kill()
                 codes[c.name] = c.proc.wait()
         return codes

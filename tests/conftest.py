@@ -10,7 +10,9 @@ SERVICE_FRAMES = 12  # frames of `scene`, the synthetic drive the service tests 
 @pytest.fixture(scope="session")
 def sample_root() -> Path:
     if not (SAMPLE / "occupancy").is_dir():
-        pytest.skip(f"real nuScenes sample not found at {SAMPLE} (it sits beside the checkout in CI, not in a fresh clone)")
+        pytest.skip(
+            f"real nuScenes sample not found at {SAMPLE} (it sits beside the checkout in CI, not in a fresh clone)"
+        )
     return SAMPLE
 
 

@@ -79,15 +79,22 @@ def occupancies(draw, max_n: int = 64, grid=None) -> SparseOccupancy:
         pts = g.centres_of(idx) + rng.uniform(-0.49, 0.49, (n, 3)) * g.voxel_size * draw(st.sampled_from([0.0, 1.0]))
         inside = np.all((pts >= np.array(g.lower)) & (pts < np.array(g.upper)), axis=1)
         pts, labels = pts[inside], labels[inside]
-        return SparseOccupancy(grid=GridSpecModel.from_grid(g), points=Array.from_numpy(pts.astype(np.float64)),
-                               labels=Array.from_numpy(labels))
+        return SparseOccupancy(
+            grid=GridSpecModel.from_grid(g),
+            points=Array.from_numpy(pts.astype(np.float64)),
+            labels=Array.from_numpy(labels),
+        )
     dtype = np.uint8 if max(g.shape) <= 256 and draw(st.booleans()) else np.uint16
-    return SparseOccupancy(grid=GridSpecModel.from_grid(g), voxels=Array.from_numpy(idx.astype(dtype)), labels=Array.from_numpy(labels))
+    return SparseOccupancy(
+        grid=GridSpecModel.from_grid(g), voxels=Array.from_numpy(idx.astype(dtype)), labels=Array.from_numpy(labels)
+    )
 
 
 @st.composite
 def matrices(draw, rows, cols):
-    m = np.random.default_rng(draw(rng_seeds)).normal(size=(rows, cols)) * draw(st.sampled_from([0.0, 1.0, 1e-300, 1e300]))
+    m = np.random.default_rng(draw(rng_seeds)).normal(size=(rows, cols)) * draw(
+        st.sampled_from([0.0, 1.0, 1e-300, 1e300])
+    )
     m.flat[0] = draw(st.just(1.0) | small_finite)
     return m.tolist()
 
@@ -97,36 +104,66 @@ def camera_images(draw) -> CameraImage:
     enc = draw(st.sampled_from(["jpeg", "png", "raw_rgb8"]))
     w, h = draw(st.integers(1, 8)), draw(st.integers(1, 8))
     data = np.random.default_rng(draw(rng_seeds)).bytes(w * h * 3 if enc == "raw_rgb8" else draw(st.integers(0, 64)))
-    return CameraImage(camera=draw(st.text(max_size=12)), encoding=enc, width=w, height=h, data=data,
-                       intrinsics=draw(matrices(3, 3)), extrinsics=draw(matrices(4, 4)))
+    return CameraImage(
+        camera=draw(st.text(max_size=12)),
+        encoding=enc,
+        width=w,
+        height=h,
+        data=data,
+        intrinsics=draw(matrices(3, 3)),
+        extrinsics=draw(matrices(4, 4)),
+    )
 
 
 @st.composite
 def camera_frames(draw, stream=streams, max_n: int = 64) -> CameraFrame:
     images = [draw(camera_images())] * 6 if draw(st.integers(0, 3)) == 0 else []  # six copies: cheap to draw
-    return CameraFrame(stream=draw(stream), seq=draw(seqs), stamp=draw(finite), images=images,
-                       gt_occupancy=draw(st.none() | occupancies(max_n)), sent_at=draw(st.just(0.0) | finite))
+    return CameraFrame(
+        stream=draw(stream),
+        seq=draw(seqs),
+        stamp=draw(finite),
+        images=images,
+        gt_occupancy=draw(st.none() | occupancies(max_n)),
+        sent_at=draw(st.just(0.0) | finite),
+    )
 
 
 @st.composite
 def occupancy_frames(draw, stream=streams, max_n: int = 64, grid=None) -> OccupancyFrameMsg:
-    return OccupancyFrameMsg(stream=draw(stream), seq=draw(seqs), stamp=draw(finite), source=draw(st.text(max_size=20)),
-                             occupancy=draw(occupancies(max_n, grid)), timings_ms=draw(timings), sent_at=draw(st.just(0.0) | finite))
+    return OccupancyFrameMsg(
+        stream=draw(stream),
+        seq=draw(seqs),
+        stamp=draw(finite),
+        source=draw(st.text(max_size=20)),
+        occupancy=draw(occupancies(max_n, grid)),
+        timings_ms=draw(timings),
+        sent_at=draw(st.just(0.0) | finite),
+    )
 
 
 @st.composite
 def pose_estimates(draw, stream=streams) -> PoseEstimate:
-    return PoseEstimate(stream=draw(stream), seq=draw(seqs), stamp=draw(finite), pose=draw(matrices(4, 4)),
-                        status=draw(st.sampled_from(["ok", "lost", "reinitialised"])), timings_ms=draw(timings),
-                        sent_at=draw(finite))
+    return PoseEstimate(
+        stream=draw(stream),
+        seq=draw(seqs),
+        stamp=draw(finite),
+        pose=draw(matrices(4, 4)),
+        status=draw(st.sampled_from(["ok", "lost", "reinitialised"])),
+        timings_ms=draw(timings),
+        sent_at=draw(finite),
+    )
 
 
 @st.composite
 def trajectories(draw, stream=streams) -> Trajectory:
     rng = np.random.default_rng(draw(rng_seeds))
     t = draw(st.integers(0, 20))
-    return Trajectory(stream=draw(stream), seqs=Array.from_numpy(rng.integers(0, 2**62, t)),
-                      stamps=Array.from_numpy(rng.normal(size=t)), poses=Array.from_numpy(rng.normal(size=(t, 4, 4))))
+    return Trajectory(
+        stream=draw(stream),
+        seqs=Array.from_numpy(rng.integers(0, 2**62, t)),
+        stamps=Array.from_numpy(rng.normal(size=t)),
+        poses=Array.from_numpy(rng.normal(size=(t, 4, 4))),
+    )
 
 
 @st.composite
@@ -140,48 +177,85 @@ def map_tiles(draw, stream=streams, ix=None, iy=None, tile_m=None, max_m: int = 
     rng = np.random.default_rng(draw(rng_seeds))
     m = draw(st.integers(0, max_m))
     tm = tile_m if tile_m is not None else draw(st.floats(0.1, 1e3))
-    return MapTile(stream=draw(stream), ix=ix if ix is not None else draw(i64), iy=iy if iy is not None else draw(i64), tile_m=tm,
-                   seq=draw(seqs), points=Array.from_numpy(rng.uniform(-1e3, 1e3, (m, 3))),
-                   labels=Array.from_numpy(rng.integers(0, 256, m).astype(np.uint8)))
+    return MapTile(
+        stream=draw(stream),
+        ix=ix if ix is not None else draw(i64),
+        iy=iy if iy is not None else draw(i64),
+        tile_m=tm,
+        seq=draw(seqs),
+        points=Array.from_numpy(rng.uniform(-1e3, 1e3, (m, 3))),
+        labels=Array.from_numpy(rng.integers(0, 256, m).astype(np.uint8)),
+    )
 
 
 @st.composite
 def map_updates(draw, stream=streams, max_tiles: int = 3, max_m: int = 50) -> MapUpdate:
     tm = draw(st.floats(0.1, 1e3))
     cells = draw(st.lists(st.tuples(st.integers(-3, 3), st.integers(-3, 3)), max_size=max_tiles, unique=True))
-    return MapUpdate(stream=draw(stream), seq=draw(seqs), reset=draw(st.booleans()), tile_m=tm,
-                     tiles=[draw(map_tiles(stream, ix, iy, tm, max_m)) for ix, iy in cells])
+    return MapUpdate(
+        stream=draw(stream),
+        seq=draw(seqs),
+        reset=draw(st.booleans()),
+        tile_m=tm,
+        tiles=[draw(map_tiles(stream, ix, iy, tm, max_m)) for ix, iy in cells],
+    )
 
 
 @st.composite
 def map_infos(draw, stream=streams) -> MapInfo:
     b = st.none() | st.tuples(finite, finite, finite)
-    return MapInfo(stream=draw(stream), tile_m=draw(finite), tile_count=draw(i64), voxel_count=draw(i64),
-                   last_seq=draw(st.none() | i64), bounds_min=draw(b), bounds_max=draw(b),
-                   tiles=draw(st.lists(st.tuples(i64, i64), max_size=5)))
+    return MapInfo(
+        stream=draw(stream),
+        tile_m=draw(finite),
+        tile_count=draw(i64),
+        voxel_count=draw(i64),
+        last_seq=draw(st.none() | i64),
+        bounds_min=draw(b),
+        bounds_max=draw(b),
+        tiles=draw(st.lists(st.tuples(i64, i64), max_size=5)),
+    )
 
 
 @st.composite
 def error_events(draw, stream=streams) -> ErrorEvent:
-    return ErrorEvent(stream=draw(stream | st.just("*")), worker=draw(st.text(max_size=20)), code=draw(st.sampled_from(sorted(ERROR_CODES))),
-                      message=draw(st.text(max_size=80)), key=draw(st.text(max_size=40)), seq=draw(st.none() | i64),
-                      stamp=draw(finite))
+    return ErrorEvent(
+        stream=draw(stream | st.just("*")),
+        worker=draw(st.text(max_size=20)),
+        code=draw(st.sampled_from(sorted(ERROR_CODES))),
+        message=draw(st.text(max_size=80)),
+        key=draw(st.text(max_size=40)),
+        seq=draw(st.none() | i64),
+        stamp=draw(finite),
+    )
 
 
 @st.composite
 def worker_healths(draw, stream=streams) -> WorkerHealth:
     stage = st.builds(StageStats, count=i64, p50_ms=finite, p90_ms=finite, p99_ms=finite, mean_ms=finite)
-    return WorkerHealth(worker=draw(st.text(max_size=20)), role=draw(st.sampled_from(["inference", "registration", "map"])),
-                        pid=draw(i64), uptime_s=draw(finite), policy=draw(st.sampled_from(["lossless", "latest"])),
-                        streams=draw(st.lists(stream, max_size=3)), counters=draw(st.dictionaries(st.text(max_size=12), i64, max_size=5)),
-                        queue_depth=draw(st.dictionaries(stream, i64, max_size=3)),
-                        stages=draw(st.dictionaries(st.text(max_size=12), stage, max_size=3)))
+    return WorkerHealth(
+        worker=draw(st.text(max_size=20)),
+        role=draw(st.sampled_from(["inference", "registration", "map"])),
+        pid=draw(i64),
+        uptime_s=draw(finite),
+        policy=draw(st.sampled_from(["lossless", "latest"])),
+        streams=draw(st.lists(stream, max_size=3)),
+        counters=draw(st.dictionaries(st.text(max_size=12), i64, max_size=5)),
+        queue_depth=draw(st.dictionaries(stream, i64, max_size=3)),
+        stages=draw(st.dictionaries(st.text(max_size=12), stage, max_size=3)),
+    )
 
 
 STRATEGIES = {
-    "camera_frame": camera_frames, "occupancy_frame": occupancy_frames, "pose_estimate": pose_estimates,
-    "trajectory": trajectories, "map_tile_query": map_tile_queries, "map_tile": map_tiles, "map_update": map_updates,
-    "map_info": map_infos, "error_event": error_events, "worker_health": worker_healths,
+    "camera_frame": camera_frames,
+    "occupancy_frame": occupancy_frames,
+    "pose_estimate": pose_estimates,
+    "trajectory": trajectories,
+    "map_tile_query": map_tile_queries,
+    "map_tile": map_tiles,
+    "map_update": map_updates,
+    "map_info": map_infos,
+    "error_event": error_events,
+    "worker_health": worker_healths,
 }
 assert set(STRATEGIES) == set(MESSAGES)
 
@@ -261,21 +335,54 @@ def mutate_structure(obj, rng: np.random.Generator, op: str | None = None):
         obj["kind"] = _pick(rng, KINDS + ["", "camera", "Camera_Frame", None, 7, b"camera_frame", ["camera_frame"]])
         return obj, op
     if op == "array":
-        arrays = [p for p in paths if isinstance(_get(obj, p), dict) and {"dtype", "shape", "data"} <= set(_get(obj, p))]
+        arrays = [
+            p for p in paths if isinstance(_get(obj, p), dict) and {"dtype", "shape", "data"} <= set(_get(obj, p))
+        ]
         if arrays:
             a = _get(obj, _pick(rng, arrays))
             what = _pick(rng, ["dtype", "shape", "shape", "data"])
             if what == "dtype":
-                a["dtype"] = _pick(rng, ["uint8", "uint16", "int32", "int64", "float32", "float64", "float16", "bool", "object", "<f8", "", 3])
+                a["dtype"] = _pick(
+                    rng,
+                    [
+                        "uint8",
+                        "uint16",
+                        "int32",
+                        "int64",
+                        "float32",
+                        "float64",
+                        "float16",
+                        "bool",
+                        "object",
+                        "<f8",
+                        "",
+                        3,
+                    ],
+                )
             elif what == "shape":
-                a["shape"] = [_pick(rng, [0, 1, 2, 3, 4, -1, -(2**63), 2**31, 2**32, 2**63 - 1, 2**64 - 1, 16])
-                              for _ in range(int(rng.integers(0, 4)))] if rng.random() < 0.8 else rng_garbage(rng, 1)
+                a["shape"] = (
+                    [
+                        _pick(rng, [0, 1, 2, 3, 4, -1, -(2**63), 2**31, 2**32, 2**63 - 1, 2**64 - 1, 16])
+                        for _ in range(int(rng.integers(0, 4)))
+                    ]
+                    if rng.random() < 0.8
+                    else rng_garbage(rng, 1)
+                )
             else:
                 d = a["data"] if isinstance(a["data"], bytes) else b""
                 cut = int(rng.integers(0, len(d) + 1))
-                a["data"] = _pick(rng, [d[:cut], d + b"\x00" * int(rng.integers(1, 9)), b"", d[:cut] + d[cut:][::-1],
-                                        np.frombuffer(d[: len(d) // 8 * 8], np.float64).copy().clip(-1e300, 1e300).tobytes() if rng.random() < 0.5
-                                        else np.full(len(d) // 8, np.nan).tobytes()])
+                a["data"] = _pick(
+                    rng,
+                    [
+                        d[:cut],
+                        d + b"\x00" * int(rng.integers(1, 9)),
+                        b"",
+                        d[:cut] + d[cut:][::-1],
+                        np.frombuffer(d[: len(d) // 8 * 8], np.float64).copy().clip(-1e300, 1e300).tobytes()
+                        if rng.random() < 0.5
+                        else np.full(len(d) // 8, np.nan).tobytes(),
+                    ],
+                )
             return obj, op
         op = "replace"
     if op == "deep":
@@ -309,18 +416,20 @@ def mutate_bytes(data: bytes, rng: np.random.Generator) -> bytes:
         if op == "flip" and n:
             b[int(rng.integers(0, n))] ^= 1 << int(rng.integers(0, 8))
         elif op == "set" and n:
-            b[int(rng.integers(0, n))] = _pick(rng, [0x00, 0xFF, 0xC1, 0xC0, 0xDC, 0xDF, 0xCF, 0xCB, 0x7F, 0x80, int(rng.integers(0, 256))])
+            b[int(rng.integers(0, n))] = _pick(
+                rng, [0x00, 0xFF, 0xC1, 0xC0, 0xDC, 0xDF, 0xCF, 0xCB, 0x7F, 0x80, int(rng.integers(0, 256))]
+            )
         elif op == "truncate":
-            del b[int(rng.integers(0, n + 1)):]
+            del b[int(rng.integers(0, n + 1)) :]
         elif op == "insert":
             i = int(rng.integers(0, n + 1))
             b[i:i] = rng.bytes(int(rng.integers(1, 17)))
         elif op == "delete" and n:
             i = int(rng.integers(0, n))
-            del b[i:i + int(rng.integers(1, 17))]
+            del b[i : i + int(rng.integers(1, 17))]
         elif op == "dup" and n:
             i = int(rng.integers(0, n))
-            b[i:i] = b[i:i + int(rng.integers(1, 33))]
+            b[i:i] = b[i : i + int(rng.integers(1, 33))]
     return bytes(b)
 
 
@@ -337,6 +446,7 @@ def unpack(data: bytes):
 
 
 # ------------------------------------------------------------------ the codec contract
+
 
 def _arrays_of(model):
     if isinstance(model, Array):

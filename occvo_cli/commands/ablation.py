@@ -7,7 +7,9 @@ from pathlib import Path
 
 
 def add_parser(sub) -> None:
-    p = sub.add_parser("ablation", help="the paper's Table II over scenes: each filter combination's success ratio and RMSE")
+    p = sub.add_parser(
+        "ablation", help="the paper's Table II over scenes: each filter combination's success ratio and RMSE"
+    )
     p.add_argument("--input", type=Path, nargs="+", help="scene folders (OCC-VO release or Occ3D)")
     p.add_argument("--gt-dir", type=Path, help="folder of <scene>.kitti ground-truth trajectories")
     p.add_argument("--seeds", type=int, nargs="+", help="synthetic scene seeds (instead of --input), with map metrics")

@@ -11,10 +11,18 @@ def add_parser(sub) -> None:
     p = sub.add_parser("eval", help="APE RMSE (SE(3) Umeyama-aligned) of an estimate against ground truth")
     p.add_argument("--gt", required=True, help="ground-truth trajectory, KITTI or TUM")
     p.add_argument("--est", required=True, help="estimated trajectory, KITTI or TUM")
-    p.add_argument("--fit-time-offset", action="store_true", help="also the APE against the ground truth moved in "
-                   "time by the one shift (within +-250 ms) that fits best: how much of the APE is timing")
-    p.add_argument("--rate", type=float, default=2.0, help="--fit-time-offset: frames/s where a file has no stamps "
-                   "(KITTI); TUM files carry their own")
+    p.add_argument(
+        "--fit-time-offset",
+        action="store_true",
+        help="also the APE against the ground truth moved in "
+        "time by the one shift (within +-250 ms) that fits best: how much of the APE is timing",
+    )
+    p.add_argument(
+        "--rate",
+        type=float,
+        default=2.0,
+        help="--fit-time-offset: frames/s where a file has no stamps (KITTI); TUM files carry their own",
+    )
     p.add_argument("--json", action="store_true", help="print JSON")
     p.set_defaults(func=run)
 
@@ -28,8 +36,13 @@ def run(args) -> int:
     if len(gt) != len(est):
         raise DatasetError(args.est, f"{len(est)} poses against {len(gt)} in {args.gt}")
     err = ape_errors(gt, est)
-    stats = {"rmse": float(np.sqrt(np.mean(err ** 2))), "mean": float(err.mean()), "median": float(np.median(err)),
-             "max": float(err.max()), "poses": len(err)}
+    stats = {
+        "rmse": float(np.sqrt(np.mean(err**2))),
+        "mean": float(err.mean()),
+        "median": float(np.median(err)),
+        "max": float(err.max()),
+        "poses": len(err),
+    }
     stats["success"] = success(stats["rmse"])
     if args.fit_time_offset:
         stats.update(_time_fit(gt, est, gt_stamps if gt_stamps is not None else est_stamps, args))
@@ -41,8 +54,10 @@ def run(args) -> int:
             print(f"{k:>8}  {stats[k]:.6f}")
         print(f"{'poses':>8}  {stats['poses']}\n{'success':>8}  {stats['success']} (RMSE < 5 m)")
         if args.fit_time_offset:
-            print(f"time-fitted APE RMSE {stats['ape_rmse_time_fitted_m']:.6f} m at a shift of "
-                  f"{stats['time_offset_ms']:+.0f} ms ({stats['time_fit_dropped_frames']} end frames outside)")
+            print(
+                f"time-fitted APE RMSE {stats['ape_rmse_time_fitted_m']:.6f} m at a shift of "
+                f"{stats['time_offset_ms']:+.0f} ms ({stats['time_fit_dropped_frames']} end frames outside)"
+            )
     return 0
 
 
@@ -58,5 +73,8 @@ def _time_fit(gt, est, stamps, args) -> dict:
         fit = fit_time_offset(gt, est, stamps)
     except ValueError as exc:
         raise ConfigError(f"--fit-time-offset: {exc}") from None
-    return {"ape_rmse_time_fitted_m": fit.ape_rmse_m, "time_offset_ms": fit.offset_ms,
-            "time_fit_dropped_frames": fit.dropped_frames}
+    return {
+        "ape_rmse_time_fitted_m": fit.ape_rmse_m,
+        "time_offset_ms": fit.offset_ms,
+        "time_fit_dropped_frames": fit.dropped_frames,
+    }

@@ -10,12 +10,20 @@ def add_parser(sub) -> None:
     p = sub.add_parser("eval-map", help="map accuracy / precision / completion against a ground-truth or reference map")
     p.add_argument("--est-map", type=Path, required=True, help="reconstructed map: .npz (points, labels) or .ply")
     src = p.add_mutually_exclusive_group(required=True)
-    src.add_argument("--gt-map", type=Path, help="ground-truth map: .npz (points, labels) or .ply, same frame as --est-map")
-    src.add_argument("--reference-scene", type=Path,
-                     help="scene folder without a true map: build the reference map from its occupancy along --gt poses")
+    src.add_argument(
+        "--gt-map", type=Path, help="ground-truth map: .npz (points, labels) or .ply, same frame as --est-map"
+    )
+    src.add_argument(
+        "--reference-scene",
+        type=Path,
+        help="scene folder without a true map: build the reference map from its occupancy along --gt poses",
+    )
     p.add_argument("--gt", type=Path, help="ground-truth trajectory (KITTI/TUM) for --reference-scene or alignment")
-    p.add_argument("--est-traj", type=Path,
-                   help="estimated trajectory: move --est-map into the ground truth's frame by the APE (Umeyama) alignment")
+    p.add_argument(
+        "--est-traj",
+        type=Path,
+        help="estimated trajectory: move --est-map into the ground truth's frame by the APE (Umeyama) alignment",
+    )
     p.add_argument("--threshold", type=float, default=0.4, help="precision / completion distance, m (default 0.4)")
     p.add_argument("--all-classes", action="store_true", help="compare every class, not only the static ones")
     p.add_argument("--save-reference", type=Path, help="write the reference map built from --reference-scene here")
@@ -48,8 +56,10 @@ def run(args) -> int:
         if args.save_reference:
             save_map(args.save_reference, truth.points, truth.labels)
     if args.reference_scene and not args.est_traj:
-        raise ConfigError("--reference-scene builds the reference in the ground truth's frame and --est-map is in the "
-                          "estimate's own: give --est-traj (the run's trajectory.kitti) to align them")
+        raise ConfigError(
+            "--reference-scene builds the reference in the ground truth's frame and --est-map is in the "
+            "estimate's own: give --est-traj (the run's trajectory.kitti) to align them"
+        )
     points = est.points
     if args.est_traj:
         if gt_poses is None:
@@ -88,6 +98,7 @@ def _check_overlap(est, ref, args) -> None:
     near = np.isfinite(cKDTree(ref).query(sample, distance_upper_bound=OVERLAP_M)[0])
     if not near.any():
         hint = "" if args.est_traj else "; give --est-traj (and --gt) to align the estimate"
-        raise ConfigError(f"--est-map and {what} do not overlap (no point within {OVERLAP_M:g} m of the other): "
-                          f"they are not in one frame{hint}")
-
+        raise ConfigError(
+            f"--est-map and {what} do not overlap (no point within {OVERLAP_M:g} m of the other): "
+            f"they are not in one frame{hint}"
+        )

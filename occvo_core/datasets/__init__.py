@@ -12,8 +12,9 @@ from occvo_core.trajectory import read_trajectory
 __all__ = ["SceneSource", "iterate", "OccVOReleaseScene", "open_scene"]
 
 
-def open_scene(path: str | Path, gt: str | Path | None = None, scene: str | None = None,
-               mask: str = "camera") -> SceneSource:
+def open_scene(
+    path: str | Path, gt: str | Path | None = None, scene: str | None = None, mask: str = "camera"
+) -> SceneSource:
     """An OCC-VO release folder (<i>.npy frames), an Occ3D-nuScenes root (annotations.json + gts/) with `scene`, one
     of its gts/<scene> folders, or an Occ3D scene folder (<frame>/labels.npz), told apart by content. `mask` is
     Occ3D's visibility mask ("camera", "lidar" or "none"); `gt` overrides the poses of the annotations."""
@@ -27,14 +28,21 @@ def open_scene(path: str | Path, gt: str | Path | None = None, scene: str | None
     root = occ3d_nuscenes.release_root(path)
     if root is not None:
         if root == path and scene is None:
-            raise DatasetError(path, "an Occ3D-nuScenes root holds many scenes: name one "
-                               "(--scene; --list-scenes lists them)")
+            raise DatasetError(
+                path, "an Occ3D-nuScenes root holds many scenes: name one (--scene; --list-scenes lists them)"
+            )
         source = occ3d_nuscenes.open_release_scene(root, scene or path.name, mask=mask)
         if gt is not None:
             from occvo_core.datasets.occ3d import Occ3DScene
 
-            source = Occ3DScene(source.root, poses=read_trajectory(gt), mask=mask, files=source.files,
-                                stamps=source.stamps, name=source.name)
+            source = Occ3DScene(
+                source.root,
+                poses=read_trajectory(gt),
+                mask=mask,
+                files=source.files,
+                stamps=source.stamps,
+                name=source.name,
+            )
         return source
     if scene is not None:
         raise DatasetError(path, f"--scene {scene} needs an Occ3D-nuScenes root (a folder with annotations.json)")

@@ -23,9 +23,17 @@ class Occ3DScene:
     label `files` given. A frame is the occupied voxels inside `mask` ("camera", the default, "lidar" or "none").
     `poses` is a trajectory file or an (N,4,4) array; stamps are `stamps`, a TUM file's, or index / rate_hz."""
 
-    def __init__(self, scene_dir: str | Path, poses: str | Path | np.ndarray | None = None,
-                 mask: Literal["none", "camera", "lidar"] = "camera", rate_hz: float = 2.0,
-                 frames: list[str] | None = None, files: list[Path] | None = None, stamps: np.ndarray | None = None, name: str | None = None):
+    def __init__(
+        self,
+        scene_dir: str | Path,
+        poses: str | Path | np.ndarray | None = None,
+        mask: Literal["none", "camera", "lidar"] = "camera",
+        rate_hz: float = 2.0,
+        frames: list[str] | None = None,
+        files: list[Path] | None = None,
+        stamps: np.ndarray | None = None,
+        name: str | None = None,
+    ):
         self.root = Path(scene_dir)
         if not self.root.is_dir():
             raise DatasetError(self.root, "scene folder does not exist")
@@ -46,8 +54,10 @@ class Occ3DScene:
             if self.stamps is None and file_stamps is not None and len(file_stamps) >= len(self.files):
                 self.stamps = file_stamps[: len(self.files)]
         if self._gt is not None and len(self._gt) < len(self.files):
-            raise DatasetError(poses if not isinstance(poses, np.ndarray) else self.root,
-                               f"{len(self._gt)} poses for {len(self.files)} frames")
+            raise DatasetError(
+                poses if not isinstance(poses, np.ndarray) else self.root,
+                f"{len(self._gt)} poses for {len(self.files)} frames",
+            )
         if self.stamps is not None and len(self.stamps) != len(self.files):
             raise DatasetError(self.root, f"{len(self.stamps)} stamps for {len(self.files)} frames")
 
@@ -62,8 +72,11 @@ class Occ3DScene:
             return [found[n] for n in frames]
         if all(n.isdigit() for n in found):
             return [found[n] for n in sorted(found, key=int)]
-        raise DatasetError(self.root, "frame folders are not all numbers (sample tokens?): open the release root, "
-                           "whose annotations.json orders them, or give their order with frames=[...]")
+        raise DatasetError(
+            self.root,
+            "frame folders are not all numbers (sample tokens?): open the release root, "
+            "whose annotations.json orders them, or give their order with frames=[...]",
+        )
 
     def __len__(self) -> int:
         return len(self.files)

@@ -44,7 +44,9 @@ class OccVOReleaseScene:
         try:
             array = np.load(path, allow_pickle=False)
         except EOFError:
-            raise InvalidFrameError(f"{index} ({path})", "unreadable occupancy frame: empty or truncated file") from None
+            raise InvalidFrameError(
+                f"{index} ({path})", "unreadable occupancy frame: empty or truncated file"
+            ) from None
         except (OSError, ValueError) as exc:  # a text or pickle file named .npy: numpy's ValueError speaks of pickles
             why = "not a .npy array" if "pickle" in str(exc) else str(exc)
             raise InvalidFrameError(f"{index} ({path})", f"unreadable occupancy frame: {why}") from None

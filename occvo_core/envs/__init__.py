@@ -1,9 +1,9 @@
 """Gymnasium environments over occupancy scenes (see occvo_core.envs.replay for spaces, reward and info).
 
-    import gymnasium as gym, occvo_core.envs
-    env = gym.make("occvo/Synthetic-v0", frames=40, noise="default")      # reset(seed=s): town s
-    env = gym.make("occvo/Replay-v0", source="path/to/occupancy/scene-0101")
-    result = run_occvo_agent(env)                                          # OccVO as the agent
+import gymnasium as gym, occvo_core.envs
+env = gym.make("occvo/Synthetic-v0", frames=40, noise="default")      # reset(seed=s): town s
+env = gym.make("occvo/Replay-v0", source="path/to/occupancy/scene-0101")
+result = run_occvo_agent(env)                                          # OccVO as the agent
 """
 
 from __future__ import annotations
@@ -26,8 +26,16 @@ ENV_IDS = ("occvo/Replay-v0", "occvo/Synthetic-v0")
 class SyntheticEnv(ReplayEnv):
     """ReplayEnv over SyntheticScene(seed, ...): reset(seed=s) (or options={"scene_seed": s}) replays town s."""
 
-    def __init__(self, seed: int = 0, frames: int = 40, rate_hz: float = 2.0, noise="default", traffic: bool = True,
-                 capacity: int | None = None, cache: int = 2):
+    def __init__(
+        self,
+        seed: int = 0,
+        frames: int = 40,
+        rate_hz: float = 2.0,
+        noise="default",
+        traffic: bool = True,
+        capacity: int | None = None,
+        cache: int = 2,
+    ):
         from occvo_core.sim import SyntheticScene
 
         self._scenes: OrderedDict[int, SyntheticScene] = OrderedDict()
@@ -53,5 +61,13 @@ def register_envs() -> None:
 
 register_envs()
 
-__all__ = ["ReplayEnv", "SyntheticEnv", "register_envs", "run_occvo_agent", "ENV_IDS", "frame_from_observation",
-           "pose_from_action", "action_from_pose"]
+__all__ = [
+    "ReplayEnv",
+    "SyntheticEnv",
+    "register_envs",
+    "run_occvo_agent",
+    "ENV_IDS",
+    "frame_from_observation",
+    "pose_from_action",
+    "action_from_pose",
+]

@@ -70,8 +70,13 @@ def action_from_pose(pose: np.ndarray) -> np.ndarray:
 class ReplayEnv(gym.Env):
     metadata = {"render_modes": []}
 
-    def __init__(self, source=None, capacity: int = DEFAULT_CAPACITY, scene_for_seed: Callable[[int], Any] | None = None,
-                 scene: str | None = None):
+    def __init__(
+        self,
+        source=None,
+        capacity: int = DEFAULT_CAPACITY,
+        scene_for_seed: Callable[[int], Any] | None = None,
+        scene: str | None = None,
+    ):
         """source: a SceneSource, a scene folder (with `scene`: an Occ3D-nuScenes root), or "synthetic:<seed>".
         scene_for_seed: when given, reset(seed=s) replays scene_for_seed(s) instead (the synthetic environment uses it
         to draw a new town per seed)."""
@@ -81,11 +86,15 @@ class ReplayEnv(gym.Env):
         self.scene_for_seed = scene_for_seed
         self.source = open_source(source, scene) if source is not None else scene_for_seed(0)
         lo, hi = np.array(OCC3D_GRID.lower), np.array(OCC3D_GRID.upper)
-        self.observation_space = spaces.Dict({
-            "points": spaces.Box(np.tile(lo, (self.capacity, 1)), np.tile(hi, (self.capacity, 1)), dtype=np.float64),
-            "labels": spaces.Box(0, FREE, (self.capacity,), dtype=np.uint8),
-            "count": spaces.Discrete(self.capacity + 1),
-        })
+        self.observation_space = spaces.Dict(
+            {
+                "points": spaces.Box(
+                    np.tile(lo, (self.capacity, 1)), np.tile(hi, (self.capacity, 1)), dtype=np.float64
+                ),
+                "labels": spaces.Box(0, FREE, (self.capacity,), dtype=np.uint8),
+                "count": spaces.Discrete(self.capacity + 1),
+            }
+        )
         bound = np.array([MAX_TRANSLATION_M] * 3 + [1.0] * 4)
         self.action_space = spaces.Box(-bound, bound, dtype=np.float64)
         self._index = 0
@@ -109,14 +118,23 @@ class ReplayEnv(gym.Env):
             sel = np.linspace(0, len(pts) - 1, self.capacity).astype(np.int64)
             dropped += len(pts) - self.capacity
             pts, labels = pts[sel], labels[sel]
-        obs = {"points": np.zeros((self.capacity, 3)), "labels": np.full(self.capacity, FREE, np.uint8), "count": len(pts)}
+        obs = {
+            "points": np.zeros((self.capacity, 3)),
+            "labels": np.full(self.capacity, FREE, np.uint8),
+            "count": len(pts),
+        }
         obs["points"][: len(pts)] = pts
         obs["labels"][: len(pts)] = labels
         return obs, dropped
 
     def _info(self, index: int, dropped: int) -> dict:
-        return {"frame_index": index, "stamp": self._stamp, "gt_pose": self._gt(index), "dropped_points": dropped,
-                "scene": self.source.name}
+        return {
+            "frame_index": index,
+            "stamp": self._stamp,
+            "gt_pose": self._gt(index),
+            "dropped_points": dropped,
+            "scene": self.source.name,
+        }
 
     # -- Gymnasium API ----------------------------------------------------------------------------
     def reset(self, *, seed: int | None = None, options: dict | None = None):
@@ -162,8 +180,9 @@ class ReplayEnv(gym.Env):
 
 def frame_from_observation(obs: dict, index: int = 0, stamp: float = 0.0) -> OccupancyFrame:
     n = int(obs["count"])
-    return OccupancyFrame(np.asarray(obs["points"][:n], np.float64), np.asarray(obs["labels"][:n], np.uint8), index,
-                          stamp)
+    return OccupancyFrame(
+        np.asarray(obs["points"][:n], np.float64), np.asarray(obs["labels"][:n], np.uint8), index, stamp
+    )
 
 
 def run_occvo_agent(env: gym.Env, config=None, seed: int | None = None, options: dict | None = None) -> dict:
@@ -189,6 +208,11 @@ def run_occvo_agent(env: gym.Env, config=None, seed: int | None = None, options:
         if terminated or truncated:
             break
     errors = np.array(errors, float)
-    return {"poses": np.array(poses), "rewards": np.array(rewards), "total_reward": float(np.sum(rewards)),
-            "mean_translation_error": float(np.nanmean(errors)) if np.isfinite(errors).any() else float("nan"),
-            "frames": len(poses), "rejected_frames": rejected}
+    return {
+        "poses": np.array(poses),
+        "rewards": np.array(rewards),
+        "total_reward": float(np.sum(rewards)),
+        "mean_translation_error": float(np.nanmean(errors)) if np.isfinite(errors).any() else float("nan"),
+        "frames": len(poses),
+        "rejected_frames": rejected,
+    }

@@ -39,9 +39,15 @@ def class_weights(frequencies: np.ndarray) -> torch.Tensor:
     return torch.tensor(1.0 / np.log(1.1 + f), dtype=torch.float32)
 
 
-def occupancy_loss(logits: torch.Tensor, semantics: torch.Tensor, mask: torch.Tensor, weights: torch.Tensor,
-                   outside_weight: float = 0.1, lovasz_voxels: int = 32768, generator: torch.Generator | None = None
-                   ) -> tuple[torch.Tensor, dict]:
+def occupancy_loss(
+    logits: torch.Tensor,
+    semantics: torch.Tensor,
+    mask: torch.Tensor,
+    weights: torch.Tensor,
+    outside_weight: float = 0.1,
+    lovasz_voxels: int = 32768,
+    generator: torch.Generator | None = None,
+) -> tuple[torch.Tensor, dict]:
     """Weighted cross entropy on camera-visible voxels (plus the rest at `outside_weight`) + Lovasz-softmax on a random
     subset of the visible voxels (the sort over every voxel would dominate a CPU step).
 
@@ -53,7 +59,9 @@ def occupancy_loss(logits: torch.Tensor, semantics: torch.Tensor, mask: torch.Te
     # Voxels outside the mask enter with probability `outside_weight` instead of at that weight: the same loss in
     # expectation, at a third of the cost of a log-softmax over every voxel.
     kept = visible | (torch.rand(visible.shape, generator=generator, device=visible.device) < outside_weight)
-    ce = F.cross_entropy(voxels[kept], semantics.reshape(-1)[kept], weight=weights, reduction="sum") / kept.sum().clamp(min=1)
+    ce = F.cross_entropy(voxels[kept], semantics.reshape(-1)[kept], weight=weights, reduction="sum") / kept.sum().clamp(
+        min=1
+    )
     idx = visible.nonzero().squeeze(1)
     if len(idx) > lovasz_voxels:
         idx = idx[torch.randperm(len(idx), generator=generator)[:lovasz_voxels]]
@@ -71,8 +79,9 @@ class ImageAuxHead(nn.Module):
 
     def __init__(self, channels: int):
         super().__init__()
-        self.net = nn.Sequential(nn.Conv2d(channels, channels, 3, padding=1), nn.ReLU(inplace=True),
-                                 nn.Conv2d(channels, NUM_CLASSES, 1))
+        self.net = nn.Sequential(
+            nn.Conv2d(channels, channels, 3, padding=1), nn.ReLU(inplace=True), nn.Conv2d(channels, NUM_CLASSES, 1)
+        )
 
     def loss(self, feature: torch.Tensor, labels: np.ndarray) -> torch.Tensor:
         """feature (Ncam, C, h, w) of one sample; labels (Ncam, H, W) at image resolution, 255 = no hit."""
@@ -82,8 +91,9 @@ class ImageAuxHead(nn.Module):
         return F.cross_entropy(out, lab)
 
 
-def depth_loss(depth_logits: torch.Tensor, ray_length: np.ndarray, intrinsics: torch.Tensor,
-               depth_range: tuple[float, float]) -> torch.Tensor:
+def depth_loss(
+    depth_logits: torch.Tensor, ray_length: np.ndarray, intrinsics: torch.Tensor, depth_range: tuple[float, float]
+) -> torch.Tensor:
     """Cross entropy of the depth head's log-spaced bins (Ncam, bins, h, w) against the rendered depth (Ncam, H, W)
     (ray length, turned into depth along the optical axis as the anchors use it); rays without a hit are ignored."""
     ncam, bins = depth_logits.shape[:2]

@@ -24,14 +24,18 @@ def cluster_objects(points: np.ndarray, eps: float, min_points: int) -> np.ndarr
     return np.where(sizes[ids] >= min_points, ids, -1)
 
 
-def displaced_objects(points: np.ndarray, ids: np.ndarray, counterparts: np.ndarray, threshold_m: float,
-                      quantile: float) -> np.ndarray:
+def displaced_objects(
+    points: np.ndarray, ids: np.ndarray, counterparts: np.ndarray, threshold_m: float, quantile: float
+) -> np.ndarray:
     """Mask of points whose object is displaced: the object's `quantile` of nearest-counterpart distances > threshold."""
     valid = np.flatnonzero(ids >= 0)
     if len(valid) == 0:
         return np.zeros(len(points), bool)
-    near = near_any(np.ascontiguousarray(points[valid], np.float64),
-                    np.ascontiguousarray(counterparts, np.float64).reshape(-1, 3), float(threshold_m))
+    near = near_any(
+        np.ascontiguousarray(points[valid], np.float64),
+        np.ascontiguousarray(counterparts, np.float64).reshape(-1, 3),
+        float(threshold_m),
+    )
     objects, which, sizes = np.unique(ids[valid], return_inverse=True, return_counts=True)
     rank = np.minimum((quantile * (sizes - 1)).round().astype(np.int64), sizes - 1)
     # the distance at the quantile's rank exceeds the threshold exactly when no more than `rank` points are near
@@ -47,36 +51,65 @@ class DynamicObjects:
     map_objects: int
 
 
-def dynamic_object_filter(frame_movable_world: np.ndarray, map_movable: np.ndarray, *, threshold_m: float,
-                          cluster_eps_m: float, min_cluster_points: int, quantile: float) -> DynamicObjects:
+def dynamic_object_filter(
+    frame_movable_world: np.ndarray,
+    map_movable: np.ndarray,
+    *,
+    threshold_m: float,
+    cluster_eps_m: float,
+    min_cluster_points: int,
+    quantile: float,
+) -> DynamicObjects:
     frame_ids = cluster_objects(frame_movable_world, cluster_eps_m, min_cluster_points)
     map_ids = cluster_objects(map_movable, cluster_eps_m, min_cluster_points)
     return DynamicObjects(
         displaced_objects(frame_movable_world, frame_ids, map_movable, threshold_m, quantile),
         displaced_objects(map_movable, map_ids, frame_movable_world, threshold_m, quantile),
-        int(len(np.unique(frame_ids[frame_ids >= 0]))), int(len(np.unique(map_ids[map_ids >= 0]))),
+        int(len(np.unique(frame_ids[frame_ids >= 0]))),
+        int(len(np.unique(map_ids[map_ids >= 0]))),
     )
 
 
-def find_moved_objects(frame: Prepared, pose: np.ndarray, local: LocalMap,
-                       config: DynamicObjectFilterConfig) -> tuple[np.ndarray, np.ndarray, dict[str, int]]:
+def find_moved_objects(
+    frame: Prepared, pose: np.ndarray, local: LocalMap, config: DynamicObjectFilterConfig
+) -> tuple[np.ndarray, np.ndarray, dict[str, int]]:
     """The box of Fig. 2 at the coarse pose: (mask of frame points kept for fine GICP, mask of the window's voxels of
     moved objects, counts)."""
     keep = np.ones(len(frame.points), bool)
     map_moved = np.zeros(len(local), bool)
     if not config.enabled or len(frame.movable) == 0:
-        return keep, map_moved, {"dynamic_frame_objects": 0, "dynamic_map_objects": 0, "dynamic_points": 0,
-                                 "dynamic_map_voxels_removed": 0}
+        return (
+            keep,
+            map_moved,
+            {
+                "dynamic_frame_objects": 0,
+                "dynamic_map_objects": 0,
+                "dynamic_points": 0,
+                "dynamic_map_voxels_removed": 0,
+            },
+        )
     movable_world = transform(pose, frame.points[frame.movable])
     # map objects are judged only where this frame can see them: inside its grid, after the coarse alignment
     candidates = np.flatnonzero(np.isin(local.labels, MOVABLE_CLASSES))
     in_view = OCC3D_GRID.inside(OCC3D_GRID.indices_of(transform(np.linalg.inv(pose), local.pos[candidates])))
     candidates = candidates[in_view]
-    found = dynamic_object_filter(movable_world, local.pos[candidates], threshold_m=config.displacement_threshold_m,
-                                  cluster_eps_m=config.cluster_eps_m, min_cluster_points=config.min_cluster_voxels,
-                                  quantile=config.displacement_quantile)
+    found = dynamic_object_filter(
+        movable_world,
+        local.pos[candidates],
+        threshold_m=config.displacement_threshold_m,
+        cluster_eps_m=config.cluster_eps_m,
+        min_cluster_points=config.min_cluster_voxels,
+        quantile=config.displacement_quantile,
+    )
     keep[frame.movable[found.frame_moved]] = False
     map_moved[candidates[found.map_moved]] = True
-    return keep, map_moved, {"dynamic_frame_objects": found.frame_objects, "dynamic_map_objects": found.map_objects,
-                             "dynamic_points": int(found.frame_moved.sum()),
-                             "dynamic_map_voxels_removed": int(found.map_moved.sum())}
+    return (
+        keep,
+        map_moved,
+        {
+            "dynamic_frame_objects": found.frame_objects,
+            "dynamic_map_objects": found.map_objects,
+            "dynamic_points": int(found.frame_moved.sum()),
+            "dynamic_map_voxels_removed": int(found.map_moved.sum()),
+        },
+    )

@@ -42,15 +42,26 @@ def _moved(pose: np.ndarray, since: np.ndarray, reach: float) -> float:
     return float(np.linalg.norm(step[:3, 3]) + rotation_angle(step[:3, :3]) * (reach + np.linalg.norm(since[:3, 3])))
 
 
-def gicp(points: np.ndarray, covs: np.ndarray, labels: np.ndarray, local_map: LocalMap, initial_pose: np.ndarray, *,
-         usable: np.ndarray | None = None,
-         max_correspondence_m: float, iterations: int, semantic_label_filter: bool, robust_scale: float = 0.0,
-         convergence_rotation_rad: float = 1e-5, convergence_translation_m: float = 1e-4,
-         correspondence_reuse: float = 0.0) -> GICPResult:
+def gicp(
+    points: np.ndarray,
+    covs: np.ndarray,
+    labels: np.ndarray,
+    local_map: LocalMap,
+    initial_pose: np.ndarray,
+    *,
+    usable: np.ndarray | None = None,
+    max_correspondence_m: float,
+    iterations: int,
+    semantic_label_filter: bool,
+    robust_scale: float = 0.0,
+    convergence_rotation_rad: float = 1e-5,
+    convergence_translation_m: float = 1e-4,
+    correspondence_reuse: float = 0.0,
+) -> GICPResult:
     """Gauss-Newton on the summed Mahalanobis distances of nearest pairs. The nearest-neighbour search, most of the
     cost, is skipped while no point can have moved more than correspondence_reuse map voxels since the last one."""
     pose = np.array(initial_pose, dtype=np.float64)
-    reach = float(np.sqrt((points ** 2).sum(axis=1).max())) if len(points) else 0.0
+    reach = float(np.sqrt((points**2).sum(axis=1).max())) if len(points) else 0.0
     pairs = np.empty(len(points), np.int64)
     searched_at = None
     radius = max(1, int(np.ceil(max_correspondence_m / local_map.voxel)))
@@ -62,22 +73,44 @@ def gicp(points: np.ndarray, covs: np.ndarray, labels: np.ndarray, local_map: Lo
     verify = False
     for it in range(1, iterations + 1):  # noqa: B007 - the last `it` is the result's count
         rot, trans = pose[:3, :3].copy(), pose[:3, 3].copy()
-        search = verify or searched_at is None or _moved(pose, searched_at, reach) > correspondence_reuse * local_map.voxel
+        search = (
+            verify or searched_at is None or _moved(pose, searched_at, reach) > correspondence_reuse * local_map.voxel
+        )
         if search:
             h, g, total, found, kept = gicp_linearise(
-                points, covs, labels, rot, trans, local_map.pos, local_map.cov, map_labels, usable, local_map.grid,
-                local_map.origin, local_map.dims, local_map.voxel, radius, max_correspondence_m, semantic_label_filter,
-                robust_scale, pairs)
+                points,
+                covs,
+                labels,
+                rot,
+                trans,
+                local_map.pos,
+                local_map.cov,
+                map_labels,
+                usable,
+                local_map.grid,
+                local_map.origin,
+                local_map.dims,
+                local_map.voxel,
+                radius,
+                max_correspondence_m,
+                semantic_label_filter,
+                robust_scale,
+                pairs,
+            )
             searched_at = pose
         else:
-            h, g, total, _, kept = gicp_linearise_pairs(points, covs, rot, trans, local_map.pos, local_map.cov, pairs,
-                                                        robust_scale)
+            h, g, total, _, kept = gicp_linearise_pairs(
+                points, covs, rot, trans, local_map.pos, local_map.cov, pairs, robust_scale
+            )
         if kept < 6:
             break
         cost = total / kept
         delta = np.linalg.solve(h + 1e-9 * np.eye(6), -g)
         pose = se3_exp_left(delta, pose)
-        if np.linalg.norm(delta[:3]) < convergence_rotation_rad and np.linalg.norm(delta[3:]) < convergence_translation_m:
+        if (
+            np.linalg.norm(delta[:3]) < convergence_rotation_rad
+            and np.linalg.norm(delta[3:]) < convergence_translation_m
+        ):
             if search:
                 break
             verify = True  # converged on kept pairs: search once more, so the answer's pairs are its own nearest
@@ -86,15 +119,31 @@ def gicp(points: np.ndarray, covs: np.ndarray, labels: np.ndarray, local_map: Lo
     return GICPResult(pose, it, found, kept, cost)
 
 
-def register_sources(frame: Prepared, sources: np.ndarray, local_map: LocalMap | EgoMap, pose: np.ndarray,
-                     max_correspondence_m: float, iterations: int, config: OccVOConfig) -> GICPResult:
+def register_sources(
+    frame: Prepared,
+    sources: np.ndarray,
+    local_map: LocalMap | EgoMap,
+    pose: np.ndarray,
+    max_correspondence_m: float,
+    iterations: int,
+    config: OccVOConfig,
+) -> GICPResult:
     """GICP of the frame's points `sources` from `pose`, with the config's solver settings and label filter."""
     g: GICPConfig = config.gicp
-    return gicp(frame.points[sources], frame.covs[sources], frame.labels[sources], local_map, pose,
-                max_correspondence_m=max_correspondence_m, iterations=iterations, robust_scale=g.robust_kernel_scale,
-                semantic_label_filter=config.semantic_label_filter.enabled,
-                convergence_rotation_rad=g.convergence_rotation_rad,
-                convergence_translation_m=g.convergence_translation_m, correspondence_reuse=g.correspondence_reuse)
+    return gicp(
+        frame.points[sources],
+        frame.covs[sources],
+        frame.labels[sources],
+        local_map,
+        pose,
+        max_correspondence_m=max_correspondence_m,
+        iterations=iterations,
+        robust_scale=g.robust_kernel_scale,
+        semantic_label_filter=config.semantic_label_filter.enabled,
+        convergence_rotation_rad=g.convergence_rotation_rad,
+        convergence_translation_m=g.convergence_translation_m,
+        correspondence_reuse=g.correspondence_reuse,
+    )
 
 
 def coarse_gicp(frame: Prepared, ego: EgoMap, config: OccVOConfig) -> GICPResult:
@@ -105,14 +154,25 @@ def coarse_gicp(frame: Prepared, ego: EgoMap, config: OccVOConfig) -> GICPResult
     coarse_map = ego.pooled(cfg.coarse_map_voxel_m)
     starts = [np.eye(4)]
     if cfg.wide_voxel_m > 0:
-        wide = register_sources(frame, frame.wide, coarse_map.pooled(cfg.wide_voxel_m), np.eye(4), cfg.wide_voxel_m,
-                                cfg.coarse_iterations, config).pose
+        wide = register_sources(
+            frame,
+            frame.wide,
+            coarse_map.pooled(cfg.wide_voxel_m),
+            np.eye(4),
+            cfg.wide_voxel_m,
+            cfg.coarse_iterations,
+            config,
+        ).pose
         # a wide pass that barely moved the guess leads coarse GICP to the minimum the guess would; one that moved
         # it further may lead it on into a neighbouring one
         near = np.linalg.norm(wide[:3, 3]) < cfg.wide_trust_m and rotation_angle(wide[:3, :3]) < np.deg2rad(2.0)
         starts = [wide] if near else [np.eye(4), wide]
-    results = [register_sources(frame, frame.coarse, coarse_map, start, cfg.coarse_max_correspondence_m,
-                                cfg.coarse_iterations, config) for start in starts]
+    results = [
+        register_sources(
+            frame, frame.coarse, coarse_map, start, cfg.coarse_max_correspondence_m, cfg.coarse_iterations, config
+        )
+        for start in starts
+    ]
     if len(results) == 1:
         return results[0]
     from_guess, from_wide = results

@@ -22,12 +22,20 @@ def _bev(points: np.ndarray, labels: np.ndarray, res: float, size: int) -> np.nd
     return gaussian_filter(img, 1.0)
 
 
-def bev_first_motion(prev_points: np.ndarray, prev_labels: np.ndarray, points: np.ndarray, labels: np.ndarray, *,
-                     search_radius_m: float, yaw_steps_deg: tuple[float, ...], res: float = 0.8) -> tuple[np.ndarray, float]:
+def bev_first_motion(
+    prev_points: np.ndarray,
+    prev_labels: np.ndarray,
+    points: np.ndarray,
+    labels: np.ndarray,
+    *,
+    search_radius_m: float,
+    yaw_steps_deg: tuple[float, ...],
+    res: float = 0.8,
+) -> tuple[np.ndarray, float]:
     """Relative motion (4x4, current ego -> previous ego) maximising BEV overlap, and its normalised score."""
     size = int(2 ** np.ceil(np.log2(2 * 60.0 / res)))
     ref_img = _bev(prev_points, prev_labels, res, size)
-    ref, ref_norm = np.fft.rfft2(ref_img), np.sqrt((ref_img ** 2).sum())
+    ref, ref_norm = np.fft.rfft2(ref_img), np.sqrt((ref_img**2).sum())
     limit = int(search_radius_m / res)
     best = (-np.inf, 0.0, 0, 0)
     for yaw_deg in yaw_steps_deg:
@@ -37,7 +45,7 @@ def bev_first_motion(prev_points: np.ndarray, prev_labels: np.ndarray, points: n
         img = _bev(rotated, labels, res, size)
         corr = _shifts(ref * np.conj(np.fft.rfft2(img)), size, limit)
         i, j = np.unravel_index(np.argmax(corr), corr.shape)
-        score = corr[i, j] / max(ref_norm * np.sqrt((img ** 2).sum()), 1e-12)
+        score = corr[i, j] / max(ref_norm * np.sqrt((img**2).sum()), 1e-12)
         if score > best[0]:
             best = (score, yaw, i - limit, j - limit)
     score, yaw, di, dj = best
@@ -69,8 +77,10 @@ def _channel_cells(points: np.ndarray, labels: np.ndarray) -> list[np.ndarray]:
     for classes in _MOTION_CHANNELS:
         ij = np.floor(points[np.isin(labels, classes), :2] / _MOTION_RES).astype(np.int64) + (1 << 20)
         keys = np.unique(ij[:, 0] << 21 | ij[:, 1])  # one int64 a cell: a 1-D sort, not a row sort
-        out.append(np.stack([(keys >> 21) - (1 << 20), (keys & ((1 << 21) - 1)) - (1 << 20)], axis=1) * _MOTION_RES
-                   + 0.5 * _MOTION_RES)
+        out.append(
+            np.stack([(keys >> 21) - (1 << 20), (keys & ((1 << 21) - 1)) - (1 << 20)], axis=1) * _MOTION_RES
+            + 0.5 * _MOTION_RES
+        )
     return out
 
 
@@ -89,17 +99,26 @@ def _band_pass() -> np.ndarray:
     """|H|^2 of a blur (1 cell) less its own blur (3 cells): class boundaries count, the inside of a road does not."""
     f0 = np.fft.fftfreq(_MOTION_SIZE)[:, None]
     f1 = np.fft.rfftfreq(_MOTION_SIZE)[None, :]
-    w2 = (2 * np.pi) ** 2 * (f0 ** 2 + f1 ** 2)
+    w2 = (2 * np.pi) ** 2 * (f0**2 + f1**2)
     h = np.exp(-0.5 * w2) * (1.0 - np.exp(-0.5 * 9.0 * w2))
-    return h ** 2
+    return h**2
 
 
 _BAND_PASS = _band_pass()
 
 
-def semantic_bev_motion(prev_points: np.ndarray, prev_labels: np.ndarray, points: np.ndarray, labels: np.ndarray, *,
-                        guess: np.ndarray, search_radius_m: float, yaw_deg: float, step_deg: float,
-                        prior_sigma_m: float) -> np.ndarray:
+def semantic_bev_motion(
+    prev_points: np.ndarray,
+    prev_labels: np.ndarray,
+    points: np.ndarray,
+    labels: np.ndarray,
+    *,
+    guess: np.ndarray,
+    search_radius_m: float,
+    yaw_deg: float,
+    step_deg: float,
+    prior_sigma_m: float,
+) -> np.ndarray:
     """Relative motion (4x4, current ego -> previous ego) near `guess` that best overlays the two frames' bird's-eye
     views, class by class (road, sidewalk, terrain, structure, vegetation edges): yaw within +-yaw_deg of the
     guess's, x-y within search_radius_m, with a Gaussian prior of prior_sigma_m on the x-y move."""
@@ -108,7 +127,7 @@ def semantic_bev_motion(prev_points: np.ndarray, prev_labels: np.ndarray, points
     cells = _channel_cells(moved, labels)
     limit = int(search_radius_m / _MOTION_RES)
     offsets = np.arange(-limit, limit + 1) * _MOTION_RES
-    prior = np.exp(-(offsets[:, None] ** 2 + offsets[None, :] ** 2) / (2 * prior_sigma_m ** 2))
+    prior = np.exp(-(offsets[:, None] ** 2 + offsets[None, :] ** 2) / (2 * prior_sigma_m**2))
     best = (-np.inf, 0.0, 0, 0)
     for yaw in np.deg2rad(np.arange(-yaw_deg, yaw_deg + 1e-9, step_deg)):
         corr = _shifts((ref * np.conj(_channel_spectra(cells, yaw))).sum(axis=0), _MOTION_SIZE, limit) * prior
@@ -119,12 +138,14 @@ def semantic_bev_motion(prev_points: np.ndarray, prev_labels: np.ndarray, points
     return _planar_motion(yaw, di * _MOTION_RES, dj * _MOTION_RES) @ guess
 
 
-def ground_height_correction(map_ground: np.ndarray, frame_ground: np.ndarray, centre: np.ndarray,
-                             cell_m: float = 0.8, min_cells: int = 30) -> np.ndarray | None:
+def ground_height_correction(
+    map_ground: np.ndarray, frame_ground: np.ndarray, centre: np.ndarray, cell_m: float = 0.8, min_cells: int = 30
+) -> np.ndarray | None:
     """World -> world correction that puts a frame's ground points (world frame) on the map's ground: a height
     shift and a tilt about `centre`, from a plane fitted robustly to the per x-y cell differences of mean ground
     height. The bird's-eye search finds x, y and yaw only; over a long drive, height and pitch drift too.
     None when fewer than min_cells cells hold both."""
+
     def cell_heights(points):
         ij = np.floor(points[:, :2] / cell_m).astype(np.int64)
         keys, inverse = np.unique((ij[:, 0] + (1 << 30)) * (1 << 31) + ij[:, 1] + (1 << 30), return_inverse=True)

@@ -31,8 +31,9 @@ def window_margin(margin_m: float) -> np.ndarray:
     return np.array([margin_m, margin_m, min(margin_m, 1.0)])
 
 
-def frame_window(voxel_map: VoxelPFilterMap, pose: np.ndarray, t: int, margin: np.ndarray,
-                 tight: bool = False) -> LocalMap:
+def frame_window(
+    voxel_map: VoxelPFilterMap, pose: np.ndarray, t: int, margin: np.ndarray, tight: bool = False
+) -> LocalMap:
     """The map voxels a frame can reach from `pose`: its grid's box in the world, with a margin for the correction
     registration will make (tight: see VoxelPFilterMap.window)."""
     corners = transform(pose, GRID_CORNERS)
@@ -69,18 +70,29 @@ class LocalMap:
         return self.map.alive[self.rows]
 
     def contains(self, keys: np.ndarray) -> bool:
-        return bool(len(keys) == 0 or (np.all(keys.min(axis=0) >= self.origin)
-                                       and np.all(keys.max(axis=0) < self.origin + self.dims)))
+        return bool(
+            len(keys) == 0
+            or (np.all(keys.min(axis=0) >= self.origin) and np.all(keys.max(axis=0) < self.origin + self.dims))
+        )
 
     def cells(self, keys: np.ndarray) -> np.ndarray:
         """Index into `grid` of each voxel key (keys inside the window)."""
         return ((keys - self.origin) * [self.dims[1] * self.dims[2], self.dims[2], 1]).sum(axis=1)
 
-    def nearest(self, queries: np.ndarray, radius_cells: int,
-                usable: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    def nearest(
+        self, queries: np.ndarray, radius_cells: int, usable: np.ndarray | None = None
+    ) -> tuple[np.ndarray, np.ndarray]:
         """(distance, local index or -1) of each query's nearest usable voxel (or of `usable`) within radius_cells."""
-        return nearest_distances(np.ascontiguousarray(queries, np.float64), self.pos, self.grid, self.origin,
-                                 self.dims, self.voxel, radius_cells, self.usable if usable is None else usable)
+        return nearest_distances(
+            np.ascontiguousarray(queries, np.float64),
+            self.pos,
+            self.grid,
+            self.origin,
+            self.dims,
+            self.voxel,
+            radius_cells,
+            self.usable if usable is None else usable,
+        )
 
 
 @dataclass
@@ -107,13 +119,29 @@ class EgoMap:
         return len(self.pos)
 
     @classmethod
-    def build(cls, local: LocalMap, pose: np.ndarray, lower: np.ndarray, upper: np.ndarray, voxel: float,
-              subset: np.ndarray | None = None) -> EgoMap:
+    def build(
+        cls,
+        local: LocalMap,
+        pose: np.ndarray,
+        lower: np.ndarray,
+        upper: np.ndarray,
+        voxel: float,
+        subset: np.ndarray | None = None,
+    ) -> EgoMap:
         idx = np.flatnonzero(local.usable if subset is None else subset)
         origin = np.floor(np.asarray(lower) / voxel).astype(np.int64)
         dims = np.floor(np.asarray(upper) / voxel).astype(np.int64) - origin + 1
-        pos, cov, grid = ego_points(idx, local.rows, local.map.pos, local.map.cov, np.ascontiguousarray(pose[:3, :3]),
-                                    np.ascontiguousarray(pose[:3, 3]), origin, dims, voxel)
+        pos, cov, grid = ego_points(
+            idx,
+            local.rows,
+            local.map.pos,
+            local.map.cov,
+            np.ascontiguousarray(pose[:3, :3]),
+            np.ascontiguousarray(pose[:3, 3]),
+            origin,
+            dims,
+            voxel,
+        )
         return cls(pose, pos, cov, local.labels[idx], np.ones(len(idx), bool), grid, origin, dims, voxel, idx)
 
     @classmethod
@@ -128,16 +156,44 @@ class EgoMap:
         dims = np.floor((self.origin + self.dims) * self.voxel / voxel).astype(np.int64) - origin + 1
         empty_w, empty_v = np.zeros(0), np.zeros((0, NUM_CLASSES), np.int32)
         pos, cov, labels, grid, weight, votes = pool_voxels(
-            self.pos, self.cov, self.labels, self.usable, empty_w if self.weight is None else self.weight,
-            empty_v if self.votes is None else self.votes, voxel, origin, dims, NUM_CLASSES, numba.get_num_threads())
-        return EgoMap(self.pose, pos, cov, labels, np.ones(len(pos), bool), grid, origin, dims, voxel,
-                      np.full(len(pos), -1), weight, votes)
+            self.pos,
+            self.cov,
+            self.labels,
+            self.usable,
+            empty_w if self.weight is None else self.weight,
+            empty_v if self.votes is None else self.votes,
+            voxel,
+            origin,
+            dims,
+            NUM_CLASSES,
+            numba.get_num_threads(),
+        )
+        return EgoMap(
+            self.pose,
+            pos,
+            cov,
+            labels,
+            np.ones(len(pos), bool),
+            grid,
+            origin,
+            dims,
+            voxel,
+            np.full(len(pos), -1),
+            weight,
+            votes,
+        )
 
 
-def moved(pos: np.ndarray, cov: np.ndarray, rot: np.ndarray, trans: np.ndarray,
-          group: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+def moved(
+    pos: np.ndarray, cov: np.ndarray, rot: np.ndarray, trans: np.ndarray, group: np.ndarray | None = None
+) -> tuple[np.ndarray, np.ndarray]:
     """Voxel positions and covariances moved rigidly, each by its own rotation (k,3,3) and translation (k,3), or by
     those of its group (indices into rot and trans)."""
     group = np.arange(len(pos)) if group is None else np.asarray(group, np.int64)
-    return rigid_motions(np.ascontiguousarray(pos, np.float64), np.ascontiguousarray(cov, np.float64),
-                         np.ascontiguousarray(rot, np.float64), np.ascontiguousarray(trans, np.float64), group)
+    return rigid_motions(
+        np.ascontiguousarray(pos, np.float64),
+        np.ascontiguousarray(cov, np.float64),
+        np.ascontiguousarray(rot, np.float64),
+        np.ascontiguousarray(trans, np.float64),
+        group,
+    )

@@ -46,8 +46,11 @@ def preprocess(frame: OccupancyFrame, config: OccVOConfig) -> Prepared:
     shape = np.array(OCC3D_GRID.shape, np.int64)
     ijk, outside = grid_indices(points, EGO_LOWER, OCC3D_GRID.voxel_size, shape)
     if outside:
-        raise InvalidFrameError(frame.index, f"{outside} points outside the occupancy grid "
-                                f"{OCC3D_GRID.lower}..{OCC3D_GRID.upper} (is the frame in ego coordinates?)")
+        raise InvalidFrameError(
+            frame.index,
+            f"{outside} points outside the occupancy grid "
+            f"{OCC3D_GRID.lower}..{OCC3D_GRID.upper} (is the frame in ego coordinates?)",
+        )
     labels = np.asarray(frame.labels, np.uint8)
     # the same points in any order give the same pose and map: sources are the first voxel of each block in
     # grid order, i.e. the block's rear-most (lowest ego x)
@@ -57,7 +60,7 @@ def preprocess(frame: OccupancyFrame, config: OccVOConfig) -> Prepared:
         points, labels, ijk = points[order], labels[order], ijk[order]
     max_range = config.max_range_m
     if max_range is not None:  # camera occupancy is least sure of what is far
-        near = points[:, 0] ** 2 + points[:, 1] ** 2 <= max_range ** 2
+        near = points[:, 0] ** 2 + points[:, 1] ** 2 <= max_range**2
         points, labels, ijk = points[near], labels[near], ijk[near]
     surface, grid = surface_voxels(ijk, shape)
     if len(surface) < len(points):
@@ -65,8 +68,15 @@ def preprocess(frame: OccupancyFrame, config: OccVOConfig) -> Prepared:
     g = config.gicp
     covs = plane_covariances(points, ijk, grid, shape, g.k_neighbours_radius_voxels, g.covariance_epsilon)
     wide, coarse, fine = thin_sources(
-        ijk, np.isin(labels, GROUND_CLASSES), shape, _block_factor(g.wide_voxel_m) if g.wide_voxel_m > 0 else 0,
-        _block_factor(g.coarse_source_voxel_m), _block_factor(g.source_voxel_m), _block_factor(g.ground_source_voxel_m),
-        SOURCE_PICKS.index(g.source_pick))
-    return Prepared(points, labels, covs, wide, coarse, fine, np.flatnonzero(np.isin(labels, MOVABLE_CLASSES)),
-                    frame.index)
+        ijk,
+        np.isin(labels, GROUND_CLASSES),
+        shape,
+        _block_factor(g.wide_voxel_m) if g.wide_voxel_m > 0 else 0,
+        _block_factor(g.coarse_source_voxel_m),
+        _block_factor(g.source_voxel_m),
+        _block_factor(g.ground_source_voxel_m),
+        SOURCE_PICKS.index(g.source_pick),
+    )
+    return Prepared(
+        points, labels, covs, wide, coarse, fine, np.flatnonzero(np.isin(labels, MOVABLE_CLASSES)), frame.index
+    )

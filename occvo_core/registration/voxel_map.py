@@ -15,8 +15,14 @@ from occvo_core.registration.voxel_rows import _FIELDS, VoxelRows, _field, _row_
 
 
 class VoxelPFilterMap(VoxelRows):
-    def __init__(self, voxel_m: float = 0.4, p_index_threshold: float = 0.5, pfilter: bool = True,
-                 merge_radius_m: float | None = None, observe_radius_m: float = 0.0):
+    def __init__(
+        self,
+        voxel_m: float = 0.4,
+        p_index_threshold: float = 0.5,
+        pfilter: bool = True,
+        merge_radius_m: float | None = None,
+        observe_radius_m: float = 0.0,
+    ):
         self.p_index_threshold = float(p_index_threshold)
         self.pfilter = pfilter
         self.merge_radius = 0.5 * float(voxel_m) if merge_radius_m is None else float(merge_radius_m)
@@ -36,8 +42,18 @@ class VoxelPFilterMap(VoxelRows):
         if tight:
             lo, hi = map_window.key_bounds(self.keys, self.alive, self._n, origin, upper)
             origin, upper = (lo, hi) if np.all(lo <= hi) else (origin, origin)
-        rows, pos, labels, p_index, grid = map_window.window_voxels(self.keys, self.alive, self.f, self.t0, self.pos, self.label,
-                                                                 self._n, origin, upper, t if t is not None else 0)
+        rows, pos, labels, p_index, grid = map_window.window_voxels(
+            self.keys,
+            self.alive,
+            self.f,
+            self.t0,
+            self.pos,
+            self.label,
+            self._n,
+            origin,
+            upper,
+            t if t is not None else 0,
+        )
         usable = p_index > self.p_index_threshold if (t is not None and self.pfilter) else np.ones(len(rows), bool)
         return LocalMap(rows, pos, labels, p_index, usable, grid, origin, upper - origin + 1, self.voxel, self)
 
@@ -66,8 +82,16 @@ class VoxelPFilterMap(VoxelRows):
         self.returning[rows[away > 0]] = True
         self.in_window[rows] = t
 
-    def merge(self, points_world: np.ndarray, labels: np.ndarray, covs_world: np.ndarray, t: int,
-              local: LocalMap | None = None, old_born_before: int | None = None, on_old: bool = False) -> np.ndarray:
+    def merge(
+        self,
+        points_world: np.ndarray,
+        labels: np.ndarray,
+        covs_world: np.ndarray,
+        t: int,
+        local: LocalMap | None = None,
+        old_born_before: int | None = None,
+        on_old: bool = False,
+    ) -> np.ndarray:
         """Add frame t's points (world frame) and return the map rows they landed in (-1: dropped). `local`, when it
         covers the points, saves building the window again (its grid is used up: new voxels are written into it).
         With old_born_before, the persistent voxels made before that frame are an old map (loop closure):
@@ -99,8 +123,19 @@ class VoxelPFilterMap(VoxelRows):
             points_world, labels, covs_world, keys = points_world[take], labels[take], covs_world[take], keys[take]
         back = local.rows[self.returning[local.rows]]
         back_last = self.last[back].copy()
-        rows, first_key = pfilter_kernels.assign_voxels(points_world, keys, local.pos, local.grid, local.origin,
-                                                local.dims, self.voxel, self.merge_radius, local.rows, alive, self._n)
+        rows, first_key = pfilter_kernels.assign_voxels(
+            points_world,
+            keys,
+            local.pos,
+            local.grid,
+            local.origin,
+            local.dims,
+            self.voxel,
+            self.merge_radius,
+            local.rows,
+            alive,
+            self._n,
+        )
         n_new = len(first_key)
         if self._n + n_new > len(self.pos):
             self._alloc(max(2 * len(self.pos), self._n + n_new))
@@ -115,12 +150,40 @@ class VoxelPFilterMap(VoxelRows):
         self.alive[new] = True
         self._n += n_new
         changed = np.array([np.inf, np.inf, -np.inf, -np.inf])  # merged voxels before and after, observed ones
-        pfilter_kernels.merge_points(rows, points_world, covs_world, labels.astype(np.int64), t, self.pos, self.cov, self.counts,
-                             self.label, self.t0, self.f, self.last, self.wacc, self.pfilter, changed,
-                             numba.get_num_threads())
+        pfilter_kernels.merge_points(
+            rows,
+            points_world,
+            covs_world,
+            labels.astype(np.int64),
+            t,
+            self.pos,
+            self.cov,
+            self.counts,
+            self.label,
+            self.t0,
+            self.f,
+            self.last,
+            self.wacc,
+            self.pfilter,
+            changed,
+            numba.get_num_threads(),
+        )
         if self.observe_radius > 0:
-            pfilter_kernels.mark_observed(seen_from, local.pos, local.grid, local.origin, local.dims, self.voxel,
-                                  self.observe_radius, local.rows, alive, self.f, self.last, t, changed)
+            pfilter_kernels.mark_observed(
+                seen_from,
+                local.pos,
+                local.grid,
+                local.origin,
+                local.dims,
+                self.voxel,
+                self.observe_radius,
+                local.rows,
+                alive,
+                self.f,
+                self.last,
+                t,
+                changed,
+            )
         self._touch_box(changed)
         seen = local.rows[self.last[local.rows] == t]
         self.in_window[seen] = t  # a voxel seen is in view, whatever window this frame registered in
@@ -165,8 +228,15 @@ class VoxelPFilterMap(VoxelRows):
         self._n += n_new
         return n_new
 
-    def move(self, rows: np.ndarray, rot: np.ndarray, trans: np.ndarray, ghost_radius_m: float = 0.0,
-             born_before: int = 0, group: np.ndarray | None = None) -> int:
+    def move(
+        self,
+        rows: np.ndarray,
+        rot: np.ndarray,
+        trans: np.ndarray,
+        ghost_radius_m: float = 0.0,
+        born_before: int = 0,
+        group: np.ndarray | None = None,
+    ) -> int:
         """Move live rows rigidly, each by its own rotation (k,3,3) and translation (k,3) (or by those of its
         `group`, (k,) indices into rot and trans), as a loop closure corrects the map made since a place was last
         seen. A moved voxel is dropped when its new cell already holds a live voxel (the map seen there first
@@ -177,8 +247,17 @@ class VoxelPFilterMap(VoxelRows):
             return 0
         group = np.arange(len(rows)) if group is None else np.asarray(group, np.int64)
         box = np.array([np.inf, np.inf, -np.inf, -np.inf])  # where they were and went: only that part is re-tiled
-        moved_far = map_rows.move_rows(self.pos, self.cov, self.keys, rows, np.ascontiguousarray(rot, np.float64),
-                                      np.ascontiguousarray(trans, np.float64), group, self.voxel, box)
+        moved_far = map_rows.move_rows(
+            self.pos,
+            self.cov,
+            self.keys,
+            rows,
+            np.ascontiguousarray(rot, np.float64),
+            np.ascontiguousarray(trans, np.float64),
+            group,
+            self.voxel,
+            box,
+        )
         self._touch_box(box)
         keys = self.keys[rows]
         self.alive[rows] = False  # judge the moved voxels against the others
@@ -188,7 +267,9 @@ class VoxelPFilterMap(VoxelRows):
             old = self.persistent_rows(held.rows, born_before)
             judge = np.flatnonzero(keep & moved_far)  # a voxel moved less than its size was there already
             pos = self.pos[rows[judge]]
-            near = nearest.near_any(pos, held.pos[old], ghost_radius_m)  # most of a lap is far from the old map: skip it
+            near = nearest.near_any(
+                pos, held.pos[old], ghost_radius_m
+            )  # most of a lap is far from the old map: skip it
             judge, pos = judge[near], pos[near]
             d, j = held.nearest(pos, int(np.ceil(ghost_radius_m / self.voxel)), usable=old)
             ghost = (j >= 0) & (d <= ghost_radius_m)
@@ -204,7 +285,9 @@ class VoxelPFilterMap(VoxelRows):
         there: the frames between two visits are skipped as the frames before the first sighting are."""
         return self.persistent_rows(slice(0, self._n), per_visit=True)
 
-    def persistent_rows(self, rows: np.ndarray | slice, born_before: int | None = None, per_visit: bool = False) -> np.ndarray:
+    def persistent_rows(
+        self, rows: np.ndarray | slice, born_before: int | None = None, per_visit: bool = False
+    ) -> np.ndarray:
         """persistent() for the given rows; by default loop closure's judge of the old map, over the whole span from
         the first to the last sighting (the frames between visits too: a voxel seen only in glimpses is no anchor);
         with born_before, only voxels made before that frame."""
@@ -221,9 +304,20 @@ class VoxelPFilterMap(VoxelRows):
         tile_m), those whose x-y tile floor(pos / tile_m) lies in lo..hi."""
         if tiles is not None:
             lo, hi, tile_m = tiles
-            rows = pfilter_kernels.persistent_in_tiles(self.pos, self.alive, self.f, self.last, self.t0, self.between, self._n,
-                                               self.p_index_threshold, self.pfilter, np.asarray(lo, np.int64),
-                                               np.asarray(hi, np.int64), float(tile_m))
+            rows = pfilter_kernels.persistent_in_tiles(
+                self.pos,
+                self.alive,
+                self.f,
+                self.last,
+                self.t0,
+                self.between,
+                self._n,
+                self.p_index_threshold,
+                self.pfilter,
+                np.asarray(lo, np.int64),
+                np.asarray(hi, np.int64),
+                float(tile_m),
+            )
             return self.pos[rows], self.label[rows]
         keep = self.persistent()
         return self.pos[: self._n][keep].copy(), self.label[: self._n][keep].copy()
@@ -232,6 +326,12 @@ class VoxelPFilterMap(VoxelRows):
         """Every live voxel: points, labels, t0, f, last seen, p-index at frame t, and `persistent` (in the map)."""
         n = self._n
         alive = self.alive[:n]
-        return {"points": self.pos[:n][alive], "labels": self.label[:n][alive], "t0": self.t0[:n][alive],
-                "f": self.f[:n][alive], "last_seen": self.last[:n][alive], "p_index": self.p_index(t)[alive],
-                "persistent": self.persistent()[alive]}
+        return {
+            "points": self.pos[:n][alive],
+            "labels": self.label[:n][alive],
+            "t0": self.t0[:n][alive],
+            "f": self.f[:n][alive],
+            "last_seen": self.last[:n][alive],
+            "p_index": self.p_index(t)[alive],
+            "persistent": self.persistent()[alive],
+        }

@@ -9,7 +9,22 @@ from occvo_core.grid import NUM_CLASSES
 from occvo_core.map_tiles import pack_tiles
 from occvo_core.registration.kernels import map_rows
 
-_FIELDS = ("keys", "pos", "cov", "counts", "label", "t0", "f", "last", "wacc", "alive", "born", "in_window", "returning", "between")
+_FIELDS = (
+    "keys",
+    "pos",
+    "cov",
+    "counts",
+    "label",
+    "t0",
+    "f",
+    "last",
+    "wacc",
+    "alive",
+    "born",
+    "in_window",
+    "returning",
+    "between",
+)
 
 
 def _field(arrays: dict, name: str) -> np.ndarray:
@@ -50,10 +65,16 @@ class VoxelRows:
     def _alloc(self, capacity: int) -> None:
         old = getattr(self, "pos", None)
         spec = {
-            "keys": ((capacity, 3), np.int64, 0), "pos": ((capacity, 3), np.float64, 0.0),
-            "cov": ((capacity, 3, 3), np.float64, 0.0), "counts": ((capacity, NUM_CLASSES), np.int32, 0),
-            "label": ((capacity,), np.uint8, 0), "t0": ((capacity,), np.int32, 0), "f": ((capacity,), np.int32, 0),
-            "last": ((capacity,), np.int32, -1), "wacc": ((capacity,), np.float64, 0.0), "alive": ((capacity,), np.bool_, False),
+            "keys": ((capacity, 3), np.int64, 0),
+            "pos": ((capacity, 3), np.float64, 0.0),
+            "cov": ((capacity, 3, 3), np.float64, 0.0),
+            "counts": ((capacity, NUM_CLASSES), np.int32, 0),
+            "label": ((capacity,), np.uint8, 0),
+            "t0": ((capacity,), np.int32, 0),
+            "f": ((capacity,), np.int32, 0),
+            "last": ((capacity,), np.int32, -1),
+            "wacc": ((capacity,), np.float64, 0.0),
+            "alive": ((capacity,), np.bool_, False),
             "born": ((capacity,), np.int32, 0),  # frame the voxel was made: unlike t0, not shifted by put()
             "in_window": ((capacity,), np.int32, 0),  # last frame whose registration window held it (enter())
             "returning": ((capacity,), np.bool_, False),  # back in the window after frames away, not seen again yet
@@ -104,12 +125,14 @@ class VoxelRows:
         keep = np.flatnonzero(self.alive[:n])
         for name in _FIELDS:
             map_rows.gather_row_bytes(_row_bytes(getattr(self, name)), keep)
-        self.alive[len(keep): n] = False
+        self.alive[len(keep) : n] = False
         self._n = len(keep)
 
     def state(self, copy: bool = True) -> dict[str, np.ndarray]:
         """Every row (dropped ones too, so row order and thus tie-breaking survive a reload); copy=False: views."""
-        return {name: copied(getattr(self, name)[: self._n]) if copy else getattr(self, name)[: self._n] for name in _FIELDS}
+        return {
+            name: copied(getattr(self, name)[: self._n]) if copy else getattr(self, name)[: self._n] for name in _FIELDS
+        }
 
     def load_state(self, state: dict[str, np.ndarray]) -> None:
         n = len(state["keys"])
@@ -143,7 +166,9 @@ class VoxelRows:
     def take_far_tiles(self, center_xy, radius_m: float, tile_m: float, t: int) -> dict[tuple[int, int], dict]:
         """take() every tile whose square lies wholly farther than radius_m from center_xy: {tile: its voxels}."""
         center = np.asarray(center_xy, np.float64)
-        rows = map_rows.far_tile_rows(self.pos, self.alive, self._n, center[0], center[1], float(tile_m), float(radius_m))
+        rows = map_rows.far_tile_rows(
+            self.pos, self.alive, self._n, center[0], center[1], float(tile_m), float(radius_m)
+        )
         if len(rows) == 0:
             return {}
         tiles = self.tile_ids(tile_m, rows)
@@ -152,13 +177,16 @@ class VoxelRows:
         inverse = inverse.reshape(-1)
         order = np.argsort(inverse, kind="stable")
         bounds = np.searchsorted(inverse[order], np.arange(len(uniq) + 1))
-        out = {(int(uniq[u, 0]), int(uniq[u, 1])): self.take(rows[order[bounds[u]:bounds[u + 1]]], t)
-               for u in range(len(uniq))}
+        out = {
+            (int(uniq[u, 0]), int(uniq[u, 1])): self.take(rows[order[bounds[u] : bounds[u + 1]]], t)
+            for u in range(len(uniq))
+        }
         self.compact()
         return out
 
-    def live_rows(self, born_after: int | None = None, born_at: int | None = None,
-                  born_up_to: int | None = None) -> np.ndarray:
+    def live_rows(
+        self, born_after: int | None = None, born_at: int | None = None, born_up_to: int | None = None
+    ) -> np.ndarray:
         """Live rows, ascending, of the voxels made after, at or up to a frame (loop closure's map correction)."""
         n = self._n
         keep = self.alive[:n].copy()

@@ -34,9 +34,18 @@ def _pose(town: Town, xy: np.ndarray, yaw: np.ndarray) -> np.ndarray:
     return out
 
 
-def make_traffic(town: Town, rng: np.random.Generator, times: np.ndarray, ego_xy: np.ndarray,
-                 lower: np.ndarray, upper: np.ndarray, n_vehicles: int, n_pedestrians: int,
-                 avoid: list | None = None, first_id: int = 0) -> list[DynamicTrack]:
+def make_traffic(
+    town: Town,
+    rng: np.random.Generator,
+    times: np.ndarray,
+    ego_xy: np.ndarray,
+    lower: np.ndarray,
+    upper: np.ndarray,
+    n_vehicles: int,
+    n_pedestrians: int,
+    avoid: list | None = None,
+    first_id: int = 0,
+) -> list[DynamicTrack]:
     """Agents whose paths never come near the ego or each other (no collisions to explain).
     avoid: (positions at 0.25 s steps, radius) of agents placed already, kept clear of too."""
     graph = town.graph
@@ -70,11 +79,23 @@ def make_traffic(town: Town, rng: np.random.Generator, times: np.ndarray, ego_xy
         if not clear(pos, length / 2):
             continue
         placed.append((pos, length / 2))
-        tracks.append(DynamicTrack(first_id + len(tracks), label, (length, width, height), clearance, _pose(town, xy, yaw),
-                                   motion.speed_at(times + t0)))
+        tracks.append(
+            DynamicTrack(
+                first_id + len(tracks),
+                label,
+                (length, width, height),
+                clearance,
+                _pose(town, xy, yaw),
+                motion.speed_at(times + t0),
+            )
+        )
 
     attempts = 0
-    while sum(t.label == PEDESTRIAN for t in tracks) < n_pedestrians and attempts < 20 * max(n_pedestrians, 1) and len(near):
+    while (
+        sum(t.label == PEDESTRIAN for t in tracks) < n_pedestrians
+        and attempts < 20 * max(n_pedestrians, 1)
+        and len(near)
+    ):
         attempts += 1
         a = int(near[rng.integers(len(near))])
         b = graph.neighbours[a][rng.integers(len(graph.neighbours[a]))]
@@ -106,13 +127,29 @@ def make_traffic(town: Town, rng: np.random.Generator, times: np.ndarray, ego_xy
             continue
         placed.append((pos, 0.4))
         length, width, height, clearance = VEHICLE_SIZE[PEDESTRIAN]
-        tracks.append(DynamicTrack(first_id + len(tracks), PEDESTRIAN, (length, width, rng.uniform(1.55, 1.9)), clearance,
-                                   _pose(town, xy, yaw), np.full(len(times), speed) * (np.abs(ds) > 0)))
+        tracks.append(
+            DynamicTrack(
+                first_id + len(tracks),
+                PEDESTRIAN,
+                (length, width, rng.uniform(1.55, 1.9)),
+                clearance,
+                _pose(town, xy, yaw),
+                np.full(len(times), speed) * (np.abs(ds) > 0),
+            )
+        )
     return tracks
 
 
-def loop_traffic(town: Town, rng: np.random.Generator, times: np.ndarray, ego, cycle: list[int], lap_m: float,
-                 n_ahead: int, n_oncoming: int) -> tuple[list[DynamicTrack], list]:
+def loop_traffic(
+    town: Town,
+    rng: np.random.Generator,
+    times: np.ndarray,
+    ego,
+    cycle: list[int],
+    lap_m: float,
+    n_ahead: int,
+    n_oncoming: int,
+) -> tuple[list[DynamicTrack], list]:
     """Traffic on a closed circuit: vehicles in the ego's lane driving its own speed profile some seconds ahead
     (time-shifted copies of `ego`, a route.Motion, so they stop where it stops), and oncoming vehicles in the
     other lane going round the opposite way. Lane followers keep >= 20 m of arc from the ego and each other;
@@ -137,9 +174,19 @@ def loop_traffic(town: Town, rng: np.random.Generator, times: np.ndarray, ego, c
         label = pick_label()
         xy, yaw = motion.xy_heading(times + shift)
         length, width, height, clearance = VEHICLE_SIZE[label]
-        placed.append((np.column_stack([np.interp(check_t, times, xy[:, 0]), np.interp(check_t, times, xy[:, 1])]), length / 2))
-        tracks.append(DynamicTrack(len(tracks), label, (length, width, height), clearance, _pose(town, xy, yaw),
-                                   motion.speed_at(times + shift)))
+        placed.append(
+            (np.column_stack([np.interp(check_t, times, xy[:, 0]), np.interp(check_t, times, xy[:, 1])]), length / 2)
+        )
+        tracks.append(
+            DynamicTrack(
+                len(tracks),
+                label,
+                (length, width, height),
+                clearance,
+                _pose(town, xy, yaw),
+                motion.speed_at(times + shift),
+            )
+        )
 
     lap_s = float(np.interp(lap_m, ego.s_knots, ego.t_knots))  # time of the first lap
     taken = [ego_s]

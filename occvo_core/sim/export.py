@@ -24,10 +24,15 @@ def write_truth(path: str | Path, scene: SyntheticScene) -> Path:
     points, labels = scene.static_map()
     tracks = scene.dynamic_tracks()
     np.savez_compressed(
-        path, static_points=points, static_labels=labels, gt_poses=scene.gt_poses,
-        track_ids=np.array([t.id for t in tracks], np.int64), track_labels=np.array([t.label for t in tracks], np.uint8),
+        path,
+        static_points=points,
+        static_labels=labels,
+        gt_poses=scene.gt_poses,
+        track_ids=np.array([t.id for t in tracks], np.int64),
+        track_labels=np.array([t.label for t in tracks], np.uint8),
         track_sizes=np.array([t.size for t in tracks], np.float64).reshape(-1, 3),
-        track_poses=np.array([t.poses for t in tracks], np.float64).reshape(-1, len(scene), 4, 4))
+        track_poses=np.array([t.poses for t in tracks], np.float64).reshape(-1, len(scene), 4, 4),
+    )
     return Path(path)
 
 
@@ -58,8 +63,12 @@ def export_occ3d(scene: SyntheticScene, root: str | Path, semantics: Literal["tr
             cam |= grid != FREE  # jitter can move a thin voxel just outside the pass's mask
         out = scene_dir / str(i)
         out.mkdir(parents=True, exist_ok=True)
-        np.savez_compressed(out / "labels.npz", semantics=grid, mask_camera=cam.astype(np.uint8),
-                            mask_lidar=scene.lidar_mask(i).astype(np.uint8))
+        np.savez_compressed(
+            out / "labels.npz",
+            semantics=grid,
+            mask_camera=cam.astype(np.uint8),
+            mask_lidar=scene.lidar_mask(i).astype(np.uint8),
+        )
     write_kitti(scene_dir / "poses.kitti", scene.gt_poses)
     write_truth(scene_dir / "truth.npz", scene)
     return scene_dir

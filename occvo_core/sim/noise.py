@@ -27,10 +27,26 @@ from occvo_core.sim.town import hash_uniform
 def occupied_indices(grid: np.ndarray) -> np.ndarray:
     return nonzero3(grid, np.uint8(FREE), False)
 
+
 # Classes an occupancy network confuses with each other (Occ3D ids).
 CONFUSION_NEIGHBOURS: dict[int, tuple[int, ...]] = {
-    0: (15,), 1: (15, 8), 2: (6, 7), 3: (10, 4), 4: (10, 3), 5: (10, 4), 6: (2, 4), 7: (2, 0), 8: (1,),
-    9: (10,), 10: (4, 3, 9), 11: (13, 12), 12: (11, 13), 13: (11, 14, 12), 14: (13, 16), 15: (16, 1), 16: (14, 15),
+    0: (15,),
+    1: (15, 8),
+    2: (6, 7),
+    3: (10, 4),
+    4: (10, 3),
+    5: (10, 4),
+    6: (2, 4),
+    7: (2, 0),
+    8: (1,),
+    9: (10,),
+    10: (4, 3, 9),
+    11: (13, 12),
+    12: (11, 13),
+    13: (11, 14, 12),
+    14: (13, 16),
+    15: (16, 1),
+    16: (14, 15),
 }
 
 
@@ -41,13 +57,24 @@ class NoiseModel(BaseModel):
 
     drop_rate: float = Field(0.0, ge=0, le=1, description="visible occupied voxels missed")
     confusion_rate: float = Field(0.0, ge=0, le=1, description="kept voxels given a neighbouring class")
-    false_positive_rate: float = Field(0.0, ge=0, le=1, description="visible free voxels next to a surface turned occupied")
+    false_positive_rate: float = Field(
+        0.0, ge=0, le=1, description="visible free voxels next to a surface turned occupied"
+    )
     jitter_rate: float = Field(0.0, ge=0, le=1, description="thin-structure columns moved by one voxel")
     distance_gain: float = Field(0.0, ge=0, description="rates at 40 m are (1 + gain) times the base rate")
-    thin_max_neighbours: int = Field(3, ge=0, le=8, description="a voxel is thin with at most this many occupied horizontal neighbours")
-    persistence: float = Field(0.0, ge=0, le=1, description="share of drop and confusion draws tied to the world voxel, so "
-                               "the same place fails again in the next frames as a network's systematic errors do")
-    patch_m: float = Field(0.8, gt=0, description="world cell size of the persistent draws: errors come in patches this big")
+    thin_max_neighbours: int = Field(
+        3, ge=0, le=8, description="a voxel is thin with at most this many occupied horizontal neighbours"
+    )
+    persistence: float = Field(
+        0.0,
+        ge=0,
+        le=1,
+        description="share of drop and confusion draws tied to the world voxel, so "
+        "the same place fails again in the next frames as a network's systematic errors do",
+    )
+    patch_m: float = Field(
+        0.8, gt=0, description="world cell size of the persistent draws: errors come in patches this big"
+    )
 
     @classmethod
     def preset(cls, name: Literal["none", "default", "heavy"] | str) -> NoiseModel:
@@ -73,8 +100,14 @@ class NoiseModel(BaseModel):
     def rate(self, base: float, distance: np.ndarray) -> np.ndarray:
         return np.minimum(base * (1.0 + self.distance_gain * np.minimum(distance, 40.0) / 40.0), 1.0)
 
-    def apply(self, semantics: np.ndarray, seen: np.ndarray, rng: np.random.Generator, pose: np.ndarray | None = None,
-              seed: int = 0) -> np.ndarray:
+    def apply(
+        self,
+        semantics: np.ndarray,
+        seen: np.ndarray,
+        rng: np.random.Generator,
+        pose: np.ndarray | None = None,
+        seed: int = 0,
+    ) -> np.ndarray:
         """Noisy labels of the visible voxels: returns a (200,200,16) grid, free outside `seen` except false positives.
         `pose` (ego->world) and `seed` anchor the persistent share of the draws to world voxels."""
         out = np.where(seen, semantics, FREE).astype(np.uint8)
@@ -94,7 +127,9 @@ class NoiseModel(BaseModel):
                 world = OCC3D_GRID.centres_of(idx) @ pose[:3, :3].T + pose[:3, 3]
                 a = 1.1 + 0.7 * (seed % 7)  # patch lattice turned per scene, not lined up with the roads
                 c, s_ = np.cos(a), np.sin(a)
-                world = np.column_stack([c * world[:, 0] - s_ * world[:, 1], s_ * world[:, 0] + c * world[:, 1], world[:, 2]])
+                world = np.column_stack(
+                    [c * world[:, 0] - s_ * world[:, 1], s_ * world[:, 0] + c * world[:, 1], world[:, 2]]
+                )
                 w = np.floor(world / self.patch_m).astype(np.int64)
                 anchored = hash_uniform(seed, w[:, 0], w[:, 1], w[:, 2], salt=salt + 100) < self.persistence
                 u = np.where(anchored, hash_uniform(seed, w[:, 0], w[:, 1], w[:, 2], salt=salt), u)
@@ -106,7 +141,9 @@ class NoiseModel(BaseModel):
             thin = occ[nb <= self.thin_max_neighbours]
             cols, col_of = np.unique(thin[:, 0] * shape[1] + thin[:, 1], return_inverse=True)
             col_ij = np.column_stack([cols // shape[1], cols % shape[1]])
-            move = rng.random(len(cols)) < self.rate(self.jitter_rate, dist(np.column_stack([col_ij, np.zeros(len(cols), int)])))
+            move = rng.random(len(cols)) < self.rate(
+                self.jitter_rate, dist(np.column_stack([col_ij, np.zeros(len(cols), int)]))
+            )
             step = np.array([[1, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0]])[rng.integers(0, 4, len(cols))]
             moved = thin[move[col_of]]
             target = moved + step[col_of[move[col_of]]]
@@ -130,7 +167,9 @@ class NoiseModel(BaseModel):
             for c, options in CONFUSION_NEIGHBOURS.items():
                 m = old == c
                 if m.any():
-                    new[m] = np.array(options, np.uint8)[np.minimum((pick[m] * len(options)).astype(int), len(options) - 1)]
+                    new[m] = np.array(options, np.uint8)[
+                        np.minimum((pick[m] * len(options)).astype(int), len(options) - 1)
+                    ]
             out[swap[:, 0], swap[:, 1], swap[:, 2]] = new
         if self.false_positive_rate > 0:
             cand, labels = surface_free_voxels(occ0, truth, seen, semantics)
@@ -153,9 +192,23 @@ PRESETS: dict[str, dict] = {
     # frame's (moved by the true pose) and 96.0-97.1 % of matched voxels keep their class. Synthetic scenes with these
     # knobs: 91.0 % and 96.6 % (noise-free: 92.7 % and 99.0 %; geometry is lower than the sample's because frames are
     # visibility-limited). Network errors are mostly systematic, hence the high persistence. Rates at the ego.
-    "default": {"drop_rate": 0.12, "confusion_rate": 0.05, "false_positive_rate": 0.005, "jitter_rate": 0.1,
-                "distance_gain": 1.0, "persistence": 0.97, "patch_m": 0.8},
+    "default": {
+        "drop_rate": 0.12,
+        "confusion_rate": 0.05,
+        "false_positive_rate": 0.005,
+        "jitter_rate": 0.1,
+        "distance_gain": 1.0,
+        "persistence": 0.97,
+        "patch_m": 0.8,
+    },
     # Transient, frequent errors: a weak network, or a good one in rain and at night.
-    "heavy": {"drop_rate": 0.25, "confusion_rate": 0.15, "false_positive_rate": 0.03, "jitter_rate": 0.4,
-              "distance_gain": 2.0, "persistence": 0.5, "patch_m": 0.8},
+    "heavy": {
+        "drop_rate": 0.25,
+        "confusion_rate": 0.15,
+        "false_positive_rate": 0.03,
+        "jitter_rate": 0.4,
+        "distance_gain": 2.0,
+        "persistence": 0.5,
+        "patch_m": 0.8,
+    },
 }

@@ -271,7 +271,14 @@ def surface_free_voxels(occ_idx, occupied, seen, labels):
                 c += 1
             else:
                 c -= 1
-            if 0 <= a < nx and 0 <= b < ny and 0 <= c < nz and seen[a, b, c] and not occupied[a, b, c] and not mark[a, b, c]:
+            if (
+                0 <= a < nx
+                and 0 <= b < ny
+                and 0 <= c < nz
+                and seen[a, b, c]
+                and not occupied[a, b, c]
+                and not mark[a, b, c]
+            ):
                 mark[a, b, c] = True
                 lin[n] = (a * ny + b) * nz + c
                 lab[n] = labels[i, j, k]

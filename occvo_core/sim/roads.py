@@ -88,7 +88,7 @@ class RoadGraph:
             bow = rng.uniform(-12.0, 12.0) if rng.random() < 0.4 else 0.0
             normal = np.array([-(pb - pa)[1], (pb - pa)[0]]) / length
             ctrl = (pa + pb) / 2 + bow * normal
-            paths[(a, b)] = (1 - t) ** 2 * pa + 2 * (1 - t) * t * ctrl + t ** 2 * pb
+            paths[(a, b)] = (1 - t) ** 2 * pa + 2 * (1 - t) * t * ctrl + t**2 * pb
             half_width[(a, b)] = 5.5 if main else float(rng.choice([4.0, 4.5]))
             sidewalk[(a, b)] = float(rng.uniform(2.5, 4.0))
             ids[(a, b)] = e

@@ -26,8 +26,9 @@ def resample(poly: np.ndarray, step: float) -> np.ndarray:
     return np.column_stack([np.interp(s, cum, poly[:, 0]), np.interp(s, cum, poly[:, 1])])
 
 
-def random_walk(graph: RoadGraph, rng: np.random.Generator, start: int, prev: int, length: float,
-                force_turn_first: bool = False) -> list[int]:
+def random_walk(
+    graph: RoadGraph, rng: np.random.Generator, start: int, prev: int, length: float, force_turn_first: bool = False
+) -> list[int]:
     """Nodes from prev -> start onwards, never turning back, until the path is at least `length` long."""
     nodes, total = [prev, start], 0.0
     while total < length:
@@ -93,7 +94,7 @@ def _connector(p0: np.ndarray, d0: np.ndarray, p3: np.ndarray, d3: np.ndarray) -
         h0, h3 = max(t, 1.0) * k, max(u, 1.0) * k
     b = np.linspace(0, 1, max(int(chord / 0.25), 4))[:, None]
     c0, c1, c2 = p0, p0 + h0 * d0, p3 - h3 * d3
-    return (1 - b) ** 3 * c0 + 3 * (1 - b) ** 2 * b * c1 + 3 * (1 - b) * b ** 2 * c2 + b ** 3 * p3
+    return (1 - b) ** 3 * c0 + 3 * (1 - b) ** 2 * b * c1 + 3 * (1 - b) * b**2 * c2 + b**3 * p3
 
 
 def lane_path(graph: RoadGraph, nodes: list[int], offset: float = LANE_OFFSET, corner_m: float = 12.0) -> Path:
@@ -103,6 +104,7 @@ def lane_path(graph: RoadGraph, nodes: list[int], offset: float = LANE_OFFSET, c
     for i, (a, b) in enumerate(zip(nodes[:-1], nodes[1:])):
         lane = _offset(graph.path(a, b), offset)
         lanes.append(_trim(lane, corner_m if i > 0 else 0.0, corner_m if i < len(nodes) - 2 else 0.0))
+
     def length(p):
         return float(np.sum(np.linalg.norm(np.diff(p, axis=0), axis=1)))
 
@@ -159,8 +161,16 @@ def _limit_accelerations(lim, v0, acc_ds, brake_ds):
     return v
 
 
-def speed_profile(path: Path, v_cruise: np.ndarray, v0: float, stops: list[tuple[float, float]] = (),
-                  a_acc: float = 1.6, a_brake: float = 2.5, a_lat: float = 2.0, v_max: float = 15.0) -> Motion:
+def speed_profile(
+    path: Path,
+    v_cruise: np.ndarray,
+    v0: float,
+    stops: list[tuple[float, float]] = (),
+    a_acc: float = 1.6,
+    a_brake: float = 2.5,
+    a_lat: float = 2.0,
+    v_max: float = 15.0,
+) -> Motion:
     """v_cruise: cruise speed per path sample; stops: (arc length, dwell s). Returns the time tables."""
     n = len(path.xy)
     lim = np.minimum(np.minimum(v_cruise, v_max), np.sqrt(a_lat / np.maximum(np.abs(path.curvature), 1e-6)))
@@ -196,8 +206,12 @@ def block_loop(graph: RoadGraph, rng: np.random.Generator, blocks: tuple[int, in
     candidates = []
     for i0 in range(side - a):
         for j0 in range(side - b):
-            ring = ([(i, j0) for i in range(i0, i0 + a)] + [(i0 + a, j) for j in range(j0, j0 + b)]
-                    + [(i, j0 + b) for i in range(i0 + a, i0, -1)] + [(i0, j) for j in range(j0 + b, j0, -1)])
+            ring = (
+                [(i, j0) for i in range(i0, i0 + a)]
+                + [(i0 + a, j) for j in range(j0, j0 + b)]
+                + [(i, j0 + b) for i in range(i0 + a, i0, -1)]
+                + [(i0, j) for j in range(j0 + b, j0, -1)]
+            )
             nodes = [i * side + j for i, j in ring]
             if all(n in graph.neighbours[m] for m, n in zip(nodes, nodes[1:] + nodes[:1])):
                 centre = graph.nodes[nodes].mean(axis=0)

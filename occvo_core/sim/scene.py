@@ -20,14 +20,16 @@ from occvo_core.sim.town import ZQ, Town, build_town
 # lowest and highest elevation. Front cameras: f = 1266 px on 1600x900 images; the back camera: f = 809 px.
 _HF, _VF = np.arctan(800 / 1266), np.arctan(450 / 1266)
 _HB, _VB = np.arctan(800 / 809), np.arctan(450 / 809)
-CAMERAS = np.array([
-    [1.70, 0.02, 1.51, 0.0, _HF, -_VF, _VF],  # CAM_FRONT
-    [1.52, 0.49, 1.51, np.radians(55), _HF, -_VF, _VF],  # CAM_FRONT_LEFT
-    [1.55, -0.49, 1.50, np.radians(-55), _HF, -_VF, _VF],  # CAM_FRONT_RIGHT
-    [1.04, 0.48, 1.56, np.radians(110), _HF, -_VF, _VF],  # CAM_BACK_LEFT
-    [1.05, -0.48, 1.56, np.radians(-110), _HF, -_VF, _VF],  # CAM_BACK_RIGHT
-    [0.03, 0.00, 1.58, np.pi, _HB, -_VB, _VB],  # CAM_BACK
-])
+CAMERAS = np.array(
+    [
+        [1.70, 0.02, 1.51, 0.0, _HF, -_VF, _VF],  # CAM_FRONT
+        [1.52, 0.49, 1.51, np.radians(55), _HF, -_VF, _VF],  # CAM_FRONT_LEFT
+        [1.55, -0.49, 1.50, np.radians(-55), _HF, -_VF, _VF],  # CAM_FRONT_RIGHT
+        [1.04, 0.48, 1.56, np.radians(110), _HF, -_VF, _VF],  # CAM_BACK_LEFT
+        [1.05, -0.48, 1.56, np.radians(-110), _HF, -_VF, _VF],  # CAM_BACK_RIGHT
+        [0.03, 0.00, 1.58, np.pi, _HB, -_VB, _VB],  # CAM_BACK
+    ]
+)
 # The roof lidar (for Occ3D's mask_lidar in exports): 360 deg, -30.67 .. +10.67 deg.
 LIDAR = np.array([[0.94, 0.0, 1.84, 0.0, np.pi, np.radians(-30.67), np.radians(10.67)]])
 D_AZ = 0.007  # ray fan spacing: 0.28 m apart at 40 m, 0.4 m at the grid's corners
@@ -62,9 +64,18 @@ class SyntheticScene:
     to LONG_DRIVE frames; without them static_map() renders the drive again).
     """
 
-    def __init__(self, seed: int = 0, frames: int = 40, rate_hz: float = 2.0, noise: NoiseModel | str | dict | None = "default",
-                 traffic: bool = True, route: str = "walk", loop_blocks: tuple[int, int] = (4, 4),
-                 cache_frames: int | None = None, keep_static: bool | None = None):
+    def __init__(
+        self,
+        seed: int = 0,
+        frames: int = 40,
+        rate_hz: float = 2.0,
+        noise: NoiseModel | str | dict | None = "default",
+        traffic: bool = True,
+        route: str = "walk",
+        loop_blocks: tuple[int, int] = (4, 4),
+        cache_frames: int | None = None,
+        keep_static: bool | None = None,
+    ):
         if not isinstance(seed, (int, np.integer)) or seed < 0:
             raise ConfigError(f"seed must be a non-negative integer, got {seed!r}")
         if not isinstance(frames, (int, np.integer)) or frames < 1:
@@ -113,7 +124,9 @@ class SyntheticScene:
         else:
             n_veh = int(r_traffic.integers(6, 11) * scale) if traffic else 0
             n_ped = int(r_traffic.integers(8, 16) * scale) if traffic else 0
-            self.tracks: list[DynamicTrack] = make_traffic(self.town, r_traffic, self.times, xy, lower, upper, n_veh, n_ped)
+            self.tracks: list[DynamicTrack] = make_traffic(
+                self.town, r_traffic, self.times, xy, lower, upper, n_veh, n_ped
+            )
         self._frames: OrderedDict[int, OccupancyFrame] = OrderedDict()
         self._static: dict[int, tuple[np.ndarray, np.ndarray]] = {}  # frame -> (world voxel keys, labels) seen
 
@@ -123,7 +136,9 @@ class SyntheticScene:
         degree = np.array([len(n) for n in g.neighbours])
         d = np.linalg.norm(g.nodes, axis=1) + np.where(degree >= 3, 0.0, 1e6)
         first = int(np.argmin(d))  # an intersection near the origin: the first stop and turn
-        options = [n for n in g.neighbours[first] if np.linalg.norm(g.nodes[n] - g.nodes[first]) > 45.0] or g.neighbours[first]
+        options = [
+            n for n in g.neighbours[first] if np.linalg.norm(g.nodes[n] - g.nodes[first]) > 45.0
+        ] or g.neighbours[first]
         prev = options[rng.integers(len(options))]
         nodes = random_walk(g, rng, first, prev, 15.0 * duration + 120.0, force_turn_first=True)
         path = lane_path(g, nodes)
@@ -152,8 +167,10 @@ class SyntheticScene:
         except ValueError as exc:
             raise ConfigError(f"loop_blocks {self.loop_blocks}: {exc}") from None
         m = len(cycle)
-        one_lap = sum(float(np.sum(np.linalg.norm(np.diff(g.path(a, b), axis=0), axis=1)))
-                      for a, b in zip(cycle, cycle[1:] + cycle[:1]))
+        one_lap = sum(
+            float(np.sum(np.linalg.norm(np.diff(g.path(a, b), axis=0), axis=1)))
+            for a, b in zip(cycle, cycle[1:] + cycle[:1])
+        )
         # room for the drive plus two laps, so that traffic driving the ego's profile ahead of it has road
         laps = int(np.ceil((15.0 * duration + 220.0) / one_lap)) + 2
         nodes = cycle * laps + cycle[:2]
@@ -171,24 +188,34 @@ class SyntheticScene:
         bounds = np.concatenate([[-np.inf], path.node_s, [np.inf]])
         for j, (a, b) in enumerate(zip(bounds[:-1], bounds[1:])):
             v_cruise[(s >= a) & (s < b)] = v_road[j % m]
-        stops = [(ns - 13.0, float(dwell[(i + 1) % m])) for i, ns in enumerate(path.node_s)
-                 if stop_at[(i + 1) % m] and ns - 13.0 > 0]
+        stops = [
+            (ns - 13.0, float(dwell[(i + 1) % m]))
+            for i, ns in enumerate(path.node_s)
+            if stop_at[(i + 1) % m] and ns - 13.0 > 0
+        ]
         self.stops = stops
         self.cycle = cycle
         self.lap_length_m = float(path.node_s[m] - path.node_s[0])
         motion = speed_profile(path, v_cruise, v0=rng.uniform(4.0, 9.0), stops=stops)
         s_frames = motion.s_at(self.times)
         n_laps = int(s_frames[-1] // self.lap_length_m)
-        self.lap_starts = np.array([0] + [int(np.searchsorted(s_frames, k * self.lap_length_m)) for k in range(1, n_laps + 1)])
+        self.lap_starts = np.array(
+            [0] + [int(np.searchsorted(s_frames, k * self.lap_length_m)) for k in range(1, n_laps + 1)]
+        )
         return motion
 
-    def _loop_traffic(self, rng: np.random.Generator, xy: np.ndarray, lower: np.ndarray, upper: np.ndarray,
-                      scale: float) -> list[DynamicTrack]:
+    def _loop_traffic(
+        self, rng: np.random.Generator, xy: np.ndarray, lower: np.ndarray, upper: np.ndarray, scale: float
+    ) -> list[DynamicTrack]:
         """Vehicles on the circuit (ahead in the ego's lane, oncoming in the other), pedestrians as usual."""
         n_ahead, n_oncoming = int(rng.integers(2, 5)), int(rng.integers(3, 7))
         n_ped = int(rng.integers(8, 16) * scale)
-        cars, placed = loop_traffic(self.town, rng, self.times, self.motion, self.cycle, self.lap_length_m, n_ahead, n_oncoming)
-        return cars + make_traffic(self.town, rng, self.times, xy, lower, upper, 0, n_ped, avoid=placed, first_id=len(cars))
+        cars, placed = loop_traffic(
+            self.town, rng, self.times, self.motion, self.cycle, self.lap_length_m, n_ahead, n_oncoming
+        )
+        return cars + make_traffic(
+            self.town, rng, self.times, xy, lower, upper, 0, n_ped, avoid=placed, first_id=len(cars)
+        )
 
     def _ego_poses(self, xy: np.ndarray, heading: np.ndarray) -> np.ndarray:
         """Ego frame on the ground under the rear axle, x forward, z along the ground normal."""
@@ -219,10 +246,17 @@ class SyntheticScene:
             mask = self._visible(full, CAMERAS)
             if self.keep_static:
                 self._remember_static(index, static, full, mask)
-            noisy = self.noise.apply(full, mask, np.random.default_rng([self.seed, index, 0x0CC]), self._poses[index], self.seed)
+            noisy = self.noise.apply(
+                full, mask, np.random.default_rng([self.seed, index, 0x0CC]), self._poses[index], self.seed
+            )
             idx = occupied_indices(noisy)
-            frame = OccupancyFrame(OCC3D_GRID.centres_of(idx), noisy[idx[:, 0], idx[:, 1], idx[:, 2]], index,
-                                   float(self.times[index]), {"scene": self.name, "source": "synthetic"})
+            frame = OccupancyFrame(
+                OCC3D_GRID.centres_of(idx),
+                noisy[idx[:, 0], idx[:, 1], idx[:, 2]],
+                index,
+                float(self.times[index]),
+                {"scene": self.name, "source": "synthetic"},
+            )
             if self.cache_frames != 0:
                 self._frames[index] = frame
                 if self.cache_frames is not None and len(self._frames) > self.cache_frames:
@@ -295,8 +329,21 @@ class SyntheticScene:
         pose = self._poses[index]
         t = self.town
         static = render.empty_grid()
-        render.render_static(pose[:3, :3].copy(), pose[:3, 3].copy(), t.h_base, t.raise_cm, t.ground, t.layers,
-                             float(t.origin[0]), float(t.origin[1]), 0.2, ZQ, render.LOWER, render.VOXEL, static)
+        render.render_static(
+            pose[:3, :3].copy(),
+            pose[:3, 3].copy(),
+            t.h_base,
+            t.raise_cm,
+            t.ground,
+            t.layers,
+            float(t.origin[0]),
+            float(t.origin[1]),
+            0.2,
+            ZQ,
+            render.LOWER,
+            render.VOXEL,
+            static,
+        )
         full = static.copy()
         if self.tracks:
             render.render_boxes(boxes_in_ego(self.tracks, index, pose), render.LOWER, render.VOXEL, full)
@@ -311,7 +358,9 @@ class SyntheticScene:
     def _remember_static(self, index: int, static: np.ndarray, full: np.ndarray, mask: np.ndarray) -> None:
         self._static[index] = self._static_of(index, static, full, mask)
 
-    def _static_of(self, index: int, static: np.ndarray, full: np.ndarray, mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def _static_of(
+        self, index: int, static: np.ndarray, full: np.ndarray, mask: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray]:
         seen = (static != FREE) & (full == static) & mask
         idx = render.nonzero3(seen, True, True)
         world = OCC3D_GRID.centres_of(idx) @ self._poses[index][:3, :3].T + self._poses[index][:3, 3]

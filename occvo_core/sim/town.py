@@ -29,16 +29,25 @@ MIN_THIN = 0.25  # minimum half-width of thin structures (see module doc)
 
 # Vehicle sizes: length, width, height, bottom clearance (m).
 VEHICLE_SIZE = {
-    CAR: (4.6, 1.9, 1.6, 0.25), TRUCK: (7.5, 2.5, 3.2, 0.35), BUS: (11.5, 2.6, 3.2, 0.35),
-    TRAILER: (8.0, 2.5, 3.0, 0.5), CONSTRUCTION: (6.0, 2.6, 3.0, 0.3), MOTORCYCLE: (2.1, 0.8, 1.4, 0.2),
-    BICYCLE: (1.8, 0.6, 1.2, 0.15), PEDESTRIAN: (0.6, 0.6, 1.75, 0.0),
+    CAR: (4.6, 1.9, 1.6, 0.25),
+    TRUCK: (7.5, 2.5, 3.2, 0.35),
+    BUS: (11.5, 2.6, 3.2, 0.35),
+    TRAILER: (8.0, 2.5, 3.0, 0.5),
+    CONSTRUCTION: (6.0, 2.6, 3.0, 0.3),
+    MOTORCYCLE: (2.1, 0.8, 1.4, 0.2),
+    BICYCLE: (1.8, 0.6, 1.2, 0.15),
+    PEDESTRIAN: (0.6, 0.6, 1.75, 0.0),
 }
 
 
 def hash_uniform(seed: int, *keys, salt: int = 0) -> np.ndarray:
     """Uniform [0, 1) numbers from integer keys (splitmix64): stable per key whatever the raster bounds."""
     with np.errstate(over="ignore"):
-        h = np.full(np.broadcast(*[np.asarray(k) for k in keys]).shape if keys else (), np.uint64(seed * 1000003 + salt), np.uint64)
+        h = np.full(
+            np.broadcast(*[np.asarray(k) for k in keys]).shape if keys else (),
+            np.uint64(seed * 1000003 + salt),
+            np.uint64,
+        )
         for k in keys:
             h = h ^ (np.asarray(k).astype(np.int64).astype(np.uint64) + np.uint64(0x9E3779B97F4A7C15))
             h = (h ^ (h >> np.uint64(30))) * np.uint64(0xBF58476D1CE4E5B9)
@@ -126,10 +135,16 @@ def build_town(seed: int, graph: RoadGraph, terrain: Terrain, lower: np.ndarray,
     origin = lower.astype(float)
     cx = origin[0] + (np.arange(w) + 0.5) * RES
     cy = origin[1] + (np.arange(h) + 0.5) * RES
-    town = Town(seed, origin, terrain, graph,
-                terrain.height(cx[:, None], cy[None, :]).astype(np.float32),
-                np.zeros((w, h), np.uint8), np.full((w, h), TERRAIN, np.uint8),
-                np.zeros((2, 3, w, h), np.uint8))
+    town = Town(
+        seed,
+        origin,
+        terrain,
+        graph,
+        terrain.height(cx[:, None], cy[None, :]).astype(np.float32),
+        np.zeros((w, h), np.uint8),
+        np.full((w, h), TERRAIN, np.uint8),
+        np.zeros((2, 3, w, h), np.uint8),
+    )
     town.layers[:, 0] = NONE
 
     # Road centrelines -> nearest-road distance field (EDT), edge id and arc length per cell.
@@ -138,8 +153,12 @@ def build_town(seed: int, graph: RoadGraph, terrain: Terrain, lower: np.ndarray,
     seed_s = np.zeros((w, h), np.float32)
     edges = []
     for key, poly in graph.paths.items():
-        if poly[:, 0].max() < lower[0] - margin or poly[:, 0].min() > upper[0] + margin or \
-           poly[:, 1].max() < lower[1] - margin or poly[:, 1].min() > upper[1] + margin:
+        if (
+            poly[:, 0].max() < lower[0] - margin
+            or poly[:, 0].min() > upper[0] + margin
+            or poly[:, 1].max() < lower[1] - margin
+            or poly[:, 1].min() > upper[1] + margin
+        ):
             continue
         edges.append(key)
         s, pts, _, _ = frames_along(poly, 0.1)
@@ -188,8 +207,16 @@ def build_town(seed: int, graph: RoadGraph, terrain: Terrain, lower: np.ndarray,
 
     def put(mask, label, z0, z1):
         lay[0][mask] = label
-        lay[1][mask] = np.clip(np.round(np.asarray(z0) / ZQ), 0, 255).astype(np.uint8) if np.ndim(z0) == 0 else np.clip(np.round(z0[mask] / ZQ), 0, 255).astype(np.uint8)
-        lay[2][mask] = np.clip(np.round(np.asarray(z1) / ZQ), 0, 255).astype(np.uint8) if np.ndim(z1) == 0 else np.clip(np.round(z1[mask] / ZQ), 0, 255).astype(np.uint8)
+        lay[1][mask] = (
+            np.clip(np.round(np.asarray(z0) / ZQ), 0, 255).astype(np.uint8)
+            if np.ndim(z0) == 0
+            else np.clip(np.round(z0[mask] / ZQ), 0, 255).astype(np.uint8)
+        )
+        lay[2][mask] = (
+            np.clip(np.round(np.asarray(z1) / ZQ), 0, 255).astype(np.uint8)
+            if np.ndim(z1) == 0
+            else np.clip(np.round(z1[mask] / ZQ), 0, 255).astype(np.uint8)
+        )
 
     bld = kind_cell == BLD
     front = bld & (e > 0) & (e < setback)
@@ -294,7 +321,9 @@ def build_town(seed: int, graph: RoadGraph, terrain: Terrain, lower: np.ndarray,
                 if approach and len(graph.neighbours[node]) >= 3 and hash_uniform(seed, node, salt=35) < 0.6:
                     paint.disc(p[0], p[1], 0.12, MANMADE, 0.0, 5.2)  # signal mast
                     q = at(hw_e - 2.0, i)
-                    paint.box(q[0], q[1], yaw_of[i] + np.pi / 2, 5.0, 0.25, MANMADE, 4.9, 5.2, layer=1)  # arm over the lane
+                    paint.box(
+                        q[0], q[1], yaw_of[i] + np.pi / 2, 5.0, 0.25, MANMADE, 4.9, 5.2, layer=1
+                    )  # arm over the lane
                     q = at(hw_e - 3.8, i)
                     paint.box(q[0], q[1], yaw_of[i], 0.4, 0.4, MANMADE, 4.0, 4.9, layer=1)  # signal head
                 else:
@@ -321,7 +350,17 @@ def build_town(seed: int, graph: RoadGraph, terrain: Terrain, lower: np.ndarray,
                 i = 14
                 while i < len(s) - 14:
                     r = hash_uniform(seed, e_id, sid, i, salt=33)
-                    cls_ = CAR if r < 0.78 else TRUCK if r < 0.86 else MOTORCYCLE if r < 0.93 else TRAILER if r < 0.96 else BUS
+                    cls_ = (
+                        CAR
+                        if r < 0.78
+                        else TRUCK
+                        if r < 0.86
+                        else MOTORCYCLE
+                        if r < 0.93
+                        else TRAILER
+                        if r < 0.96
+                        else BUS
+                    )
                     length_ = VEHICLE_SIZE[cls_][0]
                     if r < 0.62 or r > 0.78:
                         c = at(hw_e - 1.15, i + int(length_ / 2))

@@ -163,9 +163,11 @@ def check_listen_secure(router_config: str | Path, listen: list[str], insecure: 
     usrpwd = json.loads(c.get_json("transport/auth/usrpwd/dictionary_file"))
     mtls = json.loads(c.get_json("transport/link/tls/enable_mtls"))
     if not usrpwd and not mtls:
-        raise ConfigError(f"the router would listen on {', '.join(open_eps)} without authentication ({router_config} "
-                          "has neither transport/auth/usrpwd nor mutual TLS): use deploy/acl/router.json5 or "
-                          "deploy/tls/router.json5, listen on loopback, or pass --insecure")
+        raise ConfigError(
+            f"the router would listen on {', '.join(open_eps)} without authentication ({router_config} "
+            "has neither transport/auth/usrpwd nor mutual TLS): use deploy/acl/router.json5 or "
+            "deploy/tls/router.json5, listen on loopback, or pass --insecure"
+        )
 
 
 def deploy_dir() -> Path:

@@ -91,13 +91,24 @@ def replay(
 
 def add_parser(subparsers) -> None:
     p = subparsers.add_parser("replay", help="publish a scene (folder or synthetic:<seed>) to the running service")
-    p.add_argument("scene", nargs="?", help="scene folder (OCC-VO release or Occ3D layout), Occ3D-nuScenes root with "
-                   "--scene, or synthetic:<seed>; none with --nuscenes")
-    p.add_argument("--nuscenes", metavar="DATAROOT", help="publish a nuScenes scene's six keyframe camera images, with "
-                   "their calibration and timestamps, for the model source (nuscenes-devkit; --version, --scene)")
+    p.add_argument(
+        "scene",
+        nargs="?",
+        help="scene folder (OCC-VO release or Occ3D layout), Occ3D-nuScenes root with "
+        "--scene, or synthetic:<seed>; none with --nuscenes",
+    )
+    p.add_argument(
+        "--nuscenes",
+        metavar="DATAROOT",
+        help="publish a nuScenes scene's six keyframe camera images, with "
+        "their calibration and timestamps, for the model source (nuscenes-devkit; --version, --scene)",
+    )
     p.add_argument("--version", default="v1.0-mini", help="--nuscenes: the tables' version (default v1.0-mini)")
-    p.add_argument("--scene", dest="scene_name", help="the scene of an Occ3D-nuScenes root (annotations.json + gts/) "
-                   "or of --nuscenes (default scene-0061)")
+    p.add_argument(
+        "--scene",
+        dest="scene_name",
+        help="the scene of an Occ3D-nuScenes root (annotations.json + gts/) or of --nuscenes (default scene-0061)",
+    )
     p.add_argument("--mask", choices=("camera", "lidar", "none"), default="camera", help="Occ3D input: visibility mask")
     add_connection(p)
     p.add_argument("--rate", type=float, default=0.0, help="frames per second; 0 = as fast as the pipeline takes")

@@ -30,7 +30,9 @@ def add_parser(subparsers) -> None:
         help="a folder with inference_worker.json5, registration_worker.json5 and "
         "map_service.json5 overriding the built-in worker configs (e.g. deploy)",
     )
-    p.add_argument("--insecure", action="store_true", help="allow a non-loopback listen endpoint without authentication")
+    p.add_argument(
+        "--insecure", action="store_true", help="allow a non-loopback listen endpoint without authentication"
+    )
     p.add_argument("--source", choices=["replay", "model"], default="replay", help="inference source")
     p.add_argument("--device", choices=["auto", "cpu", "cuda"], default="auto")
     p.add_argument("--checkpoint", help="TPV-Former checkpoint for --source model (occvo train-occ)")
@@ -75,7 +77,9 @@ def _wait_alive(sup, timeout: float) -> None:
         deadline = time.monotonic() + timeout
         while not sup.stopping.is_set():
             sup.poll()
-            alive = {str(r.ok.key_expr).split("/")[2] for r in probe.liveliness().get(keys.alive(), timeout=1.0) if r.ok}
+            alive = {
+                str(r.ok.key_expr).split("/")[2] for r in probe.liveliness().get(keys.alive(), timeout=1.0) if r.ok
+            }
             shards = [r for r in probe.liveliness().get(keys.registration_shard(), timeout=1.0) if r.ok]
             if roles <= alive and len(shards) >= sum(c.role == "registration" for c in sup.workers):
                 return
@@ -101,7 +105,13 @@ def run(args) -> int:
     check_listen_secure(router_config, [ep], args.insecure)
     store = ["--store-path", args.store_path] if args.store_path else []
     common = ["--policy", args.policy, "--queue-size", str(args.queue_size)]
-    model = ["--source", args.source, "--device", args.device, *(["--checkpoint", args.checkpoint] if args.checkpoint else [])]
+    model = [
+        "--source",
+        args.source,
+        "--device",
+        args.device,
+        *(["--checkpoint", args.checkpoint] if args.checkpoint else []),
+    ]
     config = UpConfig(
         router=RouterSpec(config=router_config, listen=args.listen),
         log_dir=args.log_dir,
@@ -116,8 +126,9 @@ def run(args) -> int:
             WorkerSpec(role="map", config=_worker_config(args, "map_service.json5"), args=[*common, *store]),
         ],
     )
-    sup = Supervisor(config, structured_logger("occvo.serve", "WARNING") if args.quiet else None, role_names=True,
-                     quiet=args.quiet)
+    sup = Supervisor(
+        config, structured_logger("occvo.serve", "WARNING") if args.quiet else None, role_names=True, quiet=args.quiet
+    )
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: sup.stopping.set())
     emit(args, {"event": "listening", "endpoint": ep}, f"listening on {ep}")

@@ -19,7 +19,9 @@ def add_parser(subparsers) -> None:
     p.add_argument(
         "--quiet", action="store_true", help="no progress lines and only warnings of the supervisor's log on stderr"
     )
-    p.add_argument("--insecure", action="store_true", help="allow a non-loopback listen endpoint without authentication")
+    p.add_argument(
+        "--insecure", action="store_true", help="allow a non-loopback listen endpoint without authentication"
+    )
     p.set_defaults(func=run)
 
 

@@ -39,8 +39,12 @@ def digest_run(frames) -> dict[str, object]:
         vo.step(f)
     points, labels = vo.map_points()
     order = np.lexsort((labels, points[:, 2], points[:, 1], points[:, 0]))
-    return {"frames": len(vo.poses), "poses": _sha(vo.poses.astype(np.float64)),
-            "map": _sha(points[order].astype(np.float64), labels[order].astype(np.uint8)), "map_voxels": len(points)}
+    return {
+        "frames": len(vo.poses),
+        "poses": _sha(vo.poses.astype(np.float64)),
+        "map": _sha(points[order].astype(np.float64), labels[order].astype(np.uint8)),
+        "map_voxels": len(points),
+    }
 
 
 def real_frames(name: str):

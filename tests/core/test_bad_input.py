@@ -41,7 +41,10 @@ def _bad_frames(pts, lab):
         "shape": (OccupancyFrame(pts[:, :2], lab, index=7), "shape"),
         "labels length": (OccupancyFrame(pts, lab[:-3], index=7), "labels must have shape"),
         "label 18": (OccupancyFrame(pts, np.where(np.arange(len(lab)) == 3, 18, lab), index=7), "labels outside"),
-        "label -1": (OccupancyFrame(pts, np.where(np.arange(len(lab)) == 3, -1, lab.astype(int)), index=7), "labels outside"),
+        "label -1": (
+            OccupancyFrame(pts, np.where(np.arange(len(lab)) == 3, -1, lab.astype(int)), index=7),
+            "labels outside",
+        ),
         "float labels": (OccupancyFrame(pts, lab.astype(float), index=7), "integers"),
         "outside grid": (OccupancyFrame(outside, lab, index=7), "outside the occupancy grid"),
     }
@@ -103,8 +106,11 @@ def test_cli_prints_one_line_and_exits_non_zero_without_traceback(tmp_path):
     scene = tmp_path / "scene-bad"
     scene.mkdir()
     np.save(scene / "0.npy", np.zeros((0, 4)))
-    out = subprocess.run([sys.executable, "-m", "occvo_cli", "run", "--input", str(scene), "--out", str(tmp_path / "o"),
-                          "--quiet"], capture_output=True, text=True)
+    out = subprocess.run(
+        [sys.executable, "-m", "occvo_cli", "run", "--input", str(scene), "--out", str(tmp_path / "o"), "--quiet"],
+        capture_output=True,
+        text=True,
+    )
     assert out.returncode != 0
     assert "Traceback" not in out.stderr
     lines = [l for l in out.stderr.splitlines() if l.strip()]

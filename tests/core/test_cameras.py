@@ -6,7 +6,9 @@ import pytest
 from occvo_core.cameras import CAMERA_NAMES, nuscenes_rig, render
 from occvo_core.grid import FREE, OCC3D_GRID
 
-FRONT, FRONT_LEFT, FRONT_RIGHT, BACK = (CAMERA_NAMES.index(n) for n in ("CAM_FRONT", "CAM_FRONT_LEFT", "CAM_FRONT_RIGHT", "CAM_BACK"))
+FRONT, FRONT_LEFT, FRONT_RIGHT, BACK = (
+    CAMERA_NAMES.index(n) for n in ("CAM_FRONT", "CAM_FRONT_LEFT", "CAM_FRONT_RIGHT", "CAM_BACK")
+)
 
 
 def test_rig_layout_matches_nuscenes():
@@ -30,7 +32,9 @@ def test_known_points_land_on_the_right_pixels_of_the_right_cameras():
     uv, depth, valid = rig.project(np.array([ahead, left, along_fl, behind]))
     np.testing.assert_allclose(uv[FRONT, 0], k[FRONT, :2, 2], atol=1e-6)
     assert depth[FRONT, 0] == pytest.approx(20.0)
-    np.testing.assert_allclose(uv[FRONT, 1], [k[FRONT, 0, 2] - 1266.4 * 2 / 20, k[FRONT, 1, 2] + 1266.4 * 1 / 20], atol=1e-6)
+    np.testing.assert_allclose(
+        uv[FRONT, 1], [k[FRONT, 0, 2] - 1266.4 * 2 / 20, k[FRONT, 1, 2] + 1266.4 * 1 / 20], atol=1e-6
+    )
     np.testing.assert_allclose(uv[FRONT_LEFT, 2], k[FRONT_LEFT, :2, 2], atol=1e-6)
     np.testing.assert_allclose(uv[BACK, 3], k[BACK, :2, 2], atol=1e-6)
     assert valid[:, 0].tolist() == [True, False, False, False, False, False]
@@ -52,7 +56,7 @@ def _wall_world():
     g = np.full(OCC3D_GRID.shape, FREE, np.uint8)
     g[:, :, 2] = 11  # driveable surface, the voxel layer centred on z = 0
     ix = int((20.0 - OCC3D_GRID.lower[0]) / 0.4)  # wall of manmade from x = 20 m to 20.8 m
-    g[ix:ix + 2, 75:125, 3:16] = 15
+    g[ix : ix + 2, 75:125, 3:16] = 15
     return g, ix
 
 
@@ -67,7 +71,10 @@ def test_renderer_sees_the_wall_ahead_and_the_floor_below():
     assert out.labels[FRONT, -1, cx] == 11 and out.labels[BACK, -1, 100] == 11
     assert out.labels[BACK, 0, 100] == 255  # sky: the ray leaves the grid without a hit
     # Class colour shows through shading, fog and noise: the wall is bluish-white, the road magenta.
-    wall, road = out.images[FRONT, cy - 3:cy + 3, cx - 3:cx + 3].reshape(-1, 3).mean(0), out.images[FRONT, -4:, :].reshape(-1, 3).mean(0)
+    wall, road = (
+        out.images[FRONT, cy - 3 : cy + 3, cx - 3 : cx + 3].reshape(-1, 3).mean(0),
+        out.images[FRONT, -4:, :].reshape(-1, 3).mean(0),
+    )
     assert wall[2] > wall[1] and road[0] > road[1] and road[2] > road[1]
     # Camera mask: the wall's front face is seen, what is behind the wall and under the road is not.
     mask = out.camera_mask

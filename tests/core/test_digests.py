@@ -21,5 +21,7 @@ def test_recorded_with_this_length():
 @pytest.mark.parametrize("case", cases())
 def test_poses_and_map_unchanged(case):
     if case.startswith("real:") and not (SAMPLE / "occupancy").is_dir():
-        pytest.skip(f"real nuScenes sample not found at {SAMPLE} (it sits beside the checkout in CI, not in a fresh clone)")
+        pytest.skip(
+            f"real nuScenes sample not found at {SAMPLE} (it sits beside the checkout in CI, not in a fresh clone)"
+        )
     assert compute(case) == RECORDED["cases"][case]

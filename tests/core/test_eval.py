@@ -47,8 +47,12 @@ def test_ape_equals_evo_ape_kitti_aligned(tmp_path, seed):
     gt, est = _noisy_pair(seed)
     write_kitti(tmp_path / "gt.kitti", gt)
     write_kitti(tmp_path / "est.kitti", est)
-    out = subprocess.run(["evo_ape", "kitti", str(tmp_path / "gt.kitti"), str(tmp_path / "est.kitti"), "-a"],
-                         capture_output=True, text=True, check=True).stdout
+    out = subprocess.run(
+        ["evo_ape", "kitti", str(tmp_path / "gt.kitti"), str(tmp_path / "est.kitti"), "-a"],
+        capture_output=True,
+        text=True,
+        check=True,
+    ).stdout
     evo_rmse = float(next(line.split()[1] for line in out.splitlines() if line.strip().startswith("rmse")))
     ours = ape_rmse(read_kitti(tmp_path / "gt.kitti"), read_kitti(tmp_path / "est.kitti"))
     assert abs(ours - evo_rmse) <= 1e-4

@@ -21,8 +21,23 @@ def test_semantic_label_filter_drops_exactly_the_pairs_whose_labels_differ():
     m.merge(points, map_labels, np.tile(np.eye(3) * 0.1, (len(points), 1, 1)), 0)
     local = m.window(np.array([-110, -110, -10]), np.array([110, 110, 20]))
     covs = np.tile(np.eye(3) * 0.1, (len(points), 1, 1))
-    args = (points, covs, labels.astype(np.int64), np.eye(3), np.zeros(3), local.pos, m.cov[local.rows],
-            local.labels.astype(np.int64), local.usable, local.grid, local.origin, local.dims, 0.4, 1, 0.3)
+    args = (
+        points,
+        covs,
+        labels.astype(np.int64),
+        np.eye(3),
+        np.zeros(3),
+        local.pos,
+        m.cov[local.rows],
+        local.labels.astype(np.int64),
+        local.usable,
+        local.grid,
+        local.origin,
+        local.dims,
+        0.4,
+        1,
+        0.3,
+    )
     _, _, _, found_on, kept_on = gicp_linearise(*args, True, 0.0)
     _, _, _, found_off, kept_off = gicp_linearise(*args, False, 0.0)
     assert found_on == found_off == len(points)
@@ -62,12 +77,19 @@ def test_dynamic_object_filter_removes_moved_objects_and_keeps_parked_ones():
     nudged_now = nudged_then + np.array([0.4, 0.0, 0.0])  # 0.4 m: below the 2 m threshold, kept
     frame_pts = np.concatenate([parked_now, moving_now, nudged_now])
     map_pts = np.concatenate([parked_then, moving_then, nudged_then])
-    found = dynamic_object_filter(frame_pts, map_pts, threshold_m=2.0, cluster_eps_m=1.0, min_cluster_points=5,
-                                  quantile=0.8)
+    found = dynamic_object_filter(
+        frame_pts, map_pts, threshold_m=2.0, cluster_eps_m=1.0, min_cluster_points=5, quantile=0.8
+    )
     n1, n2 = len(parked_now), len(moving_now)
     assert found.frame_objects == 3 and found.map_objects == 3
-    assert not found.frame_moved[:n1].any() and found.frame_moved[n1:n1 + n2].all() and not found.frame_moved[n1 + n2:].any()
-    assert not found.map_moved[:n1].any() and found.map_moved[n1:n1 + n2].all() and not found.map_moved[n1 + n2:].any()
+    assert (
+        not found.frame_moved[:n1].any()
+        and found.frame_moved[n1 : n1 + n2].all()
+        and not found.frame_moved[n1 + n2 :].any()
+    )
+    assert (
+        not found.map_moved[:n1].any() and found.map_moved[n1 : n1 + n2].all() and not found.map_moved[n1 + n2 :].any()
+    )
 
 
 def test_cluster_objects_separates_cars_and_ignores_specks():
@@ -75,7 +97,7 @@ def test_cluster_objects_separates_cars_and_ignores_specks():
     b, _ = car(0, 4)  # 2.2 m gap
     speck = np.array([[20.0, 20.0, 0.0], [20.2, 20.0, 0.0]])
     ids = cluster_objects(np.concatenate([a, b, speck]), eps=1.0, min_points=5)
-    assert len(np.unique(ids[: len(a)])) == 1 and len(np.unique(ids[len(a): len(a) + len(b)])) == 1
+    assert len(np.unique(ids[: len(a)])) == 1 and len(np.unique(ids[len(a) : len(a) + len(b)])) == 1
     assert ids[0] != ids[len(a)]
     assert (ids[-2:] == -1).all()
 
@@ -179,8 +201,9 @@ def test_near_any_agrees_with_a_kd_tree():
     rng = np.random.default_rng(7)
     for n_points, spread in ((0, 10.0), (1, 10.0), (300, 10.0), (2000, 40.0)):
         points = rng.uniform(-spread, spread, (n_points, 3))
-        queries = np.concatenate([rng.uniform(-spread - 5, spread + 5, (500, 3)),
-                                  points[:50] + rng.normal(0, 1.2, (min(50, n_points), 3))])
+        queries = np.concatenate(
+            [rng.uniform(-spread - 5, spread + 5, (500, 3)), points[:50] + rng.normal(0, 1.2, (min(50, n_points), 3))]
+        )
         want = (cKDTree(points).query(queries)[0] <= 2.0) if n_points else np.zeros(len(queries), bool)
         assert np.array_equal(near_any(queries, points, 2.0), want)
 
@@ -197,7 +220,13 @@ def test_moving_map_voxels_drops_ghosts_of_older_voxels_and_cell_clashes():
     recent = np.flatnonzero(m.born[: m._n] >= 10)
     shift = np.array([-5.0, 0.0, 0.0])
     # 15.1 -> 10.1: old voxel's cell; 25.1 -> 20.1 likewise; 40.1 -> 35.1: free; 35.1 (other label) -> 30.1: free
-    m.move(recent, np.tile(np.eye(3), (len(recent), 1, 1)), np.tile(shift, (len(recent), 1)), ghost_radius_m=1.0, born_before=5)
+    m.move(
+        recent,
+        np.tile(np.eye(3), (len(recent), 1, 1)),
+        np.tile(shift, (len(recent), 1)),
+        ghost_radius_m=1.0,
+        born_before=5,
+    )
     kept = {tuple(p) for p in m.pos[: m._n][m.alive[: m._n]].round(2)}
     assert kept == {(10.1, 10.1, 1.1), (20.1, 20.1, 1.1), (35.1, 40.1, 1.1), (30.1, 40.1, 1.1)}
     assert m.pop_changed_region() is None  # moved anywhere: the caller re-tiles everything
@@ -209,8 +238,16 @@ def test_moving_map_voxels_drops_ghosts_of_older_voxels_and_cell_clashes():
         _merge(m2, [[15.1, 10.1, 1.1]], 10)  # -> (10.6, 10.4): 0.58 m from the old voxel, in the next cell
         _merge(m2, [[15.1, 10.5, 1.1]], 10, label=16)  # -> (10.6, 10.8): as near, another class
         recent = np.flatnonzero(m2.born[: m2._n] >= 10)
-        assert m2.move(recent, np.tile(np.eye(3), (2, 1, 1)), np.tile([-4.5, 0.3, 0.0], (2, 1)), ghost_radius_m=radius,
-                       born_before=5) == expect
+        assert (
+            m2.move(
+                recent,
+                np.tile(np.eye(3), (2, 1, 1)),
+                np.tile([-4.5, 0.3, 0.0], (2, 1)),
+                ghost_radius_m=radius,
+                born_before=5,
+            )
+            == expect
+        )
         assert m2.alive[recent[1]]
 
 
@@ -226,7 +263,9 @@ def test_moving_map_voxels_in_place_matches_the_rule_written_out():
         m = VoxelPFilterMap(merge_radius_m=0.0)
         for t in range(12):
             pts = rng.uniform([-12, -12, 0], [12, 12, 3], (150, 3))
-            m.merge(pts, rng.integers(13, 16, len(pts)).astype(np.uint8), np.tile(np.eye(3) * 0.01, (len(pts), 1, 1)), t)
+            m.merge(
+                pts, rng.integers(13, 16, len(pts)).astype(np.uint8), np.tile(np.eye(3) * 0.01, (len(pts), 1, 1)), t
+            )
         n = m._n
         rows = np.flatnonzero(m.alive[:n] & (m.born[:n] >= 6))
         groups = rng.integers(0, 4, len(rows))
@@ -308,24 +347,34 @@ def test_a_frame_off_the_old_map_leaves_it_alone_and_one_on_it_moves_none_of_it_
     seen; a frame following the old map counts its points in or near old voxels as sightings of them, neither
     moving them (each lap's registration error would creep into the map every later lap follows) nor adding a voxel
     beside them."""
+
     def old_map():
         m = VoxelPFilterMap(observe_radius_m=0.45)
         for t in range(3):
             _merge(m, [[5.1, 5.1, 1.1], [9.1, 9.1, 1.1]], t)
         return m
 
-    points = [[5.15, 5.0, 1.1],  # in the first old voxel's cell
-              [9.1, 9.45, 1.1],  # next cell, 0.35 m from the second old voxel
-              [20.1, 20.1, 1.1]]  # nowhere near
+    points = [
+        [5.15, 5.0, 1.1],  # in the first old voxel's cell
+        [9.1, 9.45, 1.1],  # next cell, 0.35 m from the second old voxel
+        [20.1, 20.1, 1.1],
+    ]  # nowhere near
     off = old_map()
-    rows = off.merge(np.array(points), np.full(3, 15, np.uint8), np.tile(np.eye(3), (3, 1, 1)), 200,
-                     old_born_before=100, on_old=False)
+    rows = off.merge(
+        np.array(points),
+        np.full(3, 15, np.uint8),
+        np.tile(np.eye(3), (3, 1, 1)),
+        200,
+        old_born_before=100,
+        on_old=False,
+    )
     assert rows[0] == -1 and rows[1] >= 2 and rows[2] >= 2  # no point lands in an old voxel
     assert off.f[:2].tolist() == [3, 3] and off.last[:2].tolist() == [2, 2]  # not seen, not moved
     assert np.allclose(off.pos[:2], [[5.1, 5.1, 1.1], [9.1, 9.1, 1.1]]) and len(off) == 4
     on = old_map()
-    rows = on.merge(np.array(points), np.full(3, 15, np.uint8), np.tile(np.eye(3), (3, 1, 1)), 200,
-                    old_born_before=100, on_old=True)
+    rows = on.merge(
+        np.array(points), np.full(3, 15, np.uint8), np.tile(np.eye(3), (3, 1, 1)), 200, old_born_before=100, on_old=True
+    )
     assert rows[0] == -1 and rows[1] == -1 and rows[2] == 2  # seen, seen, new
     assert on.f[:2].tolist() == [4, 4] and on.last[:2].tolist() == [200, 200]  # both seen once at frame 200
     assert np.allclose(on.pos[:2], [[5.1, 5.1, 1.1], [9.1, 9.1, 1.1]]) and len(on) == 3
@@ -341,15 +390,21 @@ def test_map_array_copies_and_compaction_without_the_gil_equal_numpys():
 
     rng = np.random.default_rng(7)
     n = 200_000  # over copied()'s 1 MB threshold, so the kernel runs
-    for a in (rng.random((n, 3, 3)), rng.integers(-9, 9, (n, 18)).astype(np.int32), rng.random(n) > 0.5,
-              rng.integers(0, 18, n).astype(np.uint8), rng.random(5), np.zeros((0, 3))):
+    for a in (
+        rng.random((n, 3, 3)),
+        rng.integers(-9, 9, (n, 18)).astype(np.int32),
+        rng.random(n) > 0.5,
+        rng.integers(0, 18, n).astype(np.uint8),
+        rng.random(5),
+        np.zeros((0, 3)),
+    ):
         b = copied(a)
         assert b.dtype == a.dtype and b.shape == a.shape and np.array_equal(a, b) and not np.shares_memory(a, b)
         if len(a):
             keep = np.sort(rng.choice(len(a), len(a) // 3, replace=False))
             arr = a.copy()
             gather_row_bytes(_row_bytes(arr), keep)
-            assert np.array_equal(arr[: len(keep)], a[keep]) and np.array_equal(arr[len(keep):], a[len(keep):])
+            assert np.array_equal(arr[: len(keep)], a[keep]) and np.array_equal(arr[len(keep) :], a[len(keep) :])
 
 
 def test_compaction_reclaims_dead_rows_before_the_map_would_have_to_grow():

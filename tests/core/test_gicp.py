@@ -42,8 +42,17 @@ def test_gicp_recovers_known_rigid_transform(seed, reuse):
     covs = _prepared(points)
     truth = random_pose(rng, np.deg2rad(3), 0.6)
     local = _map_at(truth, points, labels, covs)
-    result = gicp(points, covs, labels, local, np.eye(4), max_correspondence_m=1.2, iterations=40,
-                  semantic_label_filter=True, correspondence_reuse=reuse)
+    result = gicp(
+        points,
+        covs,
+        labels,
+        local,
+        np.eye(4),
+        max_correspondence_m=1.2,
+        iterations=40,
+        semantic_label_filter=True,
+        correspondence_reuse=reuse,
+    )
     err = np.linalg.inv(truth) @ result.pose
     assert np.linalg.norm(err[:3, 3]) < 0.01
     assert np.degrees(np.arccos(np.clip((np.trace(err[:3, :3]) - 1) / 2, -1, 1))) < 0.05
@@ -92,8 +101,25 @@ def test_kept_pairs_linearise_as_a_fresh_search_does():
     rot, trans = np.eye(3), np.zeros(3)
     pairs = np.empty(len(points), np.int64)
     h, g, cost, found, kept = gicp_linearise(
-        points, covs, labels.astype(np.int64), rot, trans, local.pos, local.cov, local.labels.astype(np.int64),
-        local.usable, local.grid, local.origin, local.dims, local.voxel, 2, 0.8, True, 0.0, pairs)
+        points,
+        covs,
+        labels.astype(np.int64),
+        rot,
+        trans,
+        local.pos,
+        local.cov,
+        local.labels.astype(np.int64),
+        local.usable,
+        local.grid,
+        local.origin,
+        local.dims,
+        local.voxel,
+        2,
+        0.8,
+        True,
+        0.0,
+        pairs,
+    )
     h2, g2, cost2, _, kept2 = gicp_linearise_pairs(points, covs, rot, trans, local.pos, local.cov, pairs, 0.0)
     assert kept == kept2 == int((pairs >= 0).sum()) and 0 < kept <= found
     assert np.allclose(h, h2, rtol=1e-12, atol=0) and np.allclose(g, g2, rtol=1e-12, atol=0) and np.isclose(cost, cost2)

@@ -21,8 +21,17 @@ def test_the_search_finds_a_turn_the_constant_velocity_guess_lacks(yaw_deg, x, y
     true = _motion(yaw_deg, x, y)  # current ego -> previous ego
     current = frame.points @ np.linalg.inv(true)[:3, :3].T + np.linalg.inv(true)[:3, 3]
     guess = _motion(0.0, x + 0.8, y - 0.4)  # no turn, and the translation off by 0.9 m
-    found = semantic_bev_motion(frame.points, frame.labels, current, frame.labels, guess=guess, search_radius_m=4.0,
-                                yaw_deg=16.0, step_deg=2.0, prior_sigma_m=1.0)
+    found = semantic_bev_motion(
+        frame.points,
+        frame.labels,
+        current,
+        frame.labels,
+        guess=guess,
+        search_radius_m=4.0,
+        yaw_deg=16.0,
+        step_deg=2.0,
+        prior_sigma_m=1.0,
+    )
     yaw = np.rad2deg(Rotation.from_matrix(found[:3, :3]).as_euler("zyx")[0])
     assert abs(yaw - yaw_deg) <= 1.0 + 1e-9, yaw
     # the x-y move is held near the guess by its prior (a straight road does not fix it): left to coarse GICP, whose
@@ -31,13 +40,20 @@ def test_the_search_finds_a_turn_the_constant_velocity_guess_lacks(yaw_deg, x, y
     assert np.array_equal(found[2], guess[2])  # height is left to GICP
 
 
-@pytest.mark.parametrize("from_images, flag, expected", [(True, None, True), (False, None, False), (True, False, False),
-                                                         (False, True, True)])
+@pytest.mark.parametrize(
+    "from_images, flag, expected", [(True, None, True), (False, None, False), (True, False, False), (False, True, True)]
+)
 def test_occvo_run_searches_on_camera_occupancy_unless_told(from_images, flag, expected):
     from argparse import Namespace
 
     from occvo_cli.commands.run import config_from_args
 
-    args = Namespace(config=None, from_images=from_images, motion_search=flag, no_semantic_filter=False,
-                     no_dynamic_filter=False, no_pfilter=False)
+    args = Namespace(
+        config=None,
+        from_images=from_images,
+        motion_search=flag,
+        no_semantic_filter=False,
+        no_dynamic_filter=False,
+        no_pfilter=False,
+    )
     assert config_from_args(args).initialisation.motion_search is expected

@@ -26,8 +26,9 @@ def loop():
 
 def _config(enabled: bool) -> OccVOConfig:
     cfg = OccVOConfig()
-    return cfg.model_copy(update={
-        "loop_closure": cfg.loop_closure.model_copy(update={"enabled": enabled, "min_gap_frames": 40})})
+    return cfg.model_copy(
+        update={"loop_closure": cfg.loop_closure.model_copy(update={"enabled": enabled, "min_gap_frames": 40})}
+    )
 
 
 def _drift(angle_deg: float, shift) -> np.ndarray:
@@ -56,8 +57,14 @@ def inject_drift(vo: OccVO, drift: np.ndarray) -> dict:
     return cold
 
 
-def _drive(loop, cfg: OccVOConfig, drift: np.ndarray | None, resume_at: int | None = None, halves: list | None = None,
-           each=None):
+def _drive(
+    loop,
+    cfg: OccVOConfig,
+    drift: np.ndarray | None,
+    resume_at: int | None = None,
+    halves: list | None = None,
+    each=None,
+):
     """Step the loop; at EVICT_AT inject `drift` (inject_drift), and bring the start area back once the ego is
     within 40 m of it again. With `halves` (a list), each frame goes through register() then complete() instead of
     step(), and (frame, odometry pose, state unchanged by register) is appended per frame. `each(vo, i, r, evicted)`
@@ -106,14 +113,18 @@ def test_a_loop_closure_takes_the_drift_out_of_pose_and_map(loop):
     # from the closure on, the trajectory is back on the truth as much as the drive without drift is
     truth = np.linalg.inv(loop.gt_poses[0]) @ loop.gt_poses  # in the odometry's frame: the first pose's
     after = slice(first, FRAMES)
+
     def error(vo):
         return float(np.median(np.linalg.norm(vo.poses[after, :3, 3] - truth[after, :3, 3], axis=1)))
+
     assert error(left) > 5.0
     assert error(closed) < error(plain) + 0.25, (error(closed), error(plain))
+
     # the start's map a lap later against the one built there first (the issue's revisit test), at 1 m: relocalised
     # frames add no second copy of the start, drifted ones do (measured: 0.88 against 0.68)
     def revisit(maps):
         return map_metrics(*maps[1], *maps[0], threshold=1.0).precision
+
     closed_precision, left_precision = revisit(closed_maps), revisit(left_maps)
     assert closed_precision >= 0.8 and closed_precision >= left_precision + 0.1, (closed_precision, left_precision)
 
@@ -145,7 +156,9 @@ def test_register_then_complete_is_step_and_a_closure_moves_the_registered_pose(
     for t, correction in closures:
         assert np.allclose(correction @ registered[t], whole.poses[t])
         assert np.linalg.norm(registered[t][:3, 3] - whole.poses[t][:3, 3]) > 1.0  # metres of drift taken out
-    others = [i for i in registered if i not in dict(closures) and i not in (EVICT_AT - 1, EVICT_AT)]  # drift moved those
+    others = [
+        i for i in registered if i not in dict(closures) and i not in (EVICT_AT - 1, EVICT_AT)
+    ]  # drift moved those
     assert all(np.array_equal(registered[i], whole.poses[i]) for i in others)
 
 
@@ -228,11 +241,11 @@ def test_tiles_evicted_before_a_closure_come_back_as_corrected_as_the_working_ma
         vo.loop_closure.correct_map(list(vo.poses), vo.poses[-1], correction, len(vo.poses))
     added = paged.restore_tiles(blocks)
     assert added > 0.95 * len(before)
-    restored = paged.map.pos[paged.map._n - added: paged.map._n]
+    restored = paged.map.pos[paged.map._n - added : paged.map._n]
     d, _ = cKDTree(resident.map.pos[: resident.map._n][resident.map.alive[: resident.map._n]]).query(restored)
     # where the working map put the same voxels; a few of those fell in one cell with a neighbour there and went
     assert np.mean(d < 1e-9) > 0.8 and d.max() < 1.0, (np.mean(d < 1e-9), d.max())
-    made_since = paged.map.born[paged.map._n - added: paged.map._n] > 0  # the first frame's map is the anchor's
+    made_since = paged.map.born[paged.map._n - added : paged.map._n] > 0  # the first frame's map is the anchor's
     d, _ = cKDTree(before).query(restored[made_since])
     assert made_since.mean() > 0.3 and np.mean(d < 1e-9) < 0.01  # and the map made since did move
 
@@ -258,7 +271,10 @@ def test_voxels_made_while_following_the_old_map_are_dropped_before_they_would_b
         seen["dropped"] += made.get(i - gap, 0)
 
     whole, _, _, _ = _drive(loop, _config(True), None, each=each)
-    assert whole.loop_closure.followed.sum() > 10 and seen["alive"] > 0 and seen["dropped"] > 0, (whole.loop_closure.followed.sum(), seen)
+    assert whole.loop_closure.followed.sum() > 10 and seen["alive"] > 0 and seen["dropped"] > 0, (
+        whole.loop_closure.followed.sum(),
+        seen,
+    )
     resumed, _, _, _ = _drive(loop, _config(True), None, resume_at=FRAMES - 10)
     assert np.array_equal(resumed.poses, whole.poses)
     assert all(np.array_equal(a, b) for a, b in zip(resumed.map_points(), whole.map_points()))

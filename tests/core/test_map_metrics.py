@@ -32,7 +32,7 @@ def test_known_offsets_give_known_numbers():
     est = np.vstack([est, [[0, 0.6, 0], [20, 0, 0]]])  # one 0.6 m off, one 10 m off (nearest gt at x=9 -> 11 m)
     m = map_metrics(est, None, gt, None)
     d = np.array([0.3] * 5 + [0.6, 11.0])
-    assert m.accuracy == pytest.approx(np.sqrt(np.mean(d ** 2)))
+    assert m.accuracy == pytest.approx(np.sqrt(np.mean(d**2)))
     assert m.precision == pytest.approx(5 / 7)
     assert m.completion == pytest.approx(5 / 10)  # x = 0..4 have an est point within 0.4 m
 
@@ -90,8 +90,10 @@ def test_map_files_round_trip(tmp_path, suffix):
 
 
 def test_ascii_ply_and_bad_files(tmp_path):
-    (tmp_path / "a.ply").write_text("ply\nformat ascii 1.0\nelement vertex 2\nproperty float x\nproperty float y\n"
-                                    "property float z\nproperty uchar label\nend_header\n0 0 0 11\n1 2 3 15\n")
+    (tmp_path / "a.ply").write_text(
+        "ply\nformat ascii 1.0\nelement vertex 2\nproperty float x\nproperty float y\n"
+        "property float z\nproperty uchar label\nend_header\n0 0 0 11\n1 2 3 15\n"
+    )
     m = load_map(tmp_path / "a.ply")
     assert m.points.tolist() == [[0, 0, 0], [1, 2, 3]] and m.labels.tolist() == [11, 15]
     (tmp_path / "b.npz").write_bytes(b"not a zip")
@@ -126,7 +128,9 @@ def test_eval_map_command(tmp_path, capsys):
 
     parser = argparse.ArgumentParser()
     eval_map.add_parser(parser.add_subparsers())
-    args = parser.parse_args(["eval-map", "--gt-map", str(tmp_path / "gt.npz"), "--est-map", str(tmp_path / "est.ply"), "--json"])
+    args = parser.parse_args(
+        ["eval-map", "--gt-map", str(tmp_path / "gt.npz"), "--est-map", str(tmp_path / "est.ply"), "--json"]
+    )
     assert args.func(args) == 0
     import json
 

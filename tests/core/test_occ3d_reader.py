@@ -90,7 +90,11 @@ def test_bad_files_raise_dataset_errors(tmp_path):
     _write(tmp_path / "b" / "0", mask_camera=np.ones(OCC3D_GRID.shape, bool))
     with pytest.raises(DatasetError, match="semantics"):
         Occ3DScene(tmp_path / "b")[0]
-    _write(tmp_path / "c" / "0", semantics=np.full(OCC3D_GRID.shape, 40, np.uint8), mask_camera=np.ones(OCC3D_GRID.shape, bool))
+    _write(
+        tmp_path / "c" / "0",
+        semantics=np.full(OCC3D_GRID.shape, 40, np.uint8),
+        mask_camera=np.ones(OCC3D_GRID.shape, bool),
+    )
     with pytest.raises(DatasetError, match="0..17"):
         Occ3DScene(tmp_path / "c")[0]
     _write(tmp_path / "d" / "0", semantics=np.full(OCC3D_GRID.shape, 11, np.uint8))

@@ -89,15 +89,15 @@ def test_visibility_hides_voxels_behind_a_wall():
     grid[:, :, 2] = 11
     # a 3.2 m high wall 10 m ahead, spanning y in [-8, 8]
     wx = int((10.0 + 40) / 0.4)
-    grid[wx:wx + 2, 80:120, 3:11] = 15
+    grid[wx : wx + 2, 80:120, 3:11] = 15
     # a car-sized box 5 m behind the wall and a pole far behind it
-    grid[wx + 12:wx + 20, 95:100, 3:7] = 4
+    grid[wx + 12 : wx + 20, 95:100, 3:7] = 4
     grid[wx + 40, 100, 3:15] = 15
     mask = np.zeros(grid.shape, bool)
     render.visibility(grid != FREE, CAMERAS, render.LOWER, render.VOXEL, 0.007, mask)
     assert mask[wx, 100, 5] and mask[wx, 90, 4]  # the wall's face is observed
     assert not mask[wx + 1, 100, 5]  # its back layer is not
-    assert not mask[wx + 12:wx + 20, 95:100, 3:7].any()  # the box behind it is not
+    assert not mask[wx + 12 : wx + 20, 95:100, 3:7].any()  # the box behind it is not
     assert not mask[wx + 40, 100, 3:9].any()  # nor the pole, below the wall's shadow line
     assert mask[100 - 30, 100, 2]  # ground 12 m behind the ego (back camera) is
     assert not mask[100, 100, 1]  # ground under the ego is outside every camera's view

@@ -54,8 +54,9 @@ def _voxels(vo: OccVO) -> np.ndarray:
     """Every live voxel as rows of (key, position, label, f, frames from first to last sighting), sorted."""
     m, n = vo.map, vo.map._n
     live = m.alive[:n]
-    table = np.column_stack([m.keys[:n][live], m.pos[:n][live], m.label[:n][live], m.f[:n][live],
-                             m.last[:n][live] - m.t0[:n][live]])
+    table = np.column_stack(
+        [m.keys[:n][live], m.pos[:n][live], m.label[:n][live], m.f[:n][live], m.last[:n][live] - m.t0[:n][live]]
+    )
     return table[np.lexsort(table.T[::-1])]
 
 
@@ -125,7 +126,9 @@ def test_retiling_the_changed_region_equals_tiling_the_whole_map():
         whole = tiles_from_map(points, labels, 20.0)
         assert tiles.keys() == whole.keys(), f"frame {i}"
         for k in whole:
-            assert np.array_equal(tiles[k][0], whole[k][0]) and np.array_equal(tiles[k][1], whole[k][1]), f"frame {i} tile {k}"
+            assert np.array_equal(tiles[k][0], whole[k][0]) and np.array_equal(tiles[k][1], whole[k][1]), (
+                f"frame {i} tile {k}"
+            )
         redone_share.append(len(redone) / max(len(whole), 1))
         if i in (8, 12):
             blocks = vo.evict_tiles(vo.poses[-1][:2, 3], 40.0, 20.0)
@@ -155,8 +158,9 @@ def _same_run(a, b) -> None:
         assert np.array_equal(state_a[k], state_b[k]), k
 
 
-needs_two_cores = pytest.mark.skipif(numba.config.NUMBA_NUM_THREADS < 2,
-                                     reason="one core here: there is no second kernel thread to compare with")
+needs_two_cores = pytest.mark.skipif(
+    numba.config.NUMBA_NUM_THREADS < 2, reason="one core here: there is no second kernel thread to compare with"
+)
 
 
 def test_the_order_of_a_frames_points_changes_nothing():

@@ -75,8 +75,22 @@ def test_occvo_eval_fits_the_time_offset_of_two_trajectory_files(tmp_path):
     stamps = 100.0 + np.arange(40) / 2.0
     write_tum(tmp_path / "gt.tum", drive(stamps - 100.0), stamps)
     write_kitti(tmp_path / "est.kitti", drive(stamps - 100.0 + 0.06))
-    out = subprocess.run([sys.executable, "-m", "occvo_cli", "eval", "--gt", str(tmp_path / "gt.tum"), "--est",
-                          str(tmp_path / "est.kitti"), "--fit-time-offset", "--json"], capture_output=True, text=True)
+    out = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "occvo_cli",
+            "eval",
+            "--gt",
+            str(tmp_path / "gt.tum"),
+            "--est",
+            str(tmp_path / "est.kitti"),
+            "--fit-time-offset",
+            "--json",
+        ],
+        capture_output=True,
+        text=True,
+    )
     assert out.returncode == 0, out.stderr
     stats = json.loads(out.stdout)
     assert abs(stats["time_offset_ms"] - 60.0) <= 10.0 and stats["ape_rmse_time_fitted_m"] < 0.01 < stats["rmse"]

@@ -24,7 +24,9 @@ def occupancy_msg(n=300, exact=True, seq=0):
     rng = np.random.default_rng(seq)
     idx = rng.integers(0, OCC3D_GRID.shape, size=(n, 3))
     occ = SparseOccupancy.from_points(OCC3D_GRID.centres_of(idx), rng.integers(0, 17, n), OCC3D_GRID, exact=exact)
-    return OccupancyFrameMsg(stream="s0", seq=seq, stamp=seq * 0.5, source="replay", occupancy=occ, timings_ms={"inference": 1.5})
+    return OccupancyFrameMsg(
+        stream="s0", seq=seq, stamp=seq * 0.5, source="replay", occupancy=occ, timings_ms={"inference": 1.5}
+    )
 
 
 @pytest.mark.parametrize("exact", [True, False])
@@ -40,14 +42,27 @@ def test_compact_encoding_is_small():
 
 
 @settings(max_examples=30, deadline=None)
-@given(st.lists(st.floats(allow_nan=False, allow_infinity=False, width=64), min_size=0, max_size=60),
-       st.sampled_from(["float64", "float32", "int64", "uint8"]))
+@given(
+    st.lists(st.floats(allow_nan=False, allow_infinity=False, width=64), min_size=0, max_size=60),
+    st.sampled_from(["float64", "float32", "int64", "uint8"]),
+)
 def test_array_round_trip(values, dtype):
     a = np.array(values, dtype=np.float64)
     if dtype != "float64":
-        a = np.nan_to_num(a).clip(-1e6, 1e6).astype(dtype) if dtype != "uint8" else (np.abs(np.nan_to_num(a)) % 256).astype(np.uint8)
-    tile = MapTile(stream="s", ix=0, iy=0, tile_m=1.0, seq=0, points=Array.from_numpy(np.zeros((0, 3))),
-                   labels=Array.from_numpy(np.zeros(0, np.uint8)))
+        a = (
+            np.nan_to_num(a).clip(-1e6, 1e6).astype(dtype)
+            if dtype != "uint8"
+            else (np.abs(np.nan_to_num(a)) % 256).astype(np.uint8)
+        )
+    tile = MapTile(
+        stream="s",
+        ix=0,
+        iy=0,
+        tile_m=1.0,
+        seq=0,
+        points=Array.from_numpy(np.zeros((0, 3))),
+        labels=Array.from_numpy(np.zeros(0, np.uint8)),
+    )
     assert decode(encode(tile), MapTile) == tile
     arr = Array.from_numpy(a)
     assert np.array_equal(Array.model_validate(msgpack.unpackb(msgpack.packb(arr.model_dump()))).to_numpy(), a)

@@ -38,8 +38,13 @@ from schemas.models import (
 )
 
 # deterministic for CI, no .hypothesis folder left in the repo
-FUZZ = dict(deadline=None, database=None, derandomize=True, suppress_health_check=list(HealthCheck),
-            phases=[Phase.explicit, Phase.generate, Phase.shrink])
+FUZZ = dict(
+    deadline=None,
+    database=None,
+    derandomize=True,
+    suppress_health_check=list(HealthCheck),
+    phases=[Phase.explicit, Phase.generate, Phase.shrink],
+)
 START = COUNT["codec"]
 pytestmark = pytest.mark.filterwarnings("ignore::RuntimeWarning")  # numpy on NaN coordinates, before they are refused
 BIG = 1 << 30
@@ -103,7 +108,12 @@ def test_extra_missing_and_wrong_typed_fields_are_invalid_messages(kind, data, s
         assert isinstance(out, CodecError) and out.code == "invalid_message" and name in out.message
     for name in ("stream", "seq", "stamp", "tile_m", "pose", "worker", "occupancy", "tiles", "images"):
         if name in obj:  # values no field of these can take, not even by pydantic's lax coercion
-            value = [{"a": 1}, [1, 2], float("nan"), b"\xff\xfe" if name != "stream" or kind == "error_event" else "x/y"][int(rng.integers(0, 4))]
+            value = [
+                {"a": 1},
+                [1, 2],
+                float("nan"),
+                b"\xff\xfe" if name != "stream" or kind == "error_event" else "x/y",
+            ][int(rng.integers(0, 4))]
             out = check_decode(pack(dict(obj, **{name: value})))
             assert isinstance(out, CodecError) and out.code == "invalid_message" and name in out.message, (name, value)
 
@@ -146,16 +156,41 @@ def test_oversize_is_refused_before_parsing(data):
 def test_known_crashers():
     """Payloads that once escaped decode or encode as OverflowError, or decoded into arrays that could not be read."""
     p = OCC3D_GRID.centres_of(np.array([[1, 2, 3], [4, 5, 6]]))
-    occ = unpack(encode(OccupancyFrameMsg(stream="s", seq=1, stamp=0.5, source="replay",
-                                          occupancy=SparseOccupancy.from_points(p, np.array([1, 2]), OCC3D_GRID, exact=False))))
-    for grid in ({"voxel_size": 5e-324}, {"voxel_size": 1e-300}, {"lower": [-1e308] * 3, "upper": [1e308] * 3},
-                 {"lower": [40.0, 40.0, 5.4], "upper": [-40.0, -40.0, -1.0]}):
+    occ = unpack(
+        encode(
+            OccupancyFrameMsg(
+                stream="s",
+                seq=1,
+                stamp=0.5,
+                source="replay",
+                occupancy=SparseOccupancy.from_points(p, np.array([1, 2]), OCC3D_GRID, exact=False),
+            )
+        )
+    )
+    for grid in (
+        {"voxel_size": 5e-324},
+        {"voxel_size": 1e-300},
+        {"lower": [-1e308] * 3, "upper": [1e308] * 3},
+        {"lower": [40.0, 40.0, 5.4], "upper": [-40.0, -40.0, -1.0]},
+    ):
         bad = dict(occ, occupancy=dict(occ["occupancy"], grid=dict(occ["occupancy"]["grid"], **grid)))
         out = check_decode(pack(bad))
         assert isinstance(out, CodecError) and out.code == "invalid_message" and "grid" in out.message, out
-    traj = unpack(encode(Trajectory(stream="s", seqs=Array.from_numpy(np.arange(2)), stamps=Array.from_numpy(np.zeros(2)),
-                                    poses=Array.from_numpy(np.zeros((2, 4, 4))))))
-    for shape in ([2**32, 2**32], [0, 2**62], [1] * 40):  # 2**64 elements wrapped to 0 in int64; numpy refuses the others
+    traj = unpack(
+        encode(
+            Trajectory(
+                stream="s",
+                seqs=Array.from_numpy(np.arange(2)),
+                stamps=Array.from_numpy(np.zeros(2)),
+                poses=Array.from_numpy(np.zeros((2, 4, 4))),
+            )
+        )
+    )
+    for shape in (
+        [2**32, 2**32],
+        [0, 2**62],
+        [1] * 40,
+    ):  # 2**64 elements wrapped to 0 in int64; numpy refuses the others
         traj["seqs"] = {"dtype": "int64", "shape": shape, "data": b"" if 0 in shape else b"\x00" * 8}
         out = check_decode(pack(traj))
         assert isinstance(out, CodecError) and out.code == "invalid_message" and "too large" in out.message, out

@@ -55,14 +55,20 @@ from services.local import InProcessService
 from services.runtime import open_session
 
 MAXB = 256 * 1024  # the workers' max_message_bytes: small, so oversize payloads are cheap to make
-FUZZ = dict(deadline=None, database=None, derandomize=True, suppress_health_check=list(HealthCheck),
-            phases=[Phase.explicit, Phase.generate])  # no shrinking against a live service: failures print the payload
+FUZZ = dict(
+    deadline=None,
+    database=None,
+    derandomize=True,
+    suppress_health_check=list(HealthCheck),
+    phases=[Phase.explicit, Phase.generate],
+)  # no shrinking against a live service: failures print the payload
 ANSWER_S = 20.0
 pytestmark = pytest.mark.filterwarnings("ignore::RuntimeWarning")
 START = COUNT["workers"]
 
 
 # ------------------------------------------------------------------ what the workers publish, by stream
+
 
 class Observer:
     """Error events, occupancy frames, poses and map updates as they come, per stream and per worker role."""
@@ -73,10 +79,12 @@ class Observer:
         self.totals: Counter = Counter()  # (role, what) and (role, code)
         self.bad_outputs: list[str] = []
         self.internal: list[str] = []  # messages of 'internal' errors: a stage raised, a bug to fix
-        self.subs = [session.declare_subscriber(keys.errors("*"), self._on_error),
-                     session.declare_subscriber(keys.occupancy("*"), self._on_occupancy),
-                     session.declare_subscriber(keys.pose("*"), self._on_pose),
-                     session.declare_subscriber(keys.map_updates("*"), self._on_update)]
+        self.subs = [
+            session.declare_subscriber(keys.errors("*"), self._on_error),
+            session.declare_subscriber(keys.occupancy("*"), self._on_occupancy),
+            session.declare_subscriber(keys.pose("*"), self._on_pose),
+            session.declare_subscriber(keys.map_updates("*"), self._on_update),
+        ]
 
     def _add(self, stream, what, role, code=None, seq=None):
         with self.cv:
@@ -157,13 +165,25 @@ class Fuzz:
         """Counters the stats queryables must show, from what was sent and what came back."""
         t, s = self.obs.totals, self.sent
         return {
-            "inference": {"frames_in": s["camera"], "errors": t[("inference", "error")], "frames_out": t[("inference", "output")],
-                          "missing_seq": t[("inference", "missing_seq")], "out_of_order": t[("inference", "out_of_order")]},
-            "registration": {"frames_in": s["occupancy"] + t[("inference", "output")], "errors": t[("registration", "error")],
-                             "frames_out": t[("registration", "output")], "missing_seq": t[("registration", "missing_seq")],
-                             "out_of_order": t[("registration", "out_of_order")]},
-            "map": {"frames_in": s["map_update"] + t[("registration", "update")], "errors": t[("map", "error")],
-                    "frames_out": s["map_applied"] + t[("registration", "update")]},
+            "inference": {
+                "frames_in": s["camera"],
+                "errors": t[("inference", "error")],
+                "frames_out": t[("inference", "output")],
+                "missing_seq": t[("inference", "missing_seq")],
+                "out_of_order": t[("inference", "out_of_order")],
+            },
+            "registration": {
+                "frames_in": s["occupancy"] + t[("inference", "output")],
+                "errors": t[("registration", "error")],
+                "frames_out": t[("registration", "output")],
+                "missing_seq": t[("registration", "missing_seq")],
+                "out_of_order": t[("registration", "out_of_order")],
+            },
+            "map": {
+                "frames_in": s["map_update"] + t[("registration", "update")],
+                "errors": t[("map", "error")],
+                "frames_out": s["map_applied"] + t[("registration", "update")],
+            },
         }
 
     def settle(self, timeout: float = 30.0) -> dict:
@@ -172,7 +192,9 @@ class Fuzz:
         while True:
             got, want = self.stats(), self.expected_counters()
             seen = {r: {k: got[r].get(k, 0) for k in want[r]} for r in want}
-            seen["registration"]["frames_out"] += got["registration"].get("republished", 0)  # resends answered from the store
+            seen["registration"]["frames_out"] += got["registration"].get(
+                "republished", 0
+            )  # resends answered from the store
             if seen == want or time.monotonic() > deadline:
                 return seen, want
             time.sleep(0.2)
@@ -186,14 +208,28 @@ def fuzz():
     rng = np.random.default_rng(0)  # compile (or load) the odometry's numba kernels before the timed part
     vo = OccVO()
     for i in range(2):
-        vo.step(OccupancyFrame(OCC3D_GRID.centres_of(rng.integers(0, OCC3D_GRID.shape, (200, 3))), rng.integers(0, 17, 200).astype(np.uint8), index=i))
+        vo.step(
+            OccupancyFrame(
+                OCC3D_GRID.centres_of(rng.integers(0, OCC3D_GRID.shape, (200, 3))),
+                rng.integers(0, 17, 200).astype(np.uint8),
+                index=i,
+            )
+        )
     with InProcessService(max_message_bytes=MAXB, log_level="CRITICAL") as svc:
         f = Fuzz(svc)
         # our subscribers must reach the router before anything is sent: probe every input key until all answer
         deadline = time.monotonic() + 30
-        probes = {"camera": keys.camera("fprobe"), "occupancy": keys.occupancy("fprobe"), "map_update": keys.map_updates("fmprobe")}
-        while time.monotonic() < deadline and {a[1] for a in f.obs.answers("fprobe", "inference") + f.obs.answers("fprobe", "registration")
-                                                + f.obs.answers("fmprobe", "map")} != {"inference", "registration", "map"}:
+        probes = {
+            "camera": keys.camera("fprobe"),
+            "occupancy": keys.occupancy("fprobe"),
+            "map_update": keys.map_updates("fmprobe"),
+        }
+        while time.monotonic() < deadline and {
+            a[1]
+            for a in f.obs.answers("fprobe", "inference")
+            + f.obs.answers("fprobe", "registration")
+            + f.obs.answers("fmprobe", "map")
+        } != {"inference", "registration", "map"}:
             for what, key in probes.items():
                 f.put(key, b"\xc1", what)
             time.sleep(0.3)
@@ -206,13 +242,23 @@ def fuzz():
 
 # ------------------------------------------------------------------ building fuzzed payloads
 
-OCC_GRID = st.just(GridSpecModel()) | st.just(GridSpecModel()) | st.just(GridSpecModel(lower=(-80.0, -80.0, -2.0), upper=(80.0, 80.0, 10.0), voxel_size=0.4))
+OCC_GRID = (
+    st.just(GridSpecModel())
+    | st.just(GridSpecModel())
+    | st.just(GridSpecModel(lower=(-80.0, -80.0, -2.0), upper=(80.0, 80.0, 10.0), voxel_size=0.4))
+)
 BASES = {
     "camera": lambda: camera_frames(stream=st.just("x"), max_n=48),
     "occupancy": lambda: occupancy_frames(stream=st.just("x"), max_n=48, grid=OCC_GRID),
     "map_update": lambda: map_updates(stream=st.just("x"), max_tiles=3, max_m=30),
 }
-MUTATIONS = ["valid"] * 5 + ["bytes"] * 4 + ["struct"] * 4 + ["wrong_kind", "random", "oversize", "mismatch", "empty"] + ["semantic"] * 2
+MUTATIONS = (
+    ["valid"] * 5
+    + ["bytes"] * 4
+    + ["struct"] * 4
+    + ["wrong_kind", "random", "oversize", "mismatch", "empty"]
+    + ["semantic"] * 2
+)
 
 
 @st.composite
@@ -231,8 +277,15 @@ def _semantic(msg, rng):
     if r == 1:
         return msg.model_copy(update={"stamp": float(rng.choice([1e308, -1e308, -0.0]))})
     if isinstance(msg, MapUpdate):
-        tiles = [t.model_copy(update={"points": t.points.model_copy(update={"shape": [0, 3], "data": b""}),
-                                      "labels": t.labels.model_copy(update={"shape": [0], "data": b""})}) for t in msg.tiles]
+        tiles = [
+            t.model_copy(
+                update={
+                    "points": t.points.model_copy(update={"shape": [0, 3], "data": b""}),
+                    "labels": t.labels.model_copy(update={"shape": [0], "data": b""}),
+                }
+            )
+            for t in msg.tiles
+        ]
         return msg.model_copy(update={"tiles": tiles if r < 4 else [], "reset": r == 5})
     n = [0, 1, 1, 5][r - 2]
     pts = OCC3D_GRID.centres_of(rng.integers(0, OCC3D_GRID.shape, (n, 3)))
@@ -248,7 +301,9 @@ def build(what: str, batch, i: int, lane: str, nxt: int) -> tuple[bytes, str]:
     rng = np.random.default_rng(seed + i)
     msg = bases[int(rng.integers(0, len(bases)))]
     mode = rng.choice(["next"] * 7 + ["zero", "gap", "back"])
-    seq = {"next": nxt, "zero": 0, "gap": nxt + int(rng.integers(1, 4)), "back": max(0, nxt - int(rng.integers(1, 3)))}[mode]
+    seq = {"next": nxt, "zero": 0, "gap": nxt + int(rng.integers(1, 4)), "back": max(0, nxt - int(rng.integers(1, 3)))}[
+        mode
+    ]
     msg = msg.model_copy(update={"stream": lane, "seq": seq})
     op = MUTATIONS[int(rng.integers(0, len(MUTATIONS)))]
     if op == "semantic":
@@ -265,7 +320,12 @@ def build(what: str, batch, i: int, lane: str, nxt: int) -> tuple[bytes, str]:
                 return packed, op
         return b"\x00", op
     if op == "wrong_kind":
-        return encode(other.model_copy(update={"stream": lane}) if hasattr(other, "stream") and other.kind != "error_event" else other, 1 << 30), op
+        return encode(
+            other.model_copy(update={"stream": lane})
+            if hasattr(other, "stream") and other.kind != "error_event"
+            else other,
+            1 << 30,
+        ), op
     if op == "random":
         return rng.bytes(int(rng.integers(0, 300))), op
     if op == "oversize":
@@ -313,8 +373,16 @@ def mirror_info(f: Fuzz, stream: str) -> MapInfo:
     if tiles:
         lo = tuple(np.min([v[1] for v in tiles.values()], axis=0).tolist())
         hi = tuple(np.max([v[2] for v in tiles.values()], axis=0).tolist())
-    return MapInfo(stream=stream, tile_m=m["tile_m"], tile_count=len(tiles), voxel_count=sum(v[0] for v in tiles.values()),
-                   last_seq=m["last_seq"], bounds_min=lo, bounds_max=hi, tiles=sorted(tiles))
+    return MapInfo(
+        stream=stream,
+        tile_m=m["tile_m"],
+        tile_count=len(tiles),
+        voxel_count=sum(v[0] for v in tiles.values()),
+        last_seq=m["last_seq"],
+        bounds_min=lo,
+        bounds_max=hi,
+        tiles=sorted(tiles),
+    )
 
 
 def query(f: Fuzz, selector: str, payload: bytes | None = None, timeout: float = 10.0):
@@ -377,7 +445,9 @@ def drive(f: Fuzz, what: str, lanes: list[str], payloads: list, log: Counter) ->
         for lane, (t0, base, pre, msg, payload, op) in list(inflight.items()):
             got = fed(f, lane, role)[base:]
             if not any(map(terminal, got)):
-                assert time.monotonic() - t0 < ANSWER_S, f"{what} on {lane} ({op}, expected {pre}) unanswered, got {got}: {payload[:300]!r}"
+                assert time.monotonic() - t0 < ANSWER_S, (
+                    f"{what} on {lane} ({op}, expected {pre}) unanswered, got {got}: {payload[:300]!r}"
+                )
                 continue
             del inflight[lane]
             got = got[: [terminal(a) for a in got].index(True) + 1]
@@ -388,7 +458,13 @@ def drive(f: Fuzz, what: str, lanes: list[str], payloads: list, log: Counter) ->
             log[(op, last[2] or last[0])] += 1
             assert last[2] != "internal", (f.obs.internal[-1:], what, op, got, payload[:300])
             if pre is not None:  # refused on decoding: that error and nothing else
-                assert got == [("error", role, pre, None if pre != "stream_mismatch" else msg_seq(payload))], (what, op, pre, got, payload[:300])
+                assert got == [("error", role, pre, None if pre != "stream_mismatch" else msg_seq(payload))], (
+                    what,
+                    op,
+                    pre,
+                    got,
+                    payload[:300],
+                )
                 continue
             assert all(a[3] == msg.seq for a in got), (what, op, msg.seq, got)
             assert all(a[2] == "missing_seq" for a in got[:-1]), got
@@ -413,9 +489,14 @@ def msg_seq(payload: bytes):
 
 def run_case(f: Fuzz, what: str, lanes: list[str], batch, n: int, log: Counter) -> None:
     # each lane starts with a valid seq 0 (and a map reset), so an example does not depend on the ones before it
-    start = [(lane, (lambda nxt, lane=lane: (encode(_good(what).model_copy(update={"stream": lane})), "start"))) for lane in lanes]
-    payloads = [(lanes[i % len(lanes)], (lambda nxt, i=i, lane=lanes[i % len(lanes)]: build(what, batch, i, lane, nxt)))
-                for i in range(n)]
+    start = [
+        (lane, (lambda nxt, lane=lane: (encode(_good(what).model_copy(update={"stream": lane})), "start")))
+        for lane in lanes
+    ]
+    payloads = [
+        (lanes[i % len(lanes)], (lambda nxt, i=i, lane=lanes[i % len(lanes)]: build(what, batch, i, lane, nxt)))
+        for i in range(n)
+    ]
     drive(f, what, lanes, start + payloads, log)
 
 
@@ -457,7 +538,9 @@ def _near_limit_frame(stream: str) -> CameraFrame:
     rng = np.random.default_rng(3)
     n = MAXB // 25  # exact coordinates and a label: 25 bytes a voxel
     while True:
-        occ = SparseOccupancy.from_points(OCC3D_GRID.centres_of(rng.integers(0, OCC3D_GRID.shape, (n, 3))), rng.integers(0, 17, n), OCC3D_GRID)
+        occ = SparseOccupancy.from_points(
+            OCC3D_GRID.centres_of(rng.integers(0, OCC3D_GRID.shape, (n, 3))), rng.integers(0, 17, n), OCC3D_GRID
+        )
         msg = CameraFrame(stream=stream, seq=0, stamp=0.0, gt_occupancy=occ)
         size = len(encode(msg, 1 << 30))
         if size <= MAXB:
@@ -468,16 +551,24 @@ def _near_limit_frame(stream: str) -> CameraFrame:
 
 def _good(what: str):
     rng = np.random.default_rng(7)
-    occ = SparseOccupancy.from_points(OCC3D_GRID.centres_of(rng.integers(0, OCC3D_GRID.shape, (100, 3))), rng.integers(0, 17, 100), OCC3D_GRID)
+    occ = SparseOccupancy.from_points(
+        OCC3D_GRID.centres_of(rng.integers(0, OCC3D_GRID.shape, (100, 3))), rng.integers(0, 17, 100), OCC3D_GRID
+    )
     if what == "camera":
         return CameraFrame(stream="x", seq=0, stamp=0.0, gt_occupancy=occ)
     if what == "occupancy":
         return OccupancyFrameMsg(stream="x", seq=0, stamp=0.0, source="replay", occupancy=occ)
-    return MapUpdate(stream="x", seq=0, tile_m=20.0, reset=True, tiles=[
-        MapTile(stream="x", ix=0, iy=0, tile_m=20.0, seq=0, points=occ.points, labels=occ.labels)])
+    return MapUpdate(
+        stream="x",
+        seq=0,
+        tile_m=20.0,
+        reset=True,
+        tiles=[MapTile(stream="x", ix=0, iy=0, tile_m=20.0, seq=0, points=occ.points, labels=occ.labels)],
+    )
 
 
 # ------------------------------------------------------------------ the tests
+
 
 def _fuzz_key(what: str, prefix: str, examples: int, per_example: int):
     lanes = [f"{prefix}{i}" for i in range(6)]
@@ -505,7 +596,9 @@ def _fuzz_key(what: str, prefix: str, examples: int, per_example: int):
     return lanes, log, checked
 
 
-@pytest.mark.parametrize("what,prefix,examples", [("camera", "fi", 14), ("occupancy", "fr", 14), ("map_update", "fm", 10)])
+@pytest.mark.parametrize(
+    "what,prefix,examples", [("camera", "fi", 14), ("occupancy", "fr", 14), ("map_update", "fm", 10)]
+)
 def test_fuzzed_input_is_answered_and_counted(fuzz, what, prefix, examples, capsys):
     t0 = time.monotonic()
     before = COUNT["workers"]
@@ -516,8 +609,10 @@ def test_fuzzed_input_is_answered_and_counted(fuzz, what, prefix, examples, caps
     for (_op, pre), v in log.items():
         outcomes[pre] += v
     with capsys.disabled():
-        print(f"\nfuzz {ROLE[what]} worker: {COUNT['workers'] - before} messages in {time.monotonic() - t0:.1f} s; "
-              f"outcomes {dict(sorted(outcomes.items()))}")
+        print(
+            f"\nfuzz {ROLE[what]} worker: {COUNT['workers'] - before} messages in {time.monotonic() - t0:.1f} s; "
+            f"outcomes {dict(sorted(outcomes.items()))}"
+        )
     assert log[("valid next", "applied")] > 0 or what != "map_update"
     assert sum(v for (op, pre), v in log.items() if pre not in ("applied", "-")) > examples * 5  # many errors exercised
 
@@ -546,8 +641,16 @@ def _query_case(f: Fuzz, rng: np.random.Generator, bases: list[MapTileQuery], ot
     sel = keys.map_tile(stream, index(0), index(1))
     q = bases[int(rng.integers(0, len(bases)))].model_copy(update={"stream": stream})
     raw = encode(q)
-    payload = [lambda: None, lambda: raw, lambda: raw, lambda: mutate_bytes(raw, rng), lambda: pack(mutate_structure(unpack(raw), rng)[0]),
-               lambda: rng.bytes(int(rng.integers(1, 80))), lambda: encode(other), lambda: rng.bytes(MAXB + 1)][int(rng.integers(0, 8))]()
+    payload = [
+        lambda: None,
+        lambda: raw,
+        lambda: raw,
+        lambda: mutate_bytes(raw, rng),
+        lambda: pack(mutate_structure(unpack(raw), rng)[0]),
+        lambda: rng.bytes(int(rng.integers(1, 80))),
+        lambda: encode(other),
+        lambda: rng.bytes(MAXB + 1),
+    ][int(rng.integers(0, 8))]()
     return sel, payload, "tile"
 
 
@@ -557,16 +660,29 @@ def _expected_tiles(f: Fuzz, sel: str, bounds: MapTileQuery | None) -> dict[str,
     stream, ixs, iys = parts[1], parts[4], parts[5]
     out = {}
     for (ix, iy), (n, _, _) in f.maps.get(stream, {}).get("tiles", {}).items():
-        if (ixs == "*" or ixs == str(ix)) and (iys == "*" or iys == str(iy)) and (bounds is None or (
-                (bounds.ix_min is None or ix >= bounds.ix_min) and (bounds.ix_max is None or ix <= bounds.ix_max)
-                and (bounds.iy_min is None or iy >= bounds.iy_min) and (bounds.iy_max is None or iy <= bounds.iy_max))):
+        if (
+            (ixs == "*" or ixs == str(ix))
+            and (iys == "*" or iys == str(iy))
+            and (
+                bounds is None
+                or (
+                    (bounds.ix_min is None or ix >= bounds.ix_min)
+                    and (bounds.ix_max is None or ix <= bounds.ix_max)
+                    and (bounds.iy_min is None or iy >= bounds.iy_min)
+                    and (bounds.iy_max is None or iy <= bounds.iy_max)
+                )
+            )
+        ):
             out[keys.map_tile(stream, ix, iy)] = n
     return out
 
 
 @settings(max_examples=15, **FUZZ)
-@given(bases=st.lists(map_tile_queries(stream=st.just("x")), min_size=2, max_size=3),
-       other=st.sampled_from(KINDS).flatmap(lambda k: STRATEGIES[k](stream=st.just("fm0"))), seed=rng_seeds)
+@given(
+    bases=st.lists(map_tile_queries(stream=st.just("x")), min_size=2, max_size=3),
+    other=st.sampled_from(KINDS).flatmap(lambda k: STRATEGIES[k](stream=st.just("fm0"))),
+    seed=rng_seeds,
+)
 def _fuzz_queries(f: Fuzz, bases, other, seed, log: Counter):
     rng = np.random.default_rng(seed)
     for _ in range(40):
@@ -574,14 +690,19 @@ def _fuzz_queries(f: Fuzz, bases, other, seed, log: Counter):
         replies = query(f, sel, payload)
         assert replies, f"no reply to {sel} with {payload!r:.200}"
         oks = [(str(r.ok.key_expr), r.ok.payload.to_bytes()) for r in replies if r.ok is not None]
-        errs = [decode(r.err.payload.to_bytes(), ErrorEvent) for r in replies if r.err is not None]  # every error reply is an ErrorEvent
+        errs = [
+            decode(r.err.payload.to_bytes(), ErrorEvent) for r in replies if r.err is not None
+        ]  # every error reply is an ErrorEvent
         log[(kind, "ok" if oks else errs[0].code)] += 1
         assert all(e.code != "internal" for e in errs), errs
         if kind == "tile":
             try:
                 bounds = decode(payload, MapTileQuery, MAXB) if payload else None
             except CodecError as exc:  # a bad payload: one error reply naming the problem
-                assert not oks and [e.code for e in errs] == [exc.code] and "tile query payload" in errs[0].message, (sel, errs)
+                assert not oks and [e.code for e in errs] == [exc.code] and "tile query payload" in errs[0].message, (
+                    sel,
+                    errs,
+                )
                 continue
             want = _expected_tiles(f, sel, bounds)
             if not want:
@@ -599,7 +720,8 @@ def _fuzz_queries(f: Fuzz, bases, other, seed, log: Counter):
         else:
             model = PoseEstimate if kind == "pose" else Trajectory
             assert len(replies) == 1 and (
-                (oks and decode(oks[0][1], model).stream == sel.split("/")[1]) or (errs and errs[0].code == "bad_query")), (sel, oks, errs)
+                (oks and decode(oks[0][1], model).stream == sel.split("/")[1]) or (errs and errs[0].code == "bad_query")
+            ), (sel, oks, errs)
 
 
 def test_fuzzed_queries_are_answered(fuzz, capsys):
@@ -610,7 +732,9 @@ def test_fuzzed_queries_are_answered(fuzz, capsys):
     seen, want = fuzz.settle()
     assert seen == want, (seen, want)
     with capsys.disabled():
-        print(f"\nfuzz queries: {COUNT['workers'] - before} queries in {time.monotonic() - t0:.1f} s; outcomes {dict(sorted(log.items()))}")
+        print(
+            f"\nfuzz queries: {COUNT['workers'] - before} queries in {time.monotonic() - t0:.1f} s; outcomes {dict(sorted(log.items()))}"
+        )
     assert any(k[0] == "tile" and k[1] not in ("ok", "tile_not_found") for k in log)  # bad payloads were exercised
 
 
@@ -619,7 +743,9 @@ def test_zz_count_of_generated_messages(capsys, record_property):
     total = COUNT["codec"] + COUNT["workers"]
     record_property("generated_messages", total)
     with capsys.disabled():
-        print(f"\nfuzz total: {total} generated messages (codec {COUNT['codec']}, through workers {COUNT['workers'] - START})")
+        print(
+            f"\nfuzz total: {total} generated messages (codec {COUNT['codec']}, through workers {COUNT['workers'] - START})"
+        )
     assert COUNT["workers"] - START >= 2000 or COUNT["workers"] - START < 100  # the whole module ran, or only this test
     if COUNT["codec"]:  # tests/service/test_fuzz_codec.py ran in this session too
         assert total >= 10_000, total

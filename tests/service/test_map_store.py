@@ -30,14 +30,24 @@ REPO = Path(__file__).resolve().parents[2]
 def tile(stream, ix, iy, seq, points, labels=None, tile_m=20.0):
     points = np.asarray(points, np.float64).reshape(-1, 3)
     labels = np.zeros(len(points), np.uint8) if labels is None else np.asarray(labels, np.uint8)
-    return MapTile(stream=stream, ix=ix, iy=iy, tile_m=tile_m, seq=seq, points=Array.from_numpy(points), labels=Array.from_numpy(labels))
+    return MapTile(
+        stream=stream,
+        ix=ix,
+        iy=iy,
+        tile_m=tile_m,
+        seq=seq,
+        points=Array.from_numpy(points),
+        labels=Array.from_numpy(labels),
+    )
 
 
 def random_tiles(rng, stream, seq, n=3000, lo=-50, hi=50, tile_m=20.0):
     pts = rng.uniform(lo, hi, (n, 3))
     pts[:, 2] = rng.uniform(-1, 5, n)
-    return [tile(stream, ix, iy, seq, p, l, tile_m) for (ix, iy), (p, l) in
-            sorted(tiles_from_map(pts, rng.integers(0, 17, n).astype(np.uint8), tile_m).items())]
+    return [
+        tile(stream, ix, iy, seq, p, l, tile_m)
+        for (ix, iy), (p, l) in sorted(tiles_from_map(pts, rng.integers(0, 17, n).astype(np.uint8), tile_m).items())
+    ]
 
 
 def apply(store, update: MapUpdate) -> None:
@@ -46,9 +56,16 @@ def apply(store, update: MapUpdate) -> None:
 
 def expected_info(stream, tiles: dict, tile_m, last_seq) -> MapInfo:
     pts = [t.points.to_numpy() for t in tiles.values()]
-    return MapInfo(stream=stream, tile_m=tile_m, tile_count=len(tiles), voxel_count=sum(len(p) for p in pts), last_seq=last_seq,
-                   bounds_min=tuple(np.concatenate(pts).min(0).tolist()) if pts else None,
-                   bounds_max=tuple(np.concatenate(pts).max(0).tolist()) if pts else None, tiles=sorted(tiles))
+    return MapInfo(
+        stream=stream,
+        tile_m=tile_m,
+        tile_count=len(tiles),
+        voxel_count=sum(len(p) for p in pts),
+        last_seq=last_seq,
+        bounds_min=tuple(np.concatenate(pts).min(0).tolist()) if pts else None,
+        bounds_max=tuple(np.concatenate(pts).max(0).tolist()) if pts else None,
+        tiles=sorted(tiles),
+    )
 
 
 def contents(store, stream):
@@ -64,11 +81,15 @@ def store(request, tmp_path):
 
 # ------------------------------------------------------------------ the store
 
+
 def test_updates_resets_and_empty_tiles(store):
     rng = np.random.default_rng(0)
     first = random_tiles(rng, "car", 0)
     apply(store, MapUpdate(stream="car", seq=0, reset=True, tile_m=20.0, tiles=first))
-    apply(store, MapUpdate(stream="other", seq=0, reset=True, tile_m=10.0, tiles=random_tiles(rng, "other", 0, tile_m=10.0)))
+    apply(
+        store,
+        MapUpdate(stream="other", seq=0, reset=True, tile_m=10.0, tiles=random_tiles(rng, "other", 0, tile_m=10.0)),
+    )
     have = {(t.ix, t.iy): t for t in first}
     assert contents(store, "car") == {k: encode(t, 1 << 30) for k, t in have.items()}
     assert store.info("car") == expected_info("car", have, 20.0, 0)
@@ -111,8 +132,14 @@ def test_sqlite_and_memory_agree(tmp_path):
     rng = np.random.default_rng(3)
     a, b = MapStore(tmp_path / "m.sqlite"), MemoryMapStore()
     for seq in range(6):
-        u = MapUpdate(stream="s", seq=seq, reset=seq == 0, tile_m=20.0,
-                      tiles=random_tiles(rng, "s", seq, n=500 * (seq + 1))[: 2 + seq % 3] + [tile("s", 9, 9, seq, np.zeros((0, 3)))])
+        u = MapUpdate(
+            stream="s",
+            seq=seq,
+            reset=seq == 0,
+            tile_m=20.0,
+            tiles=random_tiles(rng, "s", seq, n=500 * (seq + 1))[: 2 + seq % 3]
+            + [tile("s", 9, 9, seq, np.zeros((0, 3)))],
+        )
         apply(a, u)
         apply(b, u)
         assert a.info("s") == b.info("s") and contents(a, "s") == contents(b, "s")
@@ -124,14 +151,26 @@ def test_reopen_gives_the_same_tiles(tmp_path):
     rng = np.random.default_rng(1)
     s = MapStore(path)
     for seq in range(4):
-        apply(s, MapUpdate(stream="car", seq=seq, reset=seq == 0, tile_m=20.0, tiles=random_tiles(rng, "car", seq, n=400 + 100 * seq)))
+        apply(
+            s,
+            MapUpdate(
+                stream="car",
+                seq=seq,
+                reset=seq == 0,
+                tile_m=20.0,
+                tiles=random_tiles(rng, "car", seq, n=400 + 100 * seq),
+            ),
+        )
     before, info = contents(s, "car"), s.info("car")
     s.close()
     s2 = open_map_store(path)
     assert isinstance(s2, MapStore) and contents(s2, "car") == before and s2.info("car") == info and info.last_seq == 3
     c = sqlite3.connect(path)
     assert c.execute("PRAGMA journal_mode").fetchone()[0] == "wal"
-    assert {r[0] for r in c.execute("SELECT name FROM sqlite_master WHERE type = 'table'")} >= {"map_tiles", "map_streams"}
+    assert {r[0] for r in c.execute("SELECT name FROM sqlite_master WHERE type = 'table'")} >= {
+        "map_tiles",
+        "map_streams",
+    }
     c.close()
     s2.close()
 
@@ -157,7 +196,10 @@ def _writer(path: str, stream: str, n: int, other_table: bool) -> None:
         c.execute("PRAGMA busy_timeout = 30000")
         c.execute("CREATE TABLE IF NOT EXISTS other_state (k INTEGER PRIMARY KEY, v BLOB)")
     for seq in range(n):
-        apply(s, MapUpdate(stream=stream, seq=seq, reset=seq == 0, tile_m=20.0, tiles=random_tiles(rng, stream, seq, n=300)))
+        apply(
+            s,
+            MapUpdate(stream=stream, seq=seq, reset=seq == 0, tile_m=20.0, tiles=random_tiles(rng, stream, seq, n=300)),
+        )
         if c is not None:
             c.execute("BEGIN IMMEDIATE")
             c.execute("INSERT OR REPLACE INTO other_state VALUES (?, ?)", (seq, os.urandom(20000)))
@@ -168,7 +210,10 @@ def _writer(path: str, stream: str, n: int, other_table: bool) -> None:
 def test_two_processes_write_one_file(tmp_path):
     path = str(tmp_path / "shared.sqlite")
     ctx = multiprocessing.get_context("spawn")
-    procs = [ctx.Process(target=_writer, args=(path, "a", 40, False)), ctx.Process(target=_writer, args=(path, "b", 40, True))]
+    procs = [
+        ctx.Process(target=_writer, args=(path, "a", 40, False)),
+        ctx.Process(target=_writer, args=(path, "b", 40, True)),
+    ]
     for p in procs:
         p.start()
     reader = MapStore(path)
@@ -187,7 +232,9 @@ def test_two_processes_write_one_file(tmp_path):
         rng = np.random.default_rng(len(st))
         for seq in range(40):
             last = random_tiles(rng, st, seq, n=300)
-        assert reader.info(st).last_seq == 39 and contents(reader, st) == {(t.ix, t.iy): encode(t, 1 << 30) for t in last}
+        assert reader.info(st).last_seq == 39 and contents(reader, st) == {
+            (t.ix, t.iy): encode(t, 1 << 30) for t in last
+        }
     c = sqlite3.connect(path)
     assert c.execute("SELECT COUNT(*) FROM other_state").fetchone()[0] == 40
     c.close()
@@ -196,10 +243,26 @@ def test_two_processes_write_one_file(tmp_path):
 
 # ------------------------------------------------------------------ the service, killed and restarted
 
+
 def start_map_service(ep: str, store: Path, wid: str) -> subprocess.Popen:
     env = dict(os.environ, PYTHONPATH=str(REPO))
-    return subprocess.Popen([sys.executable, "-m", "services.map_service", "--connect", ep, "--store-path", str(store),
-                             "--worker-id", wid, "--log-level", "WARNING"], cwd=REPO, env=env)
+    return subprocess.Popen(
+        [
+            sys.executable,
+            "-m",
+            "services.map_service",
+            "--connect",
+            ep,
+            "--store-path",
+            str(store),
+            "--worker-id",
+            wid,
+            "--log-level",
+            "WARNING",
+        ],
+        cwd=REPO,
+        env=env,
+    )
 
 
 def region(session, stream) -> dict[str, bytes]:
@@ -303,9 +366,11 @@ def test_pipeline_in_threads_map_survives_a_map_service_restart(tmp_path):
     store = tmp_path / "occvo.sqlite"
     router = open_router(ep)
     cfg = {"connect": ep, "log_level": "WARNING"}
-    workers = [MapService(WorkerConfig(**cfg, worker_id="map-1", store_path=str(store))).start(),
-               RegistrationWorker(WorkerConfig(**cfg, worker_id="registration-1")).start(),
-               InferenceWorker(WorkerConfig(**cfg, worker_id="inference-1")).start()]
+    workers = [
+        MapService(WorkerConfig(**cfg, worker_id="map-1", store_path=str(store))).start(),
+        RegistrationWorker(WorkerConfig(**cfg, worker_id="registration-1")).start(),
+        InferenceWorker(WorkerConfig(**cfg, worker_id="inference-1")).start(),
+    ]
     try:
         scene = SyntheticScene(seed=2, frames=3)
         with OccVOClient(ep, "sim") as c:

@@ -61,8 +61,22 @@ def png16(h, w):
 
 
 def start_worker(endpoint, *args):
-    cmd = [sys.executable, "-m", "services.inference_worker", "--connect", endpoint, "--source", "model", "--device", "cpu",
-           "--torch-threads", "1", "--log-level", "WARNING", *args]
+    cmd = [
+        sys.executable,
+        "-m",
+        "services.inference_worker",
+        "--connect",
+        endpoint,
+        "--source",
+        "model",
+        "--device",
+        "cpu",
+        "--torch-threads",
+        "1",
+        "--log-level",
+        "WARNING",
+        *args,
+    ]
     return subprocess.Popen(cmd, cwd=REPO, env=ENV, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
 
 
@@ -79,7 +93,9 @@ def test_worker_serves_the_checkpoint_equal_to_the_predictor(checkpoint):
 
     ep = f"tcp/127.0.0.1:{free_port()}"
     router = open_router(ep)
-    worker = start_worker(ep, "--checkpoint", str(checkpoint), "--worker-id", "inference-model-test")  # starts meanwhile
+    worker = start_worker(
+        ep, "--checkpoint", str(checkpoint), "--worker-id", "inference-model-test"
+    )  # starts meanwhile
     session = open_session(ep)
     try:
         threads = torch.get_num_threads()
@@ -94,12 +110,21 @@ def test_worker_serves_the_checkpoint_equal_to_the_predictor(checkpoint):
             torch.set_num_threads(threads)
 
         got, errors = {}, []
-        subs = [session.declare_subscriber(keys.occupancy("cam"), lambda s: got.setdefault((m := decode(s.payload.to_bytes(), OccupancyFrameMsg)).seq, m)),
-                session.declare_subscriber(keys.errors("cam"), lambda s: errors.append(decode(s.payload.to_bytes(), ErrorEvent)))]
+        subs = [
+            session.declare_subscriber(
+                keys.occupancy("cam"),
+                lambda s: got.setdefault((m := decode(s.payload.to_bytes(), OccupancyFrameMsg)).seq, m),
+            ),
+            session.declare_subscriber(
+                keys.errors("cam"), lambda s: errors.append(decode(s.payload.to_bytes(), ErrorEvent))
+            ),
+        ]
         # BLOCK, as OccVOClient: with zenoh's default DROP, a camera frame (many fragments) that meets a full queue
         # towards the busy worker for 1-50 ms is dropped on the way, silently
         pub = session.declare_publisher(keys.camera("cam"), congestion_control=zenoh.CongestionControl.BLOCK)
-        assert wait_for(lambda: pub.matching_status.matching or worker.poll() is not None, 60), "worker never subscribed"
+        assert wait_for(lambda: pub.matching_status.matching or worker.poll() is not None, 60), (
+            "worker never subscribed"
+        )
         assert worker.poll() is None, worker.communicate()[1]
         # our subscribers must be known to the router before the worker publishes: probe with an image-less frame
         seq = 0
@@ -117,21 +142,39 @@ def test_worker_serves_the_checkpoint_equal_to_the_predictor(checkpoint):
         five["images"] = five["images"][:5]
         bad = {  # what each bad frame's error must name
             "6 images": msgpack.packb(five, use_bin_type=True),
-            "differ in size": [*good[:3], encode_image(np.zeros((56, 100, 3), np.uint8), names[3], np.eye(3), np.eye(4)), *good[4:]],
+            "differ in size": [
+                *good[:3],
+                encode_image(np.zeros((56, 100, 3), np.uint8), names[3], np.eye(3), np.eye(4)),
+                *good[4:],
+            ],
             "message says": [good[0], sent[1][1].model_copy(update={"width": 208}), *good[2:]],  # a png of 200x112
-            "pixel mode I;16": [*good[:4], good[4].model_copy(update={"encoding": "png", "data": png16(112, 200)}), good[5]],
+            "pixel mode I;16": [
+                *good[:4],
+                good[4].model_copy(update={"encoding": "png", "data": png16(112, 200)}),
+                good[5],
+            ],
             "the bytes are PNG": [good[0].model_copy(update={"encoding": "jpeg", "data": sent[1][0].data}), *good[1:]],
-            "cannot identify image": [*good[:5], good[5].model_copy(update={"encoding": "jpeg", "data": b"not a jpeg"})],
+            "cannot identify image": [
+                *good[:5],
+                good[5].model_copy(update={"encoding": "jpeg", "data": b"not a jpeg"}),
+            ],
             "proper rotations": [*good[:2], good[2].model_copy(update={"extrinsics": flipped.tolist()}), *good[3:]],
         }
         seq = 0  # a new trajectory
         for images in bad.values():
-            payload = images if isinstance(images, bytes) else encode(CameraFrame(stream="cam", seq=seq, stamp=0.0, images=images))
+            payload = (
+                images
+                if isinstance(images, bytes)
+                else encode(CameraFrame(stream="cam", seq=seq, stamp=0.0, images=images))
+            )
             pub.put(payload)
             seq += 1
         for i, imgs in enumerate(sent):  # then good frames: the worker keeps serving
             pub.put(encode(CameraFrame(stream="cam", seq=seq + i, stamp=0.5 * i, images=imgs)))
-        assert wait_for(lambda: len(got) == len(sent) and len(errors) >= len(bad), 90), (sorted(got), [e.message for e in errors])
+        assert wait_for(lambda: len(got) == len(sent) and len(errors) >= len(bad), 90), (
+            sorted(got),
+            [e.message for e in errors],
+        )
         messages = [e.message for e in errors]
         for phrase in bad:
             assert sum(phrase in m for m in messages) == 1, (phrase, messages)
@@ -143,7 +186,9 @@ def test_worker_serves_the_checkpoint_equal_to_the_predictor(checkpoint):
             served[tuple(msg.occupancy.voxels.to_numpy().astype(int).T)] = msg.occupancy.labels.to_numpy()
             assert np.array_equal(served, grid), f"frame {i}: {np.count_nonzero(served != grid)} voxels differ"
 
-        health = decode(next(iter(session.get(keys.stats("inference-model-test"), timeout=10))).ok.payload.to_bytes(), WorkerHealth)
+        health = decode(
+            next(iter(session.get(keys.stats("inference-model-test"), timeout=10))).ok.payload.to_bytes(), WorkerHealth
+        )
         assert health.counters["frames_out"] == len(sent) and health.stages["model"].count == len(sent)
         assert health.stages["model"].p50_ms > 0
         for s in subs:
@@ -171,8 +216,11 @@ def test_bad_checkpoint_stops_the_worker_with_one_line(checkpoint, tmp_path):
     from services.inference_worker import InferenceWorker
 
     (tmp_path / "junk.pt").write_bytes(b"not torch")
-    for ckpt, phrase in ((tmp_path / "none.pt", "no such file"), (tmp_path / "junk.pt", "not a torch checkpoint"),
-                         (None, "needs checkpoint")):
+    for ckpt, phrase in (
+        (tmp_path / "none.pt", "no such file"),
+        (tmp_path / "junk.pt", "not a torch checkpoint"),
+        (None, "needs checkpoint"),
+    ):
         with pytest.raises(ConfigError, match=phrase):
             InferenceWorker(WorkerConfig(source="model", device="cpu", checkpoint=str(ckpt) if ckpt else None))
 
@@ -194,7 +242,10 @@ def test_tiny_occ_net_weights_still_serve(tmp_path):
     torch.save(TinyOccNet().state_dict(), tmp_path / "tiny_occ_net.pt")
     model = load_occupancy_model(model_weights=str(tmp_path / "tiny_occ_net.pt"), device="cpu")
     rng = np.random.default_rng(0)
-    images = [encode_image(rng.integers(0, 255, (90, 160, 3), dtype=np.uint8), f"CAM_{i}", np.eye(3), np.eye(4), "png") for i in range(6)]
+    images = [
+        encode_image(rng.integers(0, 255, (90, 160, 3), dtype=np.uint8), f"CAM_{i}", np.eye(3), np.eye(4), "png")
+        for i in range(6)
+    ]
     idx, labels = model.predict(*camera_inputs(images))
     assert model.name == "TinyOccNet" and idx.shape == (len(labels), 3) and np.all(labels < 17)
     torch.save({"not": torch.zeros(1)}, tmp_path / "other.pt")

@@ -92,8 +92,15 @@ def test_sparse_occupancy_rejects_bad_content():
 
 
 def _image(encoding="raw_rgb8", w=4, h=3):
-    return CameraImage(camera="CAM_FRONT", encoding=encoding, width=w, height=h, data=bytes(w * h * 3),
-                       intrinsics=np.eye(3).tolist(), extrinsics=np.eye(4).tolist())
+    return CameraImage(
+        camera="CAM_FRONT",
+        encoding=encoding,
+        width=w,
+        height=h,
+        data=bytes(w * h * 3),
+        intrinsics=np.eye(3).tolist(),
+        extrinsics=np.eye(4).tolist(),
+    )
 
 
 def test_camera_frame_needs_six_or_no_images_and_finite_calibration():
@@ -101,11 +108,25 @@ def test_camera_frame_needs_six_or_no_images_and_finite_calibration():
     with pytest.raises(ValidationError, match="6 images"):
         CameraFrame(stream="s", seq=0, stamp=0.0, images=[_image()] * 5)
     with pytest.raises(ValidationError, match="non-finite"):
-        CameraImage(camera="c", encoding="png", width=1, height=1, data=b"x", intrinsics=[[np.nan, 0, 0], [0, 1, 0], [0, 0, 1]],
-                    extrinsics=np.eye(4).tolist())
+        CameraImage(
+            camera="c",
+            encoding="png",
+            width=1,
+            height=1,
+            data=b"x",
+            intrinsics=[[np.nan, 0, 0], [0, 1, 0], [0, 0, 1]],
+            extrinsics=np.eye(4).tolist(),
+        )
     with pytest.raises(ValidationError, match="needs 36 bytes"):
-        CameraImage(camera="c", encoding="raw_rgb8", width=4, height=3, data=b"x", intrinsics=np.eye(3).tolist(),
-                    extrinsics=np.eye(4).tolist())
+        CameraImage(
+            camera="c",
+            encoding="raw_rgb8",
+            width=4,
+            height=3,
+            data=b"x",
+            intrinsics=np.eye(3).tolist(),
+            extrinsics=np.eye(4).tolist(),
+        )
     with pytest.raises(ValidationError, match="stream"):
         CameraFrame(stream="a/b", seq=0, stamp=0.0)
     with pytest.raises(ValidationError):
@@ -115,7 +136,9 @@ def test_camera_frame_needs_six_or_no_images_and_finite_calibration():
 
 
 def test_pose_estimate_checks_matrix_and_status():
-    p = PoseEstimate(stream="s", seq=1, stamp=0.5, pose=np.eye(4).tolist(), status="ok", timings_ms={"registration": 3.0})
+    p = PoseEstimate(
+        stream="s", seq=1, stamp=0.5, pose=np.eye(4).tolist(), status="ok", timings_ms={"registration": 3.0}
+    )
     assert np.array_equal(p.matrix(), np.eye(4))
     with pytest.raises(ValidationError, match="4x4"):
         PoseEstimate(stream="s", seq=1, stamp=0.5, pose=np.eye(3).tolist(), status="ok")
@@ -131,9 +154,19 @@ def test_map_tile_checks_arrays():
     pts, labels = _occ(5)
     MapTile(stream="s", ix=0, iy=-1, tile_m=20, seq=3, points=Array.from_numpy(pts), labels=Array.from_numpy(labels))
     with pytest.raises(ValidationError, match=r"\(M,3\) float64"):
-        MapTile(stream="s", ix=0, iy=0, tile_m=20, seq=3, points=Array.from_numpy(pts.astype(np.float32)), labels=Array.from_numpy(labels))
+        MapTile(
+            stream="s",
+            ix=0,
+            iy=0,
+            tile_m=20,
+            seq=3,
+            points=Array.from_numpy(pts.astype(np.float32)),
+            labels=Array.from_numpy(labels),
+        )
     with pytest.raises(ValidationError, match="uint8"):
-        MapTile(stream="s", ix=0, iy=0, tile_m=20, seq=3, points=Array.from_numpy(pts), labels=Array.from_numpy(labels[:4]))
+        MapTile(
+            stream="s", ix=0, iy=0, tile_m=20, seq=3, points=Array.from_numpy(pts), labels=Array.from_numpy(labels[:4])
+        )
 
 
 def test_other_messages_construct():
@@ -141,7 +174,9 @@ def test_other_messages_construct():
     MapInfo(stream="s", tile_m=20, tile_count=0, voxel_count=0, last_seq=None, bounds_min=None, bounds_max=None)
     ErrorEvent(stream="s", worker="w", code="malformed", message="x")
     WorkerHealth(worker="w", role="map", pid=1, uptime_s=0, policy="latest", streams=[], counters={})
-    OccupancyFrameMsg(stream="s", seq=0, stamp=0, source="replay", occupancy=SparseOccupancy.from_points(*_occ(), OCC3D_GRID))
+    OccupancyFrameMsg(
+        stream="s", seq=0, stamp=0, source="replay", occupancy=SparseOccupancy.from_points(*_occ(), OCC3D_GRID)
+    )
     with pytest.raises(ValidationError):
         ErrorEvent(stream="s", worker="w", code="no_such_code", message="x")
 

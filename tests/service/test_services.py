@@ -47,6 +47,7 @@ def offline(frames):
 
 # ------------------------------------------------------------------ pure parts
 
+
 def test_stage_queue_latest_drops_oldest_and_counts():
     dropped = []
     q = StageQueue(2, "latest", dropped.append, threading.Event())
@@ -108,10 +109,13 @@ def test_tiles_partition_the_map_and_diff():
 
 # ------------------------------------------------------------------ service
 
+
 class ErrorLog:
     def __init__(self, session, stream="*"):
         self.events: list[ErrorEvent] = []
-        self.sub = session.declare_subscriber(keys.errors(stream), lambda s: self.events.append(decode(s.payload.to_bytes(), ErrorEvent)))
+        self.sub = session.declare_subscriber(
+            keys.errors(stream), lambda s: self.events.append(decode(s.payload.to_bytes(), ErrorEvent))
+        )
 
     def make_live(self, session, key, timeout=20.0):
         """Send garbage to `key` until its error event comes back (this subscriber has reached the router), then
@@ -165,6 +169,7 @@ def test_bad_input_is_reported_and_good_poses_still_come(service):
             for p in path[:-1]:
                 d = d[p]
             d[path[-1]] = value
+
         return f
 
     bad_inputs = {
@@ -181,7 +186,9 @@ def test_bad_input_is_reported_and_good_poses_still_come(service):
     for payload in bad_inputs.values():
         session.put(keys.camera("bad"), payload, congestion_control=block)
     # straight at the registration worker too: an occupancy frame with NaN coordinates, a garbage payload
-    occ = msgpack.unpackb(encode(OccupancyFrameMsg(stream="bad", seq=0, stamp=0, source="replay", occupancy=good.gt_occupancy)), raw=False)
+    occ = msgpack.unpackb(
+        encode(OccupancyFrameMsg(stream="bad", seq=0, stamp=0, source="replay", occupancy=good.gt_occupancy)), raw=False
+    )
     occ["occupancy"]["points"]["data"] = pts.tobytes()
     session.put(keys.occupancy("bad"), msgpack.packb(occ), congestion_control=block)
     session.put(keys.occupancy("bad"), b"\xc1", congestion_control=block)
@@ -189,7 +196,9 @@ def test_bad_input_is_reported_and_good_poses_still_come(service):
 
     def all_in(events):
         codes = [e.code for e in events]
-        return codes.count("malformed") >= 2 and codes.count("invalid_message") >= 4 and all(c in codes for c in expected)
+        return (
+            codes.count("malformed") >= 2 and codes.count("invalid_message") >= 4 and all(c in codes for c in expected)
+        )
 
     events = errors.wait_until(all_in, timeout=20.0)
     time.sleep(0.3)  # and nothing more than expected
@@ -240,9 +249,13 @@ def test_sequence_gaps_and_steps_back_are_reported(service):
     errors = ErrorLog(session, "seqs")
     errors.make_live(session, keys.camera("seqs"))
     with OccVOClient(service.endpoint, "seqs", session=session) as client:
+
         def send(i, seq):
-            session.put(keys.camera("seqs"), encode(camera_frame_of(s[i], "seqs", seq)),
-                        congestion_control=zenoh.CongestionControl.BLOCK)
+            session.put(
+                keys.camera("seqs"),
+                encode(camera_frame_of(s[i], "seqs", seq)),
+                congestion_control=zenoh.CongestionControl.BLOCK,
+            )
 
         send(0, 0)
         send(1, 1)
@@ -347,7 +360,10 @@ def test_replay_of_a_synthetic_scene(service):
     worker.drain()
     st, lane = worker.states["synthetic"], worker.lanes["synthetic"]
     (after_pose,) = st.after_pose._threads
-    assert os.getpriority(os.PRIO_PROCESS, after_pose.native_id) == os.getpriority(os.PRIO_PROCESS, lane.thread.native_id) + 10
+    assert (
+        os.getpriority(os.PRIO_PROCESS, after_pose.native_id)
+        == os.getpriority(os.PRIO_PROCESS, lane.thread.native_id) + 10
+    )
     assert st.tail.done() and st.tail.exception() is None
 
 
@@ -398,8 +414,12 @@ def test_worker_process_memory_settings_and_thread_names():
 
     assert large_blocks_from_mmap()  # both mallopt calls accepted (glibc here)
     seen = []
-    t = threading.Thread(target=lambda: (name_os_thread("lane-car7"), seen.append(
-        Path(f"/proc/self/task/{threading.get_native_id()}/comm").read_text().strip())))
+    t = threading.Thread(
+        target=lambda: (
+            name_os_thread("lane-car7"),
+            seen.append(Path(f"/proc/self/task/{threading.get_native_id()}/comm").read_text().strip()),
+        )
+    )
     t.start()
     t.join()
     assert seen == ["lane-car7"]

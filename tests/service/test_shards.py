@@ -23,7 +23,16 @@ def _stream_of_shard(shard: int, shards: int = 2) -> str:
 
 
 def test_shard_of_is_stable_and_spreads_streams():
-    assert [keys.shard_of(f"load{i}", 2) for i in range(8)] == [0, 0, 0, 0, 1, 1, 1, 1]  # CRC-32: any process, any release
+    assert [keys.shard_of(f"load{i}", 2) for i in range(8)] == [
+        0,
+        0,
+        0,
+        0,
+        1,
+        1,
+        1,
+        1,
+    ]  # CRC-32: any process, any release
     assert {keys.shard_of(f"s{i}", 3) for i in range(30)} == {0, 1, 2} and keys.shard_of("anything", 1) == 0
     assert keys.parse_registration_shard(keys.registration_shard(1, 2, "registration-1")) == (1, 2)
     assert keys.parse_registration_shard(keys.alive("registration", "registration-1")) is None
@@ -49,9 +58,13 @@ def test_two_shards_share_the_streams_and_one_restarts_alone(tmp_path, scene, un
     router = open_router(endpoint)
     base = {"connect": endpoint, "log_level": "WARNING"}
     store = str(tmp_path / "occvo.sqlite")  # both shards and the map service in one file, as deployed
-    reg_config = [WorkerConfig(**base, worker_id=f"registration-{i}", store_path=store, shard=i, shards=2) for i in (0, 1)]
-    others = [MapService(WorkerConfig(**base, worker_id="map-t", store_path=store)).start(),
-              InferenceWorker(WorkerConfig(**base, worker_id="inference-t")).start()]
+    reg_config = [
+        WorkerConfig(**base, worker_id=f"registration-{i}", store_path=store, shard=i, shards=2) for i in (0, 1)
+    ]
+    others = [
+        MapService(WorkerConfig(**base, worker_id="map-t", store_path=store)).start(),
+        InferenceWorker(WorkerConfig(**base, worker_id="inference-t")).start(),
+    ]
     regs = [RegistrationWorker(c).start() for c in reg_config]
     probe = open_session(endpoint)
     name_a, name_b = _stream_of_shard(0), _stream_of_shard(1)
@@ -71,8 +84,10 @@ def test_two_shards_share_the_streams_and_one_restarts_alone(tmp_path, scene, un
             # one answer a query: the owner's; a stream nobody has gets one error, from its shard's worker
             def replies(selector):
                 got = list(probe.get(selector, timeout=5.0))
-                return ([decode(r.ok.payload.to_bytes(), Trajectory, 1 << 30) for r in got if r.ok is not None],
-                        [decode(r.err.payload.to_bytes(), ErrorEvent) for r in got if r.ok is None])
+                return (
+                    [decode(r.ok.payload.to_bytes(), Trajectory, 1 << 30) for r in got if r.ok is not None],
+                    [decode(r.err.payload.to_bytes(), ErrorEvent) for r in got if r.ok is None],
+                )
 
             ok, err = replies(keys.trajectory(name_b))
             assert [t.stream for t in ok] == [name_b] and not err
@@ -115,8 +130,10 @@ def test_a_stream_moves_to_its_new_shard_through_the_store(tmp_path, scene, unin
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     router = open_router(endpoint)
     base = {"connect": endpoint, "log_level": "WARNING", "store_path": str(tmp_path / "occvo.sqlite")}
-    workers = [InferenceWorker(WorkerConfig(**base, worker_id="inference-t")).start(),
-               RegistrationWorker(WorkerConfig(**base, worker_id="registration-only")).start()]
+    workers = [
+        InferenceWorker(WorkerConfig(**base, worker_id="inference-t")).start(),
+        RegistrationWorker(WorkerConfig(**base, worker_id="registration-only")).start(),
+    ]
     probe = open_session(endpoint)
     name = _stream_of_shard(1)
     try:
@@ -126,8 +143,10 @@ def test_a_stream_moves_to_its_new_shard_through_the_store(tmp_path, scene, unin
             for i in range(4):
                 client.step(scene[i])
             workers[1].stop()
-            shards = [RegistrationWorker(WorkerConfig(**base, worker_id=f"registration-{i}", shard=i, shards=2)).start()
-                      for i in (0, 1)]
+            shards = [
+                RegistrationWorker(WorkerConfig(**base, worker_id=f"registration-{i}", shard=i, shards=2)).start()
+                for i in (0, 1)
+            ]
             workers += shards
             got = [client.step(scene[i]).matrix() for i in range(4, N)]
             assert np.array_equal(np.array([client.poses[i].matrix() for i in range(4)] + got), uninterrupted)

@@ -33,8 +33,17 @@ warnings.filterwarnings("ignore", category=RuntimeWarning)
 
 def _commit(store, stream, vo, frame, seq, **kw):
     r = vo.step(frame)
-    store.commit_frame(stream, seq, frame.stamp, frame_digest(frame.points, frame.labels, frame.stamp), r.status,
-                       r.pose, pack_frame(frame), new_trajectory=seq == 0, **kw)
+    store.commit_frame(
+        stream,
+        seq,
+        frame.stamp,
+        frame_digest(frame.points, frame.labels, frame.stamp),
+        r.status,
+        r.pose,
+        pack_frame(frame),
+        new_trajectory=seq == 0,
+        **kw,
+    )
     return r
 
 
@@ -44,8 +53,16 @@ def test_commit_survives_reopen_and_new_trajectory_drops_the_old(tmp_path, scene
     poses = [np.eye(4) + i for i in range(3)]
     for i in range(3):
         f = scene[i]
-        store.commit_frame("car", i, f.stamp, frame_digest(f.points, f.labels, f.stamp), "ok", poses[i], pack_frame(f),
-                           new_trajectory=i == 0)
+        store.commit_frame(
+            "car",
+            i,
+            f.stamp,
+            frame_digest(f.points, f.labels, f.stamp),
+            "ok",
+            poses[i],
+            pack_frame(f),
+            new_trajectory=i == 0,
+        )
     store.close()
     store = TrajectoryStore(path)
     assert store.streams() == ["car"]
@@ -56,7 +73,9 @@ def test_commit_survives_reopen_and_new_trajectory_drops_the_old(tmp_path, scene
     assert got[1].digest == frame_digest(scene[1].points, scene[1].labels, scene[1].stamp) != got[2].digest
     journal = store.journal("car", None)
     assert [s for s, _ in journal] == [0, 1, 2]
-    assert np.array_equal(journal[1][1].points, scene[1].points) and np.array_equal(journal[1][1].labels, scene[1].labels)
+    assert np.array_equal(journal[1][1].points, scene[1].points) and np.array_equal(
+        journal[1][1].labels, scene[1].labels
+    )
     assert store.pose("car", 7) is None
     # seq 0 of another trajectory replaces everything of the stream in one transaction
     f = scene[5]
@@ -149,7 +168,9 @@ def test_two_connections_share_the_file(tmp_path, scene):
     def writer(store, stream):
         try:
             for i in range(30):
-                store.commit_frame(stream, i, float(i), bytes(16), "ok", np.eye(4) * (i + 1), blob, new_trajectory=i == 0)
+                store.commit_frame(
+                    stream, i, float(i), bytes(16), "ok", np.eye(4) * (i + 1), blob, new_trajectory=i == 0
+                )
         except Exception as exc:  # noqa: BLE001
             errors.append(exc)
 
@@ -187,11 +208,15 @@ def test_a_commit_says_whether_it_waited_for_this_store_or_for_another_process(t
         time.sleep(held)
         leave()
 
-    cases = {"lock": (store.lock.acquire, store.lock.release),
-             "begin": (lambda: other.execute("BEGIN IMMEDIATE"), lambda: other.execute("COMMIT"))}
+    cases = {
+        "lock": (store.lock.acquire, store.lock.release),
+        "begin": (lambda: other.execute("BEGIN IMMEDIATE"), lambda: other.execute("COMMIT")),
+    }
     for seq, (phase, (enter, leave)) in enumerate(cases.items(), start=1):
         entered = threading.Event()
-        holder = threading.Thread(target=hold, args=(lambda enter=enter, entered=entered: (enter(), entered.set()), leave))
+        holder = threading.Thread(
+            target=hold, args=(lambda enter=enter, entered=entered: (enter(), entered.set()), leave)
+        )
         holder.start()
         entered.wait(5)
         phases = store.commit_frame("car", seq, float(seq), bytes(16), "ok", np.eye(4), blob)
@@ -238,13 +263,19 @@ def test_a_niced_thread_writes_to_the_store_at_the_lanes_priority_and_goes_back(
     store.close()
     if "refused" in seen:
         pytest.skip("raising a thread's priority needs CAP_SYS_NICE or RLIMIT_NICE here")
-    assert seen == {"niced": lanes + 10, "writing": lanes, "after": lanes + 10, "boosted_after_write": lanes,
-                    "end": lanes + 10}
+    assert seen == {
+        "niced": lanes + 10,
+        "writing": lanes,
+        "after": lanes + 10,
+        "boosted_after_write": lanes,
+        "end": lanes + 10,
+    }
 
 
 def _open_at(kind: str, path: str, start: float) -> str:
     """In a pool process: open a store of `kind` on `path` at wall-clock `start` (all openers at once)."""
     from services.map_store import open_map_store
+
     while time.time() < start:
         pass
     try:
@@ -318,6 +349,7 @@ def test_store_refuses_an_unusable_path(tmp_path):
 
 # ------------------------------------------------------------------ the worker on its store (real Zenoh, in process)
 
+
 class Pipeline:
     """Router, map service, inference worker and a registration worker that can be stopped and started again."""
 
@@ -330,8 +362,10 @@ class Pipeline:
         self.router = open_router(self.endpoint)
         base = {"connect": self.endpoint, "log_level": "WARNING"}
         # the map service keeps its tiles in the same SQLite file (its own tables, its own connection)
-        self.others = [MapService(WorkerConfig(**base, worker_id="map-t", store_path=str(store_path))).start(),
-                       InferenceWorker(WorkerConfig(**base, worker_id="inference-t")).start()]
+        self.others = [
+            MapService(WorkerConfig(**base, worker_id="map-t", store_path=str(store_path))).start(),
+            InferenceWorker(WorkerConfig(**base, worker_id="inference-t")).start(),
+        ]
         self.config = WorkerConfig(**base, worker_id="registration-t", store_path=str(store_path), **registration)
         self.reg = None
 
@@ -372,8 +406,9 @@ EVICT_RADIUS_M, EVICT_TILE_M = 30.0, 10.0  # smaller than a frame's reach: tiles
 
 def _evicting_pipeline(tmp_path):
     path = tmp_path / "state.sqlite"
-    return Pipeline(path, snapshot_every=3, snapshot_max_share=None, working_radius_m=EVICT_RADIUS_M,
-                    tile_m=EVICT_TILE_M), path
+    return Pipeline(
+        path, snapshot_every=3, snapshot_max_share=None, working_radius_m=EVICT_RADIUS_M, tile_m=EVICT_TILE_M
+    ), path
 
 
 @contextlib.contextmanager
@@ -473,7 +508,9 @@ def test_snapshots_keep_to_their_share_of_the_time_and_shutdown_still_writes_one
                 client.step(scene[i])
             assert reg.snapshots_written(30) and reg.stats.snapshot()[0]["snapshots"] == 1
             probe = TrajectoryStore(path)
-            assert probe.record("car").snapshot_seq == 1 and [s for s, _ in probe.journal("car", 1)] == list(range(2, 8))
+            assert probe.record("car").snapshot_seq == 1 and [s for s, _ in probe.journal("car", 1)] == list(
+                range(2, 8)
+            )
             svc.reg.stop()  # shutdown snapshots whatever the share
             assert probe.record("car").snapshot_seq == 7 and probe.sizes("car")["journal_rows"] == 0
             svc.start_registration()
@@ -501,7 +538,9 @@ def test_frames_are_answered_while_the_snapshot_file_is_locked(tmp_path, scene, 
             blocker.execute("COMMIT")
             assert reg.snapshots_written(30) and reg.stats.snapshot()[0]["snapshots"] == 1  # one a stream at a time
             probe = TrajectoryStore(path)
-            assert probe.record("car").snapshot_seq == 1 and [s for s, _ in probe.journal("car", 1)] == list(range(2, N))
+            assert probe.record("car").snapshot_seq == 1 and [s for s, _ in probe.journal("car", 1)] == list(
+                range(2, N)
+            )
             svc.reg.stop()
             assert probe.record("car").snapshot_seq == N - 1 and probe.sizes("car")["journal_rows"] == 0
             probe.close()
@@ -584,7 +623,8 @@ def test_a_frame_stopped_between_its_pose_and_its_map_update_is_finished_by_the_
             probe = TrajectoryStore(path)
             # the failed frame's evictions were stored by the resume: the same cold tiles, evicted at the same frames
             assert probe.cold_index("cut") == probe.cold_index("ref") and stop_at in {
-                e for seqs in probe.cold_index("cut", as_of_seq=stop_at).values() for e in seqs}
+                e for seqs in probe.cold_index("cut", as_of_seq=stop_at).values() for e in seqs
+            }
             _same_tiles(ref, cut)
             probe.close()
     finally:
@@ -610,13 +650,15 @@ def test_a_closed_loop_publishes_the_odometry_pose_then_the_relocalised_one(tmp_
     cfg, drift = _config(True), _drift(2.0, [6.0, -4.0, 0.0])
     offline, closures, _, _ = _drive(loop, cfg, drift)
     (tmp_path / "occvo.json").write_text(cfg.model_dump_json())
-    svc = Pipeline(tmp_path / "state.sqlite", snapshot_every=10 ** 6, occvo_config=str(tmp_path / "occvo.json"))
+    svc = Pipeline(tmp_path / "state.sqlite", snapshot_every=10**6, occvo_config=str(tmp_path / "occvo.json"))
     heard: list[tuple[int, str]] = []
     try:
         worker = svc.start_registration()
         with OccVOClient(svc.endpoint, "lap") as client:
             sub = client.session.declare_subscriber(
-                keys.pose("lap"), lambda s: heard.append((lambda p: (p.seq, p.status))(decode(s.payload.to_bytes(), PoseEstimate))))
+                keys.pose("lap"),
+                lambda s: heard.append((lambda p: (p.seq, p.status))(decode(s.payload.to_bytes(), PoseEstimate))),
+            )
             client.reset()
             cold = {}
             start = loop.gt_poses[0, :2, 3]
@@ -638,7 +680,9 @@ def test_a_closed_loop_publishes_the_odometry_pose_then_the_relocalised_one(tmp_
         assert closures and [s for s, st in heard if st == "relocalised"] == [t for t, _ in closures]
         for t, _correction in closures:
             at = heard.index((t, "relocalised"))
-            assert heard[at - 1] == (t, "ok") and all(s < t for s, _ in heard[:at - 1])  # pose first, then the correction
+            assert heard[at - 1] == (t, "ok") and all(
+                s < t for s, _ in heard[: at - 1]
+            )  # pose first, then the correction
             assert client.poses[t].status == "relocalised"
         same = [i for i in range(FRAMES) if i not in (EVICT_AT - 1, EVICT_AT)]  # their poses moved after publishing
         assert np.array_equal(got[same], offline.poses[same])
@@ -653,9 +697,12 @@ def test_a_closed_loop_publishes_the_odometry_pose_then_the_relocalised_one(tmp_
 def test_frame_commits_leave_the_wal_checkpoint_to_the_stores_own_thread(tmp_path, monkeypatch):
     """A commit only appends to the WAL (its copy into the file held every stream's commit behind the store's lock);
     the checkpointer thread copies it, and the rows read back after a reopen."""
+
     def commit_all(store, n=12):
         for i in range(n):  # 1 MB journal entries: past SQLite's 4 MB autocheckpoint threshold
-            store.commit_frame("car", i, float(i), b"d" * 16, "ok", np.eye(4) * i, bytes([i]) * 2**20, new_trajectory=i == 0)
+            store.commit_frame(
+                "car", i, float(i), b"d" * 16, "ok", np.eye(4) * i, bytes([i]) * 2**20, new_trajectory=i == 0
+            )
 
     db = lambda p: Path(p).stat().st_size / 2**20  # noqa: E731
     monkeypatch.setattr(TrajectoryStore, "CHECKPOINT_EVERY_S", 3600.0)  # no pass during this part

@@ -60,12 +60,16 @@ def acl(tmp_path_factory, scene):
     try:
         for cls in (MapService, RegistrationWorker, InferenceWorker):  # each worker's session as its user
             os.environ[ZENOH_CONFIG_ENV] = str(files[cls.role])
-            workers.append(cls(WorkerConfig(connect=ep, worker_id=f"{cls.role}-acl", warm_up=False, log_level="ERROR")).start())
+            workers.append(
+                cls(WorkerConfig(connect=ep, worker_id=f"{cls.role}-acl", warm_up=False, log_level="ERROR")).start()
+            )
         if saved is None:
             os.environ.pop(ZENOH_CONFIG_ENV)
         else:
             os.environ[ZENOH_CONFIG_ENV] = saved
-        sessions = {u: zenoh.open(zenoh_config("client", connect=ep, base=files[u])) for u in ("camera", "camera2", "viewer")}
+        sessions = {
+            u: zenoh.open(zenoh_config("client", connect=ep, base=files[u])) for u in ("camera", "camera2", "viewer")
+        }
         deadline = time.monotonic() + 30  # clients of this ACL get no liveliness replies (zenoh 1.10): ask the router
         while len(_alive(router, "occvo/@alive/**")) < 3 and time.monotonic() < deadline:
             time.sleep(0.1)
@@ -120,9 +124,25 @@ def test_fake_map_update_is_refused(acl):
     before = _map_info(acl)
     assert len(before) == 1 and before[0].voxel_count > 1000
     pts = np.zeros((3, 3))
-    fake = encode(MapUpdate(stream=STREAM, seq=0, reset=True, tile_m=20.0, tiles=[
-        MapTile(stream=STREAM, ix=0, iy=0, tile_m=20.0, seq=0, points=Array.from_numpy(pts),
-                labels=Array.from_numpy(np.zeros(3, np.uint8)))]))
+    fake = encode(
+        MapUpdate(
+            stream=STREAM,
+            seq=0,
+            reset=True,
+            tile_m=20.0,
+            tiles=[
+                MapTile(
+                    stream=STREAM,
+                    ix=0,
+                    iy=0,
+                    tile_m=20.0,
+                    seq=0,
+                    points=Array.from_numpy(pts),
+                    labels=Array.from_numpy(np.zeros(3, np.uint8)),
+                )
+            ],
+        )
+    )
     for user in ("camera", "viewer"):
         for _ in range(5):
             acl["s"][user].put(keys.map_updates(STREAM), fake)
@@ -151,13 +171,19 @@ def test_fake_relocalised_pose_is_refused(acl, scene):
     shifted[0, 3] = 1000.0
     fake = encode(PoseEstimate(stream=STREAM, seq=1, stamp=0.0, pose=shifted.tolist(), status="relocalised"))
     for user, observer in (("camera", "viewer"), ("viewer", "camera")):  # a session's own puts reach it locally
-        got = _received(acl["s"][observer], keys.pose(STREAM), lambda u=user: acl["s"][u].put(keys.pose(STREAM), fake),
-                        b"relocalised")
+        got = _received(
+            acl["s"][observer],
+            keys.pose(STREAM),
+            lambda u=user: acl["s"][u].put(keys.pose(STREAM), fake),
+            b"relocalised",
+        )
         assert got == [], user
     # the control: the registration worker's poses do reach the viewer
     with OccVOClient(acl["endpoint"], STREAM, timeout=30, session=acl["s"]["camera"]) as c:
         got = []
-        sub = acl["s"]["viewer"].declare_subscriber(keys.pose(STREAM), lambda s: got.append(decode(s.payload.to_bytes(), PoseEstimate)))
+        sub = acl["s"]["viewer"].declare_subscriber(
+            keys.pose(STREAM), lambda s: got.append(decode(s.payload.to_bytes(), PoseEstimate))
+        )
         time.sleep(0.3)
         c._seq = 3
         c.step(scene[3])
@@ -171,21 +197,34 @@ def test_fake_relocalised_pose_is_refused(acl, scene):
 def test_fake_error_event_is_refused(acl):
     fake = encode(ErrorEvent(stream=STREAM, worker="registration-acl", code="internal", message="spoofed", seq=5))
     for user, observer in (("camera", "viewer"), ("viewer", "camera")):
-        got = _received(acl["s"][observer], keys.errors(STREAM), lambda u=user: acl["s"][u].put(keys.errors(STREAM), fake),
-                        b"spoofed")
+        got = _received(
+            acl["s"][observer],
+            keys.errors(STREAM),
+            lambda u=user: acl["s"][u].put(keys.errors(STREAM), fake),
+            b"spoofed",
+        )
         assert got == [], user
     # the control: a worker's error event reaches the viewer
-    got = _received(acl["s"]["viewer"], keys.errors(STREAM),
-                    lambda: acl["s"]["camera"].put(keys.camera(STREAM), b"\xc1"), b"malformed")
+    got = _received(
+        acl["s"]["viewer"],
+        keys.errors(STREAM),
+        lambda: acl["s"]["camera"].put(keys.camera(STREAM), b"\xc1"),
+        b"malformed",
+    )
     assert got
 
 
 def test_rogue_queryable_gets_no_query(acl):
     info = _map_info(acl)[0]
-    for rogue_user, asker in (("viewer", "camera"), ("camera", "viewer")):  # a session's own queryable answers it locally
+    for rogue_user, asker in (
+        ("viewer", "camera"),
+        ("camera", "viewer"),
+    ):  # a session's own queryable answers it locally
         answered = []
-        rogue = acl["s"][rogue_user].declare_queryable(keys.map_tile(STREAM, "*", "*"),
-                                                       lambda q, seen=answered: (seen.append(1), q.reply(str(q.key_expr), b"rogue")))
+        rogue = acl["s"][rogue_user].declare_queryable(
+            keys.map_tile(STREAM, "*", "*"),
+            lambda q, seen=answered: (seen.append(1), q.reply(str(q.key_expr), b"rogue")),
+        )
         try:
             time.sleep(0.5)
             for ix, iy in info.tiles[:10]:
@@ -199,7 +238,9 @@ def test_rogue_queryable_gets_no_query(acl):
 
 
 def test_fake_liveliness_token_is_refused(acl):
-    tokens = [acl["s"][u].liveliness().declare_token(keys.alive("registration", f"fake-{u}")) for u in ("camera", "viewer")]
+    tokens = [
+        acl["s"][u].liveliness().declare_token(keys.alive("registration", f"fake-{u}")) for u in ("camera", "viewer")
+    ]
     shard = acl["s"]["camera"].liveliness().declare_token(keys.registration_shard(0, 1, "fake-shard"))
     try:
         time.sleep(SETTLE_S)

@@ -10,8 +10,13 @@ ROOT = Path(__file__).resolve().parents[2]
 
 
 def _run(script: str, *args: str) -> dict:
-    proc = subprocess.run([sys.executable, str(ROOT / "benchmarks" / script), *args], capture_output=True, text=True,
-                          timeout=600, cwd=ROOT)
+    proc = subprocess.run(
+        [sys.executable, str(ROOT / "benchmarks" / script), *args],
+        capture_output=True,
+        text=True,
+        timeout=600,
+        cwd=ROOT,
+    )
     assert proc.returncode == 0, proc.stderr[-2000:]
     return json.loads(proc.stdout.strip().splitlines()[-1])
 
@@ -58,8 +63,16 @@ def test_time_offset_reads_the_same_data_offset_from_four_runs_of_scene_0101(sam
     assert list(runs) == ["forward", "reversed", "turned", "turned+rev"]
     shifts = [runs[r]["best_shift_ms"] for r in runs]
     # the four contrasts are the four shifts again, rotated: nothing lost in the decomposition
-    assert abs(report["data_offset_ms"] + report["ego_lead_ms"] + report["travel_lead_ms"] + report["residual_ms"]
-               - shifts[0]) < 1e-6
+    assert (
+        abs(
+            report["data_offset_ms"]
+            + report["ego_lead_ms"]
+            + report["travel_lead_ms"]
+            + report["residual_ms"]
+            - shifts[0]
+        )
+        < 1e-6
+    )
     # frames after their poses (docs/results.md): forward runs fit a later ground truth, reversed ones an earlier
     assert report["data_offset_ms"] > 0 and shifts[0] > shifts[1] and shifts[2] > shifts[3]
     assert all(runs[r]["ape_at_best_shift_m"] <= runs[r]["ape_rmse_m"] for r in runs)

@@ -68,10 +68,17 @@ def _answers(session: zenoh.Session, selector: str, timeout: float = 3.0) -> lis
 
 # ---------------------------------------------------------------- every file loads
 
+
 def test_zenoh_config_files_load():
     assert {p.relative_to(DEPLOY).as_posix() for p in ZENOH_FILES} >= {
-        "router.json5", "multihost/router-a.json5", "multihost/router-b.json5", "tls/router.json5", "tls/client.json5",
-        "acl/router.json5", "acl/session-viewer.json5"}
+        "router.json5",
+        "multihost/router-a.json5",
+        "multihost/router-b.json5",
+        "tls/router.json5",
+        "tls/client.json5",
+        "acl/router.json5",
+        "acl/session-viewer.json5",
+    }
     for path in ZENOH_FILES:
         c = zenoh.Config.from_file(str(path))
         mode = json.loads(c.get_json("mode"))
@@ -100,7 +107,10 @@ def test_client_sessions_start_from_occvo_zenoh_config(monkeypatch, tmp_path):
     assert json.loads(c.get_json("transport/link/tls/root_ca_certificate")) == "/etc/occvo/tls/ca.pem"
     assert json.loads(c.get_json("connect/endpoints")) == ["tls/localhost:1"]
     assert json.loads(c.get_json("connect/retry"))["period_max_ms"] == 500
-    assert json.loads(zenoh_config("router", listen="tcp/127.0.0.1:1").get_json("transport/link/tls/root_ca_certificate")) is None
+    assert (
+        json.loads(zenoh_config("router", listen="tcp/127.0.0.1:1").get_json("transport/link/tls/root_ca_certificate"))
+        is None
+    )
     (tmp_path / "bad.json5").write_text("{ transport: { nonsense: 1 } }")
     monkeypatch.setenv(ZENOH_CONFIG_ENV, str(tmp_path / "bad.json5"))
     with pytest.raises(ConfigError, match="bad.json5"):
@@ -108,6 +118,7 @@ def test_client_sessions_start_from_occvo_zenoh_config(monkeypatch, tmp_path):
 
 
 # ---------------------------------------------------------------- routers from the files work
+
 
 def test_loopback_router_file_works():
     ep = f"tcp/127.0.0.1:{free_port()}"
@@ -127,7 +138,7 @@ def test_router_mesh_files_work():
     a = zenoh.open(router_config(DEPLOY / "multihost/router-a.json5", listen=[ep_a]))
     on_a, on_b = _client(ep_a), _client(ep_b)
     try:
-        assert _delivered(on_b, on_a, "occvo/mesh/occupancy", timeout=10)   # B's retry period is at most 4 s
+        assert _delivered(on_b, on_a, "occvo/mesh/occupancy", timeout=10)  # B's retry period is at most 4 s
         assert _delivered(on_a, on_b, "occvo/mesh/pose")
         q = on_a.declare_queryable("occvo/mesh/map/info", lambda query: query.reply("occvo/mesh/map/info", b"info"))
         assert _answers(on_b, "occvo/mesh/map/info") == [b"info"]
@@ -143,15 +154,58 @@ def _openssl(*args, cwd):
 
 def make_certs(d: Path) -> None:
     """The commands of deploy/tls/README.md, with localhost names."""
-    _openssl("req", "-x509", "-newkey", "rsa:2048", "-nodes", "-days", "30", "-keyout", "ca.key", "-out", "ca.pem",
-             "-subj", "/CN=occvo-ca", cwd=d)
-    for name, san, usage in (("router", "DNS:localhost,IP:127.0.0.1", "serverAuth,clientAuth"),
-                             ("client", "DNS:occvo-client", "clientAuth")):
-        _openssl("req", "-newkey", "rsa:2048", "-nodes", "-keyout", f"{name}.key", "-out", f"{name}.csr",
-                 "-subj", f"/CN=occvo-{name}", cwd=d)
+    _openssl(
+        "req",
+        "-x509",
+        "-newkey",
+        "rsa:2048",
+        "-nodes",
+        "-days",
+        "30",
+        "-keyout",
+        "ca.key",
+        "-out",
+        "ca.pem",
+        "-subj",
+        "/CN=occvo-ca",
+        cwd=d,
+    )
+    for name, san, usage in (
+        ("router", "DNS:localhost,IP:127.0.0.1", "serverAuth,clientAuth"),
+        ("client", "DNS:occvo-client", "clientAuth"),
+    ):
+        _openssl(
+            "req",
+            "-newkey",
+            "rsa:2048",
+            "-nodes",
+            "-keyout",
+            f"{name}.key",
+            "-out",
+            f"{name}.csr",
+            "-subj",
+            f"/CN=occvo-{name}",
+            cwd=d,
+        )
         (d / f"{name}.ext").write_text(f"subjectAltName={san}\nextendedKeyUsage={usage}\n")
-        _openssl("x509", "-req", "-in", f"{name}.csr", "-CA", "ca.pem", "-CAkey", "ca.key", "-CAcreateserial",
-                 "-days", "30", "-out", f"{name}.pem", "-extfile", f"{name}.ext", cwd=d)
+        _openssl(
+            "x509",
+            "-req",
+            "-in",
+            f"{name}.csr",
+            "-CA",
+            "ca.pem",
+            "-CAkey",
+            "ca.key",
+            "-CAcreateserial",
+            "-days",
+            "30",
+            "-out",
+            f"{name}.pem",
+            "-extfile",
+            f"{name}.ext",
+            cwd=d,
+        )
 
 
 @pytest.mark.skipif(shutil.which("openssl") is None, reason="openssl not found on PATH: cannot make TLS certificates")
@@ -163,9 +217,11 @@ def test_tls_router_and_client_files_work(tmp_path):
     rc.insert_json5("transport/link/tls/root_ca_certificate", json.dumps(str(tmp_path / "ca.pem")))
     rc.insert_json5("transport/link/tls/listen_certificate", json.dumps(str(tmp_path / "router.pem")))
     rc.insert_json5("transport/link/tls/listen_private_key", json.dumps(str(tmp_path / "router.key")))
-    tls_paths = {"transport__link__tls__root_ca_certificate": str(tmp_path / "ca.pem"),
-                 "transport__link__tls__connect_certificate": str(tmp_path / "client.pem"),
-                 "transport__link__tls__connect_private_key": str(tmp_path / "client.key")}
+    tls_paths = {
+        "transport__link__tls__root_ca_certificate": str(tmp_path / "ca.pem"),
+        "transport__link__tls__connect_certificate": str(tmp_path / "client.pem"),
+        "transport__link__tls__connect_private_key": str(tmp_path / "client.key"),
+    }
     with zenoh.open(rc):
         a = _client(ep, DEPLOY / "tls/client.json5", **tls_paths)
         b = _client(ep, DEPLOY / "tls/client.json5", **tls_paths)
@@ -175,8 +231,12 @@ def test_tls_router_and_client_files_work(tmp_path):
             a.close()
             b.close()
         # mutual TLS: without a client certificate, or over plain tcp, the router refuses the session
-        no_cert = {"transport__link__tls__root_ca_certificate": str(tmp_path / "ca.pem"), "transport__link__tls__enable_mtls": False,
-                   "transport__link__tls__connect_certificate": None, "transport__link__tls__connect_private_key": None}
+        no_cert = {
+            "transport__link__tls__root_ca_certificate": str(tmp_path / "ca.pem"),
+            "transport__link__tls__enable_mtls": False,
+            "transport__link__tls__connect_certificate": None,
+            "transport__link__tls__connect_private_key": None,
+        }
         with pytest.raises(zenoh.ZError):
             _client(ep, DEPLOY / "tls/client.json5", **no_cert).close()
         with pytest.raises(zenoh.ZError):
@@ -192,7 +252,10 @@ def test_access_control_router_file(tmp_path):
     with zenoh.open(rc):
         with pytest.raises(zenoh.ZError):  # a wrong password gets no session
             _client(ep, DEPLOY / "acl/session-viewer.json5", transport__auth__usrpwd__password="wrong").close()
-        s = {u: _client(ep, DEPLOY / f"acl/session-{u}.json5", transport__auth__usrpwd__password=f"pw-{u}") for u in users}
+        s = {
+            u: _client(ep, DEPLOY / f"acl/session-{u}.json5", transport__auth__usrpwd__password=f"pw-{u}")
+            for u in users
+        }
         try:
             # the pipeline's own flows pass
             assert _delivered(s["camera"], s["inference"], "occvo/camera.car/camera")  # under its own prefix
@@ -209,7 +272,9 @@ def test_access_control_router_file(tmp_path):
             assert not _delivered(s["inference"], s["viewer"], "occvo/car/occupancy", timeout=1)
             # the viewer gets tiles from the map service, but cannot ask the workers' stats
             tile = s["map"].declare_queryable("occvo/car/map/tile/*/*", lambda q: q.reply(str(q.key_expr), b"tile"))
-            stats = s["map"].declare_queryable("occvo/@workers/map-1/stats", lambda q: q.reply(str(q.key_expr), b"stats"))
+            stats = s["map"].declare_queryable(
+                "occvo/@workers/map-1/stats", lambda q: q.reply(str(q.key_expr), b"stats")
+            )
             assert _answers(s["viewer"], "occvo/car/map/tile/1/2") == [b"tile"]
             assert _answers(s["inference"], "occvo/@workers/map-1/stats") == [b"stats"]
             assert not _answers(s["viewer"], "occvo/@workers/*/stats", timeout=1)
@@ -258,21 +323,31 @@ def test_systemd_units_parse_and_name_real_modules():
         config = re.search(r"--config (\S+)", svc["ExecStart"][0]).group(1)
         assert config.startswith("/etc/occvo/") and (DEPLOY / Path(config).name).is_file(), config
         if name != "occvo-router":
-            assert "occvo-router.service" in u["Unit"]["Requires"][0] and "occvo-router.service" in u["Unit"]["After"][0]
+            assert (
+                "occvo-router.service" in u["Unit"]["Requires"][0] and "occvo-router.service" in u["Unit"]["After"][0]
+            )
             assert module in WORKER_MODULES
 
 
-@pytest.mark.skipif(shutil.which("systemd-analyze") is None, reason="systemd-analyze not found; the units were only parsed")
+@pytest.mark.skipif(
+    shutil.which("systemd-analyze") is None, reason="systemd-analyze not found; the units were only parsed"
+)
 def test_systemd_units_verify(tmp_path):
     """systemd-analyze verify checks the unit syntax and that ExecStart's binary exists; the python named there
     (/opt/occvo/venv/bin/python) is absent on this machine, so the units are verified with it pointed at this one."""
     import sys
 
     for name in UNITS:
-        text = (DEPLOY / "systemd" / f"{name}.service").read_text().replace("/opt/occvo/venv/bin/python", sys.executable)
+        text = (
+            (DEPLOY / "systemd" / f"{name}.service").read_text().replace("/opt/occvo/venv/bin/python", sys.executable)
+        )
         (tmp_path / f"{name}.service").write_text(text)
-    r = subprocess.run(["systemd-analyze", "verify", *[str(tmp_path / f"{n}.service") for n in UNITS]],
-                       capture_output=True, text=True, timeout=60)
+    r = subprocess.run(
+        ["systemd-analyze", "verify", *[str(tmp_path / f"{n}.service") for n in UNITS]],
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
     # verify exits 0 on unknown keys and bad values but prints them: any line about our units is a failure
     ours = [line for line in (r.stdout + r.stderr).splitlines() if "occvo-" in line]
     assert r.returncode == 0 and not ours, r.stdout + r.stderr

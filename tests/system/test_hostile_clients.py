@@ -21,14 +21,22 @@ from services.local import InProcessService
 from services.runtime import open_session
 
 BLOCK = zenoh.CongestionControl.BLOCK
-LIMITS = {"max_streams": 6, "max_streams_per_client": 2, "max_seq_jump": 1000, "idle_stream_s": 2.0,
-          "error_events_per_s": 2.0, "error_burst": 10}
+LIMITS = {
+    "max_streams": 6,
+    "max_streams_per_client": 2,
+    "max_seq_jump": 1000,
+    "idle_stream_s": 2.0,
+    "error_events_per_s": 2.0,
+    "error_burst": 10,
+}
 
 
 class Events:
     def __init__(self, session, stream="*"):
         self.items: list[ErrorEvent] = []
-        self.sub = session.declare_subscriber(keys.errors(stream), lambda s: self.items.append(decode(s.payload.to_bytes(), ErrorEvent)))
+        self.sub = session.declare_subscriber(
+            keys.errors(stream), lambda s: self.items.append(decode(s.payload.to_bytes(), ErrorEvent))
+        )
 
     def of(self, stream=None, code=None):
         return [e for e in self.items if (stream is None or e.stream == stream) and (code is None or e.code == code)]
@@ -95,12 +103,20 @@ def test_seq_jump_beyond_the_window_is_reported_and_not_adopted(service, session
     assert np.allclose(np.array(got), np.array(uninterrupted[:4]), atol=1e-9)
 
 
-def test_pathological_msgpack_is_refused_before_work_and_frames_keep_their_order(service, session, scene, uninterrupted):
+def test_pathological_msgpack_is_refused_before_work_and_frames_keep_their_order(
+    service, session, scene, uninterrupted
+):
     """A 13.7 MB payload of small maps (it froze the inference worker 5.3 s) is refused by the decode limits; the
     legitimate frame sent right after it gets its pose, in order."""
     events = Events(session, "h2.msgpack")
-    hostile = msgpack.packb({"kind": "camera_frame", "schema_version": 1, "stream": "h2.msgpack",
-                             "x": [[{"a": 1, "b": 2} for _ in range(60000)] for _ in range(35)]})
+    hostile = msgpack.packb(
+        {
+            "kind": "camera_frame",
+            "schema_version": 1,
+            "stream": "h2.msgpack",
+            "x": [[{"a": 1, "b": 2} for _ in range(60000)] for _ in range(35)],
+        }
+    )
     assert 13_000_000 < len(hostile) < 16 * 1024 * 1024
     with OccVOClient(service.endpoint, "h2.msgpack", timeout=60, session=session) as c:
         c.reset()
@@ -190,8 +206,11 @@ def test_idle_stream_gives_back_its_lane_and_resumes_from_the_store(service, ses
 def test_region_and_wildcard_queries_are_paged(tmp_path, scene):
     """A get on occvo/** is answered a page at a time (max_query_tiles); the client's region() pages through the
     whole map, equal to the tiles asked one by one."""
-    with (InProcessService(warm_up=False, max_query_tiles=4, max_query_streams=1) as svc,
-          OccVOClient(svc.endpoint, "h7.map", timeout=60) as c, OccVOClient(svc.endpoint, "h7.other", timeout=60) as d):
+    with (
+        InProcessService(warm_up=False, max_query_tiles=4, max_query_streams=1) as svc,
+        OccVOClient(svc.endpoint, "h7.map", timeout=60) as c,
+        OccVOClient(svc.endpoint, "h7.other", timeout=60) as d,
+    ):
         for client in (c, d):
             client.reset()
             steps(client, scene[:2], 0)
@@ -215,7 +234,6 @@ def test_region_and_wildcard_queries_are_paged(tmp_path, scene):
             assert np.array_equal(one.points.to_numpy(), t.points.to_numpy())
 
 
-
 def test_snapshot_of_a_reset_stream_is_deleted(service, session, scene):
     reg = service.worker("registration")
     with OccVOClient(service.endpoint, "h8.reset", timeout=60, session=session) as c:
@@ -230,7 +248,8 @@ def test_snapshot_of_a_reset_stream_is_deleted(service, session, scene):
         c.reset()
         steps(c, scene[2:3], 0)  # a new trajectory (scene[0] again would be answered as a resend)
         deadline = time.monotonic() + 10  # the snapshot writer deletes it, after what it had queued
-        while (rows := reg.store.snap_db.execute("SELECT created FROM snapshots WHERE stream='h8.reset'").fetchall()) \
-                and time.monotonic() < deadline:
+        while (
+            rows := reg.store.snap_db.execute("SELECT created FROM snapshots WHERE stream='h8.reset'").fetchall()
+        ) and time.monotonic() < deadline:
             time.sleep(0.1)
     assert rows == [] and reg.store.created("h8.reset") != old, (rows, old, reg.store.created("h8.reset"))

@@ -34,8 +34,13 @@ SCENE = DATA / "occupancy/scene-0101"
 def _spawn(module: str, endpoint: str, worker_id: str, log: Path, *args: str) -> subprocess.Popen:
     env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(REPO), os.environ.get("PYTHONPATH", "")]).rstrip(os.pathsep))
     with open(log, "a") as err:
-        return subprocess.Popen([sys.executable, "-m", module, "--connect", endpoint, "--worker-id", worker_id, *args],
-                                cwd=REPO, env=env, stdout=err, stderr=err)
+        return subprocess.Popen(
+            [sys.executable, "-m", module, "--connect", endpoint, "--worker-id", worker_id, *args],
+            cwd=REPO,
+            env=env,
+            stdout=err,
+            stderr=err,
+        )
 
 
 def _kill9_run(tmp_path: Path, frames: list, gt: np.ndarray, seed: int, capsys) -> None:
@@ -45,8 +50,10 @@ def _kill9_run(tmp_path: Path, frames: list, gt: np.ndarray, seed: int, capsys) 
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     router = open_router(endpoint)
     log = tmp_path / "registration.log"
-    procs = {"inference": _spawn("services.inference_worker", endpoint, "inference-k9", tmp_path / "inference.log"),
-             "registration": _spawn("services.registration_worker", endpoint, "registration-k9", log, *reg_args)}
+    procs = {
+        "inference": _spawn("services.inference_worker", endpoint, "inference-k9", tmp_path / "inference.log"),
+        "registration": _spawn("services.registration_worker", endpoint, "registration-k9", log, *reg_args),
+    }
     offline = {}
 
     def uninterrupted():  # the same frames through OccVO without a stop (the service reproduces it bit for bit)
@@ -93,8 +100,10 @@ def _kill9_run(tmp_path: Path, frames: list, gt: np.ndarray, seed: int, capsys) 
         rmse_cut, rmse_ref = ape_rmse(gt, got), ape_rmse(gt, offline["poses"])
         diff = float(np.abs(got - offline["poses"]).max())
         with capsys.disabled():
-            print(f"\nkill -9 after {killed_at} poses of {n}: APE RMSE {rmse_cut:.4f} m vs uninterrupted {rmse_ref:.4f} m, "
-                  f"max pose difference {diff:.3e}, {out['resends']} frames resent")
+            print(
+                f"\nkill -9 after {killed_at} poses of {n}: APE RMSE {rmse_cut:.4f} m vs uninterrupted {rmse_ref:.4f} m, "
+                f"max pose difference {diff:.3e}, {out['resends']} frames resent"
+            )
         assert rmse_cut <= 1.05 * rmse_ref + 1e-9
         events = log.read_text()
         assert '"stream resumed"' in events and events.count('"started"') == 2

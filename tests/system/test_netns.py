@@ -81,7 +81,11 @@ def test_router_and_workers_in_separate_network_namespaces(two_hosts, tmp_path):
     procs: list[subprocess.Popen] = []
 
     def start(ns, name, *cmd, **kw):
-        procs.append(subprocess.Popen(_in(ns, *cmd), cwd=REPO, env=env, **(kw or {"stderr": open(tmp_path / f"{name}.log", "w")})))
+        procs.append(
+            subprocess.Popen(
+                _in(ns, *cmd), cwd=REPO, env=env, **(kw or {"stderr": open(tmp_path / f"{name}.log", "w")})
+            )
+        )
         return procs[-1]
 
     try:
@@ -93,8 +97,23 @@ def test_router_and_workers_in_separate_network_namespaces(two_hosts, tmp_path):
             time.sleep(0.05)
         for role, module in WORKERS.items():
             start(ns_w, role, "-m", module, "--connect", ep, "--worker-id", f"{role}-ns")
-        follow = start(ns_w, "poses", "-m", "occvo_cli", "poses", "--follow", "--count", str(FRAMES), "--stream", "ns",
-                       "--connect", ep, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        follow = start(
+            ns_w,
+            "poses",
+            "-m",
+            "occvo_cli",
+            "poses",
+            "--follow",
+            "--count",
+            str(FRAMES),
+            "--stream",
+            "ns",
+            "--connect",
+            ep,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+        )
         # the same replay on loopback, in this process's namespace, while the namespaced processes start
         with InProcessService() as local, OccVOClient(local.endpoint, "ns") as client:
             want = replay(client, scene, window=4, timeout=60)["trajectory"]
@@ -102,9 +121,33 @@ def test_router_and_workers_in_separate_network_namespaces(two_hosts, tmp_path):
 
         # the workers reach the router only over the veth link: nothing listens on the endpoint in this namespace
         assert "following" in follow.stderr.readline()
-        r = subprocess.run(_in(ns_w, "-m", "occvo_cli", "replay", SCENE, "--json", "--quiet", "--frames", str(FRAMES), "--connect", ep,
-                               "--stream", "ns", "--timeout", "60"), cwd=REPO, env=env, capture_output=True, text=True, timeout=120)
-        assert r.returncode == 0, r.stderr + "".join((tmp_path / f"{n}.log").read_text()[-2000:] for n in ("router", *WORKERS))
+        r = subprocess.run(
+            _in(
+                ns_w,
+                "-m",
+                "occvo_cli",
+                "replay",
+                SCENE,
+                "--json",
+                "--quiet",
+                "--frames",
+                str(FRAMES),
+                "--connect",
+                ep,
+                "--stream",
+                "ns",
+                "--timeout",
+                "60",
+            ),
+            cwd=REPO,
+            env=env,
+            capture_output=True,
+            text=True,
+            timeout=120,
+        )
+        assert r.returncode == 0, r.stderr + "".join(
+            (tmp_path / f"{n}.log").read_text()[-2000:] for n in ("router", *WORKERS)
+        )
         summary = json.loads(r.stdout.strip().splitlines()[-1])
         assert summary["poses"] == summary["frames"] == FRAMES
         out, _ = follow.communicate(timeout=30)

@@ -21,15 +21,36 @@ RMSE_BOUND_M = {"scene-0101": 0.45, "scene-0268": 0.15}
 def test_occvo_run_on_real_scene_writes_everything_and_meets_its_bound(sample_root, tmp_path, scene):
     out = tmp_path / "out"
     gt = sample_root / "trajectory" / f"{scene}.kitti"
-    proc = subprocess.run([sys.executable, "-m", "occvo_cli", "run", "--input", str(sample_root / "occupancy" / scene),
-                           "--gt", str(gt), "--out", str(out), "--quiet"], capture_output=True, text=True, timeout=600)
+    proc = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "occvo_cli",
+            "run",
+            "--input",
+            str(sample_root / "occupancy" / scene),
+            "--gt",
+            str(gt),
+            "--out",
+            str(out),
+            "--quiet",
+        ],
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
     assert proc.returncode == 0, proc.stderr
     summary = json.loads((out / "summary.json").read_text())
     assert summary["frames"] == len(read_kitti(gt))
     assert summary["success"] is True
     assert summary["ape_rmse_m"] <= RMSE_BOUND_M[scene]
-    assert set(summary["ms_per_stage_median"]) >= {"preprocess", "coarse_gicp", "dynamic_object_filter", "fine_gicp",
-                                                   "voxel_pfilter"}
+    assert set(summary["ms_per_stage_median"]) >= {
+        "preprocess",
+        "coarse_gicp",
+        "dynamic_object_filter",
+        "fine_gicp",
+        "voxel_pfilter",
+    }
     est = read_kitti(out / "trajectory.kitti")
     assert np.allclose(read_tum(out / "trajectory.tum")[1], est, atol=1e-6)
     assert abs(ape_rmse(read_kitti(gt), est) - summary["ape_rmse_m"]) < 1e-6
@@ -37,8 +58,12 @@ def test_occvo_run_on_real_scene_writes_everything_and_meets_its_bound(sample_ro
     pts_ply, lab_ply = read_map(out / "map.ply")
     assert len(pts_npz) > 50_000 and np.array_equal(lab_npz, lab_ply) and np.allclose(pts_npz, pts_ply, atol=1e-4)
     assert (out / "trajectory.png").stat().st_size > 10_000
-    evals = subprocess.run([sys.executable, "-m", "occvo_cli", "eval", "--gt", str(gt), "--est",
-                            str(out / "trajectory.kitti"), "--json"], capture_output=True, text=True, check=True)
+    evals = subprocess.run(
+        [sys.executable, "-m", "occvo_cli", "eval", "--gt", str(gt), "--est", str(out / "trajectory.kitti"), "--json"],
+        capture_output=True,
+        text=True,
+        check=True,
+    )
     assert abs(json.loads(evals.stdout)["rmse"] - summary["ape_rmse_m"]) < 1e-6
 
 

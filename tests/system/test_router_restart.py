@@ -24,8 +24,12 @@ warnings.filterwarnings("ignore", category=RuntimeWarning)
 
 
 def _router(ep: str, log) -> subprocess.Popen:
-    return subprocess.Popen([sys.executable, "-m", "services.router", "--config", str(REPO / "deploy/router.json5"),
-                             "--listen", ep], cwd=REPO, env=dict(os.environ, PYTHONPATH=str(REPO)), stderr=log)
+    return subprocess.Popen(
+        [sys.executable, "-m", "services.router", "--config", str(REPO / "deploy/router.json5"), "--listen", ep],
+        cwd=REPO,
+        env=dict(os.environ, PYTHONPATH=str(REPO)),
+        stderr=log,
+    )
 
 
 def _wait_ready(log_path: Path, n: int, timeout: float = 30) -> None:
@@ -51,8 +55,12 @@ def test_workers_and_client_reconnect_after_router_restart(tmp_path):
     try:
         _wait_ready(rlog_path, 1)
         for role, module in WORKERS.items():
-            workers[role] = subprocess.Popen([sys.executable, "-m", module, "--connect", ep, "--worker-id", f"{role}-rr"],
-                                             cwd=REPO, env=env, stderr=open(tmp_path / f"{role}.log", "w"))
+            workers[role] = subprocess.Popen(
+                [sys.executable, "-m", module, "--connect", ep, "--worker-id", f"{role}-rr"],
+                cwd=REPO,
+                env=env,
+                stderr=open(tmp_path / f"{role}.log", "w"),
+            )
         scene = load_scene("synthetic:5", frames=6)  # the offline poses, while the workers start
         want = OccVO()
         want.reset()
@@ -70,7 +78,7 @@ def test_workers_and_client_reconnect_after_router_restart(tmp_path):
             router = _router(ep, rlog)
             _wait_ready(rlog_path, 2)
             t0 = time.monotonic()
-            wait_alive(probe, WORKERS, timeout=20)   # the workers' liveliness tokens are back on the new router
+            wait_alive(probe, WORKERS, timeout=20)  # the workers' liveliness tokens are back on the new router
             print(f"\nrouter killed and restarted: workers seen alive {time.monotonic() - t0:.2f} s after it was up")
             after = [client.step(scene[i]) for i in range(3, 6)]
         probe.close()

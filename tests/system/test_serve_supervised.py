@@ -35,8 +35,15 @@ def test_non_loopback_listen_needs_authentication_or_insecure():
     check_listen_secure(DEPLOY / "acl/router.json5", ["tcp/0.0.0.0:7447"], insecure=False)  # user/password
     check_listen_secure(DEPLOY / "tls/router.json5", ["tls/0.0.0.0:7447"], insecure=False)  # mutual TLS
     env = dict(os.environ, PYTHONPATH=str(REPO))
-    rc = subprocess.run([sys.executable, "-m", "occvo_cli", "serve", "--listen", f"tcp/0.0.0.0:{free_port()}"],
-                        check=False, cwd=REPO, env=env, capture_output=True, text=True, timeout=60)
+    rc = subprocess.run(
+        [sys.executable, "-m", "occvo_cli", "serve", "--listen", f"tcp/0.0.0.0:{free_port()}"],
+        check=False,
+        cwd=REPO,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
     assert rc.returncode != 0 and "without authentication" in rc.stderr and "--insecure" in rc.stderr
 
 
@@ -45,9 +52,26 @@ def test_serve_restarts_a_worker_killed_mid_replay_and_no_pose_is_lost(tmp_path,
     endpoint = f"tcp/127.0.0.1:{port}"
     env = dict(os.environ, PYTHONPATH=str(REPO))
     err = open(tmp_path / "serve.log", "w")  # noqa: SIM115 - closed in finally, after the process
-    proc = subprocess.Popen([sys.executable, "-m", "occvo_cli", "serve", "--listen", endpoint, "--json",
-                             "--store-path", str(tmp_path / "occvo.sqlite"), "--log-dir", str(tmp_path)],
-                            cwd=REPO, env=env, stdout=subprocess.PIPE, stderr=err, text=True)
+    proc = subprocess.Popen(
+        [
+            sys.executable,
+            "-m",
+            "occvo_cli",
+            "serve",
+            "--listen",
+            endpoint,
+            "--json",
+            "--store-path",
+            str(tmp_path / "occvo.sqlite"),
+            "--log-dir",
+            str(tmp_path),
+        ],
+        cwd=REPO,
+        env=env,
+        stdout=subprocess.PIPE,
+        stderr=err,
+        text=True,
+    )
     try:
         ready = json.loads(proc.stdout.readline())
         while ready["event"] != "ready":  # listening, then each worker as it comes up
@@ -71,8 +95,13 @@ def test_serve_restarts_a_worker_killed_mid_replay_and_no_pose_is_lost(tmp_path,
         proc.send_signal(signal.SIGINT)
         stdout, _ = proc.communicate(timeout=90)
         assert proc.returncode == 0
-        assert json.loads(stdout.strip().splitlines()[-1]) == {"event": "stopped", "exit_codes": {"inference": 0, "registration": 0, "map": 0}}
-        events = [json.loads(line) for line in (tmp_path / "serve.log").read_text().splitlines() if line.startswith("{")]
+        assert json.loads(stdout.strip().splitlines()[-1]) == {
+            "event": "stopped",
+            "exit_codes": {"inference": 0, "registration": 0, "map": 0},
+        }
+        events = [
+            json.loads(line) for line in (tmp_path / "serve.log").read_text().splitlines() if line.startswith("{")
+        ]
         crashed = [e for e in events if e["event"] == "crashed"]
         assert len(crashed) == 1 and crashed[0]["name"] == "registration" and crashed[0]["how"] == "signal SIGKILL"
         restarted = [e for e in events if e["event"] == "started" and e["name"] == "registration"]

@@ -117,8 +117,23 @@ def test_scene_0101_through_separate_worker_processes_matches_offline(capsys):
 def test_serve_command_starts_and_stops_cleanly(tmp_path):
     port = free_port()
     env = dict(os.environ, PYTHONPATH=str(REPO))
-    proc = subprocess.Popen([sys.executable, "-m", "occvo_cli", "serve", "--json", "--listen", f"tcp/127.0.0.1:{port}",
-                             "--log-dir", str(tmp_path)], cwd=REPO, env=env, stdout=subprocess.PIPE, text=True)
+    proc = subprocess.Popen(
+        [
+            sys.executable,
+            "-m",
+            "occvo_cli",
+            "serve",
+            "--json",
+            "--listen",
+            f"tcp/127.0.0.1:{port}",
+            "--log-dir",
+            str(tmp_path),
+        ],
+        cwd=REPO,
+        env=env,
+        stdout=subprocess.PIPE,
+        text=True,
+    )
     try:
         events = [json.loads(proc.stdout.readline())]
         while events[-1]["event"] != "ready":
@@ -126,13 +141,48 @@ def test_serve_command_starts_and_stops_cleanly(tmp_path):
         assert events[0] == {"event": "listening", "endpoint": f"tcp/127.0.0.1:{port}"}
         ready = events[-1]
         assert ready["event"] == "ready" and set(ready["workers"]) == {"inference", "registration", "map"}
-        follow = subprocess.Popen([sys.executable, "-m", "occvo_cli", "poses", "--follow", "--count", "3", "--stream", "cli",
-                                   "--connect", f"tcp/127.0.0.1:{port}"], cwd=REPO, env=env, stdout=subprocess.PIPE,
-                                  stderr=subprocess.PIPE, text=True)
+        follow = subprocess.Popen(
+            [
+                sys.executable,
+                "-m",
+                "occvo_cli",
+                "poses",
+                "--follow",
+                "--count",
+                "3",
+                "--stream",
+                "cli",
+                "--connect",
+                f"tcp/127.0.0.1:{port}",
+            ],
+            cwd=REPO,
+            env=env,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+        )
         assert "following" in follow.stderr.readline()
-        rc = subprocess.run([sys.executable, "-m", "occvo_cli", "replay", str(SCENE), "--json", "--connect",
-                             f"tcp/127.0.0.1:{port}", "--frames", "3", "--stream", "cli"], cwd=REPO, env=env,
-                            capture_output=True, text=True, timeout=120)
+        rc = subprocess.run(
+            [
+                sys.executable,
+                "-m",
+                "occvo_cli",
+                "replay",
+                str(SCENE),
+                "--json",
+                "--connect",
+                f"tcp/127.0.0.1:{port}",
+                "--frames",
+                "3",
+                "--stream",
+                "cli",
+            ],
+            cwd=REPO,
+            env=env,
+            capture_output=True,
+            text=True,
+            timeout=120,
+        )
         assert rc.returncode == 0, rc.stderr
         summary = json.loads(rc.stdout.strip().splitlines()[-1])
         assert summary["poses"] == 3 and summary["frames"] == 3
@@ -141,7 +191,10 @@ def test_serve_command_starts_and_stops_cleanly(tmp_path):
         proc.send_signal(signal.SIGINT)
         out, _ = proc.communicate(timeout=60)
         assert proc.returncode == 0
-        assert json.loads(out.strip().splitlines()[-1]) == {"event": "stopped", "exit_codes": {"inference": 0, "registration": 0, "map": 0}}
+        assert json.loads(out.strip().splitlines()[-1]) == {
+            "event": "stopped",
+            "exit_codes": {"inference": 0, "registration": 0, "map": 0},
+        }
         logs = [json.loads(line) for line in (tmp_path / "registration.log").read_text().splitlines()]
         assert {"started", "shutdown requested", "stopped"} <= {e["event"] for e in logs}
     finally:

@@ -52,7 +52,11 @@ def test_registration_replicas_are_shards(tmp_path):
     up = tmp_path / "up.json5"
     up.write_text('{workers: [{role: "registration", count: 3}, {role: "map", count: 2}]}')
     sup = Supervisor(UpConfig.load(up))
-    shards = {c.name: c.cmd[c.cmd.index("--shard") + 1:c.cmd.index("--shard") + 4] for c in sup.workers if "--shard" in c.cmd}
+    shards = {
+        c.name: c.cmd[c.cmd.index("--shard") + 1 : c.cmd.index("--shard") + 4]
+        for c in sup.workers
+        if "--shard" in c.cmd
+    }
     assert shards == {f"registration-{i}": [str(i), "--shards", "3"] for i in range(3)}  # map replicas are not shards
 
 
@@ -82,17 +86,31 @@ def test_up_restarts_a_killed_worker_and_stops_cleanly(tmp_path):
     port = free_port()
     ep = f"tcp/127.0.0.1:{port}"
     deploy = REPO / "deploy"
-    (tmp_path / "up.json5").write_text(json.dumps({
-        "router": {"config": str(deploy / "router.json5"), "listen": ep},
-        "workers": [{"role": "inference", "config": str(deploy / "inference_worker.json5")},
+    (tmp_path / "up.json5").write_text(
+        json.dumps(
+            {
+                "router": {"config": str(deploy / "router.json5"), "listen": ep},
+                "workers": [
+                    {"role": "inference", "config": str(deploy / "inference_worker.json5")},
                     {"role": "registration", "config": str(deploy / "registration_worker.json5")},
-                    {"role": "map", "config": str(deploy / "map_service.json5")}],
-        "restart": {"backoff_initial_s": 0.5, "backoff_max_s": 4, "reset_after_s": 60},
-        "stop_timeout_s": 30, "log_dir": str(tmp_path / "logs")}))
+                    {"role": "map", "config": str(deploy / "map_service.json5")},
+                ],
+                "restart": {"backoff_initial_s": 0.5, "backoff_max_s": 4, "reset_after_s": 60},
+                "stop_timeout_s": 30,
+                "log_dir": str(tmp_path / "logs"),
+            }
+        )
+    )
     env = dict(os.environ, PYTHONPATH=str(REPO))
     err = open(tmp_path / "up.log", "w")
-    proc = subprocess.Popen([sys.executable, "-m", "occvo_cli", "up", "--json", "--config", str(tmp_path / "up.json5")],
-                            cwd=REPO, env=env, stdout=subprocess.PIPE, stderr=err, text=True)
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "occvo_cli", "up", "--json", "--config", str(tmp_path / "up.json5")],
+        cwd=REPO,
+        env=env,
+        stdout=subprocess.PIPE,
+        stderr=err,
+        text=True,
+    )
     pids: dict = {}
     try:
         scene = load_scene("synthetic:3", frames=4)  # the offline poses, while the service starts
@@ -125,7 +143,9 @@ def test_up_restarts_a_killed_worker_and_stops_cleanly(tmp_path):
                 time.sleep(0.2)
             assert new not in (None, old), "registration worker did not come back"
             pids["registration-0b"] = new
-            print(f"\nregistration worker SIGKILLed (pid {old}); back as pid {new} after {time.monotonic() - t_kill:.1f} s")
+            print(
+                f"\nregistration worker SIGKILLed (pid {old}); back as pid {new} after {time.monotonic() - t_kill:.1f} s"
+            )
             wait_alive(probe, WORKERS, timeout=10)
         finally:
             probe.close()
@@ -138,7 +158,9 @@ def test_up_restarts_a_killed_worker_and_stops_cleanly(tmp_path):
         crash = [e for e in events if e["event"] == "crashed"]
         assert len(crash) == 1 and crash[0]["name"] == "registration-0" and crash[0]["code"] == -signal.SIGKILL
         assert crash[0]["restart_in_s"] == 0.5 and crash[0]["how"] == "signal SIGKILL"
-        restarted = [e for e in events if e["event"] == "started" and e["name"] == "registration-0" and e["restarts"] == 1]
+        restarted = [
+            e for e in events if e["event"] == "started" and e["name"] == "registration-0" and e["restarts"] == 1
+        ]
         assert len(restarted) == 1 and restarted[0]["pid"] == new
         gap = restarted[0]["ts"] - crash[0]["ts"]
         print(f"crash noticed -> restarted after {gap:.2f} s (backoff 0.5 s)")
@@ -152,11 +174,15 @@ def test_up_restarts_a_killed_worker_and_stops_cleanly(tmp_path):
         stopped = next(e for e in events if e["event"] == "stopped" and e["logger"] == "occvo.up")
         assert stopped["exit_codes"] == {"inference-0": 0, "registration-0": 0, "map-0": 0, "router": 0}
         # workers stopped before the router: the router's log ends after every worker's
-        logs = {n: [json.loads(x) for x in (tmp_path / "logs" / f"{n}.log").read_text().splitlines() if x.startswith("{")]
-                for n in ("router", "inference-0", "registration-0", "map-0")}
+        logs = {
+            n: [json.loads(x) for x in (tmp_path / "logs" / f"{n}.log").read_text().splitlines() if x.startswith("{")]
+            for n in ("router", "inference-0", "registration-0", "map-0")
+        }
         assert logs["router"][-1]["event"] == "router stopped"
-        assert all(logs[n][-1]["event"] == "stopped" and logs[n][-1]["ts"] < logs["router"][-1]["ts"]
-                   for n in ("inference-0", "registration-0", "map-0"))
+        assert all(
+            logs[n][-1]["event"] == "stopped" and logs[n][-1]["ts"] < logs["router"][-1]["ts"]
+            for n in ("inference-0", "registration-0", "map-0")
+        )
         assert not [p for p in pids.values() if p and _alive(p)]
     finally:
         if proc.poll() is None:

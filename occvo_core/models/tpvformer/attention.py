@@ -30,7 +30,9 @@ def deformable_sample(values: list[torch.Tensor], locations: torch.Tensor, weigh
         # Points along the rows of the grid, queries along its columns: the weighted sum runs over a middle dimension
         # with contiguous queries inside (a sum over a short last dimension is several times slower on CPU).
         grid = (2 * locations[:, :, :, level] - 1).permute(0, 2, 3, 1, 4).reshape(n * m, p, q, 2)
-        sampled = F.grid_sample(value, grid, mode="bilinear", padding_mode="zeros", align_corners=False)  # (N*M, Ch, P, Q)
+        sampled = F.grid_sample(
+            value, grid, mode="bilinear", padding_mode="zeros", align_corners=False
+        )  # (N*M, Ch, P, Q)
         w = weights[:, :, :, level].permute(0, 2, 3, 1).reshape(n * m, 1, p, q)
         term = (sampled * w).sum(2)
         out = term if out is None else out + term
@@ -77,8 +79,17 @@ class ImageCrossAttention(nn.Module):
     otherwise (as published) around all its anchors in every camera that sees at least one of them.
     """
 
-    def __init__(self, embed_dims: int, num_heads: int, num_levels: int, anchors: tuple[int, ...], points: tuple[int, ...],
-                 query_chunk: int = 16384, visible_anchors_only: bool = False, depth_range: tuple[float, float] = (1.0, 80.0)):
+    def __init__(
+        self,
+        embed_dims: int,
+        num_heads: int,
+        num_levels: int,
+        anchors: tuple[int, ...],
+        points: tuple[int, ...],
+        query_chunk: int = 16384,
+        visible_anchors_only: bool = False,
+        depth_range: tuple[float, float] = (1.0, 80.0),
+    ):
         super().__init__()
         self.depth_range = depth_range
         self.c, self.m, self.l = embed_dims, num_heads, num_levels
@@ -93,9 +104,16 @@ class ImageCrossAttention(nn.Module):
             nn.init.zeros_(att.weight)
             nn.init.zeros_(att.bias)
 
-    def forward(self, queries: list[torch.Tensor], pos: list[torch.Tensor], feats: list[torch.Tensor],
-                ref_uv: list[torch.Tensor], ref_valid: list[torch.Tensor], ref_depth: list[torch.Tensor] | None = None,
-                depth_prob: torch.Tensor | None = None) -> list[torch.Tensor]:
+    def forward(
+        self,
+        queries: list[torch.Tensor],
+        pos: list[torch.Tensor],
+        feats: list[torch.Tensor],
+        ref_uv: list[torch.Tensor],
+        ref_valid: list[torch.Tensor],
+        ref_depth: list[torch.Tensor] | None = None,
+        depth_prob: torch.Tensor | None = None,
+    ) -> list[torch.Tensor]:
         """feats: L levels (B, Ncam, C, H_l, W_l); ref_uv[p] (B, Ncam, Q_p, D_p, 2) normalised (column, row) in [0, 1];
         ref_valid[p] (B, Ncam, Q_p, D_p): anchor in front of the camera and inside its image.
 
@@ -118,10 +136,16 @@ class ImageCrossAttention(nn.Module):
             x = q + qpos
             k = self.l * (npts // d)  # sampling points per head, anchor and camera over all levels
             # Rows (query, anchor): offsets (M, L, P/D, 2) and weights (M, L, P/D) of each, gathered per entry below.
-            offsets = self.sampling_offsets[p](x).view(b, nq, self.m, self.l, d, npts // d, 2).permute(0, 1, 4, 2, 3, 5, 6)
+            offsets = (
+                self.sampling_offsets[p](x).view(b, nq, self.m, self.l, d, npts // d, 2).permute(0, 1, 4, 2, 3, 5, 6)
+            )
             offsets = offsets.reshape(b, nq * d, self.m, self.l, npts // d, 2)
             weights = self.attention_weights[p](x).view(b, nq, self.m, self.l * npts).softmax(-1)
-            weights = weights.view(b, nq, self.m, self.l, d, npts // d).permute(0, 1, 4, 2, 3, 5).reshape(b, nq * d, self.m, k)
+            weights = (
+                weights.view(b, nq, self.m, self.l, d, npts // d)
+                .permute(0, 1, 4, 2, 3, 5)
+                .reshape(b, nq * d, self.m, k)
+            )
             out = []
             for bi in range(b):
                 tiled, ox, oy = tile_cameras([v[bi] for v in values])
@@ -141,7 +165,9 @@ class ImageCrossAttention(nn.Module):
                     cam, qi, di = chunk.unbind(1)
                     t, qd = len(cam), qi * d + di
                     px = uv[cam * nq * d + qd][:, None, None, None] * size + offsets[bi][qd] - 0.5  # level pixels
-                    px = torch.maximum(torch.minimum(px, size), torch.full_like(size, -1.0))  # zeros outside, as padding
+                    px = torch.maximum(
+                        torch.minimum(px, size), torch.full_like(size, -1.0)
+                    )  # zeros outside, as padding
                     origin = torch.stack([ox.view(1, self.l).expand(t, -1), oy[cam, None].expand(-1, self.l)], -1)
                     px = px + origin[:, None, :, None].to(dt)
                     grid = (2 * (px + 0.5) / hw - 1).permute(1, 2, 3, 0, 4).reshape(self.m, k, t, 2)
@@ -181,8 +207,9 @@ class CrossViewHybridAttention(nn.Module):
             nn.init.zeros_(att.weight)
             nn.init.zeros_(att.bias)
 
-    def forward(self, queries: list[torch.Tensor], pos: list[torch.Tensor], shape: tuple[int, int, int],
-                ref: list[torch.Tensor]) -> list[torch.Tensor]:
+    def forward(
+        self, queries: list[torch.Tensor], pos: list[torch.Tensor], shape: tuple[int, int, int], ref: list[torch.Tensor]
+    ) -> list[torch.Tensor]:
         """queries[p] (B, Q_p, C) for HW, ZH, WZ; ref[p] (Q_p, 3, A, 2): anchors of each query on each plane map."""
         h, w, z = shape
         b, ch = queries[0].shape[0], self.c // self.m
@@ -191,13 +218,17 @@ class CrossViewHybridAttention(nn.Module):
         for q, (rows, cols) in zip(queries, maps):
             v = self.value_proj(q).view(b, rows, cols, self.m, ch).permute(0, 3, 4, 1, 2)
             values.append(v.reshape(b * self.m, ch, rows, cols))
-        norm = torch.tensor([[c, r] for r, c in maps], dtype=queries[0].dtype, device=queries[0].device).view(1, 1, 1, 3, 1, 1, 2)
+        norm = torch.tensor([[c, r] for r, c in maps], dtype=queries[0].dtype, device=queries[0].device).view(
+            1, 1, 1, 3, 1, 1, 2
+        )
         outputs = []
         for p, (q, qpos) in enumerate(zip(queries, pos)):
             nq, a = q.shape[1], ref[p].shape[2]
             x = q + qpos
             offsets = self.sampling_offsets[p](x).view(b, nq, self.m, 3, a, self.p // a, 2)
-            weights = self.attention_weights[p](x).view(b, nq, self.m, 3 * self.p).softmax(-1).view(b, nq, self.m, 3, self.p)
+            weights = (
+                self.attention_weights[p](x).view(b, nq, self.m, 3 * self.p).softmax(-1).view(b, nq, self.m, 3, self.p)
+            )
             chunks = []
             for s in range(0, nq, self.query_chunk):
                 e = min(nq, s + self.query_chunk)

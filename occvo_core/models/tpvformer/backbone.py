@@ -24,8 +24,11 @@ class BasicBlock(nn.Module):
         self.bn1 = nn.BatchNorm2d(width)
         self.conv2 = nn.Conv2d(width, cout, 3, 1, 1, bias=False)
         self.bn2 = nn.BatchNorm2d(cout)
-        self.shortcut = (nn.Sequential(nn.Conv2d(cin, cout, 1, stride, bias=False), nn.BatchNorm2d(cout))
-                         if stride != 1 or cin != cout else nn.Identity())
+        self.shortcut = (
+            nn.Sequential(nn.Conv2d(cin, cout, 1, stride, bias=False), nn.BatchNorm2d(cout))
+            if stride != 1 or cin != cout
+            else nn.Identity()
+        )
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         y = F.relu(self.bn1(self.conv1(x)))
@@ -44,8 +47,11 @@ class Bottleneck(nn.Module):
         self.bn2 = nn.BatchNorm2d(width)
         self.conv3 = nn.Conv2d(width, cout, 1, bias=False)
         self.bn3 = nn.BatchNorm2d(cout)
-        self.shortcut = (nn.Sequential(nn.Conv2d(cin, cout, 1, stride, bias=False), nn.BatchNorm2d(cout))
-                         if stride != 1 or cin != cout else nn.Identity())
+        self.shortcut = (
+            nn.Sequential(nn.Conv2d(cin, cout, 1, stride, bias=False), nn.BatchNorm2d(cout))
+            if stride != 1 or cin != cout
+            else nn.Identity()
+        )
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         y = F.relu(self.bn1(self.conv1(x)))
@@ -60,8 +66,11 @@ class ResNet(nn.Module):
         super().__init__()
         block = Bottleneck if cfg.block == "bottleneck" else BasicBlock
         self.stem = nn.Sequential(
-            nn.Conv2d(3, cfg.stem_channels, 7, 2, 3, bias=False), nn.BatchNorm2d(cfg.stem_channels), nn.ReLU(inplace=True),
-            nn.MaxPool2d(3, 2, 1))
+            nn.Conv2d(3, cfg.stem_channels, 7, 2, 3, bias=False),
+            nn.BatchNorm2d(cfg.stem_channels),
+            nn.ReLU(inplace=True),
+            nn.MaxPool2d(3, 2, 1),
+        )
         cin, stages = cfg.stem_channels, []
         for i, (n, width) in enumerate(zip(cfg.layers, cfg.widths)):
             blocks = []
@@ -89,7 +98,9 @@ class FPN(nn.Module):
         super().__init__()
         self.lateral = nn.ModuleList(nn.Conv2d(c, out_channels, 1) for c in in_channels)
         self.output = nn.ModuleList(nn.Conv2d(out_channels, out_channels, 3, 1, 1) for _ in in_channels)
-        self.extra = nn.ModuleList(nn.Conv2d(out_channels, out_channels, 3, 2, 1) for _ in range(num_levels - len(in_channels)))
+        self.extra = nn.ModuleList(
+            nn.Conv2d(out_channels, out_channels, 3, 2, 1) for _ in range(num_levels - len(in_channels))
+        )
 
     def forward(self, feats: list[torch.Tensor]) -> list[torch.Tensor]:
         lat = [conv(f) for conv, f in zip(self.lateral, feats)]

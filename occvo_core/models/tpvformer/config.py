@@ -37,24 +37,42 @@ class TPVFormerConfig(_Section):
     dropout: float = Field(0.1, ge=0, lt=1)
     points_in_pillar: tuple[int, int, int] = (4, 32, 32)  # 3D anchors per query of the HW, ZH, WZ planes
     sampling_points: tuple[int, int, int] = (8, 64, 64)  # image sampling points per head and level, per plane
-    visible_anchors_only: bool = Field(False, description="image cross attention samples around only the anchors that land in "
-                                       "a camera's image (the published model: all anchors of a query the camera sees)")
-    depth_bins: int = Field(0, ge=0, description="depth-aware image cross attention: a depth head on the finest FPN level "
-                            "predicts this many log-spaced bins over depth_range; 0 = off (the published model)")
+    visible_anchors_only: bool = Field(
+        False,
+        description="image cross attention samples around only the anchors that land in "
+        "a camera's image (the published model: all anchors of a query the camera sees)",
+    )
+    depth_bins: int = Field(
+        0,
+        ge=0,
+        description="depth-aware image cross attention: a depth head on the finest FPN level "
+        "predicts this many log-spaced bins over depth_range; 0 = off (the published model)",
+    )
     depth_range: tuple[float, float] = (1.0, 80.0)
     hybrid_anchors: int = Field(4, ge=1, description="anchors on each other plane for cross-view hybrid attention")
     hybrid_points: int = Field(4, ge=1, description="sampling points per head per plane in cross-view hybrid attention")
     decoder_hidden: int = Field(512, ge=8)
     decoder_out: int = Field(256, ge=8)
-    decoder_activation: Literal["softplus", "relu"] = Field("softplus", description="relu: a third of softplus's cost on CPU")
-    decode_shape: tuple[int, int, int] | None = Field(None, description="run the voxel MLP here, then upsample the logits "
-                                                      "trilinearly to the grid; None = at the grid resolution")
-    plane_upsampling: Literal["bilinear", "deconv"] = Field("bilinear", description="planes to decode_shape: bilinear "
-                                                            "(then the decoder's first layer), or a learned transposed "
-                                                            "convolution per plane giving each sub-cell its own features")
+    decoder_activation: Literal["softplus", "relu"] = Field(
+        "softplus", description="relu: a third of softplus's cost on CPU"
+    )
+    decode_shape: tuple[int, int, int] | None = Field(
+        None,
+        description="run the voxel MLP here, then upsample the logits "
+        "trilinearly to the grid; None = at the grid resolution",
+    )
+    plane_upsampling: Literal["bilinear", "deconv"] = Field(
+        "bilinear",
+        description="planes to decode_shape: bilinear "
+        "(then the decoder's first layer), or a learned transposed "
+        "convolution per plane giving each sub-cell its own features",
+    )
     num_classes: int = NUM_CLASSES
-    free_logit_bias: float = Field(0.0, description="added to the free-class logit at inference: undoes the class "
-                                   "weighting's push towards occupied; calibrated on training scenes after training")
+    free_logit_bias: float = Field(
+        0.0,
+        description="added to the free-class logit at inference: undoes the class "
+        "weighting's push towards occupied; calibrated on training scenes after training",
+    )
     grid_shape: tuple[int, int, int] = OCC3D_GRID.shape
     lower: tuple[float, float, float] = OCC3D_GRID.lower
     upper: tuple[float, float, float] = OCC3D_GRID.upper
@@ -63,25 +81,34 @@ class TPVFormerConfig(_Section):
 
     @model_validator(mode="after")
     def _check(self) -> TPVFormerConfig:
-        for name, size, full in (("tpv_h", self.tpv_h, self.grid_shape[0]), ("tpv_w", self.tpv_w, self.grid_shape[1]),
-                                 ("tpv_z", self.tpv_z, self.grid_shape[2])):
+        for name, size, full in (
+            ("tpv_h", self.tpv_h, self.grid_shape[0]),
+            ("tpv_w", self.tpv_w, self.grid_shape[1]),
+            ("tpv_z", self.tpv_z, self.grid_shape[2]),
+        ):
             if size > full:
                 raise ValueError(f"{name}={size} is finer than the grid ({full})")
         if self.embed_dims % self.num_heads:
             raise ValueError(f"embed_dims {self.embed_dims} not divisible by num_heads {self.num_heads}")
         for a, p in zip(self.points_in_pillar, self.sampling_points):
             if p % a:
-                raise ValueError(f"sampling_points {self.sampling_points} must be multiples of points_in_pillar {self.points_in_pillar}")
+                raise ValueError(
+                    f"sampling_points {self.sampling_points} must be multiples of points_in_pillar {self.points_in_pillar}"
+                )
         if self.hybrid_points % self.hybrid_anchors:
             raise ValueError("hybrid_points must be a multiple of hybrid_anchors")
         if self.plane_upsampling == "deconv":
             if self.decode_shape is None:
                 raise ValueError("plane_upsampling 'deconv' needs a decode_shape")
-            for name, size, target in zip(("tpv_h", "tpv_w", "tpv_z"), (self.tpv_h, self.tpv_w, self.tpv_z), self.decode_shape):
+            for name, size, target in zip(
+                ("tpv_h", "tpv_w", "tpv_z"), (self.tpv_h, self.tpv_w, self.tpv_z), self.decode_shape
+            ):
                 f = target // size
                 if target % size or (f > 1 and f % 2):
-                    raise ValueError(f"plane_upsampling 'deconv': decode_shape {self.decode_shape} must be 1x or an even "
-                                     f"multiple of {name}={size}")
+                    raise ValueError(
+                        f"plane_upsampling 'deconv': decode_shape {self.decode_shape} must be 1x or an even "
+                        f"multiple of {name}={size}"
+                    )
         if self.backbone.num_levels < len(self.backbone.out_stages):
             raise ValueError("num_levels must be at least the number of out stages")
         return self
@@ -96,12 +123,35 @@ PRESETS: dict[str, TPVFormerConfig] = {
     # distribution (depth supervised in training by the renderer), ReLU decoder.
     "tiny": TPVFormerConfig(
         input_size=(200, 112),
-        backbone=BackboneConfig(block="basic", layers=(1, 1, 1, 1), stem_channels=16, widths=(16, 32, 48, 64),
-                                out_stages=(1, 2, 3), fpn_channels=48, num_levels=3),
-        tpv_h=50, tpv_w=50, tpv_z=8, embed_dims=48, num_heads=4, ffn_dims=96, num_layers=2, dropout=0.0,
-        points_in_pillar=(4, 8, 8), sampling_points=(4, 8, 8), visible_anchors_only=True, depth_bins=32, hybrid_anchors=2, hybrid_points=2,
-        decoder_hidden=32, decoder_out=32, decoder_activation="relu", decode_shape=(100, 100, 16),
-        plane_upsampling="deconv", decoder_chunk=100,
+        backbone=BackboneConfig(
+            block="basic",
+            layers=(1, 1, 1, 1),
+            stem_channels=16,
+            widths=(16, 32, 48, 64),
+            out_stages=(1, 2, 3),
+            fpn_channels=48,
+            num_levels=3,
+        ),
+        tpv_h=50,
+        tpv_w=50,
+        tpv_z=8,
+        embed_dims=48,
+        num_heads=4,
+        ffn_dims=96,
+        num_layers=2,
+        dropout=0.0,
+        points_in_pillar=(4, 8, 8),
+        sampling_points=(4, 8, 8),
+        visible_anchors_only=True,
+        depth_bins=32,
+        hybrid_anchors=2,
+        hybrid_points=2,
+        decoder_hidden=32,
+        decoder_out=32,
+        decoder_activation="relu",
+        decode_shape=(100, 100, 16),
+        plane_upsampling="deconv",
+        decoder_chunk=100,
     ),
 }
 

@@ -50,11 +50,20 @@ class EncoderLayer(nn.Module):
         super().__init__()
         c = cfg.embed_dims
         self.hybrid = CrossViewHybridAttention(c, cfg.num_heads, cfg.hybrid_points, cfg.query_chunk)
-        self.cross = ImageCrossAttention(c, cfg.num_heads, cfg.backbone.num_levels, cfg.points_in_pillar, cfg.sampling_points,
-                                         cfg.query_chunk, cfg.visible_anchors_only, tuple(cfg.depth_range))
+        self.cross = ImageCrossAttention(
+            c,
+            cfg.num_heads,
+            cfg.backbone.num_levels,
+            cfg.points_in_pillar,
+            cfg.sampling_points,
+            cfg.query_chunk,
+            cfg.visible_anchors_only,
+            tuple(cfg.depth_range),
+        )
         self.norms = nn.ModuleList(nn.LayerNorm(c) for _ in range(3))
-        self.ffn = nn.Sequential(nn.Linear(c, cfg.ffn_dims), nn.ReLU(inplace=True), nn.Dropout(cfg.dropout),
-                                 nn.Linear(cfg.ffn_dims, c))
+        self.ffn = nn.Sequential(
+            nn.Linear(c, cfg.ffn_dims), nn.ReLU(inplace=True), nn.Dropout(cfg.dropout), nn.Linear(cfg.ffn_dims, c)
+        )
         self.drop = nn.Dropout(cfg.dropout)
 
     def forward(self, tpv, pos, shape, hybrid_ref, feats, ref_uv, ref_valid, ref_depth=None, depth_prob=None):
@@ -74,28 +83,45 @@ class TPVFormer(nn.Module):
         self.input_proj = nn.Identity() if fpn == c else nn.Conv2d(fpn, c, 1)  # FPN width -> embed dims
         self.level_embed = nn.Parameter(torch.randn(cfg.backbone.num_levels, c) * 0.02)
         self.cams_embed = nn.Parameter(torch.randn(6, c) * 0.02)
-        self.queries = nn.ParameterDict({
-            "hw": nn.Parameter(torch.randn(h * w, c) * 0.02),
-            "zh": nn.Parameter(torch.randn(z * h, c) * 0.02),
-            "wz": nn.Parameter(torch.randn(w * z, c) * 0.02),
-        })
-        self.pos = nn.ModuleList([LearnedPositionalEncoding(c, h, w), LearnedPositionalEncoding(c, z, h),
-                                  LearnedPositionalEncoding(c, w, z)])
+        self.queries = nn.ParameterDict(
+            {
+                "hw": nn.Parameter(torch.randn(h * w, c) * 0.02),
+                "zh": nn.Parameter(torch.randn(z * h, c) * 0.02),
+                "wz": nn.Parameter(torch.randn(w * z, c) * 0.02),
+            }
+        )
+        self.pos = nn.ModuleList(
+            [LearnedPositionalEncoding(c, h, w), LearnedPositionalEncoding(c, z, h), LearnedPositionalEncoding(c, w, z)]
+        )
         self.layers = nn.ModuleList(EncoderLayer(cfg) for _ in range(cfg.num_layers))
         fpn_c = cfg.backbone.fpn_channels
-        self.depth_head = (nn.Sequential(nn.Conv2d(fpn_c, fpn_c, 3, padding=1), nn.ReLU(inplace=True), nn.Conv2d(fpn_c, cfg.depth_bins, 1))
-                           if cfg.depth_bins else None)
+        self.depth_head = (
+            nn.Sequential(
+                nn.Conv2d(fpn_c, fpn_c, 3, padding=1), nn.ReLU(inplace=True), nn.Conv2d(fpn_c, cfg.depth_bins, 1)
+            )
+            if cfg.depth_bins
+            else None
+        )
         act = nn.Softplus if cfg.decoder_activation == "softplus" else lambda: nn.ReLU(inplace=True)
-        self.decoder = nn.Sequential(nn.Linear(c, cfg.decoder_hidden), act(), nn.Linear(cfg.decoder_hidden, cfg.decoder_out),
-                                     act(), nn.Linear(cfg.decoder_out, cfg.num_classes))
+        self.decoder = nn.Sequential(
+            nn.Linear(c, cfg.decoder_hidden),
+            act(),
+            nn.Linear(cfg.decoder_hidden, cfg.decoder_out),
+            act(),
+            nn.Linear(cfg.decoder_out, cfg.num_classes),
+        )
         self.plane_up = None
-        if cfg.plane_upsampling == "deconv":  # learned upsampling replaces the bilinear one and the decoder's first layer
+        if (
+            cfg.plane_upsampling == "deconv"
+        ):  # learned upsampling replaces the bilinear one and the decoder's first layer
             self.decoder[0] = nn.Identity()
             shapes = [(h, w), (z, h), (w, z)]
             gx, gy, gz = cfg.decode_shape
             targets = [(gx, gy), (gz, gx), (gy, gz)]
-            self.plane_up = nn.ModuleList(_upsampler(c, cfg.decoder_hidden, tuple(t // n for t, n in zip(tg, sh)))
-                                          for sh, tg in zip(shapes, targets))
+            self.plane_up = nn.ModuleList(
+                _upsampler(c, cfg.decoder_hidden, tuple(t // n for t, n in zip(tg, sh)))
+                for sh, tg in zip(shapes, targets)
+            )
         nn.init.normal_(self.decoder[-1].weight, std=0.01)  # start near uniform class scores: a calm first loss
         nn.init.zeros_(self.decoder[-1].bias)
         self.register_buffer("image_mean", torch.tensor(IMAGE_MEAN).view(1, 3, 1, 1), persistent=False)
@@ -114,8 +140,12 @@ class TPVFormer(nn.Module):
         d_hw, d_zh, d_wz = cfg.points_in_pillar
         za, ya, xa = (lo[i] + (hi[i] - lo[i]) * _centres(n) for i, n in ((2, d_hw), (1, d_zh), (0, d_wz)))
         hw = torch.stack(torch.meshgrid(xs, ys, za, indexing="ij"), -1).flatten(0, 1)  # rows x, cols y, anchors z
-        zh = torch.stack(torch.meshgrid(zs, xs, ya, indexing="ij"), -1).flatten(0, 1)[..., [1, 2, 0]]  # (z, x, y) -> xyz
-        wz = torch.stack(torch.meshgrid(ys, zs, xa, indexing="ij"), -1).flatten(0, 1)[..., [2, 0, 1]]  # (y, z, x) -> xyz
+        zh = torch.stack(torch.meshgrid(zs, xs, ya, indexing="ij"), -1).flatten(0, 1)[
+            ..., [1, 2, 0]
+        ]  # (z, x, y) -> xyz
+        wz = torch.stack(torch.meshgrid(ys, zs, xa, indexing="ij"), -1).flatten(0, 1)[
+            ..., [2, 0, 1]
+        ]  # (y, z, x) -> xyz
         return [hw, zh, wz]
 
     def _hybrid_reference(self) -> list[torch.Tensor]:
@@ -138,8 +168,9 @@ class TPVFormer(nn.Module):
         wz = torch.stack([pair(Y, T), pair(T, Z), pair(Z, Y)], 2).flatten(0, 1)
         return [hw, zh, wz]
 
-    def project_anchors(self, intrinsics: torch.Tensor, cam_to_ego: torch.Tensor, image_hw: tuple[int, int],
-                        return_depth: bool = False):
+    def project_anchors(
+        self, intrinsics: torch.Tensor, cam_to_ego: torch.Tensor, image_hw: tuple[int, int], return_depth: bool = False
+    ):
         """Anchors -> per plane normalised pixel coordinates (B, Ncam, Q, D, 2) and validity (in front, in image);
         with `return_depth` also their depths along each camera's optical axis (B, Ncam, Q, D)."""
         ego_to_pix = intrinsics @ torch.linalg.inv(cam_to_ego)[..., :3, :]  # (B, Ncam, 3, 4)
@@ -164,8 +195,10 @@ class TPVFormer(nn.Module):
             raise ValueError(f"images must be (B, Ncam, 3, H, W), got {tuple(images.shape)}")
         b, ncam, _, ih, iw = images.shape
         if intrinsics.shape != (b, ncam, 3, 3) or cam_to_ego.shape != (b, ncam, 4, 4):
-            raise ValueError(f"intrinsics {tuple(intrinsics.shape)} / cam_to_ego {tuple(cam_to_ego.shape)} do not match "
-                             f"{ncam} cameras in a batch of {b}")
+            raise ValueError(
+                f"intrinsics {tuple(intrinsics.shape)} / cam_to_ego {tuple(cam_to_ego.shape)} do not match "
+                f"{ncam} cameras in a batch of {b}"
+            )
         if ncam > self.cams_embed.shape[0]:
             raise ValueError(f"{ncam} cameras given, the model has embeddings for {self.cams_embed.shape[0]}")
         x = (images.flatten(0, 1) - self.image_mean) / self.image_std
@@ -174,9 +207,15 @@ class TPVFormer(nn.Module):
         if self.depth_head is not None:  # depth distribution of every pixel of the finest level
             depth_prob = self.depth_head(levels[0]).softmax(1)
             depth_prob = depth_prob.view(b, ncam, *depth_prob.shape[1:])
-        feats = [f.view(b, ncam, *f.shape[1:]) + self.cams_embed[None, :ncam, :, None, None] + self.level_embed[lv, :, None, None]
-                 for lv, f in enumerate(map(self.input_proj, levels))]
-        ref_uv, ref_valid, ref_depth = self.project_anchors(intrinsics.float(), cam_to_ego.float(), (ih, iw), return_depth=True)
+        feats = [
+            f.view(b, ncam, *f.shape[1:])
+            + self.cams_embed[None, :ncam, :, None, None]
+            + self.level_embed[lv, :, None, None]
+            for lv, f in enumerate(map(self.input_proj, levels))
+        ]
+        ref_uv, ref_valid, ref_depth = self.project_anchors(
+            intrinsics.float(), cam_to_ego.float(), (ih, iw), return_depth=True
+        )
         if depth_prob is None:
             ref_depth = None
         cfg = self.cfg
@@ -193,8 +232,10 @@ class TPVFormer(nn.Module):
         """Planes to the decoding resolution; bilinear on each plane = trilinear on the broadcast volume."""
         gx, gy, gz = self.cfg.decode_shape or self.cfg.grid_shape
         sizes = [(gx, gy), (gz, gx), (gy, gz)]
-        return [p if tuple(p.shape[-2:]) == s else F.interpolate(p, size=s, mode="bilinear", align_corners=False)
-                for p, s in zip(planes, sizes)]
+        return [
+            p if tuple(p.shape[-2:]) == s else F.interpolate(p, size=s, mode="bilinear", align_corners=False)
+            for p, s in zip(planes, sizes)
+        ]
 
     def decode(self, planes: list[torch.Tensor]) -> torch.Tensor:
         """Broadcast and sum the planes -> MLP -> logits (B, classes, X, Y, Z) on the grid.
@@ -226,8 +267,9 @@ class TPVFormer(nn.Module):
         gx, gy, gz = self.cfg.grid_shape
         if (x, y) != (gx, gy):
             if z != gz:
-                logits = F.interpolate(logits.permute(0, 4, 1, 2, 3), size=(gx, gy, gz), mode="trilinear",
-                                       align_corners=False).permute(0, 2, 3, 4, 1)
+                logits = F.interpolate(
+                    logits.permute(0, 4, 1, 2, 3), size=(gx, gy, gz), mode="trilinear", align_corners=False
+                ).permute(0, 2, 3, 4, 1)
             else:  # z already at grid resolution: trilinear = bilinear over (x, y), done channels-last
                 flat = logits.reshape(b, x, y, z * c).permute(0, 3, 1, 2)
                 flat = F.interpolate(flat, size=(gx, gy), mode="bilinear", align_corners=False)

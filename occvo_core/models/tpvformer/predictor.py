@@ -19,8 +19,9 @@ class InvalidCameraFrameError(OccVOError, ValueError):
     """Camera images or calibration that the network cannot take."""
 
 
-def confident_labels(labels: torch.Tensor, confidence: torch.Tensor | None, min_confidence: float,
-                     min_ground_confidence: float) -> torch.Tensor:
+def confident_labels(
+    labels: torch.Tensor, confidence: torch.Tensor | None, min_confidence: float, min_ground_confidence: float
+) -> torch.Tensor:
     """labels with every voxel whose confidence is below its threshold (ground classes: min_ground_confidence)
     set free."""
     if confidence is None or (min_confidence <= 0 and min_ground_confidence <= 0):
@@ -39,8 +40,13 @@ class OccupancyPredictor:
     odometry fed with them is pulled towards "no motion".
     """
 
-    def __init__(self, checkpoint: str | Path, device: str | None = None, min_confidence: float = 0.0,
-                 min_ground_confidence: float = 0.0):
+    def __init__(
+        self,
+        checkpoint: str | Path,
+        device: str | None = None,
+        min_confidence: float = 0.0,
+        min_ground_confidence: float = 0.0,
+    ):
         for name, v in (("min_confidence", min_confidence), ("min_ground_confidence", min_ground_confidence)):
             if not 0.0 <= v < 1.0:
                 raise ValueError(f"{name} must be in [0, 1), got {v}")
@@ -53,7 +59,9 @@ class OccupancyPredictor:
 
     def predict(self, images, intrinsics, cam_to_ego) -> tuple[np.ndarray, np.ndarray]:
         """Sparse output: occupied voxel indices (N,3) and their labels (N,) uint8."""
-        grid = self.predict_grid(np.stack(list(images)) if isinstance(images, (list, tuple)) else images, intrinsics, cam_to_ego)
+        grid = self.predict_grid(
+            np.stack(list(images)) if isinstance(images, (list, tuple)) else images, intrinsics, cam_to_ego
+        )
         occupied = grid != FREE
         return np.argwhere(occupied), grid[occupied]
 
@@ -64,17 +72,24 @@ class OccupancyPredictor:
         return confident_labels(labels, confidence, *thresholds).to(torch.uint8).cpu().numpy()
 
     @torch.no_grad()
-    def predict_labels(self, images: np.ndarray, intrinsics: np.ndarray, cam_to_ego: np.ndarray,
-                       with_confidence: bool = True) -> tuple[torch.Tensor, torch.Tensor | None]:
+    def predict_labels(
+        self, images: np.ndarray, intrinsics: np.ndarray, cam_to_ego: np.ndarray, with_confidence: bool = True
+    ) -> tuple[torch.Tensor, torch.Tensor | None]:
         """The most likely class of every voxel (200,200,16) and, with_confidence, its softmax probability; no
         threshold applied (predict_grid applies them)."""
-        images, intrinsics, cam_to_ego = np.asarray(images), np.asarray(intrinsics, np.float32), np.asarray(cam_to_ego, np.float32)
+        images, intrinsics, cam_to_ego = (
+            np.asarray(images),
+            np.asarray(intrinsics, np.float32),
+            np.asarray(cam_to_ego, np.float32),
+        )
         if images.ndim != 4 or images.shape[0] != 6 or images.shape[-1] != 3:
             raise InvalidCameraFrameError(f"images must be (6, H, W, 3), got {images.shape}")
         if images.dtype != np.uint8:
             raise InvalidCameraFrameError(f"images must be uint8 RGB, got {images.dtype}")
         if intrinsics.shape != (6, 3, 3) or cam_to_ego.shape != (6, 4, 4):
-            raise InvalidCameraFrameError(f"calibration must be (6,3,3) and (6,4,4), got {intrinsics.shape} and {cam_to_ego.shape}")
+            raise InvalidCameraFrameError(
+                f"calibration must be (6,3,3) and (6,4,4), got {intrinsics.shape} and {cam_to_ego.shape}"
+            )
         if not (np.all(np.isfinite(intrinsics)) and np.all(np.isfinite(cam_to_ego))):
             raise InvalidCameraFrameError("calibration has non-finite values")
         if np.any(np.abs(np.linalg.det(cam_to_ego[:, :3, :3]) - 1) > 1e-3):

@@ -51,4 +51,3 @@ def grid_clusters(points, eps):
     for i in range(n):
         parent[i] = _find(parent, i)
     return parent
-

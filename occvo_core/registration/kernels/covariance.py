@@ -82,8 +82,14 @@ def plane_covariances(points, ijk, grid, shape, radius, epsilon):
                     covs[n, a, b] = 1.0 if a == b else 0.0
             continue
         mx, my, mz = sx / cnt, sy / cnt, sz / cnt
-        nx, ny, nz = _smallest_eigenvector(sxx / cnt - mx * mx, sxy / cnt - mx * my, sxz / cnt - mx * mz,
-                                           syy / cnt - my * my, syz / cnt - my * mz, szz / cnt - mz * mz)
+        nx, ny, nz = _smallest_eigenvector(
+            sxx / cnt - mx * mx,
+            sxy / cnt - mx * my,
+            sxz / cnt - mx * mz,
+            syy / cnt - my * my,
+            syz / cnt - my * mz,
+            szz / cnt - mz * mz,
+        )
         s = 1.0 - epsilon
         covs[n, 0, 0] = 1.0 - s * nx * nx
         covs[n, 1, 1] = 1.0 - s * ny * ny
@@ -129,4 +135,3 @@ def rigid_motions(pos, cov, rot, trans, group):
     for n in prange(pos.shape[0]):
         rigid_motion(rot, trans, group[n], pos[n, 0], pos[n, 1], pos[n, 2], cov[n], out_pos[n], out_cov[n])
     return out_pos, out_cov
-

@@ -17,8 +17,14 @@ def _inv3_sym(a, b, c, d, e, f):
     B = c * e - b * f
     C = b * e - c * d
     inv_det = 1.0 / (a * A + b * B + c * C)
-    return (A * inv_det, B * inv_det, C * inv_det, (a * f - c * c) * inv_det, (b * c - a * e) * inv_det,
-            (a * d - b * b) * inv_det)
+    return (
+        A * inv_det,
+        B * inv_det,
+        C * inv_det,
+        (a * f - c * c) * inv_det,
+        (b * c - a * e) * inv_det,
+        (a * d - b * b) * inv_det,
+    )
 
 
 @njit(cache=CACHE, nogil=True, inline="always")
@@ -55,10 +61,14 @@ def _add_pair(n, m, src, src_cov, rot, trans, map_pos, map_cov, robust_scale, ou
     # Cauchy weight on the Mahalanobis error: one bad pair cannot outvote a surface
     w = 1.0 if robust_scale <= 0.0 else 1.0 / (1.0 + e / robust_scale)
     # J = [[q]_x, -I]: columns (0, q2, -q1), (-q2, 0, q0), (q1, -q0, 0), -e_x, -e_y, -e_z. T = J^T info (6 x 3)
-    t = ((q2 * i01 - q1 * i02, q2 * i11 - q1 * i12, q2 * i12 - q1 * i22),
-         (-q2 * i00 + q0 * i02, -q2 * i01 + q0 * i12, -q2 * i02 + q0 * i22),
-         (q1 * i00 - q0 * i01, q1 * i01 - q0 * i11, q1 * i02 - q0 * i12),
-         (-i00, -i01, -i02), (-i01, -i11, -i12), (-i02, -i12, -i22))
+    t = (
+        (q2 * i01 - q1 * i02, q2 * i11 - q1 * i12, q2 * i12 - q1 * i22),
+        (-q2 * i00 + q0 * i02, -q2 * i01 + q0 * i12, -q2 * i02 + q0 * i22),
+        (q1 * i00 - q0 * i01, q1 * i01 - q0 * i11, q1 * i02 - q0 * i12),
+        (-i00, -i01, -i02),
+        (-i01, -i11, -i12),
+        (-i02, -i12, -i22),
+    )
     cols = ((0.0, q2, -q1), (-q2, 0.0, q0), (q1, -q0, 0.0), (-1.0, 0.0, 0.0), (0.0, -1.0, 0.0), (0.0, 0.0, -1.0))
     k = 0
     for u in range(6):
@@ -71,8 +81,29 @@ def _add_pair(n, m, src, src_cov, rot, trans, map_pos, map_cov, robust_scale, ou
 
 
 @njit(cache=CACHE, nogil=True)
-def _linearise_range(lo, hi, src, src_cov, src_lab, rot, trans, map_pos, map_cov, map_lab, usable, grid, origin, dims,
-                     voxel, radius, max_d2, label_filter, robust_scale, pairs, out):
+def _linearise_range(
+    lo,
+    hi,
+    src,
+    src_cov,
+    src_lab,
+    rot,
+    trans,
+    map_pos,
+    map_cov,
+    map_lab,
+    usable,
+    grid,
+    origin,
+    dims,
+    voxel,
+    radius,
+    max_d2,
+    label_filter,
+    robust_scale,
+    pairs,
+    out,
+):
     """Search the nearest map point of sources lo..hi, record it in pairs (-1: none kept) and add the GICP terms
     of the kept pairs into out = (H upper triangle 21, g 6, cost, found, kept)."""
     q = np.empty(3)
@@ -121,8 +152,26 @@ def gicp_linearise_pairs(src, src_cov, rot, trans, map_pos, map_cov, pairs, robu
 
 
 @njit(cache=CACHE, nogil=True, parallel=True)
-def gicp_linearise(src, src_cov, src_lab, rot, trans, map_pos, map_cov, map_lab, usable, grid, origin, dims, voxel,
-                   radius, max_dist, label_filter, robust_scale, pairs=None):
+def gicp_linearise(
+    src,
+    src_cov,
+    src_lab,
+    rot,
+    trans,
+    map_pos,
+    map_cov,
+    map_lab,
+    usable,
+    grid,
+    origin,
+    dims,
+    voxel,
+    radius,
+    max_dist,
+    label_filter,
+    robust_scale,
+    pairs=None,
+):
     """One Gauss-Newton step of GICP: H, g of the Mahalanobis cost, plus counts of pairs found and kept; the kept
     pairs go into `pairs` (map index per source, -1 none) when given.
     Sums run over CHUNKS fixed slices of the sources, added in order."""
@@ -132,8 +181,27 @@ def gicp_linearise(src, src_cov, src_lab, rot, trans, map_pos, map_cov, map_lab,
     parts = np.zeros((CHUNKS, 30))
     max_d2 = max_dist * max_dist
     for c in prange(CHUNKS):
-        _linearise_range(n * c // CHUNKS, n * (c + 1) // CHUNKS, src, src_cov, src_lab, rot, trans, map_pos, map_cov,
-                         map_lab, usable, grid, origin, dims, voxel, radius, max_d2, label_filter, robust_scale,
-                         pairs, parts[c])
+        _linearise_range(
+            n * c // CHUNKS,
+            n * (c + 1) // CHUNKS,
+            src,
+            src_cov,
+            src_lab,
+            rot,
+            trans,
+            map_pos,
+            map_cov,
+            map_lab,
+            usable,
+            grid,
+            origin,
+            dims,
+            voxel,
+            radius,
+            max_d2,
+            label_filter,
+            robust_scale,
+            pairs,
+            parts[c],
+        )
     return _sum_parts(parts)
-

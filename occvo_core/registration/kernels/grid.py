@@ -30,7 +30,14 @@ def surface_mask(ijk, grid, shape):
             continue
         s1, s2 = shape[1] * shape[2], shape[2]
         c = (i * shape[1] + j) * shape[2] + k
-        if grid[c - s1] >= 0 and grid[c + s1] >= 0 and grid[c - s2] >= 0 and grid[c + s2] >= 0 and grid[c - 1] >= 0 and grid[c + 1] >= 0:
+        if (
+            grid[c - s1] >= 0
+            and grid[c + s1] >= 0
+            and grid[c - s2] >= 0
+            and grid[c + s2] >= 0
+            and grid[c - 1] >= 0
+            and grid[c + 1] >= 0
+        ):
             out[n] = False
     return out
 
@@ -63,4 +70,3 @@ def surface_voxels(ijk, shape):
         n = keep[a]
         grid[(ijk[n, 0] * shape[1] + ijk[n, 1]) * shape[2] + ijk[n, 2]] = a
     return keep, grid
-

@@ -83,4 +83,3 @@ def gather_row_bytes(arr, keep):
         if k != i:
             for j in range(w):
                 arr[i, j] = arr[k, j]
-

@@ -34,7 +34,7 @@ def window_voxels(keys, alive, f, t0, pos, label, n, lower, upper, t):
     n_cells = dims[0] * dims[1] * dims[2]
     grid = np.empty(n_cells, np.int32)
     for c in prange(CHUNKS):
-        grid[n_cells * c // CHUNKS: n_cells * (c + 1) // CHUNKS] = -1
+        grid[n_cells * c // CHUNKS : n_cells * (c + 1) // CHUNKS] = -1
     inside = np.empty(n, np.bool_)
     counts = np.zeros(CHUNKS + 1, np.int64)
     for c in prange(CHUNKS):  # the scan of every row is the cost: count each slice's rows in parallel
@@ -159,4 +159,3 @@ def pool_voxels(pos, cov, labels, usable, weight, votes_in, voxel, origin, dims,
                 best = v
         out_lab[s] = best
     return out_pos, out_cov, out_lab, grid, count, votes
-

@@ -81,8 +81,9 @@ def cell_sort(points, cell):
         dims[a] = int((points[:, a].max() - lo[a]) / cell) + 1
     cell_of = np.empty(n, np.int64)
     for i in range(n):
-        cell_of[i] = ((int((points[i, 0] - lo[0]) / cell) * dims[1] + int((points[i, 1] - lo[1]) / cell)) * dims[2]
-                      + int((points[i, 2] - lo[2]) / cell))
+        cell_of[i] = (int((points[i, 0] - lo[0]) / cell) * dims[1] + int((points[i, 1] - lo[1]) / cell)) * dims[
+            2
+        ] + int((points[i, 2] - lo[2]) / cell)
     start = np.zeros(dims[0] * dims[1] * dims[2] + 1, np.int64)
     for i in range(n):
         start[cell_of[i] + 1] += 1
@@ -129,4 +130,3 @@ def near_any(queries, points, radius):
                 break
         out[q] = found
     return out
-

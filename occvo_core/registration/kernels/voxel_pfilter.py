@@ -172,4 +172,3 @@ def persistent_in_tiles(pos, alive, f, last, t0, between, n, threshold, use_p_in
         out[n_out] = r
         n_out += 1
     return out[:n_out]
-

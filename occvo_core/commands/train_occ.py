@@ -19,6 +19,8 @@ def add_parser(sub) -> None:
     p.add_argument("--threads", type=int, default=1, help="torch CPU threads (the machine is shared)")
     p.add_argument("--prerender", type=int, metavar="JOBS", help="first render every training frame into --cache in JOBS "
                    "processes, before the training clock starts (rendering is data making, not training)")
+    p.add_argument("--resume", type=Path, metavar="CKPT", help="continue from this checkpoint (and the .state.pt beside "
+                   "it: optimizer, step count, loss history); --minutes is this run's budget")
     p.set_defaults(func=run)
 
 
@@ -38,7 +40,8 @@ def run(args) -> int:
         n = prerender(args.seeds, args.frames, args.stride, cfg.input_size, args.cache, args.prerender)
         print(f"prerendered {n} frames of {len(args.seeds)} seeds into {args.cache}")
     result = train(cfg, args.out, args.minutes, args.seeds, frames=args.frames, stride=args.stride, lr=args.lr,
-                   max_steps=args.max_steps, preset_name=args.preset, cache_dir=args.cache)
+                   max_steps=args.max_steps, preset_name=args.preset, cache_dir=args.cache,
+                   resume=args.resume)
     tail = sum(result.losses[-20:]) / max(1, len(result.losses[-20:]))
     print(f"trained {result.steps} steps in {result.seconds / 60:.1f} min; loss {result.losses[0]:.3f} -> {tail:.3f} (mean of last 20)")
     print(f"checkpoint: {result.checkpoint}")

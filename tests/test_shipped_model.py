@@ -11,14 +11,21 @@ import torch
 
 from occvo_core.cameras import nuscenes_rig
 from occvo_core.models.metrics import OccMetrics
-from occvo_core.models.tpvformer import (CheckpointMismatchError, OccupancyPredictor, TPVFormer, load_checkpoint, preset,
-                                         save_checkpoint, shipped_checkpoint)
+from occvo_core.models.tpvformer import (
+    CheckpointMismatchError,
+    OccupancyPredictor,
+    TPVFormer,
+    load_checkpoint,
+    preset,
+    save_checkpoint,
+    shipped_checkpoint,
+)
 from occvo_core.models.tpvformer.checkpoint import read_checkpoint, save_half
 from occvo_core.models.train import SyntheticOccDataset, make_sample, train
 
 # Held-out figures of the shipped checkpoint on the frames below (docs/model.md), less a margin for other CPUs' maths.
-ONE_FRAME_GEOMETRY_IOU = 0.0
-TWO_FRAMES_GEOMETRY_IOU, TWO_FRAMES_MIOU = 0.0, 0.0
+ONE_FRAME_GEOMETRY_IOU = 0.55  # measured 0.593
+TWO_FRAMES_GEOMETRY_IOU, TWO_FRAMES_MIOU = 0.54, 0.21  # measured 0.578, 0.235
 
 
 def micro():
@@ -75,11 +82,23 @@ def test_the_shipped_checkpoint_is_small_loads_as_fp32_and_predicts_a_held_out_f
 def test_eval_occ_re_evaluates_the_shipped_checkpoint_on_held_out_seeds(tmp_path):
     out = tmp_path / "eval.json"
     proc = subprocess.run([sys.executable, "-m", "occvo_core.cli", "eval-occ", "--seeds", "1000", "1001", "--stride", "20",
-                           "--device", "cpu", "--json", str(out)], capture_output=True, text=True, timeout=300)
+                           "--device", "cpu", "--json", str(out)], capture_output=True, text=True, timeout=300,
+                          check=False)
     assert proc.returncode == 0, proc.stderr
     summary = json.loads(out.read_text())
     assert summary["checkpoint"] == str(shipped_checkpoint()) and summary["frames"] == 2
     assert summary["geometry_iou"] >= TWO_FRAMES_GEOMETRY_IOU and summary["miou"] >= TWO_FRAMES_MIOU, summary
+
+
+@pytest.mark.slow  # two frames rendered, predicted and registered: ~30 s on one loaded core
+def test_occvo_run_from_images_uses_the_shipped_checkpoint_by_default(tmp_path):
+    out = tmp_path / "out"
+    proc = subprocess.run([sys.executable, "-m", "occvo_core.cli", "run", "--synthetic", "--from-images", "--seed", "1000",
+                           "--frames", "2", "--threads", "1", "--out", str(out), "--quiet"], capture_output=True, text=True,
+                          timeout=300, check=False)
+    assert proc.returncode == 0, proc.stderr
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["frames"] == 2 and summary["scene"].endswith("-from-images")
 
 
 @pytest.mark.slow  # 3 + 2 steps of a toy-sized model: ~15 s on one loaded core
@@ -100,6 +119,10 @@ def test_training_resumes_from_its_checkpoint(tmp_path):
     assert again.steps == 5 and again.losses[:3] == first.losses and len(again.losses) == 5
     meta = load_checkpoint(again.checkpoint).meta
     assert meta["steps"] == 5 and meta["seconds"] > first.seconds
+    lone = tmp_path / "lone.pt"  # a checkpoint without its .state.pt: its weights and step count, a fresh optimizer
+    lone.write_bytes(first.checkpoint.read_bytes())
+    alone = train(cfg, tmp_path / "e", minutes=5, seeds=[], max_steps=1, progress=False, dataset=samples, resume=lone)
+    assert alone.steps == 4 and len(alone.losses) == 1
     other = save_checkpoint(tmp_path / "other.pt", TPVFormer(micro().model_copy(update={"embed_dims": 8})))
     with pytest.raises(CheckpointMismatchError):
         train(cfg, tmp_path / "d", minutes=5, seeds=[], max_steps=1, progress=False, dataset=samples, resume=other)

@@ -327,12 +327,15 @@ def calibrate_free_bias(model: TPVFormer, samples, candidates=tuple(np.arange(0.
 
 
 def _resume_state(resume: str | Path | None) -> dict:
-    """What a resumed run continues from: the .state.pt beside the checkpoint, or nothing (weights only)."""
+    """What a resumed run continues from: the .state.pt beside the checkpoint, else the step count and seconds of
+    the checkpoint's meta (weights only: a fresh optimizer)."""
     if resume is None:
         return {}
-    read_checkpoint(resume)  # one clear error for a missing or foreign file
+    meta = read_checkpoint(resume).get("meta", {})  # one clear error for a missing or foreign file
     path = Path(resume).with_suffix(".state.pt")
-    return torch.load(path, map_location="cpu", weights_only=True) if path.is_file() else {}
+    if path.is_file():
+        return torch.load(path, map_location="cpu", weights_only=True)
+    return {"step": int(meta.get("steps") or 0), "seconds": float(meta.get("seconds") or 0.0)}  # weights only
 
 
 def _save(path, model, losses, step, seconds, seeds, preset_name, opt=None, aux_head=None):

@@ -34,7 +34,7 @@ def add_parser(sub) -> None:
     p.add_argument("--synthetic", action="store_true", help="a synthetic scene (the default when no --input is given)")
     p.add_argument("--from-images", action="store_true",
                    help="render the synthetic scene's six cameras and predict occupancy with --checkpoint")
-    p.add_argument("--checkpoint", type=Path, help="TPV-Former checkpoint for --from-images (occvo train-occ writes one)")
+    p.add_argument("--checkpoint", type=Path, help="TPV-Former checkpoint for --from-images (default: the trained tiny one that ships)")
     p.add_argument("--min-confidence", type=float, default=0.0, help="--from-images: voxels the network is less "
                    "sure of than this (softmax of its class) are free")
     p.add_argument("--min-ground-confidence", type=float, default=0.0, help="--from-images: the same for the ground classes")
@@ -71,8 +71,6 @@ def run(args) -> int:
         return _list_scenes(args.input)
     if args.input is not None and (args.synthetic or args.from_images):
         raise ConfigError("--input reads a recorded scene; --synthetic and --from-images make one: give one or the other")
-    if args.from_images and args.checkpoint is None:
-        raise ConfigError("--from-images needs --checkpoint (a model from occvo train-occ)")
     if args.input is None:
         from occvo_core.sim import SyntheticScene
 
@@ -81,7 +79,9 @@ def run(args) -> int:
             from occvo_core.models.image_source import ImageOccupancySource
             from occvo_core.models.tpvformer.predictor import OccupancyPredictor
 
-            source = ImageOccupancySource(source, OccupancyPredictor(args.checkpoint, min_confidence=args.min_confidence,
+            from occvo_core.models.tpvformer.checkpoint import shipped_checkpoint
+
+            source = ImageOccupancySource(source, OccupancyPredictor(args.checkpoint or shipped_checkpoint(), min_confidence=args.min_confidence,
                                                                      min_ground_confidence=args.min_ground_confidence))
     else:
         source = open_scene(args.input, gt=args.gt, scene=args.scene, mask=args.mask)

@@ -23,6 +23,8 @@ def add_parser(sub) -> None:
                    "processes, before the training clock starts (rendering is data making, not training)")
     p.add_argument("--json", action="store_true", help="steps, seconds, losses and the checkpoint path as JSON on stdout")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
+    p.add_argument("--resume", type=Path, metavar="CKPT", help="continue from this checkpoint (and the .state.pt beside "
+                   "it: optimizer, step count, loss history); --minutes is this run's budget")
     p.set_defaults(func=run)
 
 
@@ -46,7 +48,8 @@ def run(args) -> int:
                       progress=not args.quiet)
         print(f"occvo train-occ: prerendered {n} frames of {len(args.seeds)} seeds into {args.cache}", file=sys.stderr)
     result = train(cfg, args.out, args.minutes, args.seeds, frames=args.frames, stride=args.stride, lr=args.lr,
-                   max_steps=args.max_steps, preset_name=args.preset, cache_dir=args.cache, progress=not args.quiet)
+                   max_steps=args.max_steps, preset_name=args.preset, cache_dir=args.cache, progress=not args.quiet,
+                   resume=args.resume)
     tail = sum(result.losses[-20:]) / max(1, len(result.losses[-20:]))
     if args.json:
         print(json.dumps({"steps": result.steps, "seconds": result.seconds, "loss_first": result.losses[0],

@@ -5,6 +5,7 @@ from occvo_core.models.tpvformer.checkpoint import (
     CheckpointMismatchError,
     load_checkpoint,
     save_checkpoint,
+    shipped_checkpoint,
 )
 from occvo_core.models.tpvformer.config import PRESETS, TPVFormerConfig, preset
 from occvo_core.models.tpvformer.device import autocast, select_device
@@ -13,5 +14,5 @@ from occvo_core.models.tpvformer.predictor import InvalidCameraFrameError, Occup
 
 __all__ = [
     "PRESETS", "CheckpointError", "CheckpointMismatchError", "InvalidCameraFrameError", "OccupancyPredictor", "TPVFormer", "TPVFormerConfig", "autocast",
-    "load_checkpoint", "preset", "save_checkpoint", "select_device",
+    "load_checkpoint", "preset", "save_checkpoint", "select_device", "shipped_checkpoint",
 ]

@@ -9,7 +9,9 @@ from pathlib import Path
 def add_parser(sub) -> None:
     p = sub.add_parser("eval-occ", help="mIoU and geometry IoU of a TPV-Former checkpoint inside the camera mask")
     p.add_argument("--checkpoint", type=Path, help="default: the trained tiny checkpoint that ships with occvo")
-    p.add_argument("--seeds", type=int, nargs="+", default=[1000, 1001, 1002, 1003, 1004], help="held-out synthetic seeds")
+    p.add_argument(
+        "--seeds", type=int, nargs="+", default=[1000, 1001, 1002, 1003, 1004], help="held-out synthetic seeds"
+    )
     p.add_argument("--frames", type=int, default=20, help="frames per scene")
     p.add_argument("--stride", type=int, default=5, help="evaluate every n-th frame")
     p.add_argument("--device", help="cpu or cuda (default: cuda when present)")
@@ -33,8 +35,9 @@ def run(args) -> int:
     device = select_device(args.device)
     args.checkpoint = args.checkpoint or shipped_checkpoint()
     model = load_checkpoint(args.checkpoint, device=device)
-    metrics = evaluate(model, args.seeds, frames=args.frames, stride=args.stride, device=device,
-                       progress=not args.quiet)
+    metrics = evaluate(
+        model, args.seeds, frames=args.frames, stride=args.stride, device=device, progress=not args.quiet
+    )
     summary = metrics.summary()
     summary.update({"checkpoint": str(args.checkpoint), "seeds": args.seeds})
     if args.output:
@@ -45,6 +48,8 @@ def run(args) -> int:
     width = max(len(k) for k in summary["per_class_iou"])
     for name, iou in summary["per_class_iou"].items():
         print(f"  {name:<{width}}  {'   n/a' if iou is None else f'{100 * iou:6.2f}'}")
-    print(f"mIoU (17 classes): {100 * summary['miou']:.2f}   geometry IoU: {100 * summary['geometry_iou']:.2f}   "
-          f"({summary['frames']} frames, seeds {args.seeds}, inside the camera mask)")
+    print(
+        f"mIoU (17 classes): {100 * summary['miou']:.2f}   geometry IoU: {100 * summary['geometry_iou']:.2f}   "
+        f"({summary['frames']} frames, seeds {args.seeds}, inside the camera mask)"
+    )
     return 0

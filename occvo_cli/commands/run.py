@@ -14,35 +14,64 @@ def add_parser(sub) -> None:
     p = sub.add_parser("run", help="run OCC-VO over a scene (a synthetic one when no --input is given)")
     p.add_argument("--input", type=Path, help="scene folder: OCC-VO release occupancy/<scene>/ or Occ3D scene folder")
     p.add_argument("--scene", help="with an Occ3D-nuScenes root as --input (annotations.json + gts/): the scene to run")
-    p.add_argument("--list-scenes", action="store_true",
-                   help="list the scenes of the Occ3D-nuScenes root --input and exit")
-    p.add_argument("--mask", choices=("camera", "lidar", "none"), default="camera",
-                   help="Occ3D input: the visibility mask whose voxels make a frame (default: camera)")
+    p.add_argument(
+        "--list-scenes", action="store_true", help="list the scenes of the Occ3D-nuScenes root --input and exit"
+    )
+    p.add_argument(
+        "--mask",
+        choices=("camera", "lidar", "none"),
+        default="camera",
+        help="Occ3D input: the visibility mask whose voxels make a frame (default: camera)",
+    )
     p.add_argument("--gt", type=Path, help="ground-truth trajectory (KITTI or TUM) for APE")
     p.add_argument("--out", type=Path, default=Path("occvo-out"), help="output folder (default: occvo-out)")
     p.add_argument("--config", type=Path, help="OccVOConfig as JSON/JSON5")
     p.add_argument("--no-semantic-filter", action="store_true", help="switch the semantic label filter off")
     p.add_argument("--no-dynamic-filter", action="store_true", help="switch the dynamic object filter off")
     p.add_argument("--no-pfilter", action="store_true", help="switch the voxel pfilter off")
-    p.add_argument("--threads", type=int, default=0, help="cores the registration kernels may use (default 0: all); "
-                   "the result does not depend on it")
-    p.add_argument("--skip-bad-frames", action="store_true", help="skip frames that fail validation instead of stopping")
+    p.add_argument(
+        "--threads",
+        type=int,
+        default=0,
+        help="cores the registration kernels may use (default 0: all); the result does not depend on it",
+    )
+    p.add_argument(
+        "--skip-bad-frames", action="store_true", help="skip frames that fail validation instead of stopping"
+    )
     p.add_argument("--seed", type=int, default=0, help="synthetic scene seed (no --input)")
     p.add_argument("--frames", type=int, default=40, help="synthetic scene length (no --input)")
     p.add_argument("--rate", type=float, default=2.0, help="synthetic frame rate in Hz (no --input)")
     p.add_argument("--noise", default="default", help="synthetic prediction noise preset: none, default, heavy")
     p.add_argument("--synthetic", action="store_true", help="a synthetic scene (the default when no --input is given)")
-    p.add_argument("--from-images", action="store_true",
-                   help="render the synthetic scene's six cameras and predict occupancy with --checkpoint")
-    p.add_argument("--checkpoint", type=Path, help="TPV-Former checkpoint for --from-images (default: the trained tiny one that ships)")
-    p.add_argument("--min-confidence", type=float, default=0.0, help="--from-images: voxels the network is less "
-                   "sure of than this (softmax of its class) are free")
-    p.add_argument("--min-ground-confidence", type=float, default=0.0, help="--from-images: the same for the ground classes")
-    p.add_argument("--motion-search", action=argparse.BooleanOptionalAction, default=None,
-                   help="refine each frame's constant-velocity guess by the semantic BEV motion search "
-                   "(initialisation.motion_search; default: on with --from-images, else as the config says)")
-    p.add_argument("--view", action="store_true",
-                   help="show the run live in a rerun viewer (pip install 'occvo[view]')")
+    p.add_argument(
+        "--from-images",
+        action="store_true",
+        help="render the synthetic scene's six cameras and predict occupancy with --checkpoint",
+    )
+    p.add_argument(
+        "--checkpoint",
+        type=Path,
+        help="TPV-Former checkpoint for --from-images (default: the trained tiny one that ships)",
+    )
+    p.add_argument(
+        "--min-confidence",
+        type=float,
+        default=0.0,
+        help="--from-images: voxels the network is less sure of than this (softmax of its class) are free",
+    )
+    p.add_argument(
+        "--min-ground-confidence", type=float, default=0.0, help="--from-images: the same for the ground classes"
+    )
+    p.add_argument(
+        "--motion-search",
+        action=argparse.BooleanOptionalAction,
+        default=None,
+        help="refine each frame's constant-velocity guess by the semantic BEV motion search "
+        "(initialisation.motion_search; default: on with --from-images, else as the config says)",
+    )
+    p.add_argument(
+        "--view", action="store_true", help="show the run live in a rerun viewer (pip install 'occvo[view]')"
+    )
     p.add_argument("--rerun", type=Path, metavar="FILE.rrd", help="save the live view as a rerun recording")
     p.add_argument("--map-every", type=int, default=5, help="--view/--rerun: log the global map every N frames")
     p.add_argument("--json", action="store_true", help="the summary as JSON on stdout")
@@ -57,9 +86,11 @@ def config_from_args(args) -> OccVOConfig:
         search = True  # camera occupancy needs it to follow turns; it costs 16-21 ms a frame
     if search is not None:
         cfg = cfg.with_motion_search(search)
-    return cfg.with_filters(semantic=cfg.semantic_label_filter.enabled and not args.no_semantic_filter,
-                            dynamic=cfg.dynamic_object_filter.enabled and not args.no_dynamic_filter,
-                            pfilter=cfg.voxel_pfilter.enabled and not args.no_pfilter)
+    return cfg.with_filters(
+        semantic=cfg.semantic_label_filter.enabled and not args.no_semantic_filter,
+        dynamic=cfg.dynamic_object_filter.enabled and not args.no_dynamic_filter,
+        pfilter=cfg.voxel_pfilter.enabled and not args.no_pfilter,
+    )
 
 
 def run(args) -> int:
@@ -70,26 +101,34 @@ def run(args) -> int:
     if args.list_scenes:
         return _list_scenes(args.input)
     if args.input is not None and (args.synthetic or args.from_images):
-        raise ConfigError("--input reads a recorded scene; --synthetic and --from-images make one: give one or the other")
+        raise ConfigError(
+            "--input reads a recorded scene; --synthetic and --from-images make one: give one or the other"
+        )
     if args.input is None:
         from occvo_core.sim import SyntheticScene
 
         source = truth = SyntheticScene(seed=args.seed, frames=args.frames, rate_hz=args.rate, noise=args.noise)
         if args.from_images:
             from occvo_core.models.image_source import ImageOccupancySource
+            from occvo_core.models.tpvformer.checkpoint import shipped_checkpoint
             from occvo_core.models.tpvformer.predictor import OccupancyPredictor
 
-            from occvo_core.models.tpvformer.checkpoint import shipped_checkpoint
-
-            source = ImageOccupancySource(source, OccupancyPredictor(args.checkpoint or shipped_checkpoint(), min_confidence=args.min_confidence,
-                                                                     min_ground_confidence=args.min_ground_confidence))
+            source = ImageOccupancySource(
+                source,
+                OccupancyPredictor(
+                    args.checkpoint or shipped_checkpoint(),
+                    min_confidence=args.min_confidence,
+                    min_ground_confidence=args.min_ground_confidence,
+                ),
+            )
     else:
         source = open_scene(args.input, gt=args.gt, scene=args.scene, mask=args.mask)
     config = config_from_args(args)
     extra = {"compile_s": _warm_up(config, args)}
     view = _open_view(args)
-    pipeline = OdometryPipeline(source, config, skip_bad_frames=args.skip_bad_frames, threads=args.threads,
-                                progress=not args.quiet).run(on_step=view.step if view else None)
+    pipeline = OdometryPipeline(
+        source, config, skip_bad_frames=args.skip_bad_frames, threads=args.threads, progress=not args.quiet
+    ).run(on_step=view.step if view else None)
     if view:
         view.finish(pipeline.odometry)
     if args.input is None:
@@ -101,8 +140,11 @@ def run(args) -> int:
     else:
         print(_text(shown, args.out))
     if summary.get("success") is False:  # the run's own rule (occvo_core.eval.success) says it failed
-        print(f"occvo run: error: the run failed its success rule: APE RMSE {summary['ape_rmse_m']:.2f} m "
-              f"(summary in {args.out}/summary.json)", file=sys.stderr)
+        print(
+            f"occvo run: error: the run failed its success rule: APE RMSE {summary['ape_rmse_m']:.2f} m "
+            f"(summary in {args.out}/summary.json)",
+            file=sys.stderr,
+        )
         return 1
     return 0
 
@@ -130,6 +172,8 @@ def _list_scenes(root) -> int:
     for s in list_scenes(root):
         print(json.dumps(s))
     return 0
+
+
 def _text(s: dict, out: Path) -> str:
     lines = [f"scene {s['scene']}: {s['frames']} frames registered"]
     if "ape_rmse_m" in s:
@@ -138,7 +182,9 @@ def _text(s: dict, out: Path) -> str:
         ms, warm = s["ms_per_frame_median"], s.get("compile_s", 0.0)
         lines.append(f"{ms:.1f} ms a frame (median); kernel warm-up before the frames {warm:.1f} s")
     lines.append(f"map: {s['map_voxels']} voxels")
-    lines.append(f"wrote {out}/: trajectory.kitti trajectory.tum map.ply map.npz map_voxels.npz trajectory.png summary.json")
+    lines.append(
+        f"wrote {out}/: trajectory.kitti trajectory.tum map.ply map.npz map_voxels.npz trajectory.png summary.json"
+    )
     return "\n".join(lines)
 
 
@@ -148,8 +194,11 @@ def _warm_up(config: OccVOConfig, args) -> float:
     from occvo_core.warm_up import warm_up
 
     if not args.quiet:
-        print("occvo run: loading the registration kernels (a first run compiles them, ~40 s on 2 cores)",
-              file=sys.stderr, flush=True)
+        print(
+            "occvo run: loading the registration kernels (a first run compiles them, ~40 s on 2 cores)",
+            file=sys.stderr,
+            flush=True,
+        )
     return float(warm_up(config, threads=args.threads)["seconds"])
 
 

@@ -33,11 +33,20 @@ class Sample:
 
 def _sample(images_uint8, rig: CameraRig, semantics, camera_mask, depth=None, pixel_labels=None) -> Sample:
     images = torch.from_numpy(np.ascontiguousarray(images_uint8)).permute(0, 3, 1, 2).float().div_(255.0)
-    return Sample(images, torch.tensor(rig.intrinsics, dtype=torch.float32), torch.tensor(rig.cam_to_ego, dtype=torch.float32),
-                  np.asarray(semantics, np.uint8), np.asarray(camera_mask, bool), depth, pixel_labels)
+    return Sample(
+        images,
+        torch.tensor(rig.intrinsics, dtype=torch.float32),
+        torch.tensor(rig.cam_to_ego, dtype=torch.float32),
+        np.asarray(semantics, np.uint8),
+        np.asarray(camera_mask, bool),
+        depth,
+        pixel_labels,
+    )
 
 
-def make_sample(semantics: np.ndarray, rig: CameraRig, rng: int | np.random.Generator = 0, style: RenderStyle = RenderStyle()) -> Sample:
+def make_sample(
+    semantics: np.ndarray, rig: CameraRig, rng: int | np.random.Generator = 0, style: RenderStyle = RenderStyle()
+) -> Sample:
     frame = render(semantics, rig, style, rng)
     return _sample(frame.images, rig, semantics, frame.camera_mask, frame.depth, frame.labels)
 
@@ -49,8 +58,15 @@ class SyntheticOccDataset:
     read back by later runs, so training time goes to training steps rather than to ray casting.
     """
 
-    def __init__(self, seeds: list[int], frames: int, rig: CameraRig, stride: int = 1, cache_dir: str | Path | None = None,
-                 first: int = 0):
+    def __init__(
+        self,
+        seeds: list[int],
+        frames: int,
+        rig: CameraRig,
+        stride: int = 1,
+        cache_dir: str | Path | None = None,
+        first: int = 0,
+    ):
         from occvo_core.sim import SyntheticScene  # the sim is only needed for synthetic training/eval
 
         self.seeds, self.rig = list(seeds), rig
@@ -73,7 +89,9 @@ class SyntheticOccDataset:
             path = self._disk_path(seed, i) if self.cache_dir is not None else None
             if path is not None and path.is_file():
                 with np.load(path) as z:
-                    self._cache[k] = _sample(z["images"], self.rig, z["semantics"], z["camera_mask"], z["depth"], z["labels"])
+                    self._cache[k] = _sample(
+                        z["images"], self.rig, z["semantics"], z["camera_mask"], z["depth"], z["labels"]
+                    )
                 return self._cache[k]
             if seed not in self._scenes:
                 self._scenes[seed] = self._scene_cls(seed=seed, frames=self._frames)
@@ -83,8 +101,14 @@ class SyntheticOccDataset:
             if path is not None:
                 path.parent.mkdir(parents=True, exist_ok=True)
                 tmp = path.with_suffix(".tmp.npz")
-                np.savez_compressed(tmp, images=frame.images, semantics=semantics, camera_mask=frame.camera_mask,
-                                    depth=frame.depth.astype(np.float32), labels=frame.labels)
+                np.savez_compressed(
+                    tmp,
+                    images=frame.images,
+                    semantics=semantics,
+                    camera_mask=frame.camera_mask,
+                    depth=frame.depth.astype(np.float32),
+                    labels=frame.labels,
+                )
                 tmp.replace(path)
         return self._cache[k]
 
@@ -98,17 +122,27 @@ def _render_seed(job: tuple[int, int, int, tuple[int, int], str]) -> int:
     return len(data)
 
 
-def prerender(seeds: list[int], frames: int, stride: int, input_size: tuple[int, int], cache_dir: str | Path,
-              jobs: int = 2, progress: bool = True) -> int:
+def prerender(
+    seeds: list[int],
+    frames: int,
+    stride: int,
+    input_size: tuple[int, int],
+    cache_dir: str | Path,
+    jobs: int = 2,
+    progress: bool = True,
+) -> int:
     """Render every training frame of `seeds` into cache_dir (frames already there are kept), in `jobs` processes."""
     from concurrent.futures import ProcessPoolExecutor
 
     todo = [(s, frames, stride, tuple(input_size), str(cache_dir)) for s in seeds]
     with ProcessPoolExecutor(max_workers=max(1, jobs)) as pool:
-        return sum(tqdm(pool.map(_render_seed, todo), total=len(todo), desc="prerender", unit="seed", disable=not progress))
+        return sum(
+            tqdm(pool.map(_render_seed, todo), total=len(todo), desc="prerender", unit="seed", disable=not progress)
+        )
 
 
 # -- training -------------------------------------------------------------------------------------------------------
+
 
 @dataclass
 class TrainResult:
@@ -118,10 +152,24 @@ class TrainResult:
     seconds: float = 0.0
 
 
-def train(cfg: TPVFormerConfig, out_dir: str | Path, minutes: float, seeds: list[int], frames: int = 20, stride: int = 2, lr: float = 2e-3,
-          max_steps: int | None = None, seed: int = 0, progress: bool = True, dataset=None, preset_name: str = "",
-          warmup: int = 30, cache_dir: str | Path | None = None, aux_weight: float = 0.5,
-          resume: str | Path | None = None) -> TrainResult:
+def train(
+    cfg: TPVFormerConfig,
+    out_dir: str | Path,
+    minutes: float,
+    seeds: list[int],
+    frames: int = 20,
+    stride: int = 2,
+    lr: float = 2e-3,
+    max_steps: int | None = None,
+    seed: int = 0,
+    progress: bool = True,
+    dataset=None,
+    preset_name: str = "",
+    warmup: int = 30,
+    cache_dir: str | Path | None = None,
+    aux_weight: float = 0.5,
+    resume: str | Path | None = None,
+) -> TrainResult:
     """Time-budgeted AdamW with warm-up and cosine decay over the budget; writes checkpoint.pt, loss_curve.png, train_log.json
     and checkpoint.state.pt (optimizer, step, losses: what `resume` continues from).
 
@@ -135,7 +183,9 @@ def train(cfg: TPVFormerConfig, out_dir: str | Path, minutes: float, seeds: list
     torch.manual_seed(seed + start_step)
     rng = np.random.default_rng([seed, start_step])  # a resumed run does not replay the first run's frame order
     rig = nuscenes_rig(*cfg.input_size)
-    data = dataset if dataset is not None else SyntheticOccDataset(seeds, frames, rig, stride=stride, cache_dir=cache_dir)
+    data = (
+        dataset if dataset is not None else SyntheticOccDataset(seeds, frames, rig, stride=stride, cache_dir=cache_dir)
+    )
     model = TPVFormer(cfg).train()
     if resume is not None:  # shapes checked against cfg; the calibrated free-logit offset is re-fitted at the end
         model.load_state_dict(load_checkpoint(resume, config=cfg).state_dict())
@@ -164,8 +214,13 @@ def train(cfg: TPVFormerConfig, out_dir: str | Path, minutes: float, seeds: list
     budget = minutes * 60.0
     start, losses, step = time.monotonic(), list(state.get("losses", [])), start_step
     seconds_before = float(state.get("seconds", 0.0))
-    bar = tqdm(total=int(budget), unit="s", disable=not progress, desc="train-occ",
-               bar_format="{l_bar}{bar}| {n_fmt}/{total_fmt}s [{postfix}]")
+    bar = tqdm(
+        total=int(budget),
+        unit="s",
+        disable=not progress,
+        desc="train-occ",
+        bar_format="{l_bar}{bar}| {n_fmt}/{total_fmt}s [{postfix}]",
+    )
     order = rng.permutation(len(data))
     last_save = start
     ckpt = out / "checkpoint.pt"
@@ -175,12 +230,16 @@ def train(cfg: TPVFormerConfig, out_dir: str | Path, minutes: float, seeds: list
             break
         frac = elapsed / budget
         for g in opt.param_groups:
-            g["lr"] = lr * min(1.0, (step - start_step + 1) / warmup) * (0.05 + 0.95 * 0.5 * (1 + math.cos(math.pi * frac)))
+            g["lr"] = (
+                lr * min(1.0, (step - start_step + 1) / warmup) * (0.05 + 0.95 * 0.5 * (1 + math.cos(math.pi * frac)))
+            )
         s = data[int(order[(step - start_step) % len(order)])]
         if (step - start_step) % len(order) == len(order) - 1:
             order = rng.permutation(len(data))
         logits = model(s.images[None], s.intrinsics[None], s.cam_to_ego[None])
-        loss, parts = occupancy_loss(logits, torch.from_numpy(s.semantics[None]).long(), torch.from_numpy(s.camera_mask[None]), weights)
+        loss, parts = occupancy_loss(
+            logits, torch.from_numpy(s.semantics[None]).long(), torch.from_numpy(s.camera_mask[None]), weights
+        )
         if aux_head is not None:
             aux = aux_head.loss(captured.pop("levels")[0], s.pixel_labels)
             if "depth" in captured:
@@ -194,11 +253,15 @@ def train(cfg: TPVFormerConfig, out_dir: str | Path, minutes: float, seeds: list
         losses.append(float(loss.detach()))
         step += 1
         bar.n = min(int(time.monotonic() - start), int(budget))
-        bar.set_postfix_str(f"step {step} loss {np.mean(losses[-20:]):.3f} ce {parts['ce']:.3f} lovasz {parts['lovasz']:.3f}"
-                            + (f" aux {parts['aux']:.3f}" if "aux" in parts else ""))
+        bar.set_postfix_str(
+            f"step {step} loss {np.mean(losses[-20:]):.3f} ce {parts['ce']:.3f} lovasz {parts['lovasz']:.3f}"
+            + (f" aux {parts['aux']:.3f}" if "aux" in parts else "")
+        )
         bar.refresh()
         if time.monotonic() - last_save > 120:
-            _save(ckpt, model, losses, step, seconds_before + time.monotonic() - start, seeds, preset_name, opt, aux_head)
+            _save(
+                ckpt, model, losses, step, seconds_before + time.monotonic() - start, seeds, preset_name, opt, aux_head
+            )
             last_save = time.monotonic()
     bar.close()
     seconds = seconds_before + time.monotonic() - start
@@ -212,8 +275,19 @@ def train(cfg: TPVFormerConfig, out_dir: str | Path, minutes: float, seeds: list
     model.meta_calibration = calibration
     _save(ckpt, model, losses, step, seconds, seeds, preset_name, opt, aux_head)
     plot_losses(losses, out / "loss_curve.png")
-    (out / "train_log.json").write_text(json.dumps({"steps": step, "seconds": seconds, "losses": losses, "seeds": list(seeds),
-                                                    "preset": preset_name, "config": cfg.model_dump(mode="json")}, indent=1))
+    (out / "train_log.json").write_text(
+        json.dumps(
+            {
+                "steps": step,
+                "seconds": seconds,
+                "losses": losses,
+                "seeds": list(seeds),
+                "preset": preset_name,
+                "config": cfg.model_dump(mode="json"),
+            },
+            indent=1,
+        )
+    )
     return TrainResult(ckpt, step, losses, seconds)
 
 
@@ -259,9 +333,18 @@ def _save(path, model, losses, step, seconds, seeds, preset_name, opt=None, aux_
         tmp = path.with_suffix(".state.pt.tmp")
         torch.save(state, tmp)
         tmp.replace(path.with_suffix(".state.pt"))
-    save_checkpoint(path, model, {"steps": step, "seconds": seconds, "final_loss": float(np.mean(losses[-20:])) if losses else None,
-                                  "train_seeds": list(seeds), "preset": preset_name,
-                                  "calibration": getattr(model, "meta_calibration", None)})
+    save_checkpoint(
+        path,
+        model,
+        {
+            "steps": step,
+            "seconds": seconds,
+            "final_loss": float(np.mean(losses[-20:])) if losses else None,
+            "train_seeds": list(seeds),
+            "preset": preset_name,
+            "calibration": getattr(model, "meta_calibration", None),
+        },
+    )
     model.train()
 
 
@@ -274,7 +357,9 @@ def plot_losses(losses: list[float], path: Path) -> None:
     fig, ax = plt.subplots(figsize=(7, 4))
     ax.plot(losses, lw=0.6, alpha=0.4, label="step")
     if len(losses) >= 20:
-        ax.plot(np.arange(19, len(losses)), np.convolve(losses, np.ones(20) / 20, mode="valid"), lw=1.5, label="mean of 20")
+        ax.plot(
+            np.arange(19, len(losses)), np.convolve(losses, np.ones(20) / 20, mode="valid"), lw=1.5, label="mean of 20"
+        )
     ax.set_xlabel("step")
     ax.set_ylabel("cross entropy + Lovasz-softmax")
     ax.set_title("TPV-Former training loss")
@@ -287,12 +372,20 @@ def plot_losses(losses: list[float], path: Path) -> None:
 @torch.no_grad()
 def predict_labels(model: TPVFormer, sample: Sample, device: torch.device = torch.device("cpu")) -> np.ndarray:
     with autocast(device):
-        logits = model(sample.images[None].to(device), sample.intrinsics[None].to(device), sample.cam_to_ego[None].to(device))
+        logits = model(
+            sample.images[None].to(device), sample.intrinsics[None].to(device), sample.cam_to_ego[None].to(device)
+        )
     return logits[0].argmax(0).to(torch.uint8).cpu().numpy()
 
 
-def evaluate(model: TPVFormer, seeds: list[int], frames: int = 20, stride: int = 5, progress: bool = True,
-             device: torch.device = torch.device("cpu")) -> OccMetrics:
+def evaluate(
+    model: TPVFormer,
+    seeds: list[int],
+    frames: int = 20,
+    stride: int = 5,
+    progress: bool = True,
+    device: torch.device = torch.device("cpu"),
+) -> OccMetrics:
     """Occ3D-style metrics over frames 0, stride, ... of each held-out seed, inside the renderer's camera mask."""
     model.eval().to(device)
     data = SyntheticOccDataset(seeds, frames, nuscenes_rig(*model.cfg.input_size), stride=stride)
@@ -303,5 +396,13 @@ def evaluate(model: TPVFormer, seeds: list[int], frames: int = 20, stride: int =
     return metrics
 
 
-__all__ = ["SyntheticOccDataset", "make_sample", "lovasz_softmax", "occupancy_loss", "train", "evaluate", "predict_labels",
-           "plot_losses"]
+__all__ = [
+    "SyntheticOccDataset",
+    "make_sample",
+    "lovasz_softmax",
+    "occupancy_loss",
+    "train",
+    "evaluate",
+    "predict_labels",
+    "plot_losses",
+]

@@ -10,8 +10,16 @@ from occvo_core.cameras import CAMERA_NAMES, nuscenes_rig
 from occvo_core.errors import ConfigError, OccVOError
 from occvo_core.grid import FREE, OCC3D_GRID
 from occvo_core.models.metrics import OccMetrics
-from occvo_core.models.tpvformer import (CheckpointError, CheckpointMismatchError, InvalidCameraFrameError, OccupancyPredictor, TPVFormer, load_checkpoint,
-                                         preset, save_checkpoint)
+from occvo_core.models.tpvformer import (
+    CheckpointError,
+    CheckpointMismatchError,
+    InvalidCameraFrameError,
+    OccupancyPredictor,
+    TPVFormer,
+    load_checkpoint,
+    preset,
+    save_checkpoint,
+)
 from occvo_core.models.tpvformer.attention import ImageCrossAttention
 from occvo_core.models.train import lovasz_softmax, make_sample, train
 
@@ -20,15 +28,31 @@ FRONT, BACK = CAMERA_NAMES.index("CAM_FRONT"), CAMERA_NAMES.index("CAM_BACK")
 
 def micro(**kw):
     """The tiny architecture at toy sizes: seconds per step on one core."""
-    base = dict(input_size=(96, 54), tpv_h=20, tpv_w=20, tpv_z=4, embed_dims=16, num_heads=2, ffn_dims=32, num_layers=1,
-                points_in_pillar=(2, 4, 4), sampling_points=(2, 4, 4), hybrid_anchors=2, hybrid_points=2,
-                decoder_hidden=16, decoder_out=16, decode_shape=(40, 40, 8))
+    base = dict(
+        input_size=(96, 54),
+        tpv_h=20,
+        tpv_w=20,
+        tpv_z=4,
+        embed_dims=16,
+        num_heads=2,
+        ffn_dims=32,
+        num_layers=1,
+        points_in_pillar=(2, 4, 4),
+        sampling_points=(2, 4, 4),
+        hybrid_anchors=2,
+        hybrid_points=2,
+        decoder_hidden=16,
+        decoder_out=16,
+        decode_shape=(40, 40, 8),
+    )
     base.update(kw)
     return preset("tiny", **base)
 
 
 def calib(rig):
-    return torch.tensor(rig.intrinsics, dtype=torch.float32)[None], torch.tensor(rig.cam_to_ego, dtype=torch.float32)[None]
+    return torch.tensor(rig.intrinsics, dtype=torch.float32)[None], torch.tensor(rig.cam_to_ego, dtype=torch.float32)[
+        None
+    ]
 
 
 def _identity_attention(att):
@@ -58,8 +82,11 @@ def test_image_cross_attention_samples_the_camera_the_query_projects_into(visibl
     assert hw_valid[BACK, behind].any() and not hw_valid[FRONT, behind].any()
 
     # One head, one level, sampling exactly at the projected anchors, identity projections.
-    att = _identity_attention(ImageCrossAttention(8, 1, 1, cfg.points_in_pillar, cfg.points_in_pillar,
-                                                  visible_anchors_only=visible_anchors_only))
+    att = _identity_attention(
+        ImageCrossAttention(
+            8, 1, 1, cfg.points_in_pillar, cfg.points_in_pillar, visible_anchors_only=visible_anchors_only
+        )
+    )
     h, w = 27, 48
 
     def features_marked_in(cam):
@@ -88,8 +115,11 @@ def test_depth_aware_cross_attention_skips_cells_in_front_of_the_surface():
     surface, in_front = cell(14.0, 0.0), cell(6.0, 0.0)
     assert valid[0][0, FRONT, surface].all() and valid[0][0, FRONT, in_front].any()
     bins, near, far = 8, 1.0, 80.0
-    att = _identity_attention(ImageCrossAttention(8, 1, 1, cfg.points_in_pillar, cfg.points_in_pillar,
-                                                  visible_anchors_only=True, depth_range=(near, far)))
+    att = _identity_attention(
+        ImageCrossAttention(
+            8, 1, 1, cfg.points_in_pillar, cfg.points_in_pillar, visible_anchors_only=True, depth_range=(near, far)
+        )
+    )
     h, w = 27, 48
     f = torch.zeros(1, 6, 8, h, w)
     f[0, FRONT, 3] = 1.0  # the front camera sees something everywhere ...
@@ -112,7 +142,7 @@ def _world(seed=0):
     g[140:142, 70:130, 3:14] = 15
     for _ in range(6):
         x, y = rng.integers(60, 140, 2)
-        g[x:x + 10, y:y + 4, 3:7] = 4
+        g[x : x + 10, y : y + 4, 3:7] = 4
     return g
 
 
@@ -126,12 +156,13 @@ def test_forward_shape_and_a_short_training_run_lowers_the_loss(tmp_path):
     with torch.no_grad():
         logits = model(samples[0].images[None], samples[0].intrinsics[None], samples[0].cam_to_ego[None])
     assert logits.shape == (1, 18, 200, 200, 16) and torch.isfinite(logits).all()
-    result = train(cfg, tmp_path, minutes=5, seeds=[], lr=3e-3, max_steps=10, progress=False, dataset=samples,
-                   warmup=1)
+    result = train(cfg, tmp_path, minutes=5, seeds=[], lr=3e-3, max_steps=10, progress=False, dataset=samples, warmup=1)
     assert result.steps == 10
     assert np.mean(result.losses[-3:]) < 0.85 * np.mean(result.losses[:2]), result.losses
     assert (tmp_path / "loss_curve.png").stat().st_size > 1000 and (tmp_path / "checkpoint.pt").is_file()
-    trained = load_checkpoint(tmp_path / "checkpoint.pt")  # carries the free-logit offset calibrated on its training frames
+    trained = load_checkpoint(
+        tmp_path / "checkpoint.pt"
+    )  # carries the free-logit offset calibrated on its training frames
     assert trained.meta["steps"] == 10 and trained.cfg.free_logit_bias == trained.meta["calibration"]["free_logit_bias"]
 
 
@@ -242,8 +273,11 @@ def test_paper_preset_architecture():
 
 
 @pytest.mark.slow
-@pytest.mark.skipif(not os.environ.get("OCCVO_PAPER_FORWARD"), reason="full paper-preset forward takes ~2 min on one cpu core; "
-                    "set OCCVO_PAPER_FORWARD=1 (measured in benchmarks/inference.py --presets paper)")
+@pytest.mark.skipif(
+    not os.environ.get("OCCVO_PAPER_FORWARD"),
+    reason="full paper-preset forward takes ~2 min on one cpu core; "
+    "set OCCVO_PAPER_FORWARD=1 (measured in benchmarks/inference.py --presets paper)",
+)
 def test_paper_preset_output_shape_on_a_reduced_input():
     """The full paper architecture (ResNet-101 + FPN, 200x200x16 planes, 3 layers) on 6 small images."""
     torch.set_num_threads(1)
@@ -284,16 +318,46 @@ def test_occvo_run_from_images_runs_the_whole_chain(tmp_path):
     torch.manual_seed(0)
     ckpt = save_checkpoint(tmp_path / "tiny.pt", TPVFormer(preset("tiny")))
     out = tmp_path / "out"
-    proc = subprocess.run([sys.executable, "-m", "occvo_cli", "run", "--synthetic", "--from-images", "--checkpoint",
-                           str(ckpt), "--frames", "3", "--out", str(out), "--quiet"], capture_output=True, text=True,
-                          timeout=300)
+    proc = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "occvo_cli",
+            "run",
+            "--synthetic",
+            "--from-images",
+            "--checkpoint",
+            str(ckpt),
+            "--frames",
+            "3",
+            "--out",
+            str(out),
+            "--quiet",
+        ],
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
     summary = json.loads((out / "summary.json").read_text())
     assert summary["frames"] == 3 and summary["scene"].endswith("-from-images")
     # an untrained network may fail the run's success rule: then the exit code says so (1), with one line
     assert proc.returncode == (0 if summary["success"] else 1), proc.stderr
     assert "Traceback" not in proc.stderr
-    missing = subprocess.run([sys.executable, "-m", "occvo_cli", "run", "--from-images", "--checkpoint",
-                              str(tmp_path / "none.pt"), "--out", str(out)], capture_output=True, text=True)
+    missing = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "occvo_cli",
+            "run",
+            "--from-images",
+            "--checkpoint",
+            str(tmp_path / "none.pt"),
+            "--out",
+            str(out),
+        ],
+        capture_output=True,
+        text=True,
+    )
     assert missing.returncode == 2 and "none.pt: no such file" in missing.stderr
 
 

@@ -13,6 +13,17 @@ from occvo_core.models.tpvformer.model import TPVFormer
 from occvo_core.models.tpvformer.predictor import InvalidCameraFrameError, OccupancyPredictor
 
 __all__ = [
-    "PRESETS", "CheckpointError", "CheckpointMismatchError", "InvalidCameraFrameError", "OccupancyPredictor", "TPVFormer", "TPVFormerConfig", "autocast",
-    "load_checkpoint", "preset", "save_checkpoint", "select_device", "shipped_checkpoint",
+    "PRESETS",
+    "CheckpointError",
+    "CheckpointMismatchError",
+    "InvalidCameraFrameError",
+    "OccupancyPredictor",
+    "TPVFormer",
+    "TPVFormerConfig",
+    "autocast",
+    "load_checkpoint",
+    "preset",
+    "save_checkpoint",
+    "select_device",
+    "shipped_checkpoint",
 ]

@@ -24,7 +24,9 @@ class CheckpointError(OccVOError, OSError):
 class CheckpointMismatchError(CheckpointError, ValueError):
     """Weights whose tensors do not match the model built from the requested config."""
 
-    def __init__(self, path: object, mismatched: list[tuple[str, tuple, tuple]], missing: list[str], unexpected: list[str]):
+    def __init__(
+        self, path: object, mismatched: list[tuple[str, tuple, tuple]], missing: list[str], unexpected: list[str]
+    ):
         self.mismatched, self.missing, self.unexpected = mismatched, missing, unexpected
         parts = [f"{n}: checkpoint {tuple(a)} vs model {tuple(b)}" for n, a, b in mismatched[:8]]
         if len(mismatched) > 8:
@@ -39,7 +41,12 @@ class CheckpointMismatchError(CheckpointError, ValueError):
 def save_checkpoint(path: str | Path, model: TPVFormer, meta: dict | None = None) -> Path:
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    payload = {"format": FORMAT, "config": model.cfg.model_dump(mode="json"), "state_dict": model.state_dict(), "meta": meta or {}}
+    payload = {
+        "format": FORMAT,
+        "config": model.cfg.model_dump(mode="json"),
+        "state_dict": model.state_dict(),
+        "meta": meta or {},
+    }
     tmp = path.with_suffix(path.suffix + ".tmp")
     torch.save(payload, tmp)
     tmp.replace(path)  # never leave a half-written checkpoint under the real name
@@ -59,7 +66,9 @@ def read_checkpoint(path: str | Path) -> dict:
     return payload
 
 
-def load_checkpoint(path: str | Path, config: TPVFormerConfig | None = None, device: str | torch.device = "cpu") -> TPVFormer:
+def load_checkpoint(
+    path: str | Path, config: TPVFormerConfig | None = None, device: str | torch.device = "cpu"
+) -> TPVFormer:
     """Model with the checkpoint's weights, built from its own config or from `config` (whose shapes must match)."""
     payload = read_checkpoint(path)
     try:
@@ -68,7 +77,9 @@ def load_checkpoint(path: str | Path, config: TPVFormerConfig | None = None, dev
         raise CheckpointError(path, f"invalid config in checkpoint: {exc}") from None
     model = TPVFormer(cfg)
     own, theirs = model.state_dict(), payload["state_dict"]
-    mismatched = [(k, tuple(v.shape), tuple(own[k].shape)) for k, v in theirs.items() if k in own and v.shape != own[k].shape]
+    mismatched = [
+        (k, tuple(v.shape), tuple(own[k].shape)) for k, v in theirs.items() if k in own and v.shape != own[k].shape
+    ]
     missing = [k for k in own if k not in theirs]
     unexpected = [k for k in theirs if k not in own]
     if mismatched or missing or unexpected:
@@ -96,5 +107,7 @@ def shipped_checkpoint(name: str = "tiny") -> Path:
 
     res = files("occvo_core.models.tpvformer").joinpath("weights", f"{name}.pt")
     if not res.is_file():
-        raise CheckpointError(res, f"no shipped '{name}' checkpoint in the package (installed without its package data?)")
+        raise CheckpointError(
+            res, f"no shipped '{name}' checkpoint in the package (installed without its package data?)"
+        )
     return Path(str(res))  # setuptools installs package data as plain files

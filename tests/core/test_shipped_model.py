@@ -29,9 +29,24 @@ TWO_FRAMES_GEOMETRY_IOU, TWO_FRAMES_MIOU = 0.54, 0.21  # measured 0.578, 0.235
 
 
 def micro():
-    return preset("tiny", input_size=(96, 54), tpv_h=20, tpv_w=20, tpv_z=4, embed_dims=16, num_heads=2, ffn_dims=32,
-                  num_layers=1, points_in_pillar=(2, 4, 4), sampling_points=(2, 4, 4), hybrid_anchors=2, hybrid_points=2,
-                  decoder_hidden=16, decoder_out=16, decode_shape=(40, 40, 8))
+    return preset(
+        "tiny",
+        input_size=(96, 54),
+        tpv_h=20,
+        tpv_w=20,
+        tpv_z=4,
+        embed_dims=16,
+        num_heads=2,
+        ffn_dims=32,
+        num_layers=1,
+        points_in_pillar=(2, 4, 4),
+        sampling_points=(2, 4, 4),
+        hybrid_anchors=2,
+        hybrid_points=2,
+        decoder_hidden=16,
+        decoder_out=16,
+        decode_shape=(40, 40, 8),
+    )
 
 
 def _world(seed: int = 0) -> np.ndarray:
@@ -40,7 +55,7 @@ def _world(seed: int = 0) -> np.ndarray:
     g[:, :, 0:2] = 11
     for _ in range(6):
         x, y = rng.integers(110, 180), rng.integers(60, 140)
-        g[x:x + 10, y:y + 4, 2:6] = 4
+        g[x : x + 10, y : y + 4, 2:6] = 4
     return g
 
 
@@ -81,9 +96,27 @@ def test_the_shipped_checkpoint_is_small_loads_as_fp32_and_predicts_a_held_out_f
 @pytest.mark.slow  # two held-out frames through `occvo eval-occ`: ~20 s on one loaded core
 def test_eval_occ_re_evaluates_the_shipped_checkpoint_on_held_out_seeds(tmp_path):
     out = tmp_path / "eval.json"
-    proc = subprocess.run([sys.executable, "-m", "occvo_core.cli", "eval-occ", "--seeds", "1000", "1001", "--stride", "20",
-                           "--device", "cpu", "--json", str(out)], capture_output=True, text=True, timeout=300,
-                          check=False)
+    proc = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "occvo_core.cli",
+            "eval-occ",
+            "--seeds",
+            "1000",
+            "1001",
+            "--stride",
+            "20",
+            "--device",
+            "cpu",
+            "--json",
+            str(out),
+        ],
+        capture_output=True,
+        text=True,
+        timeout=300,
+        check=False,
+    )
     assert proc.returncode == 0, proc.stderr
     summary = json.loads(out.read_text())
     assert summary["checkpoint"] == str(shipped_checkpoint()) and summary["frames"] == 2
@@ -93,9 +126,29 @@ def test_eval_occ_re_evaluates_the_shipped_checkpoint_on_held_out_seeds(tmp_path
 @pytest.mark.slow  # two frames rendered, predicted and registered: ~30 s on one loaded core
 def test_occvo_run_from_images_uses_the_shipped_checkpoint_by_default(tmp_path):
     out = tmp_path / "out"
-    proc = subprocess.run([sys.executable, "-m", "occvo_core.cli", "run", "--synthetic", "--from-images", "--seed", "1000",
-                           "--frames", "2", "--threads", "1", "--out", str(out), "--quiet"], capture_output=True, text=True,
-                          timeout=300, check=False)
+    proc = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "occvo_core.cli",
+            "run",
+            "--synthetic",
+            "--from-images",
+            "--seed",
+            "1000",
+            "--frames",
+            "2",
+            "--threads",
+            "1",
+            "--out",
+            str(out),
+            "--quiet",
+        ],
+        capture_output=True,
+        text=True,
+        timeout=300,
+        check=False,
+    )
     assert proc.returncode == 0, proc.stderr
     summary = json.loads((out / "summary.json").read_text())
     assert summary["frames"] == 2 and summary["scene"].endswith("-from-images")
@@ -110,12 +163,14 @@ def test_training_resumes_from_its_checkpoint(tmp_path):
     first = train(cfg, tmp_path / "a", minutes=5, seeds=[], max_steps=3, progress=False, dataset=samples, warmup=1)
     state = torch.load(tmp_path / "a" / "checkpoint.state.pt", weights_only=True)
     assert state["step"] == 3 and len(state["losses"]) == 3 and state["optimizer"]["state"]
-    same = train(cfg, tmp_path / "b", minutes=5, seeds=[], max_steps=0, progress=False, dataset=samples,
-                 resume=first.checkpoint)  # no step: the first run's weights come back as they were
+    same = train(
+        cfg, tmp_path / "b", minutes=5, seeds=[], max_steps=0, progress=False, dataset=samples, resume=first.checkpoint
+    )  # no step: the first run's weights come back as they were
     ours, theirs = load_checkpoint(same.checkpoint).state_dict(), load_checkpoint(first.checkpoint).state_dict()
     assert all(torch.equal(ours[k], theirs[k]) for k in theirs)
-    again = train(cfg, tmp_path / "c", minutes=5, seeds=[], max_steps=2, progress=False, dataset=samples,
-                  resume=first.checkpoint)
+    again = train(
+        cfg, tmp_path / "c", minutes=5, seeds=[], max_steps=2, progress=False, dataset=samples, resume=first.checkpoint
+    )
     assert again.steps == 5 and again.losses[:3] == first.losses and len(again.losses) == 5
     meta = load_checkpoint(again.checkpoint).meta
     assert meta["steps"] == 5 and meta["seconds"] > first.seconds

@@ -8,7 +8,7 @@ from pathlib import Path
 
 def add_parser(sub) -> None:
     p = sub.add_parser("eval-occ", help="mIoU and geometry IoU of a TPV-Former checkpoint inside the camera mask")
-    p.add_argument("--checkpoint", type=Path, required=True)
+    p.add_argument("--checkpoint", type=Path, help="default: the trained tiny checkpoint that ships with occvo")
     p.add_argument(
         "--seeds", type=int, nargs="+", default=[1000, 1001, 1002, 1003, 1004], help="held-out synthetic seeds"
     )
@@ -26,13 +26,14 @@ def run(args) -> int:
     import torch
 
     from occvo_core.errors import DatasetError
-    from occvo_core.models.tpvformer import load_checkpoint, select_device
+    from occvo_core.models.tpvformer import load_checkpoint, select_device, shipped_checkpoint
     from occvo_core.models.train import evaluate
 
     if not args.checkpoint.is_file():
         raise DatasetError(args.checkpoint, "no such checkpoint: give a file `occvo train-occ` wrote")
     torch.set_num_threads(args.threads)
     device = select_device(args.device)
+    args.checkpoint = args.checkpoint or shipped_checkpoint()
     model = load_checkpoint(args.checkpoint, device=device)
     metrics = evaluate(
         model, args.seeds, frames=args.frames, stride=args.stride, device=device, progress=not args.quiet

@@ -49,7 +49,9 @@ def add_parser(sub) -> None:
         help="render the synthetic scene's six cameras and predict occupancy with --checkpoint",
     )
     p.add_argument(
-        "--checkpoint", type=Path, help="TPV-Former checkpoint for --from-images (occvo train-occ writes one)"
+        "--checkpoint",
+        type=Path,
+        help="TPV-Former checkpoint for --from-images (default: the trained tiny one that ships)",
     )
     p.add_argument(
         "--min-confidence",
@@ -102,20 +104,19 @@ def run(args) -> int:
         raise ConfigError(
             "--input reads a recorded scene; --synthetic and --from-images make one: give one or the other"
         )
-    if args.from_images and args.checkpoint is None:
-        raise ConfigError("--from-images needs --checkpoint (a model from occvo train-occ)")
     if args.input is None:
         from occvo_core.sim import SyntheticScene
 
         source = truth = SyntheticScene(seed=args.seed, frames=args.frames, rate_hz=args.rate, noise=args.noise)
         if args.from_images:
             from occvo_core.models.image_source import ImageOccupancySource
+            from occvo_core.models.tpvformer.checkpoint import shipped_checkpoint
             from occvo_core.models.tpvformer.predictor import OccupancyPredictor
 
             source = ImageOccupancySource(
                 source,
                 OccupancyPredictor(
-                    args.checkpoint,
+                    args.checkpoint or shipped_checkpoint(),
                     min_confidence=args.min_confidence,
                     min_ground_confidence=args.min_ground_confidence,
                 ),

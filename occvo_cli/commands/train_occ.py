@@ -32,6 +32,13 @@ def add_parser(sub) -> None:
         "--json", action="store_true", help="steps, seconds, losses and the checkpoint path as JSON on stdout"
     )
     p.add_argument("--quiet", action="store_true", help="no progress bars")
+    p.add_argument(
+        "--resume",
+        type=Path,
+        metavar="CKPT",
+        help="continue from this checkpoint (and the .state.pt beside "
+        "it: optimizer, step count, loss history); --minutes is this run's budget",
+    )
     p.set_defaults(func=run)
 
 
@@ -67,6 +74,7 @@ def run(args) -> int:
         preset_name=args.preset,
         cache_dir=args.cache,
         progress=not args.quiet,
+        resume=args.resume,
     )
     tail = sum(result.losses[-20:]) / max(1, len(result.losses[-20:]))
     if args.json:

@@ -16,7 +16,8 @@ from occvo_core.cameras import CameraRig, RenderStyle, nuscenes_rig, render
 from occvo_core.grid import NUM_CLASSES
 from occvo_core.models.losses import ImageAuxHead, class_weights, depth_loss, lovasz_softmax, occupancy_loss  # noqa: F401
 from occvo_core.models.metrics import OccMetrics
-from occvo_core.models.tpvformer import TPVFormer, TPVFormerConfig, autocast, save_checkpoint
+from occvo_core.models.tpvformer import TPVFormer, TPVFormerConfig, autocast, load_checkpoint, save_checkpoint
+from occvo_core.models.tpvformer.checkpoint import read_checkpoint
 
 
 @dataclass
@@ -167,17 +168,29 @@ def train(
     warmup: int = 30,
     cache_dir: str | Path | None = None,
     aux_weight: float = 0.5,
+    resume: str | Path | None = None,
 ) -> TrainResult:
-    """Time-budgeted AdamW with warm-up and cosine decay over the budget; writes checkpoint.pt, loss_curve.png, train_log.json."""
+    """Time-budgeted AdamW with warm-up and cosine decay over the budget; writes checkpoint.pt, loss_curve.png, train_log.json
+    and checkpoint.state.pt (optimizer, step, losses: what `resume` continues from).
+
+    `resume`: a checkpoint of the same config to continue from. With its .state.pt beside it the optimizer, the aux head,
+    the step count and the loss history carry on; the learning rate restarts its cosine over the new budget (SGDR).
+    """
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    torch.manual_seed(seed)
-    rng = np.random.default_rng(seed)
+    state = _resume_state(resume)
+    start_step = state.get("step", 0)
+    torch.manual_seed(seed + start_step)
+    rng = np.random.default_rng([seed, start_step])  # a resumed run does not replay the first run's frame order
     rig = nuscenes_rig(*cfg.input_size)
     data = (
         dataset if dataset is not None else SyntheticOccDataset(seeds, frames, rig, stride=stride, cache_dir=cache_dir)
     )
     model = TPVFormer(cfg).train()
+    if resume is not None:  # shapes checked against cfg; the calibrated free-logit offset is re-fitted at the end
+        model.load_state_dict(load_checkpoint(resume, config=cfg).state_dict())
+        model.cfg = cfg.model_copy(update={"free_logit_bias": 0.0})
+        model.train()
     # Class frequencies inside the camera mask from a few frames.
     counts = np.zeros(NUM_CLASSES)
     for k in rng.choice(len(data), size=min(8, len(data)), replace=False):
@@ -193,8 +206,14 @@ def train(
         if model.depth_head is not None:
             hooks.append(model.depth_head.register_forward_hook(lambda _m, _i, out: captured.__setitem__("depth", out)))
     opt = torch.optim.AdamW(params, lr=lr, weight_decay=0.01)
+    if "optimizer" in state:
+        opt.load_state_dict(state["optimizer"])
+        if aux_head is not None and "aux_head" in state:
+            aux_head.load_state_dict(state["aux_head"])
+        warmup = 1  # the optimizer's moments are warm already
     budget = minutes * 60.0
-    start, losses, step = time.monotonic(), [], 0
+    start, losses, step = time.monotonic(), list(state.get("losses", [])), start_step
+    seconds_before = float(state.get("seconds", 0.0))
     bar = tqdm(
         total=int(budget),
         unit="s",
@@ -207,13 +226,15 @@ def train(
     ckpt = out / "checkpoint.pt"
     while True:
         elapsed = time.monotonic() - start
-        if elapsed >= budget or (max_steps is not None and step >= max_steps):
+        if elapsed >= budget or (max_steps is not None and step - start_step >= max_steps):
             break
         frac = elapsed / budget
         for g in opt.param_groups:
-            g["lr"] = lr * min(1.0, (step + 1) / warmup) * (0.05 + 0.95 * 0.5 * (1 + math.cos(math.pi * frac)))
-        s = data[int(order[step % len(order)])]
-        if step % len(order) == len(order) - 1:
+            g["lr"] = (
+                lr * min(1.0, (step - start_step + 1) / warmup) * (0.05 + 0.95 * 0.5 * (1 + math.cos(math.pi * frac)))
+            )
+        s = data[int(order[(step - start_step) % len(order)])]
+        if (step - start_step) % len(order) == len(order) - 1:
             order = rng.permutation(len(data))
         logits = model(s.images[None], s.intrinsics[None], s.cam_to_ego[None])
         loss, parts = occupancy_loss(
@@ -238,10 +259,12 @@ def train(
         )
         bar.refresh()
         if time.monotonic() - last_save > 120:
-            _save(ckpt, model, losses, step, time.monotonic() - start, seeds, preset_name)
+            _save(
+                ckpt, model, losses, step, seconds_before + time.monotonic() - start, seeds, preset_name, opt, aux_head
+            )
             last_save = time.monotonic()
     bar.close()
-    seconds = time.monotonic() - start
+    seconds = seconds_before + time.monotonic() - start
     for hook in hooks:
         hook.remove()
     if dataset is None and stride > 1 and frames > 1:  # frames of the training scenes that training did not use
@@ -250,7 +273,7 @@ def train(
     else:
         calibration = calibrate_free_bias(model, [data[int(k)] for k in order[:6]])
     model.meta_calibration = calibration
-    _save(ckpt, model, losses, step, seconds, seeds, preset_name)
+    _save(ckpt, model, losses, step, seconds, seeds, preset_name, opt, aux_head)
     plot_losses(losses, out / "loss_curve.png")
     (out / "train_log.json").write_text(
         json.dumps(
@@ -289,8 +312,27 @@ def calibrate_free_bias(model: TPVFormer, samples, candidates=tuple(np.arange(0.
     return {"free_logit_bias": float(best), "table": {str(k): v for k, v in table.items()}}
 
 
-def _save(path, model, losses, step, seconds, seeds, preset_name):
+def _resume_state(resume: str | Path | None) -> dict:
+    """What a resumed run continues from: the .state.pt beside the checkpoint, else the step count and seconds of
+    the checkpoint's meta (weights only: a fresh optimizer)."""
+    if resume is None:
+        return {}
+    meta = read_checkpoint(resume).get("meta", {})  # one clear error for a missing or foreign file
+    path = Path(resume).with_suffix(".state.pt")
+    if path.is_file():
+        return torch.load(path, map_location="cpu", weights_only=True)
+    return {"step": int(meta.get("steps") or 0), "seconds": float(meta.get("seconds") or 0.0)}  # weights only
+
+
+def _save(path, model, losses, step, seconds, seeds, preset_name, opt=None, aux_head=None):
     model.eval()
+    if opt is not None:  # beside the checkpoint, so that the checkpoint itself stays small enough to ship
+        state = {"optimizer": opt.state_dict(), "step": step, "seconds": seconds, "losses": list(losses)}
+        if aux_head is not None:
+            state["aux_head"] = aux_head.state_dict()
+        tmp = path.with_suffix(".state.pt.tmp")
+        torch.save(state, tmp)
+        tmp.replace(path.with_suffix(".state.pt"))
     save_checkpoint(
         path,
         model,

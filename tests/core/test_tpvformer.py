@@ -344,9 +344,21 @@ def test_occvo_run_from_images_runs_the_whole_chain(tmp_path):
     assert proc.returncode == (0 if summary["success"] else 1), proc.stderr
     assert "Traceback" not in proc.stderr
     missing = subprocess.run(
-        [sys.executable, "-m", "occvo_cli", "run", "--from-images", "--out", str(out)], capture_output=True, text=True
+        [
+            sys.executable,
+            "-m",
+            "occvo_cli",
+            "run",
+            "--from-images",
+            "--checkpoint",
+            str(tmp_path / "none.pt"),
+            "--out",
+            str(out),
+        ],
+        capture_output=True,
+        text=True,
     )
-    assert missing.returncode == 2 and "--from-images needs --checkpoint" in missing.stderr
+    assert missing.returncode == 2 and "none.pt: no such file" in missing.stderr
 
 
 def test_rendered_training_frames_are_cached_on_disk_and_read_back(tmp_path):

@@ -5,6 +5,7 @@ from occvo_core.models.tpvformer.checkpoint import (
     CheckpointMismatchError,
     load_checkpoint,
     save_checkpoint,
+    shipped_checkpoint,
 )
 from occvo_core.models.tpvformer.config import PRESETS, TPVFormerConfig, preset
 from occvo_core.models.tpvformer.device import autocast, select_device
@@ -24,4 +25,5 @@ __all__ = [
     "preset",
     "save_checkpoint",
     "select_device",
+    "shipped_checkpoint",
 ]

@@ -84,6 +84,30 @@ def load_checkpoint(
     unexpected = [k for k in theirs if k not in own]
     if mismatched or missing or unexpected:
         raise CheckpointMismatchError(path, mismatched, missing, unexpected)
-    model.load_state_dict(theirs)
+    model.load_state_dict({k: v.float() if v.is_floating_point() else v for k, v in theirs.items()})  # fp16 files too
     model.meta = payload.get("meta", {})
     return model.to(device).eval()
+
+
+def save_half(src: str | Path, dst: str | Path) -> Path:
+    """src's checkpoint with its floating-point weights in fp16 (half the bytes; load_checkpoint gives fp32 back)."""
+    payload = read_checkpoint(src)
+    payload["state_dict"] = {k: v.half() if v.is_floating_point() else v for k, v in payload["state_dict"].items()}
+    dst = Path(dst)
+    dst.parent.mkdir(parents=True, exist_ok=True)
+    tmp = dst.with_suffix(dst.suffix + ".tmp")
+    torch.save(payload, tmp)
+    tmp.replace(dst)
+    return dst
+
+
+def shipped_checkpoint(name: str = "tiny") -> Path:
+    """The trained checkpoint that ships as package data (docs/model.md: its recipe and its scores)."""
+    from importlib.resources import files
+
+    res = files("occvo_core.models.tpvformer").joinpath("weights", f"{name}.pt")
+    if not res.is_file():
+        raise CheckpointError(
+            res, f"no shipped '{name}' checkpoint in the package (installed without its package data?)"
+        )
+    return Path(str(res))  # setuptools installs package data as plain files

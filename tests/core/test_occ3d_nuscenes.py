@@ -133,7 +133,7 @@ def test_broken_chains_are_named(tmp_path, tree):
 def test_cli_lists_scenes_and_writes_the_annotation_stamps(tree, tmp_path):
     root, stamps = tree
     listed = subprocess.run(
-        [sys.executable, "-m", "occvo_core.cli", "run", "--input", str(root), "--list-scenes"],
+        [sys.executable, "-m", "occvo_cli", "run", "--input", str(root), "--list-scenes"],
         check=False,
         capture_output=True,
         text=True,
@@ -146,7 +146,7 @@ def test_cli_lists_scenes_and_writes_the_annotation_stamps(tree, tmp_path):
         [
             sys.executable,
             "-m",
-            "occvo_core.cli",
+            "occvo_cli",
             "run",
             "--input",
             str(root),

@@ -6,7 +6,7 @@ import pytest
 from occvo_core.datasets import open_scene
 from occvo_core.datasets.occ3d import Occ3DScene
 from occvo_core.datasets.occvo_release import OccVOReleaseScene
-from occvo_core.errors import DatasetError
+from occvo_core.errors import DatasetError, InvalidFrameError
 from occvo_core.grid import FREE, OCC3D_GRID
 from occvo_core.sim import SyntheticScene
 from occvo_core.sim.export import export_occ3d, export_release
@@ -86,23 +86,25 @@ def test_bad_files_raise_dataset_errors(tmp_path):
         Occ3DScene(tmp_path)
     _write(tmp_path / "a" / "0", semantics=np.zeros((10, 10, 4), np.uint8))
     with pytest.raises(DatasetError, match="shape"):
-        Occ3DScene(tmp_path / "a")[0]
+        Occ3DScene(tmp_path / "a").load(0)
     _write(tmp_path / "b" / "0", mask_camera=np.ones(OCC3D_GRID.shape, bool))
     with pytest.raises(DatasetError, match="semantics"):
-        Occ3DScene(tmp_path / "b")[0]
+        Occ3DScene(tmp_path / "b").load(0)
     _write(
         tmp_path / "c" / "0",
         semantics=np.full(OCC3D_GRID.shape, 40, np.uint8),
         mask_camera=np.ones(OCC3D_GRID.shape, bool),
     )
     with pytest.raises(DatasetError, match="0..17"):
-        Occ3DScene(tmp_path / "c")[0]
+        Occ3DScene(tmp_path / "c").load(0)
     _write(tmp_path / "d" / "0", semantics=np.full(OCC3D_GRID.shape, 11, np.uint8))
     with pytest.raises(DatasetError, match="mask_camera"):
-        Occ3DScene(tmp_path / "d")[0]
+        Occ3DScene(tmp_path / "d").load(0)
     (tmp_path / "e" / "0").mkdir(parents=True)
     (tmp_path / "e" / "0" / "labels.npz").write_bytes(b"garbage")
     with pytest.raises(DatasetError, match="unreadable"):
+        Occ3DScene(tmp_path / "e").load(0)
+    with pytest.raises(InvalidFrameError, match="unreadable"):  # as a frame: skippable (--skip-bad-frames)
         Occ3DScene(tmp_path / "e")[0]
     _write(tmp_path / "f" / "tok_a", semantics=np.full(OCC3D_GRID.shape, 11, np.uint8))
     with pytest.raises(DatasetError, match="order"):

@@ -100,7 +100,7 @@ def test_eval_occ_re_evaluates_the_shipped_checkpoint_on_held_out_seeds(tmp_path
         [
             sys.executable,
             "-m",
-            "occvo_core.cli",
+            "occvo_cli",
             "eval-occ",
             "--seeds",
             "1000",
@@ -130,7 +130,7 @@ def test_occvo_run_from_images_uses_the_shipped_checkpoint_by_default(tmp_path):
         [
             sys.executable,
             "-m",
-            "occvo_core.cli",
+            "occvo_cli",
             "run",
             "--synthetic",
             "--from-images",

@@ -209,6 +209,8 @@ def test_replay_nuscenes_through_the_three_workers_with_the_model_source(dataset
                 svc.endpoint,
                 "--stream",
                 "nus",
+                "--json",
+                "--quiet",
                 "--tum",
                 str(tmp_path / "t.tum"),
                 "--timeout",

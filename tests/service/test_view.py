@@ -39,7 +39,7 @@ def test_occvo_run_rerun_writes_a_recording_rerun_reads_back(tmp_path):
         [
             sys.executable,
             "-m",
-            "occvo_core.cli",
+            "occvo_cli",
             "run",
             "--frames",
             str(n),
@@ -118,7 +118,7 @@ def test_occvo_view_follows_the_service_into_the_web_viewer(tmp_path):
             [
                 sys.executable,
                 "-m",
-                "occvo_core.cli",
+                "occvo_cli",
                 "view",
                 "--connect",
                 svc.endpoint,

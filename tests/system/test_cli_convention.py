@@ -44,7 +44,7 @@ def _no_router() -> list[str]:
 BAD_INPUT = [
     ["run", "--frames", "x"],
     ["run", "--input", "/no/such/scene"],
-    ["run", "--from-images"],
+    ["run", "--from-images", "--checkpoint", "/no/such/checkpoint.pt"],
     ["eval", "--gt", "/no/gt.kitti", "--est", "/no/est.kitti"],
     ["ablation"],
     ["eval-map", "--est-map", "/no/map.npz", "--gt-map", "/no/gt.npz"],

@@ -1,37 +1,44 @@
-"""What every occvo worker shares: Zenoh sessions, bounded per-stream stage queues, sequence checks, counters,
-latency percentiles, a liveliness token, a stats queryable, error events, structured logs and graceful shutdown."""
+"""What every occvo worker shares: Zenoh sessions, a liveliness token, a stats queryable, error events and graceful
+shutdown around the stream lanes (services/flow.py), counters and logs (services/telemetry.py) and OS tuning
+(services/os_tuning.py)."""
 
 from __future__ import annotations
 
-import ctypes
 import json
 import logging
 import os
 import queue
 import signal
 import socket
-import sys
 import threading
 import time
 import uuid
-from collections import defaultdict, deque
+from collections import defaultdict
 from collections.abc import Callable
 from pathlib import Path
-from typing import Literal
 
-import numpy as np
 import zenoh
-from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from occvo_core.errors import ConfigError
 from schemas import keys
 from schemas.codec import DEFAULT_MAX_BYTES, CodecError, decode, encode
-from schemas.models import ErrorEvent, StageStats, WorkerHealth
+from schemas.models import ErrorEvent, WorkerHealth
+from services.flow import SeqTracker, StageQueue, StreamLane
 from services.limits import MAX_KEY_CHARS, MAX_MESSAGE_CHARS, Admission, ErrorBudget, clip
+from services.os_tuning import large_blocks_from_mmap, trim_heap
+from services.telemetry import Stats, log_event, structured_logger
+from services.worker_config import DEFAULT_ENDPOINT, Policy, WorkerConfig
 
-DEFAULT_ENDPOINT = "tcp/127.0.0.1:7447"
-Policy = Literal["lossless", "latest"]
-
+__all__ = [  # importers of these names from here predate the split
+    "DEFAULT_ENDPOINT",
+    "Policy",
+    "SeqTracker",
+    "StageQueue",
+    "StreamLane",
+    "WorkerConfig",
+    "log_event",
+    "structured_logger",
+]
 
 # ---------------------------------------------------------------- sessions
 
@@ -103,280 +110,6 @@ def router_endpoint(config_path: str | Path) -> str:
         return eps[0]
     except Exception as exc:  # noqa: BLE001
         raise ConfigError(f"{config_path}: no listen/endpoints[0] ({exc})") from None
-
-
-# ---------------------------------------------------------------- logs
-
-
-class _JsonFormatter(logging.Formatter):
-    def format(self, record: logging.LogRecord) -> str:
-        out = {
-            "ts": round(record.created, 6),
-            "level": record.levelname.lower(),
-            "logger": record.name,
-            "event": record.getMessage(),
-        }
-        out.update(getattr(record, "fields", {}))
-        return json.dumps(out, default=str)
-
-
-def structured_logger(name: str, level: str = "INFO") -> logging.Logger:
-    log = logging.getLogger(name)
-    if not log.handlers:
-        h = logging.StreamHandler(sys.stderr)
-        h.setFormatter(_JsonFormatter())
-        log.addHandler(h)
-        log.propagate = False
-    log.setLevel(level.upper())
-    return log
-
-
-def log_event(log: logging.Logger, event: str, level: int = logging.INFO, **fields) -> None:
-    log.log(level, event, extra={"fields": fields})
-
-
-# ---------------------------------------------------------------- counters and latencies
-
-
-class LatencyWindow:
-    """The last `size` samples of one stage, in milliseconds."""
-
-    def __init__(self, size: int = 4096):
-        self.samples: deque[float] = deque(maxlen=size)
-        self.count = 0
-
-    def add(self, ms: float) -> None:
-        self.samples.append(ms)
-        self.count += 1
-
-    def summary(self) -> StageStats:
-        a = np.array(self.samples) if self.samples else np.zeros(1)
-        p50, p90, p99 = np.percentile(a, [50, 90, 99])
-        return StageStats(count=self.count, p50_ms=p50, p90_ms=p90, p99_ms=p99, mean_ms=float(a.mean()))
-
-
-class Stats:
-    def __init__(self):
-        self._lock = threading.Lock()
-        self.counters: dict[str, int] = defaultdict(int)
-        self.stages: dict[str, LatencyWindow] = defaultdict(LatencyWindow)
-        for name in ("frames_in", "frames_out", "drops", "errors"):
-            self.counters[name] = 0
-
-    def inc(self, name: str, n: int = 1) -> None:
-        with self._lock:
-            self.counters[name] += n
-
-    def observe(self, stage: str, ms: float) -> None:
-        with self._lock:
-            self.stages[stage].add(ms)
-
-    def snapshot(self) -> tuple[dict[str, int], dict[str, StageStats]]:
-        with self._lock:
-            return dict(self.counters), {k: v.summary() for k, v in self.stages.items()}
-
-
-# ---------------------------------------------------------------- flow
-
-
-class StageQueue:
-    """Bounded queue between two stages. lossless: put blocks (backpressure); latest: the oldest item is dropped."""
-
-    def __init__(self, maxsize: int, policy: Policy, on_drop: Callable[[object], None], stop: threading.Event):
-        self.q: queue.Queue = queue.Queue(maxsize=maxsize)
-        self.policy = policy
-        self.on_drop = on_drop
-        self.stop = stop
-
-    def put(self, item) -> bool:
-        """False when the item could not be queued because the worker is stopping."""
-        if self.policy == "lossless":
-            while not self.stop.is_set():
-                try:
-                    self.q.put(item, timeout=0.1)
-                    return True
-                except queue.Full:
-                    continue
-            return False
-        while True:
-            try:
-                self.q.put_nowait(item)
-                return True
-            except queue.Full:
-                try:
-                    self.on_drop(self.q.get_nowait())
-                except queue.Empty:
-                    continue  # a consumer took the oldest meanwhile: there is room now, put again
-
-    def get(self, timeout: float):
-        return self.q.get(timeout=timeout)
-
-    def qsize(self) -> int:
-        return self.q.qsize()
-
-
-class SeqTracker:
-    """Per-stream sequence check. seq 0 starts a new trajectory; a gap is reported as missing, a step back as out of order."""
-
-    def __init__(self, max_jump: int | None = None):
-        self.expected: int | None = None
-        self.max_jump = max_jump
-
-    def check(self, seq: int) -> tuple[bool, str | None, str | None]:
-        """(accept, error code, message). A step forward of more than max_jump is reported and not adopted: one
-        stray seq must not make every following real frame a step back."""
-        if self.expected is None or seq == 0 or seq == self.expected:
-            self.expected = seq + 1
-            return True, None, None
-        if self.max_jump is not None and seq - self.expected >= self.max_jump:
-            return (
-                False,
-                "seq_jump",
-                (
-                    f"seq {seq} is {seq - self.expected + 1} after seq {self.expected - 1}, beyond "
-                    f"the window of {self.max_jump}; dropped"
-                ),
-            )
-        if seq > self.expected:
-            msg = f"missing seq {self.expected}..{seq - 1} ({seq - self.expected} frames) before seq {seq}"
-            self.expected = seq + 1
-            return True, "missing_seq", msg
-        return False, "out_of_order", f"seq {seq} arrived after seq {self.expected - 1}; dropped"
-
-
-# ---------------------------------------------------------------- worker base
-
-
-class WorkerConfig(BaseModel):
-    """One config for every worker; fields a role does not use are ignored by it (deploy/*.json5)."""
-
-    model_config = ConfigDict(extra="forbid")
-    connect: str = DEFAULT_ENDPOINT
-    worker_id: str | None = None
-    policy: Policy = "lossless"
-    queue_size: int = Field(4, ge=1, le=1024)
-    max_message_bytes: int = Field(DEFAULT_MAX_BYTES, ge=1024)
-    log_level: str = "INFO"
-    # what one client may cost (services/limits.py); the defaults fit a 2-core machine
-    max_streams: int = Field(64, ge=1)  # streams a worker serves at once; more get a stream_limit error event
-    max_streams_per_client: int = Field(16, ge=1)  # of them, per client (the stream id's prefix before its first '.')
-    idle_stream_s: float = Field(30.0, gt=0)  # a stream without frames this long gives back its lane (and its memory)
-    max_seq_jump: int = Field(100_000, ge=1)  # a seq this far beyond the next expected is reported, not adopted
-    error_events_per_s: float = Field(20.0, gt=0)  # error events a stream may cause a second (bursts of error_burst)
-    error_burst: int = Field(100, ge=1)
-    max_query_tiles: int = Field(64, ge=1)  # map: tiles in one reply to a region or wildcard query (a page)
-    max_query_streams: int = Field(16, ge=1)  # registration: trajectories in one reply to a wildcard query
-    # inference worker
-    source: Literal["replay", "model"] = "replay"
-    device: Literal["auto", "cpu", "cuda"] = "auto"
-    model_weights: str | None = None  # TinyOccNet state_dict (services.occupancy_model)
-    checkpoint: str | None = None  # TPV-Former checkpoint of the model source (occvo train-occ)
-    torch_threads: int = Field(1, ge=1)
-    # model source: voxels the network is less sure of than this are reported free (OccupancyPredictor)
-    min_confidence: float = Field(0.0, ge=0, lt=1)
-    min_ground_confidence: float = Field(0.0, ge=0, lt=1)
-    # registration worker
-    # shards: registration workers sharing the streams; this one registers the streams of `shard`
-    # (schemas.keys.shard_of: CRC-32 of the stream id mod shards). `occvo up` sets both from a role's count
-    shard: int = Field(0, ge=0)
-    shards: int = Field(1, ge=1, le=1024)
-    tile_m: float = Field(20.0, gt=0)
-    occvo_config: str | None = None
-    # registration: cores each stream's kernels may use, 0 = all. Streams already run side by side in threads, and
-    # the inference worker wants a core; poses are the same for any value
-    kernel_threads: int = Field(1, ge=0)
-    # registration: niceness added to the threads doing the work after a pose (loop closure, map update, eviction,
-    # restores) and writing snapshots, so that the cores go to other streams' poses first. 0: the lanes' priority
-    after_pose_nice: int = Field(10, ge=0, le=19)
-    # registration: a frame's work after its pose taking longer than this is logged with its steps (its stream's next
-    # frame waits for it)
-    slow_after_pose_s: float = Field(0.5, gt=0)
-    # registration: call every kernel once at start-up, before taking frames (compiled on a fresh install, else
-    # loaded from numba's cache; see occvo_core/warm_up.py)
-    warm_up: bool = True
-    # durable state (SQLite file; the registration worker and the map service may share one)
-    store_path: str | None = None
-    snapshot_every: int = Field(
-        20, ge=1
-    )  # registration: frames between state snapshots at least (a journal covers the rest)
-    # registration: snapshots of a stream take at most this share of its time; a big map is snapshotted less often
-    # (a resume replays more journal) instead of stalling every stream (a 10^6-voxel state is ~200 MB, ~1 s to write);
-    # None: every snapshot_every frames whatever they cost
-    snapshot_max_share: float | None = Field(0.02, gt=0, le=1)
-    working_radius_m: float | None = Field(None, gt=0)  # registration: map farther from the ego goes to the store
-    store_sync: Literal["full", "normal"] = (
-        "full"  # registration: SQLite synchronous; normal survives kill -9, not power loss
-    )
-
-    @model_validator(mode="after")
-    def _shard_in_range(self) -> WorkerConfig:
-        if self.shard >= self.shards:
-            raise ValueError(f"shard {self.shard} is not one of shards 0..{self.shards - 1}")
-        return self
-
-    @classmethod
-    def load(cls, path: str | Path | None, **overrides) -> WorkerConfig:
-        import json5
-
-        data = {}
-        if path is not None:
-            try:
-                data = json5.loads(Path(path).read_text())
-            except Exception as exc:  # noqa: BLE001
-                raise ConfigError(f"{path}: {exc}") from None
-        data.update({k: v for k, v in overrides.items() if v is not None})
-        try:
-            return cls.model_validate(data)
-        except Exception as exc:  # noqa: BLE001
-            raise ConfigError(f"worker config {path or ''}: {exc}") from None
-
-
-class StreamLane:
-    """One stream's bounded queue and the thread that runs the stage on it, in arrival (= sequence) order."""
-
-    def __init__(
-        self, worker: Worker, stream: str, handler: Callable[[str, object], None], after: StreamLane | None = None
-    ):
-        self.worker, self.stream, self.handler = worker, stream, handler
-        self.busy = False
-        self.pending = 0  # frames handed to this lane and not yet in its queue (Worker.enqueue); guarded by _lanes_lock
-        self.after = after  # the stream's retired lane, still giving back its state: this one starts when it is done
-        self.queue = StageQueue(worker.config.queue_size, worker.config.policy, self._dropped, worker.stopping)
-        self.thread = threading.Thread(target=self._run, name=f"{worker.role}-{stream}", daemon=True)
-        self.thread.start()
-
-    def _dropped(self, item) -> None:
-        self.worker.stats.inc("drops")
-        log_event(self.worker.log, "dropped oldest frame", logging.DEBUG, stream=self.stream)
-
-    def _run(self) -> None:
-        name_os_thread(f"lane-{self.stream}")
-        if self.after is not None:
-            self.after.thread.join()
-            self.after = None
-        while not self.worker.stopping.is_set():
-            try:  # blocks: a stop puts None, an idle stream's lane ends (no polling: 500 idle lanes cost 16% of a core)
-                item = self.queue.get(timeout=self.worker.config.idle_stream_s)
-            except queue.Empty:
-                if self.worker.retire_lane(self):
-                    return
-                continue
-            if item is None:
-                continue
-            self.busy = True
-            try:
-                self.handler(self.stream, item)  # the frame in hand is always finished, even when stopping
-            except Exception as exc:  # noqa: BLE001 - a worker never dies of one frame
-                seq = getattr(item[0], "seq", None) if isinstance(item, tuple) and item else None
-                if isinstance(exc, CodecError):  # e.g. an output over the size limit: the frame's problem, named so
-                    self.worker.report_error(
-                        self.stream, exc.code, f"seq {seq}: output not sent: {exc.message}", seq=seq
-                    )
-                else:
-                    self.worker.report_error(self.stream, "internal", f"{type(exc).__name__}: {exc}", seq=seq)
-                log_event(self.worker.log, "stage failed", logging.ERROR, stream=self.stream, error=repr(exc))
-            finally:
-                self.busy = False
 
 
 class Worker:
@@ -610,106 +343,13 @@ class Worker:
         query.reply(keys.stats(self.worker_id), encode(self.health()))
 
 
-def lower_priority(nice: int) -> bool:
-    """Run the calling thread `nice` steps below the thread that made it (Linux threads are tasks with their own
-    niceness; raising it needs no privilege). False where that is not possible: the thread keeps its priority."""
-    if nice <= 0:
-        return True
-    try:
-        tid = threading.get_native_id()
-        os.setpriority(os.PRIO_PROCESS, tid, min(19, os.getpriority(os.PRIO_PROCESS, tid) + nice))
-    except (OSError, AttributeError):
-        return False
-    return True
-
-
-def name_os_thread(name: str | None = None) -> None:
-    """Name the calling OS thread (first 15 bytes; default: its Python name), so `top -H`, `ps -L` and
-    /proc/<pid>/task/*/comm tell the lanes and background threads apart (Python < 3.14 leaves them all "python")."""
-    try:
-        ctypes.CDLL(None).prctl(15, (name or threading.current_thread().name).encode()[:15], 0, 0, 0)  # PR_SET_NAME
-    except (OSError, AttributeError):
-        return  # no prctl (not Linux): the thread works the same, unnamed
-
-
-def set_thread_nice(tid: int, nice: int) -> bool:
-    """Set a thread's niceness; False where not allowed (raising priority needs CAP_SYS_NICE or RLIMIT_NICE)."""
-    try:
-        os.setpriority(os.PRIO_PROCESS, tid, nice)
-    except (OSError, AttributeError):
-        return False
-    return True
-
-
-_held_lock = threading.Lock()
-_held: dict[int, tuple[int, int]] = {}  # tid -> (holds, its niceness once none is left)
-
-
-def hold_priority(tid: int, nice: int) -> bool:
-    """Keep thread `tid` at niceness `nice` or better until release_priority(tid). Holds nest: a niced after-pose
-    thread its waiting lane raised (priority inheritance) that also holds the store's write lock (a priority ceiling)
-    goes back to its niceness when both are over. True if the thread runs at `nice` or better now; False where
-    raising it is not allowed (CAP_SYS_NICE or RLIMIT_NICE)."""
-    with _held_lock:
-        if tid in _held:
-            count, rest = _held[tid]
-            _held[tid] = (count + 1, rest)
-            return True
-        try:
-            rest = os.getpriority(os.PRIO_PROCESS, tid)
-        except (OSError, AttributeError):
-            return False
-        if rest <= nice:
-            return True  # nothing to raise (and nothing for release_priority to undo)
-        if not set_thread_nice(tid, nice):
-            return False
-        _held[tid] = (1, rest)
-        return True
-
-
-def release_priority(tid: int) -> None:
-    """End one hold_priority(tid) that returned True; the last one puts the thread back to its niceness."""
-    with _held_lock:
-        if tid not in _held:
-            return
-        count, rest = _held[tid]
-        if count > 1:
-            _held[tid] = (count - 1, rest)
-        else:
-            del _held[tid]
-            set_thread_nice(tid, rest)
-
-
-def large_blocks_from_mmap(threshold: int = 16 << 20, trim: int = 64 << 20) -> bool:
-    """Fix glibc's mmap threshold and heap trim threshold (False where malloc is not glibc's). By default the mmap
-    threshold rises to the largest block freed, up to 32 MB: then even the map's big arrays come from the heap, which
-    fragments, and a worker's RSS creeps up over hours (3,600-frame drive: median RSS +11% from the first half to the
-    second). Fixed, blocks over `threshold` (map arrays, snapshot copies) are mmapped and returned when freed; a
-    frame's temporaries (up to a few MB) come from a heap that keeps up to `trim` free at its top. Session 7 fixed
-    128 KB: every temporary was then a fresh mapping, faulted in page by page: 20x the page faults, registration
-    p50 23.8 ms instead of 13.3 on a loaded stream (scratch profile of load stream 2, frames 200 to 300)."""
-    try:
-        libc = ctypes.CDLL("libc.so.6")
-        return bool(libc.mallopt(-3, threshold)) and bool(libc.mallopt(-1, trim))  # M_MMAP_THRESHOLD, M_TRIM_THRESHOLD
-    except (OSError, AttributeError):
-        return False
-
-
-def trim_heap() -> bool:
-    """Give the heap's free pages back to the system now (glibc's malloc_trim; False elsewhere). Once, after start-up
-    work whose temporaries are gone (the kernels' warm-up left 43 MB free but resident); not per frame: trimmed pages
-    fault in again (README, Reliability: eight-stream p99 42 to 64 ms with a trim every 5 s)."""
-    try:
-        return bool(ctypes.CDLL("libc.so.6").malloc_trim(0))
-    except (OSError, AttributeError):
-        return False
-
-
-def worker_main(worker_cls: type[Worker], argv: list[str] | None = None, extra_args: Callable | None = None) -> int:
+def worker_main(
+    worker_cls: type[Worker], argv: list[str] | None = None, extra_args: Callable | None = None, prog: str | None = None
+) -> int:
     """`python -m services.<role>_worker [--config deploy/x.json5] [--connect ...] ...`"""
     import argparse
 
-    p = argparse.ArgumentParser(prog=f"python -m {worker_cls.__module__}", description=worker_cls.__doc__)
+    p = argparse.ArgumentParser(prog=prog or f"python -m {worker_cls.__module__}", description=worker_cls.__doc__)
     p.add_argument("--config", help="worker json5 config (deploy/*.json5)")
     p.add_argument("--connect", help=f"router endpoint (default {DEFAULT_ENDPOINT})")
     p.add_argument("--worker-id")

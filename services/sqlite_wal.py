@@ -1,11 +1,14 @@
-"""WAL mode for a SQLite file that several processes open at once (registration shards and the map service share
-one store)."""
+"""SQLite files that several processes open at once (registration shards and the map service share one store): WAL
+mode, connections and write transactions."""
 
 from __future__ import annotations
 
 import random
 import sqlite3
 import time
+from pathlib import Path
+
+from occvo_core.errors import ConfigError
 
 
 def enable_wal(db: sqlite3.Connection, busy_timeout_s: float) -> None:
@@ -25,3 +28,41 @@ def enable_wal(db: sqlite3.Connection, busy_timeout_s: float) -> None:
             delay = min(2.0 * delay, 0.1)
     if str(mode).lower() != "wal":
         raise sqlite3.OperationalError(f"cannot use WAL journal mode (got {mode})")
+
+
+def connect(
+    path: str, synchronous: str, busy_timeout_s: float, schema: str, page_size: int | None = None
+) -> sqlite3.Connection:
+    try:
+        if path != ":memory:":
+            Path(path).parent.mkdir(parents=True, exist_ok=True)
+        db = sqlite3.connect(path, timeout=busy_timeout_s, isolation_level=None, check_same_thread=False)
+        if page_size:
+            db.execute(f"PRAGMA page_size={int(page_size)}")  # only a new file takes it, and only before WAL mode
+        enable_wal(db, busy_timeout_s)
+        db.execute(f"PRAGMA synchronous={synchronous}")
+        db.execute(f"PRAGMA busy_timeout={int(busy_timeout_s * 1000)}")
+        db.execute("PRAGMA journal_size_limit=67108864")  # snapshots are big: truncate the WAL after checkpoints
+        if schema:
+            db.executescript(schema)
+    except sqlite3.Error as exc:
+        raise ConfigError(f"trajectory store {path}: {exc}") from None
+    return db
+
+
+def transaction(db: sqlite3.Connection, fn, phases: dict | None = None):
+    """fn(db) in one write transaction. phases, if given, gets the ms spent waiting for the file's write lock
+    ("begin": another connection or process writing) and committing ("commit": the WAL write and its sync)."""
+    t0 = time.perf_counter()
+    db.execute("BEGIN IMMEDIATE")
+    t1 = time.perf_counter()
+    try:
+        out = fn(db)
+    except BaseException:
+        db.execute("ROLLBACK")
+        raise
+    t2 = time.perf_counter()
+    db.execute("COMMIT")
+    if phases is not None:
+        phases["begin"], phases["commit"] = (t1 - t0) * 1000.0, (time.perf_counter() - t2) * 1000.0
+    return out

@@ -23,8 +23,6 @@ is durable, so a crash between the two files' transactions leaves a valid (older
 from __future__ import annotations
 
 import contextlib
-import hashlib
-import io
 import logging
 import os
 import sqlite3
@@ -37,11 +35,22 @@ from typing import Literal
 
 import numpy as np
 
-from occvo_core.errors import ConfigError
 from occvo_core.frame import OccupancyFrame
-from occvo_core.grid import OCC3D_GRID
-from services.runtime import hold_priority, log_event, lower_priority, name_os_thread, release_priority
-from services.sqlite_wal import enable_wal
+from services.os_tuning import hold_priority, lower_priority, name_os_thread, release_priority
+from services.snapshot_file import SNAPSHOT_SCHEMA, SnapshotFile, snapshot_path
+from services.sqlite_wal import connect, transaction
+from services.store_blobs import frame_digest, pack_arrays, pack_frame, unpack_arrays, unpack_frame
+from services.telemetry import log_event
+
+__all__ = [  # importers of these names from here predate the split
+    "frame_digest",
+    "pack_arrays",
+    "pack_frame",
+    "snapshot_path",
+    "unpack_arrays",
+    "unpack_frame",
+]
+
 
 _LOG = logging.getLogger("occvo.registration.store")  # the worker's logger prints it
 
@@ -77,98 +86,7 @@ CREATE TABLE IF NOT EXISTS cold_tiles (
     PRIMARY KEY (stream, ix, iy, evicted_seq)
 );
 """
-SNAPSHOT_SCHEMA = """
-CREATE TABLE IF NOT EXISTS snapshots (
-    stream  TEXT PRIMARY KEY,
-    created REAL NOT NULL,
-    seq     INTEGER NOT NULL,
-    state   BLOB NOT NULL
-);
-"""
 _PER_STREAM = ("poses", "journal", "cold_tiles")
-
-
-def snapshot_path(path: str | Path) -> str:
-    """The snapshot file beside a store file: var/occvo.sqlite -> var/occvo.snapshots.sqlite."""
-    path = str(path)
-    if path == ":memory:":
-        return path
-    p = Path(path)
-    return str(p.with_name(f"{p.stem}.snapshots{p.suffix or '.sqlite'}"))
-
-
-def pack_arrays(arrays: dict[str, np.ndarray]) -> bytes:
-    """numpy arrays -> .npz bytes (no pickle, no compression: the blobs are read back whole and soon)."""
-    buf = io.BytesIO()
-    _savez(buf, arrays)
-    return buf.getvalue()
-
-
-class _BlobFile(io.RawIOBase):
-    """A seekable file over a fixed-size SQLite blob, for np.savez to write into; with blob=None it only measures
-    how many bytes would be written. The same arrays give the same bytes, so a measuring pass sizes the blob."""
-
-    def __init__(self, blob=None):
-        super().__init__()
-        self.blob, self.pos, self.size = blob, 0, 0
-
-    def writable(self) -> bool:
-        return True
-
-    def seekable(self) -> bool:
-        return True
-
-    def tell(self) -> int:
-        return self.pos
-
-    def seek(self, offset: int, whence: int = io.SEEK_SET) -> int:
-        self.pos = {io.SEEK_SET: 0, io.SEEK_CUR: self.pos, io.SEEK_END: self.size}[whence] + offset
-        return self.pos
-
-    def write(self, data) -> int:
-        n = memoryview(data).nbytes
-        if self.blob is not None:
-            self.blob.seek(self.pos)
-            self.blob.write(data)
-        self.pos += n
-        self.size = max(self.size, self.pos)
-        return n
-
-
-def _savez(fp, arrays: dict[str, np.ndarray]) -> None:
-    np.savez(fp, **{k: np.asarray(v) for k, v in arrays.items()})
-
-
-def unpack_arrays(blob: bytes) -> dict[str, np.ndarray]:
-    with np.load(io.BytesIO(blob), allow_pickle=False) as z:
-        return {k: z[k] for k in z.files}
-
-
-def frame_digest(points: np.ndarray, labels: np.ndarray, stamp: float) -> bytes:
-    """What identifies a frame for idempotent resends: its stamp and its exact content."""
-    h = hashlib.blake2b(digest_size=16)
-    h.update(np.float64(stamp).tobytes())
-    h.update(np.ascontiguousarray(points, np.float64).tobytes())
-    h.update(np.ascontiguousarray(labels, np.uint8).tobytes())
-    return h.digest()
-
-
-def pack_frame(frame: OccupancyFrame) -> bytes:
-    """A journal entry. Frames on the Occ3D grid (what the workers send: voxel indices) are kept as uint8 indices,
-    3 bytes a voxel instead of 24: the journal is most of what the store writes, and its WAL checkpoints held every
-    stream's commit. Exact: used only when the grid's centres give back the very same coordinates."""
-    head = {"labels": frame.labels, "index": np.int64(frame.index), "stamp": np.float64(frame.stamp)}
-    points = np.asarray(frame.points, np.float64)
-    ijk = OCC3D_GRID.indices_of(points)
-    if OCC3D_GRID.inside(ijk).all() and np.array_equal(OCC3D_GRID.centres_of(ijk), points):
-        return pack_arrays({"ijk": ijk.astype(np.uint8), **head})
-    return pack_arrays({"points": points, **head})
-
-
-def unpack_frame(blob: bytes) -> OccupancyFrame:
-    a = unpack_arrays(blob)
-    points = OCC3D_GRID.centres_of(a["ijk"].astype(np.int64)) if "ijk" in a else a["points"]
-    return OccupancyFrame(points, a["labels"], index=int(a["index"]), stamp=float(a["stamp"]))
 
 
 @dataclass
@@ -188,23 +106,23 @@ class StreamRecord:
     snapshot_seq: int | None
 
 
-class TrajectoryStore:
+class TrajectoryStore(SnapshotFile):
     """Two SQLite connections shared by the worker's stream lanes, each behind its lock: the frames' file and the
     snapshots' file (services/README.md). SQLite has one writer per file anyway."""
 
     def __init__(self, path: str | Path, synchronous: Literal["NORMAL", "FULL"] = "FULL", busy_timeout_s: float = 30.0):
         self.path, self.snapshot_path = str(path), snapshot_path(path)
         self.synchronous = synchronous
-        self.db = _connect(self.path, synchronous, busy_timeout_s, SCHEMA)
+        self.db = connect(self.path, synchronous, busy_timeout_s, SCHEMA)
         # 64 kB pages for the snapshots' file: a 50 MB snapshot written in 4 kB pages cost 170 ms of CPU (SQLite's
         # work per page and WAL frame), in 64 kB pages 60 ms; a file made with other pages keeps them
-        self.snap_db = _connect(self.snapshot_path, synchronous, busy_timeout_s, SNAPSHOT_SCHEMA, page_size=65536)
+        self.snap_db = connect(self.snapshot_path, synchronous, busy_timeout_s, SNAPSHOT_SCHEMA, page_size=65536)
         self.lock, self.snap_lock = threading.Lock(), threading.Lock()
         self._writer_nice = os.getpriority(os.PRIO_PROCESS, 0)  # the opening thread's: _write_lock holds writers at it
         self._move_old_snapshots()
         # reads on a connection of their own (WAL: a reader never waits for the writer): a restore reading megabytes
         # of cold tiles held every stream's commit behind the one connection's lock
-        self.read_db = self.db if self.path == ":memory:" else _connect(self.path, synchronous, busy_timeout_s, "")
+        self.read_db = self.db if self.path == ":memory:" else connect(self.path, synchronous, busy_timeout_s, "")
         self.read_lock = self.lock if self.read_db is self.db else threading.Lock()
         self._checkpointer = None
         if self.path != ":memory:":
@@ -224,7 +142,7 @@ class TrajectoryStore:
     def _checkpoint_loop(self, busy_timeout_s: float) -> None:
         """PASSIVE checkpoints (they copy what no reader needs and never wait for a writer) every second, on their own
         connection; the next commit after a complete one starts the WAL over."""
-        db = _connect(self.path, self.synchronous, busy_timeout_s, "")
+        db = connect(self.path, self.synchronous, busy_timeout_s, "")
         _background_thread("store-checkpoint")
         failing = False
         try:
@@ -247,30 +165,6 @@ class TrajectoryStore:
         finally:
             db.close()
 
-    def _move_old_snapshots(self) -> None:
-        """A store written before snapshots had their own file: move its snapshots there (its journal needs them).
-        In one transaction of the frames' file, so two workers opening the store at once move them once."""
-
-        def old_table(db) -> bool:
-            return (
-                db.execute("SELECT 1 FROM sqlite_master WHERE type='table' AND name='snapshots'").fetchone() is not None
-            )
-
-        def tx(db):
-            if not old_table(db):  # the other worker moved them
-                return
-            rows = db.execute(
-                "SELECT s.stream, t.created, s.seq, s.state FROM snapshots s JOIN streams t USING (stream)"
-            ).fetchall()
-            _transaction(
-                self.snap_db,
-                lambda snap: snap.executemany("INSERT OR REPLACE INTO snapshots VALUES (?, ?, ?, ?)", rows),
-            )
-            db.execute("DROP TABLE snapshots")
-
-        if old_table(self.db):  # an open takes no write lock otherwise
-            _transaction(self.db, tx)
-
     # -- transactions
     @contextlib.contextmanager
     def _write_lock(self, phases: dict | None = None):
@@ -292,7 +186,7 @@ class TrajectoryStore:
 
     def _write(self, fn, phases: dict | None = None):
         with self._write_lock(phases):
-            return _transaction(self.db, fn, phases)
+            return transaction(self.db, fn, phases)
 
     def _write_unsynced(self, fn):
         """A transaction whose loss in a power cut costs nothing (the next synced commit, WAL commits being ordered,
@@ -300,7 +194,7 @@ class TrajectoryStore:
         with self._write_lock():
             self.db.execute("PRAGMA synchronous=NORMAL")
             try:
-                return _transaction(self.db, fn)
+                return transaction(self.db, fn)
             finally:
                 self.db.execute(f"PRAGMA synchronous={self.synchronous}")
 
@@ -395,84 +289,10 @@ class TrajectoryStore:
         blobs = {k: pack_arrays(b) for k, b in (evicted or {}).items()}  # before the lock
         self._write_unsynced(tx)
 
-    # -- snapshots and journal
-    def write_snapshot(
-        self, stream: str, seq: int, state: dict[str, np.ndarray] | bytes, created: float | None = None
-    ) -> bool:
-        """The state after frame `seq` (arrays, or pack_arrays' bytes) replaces the older snapshot; then the journal
-        up to it and the cold rows restored by then go. Arrays are written into the row in place (Python >= 3.11):
-        packing them first would hold a copy of the whole state, and the worker's peak RSS with it. Frame commits
-        go on meanwhile (another file). `created`: the trajectory the state belongs to (created(stream) when the state
-        was taken), by default the current one. False, and the journal kept, if the stream started another since."""
-        created = self.created(stream) if created is None else created
-        if created is None:
-            return False
-        in_place = hasattr(sqlite3.Connection, "blobopen")
-        if isinstance(state, dict) and not in_place:
-            state = pack_arrays(state)
-        write = (lambda fp: _savez(fp, state)) if isinstance(state, dict) else (lambda fp: fp.write(state))
-        size = _BlobFile()
-        write(size)
-
-        def snap_tx(db):
-            if in_place:
-                rowid = db.execute(
-                    "INSERT OR REPLACE INTO snapshots VALUES (?, ?, ?, zeroblob(?))", (stream, created, seq, size.size)
-                ).lastrowid
-                with db.blobopen("snapshots", "state", rowid) as blob:
-                    write(_BlobFile(blob))
-            else:
-                db.execute("INSERT OR REPLACE INTO snapshots VALUES (?, ?, ?, ?)", (stream, created, seq, state))
-
-        with self.snap_lock:
-            _transaction(self.snap_db, snap_tx)
-
-        def tx(db):  # only if the trajectory is still the one snapshotted
-            if db.execute("SELECT created FROM streams WHERE stream=?", (stream,)).fetchone() != (created,):
-                return False
-            db.execute("DELETE FROM journal WHERE stream=? AND seq<=?", (stream, seq))
-            db.execute(
-                "DELETE FROM cold_tiles WHERE stream=? AND restored_seq IS NOT NULL AND restored_seq<=?", (stream, seq)
-            )
-            db.execute("UPDATE streams SET snapshot_seq=? WHERE stream=?", (seq, stream))
-            return True
-
-        return self._write_unsynced(tx)  # lost in a power cut, the rows go with the next snapshot
-
-    def drop_old_snapshots(self, stream: str) -> int:
-        """Delete the stream's snapshot of a trajectory it no longer has (a reset started another): never read again,
-        5 MB or more each. Returns the rows deleted."""
-        created = self.created(stream)
-        with self.snap_lock:
-            return _transaction(
-                self.snap_db,
-                lambda db: (
-                    db.execute("DELETE FROM snapshots WHERE stream=? AND created IS NOT ?", (stream, created)).rowcount
-                ),
-            )
-
     def created(self, stream: str) -> float | None:
         """Identifies the stream's current trajectory (its creation time)."""
         rows = self._read("SELECT created FROM streams WHERE stream=?", (stream,))
         return rows[0][0] if rows else None
-
-    def snapshot(self, stream: str) -> tuple[int, bytes] | None:
-        """(seq, state) of the stream's current trajectory, or None. A snapshot of an older trajectory (a crash
-        between its write and the new trajectory's first commit) or of an uncommitted frame does not count."""
-        record = self.record(stream)
-        with self.snap_lock:
-            rows = self.snap_db.execute(
-                "SELECT created, seq, state FROM snapshots WHERE stream=?", (stream,)
-            ).fetchall()
-        if (
-            not rows
-            or record is None
-            or rows[0][0] != record.created
-            or record.last_seq is None
-            or rows[0][1] > record.last_seq
-        ):
-            return None
-        return int(rows[0][1]), rows[0][2]
 
     def journal(self, stream: str, after_seq: int | None) -> list[tuple[int, OccupancyFrame]]:
         rows = self._read(
@@ -549,44 +369,6 @@ def _background_thread(name: str, nice: int = 10) -> None:
     """Name the calling OS thread and run it below the threads that commit poses (best effort)."""
     name_os_thread(name)
     lower_priority(nice)
-
-
-def _connect(
-    path: str, synchronous: str, busy_timeout_s: float, schema: str, page_size: int | None = None
-) -> sqlite3.Connection:
-    try:
-        if path != ":memory:":
-            Path(path).parent.mkdir(parents=True, exist_ok=True)
-        db = sqlite3.connect(path, timeout=busy_timeout_s, isolation_level=None, check_same_thread=False)
-        if page_size:
-            db.execute(f"PRAGMA page_size={int(page_size)}")  # only a new file takes it, and only before WAL mode
-        enable_wal(db, busy_timeout_s)
-        db.execute(f"PRAGMA synchronous={synchronous}")
-        db.execute(f"PRAGMA busy_timeout={int(busy_timeout_s * 1000)}")
-        db.execute("PRAGMA journal_size_limit=67108864")  # snapshots are big: truncate the WAL after checkpoints
-        if schema:
-            db.executescript(schema)
-    except sqlite3.Error as exc:
-        raise ConfigError(f"trajectory store {path}: {exc}") from None
-    return db
-
-
-def _transaction(db: sqlite3.Connection, fn, phases: dict | None = None):
-    """fn(db) in one write transaction. phases, if given, gets the ms spent waiting for the file's write lock
-    ("begin": another connection or process writing) and committing ("commit": the WAL write and its sync)."""
-    t0 = time.perf_counter()
-    db.execute("BEGIN IMMEDIATE")
-    t1 = time.perf_counter()
-    try:
-        out = fn(db)
-    except BaseException:
-        db.execute("ROLLBACK")
-        raise
-    t2 = time.perf_counter()
-    db.execute("COMMIT")
-    if phases is not None:
-        phases["begin"], phases["commit"] = (t1 - t0) * 1000.0, (time.perf_counter() - t2) * 1000.0
-    return out
 
 
 def _pose(row) -> StoredPose:

@@ -410,7 +410,7 @@ def test_a_lane_waiting_for_its_streams_after_pose_work_raises_it_to_the_lanes_p
 def test_worker_process_memory_settings_and_thread_names():
     """glibc takes the workers' malloc settings, and a lane's OS thread is named after its stream (what `top -H`
     shows)."""
-    from services.runtime import large_blocks_from_mmap, name_os_thread
+    from services.os_tuning import large_blocks_from_mmap, name_os_thread
 
     assert large_blocks_from_mmap()  # both mallopt calls accepted (glibc here)
     seen = []

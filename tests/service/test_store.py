@@ -234,7 +234,7 @@ def test_a_niced_thread_writes_to_the_store_at_the_lanes_priority_and_goes_back(
     (priority inheritance) and still waits for it."""
     import os
 
-    from services.runtime import hold_priority, lower_priority, release_priority, set_thread_nice
+    from services.os_tuning import hold_priority, lower_priority, release_priority, set_thread_nice
 
     store = TrajectoryStore(tmp_path / "s.sqlite")
     lanes = os.getpriority(os.PRIO_PROCESS, 0)

@@ -1,0 +1,351 @@
+"""The stream lane's job: one frame of a stream, in sequence order, from its occupancy to its published pose, then its
+work after the pose (loop closure, map update, snapshot schedule) in the stream's after-pose thread."""
+
+from __future__ import annotations
+
+import logging
+import os
+import threading
+import time
+from concurrent.futures import ThreadPoolExecutor
+
+import numpy as np
+import zenoh
+
+from occvo_core.errors import InvalidFrameError
+from occvo_core.frame import OccupancyFrame
+from schemas import keys
+from schemas.codec import encode
+from schemas.models import OccupancyFrameMsg, PoseEstimate
+from services.os_tuning import hold_priority, lower_priority, name_os_thread, release_priority
+from services.registration.state import StreamState
+from services.store_blobs import frame_digest, pack_frame
+from services.telemetry import log_event
+
+_STATUS = {"ok": "ok", "lost": "lost", "initialised": "reinitialised", "reinitialised": "reinitialised"}
+
+
+class StreamLanes:
+    """RegistrationWorker's lanes: sequence checks, registration, pose publishing."""
+
+    def state(self, stream: str) -> StreamState:
+        with self._states_lock:
+            if stream not in self.states:
+                self.states[stream] = StreamState()
+            return self.states[stream]
+
+    def retire_stream(self, stream: str) -> None:
+        """An idle stream: its after-pose thread ends; with a store its OccVO is snapshotted and dropped (the next
+        frame resumes it from the store), without one it stays in memory (it is the only copy)."""
+        st = self.states.get(stream)
+        if st is None:
+            return
+        if st.tail is not None:
+            st.tail.result()
+        if st.after_pose is not None:
+            st.after_pose.shutdown(wait=True)
+            st.after_pose, st.tail = None, None
+        if self.store is None or st.vo is None:
+            return
+        st.snapshot_idle.wait()
+        if st.since_snapshot > 0 or st.snapshot_retry:
+            st.snapshot_idle.clear()
+            self._write_snapshot(stream, st, st.seqs[-1], self.store.created(stream), st.vo.state_dict(copy=False))
+        st.vo, st.tiles, st.cold, st.cold_digest, st.restored_for_next = (
+            None,
+            {},
+            {},
+            {},
+            [],
+        )  # heap trimmed by the caller
+
+    def check_seq(self, stream: str, seq: int, key: str) -> bool:
+        return True  # judged in the lane against the stream's trajectory: a step back may be a resend
+
+    def _on_occupancy(self, sample: zenoh.Sample) -> None:
+        if self.owns(keys.stream_of(str(sample.key_expr))):  # another shard's stream: not ours to count or judge
+            self.enqueue(sample, OccupancyFrameMsg, self._register)
+
+    def _seq_error(self, stream: str, code: str, message: str, seq: int) -> None:
+        self.stats.inc(code)
+        self.report_error(stream, code, message, keys.occupancy(stream), seq)
+
+    # -- one frame ------------------------------------------------------------------------------------------------
+    def _register(self, stream: str, item) -> None:
+        msg, hop_ms, t_queued = item
+        st = self.state(stream)
+        if st.tail is not None:  # the previous frame's work after its pose: the odometry is that work's until it ends
+            if not st.tail.done():
+                self._boost_tail(st)
+            st.tail.result()
+        t0 = time.perf_counter()
+        frame = OccupancyFrame(
+            msg.occupancy.to_points(),
+            msg.occupancy.labels.to_numpy().copy(),
+            index=msg.seq,
+            stamp=msg.stamp,
+            meta={"stream": stream, "source": msg.source},
+        )
+        try:
+            frame.validate()  # before any reset, so a bad first frame leaves the old trajectory and map intact
+        except InvalidFrameError as exc:
+            self.report_error(stream, "invalid_frame", f"seq {msg.seq}: {exc.reason}", keys.occupancy(stream), msg.seq)
+            return
+        digest = frame_digest(frame.points, frame.labels, msg.stamp)
+        known = st.stored(msg.seq)
+        if known is not None and known.digest == digest:  # a resend: answer it, register nothing twice
+            self.stats.inc("republished")
+            self.session.put(
+                keys.pose(stream),
+                encode(self._pose_msg(stream, known)),
+                congestion_control=zenoh.CongestionControl.BLOCK,
+            )
+            return
+        restart = msg.seq == 0 or not st.started
+        if not restart:
+            last = st.seqs[-1]
+            if msg.seq <= last:
+                what = "differs from the registered frame" if known is not None else "is older than the trajectory"
+                return self._seq_error(
+                    stream, "out_of_order", f"seq {msg.seq} arrived after seq {last} and {what}; dropped", msg.seq
+                )
+            if msg.seq - last > self.config.max_seq_jump:  # adopted, one stray seq would make every real frame old
+                return self._seq_error(
+                    stream,
+                    "seq_jump",
+                    f"seq {msg.seq} is {msg.seq - last} after seq {last}, beyond "
+                    f"the window of {self.config.max_seq_jump}; dropped",
+                    msg.seq,
+                )
+            if msg.seq > last + 1:
+                self._seq_error(
+                    stream,
+                    "missing_seq",
+                    f"missing seq {last + 1}..{msg.seq - 1} ({msg.seq - last - 1} frames) before seq {msg.seq}",
+                    msg.seq,
+                )
+            if st.vo is None:
+                self._resume(stream, st)
+        if restart:  # only this lane's thread touches st.vo; queries read the lists under st.lock
+            st.vo = st.vo or self._OccVO(self.occvo_config, threads=self.config.kernel_threads)
+            st.vo.reset()
+            st.cold, st.cold_digest, st.pending_restored, st.tiles, st.restored_for_next = {}, {}, [], {}, []
+            st.since_snapshot, st.send_all_tiles, st.ego_xy = 0, False, None
+        try:
+            reg = st.vo.register(frame)
+        except InvalidFrameError as exc:
+            if restart and self.store is not None:
+                st.vo = None  # reset for nothing: the stored trajectory stands and resumes at the next frame
+            self.report_error(stream, "invalid_frame", f"seq {msg.seq}: {exc.reason}", keys.occupancy(stream), msg.seq)
+            return
+        reg_ms = (time.perf_counter() - t0) * 1000.0
+        pose_m = np.asarray(reg.pose, float)
+        status = _STATUS.get(reg.status, "ok")
+        t_store = time.perf_counter()
+        phases = {}
+        if self.store is not None:
+            try:
+                phases = self.store.commit_frame(
+                    stream, msg.seq, msg.stamp, digest, status, pose_m, pack_frame(frame), new_trajectory=restart
+                )
+            except Exception as exc:  # noqa: BLE001 - e.g. disk full: publish nothing the store lacks; rebuild from it
+                return self._store_failed(stream, st, msg.seq, exc, "not stored, pose not published")
+        store_ms = (time.perf_counter() - t_store) * 1000.0
+        timings = dict(msg.timings_ms)
+        timings.update(
+            {"occupancy_hop": hop_ms, "registration_queue": (t0 - t_queued) * 1000.0, "registration": reg_ms}
+        )
+        if self.store is not None:  # with where a slow commit waited: this worker's writers, another process, the sync
+            timings.update(store_commit=store_ms, **{f"store_commit.{k}": v for k, v in phases.items()})
+        timings.update({f"registration.{k}": float(v) for k, v in reg.timings_ms.items()})
+        self._publish_pose(stream, st, msg.seq, msg.stamp, pose_m, status, digest, timings, restart)
+        self.stats.observe("registration", reg_ms)
+        self.stats.observe("occupancy_hop", hop_ms)
+        if self.store is not None:
+            self.stats.observe("store_commit", store_ms)
+        if restart:
+            log_event(self.log, "trajectory started", stream=stream, seq=msg.seq)
+            if self.store is not None:
+                self._snapshots.put(lambda: self.store.drop_old_snapshots(stream))
+        # the pose is out: loop closure, the map update, eviction and the next frame's restores run off its latency,
+        # in the stream's after-pose thread, below the lanes' priority (other streams' poses go first on the cores)
+        if st.after_pose is None:
+            st.after_pose = ThreadPoolExecutor(1, f"after-{stream}", initializer=self._background_thread)
+        st.tail_running = True
+        st.tail = st.after_pose.submit(self._after_pose, stream, st, msg, reg, frame, digest, pose_m, restart, t0)
+
+    def _after_pose(
+        self,
+        stream: str,
+        st: StreamState,
+        msg,
+        reg,
+        frame: OccupancyFrame,
+        digest: bytes,
+        pose_m: np.ndarray,
+        restart: bool,
+        t0: float,
+    ) -> None:
+        """A frame's work after its pose: OccVO.complete and _finish, their second store write, a relocalised pose,
+        the map update and the snapshot schedule. A failure is reported as a lane reports one."""
+        st.tail_tid = threading.get_native_id()
+        try:
+            self._after_pose_steps(stream, st, msg, reg, frame, digest, pose_m, restart, t0)
+        except Exception as exc:  # noqa: BLE001 - a worker never dies of one frame
+            self.report_error(stream, "internal", f"{type(exc).__name__}: {exc}", seq=msg.seq)
+            log_event(self.log, "stage failed", logging.ERROR, stream=stream, error=repr(exc))
+        finally:
+            with st.tail_lock:
+                st.tail_running = False
+                if st.tail_boosted:  # niced again for the next frame's work
+                    release_priority(st.tail_tid)
+                    st.tail_boosted = False
+
+    def _boost_tail(self, st: StreamState) -> None:
+        """The lane is about to wait for its stream's work after the last pose: that work now holds up a pose, so it
+        runs at the lane's priority until it ends (priority inheritance; without it a niced loop closure waited
+        behind every other stream's lane, up to 0.7 s). Raising a thread's priority needs CAP_SYS_NICE or an
+        RLIMIT_NICE that allows it (the systemd unit sets LimitNICE); without either the work stays niced."""
+        with st.tail_lock:
+            if not st.tail_running or st.tail_tid is None or st.tail_boosted:
+                return
+            if hold_priority(st.tail_tid, os.getpriority(os.PRIO_PROCESS, threading.get_native_id())):
+                st.tail_boosted = True
+                self.stats.inc("after_pose_boosted")
+            elif not self._boost_refused:
+                self._boost_refused = True
+                log_event(
+                    self.log,
+                    "cannot raise a waited-for after-pose thread to the lanes' priority (needs "
+                    "CAP_SYS_NICE or RLIMIT_NICE, e.g. LimitNICE=+0): it finishes niced",
+                    logging.WARNING,
+                )
+
+    def _background_thread(self) -> None:
+        """Start of a thread doing work off the poses' path: after_pose_nice below the lanes."""
+        name_os_thread()
+        if not lower_priority(self.config.after_pose_nice):
+            log_event(
+                self.log,
+                "cannot lower a background thread's priority here; it runs at the lanes'",
+                logging.WARNING,
+                thread=threading.current_thread().name,
+            )
+
+    def _after_pose_steps(
+        self,
+        stream: str,
+        st: StreamState,
+        msg,
+        reg,
+        frame: OccupancyFrame,
+        digest: bytes,
+        pose_m: np.ndarray,
+        restart: bool,
+        t0: float,
+    ) -> None:
+        t_tail = time.perf_counter()
+        result, restored, evicted, (tiles, dirty) = self._finish(stream, st, reg, frame, msg.seq, publish=True)
+        t_finished = time.perf_counter()
+        relocalised = result.loop_correction is not None
+        if relocalised:
+            self.stats.inc("loop_closures")
+            log_event(
+                self.log,
+                "loop closed",
+                stream=stream,
+                seq=msg.seq,
+                correction_m=round(float(np.linalg.norm(result.pose[:3, 3] - pose_m[:3, 3])), 3),
+            )
+        if self.store is not None and (relocalised or evicted or st.pending_restored):
+            try:
+                self.store.finish_frame(
+                    stream,
+                    msg.seq,
+                    np.asarray(result.pose, float) if relocalised else None,
+                    evicted=evicted,
+                    restored=st.pending_restored,
+                )
+            except Exception as exc:  # noqa: BLE001 - the journal has the frame: a resume redoes this part
+                return self._store_failed(
+                    stream, st, msg.seq, exc, "pose stored and published, its map update not stored"
+                )
+        st.pending_restored = []
+        if relocalised:  # supersedes the pose published above
+            timings = {"loop_closure": float(result.timings_ms.get("loop_closure", 0.0))}
+            self._publish_pose(
+                stream, st, msg.seq, msg.stamp, np.asarray(result.pose, float), "relocalised", digest, timings, False
+            )
+        t_map = time.perf_counter()
+        sent = self._publish_map(stream, st, msg.seq, restart, tiles, dirty, evicted, restored)
+        t_end = time.perf_counter()
+        map_ms = (t_end - t_map) * 1000.0 + st.tiling_ms
+        self.stats.observe("map_update", map_ms)
+        if self.store is not None:
+            self.stats.observe("map_restore", st.restore_ms)
+            self.stats.observe("map_evict", st.evict_ms)
+        self.stats.observe("frame_after_pose", (t_end - t_tail) * 1000.0)
+        if t_end - t_tail > self.config.slow_after_pose_s:  # the next frame of the stream waits for this
+            log_event(
+                self.log,
+                "slow work after a pose",
+                logging.WARNING,
+                stream=stream,
+                seq=msg.seq,
+                ms=round((t_end - t_tail) * 1000.0),
+                timings_ms={k: round(v, 1) for k, v in result.timings_ms.items()},
+                finish_ms=round((t_finished - t_tail) * 1000.0),
+                tiling_ms=round(st.tiling_ms, 1),
+                restore_ms=round(st.restore_ms, 1),
+                evict_ms=round(st.evict_ms, 1),
+                store_ms=round((t_map - t_finished) * 1000.0),
+                publish_map_ms=round((t_end - t_map) * 1000.0),
+                tiles_sent=sent[0],
+                map_update_bytes=sent[1],
+                relocalised=relocalised,
+            )
+        self.stats.observe("stage_total", (time.perf_counter() - t0) * 1000.0)
+        if self.store is not None:
+            st.since_snapshot += 1
+            due = st.snapshot_retry or (
+                st.since_snapshot >= self.config.snapshot_every and time.monotonic() >= st.snapshot_due
+            )
+            if due and st.snapshot_idle.is_set():
+                self._queue_snapshot(stream, st)
+
+    def _publish_pose(
+        self,
+        stream: str,
+        st: StreamState,
+        seq: int,
+        stamp: float,
+        pose_m: np.ndarray,
+        status: str,
+        digest: bytes,
+        timings: dict,
+        restart: bool,
+    ) -> None:
+        """Record the pose for queries and publish it; a relocalised pose replaces the one of its seq."""
+        pose = PoseEstimate(
+            stream=stream,
+            seq=seq,
+            stamp=stamp,
+            pose=pose_m.tolist(),
+            status=status,
+            timings_ms=timings,
+            sent_at=time.time(),
+        )
+        with st.lock:
+            if restart:
+                st.clear()
+                st.started = True
+            if seq in st.position:
+                i = st.position[seq]
+                st.poses[i], st.statuses[i] = pose_m, status
+            else:
+                st.append(seq, stamp, pose_m, status, digest)
+            st.latest = pose
+        data = encode(pose)
+        # counted first: a client holding the pose (another thread may wake it before put returns) finds it counted
+        self.stats.inc("relocalised" if status == "relocalised" else "frames_out")
+        self.session.put(keys.pose(stream), data, congestion_control=zenoh.CongestionControl.BLOCK)

@@ -1,0 +1,131 @@
+"""The snapshot file beside a trajectory store (<name>.snapshots.sqlite): the latest OccVO state of each stream, and
+the deletion of the journal and restored cold rows a durable snapshot covers (services/store.py)."""
+
+from __future__ import annotations
+
+import sqlite3
+from pathlib import Path
+
+import numpy as np
+
+from services.sqlite_wal import transaction
+from services.store_blobs import BlobFile, pack_arrays, savez
+
+SNAPSHOT_SCHEMA = """
+CREATE TABLE IF NOT EXISTS snapshots (
+    stream  TEXT PRIMARY KEY,
+    created REAL NOT NULL,
+    seq     INTEGER NOT NULL,
+    state   BLOB NOT NULL
+);
+"""
+
+
+def snapshot_path(path: str | Path) -> str:
+    """The snapshot file beside a store file: var/occvo.sqlite -> var/occvo.snapshots.sqlite."""
+    path = str(path)
+    if path == ":memory:":
+        return path
+    p = Path(path)
+    return str(p.with_name(f"{p.stem}.snapshots{p.suffix or '.sqlite'}"))
+
+
+class SnapshotFile:
+    """TrajectoryStore's snapshots: a second SQLite file, so that a big snapshot never holds the frames' commits."""
+
+    def _move_old_snapshots(self) -> None:
+        """A store written before snapshots had their own file: move its snapshots there (its journal needs them).
+        In one transaction of the frames' file, so two workers opening the store at once move them once."""
+
+        def old_table(db) -> bool:
+            return (
+                db.execute("SELECT 1 FROM sqlite_master WHERE type='table' AND name='snapshots'").fetchone() is not None
+            )
+
+        def tx(db):
+            if not old_table(db):  # the other worker moved them
+                return
+            rows = db.execute(
+                "SELECT s.stream, t.created, s.seq, s.state FROM snapshots s JOIN streams t USING (stream)"
+            ).fetchall()
+            transaction(
+                self.snap_db,
+                lambda snap: snap.executemany("INSERT OR REPLACE INTO snapshots VALUES (?, ?, ?, ?)", rows),
+            )
+            db.execute("DROP TABLE snapshots")
+
+        if old_table(self.db):  # an open takes no write lock otherwise
+            transaction(self.db, tx)
+
+    def write_snapshot(
+        self, stream: str, seq: int, state: dict[str, np.ndarray] | bytes, created: float | None = None
+    ) -> bool:
+        """The state after frame `seq` (arrays, or pack_arrays' bytes) replaces the older snapshot; then the journal
+        up to it and the cold rows restored by then go. Arrays are written into the row in place (Python >= 3.11):
+        packing them first would hold a copy of the whole state, and the worker's peak RSS with it. Frame commits
+        go on meanwhile (another file). `created`: the trajectory the state belongs to (created(stream) when the state
+        was taken), by default the current one. False, and the journal kept, if the stream started another since."""
+        created = self.created(stream) if created is None else created
+        if created is None:
+            return False
+        in_place = hasattr(sqlite3.Connection, "blobopen")
+        if isinstance(state, dict) and not in_place:
+            state = pack_arrays(state)
+        write = (lambda fp: savez(fp, state)) if isinstance(state, dict) else (lambda fp: fp.write(state))
+        size = BlobFile()
+        write(size)
+
+        def snap_tx(db):
+            if in_place:
+                rowid = db.execute(
+                    "INSERT OR REPLACE INTO snapshots VALUES (?, ?, ?, zeroblob(?))", (stream, created, seq, size.size)
+                ).lastrowid
+                with db.blobopen("snapshots", "state", rowid) as blob:
+                    write(BlobFile(blob))
+            else:
+                db.execute("INSERT OR REPLACE INTO snapshots VALUES (?, ?, ?, ?)", (stream, created, seq, state))
+
+        with self.snap_lock:
+            transaction(self.snap_db, snap_tx)
+
+        def tx(db):  # only if the trajectory is still the one snapshotted
+            if db.execute("SELECT created FROM streams WHERE stream=?", (stream,)).fetchone() != (created,):
+                return False
+            db.execute("DELETE FROM journal WHERE stream=? AND seq<=?", (stream, seq))
+            db.execute(
+                "DELETE FROM cold_tiles WHERE stream=? AND restored_seq IS NOT NULL AND restored_seq<=?", (stream, seq)
+            )
+            db.execute("UPDATE streams SET snapshot_seq=? WHERE stream=?", (seq, stream))
+            return True
+
+        return self._write_unsynced(tx)  # lost in a power cut, the rows go with the next snapshot
+
+    def drop_old_snapshots(self, stream: str) -> int:
+        """Delete the stream's snapshot of a trajectory it no longer has (a reset started another): never read again,
+        5 MB or more each. Returns the rows deleted."""
+        created = self.created(stream)
+        with self.snap_lock:
+            return transaction(
+                self.snap_db,
+                lambda db: (
+                    db.execute("DELETE FROM snapshots WHERE stream=? AND created IS NOT ?", (stream, created)).rowcount
+                ),
+            )
+
+    def snapshot(self, stream: str) -> tuple[int, bytes] | None:
+        """(seq, state) of the stream's current trajectory, or None. A snapshot of an older trajectory (a crash
+        between its write and the new trajectory's first commit) or of an uncommitted frame does not count."""
+        record = self.record(stream)
+        with self.snap_lock:
+            rows = self.snap_db.execute(
+                "SELECT created, seq, state FROM snapshots WHERE stream=?", (stream,)
+            ).fetchall()
+        if (
+            not rows
+            or record is None
+            or rows[0][0] != record.created
+            or record.last_seq is None
+            or rows[0][1] > record.last_seq
+        ):
+            return None
+        return int(rows[0][1]), rows[0][2]

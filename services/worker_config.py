@@ -1,0 +1,98 @@
+"""The one config of every worker role (deploy/*.json5 and the command line)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Literal
+
+from pydantic import BaseModel, ConfigDict, Field, model_validator
+
+from occvo_core.errors import ConfigError
+from schemas.codec import DEFAULT_MAX_BYTES
+
+DEFAULT_ENDPOINT = "tcp/127.0.0.1:7447"
+Policy = Literal["lossless", "latest"]
+
+
+class WorkerConfig(BaseModel):
+    """One config for every worker; fields a role does not use are ignored by it (deploy/*.json5)."""
+
+    model_config = ConfigDict(extra="forbid")
+    connect: str = DEFAULT_ENDPOINT
+    worker_id: str | None = None
+    policy: Policy = "lossless"
+    queue_size: int = Field(4, ge=1, le=1024)
+    max_message_bytes: int = Field(DEFAULT_MAX_BYTES, ge=1024)
+    log_level: str = "INFO"
+    # what one client may cost (services/limits.py); the defaults fit a 2-core machine
+    max_streams: int = Field(64, ge=1)  # streams a worker serves at once; more get a stream_limit error event
+    max_streams_per_client: int = Field(16, ge=1)  # of them, per client (the stream id's prefix before its first '.')
+    idle_stream_s: float = Field(30.0, gt=0)  # a stream without frames this long gives back its lane (and its memory)
+    max_seq_jump: int = Field(100_000, ge=1)  # a seq this far beyond the next expected is reported, not adopted
+    error_events_per_s: float = Field(20.0, gt=0)  # error events a stream may cause a second (bursts of error_burst)
+    error_burst: int = Field(100, ge=1)
+    max_query_tiles: int = Field(64, ge=1)  # map: tiles in one reply to a region or wildcard query (a page)
+    max_query_streams: int = Field(16, ge=1)  # registration: trajectories in one reply to a wildcard query
+    # inference worker
+    source: Literal["replay", "model"] = "replay"
+    device: Literal["auto", "cpu", "cuda"] = "auto"
+    model_weights: str | None = None  # TinyOccNet state_dict (services.occupancy_model)
+    checkpoint: str | None = None  # TPV-Former checkpoint of the model source (occvo train-occ)
+    torch_threads: int = Field(1, ge=1)
+    # model source: voxels the network is less sure of than this are reported free (OccupancyPredictor)
+    min_confidence: float = Field(0.0, ge=0, lt=1)
+    min_ground_confidence: float = Field(0.0, ge=0, lt=1)
+    # registration worker
+    # shards: registration workers sharing the streams; this one registers the streams of `shard`
+    # (schemas.keys.shard_of: CRC-32 of the stream id mod shards). `occvo up` sets both from a role's count
+    shard: int = Field(0, ge=0)
+    shards: int = Field(1, ge=1, le=1024)
+    tile_m: float = Field(20.0, gt=0)
+    occvo_config: str | None = None
+    # registration: cores each stream's kernels may use, 0 = all. Streams already run side by side in threads, and
+    # the inference worker wants a core; poses are the same for any value
+    kernel_threads: int = Field(1, ge=0)
+    # registration: niceness added to the threads doing the work after a pose (loop closure, map update, eviction,
+    # restores) and writing snapshots, so that the cores go to other streams' poses first. 0: the lanes' priority
+    after_pose_nice: int = Field(10, ge=0, le=19)
+    # registration: a frame's work after its pose taking longer than this is logged with its steps (its stream's next
+    # frame waits for it)
+    slow_after_pose_s: float = Field(0.5, gt=0)
+    # registration: call every kernel once at start-up, before taking frames (compiled on a fresh install, else
+    # loaded from numba's cache; see occvo_core/warm_up.py)
+    warm_up: bool = True
+    # durable state (SQLite file; the registration worker and the map service may share one)
+    store_path: str | None = None
+    snapshot_every: int = Field(
+        20, ge=1
+    )  # registration: frames between state snapshots at least (a journal covers the rest)
+    # registration: snapshots of a stream take at most this share of its time; a big map is snapshotted less often
+    # (a resume replays more journal) instead of stalling every stream (a 10^6-voxel state is ~200 MB, ~1 s to write);
+    # None: every snapshot_every frames whatever they cost
+    snapshot_max_share: float | None = Field(0.02, gt=0, le=1)
+    working_radius_m: float | None = Field(None, gt=0)  # registration: map farther from the ego goes to the store
+    store_sync: Literal["full", "normal"] = (
+        "full"  # registration: SQLite synchronous; normal survives kill -9, not power loss
+    )
+
+    @model_validator(mode="after")
+    def _shard_in_range(self) -> WorkerConfig:
+        if self.shard >= self.shards:
+            raise ValueError(f"shard {self.shard} is not one of shards 0..{self.shards - 1}")
+        return self
+
+    @classmethod
+    def load(cls, path: str | Path | None, **overrides) -> WorkerConfig:
+        import json5
+
+        data = {}
+        if path is not None:
+            try:
+                data = json5.loads(Path(path).read_text())
+            except Exception as exc:  # noqa: BLE001
+                raise ConfigError(f"{path}: {exc}") from None
+        data.update({k: v for k, v in overrides.items() if v is not None})
+        try:
+            return cls.model_validate(data)
+        except Exception as exc:  # noqa: BLE001
+            raise ConfigError(f"worker config {path or ''}: {exc}") from None

@@ -29,11 +29,11 @@ def run(args) -> int:
     from occvo_core.models.tpvformer import load_checkpoint, select_device, shipped_checkpoint
     from occvo_core.models.train import evaluate
 
+    args.checkpoint = args.checkpoint or shipped_checkpoint()
     if not args.checkpoint.is_file():
         raise DatasetError(args.checkpoint, "no such checkpoint: give a file `occvo train-occ` wrote")
     torch.set_num_threads(args.threads)
     device = select_device(args.device)
-    args.checkpoint = args.checkpoint or shipped_checkpoint()
     model = load_checkpoint(args.checkpoint, device=device)
     metrics = evaluate(
         model, args.seeds, frames=args.frames, stride=args.stride, device=device, progress=not args.quiet

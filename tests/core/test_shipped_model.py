@@ -109,7 +109,7 @@ def test_eval_occ_re_evaluates_the_shipped_checkpoint_on_held_out_seeds(tmp_path
             "20",
             "--device",
             "cpu",
-            "--json",
+            "--output",
             str(out),
         ],
         capture_output=True,

@@ -84,9 +84,9 @@ def large_blocks_from_mmap(threshold: int = 16 << 20, trim: int = 64 << 20) -> b
     threshold rises to the largest block freed, up to 32 MB: then even the map's big arrays come from the heap, which
     fragments, and a worker's RSS creeps up over hours (3,600-frame drive: median RSS +11% from the first half to the
     second). Fixed, blocks over `threshold` (map arrays, snapshot copies) are mmapped and returned when freed; a
-    frame's temporaries (up to a few MB) come from a heap that keeps up to `trim` free at its top. Session 7 fixed
-    128 KB: every temporary was then a fresh mapping, faulted in page by page: 20x the page faults, registration
-    p50 23.8 ms instead of 13.3 on a loaded stream (scratch profile of load stream 2, frames 200 to 300)."""
+    frame's temporaries (up to a few MB) come from a heap that keeps up to `trim` free at its top. A threshold as
+    low as 128 KB makes every temporary a fresh mapping faulted in page by page (20x the page faults, registration
+    p50 23.8 ms instead of 13.3 on a loaded stream)."""
     try:
         libc = ctypes.CDLL("libc.so.6")
         return bool(libc.mallopt(-3, threshold)) and bool(libc.mallopt(-1, trim))  # M_MMAP_THRESHOLD, M_TRIM_THRESHOLD

@@ -170,8 +170,8 @@ class TrajectoryStore(SnapshotFile):
     def _write_lock(self, phases: dict | None = None):
         """The store's write lock, held at the priority of the thread that opened the store (the lanes'): a niced
         after-pose thread or snapshot writer holding it must not keep the lanes' commits waiting while other work
-        takes the cores (priority ceiling; in session 21's shared-host runs, 70% of the time of commits over
-        100 ms went to waiting for this lock)."""
+        takes the cores (priority ceiling; without it, on a shared host, 70% of the time of commits over 100 ms
+        went to waiting for this lock)."""
         t0 = time.perf_counter()
         with self.lock:
             if phases is not None:

@@ -24,7 +24,10 @@ from pathlib import Path
 
 import numpy as np
 
+sys.path.insert(0, str(Path(__file__).resolve().parent))
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from time_offset import RUNS, four_ways  # noqa: E402
 
 from occvo_core import OccVO, OccVOConfig  # noqa: E402
 from occvo_core.eval import ape_rmse, success  # noqa: E402
@@ -34,28 +37,10 @@ from occvo_core.trajectory_stats import path_length  # noqa: E402
 
 SAMPLE = Path(__file__).resolve().parents[2] / "shared" / "data" / "occvo-sample"
 SETS = {"choose": range(0, 20), "confirm": range(100, 120)}
-WAYS = {"forward": (1, 1), "reversed": (-1, -1), "turned": (1, -1), "turned+rev": (-1, 1)}  # signs of d, e
-TURN = np.diag([-1.0, -1.0, 1.0, 1.0])
 
 
 def load_config(spec: str) -> OccVOConfig:
     return OccVOConfig() if spec == "default" else OccVOConfig.load(spec)
-
-
-def real_runs(name: str) -> dict:
-    """The four ways of one release scene: (frames, ground truth) each, stamps at 2 Hz."""
-    from occvo_core.datasets import OccVOReleaseScene
-
-    source = OccVOReleaseScene(SAMPLE / "occupancy" / name)
-    frames = [source[i] for i in range(len(source))]
-    gt = np.asarray(source.gt_poses)
-    turned = [OccupancyFrame(f.points * [-1.0, -1.0, 1.0], f.labels, f.index) for f in frames]
-    return {
-        "forward": (frames, gt),
-        "reversed": (frames[::-1], gt[::-1]),
-        "turned": (turned, TURN @ gt @ TURN),
-        "turned+rev": (turned[::-1], (TURN @ gt @ TURN)[::-1]),
-    }
 
 
 def synthetic(seed: int, cache: Path) -> tuple[list, np.ndarray, tuple]:
@@ -115,7 +100,7 @@ def job(args: tuple) -> tuple:
     config = load_config(spec)
     if kind == "real":
         name, way = key
-        frames, gt = real_runs(name)[way]
+        frames, gt = four_ways(SAMPLE, name)[way]
         return spec, kind, key, score(frames, gt, config)
     frames, gt, truth = synthetic(key, Path(cache))
     return spec, kind, key, score(frames, gt, config, truth)
@@ -141,9 +126,8 @@ def leans(real: dict) -> dict:
     """Per scene: data offset d and ego-frame lean e from its four runs' best shifts (time_offset.py's algebra)."""
     out = {}
     for name in sorted({k[0] for k in real}):
-        shifts = np.array([real[(name, w)]["time_offset_ms"] for w in WAYS])
-        signs = np.array(list(WAYS.values()), np.float64)
-        d, e = signs.T @ shifts / 4.0
+        shifts = np.array([real[(name, w)]["time_offset_ms"] for w in RUNS])
+        d, e = (np.array(list(RUNS.values()), np.float64).T @ shifts / 4.0)[:2]
         out[name] = {"data_offset_ms": float(d), "ego_lean_ms": float(e)}
     return out
 
@@ -160,7 +144,7 @@ def main(argv=None) -> int:
     scenes = sorted(d.name for d in (SAMPLE / "occupancy").iterdir()) if (SAMPLE / "occupancy").is_dir() else []
     if "real" in args.sets and not scenes:
         print(f"no real scenes at {SAMPLE}", file=sys.stderr)
-    jobs = [(c, "real", (s, w), args.cache) for c in args.config if "real" in args.sets for s in scenes for w in WAYS]
+    jobs = [(c, "real", (s, w), args.cache) for c in args.config if "real" in args.sets for s in scenes for w in RUNS]
     jobs += [
         (c, k, seed, args.cache)
         for c in args.config

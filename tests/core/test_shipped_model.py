@@ -8,6 +8,7 @@ import sys
 import numpy as np
 import pytest
 import torch
+from test_tpvformer import micro  # the tiny architecture at toy sizes (tests/core is on the path)
 
 from occvo_core.cameras import nuscenes_rig
 from occvo_core.models.metrics import OccMetrics
@@ -16,7 +17,6 @@ from occvo_core.models.tpvformer import (
     OccupancyPredictor,
     TPVFormer,
     load_checkpoint,
-    preset,
     save_checkpoint,
     shipped_checkpoint,
 )
@@ -26,27 +26,6 @@ from occvo_core.models.train import SyntheticOccDataset, make_sample, train
 # Held-out figures of the shipped checkpoint on the frames below (docs/model.md), less a margin for other CPUs' maths.
 ONE_FRAME_GEOMETRY_IOU = 0.55  # measured 0.593
 TWO_FRAMES_GEOMETRY_IOU, TWO_FRAMES_MIOU = 0.54, 0.21  # measured 0.578, 0.235
-
-
-def micro():
-    return preset(
-        "tiny",
-        input_size=(96, 54),
-        tpv_h=20,
-        tpv_w=20,
-        tpv_z=4,
-        embed_dims=16,
-        num_heads=2,
-        ffn_dims=32,
-        num_layers=1,
-        points_in_pillar=(2, 4, 4),
-        sampling_points=(2, 4, 4),
-        hybrid_anchors=2,
-        hybrid_points=2,
-        decoder_hidden=16,
-        decoder_out=16,
-        decode_shape=(40, 40, 8),
-    )
 
 
 def _world(seed: int = 0) -> np.ndarray:

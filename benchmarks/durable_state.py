@@ -22,7 +22,7 @@ from pathlib import Path
 import numpy as np
 
 from occvo_core import OccVO
-from services.store import TrajectoryStore, frame_digest, pack_frame, unpack_arrays
+from occvo_services.store import TrajectoryStore, frame_digest, pack_frame, unpack_arrays
 
 warnings.filterwarnings("ignore", category=RuntimeWarning)
 DATA = Path(__file__).resolve().parents[2] / "shared/data/occvo-sample/occupancy/scene-0101"

@@ -2,7 +2,7 @@
 
     python benchmarks/hostile_clients.py [--streams 2000 --flood-s 10 --settle-s 60 --big-mb 512]
 
-Router in this process, workers as processes (services.local.LocalService, the deploy configs' limits). Steps:
+Router in this process, workers as processes (occvo_services.local.LocalService, the deploy configs' limits). Steps:
   alone      scene-0101 replayed alone: time, poses; each worker's RSS and threads (baseline)
   flood      one client puts a seq-0 frame on each of --streams stream ids in --flood-s seconds while scene-0101 is
              replayed: replay time vs alone, poses equal, registration RSS peak, streams refused;
@@ -30,12 +30,12 @@ import zenoh
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from occvo_core.datasets import OccVOReleaseScene
-from schemas import keys
-from schemas.codec import encode
-from services.client import OccVOClient, camera_frame_of
-from services.commands.replay import replay
-from services.local import LocalService
-from services.runtime import open_session
+from occvo_schemas import keys
+from occvo_schemas.codec import encode
+from occvo_services.client import OccVOClient, camera_frame_of
+from occvo_services.commands.replay import replay
+from occvo_services.local import LocalService
+from occvo_services.runtime import open_session
 
 DATA = Path(__file__).resolve().parents[2] / "shared/data/occvo-sample/occupancy/scene-0101"
 BLOCK = zenoh.CongestionControl.BLOCK

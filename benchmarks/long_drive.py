@@ -43,16 +43,16 @@ from occvo_core.eval import ape_rmse  # noqa: E402
 from occvo_core.grid import OCC3D_GRID  # noqa: E402
 from occvo_core.map_metrics import map_metrics  # noqa: E402
 from occvo_core.sim import SyntheticScene  # noqa: E402
-from services.client import OccVOClient, ServiceError  # noqa: E402
-from services.commands.replay import replay  # noqa: E402
-from services.local import REPO, LocalService  # noqa: E402
+from occvo_services.client import OccVOClient, ServiceError  # noqa: E402
+from occvo_services.commands.replay import replay  # noqa: E402
+from occvo_services.local import REPO, LocalService  # noqa: E402
 
 START_TILES = dict(ix_min=-1, ix_max=0, iy_min=-1, iy_max=0)  # 20 m tiles: [-20, 20) m around the first pose
 
 
 def worker_has_store() -> bool:
     out = subprocess.run(
-        [sys.executable, "-m", "services.registration_worker", "--help"],
+        [sys.executable, "-m", "occvo_services.registration_worker", "--help"],
         cwd=REPO,
         capture_output=True,
         text=True,

@@ -2,7 +2,7 @@
 
     python benchmarks/model_source.py --checkpoint /tmp/occvo-tiny/checkpoint.pt [--frames 20] [--repeats 2]
 
-A worker process (`python -m services.inference_worker --source model --checkpoint ...`, router in this process,
+A worker process (`python -m occvo_services.inference_worker --source model --checkpoint ...`, router in this process,
 loopback) and the predictor in this process (torch threads 1 in both) take turns on each frame, so both see the same
 machine load: the predictor's `predict` is timed here, then the frame goes to the worker (the next only when the
 occupancy of the last is back). The worker's stats queryable gives the p50 of its `model` stage (the same `predict`
@@ -31,12 +31,12 @@ from occvo_core.cameras import CAMERA_NAMES  # noqa: E402
 from occvo_core.models.image_source import ImageOccupancySource  # noqa: E402
 from occvo_core.models.tpvformer import OccupancyPredictor  # noqa: E402
 from occvo_core.sim import SyntheticScene  # noqa: E402
-from schemas import keys  # noqa: E402
-from schemas.codec import decode, encode  # noqa: E402
-from schemas.models import CameraFrame, ErrorEvent, OccupancyFrameMsg, WorkerHealth  # noqa: E402
-from services.local import wait_alive  # noqa: E402
-from services.occupancy_model import camera_inputs, encode_image  # noqa: E402
-from services.runtime import free_port, open_router, open_session  # noqa: E402
+from occvo_schemas import keys  # noqa: E402
+from occvo_schemas.codec import decode, encode  # noqa: E402
+from occvo_schemas.models import CameraFrame, ErrorEvent, OccupancyFrameMsg, WorkerHealth  # noqa: E402
+from occvo_services.local import wait_alive  # noqa: E402
+from occvo_services.occupancy_model import camera_inputs, encode_image  # noqa: E402
+from occvo_services.runtime import free_port, open_router, open_session  # noqa: E402
 
 
 def paired(predictor, checkpoint, frames, threads) -> dict:
@@ -45,7 +45,7 @@ def paired(predictor, checkpoint, frames, threads) -> dict:
     cmd = [
         sys.executable,
         "-m",
-        "services.inference_worker",
+        "occvo_services.inference_worker",
         "--connect",
         ep,
         "--source",

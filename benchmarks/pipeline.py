@@ -27,13 +27,13 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 warnings.filterwarnings("ignore", category=RuntimeWarning)
 
 from occvo_core.grid import OCC3D_GRID  # noqa: E402
-from schemas import keys  # noqa: E402
-from schemas.codec import decode, encode  # noqa: E402
-from schemas.models import OccupancyFrameMsg, SparseOccupancy  # noqa: E402
-from services.client import OccVOClient  # noqa: E402
-from services.commands.replay import replay  # noqa: E402
-from services.local import LocalService  # noqa: E402
-from services.runtime import free_port, open_router, open_session  # noqa: E402
+from occvo_schemas import keys  # noqa: E402
+from occvo_schemas.codec import decode, encode  # noqa: E402
+from occvo_schemas.models import OccupancyFrameMsg, SparseOccupancy  # noqa: E402
+from occvo_services.client import OccVOClient  # noqa: E402
+from occvo_services.commands.replay import replay  # noqa: E402
+from occvo_services.local import LocalService  # noqa: E402
+from occvo_services.runtime import free_port, open_router, open_session  # noqa: E402
 
 DATA = Path(__file__).resolve().parents[2] / "shared/data/occvo-sample/occupancy"
 

@@ -8,7 +8,7 @@
     python benchmarks/streams_load.py --streams 8 --minutes 5 --working-radius 120 --registration-workers 2 \
         --neighbour-load 0.35                                                      # on a host shared with a busy neighbour
 
-Router in this process, the three workers as subprocesses (services.local.LocalService). Each stream replays its own
+Router in this process, the three workers as subprocesses (occvo_services.local.LocalService). Each stream replays its own
 synthetic scene (seed = stream number) open loop at --rate, as a live camera would: frame i leaves at t0 + i / rate
 whatever came back. Scenes are rendered once before the run (in --render-jobs processes, niced) and cached as voxel
 indices in --cache-dir, so the client only builds and sends messages; its send cost per frame is measured and printed.
@@ -46,11 +46,19 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 warnings.filterwarnings("ignore", category=RuntimeWarning)
 
 from occvo_core.grid import OCC3D_GRID  # noqa: E402
-from schemas import keys  # noqa: E402
-from schemas.codec import CodecError, decode, encode  # noqa: E402
-from schemas.models import Array, CameraFrame, ErrorEvent, GridSpecModel, PoseEstimate, SparseOccupancy, WorkerHealth  # noqa: E402
-from services.local import LocalService  # noqa: E402
-from services.runtime import open_session  # noqa: E402
+from occvo_schemas import keys  # noqa: E402
+from occvo_schemas.codec import CodecError, decode, encode  # noqa: E402
+from occvo_schemas.models import (  # noqa: E402
+    Array,
+    CameraFrame,
+    ErrorEvent,
+    GridSpecModel,
+    PoseEstimate,
+    SparseOccupancy,
+    WorkerHealth,
+)
+from occvo_services.local import LocalService  # noqa: E402
+from occvo_services.runtime import open_session  # noqa: E402
 
 # ---------------------------------------------------------------- scenes, rendered once
 

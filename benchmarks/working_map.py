@@ -26,10 +26,10 @@ warnings.filterwarnings("ignore", category=RuntimeWarning)
 
 from occvo_core import OccVO  # noqa: E402
 from occvo_core.sim import SyntheticScene  # noqa: E402
-from services.os_tuning import large_blocks_from_mmap  # noqa: E402
-from services.registration_worker import RegistrationWorker, StreamState  # noqa: E402
-from services.runtime import WorkerConfig  # noqa: E402
-from services.store import frame_digest, pack_frame  # noqa: E402
+from occvo_services.os_tuning import large_blocks_from_mmap  # noqa: E402
+from occvo_services.registration_worker import RegistrationWorker, StreamState  # noqa: E402
+from occvo_services.runtime import WorkerConfig  # noqa: E402
+from occvo_services.store import frame_digest, pack_frame  # noqa: E402
 
 LAYER_M = 0.45  # one voxel pitch and a bit: a frame's own quantisation keeps re-sightings within it
 

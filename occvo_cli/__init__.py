@@ -1,4 +1,4 @@
-"""The `occvo` command line: offline commands (occvo_cli.commands) and the service commands (services.commands)."""
+"""The `occvo` command line: offline commands (occvo_cli.commands) and the service commands (occvo_services.commands)."""
 
 from importlib.metadata import PackageNotFoundError, version
 

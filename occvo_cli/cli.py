@@ -31,13 +31,13 @@ def _command_modules():
     for name in COMMANDS:
         yield importlib.import_module(f"occvo_cli.commands.{name}")
     try:  # the service commands live with the services, which need the transport (zenoh)
-        services = importlib.import_module("services.commands")
+        services = importlib.import_module("occvo_services.commands")
     except ModuleNotFoundError as exc:
-        if exc.name not in ("services", "services.commands", "zenoh"):
+        if exc.name not in ("occvo_services", "occvo_services.commands", "zenoh"):
             raise
         return
     for name in services.COMMANDS:
-        yield importlib.import_module(f"services.commands.{name}")
+        yield importlib.import_module(f"occvo_services.commands.{name}")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -60,7 +60,7 @@ def exit_code(exc: BaseException) -> int:
 def _worded() -> tuple[type, ...]:
     """Errors whose message is already the line for the user: occvo's own and the service client's."""
     try:
-        from services.client import ServiceError
+        from occvo_services.client import ServiceError
     except ModuleNotFoundError:
         return (OccVOError,)
     return OccVOError, ServiceError

@@ -1,7 +1,7 @@
 """Wire schemas of the occvo services: pydantic models, the msgpack codec and the Zenoh key expressions."""
 
-from schemas.codec import CodecError, decode, encode
-from schemas.models import (
+from occvo_schemas.codec import CodecError, decode, encode
+from occvo_schemas.models import (
     SCHEMA_VERSION,
     Array,
     CameraFrame,

@@ -1,4 +1,4 @@
-"""msgpack codec for the messages in schemas.models: arrays as raw bytes, a size limit, kind and version checks.
+"""msgpack codec for the messages in occvo_schemas.models: arrays as raw bytes, a size limit, kind and version checks.
 
 Every failure is a CodecError whose `code` is an ErrorEvent code and whose message names the problem.
 """
@@ -10,7 +10,7 @@ from typing import TypeVar
 import msgpack
 from pydantic import BaseModel, ValidationError
 
-from schemas.models import MESSAGES, SCHEMA_VERSION
+from occvo_schemas.models import MESSAGES, SCHEMA_VERSION
 
 DEFAULT_MAX_BYTES = 16 * 1024 * 1024  # 6 JPEG images or a 640k-voxel frame fit with room to spare
 # Decode limits, checked by msgpack before it builds anything: no message has long strings, long lists or big maps

@@ -1,7 +1,7 @@
 """Write the JSON Schema of every message to schemas/json/<kind>.json, for clients in other languages.
 
-python -m schemas.export            # write
-python -m schemas.export --check    # exit 1 when the files drift from the models
+python -m occvo_schemas.export            # write
+python -m occvo_schemas.export --check    # exit 1 when the files drift from the models
 """
 
 from __future__ import annotations
@@ -11,7 +11,7 @@ import json
 import sys
 from pathlib import Path
 
-from schemas.models import MESSAGES, SCHEMA_VERSION
+from occvo_schemas.models import MESSAGES, SCHEMA_VERSION
 
 JSON_DIR = Path(__file__).parent / "json"
 
@@ -40,7 +40,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.check:
         stale = drift()
         if stale:
-            print("schemas/json drifted from the models: " + ", ".join(stale) + " (run python -m schemas.export)")
+            print("schemas/json drifted from the models: " + ", ".join(stale) + " (run python -m occvo_schemas.export)")
             return 1
         return 0
     JSON_DIR.mkdir(exist_ok=True)

@@ -23,9 +23,9 @@ import zenoh
 
 from occvo_core.frame import OccupancyFrame
 from occvo_core.grid import OCC3D_GRID, GridSpec
-from schemas import keys
-from schemas.codec import CodecError, decode, encode
-from schemas.models import (
+from occvo_schemas import keys
+from occvo_schemas.codec import CodecError, decode, encode
+from occvo_schemas.models import (
     CameraFrame,
     ErrorEvent,
     MapInfo,
@@ -36,7 +36,7 @@ from schemas.models import (
     Trajectory,
     WorkerHealth,
 )
-from services.runtime import DEFAULT_ENDPOINT, open_session
+from occvo_services.runtime import DEFAULT_ENDPOINT, open_session
 
 
 class ServiceError(RuntimeError):

@@ -9,13 +9,13 @@ import threading
 from collections.abc import Callable
 from typing import TYPE_CHECKING
 
-from schemas.codec import CodecError
-from services.os_tuning import name_os_thread
-from services.telemetry import log_event
-from services.worker_config import Policy
+from occvo_schemas.codec import CodecError
+from occvo_services.os_tuning import name_os_thread
+from occvo_services.telemetry import log_event
+from occvo_services.worker_config import Policy
 
 if TYPE_CHECKING:
-    from services.runtime import Worker
+    from occvo_services.runtime import Worker
 
 
 class StageQueue:

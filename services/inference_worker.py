@@ -4,7 +4,7 @@ Sources:
   replay  the frame's recorded occupancy (any occvo_core scene source, published by `occvo replay`): the paper's
           ground-truth occupancy row.
   model   a torch occupancy network on the six images: the trained TPV-Former of `checkpoint` (occvo train-occ), on
-          cuda with bf16 autocast when present, else cpu (services.occupancy_model.load_occupancy_model).
+          cuda with bf16 autocast when present, else cpu (occvo_services.occupancy_model.load_occupancy_model).
 
 Runs in its own process, so inference of frame t+1 overlaps registration of frame t in the registration worker.
 """
@@ -20,10 +20,10 @@ import numpy as np
 import zenoh
 
 from occvo_core.errors import ConfigError
-from schemas import keys
-from schemas.codec import encode
-from schemas.models import CameraFrame, OccupancyFrameMsg, SparseOccupancy
-from services.runtime import Worker, WorkerConfig, log_event, worker_main
+from occvo_schemas import keys
+from occvo_schemas.codec import encode
+from occvo_schemas.models import CameraFrame, OccupancyFrameMsg, SparseOccupancy
+from occvo_services.runtime import Worker, WorkerConfig, log_event, worker_main
 
 
 class InferenceWorker(Worker):
@@ -39,7 +39,7 @@ class InferenceWorker(Worker):
         if config.source == "model" and model is None:
             import torch
 
-            from services.occupancy_model import load_occupancy_model
+            from occvo_services.occupancy_model import load_occupancy_model
 
             torch.set_num_threads(config.torch_threads)
             self.model = load_occupancy_model(
@@ -95,7 +95,7 @@ class InferenceWorker(Worker):
             occupancy, source = msg.gt_occupancy, "replay"
         else:
             from occvo_core.models.tpvformer.predictor import InvalidCameraFrameError
-            from services.occupancy_model import camera_inputs
+            from occvo_services.occupancy_model import camera_inputs
 
             try:
                 images, K, T = camera_inputs(msg.images)

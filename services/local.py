@@ -10,14 +10,14 @@ import sys
 import time
 from pathlib import Path
 
-from schemas import keys
-from services.runtime import WorkerConfig, free_port, open_router, open_session
+from occvo_schemas import keys
+from occvo_services.runtime import WorkerConfig, free_port, open_router, open_session
 
 REPO = Path(__file__).resolve().parents[1]
 WORKERS = {
-    "inference": "services.inference_worker",
-    "registration": "services.registration_worker",
-    "map": "services.map_service",
+    "inference": "occvo_services.inference_worker",
+    "registration": "occvo_services.registration_worker",
+    "map": "occvo_services.map_service",
 }
 
 
@@ -154,9 +154,9 @@ class InProcessService:
         self.router = None
 
     def start(self, timeout: float = 30.0) -> InProcessService:
-        from services.inference_worker import InferenceWorker
-        from services.map_service import MapService
-        from services.registration_worker import RegistrationWorker
+        from occvo_services.inference_worker import InferenceWorker
+        from occvo_services.map_service import MapService
+        from occvo_services.registration_worker import RegistrationWorker
 
         self.router = open_router(self.endpoint)
         cfg = {"log_level": "WARNING", **self.config, "connect": self.endpoint}

@@ -12,11 +12,11 @@ import time
 
 import zenoh
 
-from schemas import keys
-from schemas.codec import CodecError, decode, encode
-from schemas.models import ErrorEvent, MapTileQuery, MapUpdate
-from services.map_store import open_map_store
-from services.runtime import Worker, WorkerConfig, log_event, worker_main
+from occvo_schemas import keys
+from occvo_schemas.codec import CodecError, decode, encode
+from occvo_schemas.models import ErrorEvent, MapTileQuery, MapUpdate
+from occvo_services.map_store import open_map_store
+from occvo_services.runtime import Worker, WorkerConfig, log_event, worker_main
 
 
 class MapService(Worker):

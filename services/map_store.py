@@ -19,8 +19,8 @@ from pathlib import Path
 import numpy as np
 
 from occvo_core.errors import ConfigError
-from schemas.models import MapInfo, MapTileQuery, MapUpdate
-from services.sqlite_wal import enable_wal
+from occvo_schemas.models import MapInfo, MapTileQuery, MapUpdate
+from occvo_services.sqlite_wal import enable_wal
 
 Bounds = MapTileQuery | None
 

@@ -8,7 +8,7 @@ from PIL import Image
 from occvo_core.cameras import CAMERA_NAMES
 from occvo_core.datasets.nuscenes_cameras import NuScenesCameraScene
 from occvo_core.errors import DatasetError
-from schemas.models import CameraFrame, CameraImage
+from occvo_schemas.models import CameraFrame, CameraImage
 
 
 class NuScenesCameraFrames:

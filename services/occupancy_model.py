@@ -18,7 +18,7 @@ from torch import nn
 
 from occvo_core.errors import ConfigError
 from occvo_core.grid import FREE, NUM_CLASSES, OCC3D_GRID, GridSpec
-from schemas.models import CameraImage
+from occvo_schemas.models import CameraImage
 
 RGB_MODES = ("RGB", "RGBA")  # 8 bits a channel; alpha is dropped. Grey or 16-bit images are refused, not guessed at.
 

@@ -1,6 +1,6 @@
 """A Zenoh router from a json5 file, until SIGTERM or SIGINT.
 
-    python -m services.router --config deploy/router.json5 [--listen tcp/0.0.0.0:7447] [--connect tcp/other:7447]
+    python -m occvo_services.router --config deploy/router.json5 [--listen tcp/0.0.0.0:7447] [--connect tcp/other:7447]
 
 `--listen` / `--connect` replace the file's endpoints (tests on free ports, one file for several hosts). Logs are
 JSON lines on stderr; the first line after the router is up is {"event": "router ready", ...}.
@@ -20,8 +20,8 @@ from pathlib import Path
 import zenoh
 
 from occvo_core.errors import ConfigError
-from services import defaults
-from services.runtime import limit_messages, log_event, structured_logger
+from occvo_services import defaults
+from occvo_services.runtime import limit_messages, log_event, structured_logger
 
 DEFAULT_CONFIG = defaults.path("router.json5")
 
@@ -46,7 +46,7 @@ def router_config(
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="python -m services.router", description=__doc__.split("\n")[0])
+    p = argparse.ArgumentParser(prog="python -m occvo_services.router", description=__doc__.split("\n")[0])
     p.add_argument("--config", default=str(DEFAULT_CONFIG), help="router json5 (default: the built-in one)")
     p.add_argument("--listen", action="append", help="listen endpoint, replaces the file's (repeatable)")
     p.add_argument("--connect", action="append", help="endpoint of another router to mesh with (repeatable)")

@@ -20,14 +20,14 @@ from pathlib import Path
 import zenoh
 
 from occvo_core.errors import ConfigError
-from schemas import keys
-from schemas.codec import DEFAULT_MAX_BYTES, CodecError, decode, encode
-from schemas.models import ErrorEvent, WorkerHealth
-from services.flow import SeqTracker, StageQueue, StreamLane
-from services.limits import MAX_KEY_CHARS, MAX_MESSAGE_CHARS, Admission, ErrorBudget, clip
-from services.os_tuning import large_blocks_from_mmap, trim_heap
-from services.telemetry import Stats, log_event, structured_logger
-from services.worker_config import DEFAULT_ENDPOINT, Policy, WorkerConfig
+from occvo_schemas import keys
+from occvo_schemas.codec import DEFAULT_MAX_BYTES, CodecError, decode, encode
+from occvo_schemas.models import ErrorEvent, WorkerHealth
+from occvo_services.flow import SeqTracker, StageQueue, StreamLane
+from occvo_services.limits import MAX_KEY_CHARS, MAX_MESSAGE_CHARS, Admission, ErrorBudget, clip
+from occvo_services.os_tuning import large_blocks_from_mmap, trim_heap
+from occvo_services.telemetry import Stats, log_event, structured_logger
+from occvo_services.worker_config import DEFAULT_ENDPOINT, Policy, WorkerConfig
 
 __all__ = [  # importers of these names from here predate the split
     "DEFAULT_ENDPOINT",

@@ -8,8 +8,8 @@ from pathlib import Path
 
 import numpy as np
 
-from services.sqlite_wal import transaction
-from services.store_blobs import BlobFile, pack_arrays, savez
+from occvo_services.sqlite_wal import transaction
+from occvo_services.store_blobs import BlobFile, pack_arrays, savez
 
 SNAPSHOT_SCHEMA = """
 CREATE TABLE IF NOT EXISTS snapshots (

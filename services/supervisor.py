@@ -27,14 +27,14 @@ from typing import Literal
 from pydantic import BaseModel, ConfigDict, Field
 
 from occvo_core.errors import ConfigError
-from services import defaults
-from services.runtime import log_event, router_endpoint, structured_logger
+from occvo_services import defaults
+from occvo_services.runtime import log_event, router_endpoint, structured_logger
 
 REPO = Path(__file__).resolve().parents[1]
 MODULES = {
-    "inference": "services.inference_worker",
-    "registration": "services.registration_worker",
-    "map": "services.map_service",
+    "inference": "occvo_services.inference_worker",
+    "registration": "occvo_services.registration_worker",
+    "map": "occvo_services.map_service",
 }
 
 
@@ -156,7 +156,7 @@ class Supervisor:
             cmd = [
                 sys.executable,
                 "-m",
-                "services.router",
+                "occvo_services.router",
                 "--config",
                 config.router.config or str(defaults.path("router.json5")),
             ]

@@ -10,7 +10,7 @@ from collections import defaultdict, deque
 
 import numpy as np
 
-from schemas.models import StageStats
+from occvo_schemas.models import StageStats
 
 # ---------------------------------------------------------------- logs
 

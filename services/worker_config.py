@@ -8,7 +8,7 @@ from typing import Literal
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from occvo_core.errors import ConfigError
-from schemas.codec import DEFAULT_MAX_BYTES
+from occvo_schemas.codec import DEFAULT_MAX_BYTES
 
 DEFAULT_ENDPOINT = "tcp/127.0.0.1:7447"
 Policy = Literal["lossless", "latest"]
@@ -36,7 +36,7 @@ class WorkerConfig(BaseModel):
     # inference worker
     source: Literal["replay", "model"] = "replay"
     device: Literal["auto", "cpu", "cuda"] = "auto"
-    model_weights: str | None = None  # TinyOccNet state_dict (services.occupancy_model)
+    model_weights: str | None = None  # TinyOccNet state_dict (occvo_services.occupancy_model)
     checkpoint: str | None = None  # TPV-Former checkpoint of the model source (occvo train-occ)
     torch_threads: int = Field(1, ge=1)
     # model source: voxels the network is less sure of than this are reported free (OccupancyPredictor)
@@ -44,7 +44,7 @@ class WorkerConfig(BaseModel):
     min_ground_confidence: float = Field(0.0, ge=0, lt=1)
     # registration worker
     # shards: registration workers sharing the streams; this one registers the streams of `shard`
-    # (schemas.keys.shard_of: CRC-32 of the stream id mod shards). `occvo up` sets both from a role's count
+    # (occvo_schemas.keys.shard_of: CRC-32 of the stream id mod shards). `occvo up` sets both from a role's count
     shard: int = Field(0, ge=0)
     shards: int = Field(1, ge=1, le=1024)
     tile_m: float = Field(20.0, gt=0)

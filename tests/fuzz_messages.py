@@ -16,8 +16,8 @@ from hypothesis.configuration import set_hypothesis_home_dir
 from pydantic import BaseModel
 
 from occvo_core.grid import NUM_CLASSES, OCC3D_GRID
-from schemas.codec import CodecError, decode, encode
-from schemas.models import (
+from occvo_schemas.codec import CodecError, decode, encode
+from occvo_schemas.models import (
     MESSAGES,
     Array,
     CameraFrame,

@@ -15,7 +15,7 @@ class StreamFollower:
     a message that does not decode is counted and skipped (the viewer never dies of one)."""
 
     def __init__(self, session, stream: str, view: RerunView):
-        from schemas import keys
+        from occvo_schemas import keys
 
         self.view, self.stream = view, stream
         self.counts = {"poses": 0, "occupancy": 0, "map_updates": 0, "tiles": 0, "undecodable": 0}
@@ -28,7 +28,7 @@ class StreamFollower:
         ]
 
     def _decode(self, sample, model):
-        from schemas.codec import CodecError, decode
+        from occvo_schemas.codec import CodecError, decode
 
         try:
             return decode(sample.payload.to_bytes(), model)
@@ -38,7 +38,7 @@ class StreamFollower:
             return None
 
     def _on_pose(self, sample) -> None:
-        from schemas.models import PoseEstimate
+        from occvo_schemas.models import PoseEstimate
 
         p = self._decode(sample, PoseEstimate)
         if p is None:
@@ -50,7 +50,7 @@ class StreamFollower:
             self.counts["poses"] += 1
 
     def _on_occupancy(self, sample) -> None:
-        from schemas.models import OccupancyFrameMsg
+        from occvo_schemas.models import OccupancyFrameMsg
 
         m = self._decode(sample, OccupancyFrameMsg)
         if m is None:
@@ -61,7 +61,7 @@ class StreamFollower:
             self.counts["occupancy"] += 1
 
     def _on_map(self, sample) -> None:
-        from schemas.models import MapUpdate
+        from occvo_schemas.models import MapUpdate
 
         u = self._decode(sample, MapUpdate)
         if u is None:

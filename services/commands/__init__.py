@@ -1,6 +1,6 @@
 """`occvo` sub-commands of the service side, one module each exposing add_parser(subparsers) and run(args) -> int.
 
-occvo_cli.cli adds services.commands.<name> for every name in COMMANDS.
+occvo_cli.cli adds occvo_services.commands.<name> for every name in COMMANDS.
 """
 
 COMMANDS = ["serve", "up", "replay", "poses", "tile", "map_info", "view"]

@@ -11,9 +11,9 @@ import time
 from pathlib import Path
 
 from occvo_core.errors import ConfigError
-from schemas import keys
-from services import defaults
-from services.runtime import DEFAULT_ENDPOINT, router_endpoint
+from occvo_schemas import keys
+from occvo_services import defaults
+from occvo_services.runtime import DEFAULT_ENDPOINT, router_endpoint
 
 ROLES = ("inference", "registration", "map")
 WARM_UP_NOTE = "compiles its kernels on a first start, ~40 s on 2 cores; loads them from the cache after"
@@ -52,7 +52,7 @@ def client(args, **kw):
     """An OccVOClient on the command's router, or one line saying that no router answers."""
     import zenoh
 
-    from services.client import OccVOClient, ServiceError
+    from occvo_services.client import OccVOClient, ServiceError
 
     ep = endpoint(args)
     try:
@@ -104,7 +104,7 @@ class ReadinessWatch:
         self.report(role, round(time.monotonic() - self.t0, 1))
 
     def _run(self) -> None:
-        from services.runtime import open_session
+        from occvo_services.runtime import open_session
 
         session = None
         while session is None and not self._stop.wait(0.2):

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from services.commands._common import add_connection, add_json, client, emit
+from occvo_services.commands._common import add_connection, add_json, client, emit
 
 
 def add_parser(subparsers) -> None:

@@ -7,10 +7,10 @@ import signal
 import threading
 
 from occvo_core.errors import ConfigError
-from schemas import keys
-from schemas.codec import decode
-from schemas.models import PoseEstimate
-from services.commands._common import add_connection, client, progress
+from occvo_schemas import keys
+from occvo_schemas.codec import decode
+from occvo_schemas.models import PoseEstimate
+from occvo_services.commands._common import add_connection, client, progress
 
 
 def _line(p: PoseEstimate, fmt: str) -> str:

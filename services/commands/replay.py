@@ -7,8 +7,8 @@ import time
 
 import numpy as np
 
-from services.client import OccVOClient, ServiceError
-from services.commands._common import add_connection, add_json, client, emit
+from occvo_services.client import OccVOClient, ServiceError
+from occvo_services.commands._common import add_connection, add_json, client, emit
 
 
 def load_scene(spec: str, frames: int | None = None, scene: str | None = None, mask: str = "camera"):
@@ -140,7 +140,7 @@ def run(args) -> int:
     if args.rate < 0 or args.timeout <= 0:
         raise ConfigError("--rate must be 0 or more and --timeout more than 0")
     if args.nuscenes:
-        from services.nuscenes_source import NuScenesCameraFrames
+        from occvo_services.nuscenes_source import NuScenesCameraFrames
 
         scene = NuScenesCameraFrames(args.nuscenes, args.version, args.scene_name or "scene-0061")
     elif args.scene is None:

@@ -8,9 +8,9 @@ import time
 from pathlib import Path
 
 from occvo_core.errors import ConfigError
-from services import defaults
-from services.client import ServiceError
-from services.commands._common import (
+from occvo_services import defaults
+from occvo_services.client import ServiceError
+from occvo_services.commands._common import (
     WARM_UP_NOTE,
     ReadinessWatch,
     add_json,
@@ -68,8 +68,8 @@ def _worker_config(args, name: str) -> str:
 
 def _wait_alive(sup, timeout: float) -> None:
     """Until every worker's liveliness token is up (a fresh install compiles kernels first), restarting crashes."""
-    from schemas import keys
-    from services.runtime import open_session
+    from occvo_schemas import keys
+    from occvo_services.runtime import open_session
 
     roles = {"inference", "registration", "map"}
     probe = open_session(sup.endpoint)
@@ -91,8 +91,8 @@ def _wait_alive(sup, timeout: float) -> None:
 
 
 def run(args) -> int:
-    from services.runtime import structured_logger
-    from services.supervisor import RouterSpec, Supervisor, UpConfig, WorkerSpec
+    from occvo_services.runtime import structured_logger
+    from occvo_services.supervisor import RouterSpec, Supervisor, UpConfig, WorkerSpec
 
     if args.registration_workers < 1:
         raise ConfigError(f"--registration-workers must be at least 1, not {args.registration_workers}")

@@ -8,7 +8,7 @@ import numpy as np
 
 from occvo_core.errors import ConfigError
 from occvo_core.grid import CLASS_NAMES
-from services.commands._common import add_connection, add_json, client, emit
+from occvo_services.commands._common import add_connection, add_json, client, emit
 
 
 def add_parser(subparsers) -> None:

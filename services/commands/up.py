@@ -2,8 +2,8 @@
 
 from __future__ import annotations
 
-from services import defaults
-from services.commands._common import WARM_UP_NOTE, ReadinessWatch, add_json, check_listen_secure, emit, progress
+from occvo_services import defaults
+from occvo_services.commands._common import WARM_UP_NOTE, ReadinessWatch, add_json, check_listen_secure, emit, progress
 
 
 def add_parser(subparsers) -> None:
@@ -26,8 +26,8 @@ def add_parser(subparsers) -> None:
 
 
 def run(args) -> int:
-    from services.runtime import structured_logger
-    from services.supervisor import Supervisor, UpConfig
+    from occvo_services.runtime import structured_logger
+    from occvo_services.supervisor import Supervisor, UpConfig
 
     config = UpConfig.load(args.config or defaults.path("occvo.json5"))
     if args.listen:

@@ -9,10 +9,10 @@ import time
 import numpy as np
 
 from occvo_core.registration.voxel_map import copied
-from schemas import keys
-from services.registration.state import StreamState
-from services.store_blobs import unpack_arrays
-from services.telemetry import log_event
+from occvo_schemas import keys
+from occvo_services.registration.state import StreamState
+from occvo_services.store_blobs import unpack_arrays
+from occvo_services.telemetry import log_event
 
 
 class Durability:

@@ -14,13 +14,13 @@ import zenoh
 
 from occvo_core.errors import InvalidFrameError
 from occvo_core.frame import OccupancyFrame
-from schemas import keys
-from schemas.codec import encode
-from schemas.models import OccupancyFrameMsg, PoseEstimate
-from services.os_tuning import hold_priority, lower_priority, name_os_thread, release_priority
-from services.registration.state import StreamState
-from services.store_blobs import frame_digest, pack_frame
-from services.telemetry import log_event
+from occvo_schemas import keys
+from occvo_schemas.codec import encode
+from occvo_schemas.models import OccupancyFrameMsg, PoseEstimate
+from occvo_services.os_tuning import hold_priority, lower_priority, name_os_thread, release_priority
+from occvo_services.registration.state import StreamState
+from occvo_services.store_blobs import frame_digest, pack_frame
+from occvo_services.telemetry import log_event
 
 _STATUS = {"ok": "ok", "lost": "lost", "initialised": "reinitialised", "reinitialised": "reinitialised"}
 

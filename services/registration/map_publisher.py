@@ -8,10 +8,10 @@ import numpy as np
 import zenoh
 
 from occvo_core.map_tiles import changed_tiles
-from schemas import keys
-from schemas.codec import encode
-from schemas.models import Array, MapTile, MapUpdate
-from services.registration.state import StreamState
+from occvo_schemas import keys
+from occvo_schemas.codec import encode
+from occvo_schemas.models import Array, MapTile, MapUpdate
+from occvo_services.registration.state import StreamState
 
 
 def _tile_digest(tile) -> bytes:

@@ -10,8 +10,8 @@ import numpy as np
 from occvo_core.frame import OccupancyFrame
 from occvo_core.map_tiles import retile_region
 from occvo_core.working_map import tiles_near, tiles_reached
-from services.registration.state import StreamState
-from services.store_blobs import unpack_arrays
+from occvo_services.registration.state import StreamState
+from occvo_services.store_blobs import unpack_arrays
 
 MIN_SAFE_RADIUS_M = 60.0  # a frame reaches ~57 m (the grid's corners): eviction closer than that changes registration
 

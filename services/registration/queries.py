@@ -7,11 +7,11 @@ import time
 import numpy as np
 import zenoh
 
-from schemas import keys
-from schemas.codec import encode
-from schemas.models import Array, PoseEstimate, Trajectory
-from services.registration.state import StreamState
-from services.store import StoredPose
+from occvo_schemas import keys
+from occvo_schemas.codec import encode
+from occvo_schemas.models import Array, PoseEstimate, Trajectory
+from occvo_services.registration.state import StreamState
+from occvo_services.store import StoredPose
 
 
 class Queries:

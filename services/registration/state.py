@@ -7,8 +7,8 @@ from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 
-from schemas.models import PoseEstimate
-from services.store import StoredPose
+from occvo_schemas.models import PoseEstimate
+from occvo_services.store import StoredPose
 
 
 class StreamState:

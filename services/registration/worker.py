@@ -7,17 +7,17 @@ import queue
 import threading
 
 from occvo_core.errors import ConfigError
-from schemas import keys
-from services.os_tuning import trim_heap
-from services.registration.durability import Durability
-from services.registration.lane import StreamLanes
-from services.registration.map_publisher import MapPublisher
-from services.registration.paging import MIN_SAFE_RADIUS_M, Paging
-from services.registration.queries import Queries
-from services.registration.state import StreamState
-from services.runtime import Worker, WorkerConfig, worker_main
-from services.store import TrajectoryStore
-from services.telemetry import log_event
+from occvo_schemas import keys
+from occvo_services.os_tuning import trim_heap
+from occvo_services.registration.durability import Durability
+from occvo_services.registration.lane import StreamLanes
+from occvo_services.registration.map_publisher import MapPublisher
+from occvo_services.registration.paging import MIN_SAFE_RADIUS_M, Paging
+from occvo_services.registration.queries import Queries
+from occvo_services.registration.state import StreamState
+from occvo_services.runtime import Worker, WorkerConfig, worker_main
+from occvo_services.store import TrajectoryStore
+from occvo_services.telemetry import log_event
 
 
 class RegistrationWorker(StreamLanes, Durability, Paging, MapPublisher, Queries, Worker):
@@ -114,4 +114,4 @@ def _args(p) -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
-    return worker_main(RegistrationWorker, argv, extra_args=_args, prog="python -m services.registration_worker")
+    return worker_main(RegistrationWorker, argv, extra_args=_args, prog="python -m occvo_services.registration_worker")

@@ -196,8 +196,8 @@ def test_token_tree_runs_like_the_release_format_and_the_original(tree, sample_r
 def test_service_carries_the_annotation_stamps_to_poses_trajectory_and_tum(tree, tmp_path, capsys):
     """occvo replay of the token tree through the three workers: every pose, the trajectory query and the TUM file
     carry annotations.json's timestamps."""
-    from services.client import OccVOClient
-    from services.local import InProcessService
+    from occvo_services.client import OccVOClient
+    from occvo_services.local import InProcessService
 
     root, stamps = tree
     want = stamps["scene-0268"] / 1e6
@@ -230,7 +230,7 @@ def _run_command(name, argv):
     import argparse
     import importlib
 
-    mod = importlib.import_module(f"services.commands.{name}")
+    mod = importlib.import_module(f"occvo_services.commands.{name}")
     parser = argparse.ArgumentParser()
     mod.add_parser(parser.add_subparsers())
     args = parser.parse_args([name, *argv])

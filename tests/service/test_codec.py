@@ -7,8 +7,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from occvo_core.grid import OCC3D_GRID
-from schemas.codec import CodecError, decode, encode
-from schemas.models import (
+from occvo_schemas.codec import CodecError, decode, encode
+from occvo_schemas.models import (
     SCHEMA_VERSION,
     Array,
     CameraFrame,

@@ -25,8 +25,8 @@ from hypothesis import HealthCheck, Phase, given, settings
 from hypothesis import strategies as st
 
 from occvo_core.grid import OCC3D_GRID
-from schemas.codec import CodecError, encode
-from schemas.models import (
+from occvo_schemas.codec import CodecError, encode
+from occvo_schemas.models import (
     MESSAGES,
     SCHEMA_VERSION,
     Array,

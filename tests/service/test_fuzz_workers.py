@@ -35,9 +35,9 @@ from hypothesis import HealthCheck, Phase, given, settings
 from hypothesis import strategies as st
 
 from occvo_core.grid import OCC3D_GRID
-from schemas import keys
-from schemas.codec import CodecError, decode, encode
-from schemas.models import (
+from occvo_schemas import keys
+from occvo_schemas.codec import CodecError, decode, encode
+from occvo_schemas.models import (
     CameraFrame,
     ErrorEvent,
     GridSpecModel,
@@ -51,8 +51,8 @@ from schemas.models import (
     Trajectory,
     WorkerHealth,
 )
-from services.local import InProcessService
-from services.runtime import open_session
+from occvo_services.local import InProcessService
+from occvo_services.runtime import open_session
 
 MAXB = 256 * 1024  # the workers' max_message_bytes: small, so oversize payloads are cheap to make
 FUZZ = dict(

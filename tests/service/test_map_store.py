@@ -17,12 +17,12 @@ import zenoh
 
 from occvo_core.errors import ConfigError
 from occvo_core.map_tiles import tiles_from_map
-from schemas import keys
-from schemas.codec import decode, encode
-from schemas.models import Array, MapInfo, MapTile, MapUpdate
-from services.local import wait_alive
-from services.map_store import MapStore, MemoryMapStore, open_map_store
-from services.runtime import WorkerConfig, free_port, open_router, open_session
+from occvo_schemas import keys
+from occvo_schemas.codec import decode, encode
+from occvo_schemas.models import Array, MapInfo, MapTile, MapUpdate
+from occvo_services.local import wait_alive
+from occvo_services.map_store import MapStore, MemoryMapStore, open_map_store
+from occvo_services.runtime import WorkerConfig, free_port, open_router, open_session
 
 REPO = Path(__file__).resolve().parents[2]
 
@@ -108,7 +108,7 @@ def test_updates_resets_and_empty_tiles(store):
     assert [t[:2] for t in store.tiles("car", *keys_[2])] == [keys_[2]]
 
     # a region query bounded by indices
-    from schemas.models import MapTileQuery
+    from occvo_schemas.models import MapTileQuery
 
     b = MapTileQuery(stream="car", ix_min=0, iy_max=0)
     assert [t[:2] for t in store.tiles("car", bounds=b)] == sorted(k for k in have if k[0] >= 0 and k[1] <= 0)
@@ -250,7 +250,7 @@ def start_map_service(ep: str, store: Path, wid: str) -> subprocess.Popen:
         [
             sys.executable,
             "-m",
-            "services.map_service",
+            "occvo_services.map_service",
             "--connect",
             ep,
             "--store-path",
@@ -356,11 +356,11 @@ def test_pipeline_in_threads_map_survives_a_map_service_restart(tmp_path):
     the offline map, and a new map service on the same file serves them unchanged."""
     from occvo_core import OccVO
     from occvo_core.sim import SyntheticScene
-    from services.client import OccVOClient
-    from services.commands.replay import replay
-    from services.inference_worker import InferenceWorker
-    from services.map_service import MapService
-    from services.registration_worker import RegistrationWorker
+    from occvo_services.client import OccVOClient
+    from occvo_services.commands.replay import replay
+    from occvo_services.inference_worker import InferenceWorker
+    from occvo_services.map_service import MapService
+    from occvo_services.registration_worker import RegistrationWorker
 
     ep = f"tcp/127.0.0.1:{free_port()}"
     store = tmp_path / "occvo.sqlite"

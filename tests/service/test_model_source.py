@@ -1,5 +1,5 @@
 """The inference worker's `model` source serving a TPV-Former checkpoint, as users run it: a worker subprocess
-(`python -m services.inference_worker --source model --checkpoint PATH`) on a real Zenoh router (random loopback port).
+(`python -m occvo_services.inference_worker --source model --checkpoint PATH`) on a real Zenoh router (random loopback port).
 Its occupancy equals OccupancyPredictor's on the same images voxel for voxel; bad images are ErrorEvents and the
 worker keeps serving; a missing, broken or mismatched checkpoint stops it at start with one line, exit 2."""
 
@@ -19,11 +19,11 @@ import torch
 import zenoh
 
 from occvo_core.errors import ConfigError
-from schemas import keys
-from schemas.codec import decode, encode
-from schemas.models import CameraFrame, ErrorEvent, OccupancyFrameMsg, WorkerHealth
-from services.occupancy_model import camera_inputs, encode_image
-from services.runtime import WorkerConfig, free_port, open_router, open_session
+from occvo_schemas import keys
+from occvo_schemas.codec import decode, encode
+from occvo_schemas.models import CameraFrame, ErrorEvent, OccupancyFrameMsg, WorkerHealth
+from occvo_services.occupancy_model import camera_inputs, encode_image
+from occvo_services.runtime import WorkerConfig, free_port, open_router, open_session
 
 REPO = Path(__file__).resolve().parents[2]
 ENV = dict(os.environ, PYTHONPATH=os.pathsep.join([str(REPO), os.environ.get("PYTHONPATH", "")]).rstrip(os.pathsep))
@@ -64,7 +64,7 @@ def start_worker(endpoint, *args):
     cmd = [
         sys.executable,
         "-m",
-        "services.inference_worker",
+        "occvo_services.inference_worker",
         "--connect",
         endpoint,
         "--source",
@@ -213,7 +213,7 @@ def test_bad_checkpoint_stops_the_worker_with_one_line(checkpoint, tmp_path):
     assert err.strip().count("\n") == 0 and "weights do not match the config" in err and "mismatched.pt" in err, err
 
     # in-process: the same ConfigError for a missing file, a file that is not a checkpoint, and no checkpoint at all
-    from services.inference_worker import InferenceWorker
+    from occvo_services.inference_worker import InferenceWorker
 
     (tmp_path / "junk.pt").write_bytes(b"not torch")
     for ckpt, phrase in (
@@ -236,7 +236,7 @@ def test_old_configs_still_load(tmp_path):
 
 def test_tiny_occ_net_weights_still_serve(tmp_path):
     """`model_weights` (TinyOccNet's state_dict) is the other network the model source takes; bad weights are refused."""
-    from services.occupancy_model import TinyOccNet, load_occupancy_model
+    from occvo_services.occupancy_model import TinyOccNet, load_occupancy_model
 
     torch.manual_seed(1)
     torch.save(TinyOccNet().state_dict(), tmp_path / "tiny_occ_net.pt")

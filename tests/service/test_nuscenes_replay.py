@@ -159,7 +159,7 @@ def dataset(tmp_path_factory, checkpoint):
 def test_the_devkit_loads_the_tables_and_the_reader_gives_calibration_and_stamps(dataset):
     from occvo_core.datasets.nuscenes_cameras import NuScenesCameraScene
     from occvo_core.errors import DatasetError
-    from services.nuscenes_source import NuScenesCameraFrames
+    from occvo_services.nuscenes_source import NuScenesCameraFrames
 
     root, stamps, k, e = dataset
     scene = NuScenesCameraScene(root, "v1.0-mini", "scene-0061")
@@ -179,14 +179,14 @@ def test_the_devkit_loads_the_tables_and_the_reader_gives_calibration_and_stamps
 def test_replay_nuscenes_through_the_three_workers_with_the_model_source(dataset, checkpoint, tmp_path, capsys):
     from occvo_core.models.tpvformer.predictor import OccupancyPredictor
     from occvo_core.trajectory import read_tum
-    from schemas import keys
-    from schemas.codec import decode
-    from schemas.models import OccupancyFrameMsg
-    from services.client import OccVOClient
-    from services.local import InProcessService
-    from services.nuscenes_source import NuScenesCameraFrames
-    from services.occupancy_model import camera_inputs
-    from services.runtime import open_session
+    from occvo_schemas import keys
+    from occvo_schemas.codec import decode
+    from occvo_schemas.models import OccupancyFrameMsg
+    from occvo_services.client import OccVOClient
+    from occvo_services.local import InProcessService
+    from occvo_services.nuscenes_source import NuScenesCameraFrames
+    from occvo_services.occupancy_model import camera_inputs
+    from occvo_services.runtime import open_session
 
     root, stamps, _, _ = dataset
     got = {}
@@ -243,7 +243,7 @@ def test_replay_nuscenes_through_the_three_workers_with_the_model_source(dataset
 
 
 def _run(name, argv):
-    mod = importlib.import_module(f"services.commands.{name}")
+    mod = importlib.import_module(f"occvo_services.commands.{name}")
     parser = argparse.ArgumentParser()
     mod.add_parser(parser.add_subparsers())
     args = parser.parse_args([name, *argv])

@@ -7,9 +7,9 @@ import pytest
 from pydantic import ValidationError
 
 from occvo_core.grid import OCC3D_GRID
-from schemas import keys
-from schemas.export import JSON_DIR, drift, rendered
-from schemas.models import (
+from occvo_schemas import keys
+from occvo_schemas.export import JSON_DIR, drift, rendered
+from occvo_schemas.models import (
     MESSAGES,
     SCHEMA_VERSION,
     Array,
@@ -28,7 +28,7 @@ from schemas.models import (
 
 def test_json_schema_files_match_the_models():
     stale = drift()
-    assert not stale, f"schemas/json drifted ({stale}); run python -m schemas.export"
+    assert not stale, f"schemas/json drifted ({stale}); run python -m occvo_schemas.export"
 
 
 def test_drift_check_notices_a_changed_file(tmp_path):

@@ -16,12 +16,12 @@ import pytest
 import zenoh
 
 from occvo_core.map_tiles import changed_tiles, tiles_from_map
-from schemas import keys
-from schemas.codec import decode, encode
-from schemas.models import ErrorEvent, OccupancyFrameMsg
-from services.client import OccVOClient, ServiceError, camera_frame_of
-from services.local import InProcessService
-from services.runtime import SeqTracker, StageQueue, open_session
+from occvo_schemas import keys
+from occvo_schemas.codec import decode, encode
+from occvo_schemas.models import ErrorEvent, OccupancyFrameMsg
+from occvo_services.client import OccVOClient, ServiceError, camera_frame_of
+from occvo_services.local import InProcessService
+from occvo_services.runtime import SeqTracker, StageQueue, open_session
 
 DATA = Path(__file__).resolve().parents[3] / "shared/data/occvo-sample"
 SCENE = DATA / "occupancy/scene-0101"
@@ -324,7 +324,7 @@ def test_device_selection():
     import torch
 
     from occvo_core.errors import ConfigError
-    from services.occupancy_model import select_device
+    from occvo_services.occupancy_model import select_device
 
     assert select_device("cpu").type == "cpu"
     assert select_device("auto").type == ("cuda" if torch.cuda.is_available() else "cpu")
@@ -345,7 +345,7 @@ def test_stats_and_liveliness(service):
 
 
 def test_replay_of_a_synthetic_scene(service):
-    from services.commands.replay import load_scene, replay
+    from occvo_services.commands.replay import load_scene, replay
 
     scene = load_scene("synthetic:1", frames=3)
     with OccVOClient(service.endpoint, "synthetic") as c:
@@ -369,7 +369,7 @@ def test_replay_of_a_synthetic_scene(service):
 
 def test_a_lane_waiting_for_its_streams_after_pose_work_raises_it_to_the_lanes_priority(service):
     """Priority inheritance: niced work a pose waits for runs at the lane's priority until it ends, then is niced again."""
-    from services.commands.replay import load_scene
+    from occvo_services.commands.replay import load_scene
 
     if os.geteuid() != 0 and resource.getrlimit(resource.RLIMIT_NICE)[0] < 20:
         pytest.skip("raising a thread's priority needs root or RLIMIT_NICE >= 20 (LimitNICE=+0)")
@@ -410,7 +410,7 @@ def test_a_lane_waiting_for_its_streams_after_pose_work_raises_it_to_the_lanes_p
 def test_worker_process_memory_settings_and_thread_names():
     """glibc takes the workers' malloc settings, and a lane's OS thread is named after its stream (what `top -H`
     shows)."""
-    from services.os_tuning import large_blocks_from_mmap, name_os_thread
+    from occvo_services.os_tuning import large_blocks_from_mmap, name_os_thread
 
     assert large_blocks_from_mmap()  # both mallopt calls accepted (glibc here)
     seen = []

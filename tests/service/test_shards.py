@@ -11,9 +11,9 @@ import numpy as np
 import pytest
 from conftest import SERVICE_FRAMES as N  # frames of the `scene` fixture
 
-from schemas import keys
-from schemas.codec import decode
-from schemas.models import ErrorEvent, Trajectory
+from occvo_schemas import keys
+from occvo_schemas.codec import decode
+from occvo_schemas.models import ErrorEvent, Trajectory
 
 warnings.filterwarnings("ignore", category=RuntimeWarning)
 
@@ -40,19 +40,19 @@ def test_shard_of_is_stable_and_spreads_streams():
 
 def test_a_shard_outside_the_count_is_refused():
     from occvo_core.errors import ConfigError
-    from services.runtime import WorkerConfig
+    from occvo_services.runtime import WorkerConfig
 
     with pytest.raises(ConfigError, match="shard 2 is not one of shards 0..1"):
         WorkerConfig.load(None, shard=2, shards=2)
 
 
 def test_two_shards_share_the_streams_and_one_restarts_alone(tmp_path, scene, uninterrupted):
-    from services.client import OccVOClient
-    from services.inference_worker import InferenceWorker
-    from services.local import wait_alive
-    from services.map_service import MapService
-    from services.registration_worker import RegistrationWorker
-    from services.runtime import WorkerConfig, free_port, open_router, open_session
+    from occvo_services.client import OccVOClient
+    from occvo_services.inference_worker import InferenceWorker
+    from occvo_services.local import wait_alive
+    from occvo_services.map_service import MapService
+    from occvo_services.registration_worker import RegistrationWorker
+    from occvo_services.runtime import WorkerConfig, free_port, open_router, open_session
 
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     router = open_router(endpoint)
@@ -121,11 +121,11 @@ def test_two_shards_share_the_streams_and_one_restarts_alone(tmp_path, scene, un
 
 def test_a_stream_moves_to_its_new_shard_through_the_store(tmp_path, scene, uninterrupted):
     """One worker, then two shards on the same store: the stream's new owner resumes it exactly."""
-    from services.client import OccVOClient
-    from services.inference_worker import InferenceWorker
-    from services.local import wait_alive
-    from services.registration_worker import RegistrationWorker
-    from services.runtime import WorkerConfig, free_port, open_router, open_session
+    from occvo_services.client import OccVOClient
+    from occvo_services.inference_worker import InferenceWorker
+    from occvo_services.local import wait_alive
+    from occvo_services.registration_worker import RegistrationWorker
+    from occvo_services.runtime import WorkerConfig, free_port, open_router, open_session
 
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     router = open_router(endpoint)

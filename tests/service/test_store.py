@@ -18,7 +18,7 @@ from conftest import SERVICE_FRAMES as N  # frames of the `scene` fixture
 
 from occvo_core import OccVO
 from occvo_core.frame import OccupancyFrame
-from services.store import (
+from occvo_services.store import (
     TrajectoryStore,
     frame_digest,
     pack_arrays,
@@ -234,7 +234,7 @@ def test_a_niced_thread_writes_to_the_store_at_the_lanes_priority_and_goes_back(
     (priority inheritance) and still waits for it."""
     import os
 
-    from services.os_tuning import hold_priority, lower_priority, release_priority, set_thread_nice
+    from occvo_services.os_tuning import hold_priority, lower_priority, release_priority, set_thread_nice
 
     store = TrajectoryStore(tmp_path / "s.sqlite")
     lanes = os.getpriority(os.PRIO_PROCESS, 0)
@@ -274,7 +274,7 @@ def test_a_niced_thread_writes_to_the_store_at_the_lanes_priority_and_goes_back(
 
 def _open_at(kind: str, path: str, start: float) -> str:
     """In a pool process: open a store of `kind` on `path` at wall-clock `start` (all openers at once)."""
-    from services.map_store import open_map_store
+    from occvo_services.map_store import open_map_store
 
     while time.time() < start:
         pass
@@ -354,9 +354,9 @@ class Pipeline:
     """Router, map service, inference worker and a registration worker that can be stopped and started again."""
 
     def __init__(self, store_path, **registration):
-        from services.inference_worker import InferenceWorker
-        from services.map_service import MapService
-        from services.runtime import WorkerConfig, free_port, open_router
+        from occvo_services.inference_worker import InferenceWorker
+        from occvo_services.map_service import MapService
+        from occvo_services.runtime import WorkerConfig, free_port, open_router
 
         self.endpoint = f"tcp/127.0.0.1:{free_port()}"
         self.router = open_router(self.endpoint)
@@ -370,9 +370,9 @@ class Pipeline:
         self.reg = None
 
     def start_registration(self):
-        from services.local import wait_alive
-        from services.registration_worker import RegistrationWorker
-        from services.runtime import open_session
+        from occvo_services.local import wait_alive
+        from occvo_services.registration_worker import RegistrationWorker
+        from occvo_services.runtime import open_session
 
         self.reg = RegistrationWorker(self.config).start()
         probe = open_session(self.endpoint)
@@ -414,7 +414,7 @@ def _evicting_pipeline(tmp_path):
 @contextlib.contextmanager
 def _ref_and_cut(svc, scene):
     """Two streams on the pipeline: `ref` driven through the scene (its poses given), `cut` reset for the test."""
-    from services.client import OccVOClient
+    from occvo_services.client import OccVOClient
 
     with OccVOClient(svc.endpoint, "ref") as ref, OccVOClient(svc.endpoint, "cut") as cut:
         ref.reset()
@@ -446,9 +446,9 @@ def _wait_map(client, seq, timeout=20.0):
 
 
 def test_clean_restart_continues_the_stream_and_answers_resends(tmp_path, scene, uninterrupted):
-    from schemas import keys
-    from schemas.codec import encode
-    from services.client import OccVOClient, camera_frame_of
+    from occvo_schemas import keys
+    from occvo_schemas.codec import encode
+    from occvo_services.client import OccVOClient, camera_frame_of
 
     path = tmp_path / "state.sqlite"
     svc = Pipeline(path, snapshot_every=4)
@@ -495,7 +495,7 @@ def test_clean_restart_continues_the_stream_and_answers_resends(tmp_path, scene,
 
 
 def test_snapshots_keep_to_their_share_of_the_time_and_shutdown_still_writes_one(tmp_path, scene, uninterrupted):
-    from services.client import OccVOClient
+    from occvo_services.client import OccVOClient
 
     path = tmp_path / "state.sqlite"
     # a share so small that the first snapshot's cost puts the next one hours away
@@ -521,7 +521,7 @@ def test_snapshots_keep_to_their_share_of_the_time_and_shutdown_still_writes_one
 
 
 def test_frames_are_answered_while_the_snapshot_file_is_locked(tmp_path, scene, uninterrupted):
-    from services.client import OccVOClient
+    from occvo_services.client import OccVOClient
 
     path = tmp_path / "state.sqlite"
     svc = Pipeline(path, snapshot_every=2, snapshot_max_share=None)
@@ -638,10 +638,10 @@ def test_a_closed_loop_publishes_the_odometry_pose_then_the_relocalised_one(tmp_
     import sys
 
     from occvo_core.sim import SyntheticScene
-    from schemas import keys
-    from schemas.codec import decode
-    from schemas.models import PoseEstimate
-    from services.client import OccVOClient
+    from occvo_schemas import keys
+    from occvo_schemas.codec import decode
+    from occvo_schemas.models import PoseEstimate
+    from occvo_services.client import OccVOClient
 
     sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "core"))  # test_loop_closure's drive
     from test_loop_closure import EVICT_AT, FRAMES, _config, _drift, _drive, inject_drift

@@ -107,10 +107,10 @@ def test_occvo_view_follows_the_service_into_the_web_viewer(tmp_path):
     from PIL import Image
 
     from occvo_core.sim import SyntheticScene
-    from services.client import OccVOClient
-    from services.commands.replay import replay
-    from services.local import InProcessService
-    from services.runtime import free_port
+    from occvo_services.client import OccVOClient
+    from occvo_services.commands.replay import replay
+    from occvo_services.local import InProcessService
+    from occvo_services.runtime import free_port
 
     n, port, rrd = 4, free_port(), tmp_path / "view.rrd"
     with InProcessService() as svc:

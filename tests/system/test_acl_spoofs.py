@@ -15,9 +15,9 @@ import numpy as np
 import pytest
 import zenoh
 
-from schemas import keys
-from schemas.codec import decode, encode
-from schemas.models import (
+from occvo_schemas import keys
+from occvo_schemas.codec import decode, encode
+from occvo_schemas.models import (
     Array,
     ErrorEvent,
     MapTile,
@@ -25,9 +25,9 @@ from schemas.models import (
     OccupancyFrameMsg,
     PoseEstimate,
 )
-from services.client import OccVOClient, camera_frame_of
-from services.router import router_config
-from services.runtime import ZENOH_CONFIG_ENV, WorkerConfig, free_port, zenoh_config
+from occvo_services.client import OccVOClient, camera_frame_of
+from occvo_services.router import router_config
+from occvo_services.runtime import ZENOH_CONFIG_ENV, WorkerConfig, free_port, zenoh_config
 
 DEPLOY = Path(__file__).resolve().parents[2] / "deploy"
 USERS = ["inference", "registration", "map", "camera", "camera2", "viewer"]
@@ -44,9 +44,9 @@ def _session_file(tmp: Path, user: str) -> Path:
 
 @pytest.fixture(scope="module")
 def acl(tmp_path_factory, scene):
-    from services.inference_worker import InferenceWorker
-    from services.map_service import MapService
-    from services.registration_worker import RegistrationWorker
+    from occvo_services.inference_worker import InferenceWorker
+    from occvo_services.map_service import MapService
+    from occvo_services.registration_worker import RegistrationWorker
 
     tmp = tmp_path_factory.mktemp("acl")
     (tmp / "users.txt").write_text("".join(f"{u}:pw-{u}\n" for u in USERS))

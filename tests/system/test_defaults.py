@@ -8,9 +8,9 @@ from pathlib import Path
 import json5
 import pytest
 
-from services import defaults
-from services.runtime import WorkerConfig, router_endpoint
-from services.supervisor import UpConfig
+from occvo_services import defaults
+from occvo_services.runtime import WorkerConfig, router_endpoint
+from occvo_services.supervisor import UpConfig
 
 DEPLOY = Path(__file__).resolve().parents[2] / "deploy"
 

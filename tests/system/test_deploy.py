@@ -5,6 +5,7 @@ refer to files and modules that exist."""
 
 from __future__ import annotations
 
+import importlib.util
 import json
 import re
 import shutil
@@ -16,14 +17,14 @@ from pathlib import Path
 import pytest
 import zenoh
 
-from services.router import router_config
-from services.runtime import WorkerConfig, free_port, zenoh_config
+from occvo_services.router import router_config
+from occvo_services.runtime import WorkerConfig, free_port, zenoh_config
 
 REPO = Path(__file__).resolve().parents[2]
 DEPLOY = REPO / "deploy"
 WORKER_FILES = sorted(p for p in DEPLOY.rglob("*.json5") if "worker" in p.name or p.name == "map_service.json5")
 ZENOH_FILES = sorted(p for p in DEPLOY.rglob("*.json5") if p.name.startswith(("router", "client", "session-")))
-WORKER_MODULES = {"services.inference_worker", "services.registration_worker", "services.map_service"}
+WORKER_MODULES = {"occvo_services.inference_worker", "occvo_services.registration_worker", "occvo_services.map_service"}
 
 
 def _wait(pred, timeout=5.0):
@@ -100,7 +101,7 @@ def test_client_sessions_start_from_occvo_zenoh_config(monkeypatch, tmp_path):
     """Workers and clients take TLS certificates or ACL credentials from the file named by $OCCVO_ZENOH_CONFIG;
     their own endpoint wins, the reconnect retry is added unless the file sets one."""
     from occvo_core.errors import ConfigError
-    from services.runtime import ZENOH_CONFIG_ENV
+    from occvo_services.runtime import ZENOH_CONFIG_ENV
 
     monkeypatch.setenv(ZENOH_CONFIG_ENV, str(DEPLOY / "tls/client.json5"))
     c = zenoh_config("client", connect="tls/localhost:1")
@@ -309,7 +310,7 @@ def _unit(name: str) -> dict[str, dict[str, list[str]]]:
 
 
 def _module_exists(module: str) -> bool:
-    return (REPO / (module.replace(".", "/") + ".py")).is_file()
+    return importlib.util.find_spec(module) is not None
 
 
 def test_systemd_units_parse_and_name_real_modules():
@@ -318,7 +319,7 @@ def test_systemd_units_parse_and_name_real_modules():
         svc = u["Service"]
         assert svc["Restart"] == ["on-failure"] and float(svc["RestartSec"][0].rstrip("s")) > 0
         assert svc["User"] == ["occvo"] and svc["EnvironmentFile"][0].lstrip("-") == "/etc/occvo/occvo.env"
-        module = re.search(r"-m (services\.\w+)", svc["ExecStart"][0]).group(1)
+        module = re.search(r"-m (occvo_services\.\w+)", svc["ExecStart"][0]).group(1)
         assert _module_exists(module), module
         config = re.search(r"--config (\S+)", svc["ExecStart"][0]).group(1)
         assert config.startswith("/etc/occvo/") and (DEPLOY / Path(config).name).is_file(), config
@@ -388,7 +389,7 @@ def test_every_flag_in_units_and_compose_is_accepted(capsys, monkeypatch):
     flags: dict[str, set[str]] = {}
     for cmd in commands:
         flags.setdefault(cmd[cmd.index("-m") + 1], set()).update(a for a in cmd if a.startswith("--"))
-    assert set(flags) == WORKER_MODULES | {"services.router"}
+    assert set(flags) == WORKER_MODULES | {"occvo_services.router"}
     for module, wanted in flags.items():
         monkeypatch.setattr(sys, "argv", [module, "--help"])
         with pytest.raises(SystemExit) as exit_, warnings.catch_warnings():

@@ -13,12 +13,12 @@ import numpy as np
 import pytest
 import zenoh
 
-from schemas import keys
-from schemas.codec import decode, encode
-from schemas.models import ErrorEvent
-from services.client import OccVOClient, camera_frame_of
-from services.local import InProcessService
-from services.runtime import open_session
+from occvo_schemas import keys
+from occvo_schemas.codec import decode, encode
+from occvo_schemas.models import ErrorEvent
+from occvo_services.client import OccVOClient, camera_frame_of
+from occvo_services.local import InProcessService
+from occvo_services.runtime import open_session
 
 BLOCK = zenoh.CongestionControl.BLOCK
 LIMITS = {

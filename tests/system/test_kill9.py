@@ -20,11 +20,11 @@ import pytest
 
 from occvo_core import OccVO
 from occvo_core.eval import ape_rmse
-from services.client import OccVOClient
-from services.commands.replay import replay
-from services.local import REPO, wait_alive
-from services.runtime import free_port, open_router, open_session
-from services.store import TrajectoryStore
+from occvo_services.client import OccVOClient
+from occvo_services.commands.replay import replay
+from occvo_services.local import REPO, wait_alive
+from occvo_services.runtime import free_port, open_router, open_session
+from occvo_services.store import TrajectoryStore
 
 warnings.filterwarnings("ignore", category=RuntimeWarning)
 DATA = Path(__file__).resolve().parents[3] / "shared/data/occvo-sample"
@@ -51,8 +51,8 @@ def _kill9_run(tmp_path: Path, frames: list, gt: np.ndarray, seed: int, capsys) 
     router = open_router(endpoint)
     log = tmp_path / "registration.log"
     procs = {
-        "inference": _spawn("services.inference_worker", endpoint, "inference-k9", tmp_path / "inference.log"),
-        "registration": _spawn("services.registration_worker", endpoint, "registration-k9", log, *reg_args),
+        "inference": _spawn("occvo_services.inference_worker", endpoint, "inference-k9", tmp_path / "inference.log"),
+        "registration": _spawn("occvo_services.registration_worker", endpoint, "registration-k9", log, *reg_args),
     }
     offline = {}
 
@@ -77,7 +77,9 @@ def _kill9_run(tmp_path: Path, frames: list, gt: np.ndarray, seed: int, capsys) 
             procs["registration"].kill()  # SIGKILL: no snapshot, no goodbye
             procs["registration"].wait(10)
             killed_at = len(client.poses)
-            procs["registration"] = _spawn("services.registration_worker", endpoint, "registration-k9", log, *reg_args)
+            procs["registration"] = _spawn(
+                "occvo_services.registration_worker", endpoint, "registration-k9", log, *reg_args
+            )
             reference = threading.Thread(target=uninterrupted)
             reference.start()
             replayer.join(120)

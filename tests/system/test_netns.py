@@ -17,9 +17,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from services.client import OccVOClient
-from services.local import WORKERS, InProcessService
-from services.runtime import free_port
+from occvo_services.client import OccVOClient
+from occvo_services.local import WORKERS, InProcessService
+from occvo_services.runtime import free_port
 
 REPO = Path(__file__).resolve().parents[2]
 SCENE, FRAMES = "synthetic:3", 6
@@ -73,7 +73,7 @@ def _in(ns: str, *cmd: str) -> list[str]:
 
 
 def test_router_and_workers_in_separate_network_namespaces(two_hosts, tmp_path):
-    from services.commands.replay import load_scene, replay
+    from occvo_services.commands.replay import load_scene, replay
 
     ns_r, addr, ns_w = two_hosts
     ep = f"tcp/{addr}:{free_port()}"
@@ -89,7 +89,7 @@ def test_router_and_workers_in_separate_network_namespaces(two_hosts, tmp_path):
         return procs[-1]
 
     try:
-        router = start(ns_r, "router", "-m", "services.router", "--listen", ep)
+        router = start(ns_r, "router", "-m", "occvo_services.router", "--listen", ep)
         scene = load_scene(SCENE, FRAMES)
         deadline = time.monotonic() + 30  # sessions open only once the router listens (client connect does not wait)
         while '"router ready"' not in (tmp_path / "router.log").read_text():

@@ -24,7 +24,7 @@ pytestmark = [pytest.mark.packaging, pytest.mark.slow]
 
 REPO = Path(__file__).resolve().parents[2]
 SOURCES = ["pyproject.toml", "README.md", "occvo_core", "occvo_cli", "services", "schemas"]
-PACKAGES = ["occvo_core", "occvo_cli", "services", "schemas"]
+PACKAGES = ["occvo_core", "occvo_cli", "occvo_services", "occvo_schemas"]
 
 
 @pytest.fixture(scope="module")
@@ -82,6 +82,10 @@ def test_installed_wheel_serves_from_any_directory(venv, tmp_path):
     )
     for package, path in json.loads(where.stdout).items():
         assert Path(path).is_relative_to(venv.parent), f"{package} imported from {path}, not the installed wheel"
+    # only the project's own import names: generic ones like `services` belong to nobody
+    generic = "import importlib.util as u; print([n for n in ('services', 'schemas') if u.find_spec(n)])"
+    found = subprocess.run([str(venv / "python"), "-c", generic], capture_output=True, text=True, env=env, cwd=cwd)
+    assert found.stdout.strip() == "[]", found.stdout + found.stderr
 
     def occvo(*argv, timeout=900):
         proc = subprocess.run(

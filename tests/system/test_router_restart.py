@@ -1,5 +1,5 @@
 """The router goes away and comes back on the same endpoint: the workers (separate processes) and the client reconnect
-by themselves (services.runtime.zenoh_config's connect retry) and the trajectory goes on where it was: every pose,
+by themselves (occvo_services.runtime.zenoh_config's connect retry) and the trajectory goes on where it was: every pose,
 before and after, equals the offline run of the same frames."""
 
 from __future__ import annotations
@@ -15,9 +15,9 @@ from pathlib import Path
 
 import numpy as np
 
-from services.client import OccVOClient
-from services.local import WORKERS, wait_alive
-from services.runtime import free_port, open_session
+from occvo_services.client import OccVOClient
+from occvo_services.local import WORKERS, wait_alive
+from occvo_services.runtime import free_port, open_session
 
 REPO = Path(__file__).resolve().parents[2]
 warnings.filterwarnings("ignore", category=RuntimeWarning)
@@ -25,7 +25,7 @@ warnings.filterwarnings("ignore", category=RuntimeWarning)
 
 def _router(ep: str, log) -> subprocess.Popen:
     return subprocess.Popen(
-        [sys.executable, "-m", "services.router", "--config", str(REPO / "deploy/router.json5"), "--listen", ep],
+        [sys.executable, "-m", "occvo_services.router", "--config", str(REPO / "deploy/router.json5"), "--listen", ep],
         cwd=REPO,
         env=dict(os.environ, PYTHONPATH=str(REPO)),
         stderr=log,
@@ -44,7 +44,7 @@ def _wait_ready(log_path: Path, n: int, timeout: float = 30) -> None:
 
 def test_workers_and_client_reconnect_after_router_restart(tmp_path):
     from occvo_core import OccVO
-    from services.commands.replay import load_scene
+    from occvo_services.commands.replay import load_scene
 
     ep = f"tcp/127.0.0.1:{free_port()}"
     env = dict(os.environ, PYTHONPATH=str(REPO))

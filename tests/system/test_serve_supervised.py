@@ -17,10 +17,10 @@ import numpy as np
 import pytest
 
 from occvo_core.errors import ConfigError
-from services.client import OccVOClient
-from services.commands._common import check_listen_secure, deploy_dir, is_loopback
-from services.commands.replay import replay
-from services.runtime import free_port
+from occvo_services.client import OccVOClient
+from occvo_services.commands._common import check_listen_secure, deploy_dir, is_loopback
+from occvo_services.commands.replay import replay
+from occvo_services.runtime import free_port
 
 REPO = Path(__file__).resolve().parents[2]
 DEPLOY = deploy_dir()

@@ -19,9 +19,9 @@ import numpy as np
 import pytest
 
 from occvo_core.map_tiles import tiles_from_map
-from services.client import OccVOClient, ServiceError
-from services.local import REPO, LocalService
-from services.runtime import free_port
+from occvo_services.client import OccVOClient, ServiceError
+from occvo_services.local import REPO, LocalService
+from occvo_services.runtime import free_port
 
 DATA = Path(__file__).resolve().parents[3] / "shared/data/occvo-sample"
 SCENE = DATA / "occupancy/scene-0101"
@@ -37,7 +37,7 @@ def _sorted_rows(points, labels):
 def _cli(module, argv):
     import importlib
 
-    mod = importlib.import_module(f"services.commands.{module}")
+    mod = importlib.import_module(f"occvo_services.commands.{module}")
     parser = argparse.ArgumentParser()
     sub = parser.add_subparsers()
     mod.add_parser(sub)
@@ -49,7 +49,7 @@ def test_scene_0101_through_separate_worker_processes_matches_offline(capsys):
     from occvo_core.datasets import open_scene
     from occvo_core.datasets.occvo_release import OccVOReleaseScene
     from occvo_core.pipeline import OdometryPipeline
-    from services.commands import map_info, poses, replay, tile
+    from occvo_services.commands import map_info, poses, replay, tile
 
     scene = OccVOReleaseScene(SCENE)
     offline = {}

@@ -18,10 +18,10 @@ import numpy as np
 import pytest
 
 from occvo_core.errors import ConfigError
-from services.client import OccVOClient
-from services.local import WORKERS, wait_alive
-from services.runtime import free_port, open_session
-from services.supervisor import Backoff, RestartSpec, UpConfig
+from occvo_services.client import OccVOClient
+from occvo_services.local import WORKERS, wait_alive
+from occvo_services.runtime import free_port, open_session
+from occvo_services.supervisor import Backoff, RestartSpec, UpConfig
 
 REPO = Path(__file__).resolve().parents[2]
 warnings.filterwarnings("ignore", category=RuntimeWarning)
@@ -47,7 +47,7 @@ def test_up_config_resolves_paths_and_names_bad_files(tmp_path):
 
 
 def test_registration_replicas_are_shards(tmp_path):
-    from services.supervisor import Supervisor
+    from occvo_services.supervisor import Supervisor
 
     up = tmp_path / "up.json5"
     up.write_text('{workers: [{role: "registration", count: 3}, {role: "map", count: 2}]}')
@@ -61,9 +61,9 @@ def test_registration_replicas_are_shards(tmp_path):
 
 
 def _stats_pid(session, worker: str) -> int | None:
-    from schemas import keys
-    from schemas.codec import decode
-    from schemas.models import WorkerHealth
+    from occvo_schemas import keys
+    from occvo_schemas.codec import decode
+    from occvo_schemas.models import WorkerHealth
 
     for r in session.get(keys.stats(worker), timeout=2.0):
         if r.ok:
@@ -81,7 +81,7 @@ def _alive(pid: int) -> bool:
 
 def test_up_restarts_a_killed_worker_and_stops_cleanly(tmp_path):
     from occvo_core import OccVO
-    from services.commands.replay import load_scene, replay
+    from occvo_services.commands.replay import load_scene, replay
 
     port = free_port()
     ep = f"tcp/127.0.0.1:{port}"

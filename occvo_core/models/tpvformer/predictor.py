@@ -33,7 +33,7 @@ def confident_labels(
 class OccupancyPredictor:
     """Loads a checkpoint once; `predict_grid` maps six images + calibration to a uint8 (200,200,16) label grid.
 
-    Also fits services.occupancy_model.OccupancyModel: `name`, `grid`, `predict` -> (voxel indices, labels).
+    Also fits occvo_services.occupancy_model.OccupancyModel: `name`, `grid`, `predict` -> (voxel indices, labels).
     Images of another size than the checkpoint's input are resized and the intrinsics scaled to match.
     A voxel whose most likely class has a softmax probability below `min_confidence` (`min_ground_confidence` for
     the ground classes) is reported free: a network's unsure voxels are often ones it pins to the ego, and an

@@ -2,6 +2,9 @@
 
     PYTHONPATH=$PWD python tests/core/record_digests.py        # re-record tests/core/digests.json
 
+Both recording and checking run in a child process in occvo_core.reproducible's pinned floating-point environment,
+so the digests hold on any x86-64 machine with AVX2, whatever its newer vector units.
+
 Re-record only when a change is meant to move poses or maps (e.g. a new default in OccVOConfig), and say so in the
 commit. tests/core/test_digests.py checks the code against the recorded file.
 """
@@ -10,6 +13,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import subprocess
 import sys
 from pathlib import Path
 
@@ -70,11 +74,33 @@ def compute(case: str) -> dict[str, object]:
     return digest_run(real_frames(name) if kind == "real" else synthetic_frames(int(name)))
 
 
+def compute_pinned(names: list[str]) -> dict[str, dict[str, object]]:
+    """compute() of each case in a child process with the pinned environment (it must hold from numpy's load on)."""
+    from occvo_core.reproducible import pinned_env
+
+    env = pinned_env()
+    if env is None:
+        raise RuntimeError("the digests' floating-point environment needs an x86-64 CPU with AVX2")
+    root = str(Path(__file__).resolve().parents[2])
+    env["PYTHONPATH"] = root + (":" + env["PYTHONPATH"] if env.get("PYTHONPATH") else "")
+    child = [sys.executable, __file__, "--print", *names]
+    out = subprocess.run(child, env=env, capture_output=True, text=True, timeout=1800, check=False)
+    if out.returncode != 0:
+        raise RuntimeError(f"digest child failed ({out.returncode}): {out.stderr[-2000:]}")
+    return json.loads(out.stdout)
+
+
 def main() -> int:
+    if sys.argv[1:2] == ["--print"]:  # the child: the pins are in place
+        from occvo_core.reproducible import is_pinned
+
+        assert is_pinned(), "run through compute_pinned()"
+        print(json.dumps({case: compute(case) for case in sys.argv[2:]}))
+        return 0
     if not (SAMPLE / "occupancy").is_dir():
         print(f"real sample not found at {SAMPLE}: refusing to record digests without the real scenes", file=sys.stderr)
         return 1
-    out = {case: compute(case) for case in cases()}
+    out = compute_pinned(cases())
     DIGESTS.write_text(json.dumps({"synthetic_frames": SYNTHETIC_FRAMES, "cases": out}, indent=1) + "\n")
     print(json.dumps(out, indent=1))
     return 0

@@ -1,0 +1,42 @@
+"""One floating-point environment for every x86-64 machine with AVX2, so recorded figures hold on another machine.
+
+numpy picks its SIMD loops by the CPU when it loads (with AVX-512, sin, cos and exp round differently in the last
+bit) and OpenBLAS picks its kernels the same way. One last bit moves a voxel centre into the next voxel and the
+trajectories part, so the same seed gives another APE on another CPU. Digests (tests/core/record_digests.py) and
+the accuracy benchmark run in a child process with both pinned to the AVX2 level: `pinned_env()` is its environment.
+"""
+
+from __future__ import annotations
+
+import os
+import platform
+
+CORETYPE = "Haswell"  # OpenBLAS's AVX2 kernels
+
+
+def _cpu_features() -> tuple[list[str], dict[str, bool]]:
+    try:
+        from numpy._core._multiarray_umath import __cpu_dispatch__, __cpu_features__
+    except ImportError:  # numpy 1.x
+        from numpy.core._multiarray_umath import __cpu_dispatch__, __cpu_features__
+    return list(__cpu_dispatch__), dict(__cpu_features__)
+
+
+def pinned_env(base: dict[str, str] | None = None) -> dict[str, str] | None:
+    """`base` (default: this process's environment) with numpy's loops above AVX2 switched off and OpenBLAS on its
+    AVX2 kernels; None where that level cannot be had (not x86-64, or no AVX2)."""
+    if platform.machine().lower() not in ("x86_64", "amd64"):
+        return None
+    dispatch, features = _cpu_features()
+    if not (features.get("X86_V3") or features.get("AVX2")):
+        return None
+    above = [k for k in dispatch if features.get(k) and ("512" in k or k == "X86_V4")]
+    env = dict(os.environ if base is None else base)
+    env["NPY_DISABLE_CPU_FEATURES"] = " ".join(above)
+    env["OPENBLAS_CORETYPE"] = CORETYPE
+    return env
+
+
+def is_pinned() -> bool:
+    """Whether this process started in `pinned_env()` (the pins act only at load time, so only a child can have them)."""
+    return os.environ.get("OPENBLAS_CORETYPE") == CORETYPE and "NPY_DISABLE_CPU_FEATURES" in os.environ

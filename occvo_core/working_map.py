@@ -39,8 +39,9 @@ def restore_tiles(vo: OccVO, blocks: dict[Tile, dict[str, np.ndarray]]) -> int:
 
 
 def tiles_near(cold: Iterable[Tile], ego_xy, radius_m: float, tile_m: float) -> list[Tile]:
-    """Cold tiles to bring back: those within radius_m - tile_m of the ego."""
-    keys = list(cold)
+    """Cold tiles to bring back: those within radius_m - tile_m of the ego, in tile order (the order they come back
+    in is the map's row order, so it must not depend on how the caller's index was built, e.g. by a resume)."""
+    keys = sorted(cold)
     if not keys:
         return []
     near = tile_distance(np.array(keys, np.int64), ego_xy, tile_m) <= radius_m - tile_m
@@ -49,12 +50,13 @@ def tiles_near(cold: Iterable[Tile], ego_xy, radius_m: float, tile_m: float) -> 
 
 def tiles_reached(cold: Iterable[Tile], points: np.ndarray, pose: np.ndarray, tile_m: float) -> list[Tile]:
     """Cold tiles the frame's points land in at `pose`, or within REACH_MARGIN_M of them. Only when the working
-    radius less a tile is below a frame's reach (~57 m); a bounding-box test first keeps it cheap otherwise."""
+    radius less a tile is below a frame's reach (~57 m); a bounding-box test first keeps it cheap otherwise. In tile
+    order, as tiles_near."""
     margin = REACH_MARGIN_M
     xy = points @ pose[:2, :3].T + pose[:2, 3]
     lo = np.floor((xy.min(axis=0) - margin) / tile_m)
     hi = np.floor((xy.max(axis=0) + margin) / tile_m)
-    candidates = [k for k in cold if lo[0] <= k[0] <= hi[0] and lo[1] <= k[1] <= hi[1]]
+    candidates = sorted(k for k in cold if lo[0] <= k[0] <= hi[0] and lo[1] <= k[1] <= hi[1])
     if not candidates:
         return []
     ids = np.concatenate(

@@ -59,9 +59,15 @@ _ZENOH_DEFAULT_MAX = 1 << 30
 
 
 def limit_messages(c: zenoh.Config, max_bytes: int = TRANSPORT_MAX_BYTES) -> zenoh.Config:
-    """Set the transport's largest reassembled message, unless the config file set its own."""
+    """Set the transport's largest reassembled message, unless the config file set its own; turn shared memory off.
+
+    With zenoh's shared memory on (its default), every local client that sends more than 3 kB allocates a 16 MiB
+    pool, and each process its messages reach (the router, the workers) maps that pool for as long as the client
+    lives: the inference worker stayed +16 MB for each flooding client, given back only when it left. Off, the router
+    and workers get their own copy of a message over the socket (a frame's copy costs well under a millisecond)."""
     if json.loads(c.get_json("transport/link/rx/max_message_size")) == _ZENOH_DEFAULT_MAX:
         c.insert_json5("transport/link/rx/max_message_size", str(max_bytes))
+    c.insert_json5("transport/shared_memory/enabled", "false")
     return c
 
 

@@ -27,6 +27,7 @@ from occvo_services.flow import EVICT, SeqTracker, StageQueue, StreamLane
 from occvo_services.limits import MAX_KEY_CHARS, MAX_MESSAGE_CHARS, Admission, ErrorBudget, clip
 from occvo_services.memory import CHECK_EVERY_S, EVICT_IDLE_S, MemoryCap
 from occvo_services.os_tuning import few_malloc_arenas, large_blocks_from_mmap, trim_heap
+from occvo_services.query_gate import QueryGate
 from occvo_services.telemetry import Stats, log_event, structured_logger
 from occvo_services.worker_config import DEFAULT_ENDPOINT, Policy, WorkerConfig
 
@@ -135,6 +136,7 @@ class Worker:
         self.admission = Admission(config.max_streams, config.max_streams_per_client)
         self.error_budget = ErrorBudget(config.error_events_per_s, config.error_burst)
         self.memory = MemoryCap(config.max_rss_mb)
+        self.query_gate = QueryGate(config.max_queries_per_client, self._refuse_query)
         self._evicted_at = 0.0
         self._declared: list = []
         self._retired: dict[str, StreamLane] = {}
@@ -180,6 +182,7 @@ class Worker:
                 entity.undeclare()
             except Exception as exc:  # noqa: BLE001 - the session may already be gone; shutting down regardless
                 self.log.debug("undeclare at shutdown failed: %s", exc)
+        self.query_gate.close()  # the queries in work are answered (their session is still open)
         if self.session is not None:
             self.session.close()
         self.after_leaving()
@@ -367,6 +370,22 @@ class Worker:
             except Exception as exc:  # noqa: BLE001
                 log_event(self.log, "cannot publish error event", logging.ERROR, error=repr(exc))
         return event
+
+    def bounded(self, handler: Callable[[zenoh.Query], None]) -> Callable[[zenoh.Query], None]:
+        """A queryable callback answering on the query pool, at most max_queries_per_client a client at once."""
+
+        def answer(query: zenoh.Query) -> None:
+            try:
+                handler(query)
+            except Exception as exc:  # noqa: BLE001 - a worker never dies of one query
+                stream = keys.stream_of(str(query.key_expr))
+                self.reply_error(query, stream, "internal", f"{type(exc).__name__}: {exc}")
+
+        return self.query_gate.wrap(answer)
+
+    def _refuse_query(self, query: zenoh.Query, client: str, message: str) -> None:
+        self.stats.inc("queries_refused")
+        self.reply_error(query, keys.stream_of(str(query.key_expr)), "busy", message)
 
     def reply_error(self, query: zenoh.Query, stream: str, code: str, message: str) -> None:
         event = self.report_error(stream, code, message, str(query.key_expr))

@@ -1,0 +1,87 @@
+"""Queries a client may have in work at once (`max_queries_per_client`), so one client's queries cannot starve the
+others'.
+
+A worker's queryable callbacks run on Zenoh's threads, and every query reaches a worker over its one link to the
+router: ten looping `occvo/**` gets queued each legitimate tile query behind theirs. Here a callback only counts
+the query against its client and hands it to a small pool of threads that answer it; a client with
+`max_queries_per_client` queries in work gets an immediate `busy` reply naming the limit instead of a place in line.
+The pool has one thread more than a client may hold, so another client's query always finds one free.
+
+As for streams (services/limits.py), a client is the stream id's prefix before its first '.'; every query whose
+stream chunk has a wildcard (`occvo/**`, `occvo/cam*/map/info`) counts as one client, `*`: such queries cost the
+most and a querier could otherwise name a new prefix for each."""
+
+from __future__ import annotations
+
+import threading
+from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
+
+import zenoh
+
+from occvo_schemas import keys
+from occvo_services.limits import client_of
+
+MAX_QUEUED = 64  # queries in work or waiting for a thread, all clients together; beyond, busy
+
+
+def query_client(key: str) -> str:
+    stream = keys.stream_of(key)
+    return "*" if stream == "*" or "*" in stream or "$" in stream else client_of(stream)
+
+
+class QueryGate:
+    """Counts each client's queries in work and runs them on the pool; refuse(query, why) answers a refused one."""
+
+    def __init__(self, per_client: int, refuse: Callable[[zenoh.Query, str, str], None], name: str = "query"):
+        self.per_client = per_client
+        self.refuse = refuse
+        self.pool = ThreadPoolExecutor(per_client + 1, thread_name_prefix=name)
+        self._lock = threading.Lock()
+        self.in_work: dict[str, int] = {}
+        self._total = 0
+
+    def wrap(self, handler: Callable[[zenoh.Query], None]) -> Callable[[zenoh.Query], None]:
+        """A queryable callback that answers through the pool."""
+
+        def callback(query: zenoh.Query) -> None:
+            key = str(query.key_expr)
+            client = query_client(key)
+            with self._lock:
+                held = self.in_work.get(client, 0)
+                full = held >= self.per_client or self._total >= MAX_QUEUED
+                if not full:
+                    self.in_work[client] = held + 1
+                    self._total += 1
+            if full:
+                why = (
+                    f"client {client!r} has max_queries_per_client={self.per_client} queries in work"
+                    if held >= self.per_client
+                    else f"{MAX_QUEUED} queries in work on this worker"
+                )
+                return self.refuse(query, client, f"query {key} refused: {why}; ask again when one is answered")
+            try:
+                self.pool.submit(self._answer, handler, query, client)
+            except RuntimeError:  # the pool is shut down: the worker is stopping
+                self._done(client)
+
+        return callback
+
+    def _answer(self, handler: Callable[[zenoh.Query], None], query: zenoh.Query, client: str) -> None:
+        try:
+            handler(query)
+        finally:
+            self._done(client)
+            query.drop()  # the final reply now, not when the object is collected
+
+    def _done(self, client: str) -> None:
+        with self._lock:
+            self._total -= 1
+            left = self.in_work[client] - 1
+            if left:
+                self.in_work[client] = left
+            else:
+                del self.in_work[client]
+
+    def close(self) -> None:
+        self.pool.shutdown(wait=True)

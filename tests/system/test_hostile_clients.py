@@ -295,6 +295,16 @@ def test_wildcard_gets_are_bounded_per_client_and_a_tile_query_is_answered(tmp_p
         stop.set()
         watcher.join()
         hammer.close()
+        # one client's own threads over its limit: the client asks again on busy, every query is answered
+        mine = [
+            threading.Thread(target=lambda: tiles.extend([c.tile(ix, iy).points.to_numpy() for _ in range(5)]))
+            for _ in range(6)
+        ]
+        for t in mine:
+            t.start()
+        for t in mine:
+            t.join(60)
+    assert len(tiles) == 30 + 6 * 5
     assert all(np.array_equal(t, expected) for t in tiles)
     assert busy and "max_queries_per_client=2" in busy[0].message and busy[0].stream == "*"
     assert 1 <= peak[0] <= 2

@@ -4,7 +4,8 @@
         [--steps flood,msgpack,oversize,queries] [--registration-max-rss-mb MB]
 
 Router in this process, workers as processes (occvo_services.local.LocalService, the deploy configs' limits). Steps:
-  alone      scene-0101 replayed alone: time, poses; each worker's RSS and threads (baseline)
+  alone      scene-0101 replayed alone: time, poses; each worker's RSS and threads once its stream has retired
+             (baseline: the service at rest)
   flood      one client puts a seq-0 frame on each of --streams stream ids in --flood-s seconds while scene-0101 is
              replayed: replay time vs alone, poses equal, registration RSS peak against its max_rss_mb, streams
              refused (by the stream limits, by the memory cap) and evicted; --settle-s after the flood: every
@@ -134,10 +135,15 @@ def main() -> int:
     try:
         ep = svc.endpoint
         alone_s, alone = run_replay(ep, "legit0", frames)
+        session = open_session(ep)
+        # the flood's baseline is the service at rest: the replay's stream retired (idle_stream_s), as the flood's will be
+        deadline = time.monotonic() + WorkerConfig.load(reg_config).idle_stream_s + 60
+        while "flood" in steps and counters(session, svc, "registration", ("streams_retired",))["streams_retired"] < 1:
+            assert time.monotonic() < deadline, "the replay's stream was not retired"
+            time.sleep(1.0)
         base = workers(svc)
         emit("alone", replay_s=round(alone_s, 2), poses=len(alone), workers=base)
 
-        session = open_session(ep)
         if "flood" in steps:
             peak = {"rss_mb": 0.0}
             stop = threading.Event()

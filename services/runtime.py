@@ -136,7 +136,7 @@ class Worker:
         self.admission = Admission(config.max_streams, config.max_streams_per_client)
         self.error_budget = ErrorBudget(config.error_events_per_s, config.error_burst)
         self.memory = MemoryCap(config.max_rss_mb)
-        self.query_gate = QueryGate(config.max_queries_per_client, self._refuse_query)
+        self.query_gate = QueryGate(config.max_queries_per_client, config.max_wildcard_queries, self._refuse_query)
         self._evicted_at = 0.0
         self._declared: list = []
         self._retired: dict[str, StreamLane] = {}

@@ -37,8 +37,10 @@ class WorkerConfig(BaseModel):
     error_burst: int = Field(100, ge=1)
     max_query_tiles: int = Field(64, ge=1)  # map: tiles in one reply to a region or wildcard query (a page)
     max_query_streams: int = Field(16, ge=1)  # registration: trajectories in one reply to a wildcard query
-    # queries a client may have in work at once (services/query_gate.py); all wildcard queries count as one client
+    # queries a client may have in work at once (services/query_gate.py); queries with a wildcard stream chunk, all
+    # clients together
     max_queries_per_client: int = Field(2, ge=1)
+    max_wildcard_queries: int = Field(1, ge=1)
     # inference worker
     source: Literal["replay", "model"] = "replay"
     device: Literal["auto", "cpu", "cuda"] = "auto"

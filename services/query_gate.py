@@ -5,7 +5,8 @@ A worker's queryable callbacks run on Zenoh's threads, and every query reaches a
 router: ten looping `occvo/**` gets queued each legitimate tile query behind theirs. Here a callback only counts
 the query against its client and hands it to a small pool of threads that answer it; a client with
 `max_queries_per_client` queries in work gets an immediate `busy` reply naming the limit instead of a place in line.
-The pool has one thread more than one client may hold, so one client alone never takes every thread.
+Each queryable has its own gate and pool (a get on `occvo/**` is a query to each of them); a pool has one thread more
+than one client may hold, so one client alone never takes every thread.
 
 As for streams (services/limits.py), a client is the stream id's prefix before its first '.'; every query whose
 stream chunk has a wildcard (`occvo/**`, `occvo/cam*/map/info`) counts as one client, `*`, allowed

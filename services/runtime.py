@@ -136,7 +136,7 @@ class Worker:
         self.admission = Admission(config.max_streams, config.max_streams_per_client)
         self.error_budget = ErrorBudget(config.error_events_per_s, config.error_burst)
         self.memory = MemoryCap(config.max_rss_mb)
-        self.query_gate = QueryGate(config.max_queries_per_client, config.max_wildcard_queries, self._refuse_query)
+        self.query_gates: dict[str, QueryGate] = {}  # one a queryable (bounded()), by its handler's name
         self._evicted_at = 0.0
         self._declared: list = []
         self._retired: dict[str, StreamLane] = {}
@@ -182,7 +182,8 @@ class Worker:
                 entity.undeclare()
             except Exception as exc:  # noqa: BLE001 - the session may already be gone; shutting down regardless
                 self.log.debug("undeclare at shutdown failed: %s", exc)
-        self.query_gate.close()  # the queries in work are answered (their session is still open)
+        for gate in self.query_gates.values():
+            gate.close()  # the queries in work are answered (their session is still open)
         if self.session is not None:
             self.session.close()
         self.after_leaving()
@@ -372,7 +373,13 @@ class Worker:
         return event
 
     def bounded(self, handler: Callable[[zenoh.Query], None]) -> Callable[[zenoh.Query], None]:
-        """A queryable callback answering on the query pool, at most max_queries_per_client a client at once."""
+        """A queryable callback answering on its own pool, at most max_queries_per_client of a client's queries (and
+        max_wildcard_queries wildcard ones) at once. One gate a queryable: one `occvo/**` get is a query to each of
+        a worker's queryables at once, and must not be refused by itself."""
+        name = handler.__name__.strip("_")
+        gate = self.query_gates[name] = QueryGate(
+            self.config.max_queries_per_client, self.config.max_wildcard_queries, self._refuse_query, name
+        )
 
         def answer(query: zenoh.Query) -> None:
             try:
@@ -381,7 +388,7 @@ class Worker:
                 stream = keys.stream_of(str(query.key_expr))
                 self.reply_error(query, stream, "internal", f"{type(exc).__name__}: {exc}")
 
-        return self.query_gate.wrap(answer)
+        return gate.wrap(answer)
 
     def _refuse_query(self, query: zenoh.Query, client: str, message: str) -> None:
         self.stats.inc("queries_refused")

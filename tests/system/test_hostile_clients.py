@@ -283,7 +283,7 @@ def test_wildcard_gets_are_bounded_per_client_and_a_tile_query_is_answered(tmp_p
 
         def watch():
             while not stop.wait(0.001):
-                peak[0] = max(peak[0], mapper.query_gate.in_work.get("*", 0))
+                peak[0] = max(peak[0], mapper.query_gates["on_tile_query"].in_work.get("*", 0))
 
         threads = [threading.Thread(target=wildcard) for _ in range(10)]
         watcher = threading.Thread(target=watch)

@@ -35,7 +35,7 @@ def test_non_loopback_listen_needs_authentication_or_insecure():
     check_listen_secure(DEPLOY / "router.json5", ["tcp/127.0.0.1:7447"], insecure=False)
     check_listen_secure(DEPLOY / "acl/router.json5", ["tcp/0.0.0.0:7447"], insecure=False)  # user/password
     check_listen_secure(DEPLOY / "tls/router.json5", ["tls/0.0.0.0:7447"], insecure=False)  # mutual TLS
-    env = dict(os.environ, PYTHONPATH=str(REPO))
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join(filter(None, [str(REPO), os.environ.get("PYTHONPATH")])))
     rc = subprocess.run(
         [sys.executable, "-m", "occvo_cli", "serve", "--listen", f"tcp/0.0.0.0:{free_port()}"],
         check=False,
@@ -52,7 +52,7 @@ def test_non_loopback_listen_needs_authentication_or_insecure():
 def test_serve_restarts_a_worker_killed_mid_replay_and_no_pose_is_lost(role, tmp_path, scene, uninterrupted):
     port = free_port()
     endpoint = f"tcp/127.0.0.1:{port}"
-    env = dict(os.environ, PYTHONPATH=str(REPO))
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join(filter(None, [str(REPO), os.environ.get("PYTHONPATH")])))
     err = open(tmp_path / "serve.log", "w")  # noqa: SIM115 - closed in finally, after the process
     proc = subprocess.Popen(
         [

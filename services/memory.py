@@ -1,7 +1,7 @@
 """A worker's memory cap (`max_rss_mb`): new streams are refused and idle streams evicted as its resident set nears
 the cap, so a flood of streams cannot grow a worker until the machine swaps or the OOM killer picks a process.
 
-Admission is the lever because a worker's memory is its streams' (a one-frame registration stream holds ~9 MB; a
+Admission is the lever because a worker's memory is its streams' (a one-frame registration stream holds 10-25 MB; a
 long drive's working map hundreds). Two marks below the cap: over EVICT_SHARE of it, the stream idle longest (no
 frame for EVICT_IDLE_S) gives back its lane and state, as an idle stream does after idle_stream_s (with a store its
 OccVO is snapshotted and dropped; the next frame resumes it); over ADMIT_SHARE, a new stream is refused with an error

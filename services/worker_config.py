@@ -30,7 +30,7 @@ class WorkerConfig(BaseModel):
     idle_stream_s: float = Field(30.0, gt=0)  # a stream without frames this long gives back its lane (and its memory)
     # resident set this worker keeps under (services/memory.py): near it idle streams are evicted and new streams
     # refused (stream_limit). None: no cap. 4 GiB leaves a 24 GiB machine room for the router, the other workers
-    # and a model source; the registration worker's 64 admitted one-frame streams peak at ~1.2 GB
+    # and a model source; the registration worker's 64 admitted one-frame streams peak at ~1.1 GB
     max_rss_mb: int | None = Field(4096, ge=64)
     max_seq_jump: int = Field(100_000, ge=1)  # a seq this far beyond the next expected is reported, not adopted
     error_events_per_s: float = Field(20.0, gt=0)  # error events a stream may cause a second (bursts of error_burst)

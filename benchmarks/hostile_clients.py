@@ -1,21 +1,26 @@
 """A hostile client beside a legitimate replay, on loopback: the figures of issue 33's "done when".
 
     python benchmarks/hostile_clients.py [--streams 2000 --flood-s 10 --settle-s 60 --big-mb 512]
+        [--steps flood,msgpack,oversize,queries] [--registration-max-rss-mb MB]
 
 Router in this process, workers as processes (occvo_services.local.LocalService, the deploy configs' limits). Steps:
-  alone      scene-0101 replayed alone: time, poses; each worker's RSS and threads (baseline)
+  alone      scene-0101 replayed alone: time, poses; each worker's RSS and threads once its stream has retired
+             (baseline: the service at rest)
   flood      one client puts a seq-0 frame on each of --streams stream ids in --flood-s seconds while scene-0101 is
-             replayed: replay time vs alone, poses equal, registration RSS peak, streams refused;
-             --settle-s after the flood: every worker's RSS and threads vs baseline, idle CPU
+             replayed: replay time vs alone, poses equal, registration RSS peak against its max_rss_mb, streams
+             refused (by the stream limits, by the memory cap) and evicted; --settle-s after the flood: every
+             worker's RSS and threads vs baseline, idle CPU
   msgpack    a 13.7 MB payload of small maps, then a legitimate frame: that frame's round trip vs one sent alone
   oversize   a --big-mb MiB put: RSS rise of the router (this process) and of each worker
-  queries    ten concurrent gets on occvo/** beside a tile query loop: its p50/p99 vs alone
-Prints one JSON line per step."""
+  queries    ten concurrent gets on occvo/** beside a tile query loop: its p50/p99 vs alone, the gets refused busy
+`alone` always runs (the baseline and the map the queries ask for); --steps picks the others. Prints one JSON line
+per step."""
 
 from __future__ import annotations
 
 import argparse
 import json
+import multiprocessing
 import os
 import sys
 import tempfile
@@ -31,11 +36,12 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from occvo_core.datasets import OccVOReleaseScene
 from occvo_schemas import keys
-from occvo_schemas.codec import encode
+from occvo_schemas.codec import decode, encode
+from occvo_schemas.models import ErrorEvent, WorkerHealth
 from occvo_services.client import OccVOClient, camera_frame_of
 from occvo_services.commands.replay import replay
 from occvo_services.local import LocalService
-from occvo_services.runtime import open_session
+from occvo_services.runtime import WorkerConfig, open_session
 
 DATA = Path(__file__).resolve().parents[2] / "shared/data/occvo-sample/occupancy/scene-0101"
 BLOCK = zenoh.CongestionControl.BLOCK
@@ -59,6 +65,34 @@ def workers(svc) -> dict:
     return {r: proc_status(p.pid) for r, p in svc.procs.items()}
 
 
+def counters(session, svc, role: str, names: tuple[str, ...]) -> dict:
+    """Some of a worker's counters, from its stats queryable (LocalService names it <role>-<our pid>)."""
+    for r in session.get(keys.stats(f"{role}-{os.getpid()}"), timeout=10.0):
+        if r.ok is not None:
+            got = decode(r.ok.payload.to_bytes(), WorkerHealth).counters
+            return {n: got.get(n, 0) for n in names}
+    return {}
+
+
+def wildcard_gets(endpoint: str, threads: int, stop, counts) -> None:
+    """A client looping `occvo/**` gets on `threads` threads until `stop`; counts[0] ok replies, counts[1] busy."""
+    session = open_session(endpoint)
+
+    def loop():
+        while not stop.is_set():
+            for r in session.get("occvo/**", timeout=10.0):
+                busy = r.err is not None and decode(r.err.payload.to_bytes(), ErrorEvent).code == "busy"
+                with counts.get_lock():
+                    counts[int(busy)] += 1
+
+    ts = [threading.Thread(target=loop) for _ in range(threads)]
+    for t in ts:
+        t.start()
+    for t in ts:
+        t.join()
+    session.close()
+
+
 def emit(step: str, **fields) -> None:
     print(json.dumps({"step": step, **fields}), flush=True)
 
@@ -80,14 +114,20 @@ def main() -> int:
     p.add_argument("--settle-s", type=float, default=60.0)
     p.add_argument("--big-mb", type=int, default=512)
     p.add_argument("--frames", type=int, default=40)
+    p.add_argument("--steps", default="flood,msgpack,oversize,queries", help="steps after `alone`, comma separated")
+    p.add_argument("--registration-max-rss-mb", type=int, help="the registration worker's cap instead of its config's")
     args = p.parse_args()
+    steps = set(args.steps.split(","))
+    reg_config = "deploy/registration_worker.json5"
+    cap = args.registration_max_rss_mb or WorkerConfig.load(reg_config).max_rss_mb
+    reg_cap = ["--max-rss-mb", str(cap)] if args.registration_max_rss_mb else []
     scene = OccVOReleaseScene(DATA)
     frames = [scene[i] for i in range(min(args.frames, len(scene)))]
     store = ["--store-path", str(Path(tempfile.mkdtemp()) / "occvo.sqlite")]  # idle streams' state goes there
     svc = LocalService(
         quiet=True,
         worker_args={
-            "registration": ["--config", "deploy/registration_worker.json5", *store],
+            "registration": ["--config", reg_config, *store, *reg_cap],
             "inference": ["--config", "deploy/inference_worker.json5"],
             "map": ["--config", "deploy/map_service.json5", *store],
         },
@@ -95,122 +135,151 @@ def main() -> int:
     try:
         ep = svc.endpoint
         alone_s, alone = run_replay(ep, "legit0", frames)
+        session = open_session(ep)
+        # the flood's baseline is the service at rest: the replay's stream retired (idle_stream_s), as the flood's will be
+        deadline = time.monotonic() + WorkerConfig.load(reg_config).idle_stream_s + 60
+        while "flood" in steps and counters(session, svc, "registration", ("streams_retired",))["streams_retired"] < 1:
+            assert time.monotonic() < deadline, "the replay's stream was not retired"
+            time.sleep(1.0)
         base = workers(svc)
         emit("alone", replay_s=round(alone_s, 2), poses=len(alone), workers=base)
 
-        session = open_session(ep)
-        peak = {"rss_mb": 0.0}
-        stop = threading.Event()
+        if "flood" in steps:
+            peak = {"rss_mb": 0.0}
+            stop = threading.Event()
 
-        def flood():
-            gap = args.flood_s / args.streams
-            for i in range(args.streams):
-                small = encode(camera_frame_of(frames[0], f"flood{i}", 0, exact=False))  # voxel indices: 0.12 MB
-                session.put(keys.camera(f"flood{i}"), small, congestion_control=BLOCK)
-                time.sleep(gap)
+            # encoded before the flood (voxel indices: 0.12 MB each), so that putting them takes --flood-s, not the
+            # encoding's time (21.8 s for 2,000 when encoded one by one)
+            payloads = [encode(camera_frame_of(frames[0], f"flood{i}", 0, exact=False)) for i in range(args.streams)]
 
-        def watch():
-            while not stop.wait(0.5):
-                peak["rss_mb"] = max(peak["rss_mb"], proc_status(svc.procs["registration"].pid)["rss_mb"])
+            def flood():
+                start = time.perf_counter()
+                for i, small in enumerate(payloads):
+                    session.put(keys.camera(f"flood{i}"), small, congestion_control=BLOCK)
+                    time.sleep(max(0.0, start + (i + 1) * args.flood_s / args.streams - time.perf_counter()))
+                peak["put_s"] = time.perf_counter() - start
 
-        threading.Thread(target=watch, daemon=True).start()
-        flooder = threading.Thread(target=flood)
-        t0 = time.perf_counter()
-        flooder.start()
-        flood_s, flooded = run_replay(ep, "legit1", frames)
-        flooder.join()
-        flood_end = time.perf_counter()
-        stop.set()
-        emit(
-            "flood",
-            streams=args.streams,
-            flood_took_s=round(flood_end - t0, 1),
-            replay_s=round(flood_s, 2),
-            ratio_to_alone=round(flood_s / alone_s, 2),
-            poses_equal=bool(np.array_equal(flooded, alone)),
-            registration_peak_rss_mb=peak["rss_mb"],
-        )
-        time.sleep(max(0.0, args.settle_s - (time.perf_counter() - flood_end)))
-        cpu0 = {r: cpu_s(p.pid) for r, p in svc.procs.items()}
-        time.sleep(5.0)
-        idle = {r: round(100 * (cpu_s(p.pid) - cpu0[r]) / 5.0, 1) for r, p in svc.procs.items()}
-        after = workers(svc)
-        emit(
-            "settled",
-            after_s=args.settle_s,
-            workers=after,
-            idle_cpu_pct=idle,
-            rss_vs_baseline=({r: round(after[r]["rss_mb"] / base[r]["rss_mb"], 2) for r in base}),
-            threads_vs_baseline=({r: after[r]["threads"] - base[r]["threads"] for r in base}),
-        )
+            def watch():
+                while not stop.wait(0.1):
+                    peak["rss_mb"] = max(peak["rss_mb"], proc_status(svc.procs["registration"].pid)["rss_mb"])
 
-        hostile = msgpack.packb(
-            {
-                "kind": "camera_frame",
-                "schema_version": 1,
-                "stream": "legit2h0",
-                "x": [[{"a": 1, "b": 2} for _ in range(60000)] for _ in range(35)],
-            }
-        )
+            threading.Thread(target=watch, daemon=True).start()
+            flooder = threading.Thread(target=flood)
+            t0 = time.perf_counter()
+            flooder.start()
+            flood_s, flooded = run_replay(ep, "legit1", frames)
+            flooder.join()
+            flood_end = time.perf_counter()
+            del payloads
+            stop.set()
+            emit(
+                "flood",
+                streams=args.streams,
+                puts_took_s=round(peak["put_s"], 1),
+                flood_and_replay_took_s=round(flood_end - t0, 1),
+                replay_s=round(flood_s, 2),
+                ratio_to_alone=round(flood_s / alone_s, 2),
+                poses_equal=bool(np.array_equal(flooded, alone)),
+                registration_peak_rss_mb=peak["rss_mb"],
+                registration_max_rss_mb=cap,
+                **{
+                    role: counters(
+                        session,
+                        svc,
+                        role,
+                        ("streams_refused", "streams_refused_memory", "streams_evicted_memory", "streams_retired"),
+                    )
+                    for role in ("inference", "registration")
+                },
+            )
+            time.sleep(max(0.0, args.settle_s - (time.perf_counter() - flood_end)))
+            cpu0 = {r: cpu_s(p.pid) for r, p in svc.procs.items()}
+            time.sleep(5.0)
+            idle = {r: round(100 * (cpu_s(p.pid) - cpu0[r]) / 5.0, 1) for r, p in svc.procs.items()}
+            after = workers(svc)
+            emit(
+                "settled",
+                after_s=args.settle_s,
+                workers=after,
+                idle_cpu_pct=idle,
+                rss_vs_baseline=({r: round(after[r]["rss_mb"] / base[r]["rss_mb"], 2) for r in base}),
+                threads_vs_baseline=({r: round(after[r]["threads"] / base[r]["threads"], 2) for r in base}),
+            )
 
-        def second_frame_ms(stream: str, hostile_between: bool) -> float:
-            with OccVOClient(ep, stream, timeout=120) as c:
-                c.reset()
-                c.step(frames[0])
-                if hostile_between:
-                    session.put(keys.camera(stream), hostile, congestion_control=BLOCK)
-                t = time.perf_counter()
-                c.step(frames[1])
-                return (time.perf_counter() - t) * 1000
+        if "msgpack" in steps:
+            hostile = msgpack.packb(
+                {
+                    "kind": "camera_frame",
+                    "schema_version": 1,
+                    "stream": "legit2h0",
+                    "x": [[{"a": 1, "b": 2} for _ in range(60000)] for _ in range(35)],
+                }
+            )
 
-        plain_ms = float(np.median([second_frame_ms(f"legit2p{i}", False) for i in range(3)]))
-        after_ms = float(np.median([second_frame_ms(f"legit2h{i}", True) for i in range(3)]))
-        emit(
-            "msgpack",
-            payload_mb=round(len(hostile) / 1e6, 1),
-            frame_ms_alone=round(plain_ms, 1),
-            frame_ms_after_hostile=round(after_ms, 1),
-            delay_ms=round(after_ms - plain_ms, 1),
-        )
-
-        me = os.getpid()
-        before = {**workers(svc), "router": proc_status(me)}
-        session.put(keys.camera("legit3"), b"\x00" * (args.big_mb << 20), congestion_control=BLOCK)
-        time.sleep(3.0)
-        after = {**workers(svc), "router": proc_status(me)}
-        emit(
-            "oversize",
-            put_mb=args.big_mb,
-            rss_rise_mb={r: round(after[r]["rss_mb"] - before[r]["rss_mb"], 1) for r in after},
-            note="router rise includes this process's own put buffer",
-        )
-
-        with OccVOClient(ep, "legit0", timeout=60) as c:
-            ix, iy = c.map_info().tiles[0]
-
-            def tile_times(n=100):
-                out = []
-                for _ in range(n):
+            def second_frame_ms(stream: str, hostile_between: bool) -> float:
+                with OccVOClient(ep, stream, timeout=120) as c:
+                    c.reset()
+                    c.step(frames[0])
+                    if hostile_between:
+                        session.put(keys.camera(stream), hostile, congestion_control=BLOCK)
                     t = time.perf_counter()
-                    c.tile(ix, iy)
-                    out.append((time.perf_counter() - t) * 1000)
-                return np.percentile(out, [50, 99]).round(2).tolist()
+                    c.step(frames[1])
+                    return (time.perf_counter() - t) * 1000
 
-            quiet = tile_times()
-            hammer = threading.Event()
+            plain_ms = float(np.median([second_frame_ms(f"legit2p{i}", False) for i in range(3)]))
+            after_ms = float(np.median([second_frame_ms(f"legit2h{i}", True) for i in range(3)]))
+            emit(
+                "msgpack",
+                payload_mb=round(len(hostile) / 1e6, 1),
+                frame_ms_alone=round(plain_ms, 1),
+                frame_ms_after_hostile=round(after_ms, 1),
+                delay_ms=round(after_ms - plain_ms, 1),
+            )
 
-            def wildcard():
-                while not hammer.is_set():
-                    list(session.get("occvo/**", timeout=10.0))
+        if "oversize" in steps:
+            me = os.getpid()
+            before = {**workers(svc), "router": proc_status(me)}
+            session.put(keys.camera("legit3"), b"\x00" * (args.big_mb << 20), congestion_control=BLOCK)
+            time.sleep(3.0)
+            after = {**workers(svc), "router": proc_status(me)}
+            emit(
+                "oversize",
+                put_mb=args.big_mb,
+                rss_rise_mb={r: round(after[r]["rss_mb"] - before[r]["rss_mb"], 1) for r in after},
+                note="router rise includes this process's own put buffer",
+            )
 
-            ts = [threading.Thread(target=wildcard, daemon=True) for _ in range(10)]
-            for t in ts:
-                t.start()
-            loud = tile_times()
-            hammer.set()
-            for t in ts:
-                t.join(30)
-        emit("queries", tile_p50_p99_ms_alone=quiet, tile_p50_p99_ms_with_10_wildcard_gets=loud)
+        if "queries" in steps:
+            with OccVOClient(ep, "legit0", timeout=60) as c:
+                ix, iy = c.map_info().tiles[0]
+
+                def tile_times(n=300):  # p99 is then the 3rd slowest, not one outlier
+                    out = []
+                    for _ in range(n):
+                        t = time.perf_counter()
+                        c.tile(ix, iy)
+                        out.append((time.perf_counter() - t) * 1000)
+                    return np.percentile(out, [50, 99]).round(2).tolist()
+
+                quiet = tile_times()
+                ctx = multiprocessing.get_context("spawn")  # the hostile client is a process of its own, as it would be
+                hammer, counts = ctx.Event(), ctx.Array("i", 2)
+                hostile_client = ctx.Process(target=wildcard_gets, args=(ep, 10, hammer, counts))
+                hostile_client.start()
+                while counts[0] + counts[1] < 10:  # its gets are being answered
+                    time.sleep(0.05)
+                loud = tile_times()
+                hammer.set()
+                hostile_client.join(60)
+                answers = {"ok": counts[0], "busy": counts[1]}
+            emit(
+                "queries",
+                tile_p50_p99_ms_alone=quiet,
+                tile_p50_p99_ms_with_10_wildcard_gets=loud,
+                wildcard_replies=answers,
+                load_average=round(os.getloadavg()[0], 1),  # other jobs on the machine
+                map=counters(session, svc, "map", ("queries_refused",)),
+            )
         session.close()
     finally:
         svc.stop()

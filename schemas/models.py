@@ -333,6 +333,7 @@ ErrorCode = Literal[
     "seq_jump",
     "stream_limit",  # a seq beyond the stream's window (not adopted); a worker's or client's streams full
     "truncated",  # a region's page is full: more tiles on the next page
+    "busy",  # the querying client has max_queries_per_client queries in work: ask again when one is answered
 ]
 
 

@@ -226,23 +226,34 @@ class OccVOClient:
         return self.wait_pose(self.publish(frame))
 
     # -- queries
-    def _get(self, selector: str, expect, payload: bytes | None = None, timeout: float = 10.0) -> list:
-        out, errs = [], []
-        for reply in self.session.get(selector, payload=payload, timeout=timeout):
-            if reply.ok is not None:
-                out.append(decode(reply.ok.payload.to_bytes(), expect, 1 << 30))
-            else:
-                try:
-                    errs.append(decode(reply.err.payload.to_bytes(), ErrorEvent))
-                except CodecError:
-                    errs.append(
-                        ErrorEvent(
-                            stream=self.stream,
-                            worker="?",
-                            code="internal",
-                            message=reply.err.payload.to_bytes().decode(errors="replace"),
+    def _replies(self, selector: str, expect, payload: bytes | None, timeout: float) -> tuple[list, list[ErrorEvent]]:
+        """The decoded answers and error replies of a get. Answered only `busy` (this client has
+        max_queries_per_client queries in work, e.g. from other threads), it is asked again after a short wait."""
+        deadline, wait = time.monotonic() + timeout, 0.01
+        while True:
+            out, errs = [], []
+            for reply in self.session.get(selector, payload=payload, timeout=timeout):
+                if reply.ok is not None:
+                    out.append(decode(reply.ok.payload.to_bytes(), expect, 1 << 30))
+                else:
+                    try:
+                        errs.append(decode(reply.err.payload.to_bytes(), ErrorEvent))
+                    except CodecError:
+                        errs.append(
+                            ErrorEvent(
+                                stream=self.stream,
+                                worker="?",
+                                code="internal",
+                                message=reply.err.payload.to_bytes().decode(errors="replace"),
+                            )
                         )
-                    )
+            if out or not errs or any(e.code != "busy" for e in errs) or time.monotonic() + wait > deadline:
+                return out, errs
+            time.sleep(wait)
+            wait = min(0.5, wait * 2)
+
+    def _get(self, selector: str, expect, payload: bytes | None = None, timeout: float = 10.0) -> list:
+        out, errs = self._replies(selector, expect, payload, timeout)
         if not out and errs:
             raise ServiceError(f"{selector}: {errs[0].code}: {errs[0].message}", errs[0])
         return out
@@ -259,12 +270,7 @@ class OccVOClient:
         tiles, page = [], 0
         while True:  # the map service answers a page of tiles at a time; a "truncated" error says more follow
             q = MapTileQuery(stream=self.stream, ix_min=ix_min, ix_max=ix_max, iy_min=iy_min, iy_max=iy_max, page=page)
-            out, errs = [], []
-            for reply in self.session.get(keys.map_tile(self.stream, "*", "*"), payload=encode(q), timeout=10.0):
-                if reply.ok is not None:
-                    out.append(decode(reply.ok.payload.to_bytes(), MapTile, 1 << 30))
-                else:
-                    errs.append(decode(reply.err.payload.to_bytes(), ErrorEvent))
+            out, errs = self._replies(keys.map_tile(self.stream, "*", "*"), MapTile, encode(q), 10.0)
             tiles += out
             if not any(e.code == "truncated" for e in errs):
                 if not tiles and errs:

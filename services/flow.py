@@ -6,6 +6,7 @@ from __future__ import annotations
 import logging
 import queue
 import threading
+import time
 from collections.abc import Callable
 from typing import TYPE_CHECKING
 
@@ -83,6 +84,9 @@ class SeqTracker:
         return False, "out_of_order", f"seq {seq} arrived after seq {self.expected - 1}; dropped"
 
 
+EVICT = object()  # put on an idle lane's queue: the lane ends and its stream's state is given back (services/memory.py)
+
+
 class StreamLane:
     """One stream's bounded queue and the thread that runs the stage on it, in arrival (= sequence) order."""
 
@@ -91,6 +95,8 @@ class StreamLane:
     ):
         self.worker, self.stream, self.handler = worker, stream, handler
         self.busy = False
+        self.evicting = False  # EVICT is on its way to this lane
+        self.last_active = time.monotonic()  # the end of its last frame (the stream idle longest is evicted first)
         self.pending = 0  # frames handed to this lane and not yet in its queue (Worker.enqueue); guarded by _lanes_lock
         self.after = after  # the stream's retired lane, still giving back its state: this one starts when it is done
         self.queue = StageQueue(worker.config.queue_size, worker.config.policy, self._dropped, worker.stopping)
@@ -113,6 +119,11 @@ class StreamLane:
                 if self.worker.retire_lane(self):
                     return
                 continue
+            if item is EVICT:
+                self.evicting = False
+                if self.worker.retire_lane(self, "memory"):
+                    return
+                continue
             if item is None:
                 continue
             self.busy = True
@@ -129,3 +140,4 @@ class StreamLane:
                 log_event(self.worker.log, "stage failed", logging.ERROR, stream=self.stream, error=repr(exc))
             finally:
                 self.busy = False
+                self.last_active = time.monotonic()

@@ -75,6 +75,12 @@ class InferenceWorker(Worker):
             recent.append(seq)
         return ok
 
+    def retire_stream(self, stream: str) -> None:
+        """An idle stream's sequence state goes too (a flood of stream ids would keep one of each otherwise); its
+        next frame starts the check afresh, and the registration worker judges it against the stored trajectory."""
+        self.trackers.pop(stream, None)
+        self._forwarded.pop(stream, None)
+
     def _on_camera(self, sample: zenoh.Sample) -> None:
         self.enqueue(sample, CameraFrame, self._infer)
 

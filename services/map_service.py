@@ -32,8 +32,8 @@ class MapService(Worker):
         s = self.session
         self._declared += [
             s.declare_subscriber(keys.map_updates("*"), self._on_update),
-            s.declare_queryable(keys.map_tile("*", "*", "*"), self._on_tile_query),
-            s.declare_queryable(keys.map_info("*"), self._on_info),
+            s.declare_queryable(keys.map_tile("*", "*", "*"), self.bounded(self._on_tile_query)),
+            s.declare_queryable(keys.map_info("*"), self.bounded(self._on_info)),
         ]
         if self.config.store_path:
             log_event(self.log, "map store", path=self.config.store_path, streams=self.store.streams())

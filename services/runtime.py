@@ -23,9 +23,11 @@ from occvo_core.errors import ConfigError
 from occvo_schemas import keys
 from occvo_schemas.codec import DEFAULT_MAX_BYTES, CodecError, decode, encode
 from occvo_schemas.models import ErrorEvent, WorkerHealth
-from occvo_services.flow import SeqTracker, StageQueue, StreamLane
+from occvo_services.flow import EVICT, SeqTracker, StageQueue, StreamLane
 from occvo_services.limits import MAX_KEY_CHARS, MAX_MESSAGE_CHARS, Admission, ErrorBudget, clip
-from occvo_services.os_tuning import large_blocks_from_mmap, trim_heap
+from occvo_services.memory import CHECK_EVERY_S, EVICT_IDLE_S, MemoryCap
+from occvo_services.os_tuning import few_malloc_arenas, large_blocks_from_mmap, trim_heap
+from occvo_services.query_gate import QueryGate
 from occvo_services.telemetry import Stats, log_event, structured_logger
 from occvo_services.worker_config import DEFAULT_ENDPOINT, Policy, WorkerConfig
 
@@ -59,9 +61,15 @@ _ZENOH_DEFAULT_MAX = 1 << 30
 
 
 def limit_messages(c: zenoh.Config, max_bytes: int = TRANSPORT_MAX_BYTES) -> zenoh.Config:
-    """Set the transport's largest reassembled message, unless the config file set its own."""
+    """Set the transport's largest reassembled message, unless the config file set its own; turn shared memory off.
+
+    With zenoh's shared memory on (its default), every local client that sends more than 3 kB allocates a 16 MiB
+    pool, and each process its messages reach (the router, the workers) maps that pool for as long as the client
+    lives: the inference worker stayed +16 MB for each flooding client, given back only when it left. Off, the router
+    and workers get their own copy of a message over the socket (a frame's copy costs well under a millisecond)."""
     if json.loads(c.get_json("transport/link/rx/max_message_size")) == _ZENOH_DEFAULT_MAX:
         c.insert_json5("transport/link/rx/max_message_size", str(max_bytes))
+    c.insert_json5("transport/shared_memory/enabled", "false")
     return c
 
 
@@ -127,6 +135,9 @@ class Worker:
         self._lanes_lock = threading.Lock()
         self.admission = Admission(config.max_streams, config.max_streams_per_client)
         self.error_budget = ErrorBudget(config.error_events_per_s, config.error_burst)
+        self.memory = MemoryCap(config.max_rss_mb)
+        self.query_gates: dict[str, QueryGate] = {}  # one a queryable (bounded()), by its handler's name
+        self._evicted_at = 0.0
         self._declared: list = []
         self._retired: dict[str, StreamLane] = {}
         self.session: zenoh.Session | None = None
@@ -171,6 +182,8 @@ class Worker:
                 entity.undeclare()
             except Exception as exc:  # noqa: BLE001 - the session may already be gone; shutting down regardless
                 self.log.debug("undeclare at shutdown failed: %s", exc)
+        for gate in self.query_gates.values():
+            gate.close()  # the queries in work are answered (their session is still open)
         if self.session is not None:
             self.session.close()
         self.after_leaving()
@@ -205,9 +218,10 @@ class Worker:
             lane.pending += 1
             return lane
 
-    def retire_lane(self, lane: StreamLane) -> bool:
-        """An idle lane's end: unless a frame is on its way to it, it leaves, the stream's state is given back
-        (retire_stream) and its place in the admission frees up. True if the lane's thread is to end."""
+    def retire_lane(self, lane: StreamLane, why: str = "idle") -> bool:
+        """An idle lane's end (idle_stream_s without a frame, or evicted for memory): unless a frame is on its way to
+        it, it leaves, the stream's state is given back (retire_stream) and its place in the admission frees up. True
+        if the lane's thread is to end."""
         with self._lanes_lock:
             if lane.pending or lane.queue.qsize() or self.lanes.get(lane.stream) is not lane:
                 return False
@@ -223,8 +237,18 @@ class Worker:
                     del self._retired[lane.stream]
                 if lane.stream not in self.lanes:
                     self.admission.release(lane.stream)
-        self.stats.inc("streams_retired")
-        log_event(self.log, "idle stream retired", stream=lane.stream, idle_s=self.config.idle_stream_s)
+        if why == "memory":
+            self.stats.inc("streams_evicted_memory")
+            log_event(
+                self.log,
+                "idle stream evicted: memory near max_rss_mb",
+                stream=lane.stream,
+                rss_mb=round(self.memory.rss()),
+                max_rss_mb=self.config.max_rss_mb,
+            )
+        else:
+            self.stats.inc("streams_retired")
+            log_event(self.log, "idle stream retired", stream=lane.stream, idle_s=self.config.idle_stream_s)
         trim_heap()  # the lane thread's malloc arena keeps its free pages otherwise (inference +28% after 300 streams)
         return True
 
@@ -238,7 +262,11 @@ class Worker:
         msg = self.decode_input(sample, expect)
         if msg is None or self.stopping.is_set():
             return
-        refused = self.admission.admit(msg.stream)
+        self._relieve_memory()
+        refused = None if msg.stream in self.admission.streams else self.memory.refuse(msg.stream)
+        if refused is not None:
+            self.stats.inc("streams_refused_memory")
+        refused = refused or self.admission.admit(msg.stream)
         if refused is not None:
             self.stats.inc("streams_refused")
             self.report_error(msg.stream, "stream_limit", refused, str(sample.key_expr), msg.seq)
@@ -256,6 +284,32 @@ class Worker:
         finally:
             with self._lanes_lock:
                 lane.pending -= 1
+
+    def _relieve_memory(self) -> None:
+        """Over the eviction mark of max_rss_mb: the lane idle longest ends (one at a time, and the resident set is
+        read again before the next is chosen)."""
+        now = time.monotonic()
+        if now - self._evicted_at < CHECK_EVERY_S or not self.memory.over_evict_mark():
+            return
+        with self._lanes_lock:
+            if any(lane.evicting for lane in self.lanes.values()):
+                return
+            idle = [
+                lane
+                for lane in self.lanes.values()
+                if not lane.busy
+                and not lane.pending
+                and not lane.queue.qsize()
+                and now - lane.last_active >= EVICT_IDLE_S
+            ]
+            if not idle:
+                return
+            lane = min(idle, key=lambda lane: lane.last_active)
+            try:
+                lane.queue.q.put_nowait(EVICT)
+            except queue.Full:
+                return
+            lane.evicting, self._evicted_at = True, now
 
     def decode_input(self, sample: zenoh.Sample, expect):
         """Decode and check a sample; on any problem report it and return None."""
@@ -318,6 +372,28 @@ class Worker:
                 log_event(self.log, "cannot publish error event", logging.ERROR, error=repr(exc))
         return event
 
+    def bounded(self, handler: Callable[[zenoh.Query], None]) -> Callable[[zenoh.Query], None]:
+        """A queryable callback answering on its own pool, at most max_queries_per_client of a client's queries (and
+        max_wildcard_queries wildcard ones) at once. One gate a queryable: one `occvo/**` get is a query to each of
+        a worker's queryables at once, and must not be refused by itself."""
+        name = handler.__name__.strip("_")
+        gate = self.query_gates[name] = QueryGate(
+            self.config.max_queries_per_client, self.config.max_wildcard_queries, self._refuse_query, name
+        )
+
+        def answer(query: zenoh.Query) -> None:
+            try:
+                handler(query)
+            except Exception as exc:  # noqa: BLE001 - a worker never dies of one query
+                stream = keys.stream_of(str(query.key_expr))
+                self.reply_error(query, stream, "internal", f"{type(exc).__name__}: {exc}")
+
+        return gate.wrap(answer)
+
+    def _refuse_query(self, query: zenoh.Query, client: str, message: str) -> None:
+        self.stats.inc("queries_refused")
+        self.reply_error(query, keys.stream_of(str(query.key_expr)), "busy", message)
+
     def reply_error(self, query: zenoh.Query, stream: str, code: str, message: str) -> None:
         event = self.report_error(stream, code, message, str(query.key_expr))
         query.reply_err(encode(event))
@@ -357,9 +433,11 @@ def worker_main(
     p.add_argument("--queue-size", type=int)
     p.add_argument("--max-message-bytes", type=int)
     p.add_argument("--log-level")
+    p.add_argument("--max-rss-mb", type=int, help="memory cap: idle streams evicted near it, new streams refused")
     if extra_args:
         extra_args(p)
     args = vars(p.parse_args(argv))
     config = WorkerConfig.load(args.pop("config"), **args)
     large_blocks_from_mmap()
+    few_malloc_arenas()
     return worker_cls(config).run_forever()

@@ -28,11 +28,19 @@ class WorkerConfig(BaseModel):
     max_streams: int = Field(64, ge=1)  # streams a worker serves at once; more get a stream_limit error event
     max_streams_per_client: int = Field(16, ge=1)  # of them, per client (the stream id's prefix before its first '.')
     idle_stream_s: float = Field(30.0, gt=0)  # a stream without frames this long gives back its lane (and its memory)
+    # resident set this worker keeps under (services/memory.py): near it idle streams are evicted and new streams
+    # refused (stream_limit). None: no cap. 4 GiB leaves a 24 GiB machine room for the router, the other workers
+    # and a model source; the registration worker's 64 admitted one-frame streams peak at ~1.1 GB
+    max_rss_mb: int | None = Field(4096, ge=64)
     max_seq_jump: int = Field(100_000, ge=1)  # a seq this far beyond the next expected is reported, not adopted
     error_events_per_s: float = Field(20.0, gt=0)  # error events a stream may cause a second (bursts of error_burst)
     error_burst: int = Field(100, ge=1)
     max_query_tiles: int = Field(64, ge=1)  # map: tiles in one reply to a region or wildcard query (a page)
     max_query_streams: int = Field(16, ge=1)  # registration: trajectories in one reply to a wildcard query
+    # queries a client may have in work at once (services/query_gate.py); queries with a wildcard stream chunk, all
+    # clients together
+    max_queries_per_client: int = Field(2, ge=1)
+    max_wildcard_queries: int = Field(1, ge=1)
     # inference worker
     source: Literal["replay", "model"] = "replay"
     device: Literal["auto", "cpu", "cuda"] = "auto"

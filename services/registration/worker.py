@@ -72,8 +72,8 @@ class RegistrationWorker(StreamLanes, Durability, Paging, MapPublisher, Queries,
         s = self.session
         self._declared += [
             s.declare_subscriber(keys.occupancy("*"), self._on_occupancy),
-            s.declare_queryable(keys.pose_latest("*"), self._on_pose_latest),
-            s.declare_queryable(keys.trajectory("*"), self._on_trajectory),
+            s.declare_queryable(keys.pose_latest("*"), self.bounded(self._on_pose_latest)),
+            s.declare_queryable(keys.trajectory("*"), self.bounded(self._on_trajectory)),
         ]
         # clients watch their shard's token: frames sent while their stream's worker is away are resent when it is back
         self._declared.append(

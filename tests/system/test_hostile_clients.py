@@ -253,3 +253,59 @@ def test_snapshot_of_a_reset_stream_is_deleted(service, session, scene):
         ) and time.monotonic() < deadline:
             time.sleep(0.1)
     assert rows == [] and reg.store.created("h8.reset") != old, (rows, old, reg.store.created("h8.reset"))
+
+
+def test_wildcard_gets_are_bounded_per_client_and_a_tile_query_is_answered(tmp_path, scene):
+    """Ten threads of one client looping `occvo/**` gets: at most max_wildcard_queries (1) of them is in work at once,
+    the rest get an immediate `busy` reply naming the limit, and another client's tile queries meanwhile are all
+    answered with the tile (their latency is in benchmarks/hostile_clients.py)."""
+    with (
+        InProcessService(warm_up=False, max_queries_per_client=2, max_wildcard_queries=1) as svc,
+        OccVOClient(svc.endpoint, "h9.map", timeout=60) as c,
+    ):
+        c.reset()
+        steps(c, scene[:2], 0)
+        mapper = svc.worker("map")
+        deadline = time.monotonic() + 10
+        while not ((info := mapper.store.info("h9.map")) and info.last_seq == 1):
+            assert time.monotonic() < deadline
+            time.sleep(0.05)
+        ix, iy = info.tiles[0]
+        expected = c.tile(ix, iy).points.to_numpy()
+        busy, peak, stop = [], [0], threading.Event()
+        hammer = open_session(svc.endpoint)
+
+        def wildcard():
+            for _ in range(15):
+                for r in hammer.get("occvo/**", timeout=10.0):
+                    if r.err is not None and (e := decode(r.err.payload.to_bytes(), ErrorEvent)).code == "busy":
+                        busy.append(e)
+
+        def watch():
+            while not stop.wait(0.001):
+                peak[0] = max(peak[0], mapper.query_gates["on_tile_query"].in_work.get("*", 0))
+
+        threads = [threading.Thread(target=wildcard) for _ in range(10)]
+        watcher = threading.Thread(target=watch)
+        for t in [*threads, watcher]:
+            t.start()
+        tiles = [c.tile(ix, iy).points.to_numpy() for _ in range(30)]
+        for t in threads:
+            t.join(60)
+        stop.set()
+        watcher.join()
+        hammer.close()
+        # one client's own six threads over its limit (2): the client asks again on busy, every query is answered
+        mine = [
+            threading.Thread(target=lambda: tiles.extend([c.tile(ix, iy).points.to_numpy() for _ in range(5)]))
+            for _ in range(6)
+        ]
+        for t in mine:
+            t.start()
+        for t in mine:
+            t.join(60)
+    assert len(tiles) == 30 + 6 * 5
+    assert all(np.array_equal(t, expected) for t in tiles)
+    assert busy and "max_wildcard_queries=1" in busy[0].message and busy[0].stream == "*"
+    assert peak[0] == 1
+    assert mapper.stats.snapshot()[0]["queries_refused"] >= 1

@@ -1,6 +1,7 @@
-"""`occvo serve` keeps its workers running: a worker killed with SIGKILL in the middle of a replay is started again
-(new pid, the `crashed` event in the log) and the replay completes with every pose, equal to the offline run. A listen
-endpoint beyond loopback without authentication is refused unless --insecure."""
+"""`occvo serve` keeps its workers running: any worker (inference, registration, map service) killed with SIGKILL in
+the middle of a replay is started again (new pid, the `crashed` event in the log) and the replay completes with every
+pose, equal to the offline run; a restarted map service answers from its store. A listen endpoint beyond loopback
+without authentication is refused unless --insecure."""
 
 from __future__ import annotations
 
@@ -17,7 +18,7 @@ import numpy as np
 import pytest
 
 from occvo_core.errors import ConfigError
-from occvo_services.client import OccVOClient
+from occvo_services.client import OccVOClient, ServiceError
 from occvo_services.commands._common import check_listen_secure, deploy_dir, is_loopback
 from occvo_services.commands.replay import replay
 from occvo_services.runtime import free_port
@@ -34,7 +35,7 @@ def test_non_loopback_listen_needs_authentication_or_insecure():
     check_listen_secure(DEPLOY / "router.json5", ["tcp/127.0.0.1:7447"], insecure=False)
     check_listen_secure(DEPLOY / "acl/router.json5", ["tcp/0.0.0.0:7447"], insecure=False)  # user/password
     check_listen_secure(DEPLOY / "tls/router.json5", ["tls/0.0.0.0:7447"], insecure=False)  # mutual TLS
-    env = dict(os.environ, PYTHONPATH=str(REPO))
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join(filter(None, [str(REPO), os.environ.get("PYTHONPATH")])))
     rc = subprocess.run(
         [sys.executable, "-m", "occvo_cli", "serve", "--listen", f"tcp/0.0.0.0:{free_port()}"],
         check=False,
@@ -47,10 +48,11 @@ def test_non_loopback_listen_needs_authentication_or_insecure():
     assert rc.returncode != 0 and "without authentication" in rc.stderr and "--insecure" in rc.stderr
 
 
-def test_serve_restarts_a_worker_killed_mid_replay_and_no_pose_is_lost(tmp_path, scene, uninterrupted):
+@pytest.mark.parametrize("role", ["registration", "inference", "map"])
+def test_serve_restarts_a_worker_killed_mid_replay_and_no_pose_is_lost(role, tmp_path, scene, uninterrupted):
     port = free_port()
     endpoint = f"tcp/127.0.0.1:{port}"
-    env = dict(os.environ, PYTHONPATH=str(REPO))
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join(filter(None, [str(REPO), os.environ.get("PYTHONPATH")])))
     err = open(tmp_path / "serve.log", "w")  # noqa: SIM115 - closed in finally, after the process
     proc = subprocess.Popen(
         [
@@ -77,7 +79,7 @@ def test_serve_restarts_a_worker_killed_mid_replay_and_no_pose_is_lost(tmp_path,
         while ready["event"] != "ready":  # listening, then each worker as it comes up
             ready = json.loads(proc.stdout.readline())
         assert ready["event"] == "ready" and set(ready["workers"]) == {"inference", "registration", "map"}
-        victim = ready["workers"]["registration"]
+        victim = ready["workers"][role]
         n = len(scene)
         with OccVOClient(endpoint, "served", timeout=60, resend_after=5.0) as client:
             out = {}
@@ -91,6 +93,15 @@ def test_serve_restarts_a_worker_killed_mid_replay_and_no_pose_is_lost(tmp_path,
             assert not replayer.is_alive() and out.get("poses") == n, out
             assert sorted(client.poses) == list(range(n)) and not client.errors, [e.message for e in client.errors]
             got = np.array([client.poses[i].matrix() for i in range(n)])
+            if role == "map":  # back, serving what its store holds (updates sent while it was away are lost)
+                deadline = time.monotonic() + 60
+                while True:
+                    try:
+                        assert client.map_info().tile_count > 0
+                        break
+                    except ServiceError:  # not up again yet
+                        assert time.monotonic() < deadline
+                        time.sleep(0.2)
         assert np.allclose(got, np.array(uninterrupted), atol=1e-9)
         proc.send_signal(signal.SIGINT)
         stdout, _ = proc.communicate(timeout=90)
@@ -103,8 +114,8 @@ def test_serve_restarts_a_worker_killed_mid_replay_and_no_pose_is_lost(tmp_path,
             json.loads(line) for line in (tmp_path / "serve.log").read_text().splitlines() if line.startswith("{")
         ]
         crashed = [e for e in events if e["event"] == "crashed"]
-        assert len(crashed) == 1 and crashed[0]["name"] == "registration" and crashed[0]["how"] == "signal SIGKILL"
-        restarted = [e for e in events if e["event"] == "started" and e["name"] == "registration"]
+        assert len(crashed) == 1 and crashed[0]["name"] == role and crashed[0]["how"] == "signal SIGKILL"
+        restarted = [e for e in events if e["event"] == "started" and e["name"] == role]
         assert len(restarted) == 2 and restarted[1]["pid"] != victim
     finally:
         if proc.poll() is None:

@@ -101,7 +101,7 @@ def test_up_restarts_a_killed_worker_and_stops_cleanly(tmp_path):
             }
         )
     )
-    env = dict(os.environ, PYTHONPATH=str(REPO))
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join(filter(None, [str(REPO), os.environ.get("PYTHONPATH")])))
     err = open(tmp_path / "up.log", "w")
     proc = subprocess.Popen(
         [sys.executable, "-m", "occvo_cli", "up", "--json", "--config", str(tmp_path / "up.json5")],

@@ -37,7 +37,7 @@ def wait_alive(session, roles, timeout: float) -> None:
 
 
 class LocalService:
-    """Router in this process, workers as child processes (`python -m services.<module>`)."""
+    """Router in this process, workers as child processes (`python -m occvo_services.<module>`)."""
 
     def __init__(
         self,

@@ -422,7 +422,7 @@ class Worker:
 def worker_main(
     worker_cls: type[Worker], argv: list[str] | None = None, extra_args: Callable | None = None, prog: str | None = None
 ) -> int:
-    """`python -m services.<role>_worker [--config deploy/x.json5] [--connect ...] ...`"""
+    """`python -m occvo_services.<role>_worker [--config deploy/x.json5] [--connect ...] ...`"""
     import argparse
 
     p = argparse.ArgumentParser(prog=prog or f"python -m {worker_cls.__module__}", description=worker_cls.__doc__)

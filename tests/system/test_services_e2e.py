@@ -1,5 +1,5 @@
 """End to end with the router in this process and the three workers as separate processes
-(`python -m services.<module>`), on a random loopback port: scene-0101 replayed through the service gives the
+(`python -m occvo_services.<module>`), on a random loopback port: scene-0101 replayed through the service gives the
 offline trajectory and map; the CLI commands answer; SIGTERM lets every worker finish its frame and exit 0."""
 
 from __future__ import annotations

@@ -61,7 +61,7 @@ class GICPConfig(_Section):
     )
     source_voxel_m: float = Field(0.8, gt=0, description="fine GICP uses one frame point per block of this size")
     ground_source_voxel_m: float = Field(
-        0.8, gt=0, description="the same for ground classes, which hold only z, roll, pitch"
+        1.6, gt=0, description="the same for ground classes, which hold only z, roll, pitch"
     )
     coarse_source_voxel_m: float = Field(
         1.6, gt=0, description="coarse GICP uses one frame point per block of this size"

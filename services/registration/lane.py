@@ -7,7 +7,7 @@ import logging
 import os
 import threading
 import time
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import Future, ThreadPoolExecutor
 
 import numpy as np
 import zenoh
@@ -17,11 +17,12 @@ from occvo_core.frame import OccupancyFrame
 from occvo_schemas import keys
 from occvo_schemas.codec import encode
 from occvo_schemas.models import OccupancyFrameMsg, PoseEstimate
-from occvo_services.os_tuning import hold_priority, lower_priority, name_os_thread, release_priority
+from occvo_services.os_tuning import hold_priority, lower_priority, name_os_thread, release_priority, run_delay_ms
 from occvo_services.registration.state import StreamState
 from occvo_services.store_blobs import frame_digest, pack_frame
 from occvo_services.telemetry import log_event
 
+CORES = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
 _STATUS = {"ok": "ok", "lost": "lost", "initialised": "reinitialised", "reinitialised": "reinitialised"}
 
 
@@ -59,6 +60,12 @@ class StreamLanes:
             [],
         )  # heap trimmed by the caller
 
+    def _fair_threads(self) -> int:
+        """Kernel threads for a frame about to be registered: the cores shared by the lanes busy now (this one
+        included), so one stream alone uses every core and several streams do not oversubscribe them."""
+        busy = sum(1 for lane in list(self.lanes.values()) if lane.busy)
+        return max(1, CORES // max(1, busy))
+
     def check_seq(self, stream: str, seq: int, key: str) -> bool:
         return True  # judged in the lane against the stream's trajectory: a step back may be a resend
 
@@ -72,13 +79,11 @@ class StreamLanes:
 
     # -- one frame ------------------------------------------------------------------------------------------------
     def _register(self, stream: str, item) -> None:
-        msg, hop_ms, t_queued = item
+        msg, hop_ms, t_queued, decode_ms = item
+        t0, waited0 = time.perf_counter(), run_delay_ms()
         st = self.state(stream)
-        if st.tail is not None:  # the previous frame's work after its pose: the odometry is that work's until it ends
-            if not st.tail.done():
-                self._boost_tail(st)
-            st.tail.result()
-        t0 = time.perf_counter()
+        # what needs nothing of the stream's state runs while the last frame's work after its pose may still run:
+        # building and validating the frame, its digest and OccVO.prepare
         frame = OccupancyFrame(
             msg.occupancy.to_points(),
             msg.occupancy.labels.to_numpy().copy(),
@@ -92,6 +97,33 @@ class StreamLanes:
             self.report_error(stream, "invalid_frame", f"seq {msg.seq}: {exc.reason}", keys.occupancy(stream), msg.seq)
             return
         digest = frame_digest(frame.points, frame.labels, msg.stamp)
+        t_prepare = time.perf_counter()
+        prepared, bad, vo = None, None, st.vo  # vo: this lane's; only the config and thread count are read
+        if vo is not None:
+            if self.config.kernel_threads == 0:
+                vo.threads = self._fair_threads()
+            try:
+                prepared = vo.prepare(frame)  # the worker's config: valid for a reset or resumed OccVO too
+            except InvalidFrameError as exc:
+                bad = exc  # reported where register() would have raised it
+        t_wait = time.perf_counter()
+        if st.tail is not None:  # the previous frame's work after its pose: the odometry is that work's until it ends
+            if not st.tail.done():
+                self._boost_tail(st)
+            st.tail.result()
+        t_valid = time.perf_counter()
+        timings = dict(msg.timings_ms)
+        timings.update(
+            {
+                "occupancy_hop": hop_ms,
+                "decode": decode_ms,
+                "registration_queue": (t0 - t_queued) * 1000.0,
+                "validate": (t_prepare - t0) * 1000.0,
+                "after_pose_wait": (t_valid - t_wait) * 1000.0,  # the last frame's work after its pose, still running
+            }
+        )
+        if prepared is not None:
+            timings["registration.preprocess"] = (t_wait - t_prepare) * 1000.0
         known = st.stored(msg.seq)
         if known is not None and known.digest == digest:  # a resend: answer it, register nothing twice
             self.stats.inc("republished")
@@ -131,48 +163,64 @@ class StreamLanes:
             st.vo.reset()
             st.cold, st.cold_digest, st.pending_restored, st.tiles, st.restored_for_next = {}, {}, [], {}, []
             st.since_snapshot, st.send_all_tiles, st.ego_xy = 0, False, None
+        if self.config.kernel_threads == 0:
+            st.vo.threads = self._fair_threads()
+        t_reg = time.perf_counter()
         try:
-            reg = st.vo.register(frame)
+            if bad is not None:
+                raise bad
+            reg = st.vo.register(frame, prepared)
         except InvalidFrameError as exc:
             if restart and self.store is not None:
                 st.vo = None  # reset for nothing: the stored trajectory stands and resumes at the next frame
             self.report_error(stream, "invalid_frame", f"seq {msg.seq}: {exc.reason}", keys.occupancy(stream), msg.seq)
             return
-        reg_ms = (time.perf_counter() - t0) * 1000.0
+        reg_ms = (time.perf_counter() - t_reg) * 1000.0
         pose_m = np.asarray(reg.pose, float)
         status = _STATUS.get(reg.status, "ok")
-        t_store = time.perf_counter()
-        phases = {}
-        if self.store is not None:
-            try:
-                phases = self.store.commit_frame(
-                    stream, msg.seq, msg.stamp, digest, status, pose_m, pack_frame(frame), new_trajectory=restart
-                )
-            except Exception as exc:  # noqa: BLE001 - e.g. disk full: publish nothing the store lacks; rebuild from it
-                return self._store_failed(stream, st, msg.seq, exc, "not stored, pose not published")
-        store_ms = (time.perf_counter() - t_store) * 1000.0
-        timings = dict(msg.timings_ms)
-        timings.update(
-            {"occupancy_hop": hop_ms, "registration_queue": (t0 - t_queued) * 1000.0, "registration": reg_ms}
+        # the work after the pose (loop closure, the map update, eviction, the next frame's restores) starts now, in
+        # the stream's after-pose thread below the lanes' priority, beside the commit; it stores and publishes nothing
+        # before the pose is out (pose_out)
+        if st.after_pose is None:
+            st.after_pose = ThreadPoolExecutor(1, f"after-{stream}", initializer=self._background_thread)
+        pose_out: Future = Future()
+        st.tail_running = True
+        st.tail = st.after_pose.submit(
+            self._after_pose, stream, st, msg, reg, frame, digest, pose_m, restart, t_valid, pose_out
         )
-        if self.store is not None:  # with where a slow commit waited: this worker's writers, another process, the sync
-            timings.update(store_commit=store_ms, **{f"store_commit.{k}": v for k, v in phases.items()})
-        timings.update({f"registration.{k}": float(v) for k, v in reg.timings_ms.items()})
-        self._publish_pose(stream, st, msg.seq, msg.stamp, pose_m, status, digest, timings, restart)
+        try:
+            t_store = time.perf_counter()
+            phases = {}
+            if self.store is not None:
+                try:
+                    phases = self.store.commit_frame(
+                        stream, msg.seq, msg.stamp, digest, status, pose_m, pack_frame(frame), new_trajectory=restart
+                    )
+                except Exception as exc:  # noqa: BLE001 - e.g. disk full: publish nothing the store lacks
+                    pose_out.set_result(False)
+                    st.tail.result()  # its OccVO.complete: then the state goes, rebuilt from the store
+                    return self._store_failed(stream, st, msg.seq, exc, "not stored, pose not published")
+            store_ms = (time.perf_counter() - t_store) * 1000.0
+            timings["registration"] = reg_ms
+            if self.store is not None:  # where a slow commit waited: this worker's writers, another process, the sync
+                timings.update(store_commit=store_ms, **{f"store_commit.{k}": v for k, v in phases.items()})
+            timings.update({f"registration.{k}": float(v) for k, v in reg.timings_ms.items()})
+            timings["core_wait"] = run_delay_ms() - waited0  # of the above, runnable but without a core (this thread)
+            self._publish_pose(stream, st, msg.seq, msg.stamp, pose_m, status, digest, timings, restart)
+            if restart:
+                log_event(self.log, "trajectory started", stream=stream, seq=msg.seq)
+                if self.store is not None:
+                    self._snapshots.put(lambda: self.store.drop_old_snapshots(stream))
+            pose_out.set_result(True)
+        finally:
+            if not pose_out.done():  # the pose did not go out: its work after it stores and publishes nothing
+                pose_out.set_result(False)
+        for stage in ("validate", "after_pose_wait", "core_wait"):
+            self.stats.observe(stage, timings[stage])
         self.stats.observe("registration", reg_ms)
         self.stats.observe("occupancy_hop", hop_ms)
         if self.store is not None:
             self.stats.observe("store_commit", store_ms)
-        if restart:
-            log_event(self.log, "trajectory started", stream=stream, seq=msg.seq)
-            if self.store is not None:
-                self._snapshots.put(lambda: self.store.drop_old_snapshots(stream))
-        # the pose is out: loop closure, the map update, eviction and the next frame's restores run off its latency,
-        # in the stream's after-pose thread, below the lanes' priority (other streams' poses go first on the cores)
-        if st.after_pose is None:
-            st.after_pose = ThreadPoolExecutor(1, f"after-{stream}", initializer=self._background_thread)
-        st.tail_running = True
-        st.tail = st.after_pose.submit(self._after_pose, stream, st, msg, reg, frame, digest, pose_m, restart, t0)
 
     def _after_pose(
         self,
@@ -185,12 +233,13 @@ class StreamLanes:
         pose_m: np.ndarray,
         restart: bool,
         t0: float,
+        pose_out: Future,
     ) -> None:
         """A frame's work after its pose: OccVO.complete and _finish, their second store write, a relocalised pose,
         the map update and the snapshot schedule. A failure is reported as a lane reports one."""
         st.tail_tid = threading.get_native_id()
         try:
-            self._after_pose_steps(stream, st, msg, reg, frame, digest, pose_m, restart, t0)
+            self._after_pose_steps(stream, st, msg, reg, frame, digest, pose_m, restart, t0, pose_out)
         except Exception as exc:  # noqa: BLE001 - a worker never dies of one frame
             self.report_error(stream, "internal", f"{type(exc).__name__}: {exc}", seq=msg.seq)
             log_event(self.log, "stage failed", logging.ERROR, stream=stream, error=repr(exc))
@@ -243,9 +292,12 @@ class StreamLanes:
         pose_m: np.ndarray,
         restart: bool,
         t0: float,
+        pose_out: Future,
     ) -> None:
         t_tail = time.perf_counter()
         result, restored, evicted, (tiles, dirty) = self._finish(stream, st, reg, frame, msg.seq, publish=True)
+        if not pose_out.result():  # not committed: nothing of it is stored or published (the lane rebuilds the state)
+            return
         t_finished = time.perf_counter()
         relocalised = result.loop_correction is not None
         if relocalised:
@@ -281,6 +333,10 @@ class StreamLanes:
         t_end = time.perf_counter()
         map_ms = (t_end - t_map) * 1000.0 + st.tiling_ms
         self.stats.observe("map_update", map_ms)
+        self.stats.observe("complete", st.complete_ms)
+        self.stats.observe("tiling", st.tiling_ms)
+        self.stats.observe("map_publish", (t_end - t_map) * 1000.0)
+        self.stats.observe("after_pose_store", (t_map - t_finished) * 1000.0)
         if self.store is not None:
             self.stats.observe("map_restore", st.restore_ms)
             self.stats.observe("map_evict", st.evict_ms)
@@ -345,7 +401,9 @@ class StreamLanes:
             else:
                 st.append(seq, stamp, pose_m, status, digest)
             st.latest = pose
+        t_encode = time.perf_counter()
         data = encode(pose)
+        self.stats.observe("pose_encode", (time.perf_counter() - t_encode) * 1000.0)
         # counted first: a client holding the pose (another thread may wake it before put returns) finds it counted
         self.stats.inc("relocalised" if status == "relocalised" else "frames_out")
         self.session.put(keys.pose(stream), data, congestion_control=zenoh.CongestionControl.BLOCK)

@@ -28,9 +28,11 @@ class Paging:
         """After the pose: loop closure and map update (OccVO.complete), keep every tile wholly resident or wholly
         cold, evict far map, and bring back the cold map near the new pose, which the next frame registers against.
         Returns (result, tiles restored, evicted blocks, tiles of the working map before eviction if publish)."""
+        t_complete = time.perf_counter()
         result = st.vo.complete(reg)
         pose = np.asarray(result.pose, float)
         t0 = time.perf_counter()
+        st.complete_ms = (t0 - t_complete) * 1000.0
         restored = list(st.restored_for_next)
         if st.cold:  # a frame that reached into an evicted tile: bring the rest back, so the tile stays whole
             restored += self._restore(stream, st, self._reached(st, frame, pose))

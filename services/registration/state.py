@@ -35,7 +35,7 @@ class StreamState:
         self.snapshot_idle.set()
         self.snapshot_retry = False  # the last snapshot failed: take one at the next frame
         self.send_all_tiles = False  # after a resume: the map service may lack the last frames' tiles
-        self.tiling_ms = 0.0
+        self.tiling_ms = self.complete_ms = 0.0
         self.restore_ms = self.evict_ms = 0.0  # the last step's working-map restores and evictions
         self.restored_for_next: list[tuple[int, int]] = []  # tiles restored after the last frame, not yet published
         self.ego_xy: np.ndarray | None = None  # x-y of the last registered pose (eviction and restore centre)

@@ -62,16 +62,18 @@ SERVICE_STAGES = (
     "store_commit",
     "core_wait",
 )
-AFTER_POSE_STAGES = (
+AFTER_POSE_STAGES = (  # the after-pose thread's (the next frame waits for it), then the map thread's
     "pose_encode",
     "complete",
-    "tiling",
     "map_restore",
     "map_evict",
+    "map_extract",
     "after_pose_store",
-    "map_publish",
+    "map_wait",
     "frame_after_pose",
     "stage_total",
+    "tiling",
+    "map_publish",
 )
 
 
@@ -195,8 +197,14 @@ def run_scene(scene_dir: Path, repeats: int, window: int) -> dict:
         s["poses"] == len(frames) and np.array_equal(s["trajectory"], o["poses"]) for o, s in zip(offs, svcs)
     )
     offline_stages = {k: float(np.median([o["stages"][k] for o in offs])) for k in offs[0]["stages"]}
-    service_stages = {k: float(np.median([s["timings"].get(k, np.nan) for s in svcs])) for k in svcs[0]["timings"]} | {
+    service_stages = {k: float(np.median([s["timings"].get(k, np.nan) for s in svcs])) for k in svcs[0]["timings"]}
+    service_stages |= {
         k: float(np.median([s["after_pose"].get(k, np.nan) for s in svcs])) for k in svcs[0]["after_pose"]
+    }
+    service_stages |= {  # complete()'s stages (loop closure, map update), from the worker's stats
+        k: float(np.median([s["worker_stats_p50"]["registration"].get(k, np.nan) for s in svcs]))
+        for k in svcs[0]["worker_stats_p50"]["registration"]
+        if k.startswith("complete.")
     }
     return {
         "frames": len(frames),
@@ -244,7 +252,7 @@ def print_scene(name: str, r: dict) -> None:
     for k in SERVICE_STAGES:
         if k == "registration":  # the odometry's own stages, each beside its service twin
             for s in off:
-                twin = f"registration.{s}" if f"registration.{s}" in svc else s
+                twin = next((t for t in (f"registration.{s}", f"complete.{s}") if t in svc), s)
                 print(f"    {s:<32}{off[s]:>9.1f}{svc.get(twin, float('nan')):>9.1f}")
             print(f"  {'registration (through fine GICP)':<34}{'':>9}{svc.get(k, float('nan')):>9.1f}")
         elif k in svc:

@@ -43,9 +43,13 @@ class StreamLanes:
             return
         if st.tail is not None:
             st.tail.result()
+        self._map_done(st)
         if st.after_pose is not None:
             st.after_pose.shutdown(wait=True)
             st.after_pose, st.tail = None, None
+        if st.map_thread is not None:
+            st.map_thread.shutdown(wait=True)
+            st.map_thread, st.map_tail = None, None
         if self.store is None or st.vo is None:
             return
         st.snapshot_idle.wait()
@@ -59,6 +63,11 @@ class StreamLanes:
             {},
             [],
         )  # heap trimmed by the caller
+
+    def _map_done(self, st: StreamState) -> None:
+        """Wait until the stream's last tiles are cut and sent (before st.tiles and the tile digests are reset)."""
+        if st.map_tail is not None:
+            st.map_tail.result()
 
     def _fair_threads(self) -> int:
         """Kernel threads for a frame about to be registered: the cores shared by the lanes busy now (this one
@@ -159,6 +168,7 @@ class StreamLanes:
             if st.vo is None:
                 self._resume(stream, st)
         if restart:  # only this lane's thread touches st.vo; queries read the lists under st.lock
+            self._map_done(st)
             st.vo = st.vo or self._OccVO(self.occvo_config, threads=self.config.kernel_threads)
             st.vo.reset()
             st.cold, st.cold_digest, st.pending_restored, st.tiles, st.restored_for_next = {}, {}, [], {}, []
@@ -176,6 +186,7 @@ class StreamLanes:
             self.report_error(stream, "invalid_frame", f"seq {msg.seq}: {exc.reason}", keys.occupancy(stream), msg.seq)
             return
         reg_ms = (time.perf_counter() - t_reg) * 1000.0
+        reg_timings = reg.timings_ms  # now: complete() adds its own stages to the same stopwatch
         pose_m = np.asarray(reg.pose, float)
         status = _STATUS.get(reg.status, "ok")
         # the work after the pose (loop closure, the map update, eviction, the next frame's restores) starts now, in
@@ -204,7 +215,7 @@ class StreamLanes:
             timings["registration"] = reg_ms
             if self.store is not None:  # where a slow commit waited: this worker's writers, another process, the sync
                 timings.update(store_commit=store_ms, **{f"store_commit.{k}": v for k, v in phases.items()})
-            timings.update({f"registration.{k}": float(v) for k, v in reg.timings_ms.items()})
+            timings.update({f"registration.{k}": float(v) for k, v in reg_timings.items()})
             timings["core_wait"] = run_delay_ms() - waited0  # of the above, runnable but without a core (this thread)
             self._publish_pose(stream, st, msg.seq, msg.stamp, pose_m, status, digest, timings, restart)
             if restart:
@@ -295,7 +306,7 @@ class StreamLanes:
         pose_out: Future,
     ) -> None:
         t_tail = time.perf_counter()
-        result, restored, evicted, (tiles, dirty) = self._finish(stream, st, reg, frame, msg.seq, publish=True)
+        result, restored, evicted, cut = self._finish(stream, st, reg, frame, msg.seq, publish=True)
         if not pose_out.result():  # not committed: nothing of it is stored or published (the lane rebuilds the state)
             return
         t_finished = time.perf_counter()
@@ -328,14 +339,21 @@ class StreamLanes:
             self._publish_pose(
                 stream, st, msg.seq, msg.stamp, np.asarray(result.pose, float), "relocalised", digest, timings, False
             )
+        # the tiles are cut from the copy and sent in the stream's map thread, beside the next frame's registration;
+        # one frame's tiles at most wait there (the copy of the last one's is not kept longer). At the lanes' priority:
+        # it holds the GIL for most of its work, and a niced holder the cores pass over would stall the lane waiting
+        # for the GIL (the after-pose thread's boost covers only the waits for its end)
         t_map = time.perf_counter()
-        sent = self._publish_map(stream, st, msg.seq, restart, tiles, dirty, evicted, restored)
+        self._map_done(st)
+        if st.map_thread is None:
+            st.map_thread = ThreadPoolExecutor(1, f"map-{stream}", initializer=name_os_thread)
+        st.map_tail = st.map_thread.submit(self._send_tiles, stream, st, msg.seq, restart, cut, evicted, restored)
         t_end = time.perf_counter()
-        map_ms = (t_end - t_map) * 1000.0 + st.tiling_ms
-        self.stats.observe("map_update", map_ms)
+        for k, v in result.timings_ms.items():
+            self.stats.observe(f"complete.{k}", float(v))
         self.stats.observe("complete", st.complete_ms)
-        self.stats.observe("tiling", st.tiling_ms)
-        self.stats.observe("map_publish", (t_end - t_map) * 1000.0)
+        self.stats.observe("map_extract", st.extract_ms)
+        self.stats.observe("map_wait", (t_end - t_map) * 1000.0)  # the last frame's tiles not sent yet
         self.stats.observe("after_pose_store", (t_map - t_finished) * 1000.0)
         if self.store is not None:
             self.stats.observe("map_restore", st.restore_ms)
@@ -351,13 +369,11 @@ class StreamLanes:
                 ms=round((t_end - t_tail) * 1000.0),
                 timings_ms={k: round(v, 1) for k, v in result.timings_ms.items()},
                 finish_ms=round((t_finished - t_tail) * 1000.0),
-                tiling_ms=round(st.tiling_ms, 1),
+                extract_ms=round(st.extract_ms, 1),
                 restore_ms=round(st.restore_ms, 1),
                 evict_ms=round(st.evict_ms, 1),
                 store_ms=round((t_map - t_finished) * 1000.0),
-                publish_map_ms=round((t_end - t_map) * 1000.0),
-                tiles_sent=sent[0],
-                map_update_bytes=sent[1],
+                map_wait_ms=round((t_end - t_map) * 1000.0),
                 relocalised=relocalised,
             )
         self.stats.observe("stage_total", (time.perf_counter() - t0) * 1000.0)
@@ -368,6 +384,20 @@ class StreamLanes:
             )
             if due and st.snapshot_idle.is_set():
                 self._queue_snapshot(stream, st)
+
+    def _send_tiles(self, stream: str, st: StreamState, seq: int, restart: bool, cut, evicted, restored) -> None:
+        """The stream's map thread: one frame's tiles cut and sent (MapPublisher._publish_map), in frame order."""
+        try:
+            t0 = time.perf_counter()
+            sent = self._publish_map(stream, st, seq, restart, cut, evicted, restored)
+            self.stats.observe("map_publish", (time.perf_counter() - t0) * 1000.0 - (st.tiling_ms - st.extract_ms))
+            self.stats.observe("tiling", st.tiling_ms)
+            self.stats.observe("map_update", (time.perf_counter() - t0) * 1000.0 + st.extract_ms)
+            if sent[0]:
+                self.stats.inc("tiles_sent", sent[0])
+        except Exception as exc:  # noqa: BLE001 - a worker never dies of one frame's tiles
+            self.report_error(stream, "internal", f"map update of seq {seq}: {type(exc).__name__}: {exc}", seq=seq)
+            log_event(self.log, "stage failed", logging.ERROR, stream=stream, error=repr(exc))
 
     def _publish_pose(
         self,

@@ -448,7 +448,21 @@ def test_a_pose_is_published_while_its_work_after_the_pose_is_held(service):
     assert on_the_way | {"core_wait", "camera_decode", "inference"} <= set(pose.timings_ms)
     assert last.timings_ms["after_pose_wait"] >= 0.0 and pose.timings_ms["core_wait"] >= 0.0
     _, stages = worker.stats.snapshot()
-    assert {"decode", "validate", "pose_encode", "complete", "tiling", "map_publish", "frame_after_pose"} <= set(stages)
+    after = {
+        "complete",
+        "complete.voxel_pfilter",
+        "map_extract",
+        "map_wait",
+        "frame_after_pose",
+        "tiling",
+        "map_publish",
+    }
+    assert {"decode", "validate", "pose_encode"} | after <= set(stages)
+    # the tiles were cut and sent in the stream's map thread, at the lane's priority (it holds the GIL)
+    st = worker.states["early"]
+    (map_thread,) = st.map_thread._threads
+    nice = os.getpriority(os.PRIO_PROCESS, worker.lanes["early"].thread.native_id)
+    assert os.getpriority(os.PRIO_PROCESS, map_thread.native_id) == nice and st.map_tail.done()
 
 
 def test_kernel_threads_0_shares_the_cores_between_the_streams_registering():

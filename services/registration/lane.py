@@ -194,6 +194,9 @@ class StreamLanes:
         # before the pose is out (pose_out)
         if st.after_pose is None:
             st.after_pose = ThreadPoolExecutor(1, f"after-{stream}", initializer=self._background_thread)
+        if st.map_thread is None:  # started from here: a thread starts at the niceness of the thread that made it
+            st.map_thread = ThreadPoolExecutor(1, f"map-{stream}", initializer=name_os_thread)
+            st.map_tail = st.map_thread.submit(int)
         pose_out: Future = Future()
         st.tail_running = True
         st.tail = st.after_pose.submit(
@@ -345,8 +348,6 @@ class StreamLanes:
         # for the GIL (the after-pose thread's boost covers only the waits for its end)
         t_map = time.perf_counter()
         self._map_done(st)
-        if st.map_thread is None:
-            st.map_thread = ThreadPoolExecutor(1, f"map-{stream}", initializer=name_os_thread)
         st.map_tail = st.map_thread.submit(self._send_tiles, stream, st, msg.seq, restart, cut, evicted, restored)
         t_end = time.perf_counter()
         for k, v in result.timings_ms.items():

@@ -2,6 +2,7 @@
 on) beside offline OccVO on the same frames, in the same run.
 
     python benchmarks/pipeline.py [--repeats 3] [--scenes scene-0101 scene-0268] [--output results.json]
+        [--registration-args "--after-pose-nice 0"]
 
 Per scene, medians over the repeats of:
   - offline_fps: OccVO.step (all cores, as `occvo run`) over the scene's frames, per repeat;
@@ -133,11 +134,11 @@ def offline(frames: list) -> dict:
     }
 
 
-def service(scene, store_dir: Path, window: int) -> dict:
+def service(scene, store_dir: Path, window: int, registration_args: list[str]) -> dict:
     """The scene through the router and the three worker processes, both stores on: a lossless replay as fast as
     the pipeline takes, then one at RATE_HZ."""
     args = {
-        "registration": ["--store-path", str(store_dir / "occvo.sqlite")],
+        "registration": ["--store-path", str(store_dir / "occvo.sqlite"), *registration_args],
         "map": ["--store-path", str(store_dir / "map.sqlite")],
     }
     with LocalService(quiet=True, worker_args=args) as svc, OccVOClient(svc.endpoint, scene.name) as client:
@@ -176,7 +177,7 @@ def service(scene, store_dir: Path, window: int) -> dict:
     }
 
 
-def run_scene(scene_dir: Path, repeats: int, window: int) -> dict:
+def run_scene(scene_dir: Path, repeats: int, window: int, registration_args: list[str]) -> dict:
     scene = OccVOReleaseScene(scene_dir)
     frames = [scene[i] for i in range(len(scene))]
     offline(frames[:3])  # compile / warm caches
@@ -184,7 +185,7 @@ def run_scene(scene_dir: Path, repeats: int, window: int) -> dict:
     for _ in range(repeats):
         off = offline(frames)  # beside each service run: the same machine state
         with tempfile.TemporaryDirectory(prefix="occvo-pipeline-") as tmp:
-            svc = service(scene, Path(tmp), window)
+            svc = service(scene, Path(tmp), window, registration_args)
         runs.append((off, svc))
     offs, svcs = [r[0] for r in runs], [r[1] for r in runs]
     offline_fps = float(np.median([o["fps"] for o in offs]))
@@ -270,6 +271,9 @@ def main(argv=None) -> int:
     ap.add_argument("--window", type=int, default=4)
     ap.add_argument("--hop-messages", type=int, default=300, help="0: no hop latency measurement")
     ap.add_argument("--output")
+    ap.add_argument(
+        "--registration-args", default="", help='extra flags of the registration worker, e.g. "--after-pose-nice 0"'
+    )
     args = ap.parse_args(argv)
 
     results = {"hop": {}, "scenes": {}}
@@ -288,7 +292,7 @@ def main(argv=None) -> int:
         if not d.is_dir():
             print(f"{name}: not found at {d}, skipped")
             continue
-        results["scenes"][name] = r = run_scene(d, args.repeats, args.window)
+        results["scenes"][name] = r = run_scene(d, args.repeats, args.window, args.registration_args.split())
         print_scene(name, r)
     if args.output:
         Path(args.output).write_text(json.dumps(results, indent=2, default=float) + "\n")

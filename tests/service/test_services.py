@@ -467,6 +467,7 @@ def test_a_pose_is_published_while_its_work_after_the_pose_is_held(service):
 
 def test_kernel_threads_0_shares_the_cores_between_the_streams_registering():
     from occvo_services.registration import lane as lane_mod
+    from occvo_services.worker_config import WorkerConfig
 
     class Lane:
         def __init__(self, busy):
@@ -476,10 +477,14 @@ def test_kernel_threads_0_shares_the_cores_between_the_streams_registering():
         _fair_threads = lane_mod.StreamLanes._fair_threads
 
     w = Lanes()
+    w.config = WorkerConfig()
     w.lanes = {"a": Lane(True), "b": Lane(False)}
     assert w._fair_threads() == lane_mod.CORES  # alone: every core
     w.lanes = {k: Lane(True) for k in "abcdefgh"}
     assert w._fair_threads() == max(1, lane_mod.CORES // 8)
+    w.config = WorkerConfig(shards=2)  # two processes on the same cores: half each
+    w.lanes = {"a": Lane(True)}
+    assert w._fair_threads() == max(1, lane_mod.CORES // 2)
 
 
 def test_worker_process_memory_settings_and_thread_names():

@@ -310,6 +310,7 @@ class StreamLanes:
         pose_out: Future,
     ) -> None:
         t_tail = time.perf_counter()
+        registered = set(reg.timings_ms)  # complete() adds its stages to the same stopwatch
         result, restored, evicted, cut = self._finish(stream, st, reg, frame, msg.seq, publish=True)
         if not pose_out.result():  # not committed: nothing of it is stored or published (the lane rebuilds the state)
             return
@@ -352,7 +353,8 @@ class StreamLanes:
         st.map_tail = st.map_thread.submit(self._send_tiles, stream, st, msg.seq, restart, cut, evicted, restored)
         t_end = time.perf_counter()
         for k, v in result.timings_ms.items():
-            self.stats.observe(f"complete.{k}", float(v))
+            if k not in registered:
+                self.stats.observe(f"complete.{k}", float(v))
         self.stats.observe("complete", st.complete_ms)
         self.stats.observe("map_extract", st.extract_ms)
         self.stats.observe("map_wait", (t_end - t_map) * 1000.0)  # the last frame's tiles not sent yet

@@ -201,6 +201,17 @@ def _neighbour(duty: float) -> None:
         time.sleep((1.0 - duty) * 0.1)
 
 
+def start_neighbours(duty: float) -> list:
+    """One noisy neighbour process a core (daemons; terminate() them when done). None for duty 0."""
+    if duty <= 0:
+        return []
+    ctx = multiprocessing.get_context("spawn")
+    neighbours = [ctx.Process(target=_neighbour, args=(duty,), daemon=True) for _ in range(os.cpu_count() or 1)]
+    for proc in neighbours:
+        proc.start()
+    return neighbours
+
+
 def run_load(
     n: int,
     rate: float,
@@ -643,14 +654,7 @@ def main(argv=None) -> int:
     bucket_s = args.bucket_s or (60.0 if args.minutes >= 3 else args.minutes * 20.0)
     total = int(round(args.minutes * 60 * args.rate))
     scenes = load_scenes(list(range(max(args.streams))), total, args.rate, Path(args.cache_dir), args.render_jobs)
-    neighbours = []
-    if args.neighbour_load > 0:  # started after rendering: they load the run, not the scenes' preparation
-        ctx = multiprocessing.get_context("spawn")
-        neighbours = [
-            ctx.Process(target=_neighbour, args=(args.neighbour_load,), daemon=True) for _ in range(os.cpu_count() or 1)
-        ]
-        for proc in neighbours:
-            proc.start()
+    neighbours = start_neighbours(args.neighbour_load)  # after rendering: they load the run, not the preparation
     results = []
     for n in args.streams:
         with tempfile.TemporaryDirectory(prefix="occvo-load-") as tmp:

@@ -79,6 +79,7 @@ class OccVOClient:
         self.session = session or open_session(connect)
         self._cv = threading.Condition()
         self.poses: dict[int, PoseEstimate] = {}
+        self.arrived: dict[int, float] = {}  # seq -> time.perf_counter() its first pose arrived (latency figures)
         self.errors: list[ErrorEvent] = []
         self._seq = 0
         self._unanswered: dict[int, bytes] = {}  # seq -> the encoded frame, until its pose or error comes back
@@ -111,6 +112,7 @@ class OccVOClient:
                 self.poses[pose.seq] = pose
             else:
                 self.poses.setdefault(pose.seq, pose)  # a resent frame's pose comes again: keep the first
+                self.arrived.setdefault(pose.seq, time.perf_counter())
             # poses come in seq order: an older frame still unanswered was dropped upstream (latest policy)
             for seq in [s for s in self._unanswered if s <= pose.seq]:
                 del self._unanswered[seq]
@@ -180,6 +182,7 @@ class OccVOClient:
         with self._cv:
             self._seq = 0
             self.poses.clear()
+            self.arrived.clear()
             self.errors.clear()
             self._unanswered.clear()
 

@@ -85,7 +85,7 @@ class InferenceWorker(Worker):
         self.enqueue(sample, CameraFrame, self._infer)
 
     def _infer(self, stream: str, item) -> None:
-        msg, hop_ms, t_queued = item
+        msg, hop_ms, t_queued, decode_ms = item
         t0 = time.perf_counter()
         key = keys.camera(stream)
         if self.config.source == "replay":
@@ -140,14 +140,18 @@ class InferenceWorker(Worker):
             stamp=msg.stamp,
             source=source,
             occupancy=occupancy,
-            timings_ms={"camera_hop": hop_ms, "inference_queue": queue_ms, "inference": infer_ms},
+            timings_ms={
+                "camera_hop": hop_ms,
+                "camera_decode": decode_ms,
+                "inference_queue": queue_ms,
+                "inference": infer_ms,
+            },
             sent_at=time.time(),
         )
-        self.session.put(
-            keys.occupancy(stream),
-            encode(out, self.config.max_message_bytes),
-            congestion_control=zenoh.CongestionControl.BLOCK,
-        )
+        t_encode = time.perf_counter()
+        data = encode(out, self.config.max_message_bytes)
+        self.stats.observe("encode", (time.perf_counter() - t_encode) * 1000.0)
+        self.session.put(keys.occupancy(stream), data, congestion_control=zenoh.CongestionControl.BLOCK)
         self.stats.inc("frames_out")
         self.stats.observe("inference", infer_ms)
         self.stats.observe("camera_hop", hop_ms)

@@ -114,3 +114,13 @@ def few_malloc_arenas(arenas: int | None = None) -> bool:
         return bool(ctypes.CDLL("libc.so.6").mallopt(-8, arenas or os.cpu_count() or 1))  # M_ARENA_MAX
     except (OSError, AttributeError):
         return False
+
+
+def run_delay_ms() -> float:
+    """Time the calling thread has spent runnable but waiting for a core, in ms since it started (the kernel's
+    schedstat run_delay); 0.0 where not available. Differences of it tell a stage's wait for a core from its work."""
+    try:
+        with open(f"/proc/self/task/{threading.get_native_id()}/schedstat", "rb") as f:
+            return int(f.read().split()[1]) / 1e6
+    except (OSError, IndexError, ValueError):
+        return 0.0

@@ -258,10 +258,12 @@ class Worker:
     def enqueue(self, sample: zenoh.Sample, expect, handler: Callable[[str, object], None]) -> None:
         """Decode a stream message, check its sequence number and queue it on its stream's lane with its hop
         latency; bad messages are reported by decode_input and check_seq, never raised."""
-        t_recv = time.time()
+        t_recv, t_decode = time.time(), time.perf_counter()
         msg = self.decode_input(sample, expect)
         if msg is None or self.stopping.is_set():
             return
+        decode_ms = (time.perf_counter() - t_decode) * 1000.0
+        self.stats.observe("decode", decode_ms)
         self._relieve_memory()
         refused = None if msg.stream in self.admission.streams else self.memory.refuse(msg.stream)
         if refused is not None:
@@ -280,7 +282,7 @@ class Worker:
         hop_ms = (t_recv - msg.sent_at) * 1000.0 if 0 < msg.sent_at and abs(t_recv - msg.sent_at) < 86400 else 0.0
         lane = self.lane(msg.stream, handler)
         try:
-            lane.queue.put((msg, hop_ms, time.perf_counter()))
+            lane.queue.put((msg, hop_ms, time.perf_counter(), decode_ms))
         finally:
             with self._lanes_lock:
                 lane.pending -= 1

@@ -57,9 +57,9 @@ class WorkerConfig(BaseModel):
     shards: int = Field(1, ge=1, le=1024)
     tile_m: float = Field(20.0, gt=0)
     occvo_config: str | None = None
-    # registration: cores each stream's kernels may use, 0 = all. Streams already run side by side in threads, and
-    # the inference worker wants a core; poses are the same for any value
-    kernel_threads: int = Field(1, ge=0)
+    # registration: cores each stream's kernels may use; 0 = this shard's share of the cores (cores / shards), shared
+    # by its streams registering at that moment (one stream alone uses them all). Poses are the same for any value
+    kernel_threads: int = Field(0, ge=0)
     # registration: niceness added to the threads doing the work after a pose (loop closure, map update, eviction,
     # restores) and writing snapshots, so that the cores go to other streams' poses first. 0: the lanes' priority
     after_pose_nice: int = Field(10, ge=0, le=19)

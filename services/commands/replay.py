@@ -86,6 +86,7 @@ def replay(
         "fps": len(poses) / elapsed if elapsed > 0 else 0.0,
         "trajectory": np.array([poses[s].matrix() for s in sorted(poses)]) if poses else np.zeros((0, 4, 4)),
         "pose_msgs": poses,
+        "sent_at": sent_at,  # time.perf_counter() each frame left, by seq (client.arrived: when its pose came)
     }
 
 

@@ -25,6 +25,8 @@ class Durability:
             lane = self.lanes.get(stream)
             if st.after_pose is not None and not (lane is not None and lane.thread.is_alive()):
                 st.after_pose.shutdown(wait=True)  # drained already: its thread ends now, not at interpreter exit
+                if st.map_thread is not None:
+                    st.map_thread.shutdown(wait=True)
         if self.store is None:
             return
         t0 = time.perf_counter()
@@ -52,8 +54,7 @@ class Durability:
     def _store_failed(self, stream: str, st: StreamState, seq: int, exc: Exception, what: str) -> None:
         """A write failed (e.g. disk full): drop the in-memory state; the stream resumes from the store at its next
         frame (replaying the journal redoes what was not stored)."""
-        st.vo = None
-        st.tiles = {}
+        st.vo = None  # the tiles too are started again by the resume
         self.report_error(
             stream,
             "internal",
@@ -110,6 +111,7 @@ class Durability:
         for st in list(self.states.values()):
             if st.tail is not None:
                 st.tail.result()
+            self._map_done(st)
 
     def snapshots_written(self, timeout: float | None = None) -> bool:
         """Wait until no snapshot is queued or being written (tests and benchmarks)."""
@@ -124,6 +126,7 @@ class Durability:
     def _resume(self, stream: str, st: StreamState) -> None:
         """Rebuild the stream's OccVO from its snapshot and journal, as it was after the last committed frame."""
         t0 = time.perf_counter()
+        self._map_done(st)  # the tiles of the frames before: the resume starts the stream's tiles again
         st.snapshot_idle.wait()  # a snapshot being written would delete journal rows between our two reads
         vo = self._OccVO(self.occvo_config, threads=self.config.kernel_threads)
         snap = self.store.snapshot(stream)
@@ -144,10 +147,10 @@ class Durability:
             journal
         ):  # the same restores and evictions as the first time, so the same poses
             last = i == len(journal) - 1
-            result, restored, evicted, (tiles, dirty) = self._advance(stream, st, frame, seq, publish=last)
+            result, restored, evicted, cut = self._advance(stream, st, frame, seq, publish=last)
             if last:  # it may have stopped before its map update was stored or published: do both again
                 self._finish_last(stream, st, seq, result, evicted)
-                self._publish_map(stream, st, seq, False, tiles, dirty, evicted, restored)
+                self._publish_map(stream, st, seq, False, cut, evicted, restored)
             st.pending_restored = []
             stored = st.stored(seq)
             diff = float(np.abs(np.asarray(result.pose) - stored.pose).max()) if stored is not None else np.inf

@@ -7,7 +7,7 @@ import logging
 import os
 import threading
 import time
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import Future, ThreadPoolExecutor
 
 import numpy as np
 import zenoh
@@ -17,11 +17,12 @@ from occvo_core.frame import OccupancyFrame
 from occvo_schemas import keys
 from occvo_schemas.codec import encode
 from occvo_schemas.models import OccupancyFrameMsg, PoseEstimate
-from occvo_services.os_tuning import hold_priority, lower_priority, name_os_thread, release_priority
+from occvo_services.os_tuning import hold_priority, lower_priority, name_os_thread, release_priority, run_delay_ms
 from occvo_services.registration.state import StreamState
 from occvo_services.store_blobs import frame_digest, pack_frame
 from occvo_services.telemetry import log_event
 
+CORES = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
 _STATUS = {"ok": "ok", "lost": "lost", "initialised": "reinitialised", "reinitialised": "reinitialised"}
 
 
@@ -42,9 +43,13 @@ class StreamLanes:
             return
         if st.tail is not None:
             st.tail.result()
+        self._map_done(st)
         if st.after_pose is not None:
             st.after_pose.shutdown(wait=True)
             st.after_pose, st.tail = None, None
+        if st.map_thread is not None:
+            st.map_thread.shutdown(wait=True)
+            st.map_thread, st.map_tail = None, None
         if self.store is None or st.vo is None:
             return
         st.snapshot_idle.wait()
@@ -59,6 +64,18 @@ class StreamLanes:
             [],
         )  # heap trimmed by the caller
 
+    def _map_done(self, st: StreamState) -> None:
+        """Wait until the stream's last tiles are cut and sent (before st.tiles and the tile digests are reset)."""
+        if st.map_tail is not None:
+            st.map_tail.result()
+
+    def _fair_threads(self) -> int:
+        """Kernel threads for a frame about to be registered: this shard's share of the cores (shards are processes
+        on the same cores, each blind to the others' lanes) divided among its lanes busy now (this one included), so
+        one stream alone uses every core and several streams do not oversubscribe them."""
+        busy = sum(1 for lane in list(self.lanes.values()) if lane.busy)
+        return max(1, CORES // self.config.shards // max(1, busy))
+
     def check_seq(self, stream: str, seq: int, key: str) -> bool:
         return True  # judged in the lane against the stream's trajectory: a step back may be a resend
 
@@ -72,13 +89,11 @@ class StreamLanes:
 
     # -- one frame ------------------------------------------------------------------------------------------------
     def _register(self, stream: str, item) -> None:
-        msg, hop_ms, t_queued = item
+        msg, hop_ms, t_queued, decode_ms = item
+        t0, waited0 = time.perf_counter(), run_delay_ms()
         st = self.state(stream)
-        if st.tail is not None:  # the previous frame's work after its pose: the odometry is that work's until it ends
-            if not st.tail.done():
-                self._boost_tail(st)
-            st.tail.result()
-        t0 = time.perf_counter()
+        # what needs nothing of the stream's state runs while the last frame's work after its pose may still run:
+        # building and validating the frame, its digest and OccVO.prepare
         frame = OccupancyFrame(
             msg.occupancy.to_points(),
             msg.occupancy.labels.to_numpy().copy(),
@@ -92,6 +107,33 @@ class StreamLanes:
             self.report_error(stream, "invalid_frame", f"seq {msg.seq}: {exc.reason}", keys.occupancy(stream), msg.seq)
             return
         digest = frame_digest(frame.points, frame.labels, msg.stamp)
+        t_prepare = time.perf_counter()
+        prepared, bad, vo = None, None, st.vo  # vo: this lane's; only the config and thread count are read
+        if vo is not None:
+            if self.config.kernel_threads == 0:
+                vo.threads = self._fair_threads()
+            try:
+                prepared = vo.prepare(frame)  # the worker's config: valid for a reset or resumed OccVO too
+            except InvalidFrameError as exc:
+                bad = exc  # reported where register() would have raised it
+        t_wait = time.perf_counter()
+        if st.tail is not None:  # the previous frame's work after its pose: the odometry is that work's until it ends
+            if not st.tail.done():
+                self._boost_tail(st)
+            st.tail.result()
+        t_valid = time.perf_counter()
+        timings = dict(msg.timings_ms)
+        timings.update(
+            {
+                "occupancy_hop": hop_ms,
+                "decode": decode_ms,
+                "registration_queue": (t0 - t_queued) * 1000.0,
+                "validate": (t_prepare - t0) * 1000.0,
+                "after_pose_wait": (t_valid - t_wait) * 1000.0,  # the last frame's work after its pose, still running
+            }
+        )
+        if prepared is not None:
+            timings["registration.preprocess"] = (t_wait - t_prepare) * 1000.0
         known = st.stored(msg.seq)
         if known is not None and known.digest == digest:  # a resend: answer it, register nothing twice
             self.stats.inc("republished")
@@ -127,52 +169,73 @@ class StreamLanes:
             if st.vo is None:
                 self._resume(stream, st)
         if restart:  # only this lane's thread touches st.vo; queries read the lists under st.lock
+            self._map_done(st)
             st.vo = st.vo or self._OccVO(self.occvo_config, threads=self.config.kernel_threads)
             st.vo.reset()
             st.cold, st.cold_digest, st.pending_restored, st.tiles, st.restored_for_next = {}, {}, [], {}, []
             st.since_snapshot, st.send_all_tiles, st.ego_xy = 0, False, None
+        if self.config.kernel_threads == 0:
+            st.vo.threads = self._fair_threads()
+        t_reg = time.perf_counter()
         try:
-            reg = st.vo.register(frame)
+            if bad is not None:
+                raise bad
+            reg = st.vo.register(frame, prepared)
         except InvalidFrameError as exc:
             if restart and self.store is not None:
                 st.vo = None  # reset for nothing: the stored trajectory stands and resumes at the next frame
             self.report_error(stream, "invalid_frame", f"seq {msg.seq}: {exc.reason}", keys.occupancy(stream), msg.seq)
             return
-        reg_ms = (time.perf_counter() - t0) * 1000.0
+        reg_ms = (time.perf_counter() - t_reg) * 1000.0
+        reg_timings = reg.timings_ms  # now: complete() adds its own stages to the same stopwatch
         pose_m = np.asarray(reg.pose, float)
         status = _STATUS.get(reg.status, "ok")
-        t_store = time.perf_counter()
-        phases = {}
-        if self.store is not None:
-            try:
-                phases = self.store.commit_frame(
-                    stream, msg.seq, msg.stamp, digest, status, pose_m, pack_frame(frame), new_trajectory=restart
-                )
-            except Exception as exc:  # noqa: BLE001 - e.g. disk full: publish nothing the store lacks; rebuild from it
-                return self._store_failed(stream, st, msg.seq, exc, "not stored, pose not published")
-        store_ms = (time.perf_counter() - t_store) * 1000.0
-        timings = dict(msg.timings_ms)
-        timings.update(
-            {"occupancy_hop": hop_ms, "registration_queue": (t0 - t_queued) * 1000.0, "registration": reg_ms}
+        # the work after the pose (loop closure, the map update, eviction, the next frame's restores) starts now, in
+        # the stream's after-pose thread below the lanes' priority, beside the commit; it stores and publishes nothing
+        # before the pose is out (pose_out)
+        if st.after_pose is None:
+            st.after_pose = ThreadPoolExecutor(1, f"after-{stream}", initializer=self._background_thread)
+        if st.map_thread is None:  # started from here: a thread starts at the niceness of the thread that made it
+            st.map_thread = ThreadPoolExecutor(1, f"map-{stream}", initializer=name_os_thread)
+            st.map_tail = st.map_thread.submit(int)
+        pose_out: Future = Future()
+        st.tail_running = True
+        st.tail = st.after_pose.submit(
+            self._after_pose, stream, st, msg, reg, frame, digest, pose_m, restart, t_valid, pose_out
         )
-        if self.store is not None:  # with where a slow commit waited: this worker's writers, another process, the sync
-            timings.update(store_commit=store_ms, **{f"store_commit.{k}": v for k, v in phases.items()})
-        timings.update({f"registration.{k}": float(v) for k, v in reg.timings_ms.items()})
-        self._publish_pose(stream, st, msg.seq, msg.stamp, pose_m, status, digest, timings, restart)
+        try:
+            t_store = time.perf_counter()
+            phases = {}
+            if self.store is not None:
+                try:
+                    phases = self.store.commit_frame(
+                        stream, msg.seq, msg.stamp, digest, status, pose_m, pack_frame(frame), new_trajectory=restart
+                    )
+                except Exception as exc:  # noqa: BLE001 - e.g. disk full: publish nothing the store lacks
+                    pose_out.set_result(False)
+                    st.tail.result()  # its OccVO.complete: then the state goes, rebuilt from the store
+                    return self._store_failed(stream, st, msg.seq, exc, "not stored, pose not published")
+            store_ms = (time.perf_counter() - t_store) * 1000.0
+            timings["registration"] = reg_ms
+            if self.store is not None:  # where a slow commit waited: this worker's writers, another process, the sync
+                timings.update(store_commit=store_ms, **{f"store_commit.{k}": v for k, v in phases.items()})
+            timings.update({f"registration.{k}": float(v) for k, v in reg_timings.items()})
+            timings["core_wait"] = run_delay_ms() - waited0  # of the above, runnable but without a core (this thread)
+            self._publish_pose(stream, st, msg.seq, msg.stamp, pose_m, status, digest, timings, restart)
+            if restart:
+                log_event(self.log, "trajectory started", stream=stream, seq=msg.seq)
+                if self.store is not None:
+                    self._snapshots.put(lambda: self.store.drop_old_snapshots(stream))
+            pose_out.set_result(True)
+        finally:
+            if not pose_out.done():  # the pose did not go out: its work after it stores and publishes nothing
+                pose_out.set_result(False)
+        for stage in ("validate", "after_pose_wait", "core_wait"):
+            self.stats.observe(stage, timings[stage])
         self.stats.observe("registration", reg_ms)
         self.stats.observe("occupancy_hop", hop_ms)
         if self.store is not None:
             self.stats.observe("store_commit", store_ms)
-        if restart:
-            log_event(self.log, "trajectory started", stream=stream, seq=msg.seq)
-            if self.store is not None:
-                self._snapshots.put(lambda: self.store.drop_old_snapshots(stream))
-        # the pose is out: loop closure, the map update, eviction and the next frame's restores run off its latency,
-        # in the stream's after-pose thread, below the lanes' priority (other streams' poses go first on the cores)
-        if st.after_pose is None:
-            st.after_pose = ThreadPoolExecutor(1, f"after-{stream}", initializer=self._background_thread)
-        st.tail_running = True
-        st.tail = st.after_pose.submit(self._after_pose, stream, st, msg, reg, frame, digest, pose_m, restart, t0)
 
     def _after_pose(
         self,
@@ -185,12 +248,13 @@ class StreamLanes:
         pose_m: np.ndarray,
         restart: bool,
         t0: float,
+        pose_out: Future,
     ) -> None:
         """A frame's work after its pose: OccVO.complete and _finish, their second store write, a relocalised pose,
         the map update and the snapshot schedule. A failure is reported as a lane reports one."""
         st.tail_tid = threading.get_native_id()
         try:
-            self._after_pose_steps(stream, st, msg, reg, frame, digest, pose_m, restart, t0)
+            self._after_pose_steps(stream, st, msg, reg, frame, digest, pose_m, restart, t0, pose_out)
         except Exception as exc:  # noqa: BLE001 - a worker never dies of one frame
             self.report_error(stream, "internal", f"{type(exc).__name__}: {exc}", seq=msg.seq)
             log_event(self.log, "stage failed", logging.ERROR, stream=stream, error=repr(exc))
@@ -243,9 +307,13 @@ class StreamLanes:
         pose_m: np.ndarray,
         restart: bool,
         t0: float,
+        pose_out: Future,
     ) -> None:
         t_tail = time.perf_counter()
-        result, restored, evicted, (tiles, dirty) = self._finish(stream, st, reg, frame, msg.seq, publish=True)
+        registered = set(reg.timings_ms)  # complete() adds its stages to the same stopwatch
+        result, restored, evicted, cut = self._finish(stream, st, reg, frame, msg.seq, publish=True)
+        if not pose_out.result():  # not committed: nothing of it is stored or published (the lane rebuilds the state)
+            return
         t_finished = time.perf_counter()
         relocalised = result.loop_correction is not None
         if relocalised:
@@ -276,11 +344,21 @@ class StreamLanes:
             self._publish_pose(
                 stream, st, msg.seq, msg.stamp, np.asarray(result.pose, float), "relocalised", digest, timings, False
             )
+        # the tiles are cut from the copy and sent in the stream's map thread, beside the next frame's registration;
+        # one frame's tiles at most wait there (the copy of the last one's is not kept longer). At the lanes' priority:
+        # it holds the GIL for most of its work, and a niced holder the cores pass over would stall the lane waiting
+        # for the GIL (the after-pose thread's boost covers only the waits for its end)
         t_map = time.perf_counter()
-        sent = self._publish_map(stream, st, msg.seq, restart, tiles, dirty, evicted, restored)
+        self._map_done(st)
+        st.map_tail = st.map_thread.submit(self._send_tiles, stream, st, msg.seq, restart, cut, evicted, restored)
         t_end = time.perf_counter()
-        map_ms = (t_end - t_map) * 1000.0 + st.tiling_ms
-        self.stats.observe("map_update", map_ms)
+        for k, v in result.timings_ms.items():
+            if k not in registered:
+                self.stats.observe(f"complete.{k}", float(v))
+        self.stats.observe("complete", st.complete_ms)
+        self.stats.observe("map_extract", st.extract_ms)
+        self.stats.observe("map_wait", (t_end - t_map) * 1000.0)  # the last frame's tiles not sent yet
+        self.stats.observe("after_pose_store", (t_map - t_finished) * 1000.0)
         if self.store is not None:
             self.stats.observe("map_restore", st.restore_ms)
             self.stats.observe("map_evict", st.evict_ms)
@@ -295,13 +373,11 @@ class StreamLanes:
                 ms=round((t_end - t_tail) * 1000.0),
                 timings_ms={k: round(v, 1) for k, v in result.timings_ms.items()},
                 finish_ms=round((t_finished - t_tail) * 1000.0),
-                tiling_ms=round(st.tiling_ms, 1),
+                extract_ms=round(st.extract_ms, 1),
                 restore_ms=round(st.restore_ms, 1),
                 evict_ms=round(st.evict_ms, 1),
                 store_ms=round((t_map - t_finished) * 1000.0),
-                publish_map_ms=round((t_end - t_map) * 1000.0),
-                tiles_sent=sent[0],
-                map_update_bytes=sent[1],
+                map_wait_ms=round((t_end - t_map) * 1000.0),
                 relocalised=relocalised,
             )
         self.stats.observe("stage_total", (time.perf_counter() - t0) * 1000.0)
@@ -312,6 +388,20 @@ class StreamLanes:
             )
             if due and st.snapshot_idle.is_set():
                 self._queue_snapshot(stream, st)
+
+    def _send_tiles(self, stream: str, st: StreamState, seq: int, restart: bool, cut, evicted, restored) -> None:
+        """The stream's map thread: one frame's tiles cut and sent (MapPublisher._publish_map), in frame order."""
+        try:
+            t0 = time.perf_counter()
+            sent = self._publish_map(stream, st, seq, restart, cut, evicted, restored)
+            self.stats.observe("map_publish", (time.perf_counter() - t0) * 1000.0 - (st.tiling_ms - st.extract_ms))
+            self.stats.observe("tiling", st.tiling_ms)
+            self.stats.observe("map_update", (time.perf_counter() - t0) * 1000.0 + st.extract_ms)
+            if sent[0]:
+                self.stats.inc("tiles_sent", sent[0])
+        except Exception as exc:  # noqa: BLE001 - a worker never dies of one frame's tiles
+            self.report_error(stream, "internal", f"map update of seq {seq}: {type(exc).__name__}: {exc}", seq=seq)
+            log_event(self.log, "stage failed", logging.ERROR, stream=stream, error=repr(exc))
 
     def _publish_pose(
         self,
@@ -345,7 +435,9 @@ class StreamLanes:
             else:
                 st.append(seq, stamp, pose_m, status, digest)
             st.latest = pose
+        t_encode = time.perf_counter()
         data = encode(pose)
+        self.stats.observe("pose_encode", (time.perf_counter() - t_encode) * 1000.0)
         # counted first: a client holding the pose (another thread may wake it before put returns) finds it counted
         self.stats.inc("relocalised" if status == "relocalised" else "frames_out")
         self.session.put(keys.pose(stream), data, congestion_control=zenoh.CongestionControl.BLOCK)

@@ -8,7 +8,6 @@ import time
 import numpy as np
 
 from occvo_core.frame import OccupancyFrame
-from occvo_core.map_tiles import retile_region
 from occvo_core.working_map import tiles_near, tiles_reached
 from occvo_services.registration.state import StreamState
 from occvo_services.store_blobs import unpack_arrays
@@ -27,18 +26,21 @@ class Paging:
     def _finish(self, stream: str, st: StreamState, reg, frame: OccupancyFrame, seq: int, publish: bool):
         """After the pose: loop closure and map update (OccVO.complete), keep every tile wholly resident or wholly
         cold, evict far map, and bring back the cold map near the new pose, which the next frame registers against.
-        Returns (result, tiles restored, evicted blocks, tiles of the working map before eviction if publish)."""
+        Returns (result, tiles restored, evicted blocks, the changed part of the map before eviction if publish:
+        what _publish_map cuts into tiles)."""
+        t_complete = time.perf_counter()
         result = st.vo.complete(reg)
         pose = np.asarray(result.pose, float)
         t0 = time.perf_counter()
+        st.complete_ms = (t0 - t_complete) * 1000.0
         restored = list(st.restored_for_next)
         if st.cold:  # a frame that reached into an evicted tile: bring the rest back, so the tile stays whole
             restored += self._restore(stream, st, self._reached(st, frame, pose))
         t_map = time.perf_counter()
-        tiles = dirty = None
+        cut = None
         if publish:  # only the part of the map this frame changed is cut again (a replay leaves the region open)
-            tiles, dirty = retile_region(st.tiles, st.vo.map_points, st.vo.pop_changed_region(), self.config.tile_m)
-        st.tiling_ms = (time.perf_counter() - t_map) * 1000.0
+            cut = self._changed_map(st)
+        st.extract_ms = (time.perf_counter() - t_map) * 1000.0
         t_evict = time.perf_counter()
         evicted = self._evict_far(st, seq, pose)
         st.evict_ms = (time.perf_counter() - t_evict) * 1000.0
@@ -47,7 +49,19 @@ class Paging:
         # published with the next frame's tiles (they are cut then); committed with this frame
         st.restored_for_next = self._restore(stream, st, self._near(st))
         st.restore_ms = (t_map - t0 + time.perf_counter() - t_near) * 1000.0
-        return result, restored, evicted, (tiles, dirty)
+        return result, restored, evicted, cut
+
+    def _changed_map(self, st: StreamState) -> tuple:
+        """(region, points, labels): the x-y box of the map this frame changed (None: anywhere) and the map's points
+        in the tiles it overlaps, copied, so the tiles are cut and sent beside the next frame's registration."""
+        region, tile_m = st.vo.pop_changed_region(), self.config.tile_m
+        if region is None:
+            return (None, *st.vo.map_points())
+        if region[0] > region[2]:  # nothing changed
+            return (region, np.zeros((0, 3)), np.zeros(0, np.uint8))
+        lo = np.floor(np.asarray(region[:2]) / tile_m).astype(np.int64)
+        hi = np.floor(np.asarray(region[2:]) / tile_m).astype(np.int64)
+        return (region, *st.vo.map_points((lo, hi, tile_m)))
 
     def _reached(self, st: StreamState, frame: OccupancyFrame, pose: np.ndarray) -> list[tuple[int, int]]:
         """Cold tiles the frame's points reach at `pose` (occvo_core.working_map.tiles_reached)."""

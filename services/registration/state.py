@@ -35,12 +35,14 @@ class StreamState:
         self.snapshot_idle.set()
         self.snapshot_retry = False  # the last snapshot failed: take one at the next frame
         self.send_all_tiles = False  # after a resume: the map service may lack the last frames' tiles
-        self.tiling_ms = 0.0
+        self.tiling_ms = self.complete_ms = self.extract_ms = 0.0
         self.restore_ms = self.evict_ms = 0.0  # the last step's working-map restores and evictions
         self.restored_for_next: list[tuple[int, int]] = []  # tiles restored after the last frame, not yet published
         self.ego_xy: np.ndarray | None = None  # x-y of the last registered pose (eviction and restore centre)
         self.after_pose: ThreadPoolExecutor | None = None  # the stream's thread for the work after a pose
         self.tail = None  # Future of the last frame's work after its pose
+        self.map_thread: ThreadPoolExecutor | None = None  # the stream's thread cutting and sending its map tiles
+        self.map_tail = None  # Future of the last frame's tiles (st.tiles, cold_digest, send_all_tiles are its)
         self.tail_lock = threading.Lock()  # orders the lane's priority boost against the end of that work
         self.tail_running = False
         self.tail_tid: int | None = None  # native id of the after-pose thread

@@ -375,11 +375,12 @@ def test_a_lane_waiting_for_its_streams_after_pose_work_raises_it_to_the_lanes_p
         pytest.skip("raising a thread's priority needs root or RLIMIT_NICE >= 20 (LimitNICE=+0)")
     worker = next(w for w in service.workers if w.role == "registration")
     scene = load_scene("synthetic:2", frames=3)
-    gate, seen = threading.Event(), []
+    gate, seen, held_at = threading.Event(), [], threading.Event()
     steps = worker._after_pose_steps
 
     def held(stream, st, msg, *args):  # the real work, held at frame 1 until the lane is seen waiting for it
         if stream == "boost" and msg.seq == 1:
+            held_at.set()
             gate.wait(30)
             seen.append(os.getpriority(os.PRIO_PROCESS, threading.get_native_id()))
         return steps(stream, st, msg, *args)
@@ -393,7 +394,8 @@ def test_a_lane_waiting_for_its_streams_after_pose_work_raises_it_to_the_lanes_p
             st = worker.states["boost"]
             lane_nice = os.getpriority(os.PRIO_PROCESS, worker.lanes["boost"].thread.native_id)
             deadline = time.monotonic() + 30
-            while not st.tail_boosted and time.monotonic() < deadline:  # frame 2 waits in the lane for frame 1's work
+            # frame 2 waits in the lane for frame 1's work (frame 0's, boosted by frame 1's lane, is over once it holds)
+            while not (held_at.is_set() and st.tail_boosted) and time.monotonic() < deadline:
                 time.sleep(0.01)
             gate.set()
             c.wait_pose(2, timeout=60)
@@ -405,6 +407,84 @@ def test_a_lane_waiting_for_its_streams_after_pose_work_raises_it_to_the_lanes_p
     (thread,) = st.after_pose._threads
     assert os.getpriority(os.PRIO_PROCESS, thread.native_id) == lane_nice + 10  # and was niced again
     assert not st.tail_boosted and worker.stats.snapshot()[0]["after_pose_boosted"] >= 1
+
+
+def test_a_pose_is_published_while_its_work_after_the_pose_is_held(service):
+    """The pose leaves as soon as registration and its commit end: its loop-closure search, map update and tiles run
+    after it. Every stage on its way is in its timings, and the work after it in the worker's stats."""
+    from occvo_services.commands.replay import load_scene
+
+    worker = next(w for w in service.workers if w.role == "registration")
+    scene = load_scene("synthetic:4", frames=3)
+    gate, held_at = threading.Event(), threading.Event()
+    steps = worker._after_pose_steps
+
+    def held(stream, st, msg, *args):
+        if stream == "early" and msg.seq == 1:
+            held_at.set()
+            gate.wait(30)
+        return steps(stream, st, msg, *args)
+
+    worker._after_pose_steps = held
+    try:
+        with OccVOClient(service.endpoint, "early") as c:
+            c.reset()
+            for i in range(3):
+                c.publish(scene[i])
+            pose = c.wait_pose(1, timeout=60)  # while frame 1's work after its pose is held
+            assert held_at.wait(30) and not worker.states["early"].tail.done()
+            time.sleep(0.5)  # frame 2 is in the lane by now: it waits for frame 1's work
+            assert 2 not in c.poses
+            gate.set()
+            last = c.wait_pose(2, timeout=60)
+            assert not c.errors
+            ref = offline([scene[i] for i in range(3)]).poses
+            assert np.array_equal(np.array([c.poses[i].matrix() for i in range(3)]), ref)
+    finally:
+        gate.set()
+        worker._after_pose_steps = steps
+    worker.drain()
+    on_the_way = {"occupancy_hop", "decode", "registration_queue", "after_pose_wait", "validate", "registration"}
+    assert on_the_way | {"core_wait", "camera_decode", "inference"} <= set(pose.timings_ms)
+    assert last.timings_ms["after_pose_wait"] >= 0.0 and pose.timings_ms["core_wait"] >= 0.0
+    _, stages = worker.stats.snapshot()
+    after = {
+        "complete",
+        "complete.voxel_pfilter",
+        "map_extract",
+        "map_wait",
+        "frame_after_pose",
+        "tiling",
+        "map_publish",
+    }
+    assert {"decode", "validate", "pose_encode"} | after <= set(stages) and "complete.fine_gicp" not in stages
+    # the tiles were cut and sent in the stream's map thread, at the lane's priority (it holds the GIL)
+    st = worker.states["early"]
+    (map_thread,) = st.map_thread._threads
+    nice = os.getpriority(os.PRIO_PROCESS, worker.lanes["early"].thread.native_id)
+    assert os.getpriority(os.PRIO_PROCESS, map_thread.native_id) == nice and st.map_tail.done()
+
+
+def test_kernel_threads_0_shares_the_cores_between_the_streams_registering():
+    from occvo_services.registration import lane as lane_mod
+    from occvo_services.worker_config import WorkerConfig
+
+    class Lane:
+        def __init__(self, busy):
+            self.busy = busy
+
+    class Lanes:
+        _fair_threads = lane_mod.StreamLanes._fair_threads
+
+    w = Lanes()
+    w.config = WorkerConfig()
+    w.lanes = {"a": Lane(True), "b": Lane(False)}
+    assert w._fair_threads() == lane_mod.CORES  # alone: every core
+    w.lanes = {k: Lane(True) for k in "abcdefgh"}
+    assert w._fair_threads() == max(1, lane_mod.CORES // 8)
+    w.config = WorkerConfig(shards=2)  # two processes on the same cores: half each
+    w.lanes = {"a": Lane(True)}
+    assert w._fair_threads() == max(1, lane_mod.CORES // 2)
 
 
 def test_worker_process_memory_settings_and_thread_names():

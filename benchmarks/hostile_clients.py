@@ -41,7 +41,8 @@ from occvo_schemas.models import ErrorEvent, WorkerHealth
 from occvo_services.client import OccVOClient, camera_frame_of
 from occvo_services.commands.replay import replay
 from occvo_services.local import LocalService
-from occvo_services.runtime import WorkerConfig, open_session
+from occvo_services.runtime import WorkerConfig
+from occvo_services.sessions import open_session
 
 DATA = Path(__file__).resolve().parents[2] / "shared/data/occvo-sample/occupancy/scene-0101"
 BLOCK = zenoh.CongestionControl.BLOCK

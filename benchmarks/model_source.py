@@ -36,7 +36,7 @@ from occvo_schemas.codec import decode, encode  # noqa: E402
 from occvo_schemas.models import CameraFrame, ErrorEvent, OccupancyFrameMsg, WorkerHealth  # noqa: E402
 from occvo_services.local import wait_alive  # noqa: E402
 from occvo_services.occupancy_model import camera_inputs, encode_image  # noqa: E402
-from occvo_services.runtime import free_port, open_router, open_session  # noqa: E402
+from occvo_services.sessions import free_port, open_router, open_session  # noqa: E402
 
 
 def paired(predictor, checkpoint, frames, threads) -> dict:

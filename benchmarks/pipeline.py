@@ -44,7 +44,7 @@ from occvo_schemas.models import OccupancyFrameMsg, SparseOccupancy  # noqa: E40
 from occvo_services.client import OccVOClient  # noqa: E402
 from occvo_services.commands.replay import replay  # noqa: E402
 from occvo_services.local import LocalService  # noqa: E402
-from occvo_services.runtime import free_port, open_router, open_session  # noqa: E402
+from occvo_services.sessions import free_port, open_router, open_session  # noqa: E402
 
 DATA = Path(__file__).resolve().parents[2] / "shared/data/occvo-sample/occupancy"
 RATE_HZ = 2.0  # the paper's camera rate

@@ -58,7 +58,7 @@ from occvo_schemas.models import (  # noqa: E402
     WorkerHealth,
 )
 from occvo_services.local import LocalService  # noqa: E402
-from occvo_services.runtime import open_session  # noqa: E402
+from occvo_services.sessions import open_session  # noqa: E402
 
 # ---------------------------------------------------------------- scenes, rendered once
 

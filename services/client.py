@@ -36,7 +36,8 @@ from occvo_schemas.models import (
     Trajectory,
     WorkerHealth,
 )
-from occvo_services.runtime import DEFAULT_ENDPOINT, open_session
+from occvo_services.runtime import DEFAULT_ENDPOINT
+from occvo_services.sessions import open_session
 
 
 class ServiceError(RuntimeError):

@@ -11,7 +11,8 @@ import time
 from pathlib import Path
 
 from occvo_schemas import keys
-from occvo_services.runtime import WorkerConfig, free_port, open_router, open_session
+from occvo_services.runtime import WorkerConfig
+from occvo_services.sessions import free_port, open_router, open_session
 
 REPO = Path(__file__).resolve().parents[1]
 WORKERS = {

@@ -21,7 +21,8 @@ import zenoh
 
 from occvo_core.errors import ConfigError
 from occvo_services import defaults
-from occvo_services.runtime import limit_messages, log_event, structured_logger
+from occvo_services.runtime import log_event, structured_logger
+from occvo_services.sessions import limit_messages
 
 DEFAULT_CONFIG = defaults.path("router.json5")
 

@@ -1,33 +1,30 @@
-"""What every occvo worker shares: Zenoh sessions, a liveliness token, a stats queryable, error events and graceful
+"""What every occvo worker shares (its Zenoh sessions come from services/sessions.py): a liveliness token, a stats queryable, error events and graceful
 shutdown around the stream lanes (services/flow.py), counters and logs (services/telemetry.py) and OS tuning
 (services/os_tuning.py)."""
 
 from __future__ import annotations
 
-import json
 import logging
 import os
 import queue
 import signal
-import socket
 import threading
 import time
 import uuid
 from collections import defaultdict
 from collections.abc import Callable
-from pathlib import Path
 
 import zenoh
 
-from occvo_core.errors import ConfigError
 from occvo_schemas import keys
-from occvo_schemas.codec import DEFAULT_MAX_BYTES, CodecError, decode, encode
+from occvo_schemas.codec import CodecError, decode, encode
 from occvo_schemas.models import ErrorEvent, WorkerHealth
 from occvo_services.flow import EVICT, SeqTracker, StageQueue, StreamLane
 from occvo_services.limits import MAX_KEY_CHARS, MAX_MESSAGE_CHARS, Admission, ErrorBudget, clip
 from occvo_services.memory import CHECK_EVERY_S, EVICT_IDLE_S, MemoryCap
 from occvo_services.os_tuning import few_malloc_arenas, large_blocks_from_mmap, trim_heap
 from occvo_services.query_gate import QueryGate
+from occvo_services.sessions import open_session
 from occvo_services.telemetry import Stats, log_event, structured_logger
 from occvo_services.worker_config import DEFAULT_ENDPOINT, Policy, WorkerConfig
 
@@ -41,83 +38,6 @@ __all__ = [  # importers of these names from here predate the split
     "log_event",
     "structured_logger",
 ]
-
-# ---------------------------------------------------------------- sessions
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
-ZENOH_CONFIG_ENV = "OCCVO_ZENOH_CONFIG"  # a zenoh json5 for client sessions: TLS certificates, credentials (deploy/)
-CLIENT_RETRY = "{period_init_ms: 100, period_max_ms: 500, period_increase_factor: 2}"
-# Zenoh reassembles a fragmented message up to this many bytes and drops it beyond (its default, 1 GiB, let a 512 MiB
-# put cost the router and a worker 500 MB before the codec's check). The codec's limit, so every message that reaches
-# a worker's decode is within it; the registration worker splits bigger map updates (deploy/*.json5 set it too)
-TRANSPORT_MAX_BYTES = DEFAULT_MAX_BYTES
-_ZENOH_DEFAULT_MAX = 1 << 30
-
-
-def limit_messages(c: zenoh.Config, max_bytes: int = TRANSPORT_MAX_BYTES) -> zenoh.Config:
-    """Set the transport's largest reassembled message, unless the config file set its own; turn shared memory off.
-
-    With zenoh's shared memory on (its default), every local client that sends more than 3 kB allocates a 16 MiB
-    pool, and each process its messages reach (the router, the workers) maps that pool for as long as the client
-    lives: the inference worker stayed +16 MB for each flooding client, given back only when it left. Off, the router
-    and workers get their own copy of a message over the socket (a frame's copy costs well under a millisecond)."""
-    if json.loads(c.get_json("transport/link/rx/max_message_size")) == _ZENOH_DEFAULT_MAX:
-        c.insert_json5("transport/link/rx/max_message_size", str(max_bytes))
-    c.insert_json5("transport/shared_memory/enabled", "false")
-    return c
-
-
-def zenoh_config(
-    mode: str = "client", connect: str | None = None, listen: str | None = None, base: str | Path | None = None
-) -> zenoh.Config:
-    """Loopback-friendly config: no multicast scouting, explicit endpoints only. Client sessions start from
-    `base` (default: the file named by $OCCVO_ZENOH_CONFIG) and retry a lost router every 0.5 s at most, so
-    workers and clients reconnect within half a second of a router restart (zenoh's default waits up to 4 s)."""
-    base = base or (os.environ.get(ZENOH_CONFIG_ENV) if mode == "client" else None)
-    try:
-        c = zenoh.Config.from_file(str(base)) if base else zenoh.Config()
-    except Exception as exc:  # noqa: BLE001 - zenoh names the key, we name the file
-        raise ConfigError(f"zenoh config {base}: {exc}") from None
-    c.insert_json5("mode", json.dumps(mode))
-    c.insert_json5("scouting/multicast/enabled", "false")
-    if connect:
-        c.insert_json5("connect/endpoints", json.dumps([connect]))
-    if listen:
-        c.insert_json5("listen/endpoints", json.dumps([listen]))
-    if mode == "client" and json.loads(c.get_json("connect/retry")) is None:
-        c.insert_json5("connect/retry", CLIENT_RETRY)
-    return limit_messages(c)
-
-
-def open_session(connect: str = DEFAULT_ENDPOINT, base: str | Path | None = None) -> zenoh.Session:
-    return zenoh.open(zenoh_config("client", connect=connect, base=base))
-
-
-def open_router(listen: str | None = None, config_path: str | Path | None = None) -> zenoh.Session:
-    """An in-process Zenoh router, from a json5 config file (deploy/router.json5) or a listen endpoint."""
-    if config_path is not None:
-        c = zenoh.Config.from_file(str(config_path))
-        if listen:
-            c.insert_json5("listen/endpoints", json.dumps([listen]))
-        return zenoh.open(limit_messages(c))
-    return zenoh.open(zenoh_config("router", listen=listen or DEFAULT_ENDPOINT))
-
-
-def router_endpoint(config_path: str | Path) -> str:
-    """The first listen endpoint of a router json5 config, for workers and clients to connect to."""
-    import json5
-
-    try:
-        eps = json5.loads(Path(config_path).read_text())["listen"]["endpoints"]
-        return eps[0]
-    except Exception as exc:  # noqa: BLE001
-        raise ConfigError(f"{config_path}: no listen/endpoints[0] ({exc})") from None
 
 
 class Worker:

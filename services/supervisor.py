@@ -28,7 +28,8 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from occvo_core.errors import ConfigError
 from occvo_services import defaults
-from occvo_services.runtime import log_event, router_endpoint, structured_logger
+from occvo_services.runtime import log_event, structured_logger
+from occvo_services.sessions import router_endpoint
 
 REPO = Path(__file__).resolve().parents[1]
 MODULES = {

@@ -56,7 +56,7 @@ def run(args) -> int:
     if args.prerender:
         if args.cache is None:
             raise ConfigError("--prerender needs --cache DIR (the frames are rendered there)")
-        from occvo_core.models.train import prerender
+        from occvo_core.models.training_data import prerender
 
         n = prerender(
             args.seeds, args.frames, args.stride, cfg.input_size, args.cache, args.prerender, progress=not args.quiet

@@ -13,7 +13,8 @@ from pathlib import Path
 from occvo_core.errors import ConfigError
 from occvo_schemas import keys
 from occvo_services import defaults
-from occvo_services.runtime import DEFAULT_ENDPOINT, router_endpoint
+from occvo_services.runtime import DEFAULT_ENDPOINT
+from occvo_services.sessions import router_endpoint
 
 ROLES = ("inference", "registration", "map")
 WARM_UP_NOTE = "compiles its kernels on a first start, ~40 s on 2 cores; loads them from the cache after"
@@ -104,7 +105,7 @@ class ReadinessWatch:
         self.report(role, round(time.monotonic() - self.t0, 1))
 
     def _run(self) -> None:
-        from occvo_services.runtime import open_session
+        from occvo_services.sessions import open_session
 
         session = None
         while session is None and not self._stop.wait(0.2):

@@ -69,7 +69,7 @@ def _worker_config(args, name: str) -> str:
 def _wait_alive(sup, timeout: float) -> None:
     """Until every worker's liveliness token is up (a fresh install compiles kernels first), restarting crashes."""
     from occvo_schemas import keys
-    from occvo_services.runtime import open_session
+    from occvo_services.sessions import open_session
 
     roles = {"inference", "registration", "map"}
     probe = open_session(sup.endpoint)

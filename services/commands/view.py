@@ -36,7 +36,7 @@ def run(args) -> int:
         if exc.name != "rerun":
             raise
         raise ConfigError("occvo view needs rerun-sdk: pip install 'occvo[view]'") from None
-    from occvo_services.runtime import open_session
+    from occvo_services.sessions import open_session
 
     view = RerunView.open(
         f"occvo-{args.stream}", spawn=not (args.rerun or args.web_port), save=args.rerun, web_port=args.web_port

@@ -9,6 +9,7 @@ import threading
 from occvo_core.errors import ConfigError
 from occvo_schemas import keys
 from occvo_services.os_tuning import trim_heap
+from occvo_services.registration.after_pose import AfterPose
 from occvo_services.registration.durability import Durability
 from occvo_services.registration.lane import StreamLanes
 from occvo_services.registration.map_publisher import MapPublisher
@@ -20,7 +21,7 @@ from occvo_services.store import TrajectoryStore
 from occvo_services.telemetry import log_event
 
 
-class RegistrationWorker(StreamLanes, Durability, Paging, MapPublisher, Queries, Worker):
+class RegistrationWorker(StreamLanes, AfterPose, Durability, Paging, MapPublisher, Queries, Worker):
     """Occupancy frames -> OccVO poses and map tiles."""
 
     role = "registration"

@@ -21,7 +21,8 @@ from occvo_core.models.tpvformer import (
     shipped_checkpoint,
 )
 from occvo_core.models.tpvformer.checkpoint import read_checkpoint, save_half
-from occvo_core.models.train import SyntheticOccDataset, make_sample, train
+from occvo_core.models.train import train
+from occvo_core.models.training_data import SyntheticOccDataset, make_sample
 
 # Held-out figures of the shipped checkpoint on the frames below (docs/model.md), less a margin for other CPUs' maths.
 ONE_FRAME_GEOMETRY_IOU = 0.55  # measured 0.593

@@ -21,7 +21,8 @@ from occvo_core.models.tpvformer import (
     save_checkpoint,
 )
 from occvo_core.models.tpvformer.attention import ImageCrossAttention
-from occvo_core.models.train import lovasz_softmax, make_sample, train
+from occvo_core.models.train import lovasz_softmax, train
+from occvo_core.models.training_data import make_sample
 
 FRONT, BACK = CAMERA_NAMES.index("CAM_FRONT"), CAMERA_NAMES.index("CAM_BACK")
 
@@ -362,7 +363,7 @@ def test_occvo_run_from_images_runs_the_whole_chain(tmp_path):
 
 
 def test_rendered_training_frames_are_cached_on_disk_and_read_back(tmp_path):
-    from occvo_core.models.train import SyntheticOccDataset
+    from occvo_core.models.training_data import SyntheticOccDataset
 
     rig = nuscenes_rig(96, 54)
     first = SyntheticOccDataset([3], frames=2, rig=rig, stride=2, cache_dir=tmp_path)[0]

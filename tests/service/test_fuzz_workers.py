@@ -52,7 +52,7 @@ from occvo_schemas.models import (
     WorkerHealth,
 )
 from occvo_services.local import InProcessService
-from occvo_services.runtime import open_session
+from occvo_services.sessions import open_session
 
 MAXB = 256 * 1024  # the workers' max_message_bytes: small, so oversize payloads are cheap to make
 FUZZ = dict(

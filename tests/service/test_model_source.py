@@ -23,7 +23,8 @@ from occvo_schemas import keys
 from occvo_schemas.codec import decode, encode
 from occvo_schemas.models import CameraFrame, ErrorEvent, OccupancyFrameMsg, WorkerHealth
 from occvo_services.occupancy_model import camera_inputs, encode_image
-from occvo_services.runtime import WorkerConfig, free_port, open_router, open_session
+from occvo_services.runtime import WorkerConfig
+from occvo_services.sessions import free_port, open_router, open_session
 
 REPO = Path(__file__).resolve().parents[2]
 ENV = dict(os.environ, PYTHONPATH=os.pathsep.join([str(REPO), os.environ.get("PYTHONPATH", "")]).rstrip(os.pathsep))

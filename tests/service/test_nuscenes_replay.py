@@ -186,7 +186,7 @@ def test_replay_nuscenes_through_the_three_workers_with_the_model_source(dataset
     from occvo_services.local import InProcessService
     from occvo_services.nuscenes_source import NuScenesCameraFrames
     from occvo_services.occupancy_model import camera_inputs
-    from occvo_services.runtime import open_session
+    from occvo_services.sessions import open_session
 
     root, stamps, _, _ = dataset
     got = {}

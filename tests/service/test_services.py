@@ -21,7 +21,8 @@ from occvo_schemas.codec import decode, encode
 from occvo_schemas.models import ErrorEvent, OccupancyFrameMsg
 from occvo_services.client import OccVOClient, ServiceError, camera_frame_of
 from occvo_services.local import InProcessService
-from occvo_services.runtime import SeqTracker, StageQueue, open_session
+from occvo_services.runtime import SeqTracker, StageQueue
+from occvo_services.sessions import open_session
 
 DATA = Path(__file__).resolve().parents[3] / "shared/data/occvo-sample"
 SCENE = DATA / "occupancy/scene-0101"

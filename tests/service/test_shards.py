@@ -52,7 +52,8 @@ def test_two_shards_share_the_streams_and_one_restarts_alone(tmp_path, scene, un
     from occvo_services.local import wait_alive
     from occvo_services.map_service import MapService
     from occvo_services.registration_worker import RegistrationWorker
-    from occvo_services.runtime import WorkerConfig, free_port, open_router, open_session
+    from occvo_services.runtime import WorkerConfig
+    from occvo_services.sessions import free_port, open_router, open_session
 
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     router = open_router(endpoint)
@@ -125,7 +126,8 @@ def test_a_stream_moves_to_its_new_shard_through_the_store(tmp_path, scene, unin
     from occvo_services.inference_worker import InferenceWorker
     from occvo_services.local import wait_alive
     from occvo_services.registration_worker import RegistrationWorker
-    from occvo_services.runtime import WorkerConfig, free_port, open_router, open_session
+    from occvo_services.runtime import WorkerConfig
+    from occvo_services.sessions import free_port, open_router, open_session
 
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     router = open_router(endpoint)

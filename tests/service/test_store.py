@@ -356,7 +356,8 @@ class Pipeline:
     def __init__(self, store_path, **registration):
         from occvo_services.inference_worker import InferenceWorker
         from occvo_services.map_service import MapService
-        from occvo_services.runtime import WorkerConfig, free_port, open_router
+        from occvo_services.runtime import WorkerConfig
+        from occvo_services.sessions import free_port, open_router
 
         self.endpoint = f"tcp/127.0.0.1:{free_port()}"
         self.router = open_router(self.endpoint)
@@ -372,7 +373,7 @@ class Pipeline:
     def start_registration(self):
         from occvo_services.local import wait_alive
         from occvo_services.registration_worker import RegistrationWorker
-        from occvo_services.runtime import open_session
+        from occvo_services.sessions import open_session
 
         self.reg = RegistrationWorker(self.config).start()
         probe = open_session(self.endpoint)

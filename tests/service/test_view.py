@@ -110,7 +110,7 @@ def test_occvo_view_follows_the_service_into_the_web_viewer(tmp_path):
     from occvo_services.client import OccVOClient
     from occvo_services.commands.replay import replay
     from occvo_services.local import InProcessService
-    from occvo_services.runtime import free_port
+    from occvo_services.sessions import free_port
 
     n, port, rrd = 4, free_port(), tmp_path / "view.rrd"
     with InProcessService() as svc:

@@ -27,7 +27,8 @@ from occvo_schemas.models import (
 )
 from occvo_services.client import OccVOClient, camera_frame_of
 from occvo_services.router import router_config
-from occvo_services.runtime import ZENOH_CONFIG_ENV, WorkerConfig, free_port, zenoh_config
+from occvo_services.runtime import WorkerConfig
+from occvo_services.sessions import ZENOH_CONFIG_ENV, free_port, zenoh_config
 
 DEPLOY = Path(__file__).resolve().parents[2] / "deploy"
 USERS = ["inference", "registration", "map", "camera", "camera2", "viewer"]

@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 from occvo_cli.cli import main
-from occvo_services.runtime import free_port
+from occvo_services.sessions import free_port
 
 REPO = Path(__file__).resolve().parents[2]
 ENV = dict(os.environ, PYTHONPATH=os.pathsep.join([str(REPO), os.environ.get("PYTHONPATH", "")]).rstrip(os.pathsep))

@@ -9,7 +9,8 @@ import json5
 import pytest
 
 from occvo_services import defaults
-from occvo_services.runtime import WorkerConfig, router_endpoint
+from occvo_services.runtime import WorkerConfig
+from occvo_services.sessions import router_endpoint
 from occvo_services.supervisor import UpConfig
 
 DEPLOY = Path(__file__).resolve().parents[2] / "deploy"

@@ -18,7 +18,8 @@ import pytest
 import zenoh
 
 from occvo_services.router import router_config
-from occvo_services.runtime import WorkerConfig, free_port, zenoh_config
+from occvo_services.runtime import WorkerConfig
+from occvo_services.sessions import free_port, zenoh_config
 
 REPO = Path(__file__).resolve().parents[2]
 DEPLOY = REPO / "deploy"
@@ -101,7 +102,7 @@ def test_client_sessions_start_from_occvo_zenoh_config(monkeypatch, tmp_path):
     """Workers and clients take TLS certificates or ACL credentials from the file named by $OCCVO_ZENOH_CONFIG;
     their own endpoint wins, the reconnect retry is added unless the file sets one."""
     from occvo_core.errors import ConfigError
-    from occvo_services.runtime import ZENOH_CONFIG_ENV
+    from occvo_services.sessions import ZENOH_CONFIG_ENV
 
     monkeypatch.setenv(ZENOH_CONFIG_ENV, str(DEPLOY / "tls/client.json5"))
     c = zenoh_config("client", connect="tls/localhost:1")

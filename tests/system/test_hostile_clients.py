@@ -18,7 +18,7 @@ from occvo_schemas.codec import decode, encode
 from occvo_schemas.models import ErrorEvent
 from occvo_services.client import OccVOClient, camera_frame_of
 from occvo_services.local import InProcessService
-from occvo_services.runtime import open_session
+from occvo_services.sessions import open_session
 
 BLOCK = zenoh.CongestionControl.BLOCK
 LIMITS = {

@@ -23,7 +23,7 @@ from occvo_core.eval import ape_rmse
 from occvo_services.client import OccVOClient
 from occvo_services.commands.replay import replay
 from occvo_services.local import REPO, wait_alive
-from occvo_services.runtime import free_port, open_router, open_session
+from occvo_services.sessions import free_port, open_router, open_session
 from occvo_services.store import TrajectoryStore
 
 warnings.filterwarnings("ignore", category=RuntimeWarning)

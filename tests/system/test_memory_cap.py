@@ -27,7 +27,7 @@ from occvo_schemas.models import ErrorEvent, OccupancyFrameMsg, PoseEstimate, Wo
 from occvo_services.client import camera_frame_of
 from occvo_services.local import REPO, wait_alive
 from occvo_services.memory import ADMIT_SHARE, EVICT_IDLE_S, EVICT_SHARE
-from occvo_services.runtime import free_port, open_router, open_session
+from occvo_services.sessions import free_port, open_router, open_session
 
 BLOCK = zenoh.CongestionControl.BLOCK
 STREAMS = 40  # one-frame streams a client opens, one after the other

@@ -19,7 +19,7 @@ import pytest
 
 from occvo_services.client import OccVOClient
 from occvo_services.local import WORKERS, InProcessService
-from occvo_services.runtime import free_port
+from occvo_services.sessions import free_port
 
 REPO = Path(__file__).resolve().parents[2]
 SCENE, FRAMES = "synthetic:3", 6

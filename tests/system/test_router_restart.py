@@ -1,5 +1,5 @@
 """The router goes away and comes back on the same endpoint: the workers (separate processes) and the client reconnect
-by themselves (occvo_services.runtime.zenoh_config's connect retry) and the trajectory goes on where it was: every pose,
+by themselves (occvo_services.sessions.zenoh_config's connect retry) and the trajectory goes on where it was: every pose,
 before and after, equals the offline run of the same frames."""
 
 from __future__ import annotations
@@ -17,7 +17,7 @@ import numpy as np
 
 from occvo_services.client import OccVOClient
 from occvo_services.local import WORKERS, wait_alive
-from occvo_services.runtime import free_port, open_session
+from occvo_services.sessions import free_port, open_session
 
 REPO = Path(__file__).resolve().parents[2]
 warnings.filterwarnings("ignore", category=RuntimeWarning)

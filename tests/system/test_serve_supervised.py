@@ -21,7 +21,7 @@ from occvo_core.errors import ConfigError
 from occvo_services.client import OccVOClient, ServiceError
 from occvo_services.commands._common import check_listen_secure, deploy_dir, is_loopback
 from occvo_services.commands.replay import replay
-from occvo_services.runtime import free_port
+from occvo_services.sessions import free_port
 
 REPO = Path(__file__).resolve().parents[2]
 DEPLOY = deploy_dir()

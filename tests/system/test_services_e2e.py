@@ -21,7 +21,7 @@ import pytest
 from occvo_core.map_tiles import tiles_from_map
 from occvo_services.client import OccVOClient, ServiceError
 from occvo_services.local import REPO, LocalService
-from occvo_services.runtime import free_port
+from occvo_services.sessions import free_port
 
 DATA = Path(__file__).resolve().parents[3] / "shared/data/occvo-sample"
 SCENE = DATA / "occupancy/scene-0101"

@@ -20,7 +20,7 @@ import pytest
 from occvo_core.errors import ConfigError
 from occvo_services.client import OccVOClient
 from occvo_services.local import WORKERS, wait_alive
-from occvo_services.runtime import free_port, open_session
+from occvo_services.sessions import free_port, open_session
 from occvo_services.supervisor import Backoff, RestartSpec, UpConfig
 
 REPO = Path(__file__).resolve().parents[2]

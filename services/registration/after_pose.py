@@ -21,24 +21,12 @@ from occvo_services.telemetry import log_event
 class AfterPose:
     """RegistrationWorker's work after a pose."""
 
-    def _after_pose(
-        self,
-        stream: str,
-        st: StreamState,
-        msg,
-        reg,
-        frame: OccupancyFrame,
-        digest: bytes,
-        pose_m: np.ndarray,
-        restart: bool,
-        t0: float,
-        pose_out: Future,
-    ) -> None:
-        """A frame's work after its pose: OccVO.complete and _finish, their second store write, a relocalised pose,
-        the map update and the snapshot schedule. A failure is reported as a lane reports one."""
+    def _after_pose(self, stream: str, st: StreamState, msg, *rest) -> None:
+        """A frame's work after its pose (_after_pose_steps: OccVO.complete and _finish, their second store write, a
+        relocalised pose, the map update and the snapshot schedule). A failure is reported as a lane reports one."""
         st.tail_tid = threading.get_native_id()
         try:
-            self._after_pose_steps(stream, st, msg, reg, frame, digest, pose_m, restart, t0, pose_out)
+            self._after_pose_steps(stream, st, msg, *rest)
         except Exception as exc:  # noqa: BLE001 - a worker never dies of one frame
             self.report_error(stream, "internal", f"{type(exc).__name__}: {exc}", seq=msg.seq)
             log_event(self.log, "stage failed", logging.ERROR, stream=stream, error=repr(exc))

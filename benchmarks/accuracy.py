@@ -19,7 +19,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import sys
 from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
@@ -34,7 +33,7 @@ from time_offset import RUNS, four_ways  # noqa: E402
 from occvo_core import OccVO, OccVOConfig  # noqa: E402
 from occvo_core.eval import ape_rmse, success  # noqa: E402
 from occvo_core.frame import OccupancyFrame  # noqa: E402
-from occvo_core.reproducible import is_pinned, pinned_env  # noqa: E402
+from occvo_core.reproducible import is_pinned, restart_pinned  # noqa: E402
 from occvo_core.time_fit import fit_time_offset  # noqa: E402
 from occvo_core.trajectory_stats import path_length  # noqa: E402
 
@@ -205,7 +204,5 @@ def print_report(report: dict) -> None:
 
 
 if __name__ == "__main__":
-    pinned = pinned_env()
-    if pinned is not None and not is_pinned():  # the pins act when numpy loads: start again with them
-        os.execve(sys.executable, [sys.executable, *sys.argv], pinned)
+    restart_pinned()
     sys.exit(main())

@@ -47,6 +47,14 @@ def is_pinned() -> bool:
     return os.environ.get("OPENBLAS_CORETYPE") == CORETYPE and "NPY_DISABLE_CPU_FEATURES" in os.environ
 
 
+def restart_pinned() -> None:
+    """Start this Python process again, same arguments, in pinned_env(); nothing where it runs there already or
+    cannot (the pins act only when numpy loads, so a process cannot pin itself)."""
+    env = pinned_env()
+    if env is not None and not is_pinned():
+        os.execve(sys.executable, [sys.executable, *sys.orig_argv[1:]], env)
+
+
 def main(argv: list[str]) -> int:
     """`python -m occvo_core.reproducible COMMAND ...`: run a command in the pinned environment."""
     env = pinned_env()

@@ -1,6 +1,6 @@
-"""What every occvo worker shares (its Zenoh sessions come from services/sessions.py): a liveliness token, a stats queryable, error events and graceful
-shutdown around the stream lanes (services/flow.py), counters and logs (services/telemetry.py) and OS tuning
-(services/os_tuning.py)."""
+"""What every occvo worker shares: a liveliness token, a stats queryable, error events and graceful shutdown around
+the stream lanes (services/flow.py), counters and logs (services/telemetry.py), OS tuning (services/os_tuning.py);
+its Zenoh sessions come from services/sessions.py."""
 
 from __future__ import annotations
 

@@ -1,20 +1,16 @@
-import os
-import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
 
-from occvo_core.reproducible import is_pinned, pinned_env
+from occvo_core.reproducible import restart_pinned
 
 
 def pytest_configure(config):
     """The suite checks exact poses, digests and model scores: it runs in one floating-point environment on every
     x86-64 machine (an AVX-512 CPU rounds numpy's sin and cos differently). The pins act when numpy loads, so pytest
     starts again with them (here, where its output capture is not yet on)."""
-    env = pinned_env()
-    if env is not None and not is_pinned():
-        os.execve(sys.executable, [sys.executable, *sys.orig_argv[1:]], env)
+    restart_pinned()
 
 
 SAMPLE = Path(__file__).resolve().parents[2] / "shared" / "data" / "occvo-sample"

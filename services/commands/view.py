@@ -56,7 +56,7 @@ def run(args) -> int:
         while not stop.wait(0.2):
             if deadline is not None and time.monotonic() > deadline:
                 break
-    except KeyboardInterrupt:
+    except KeyboardInterrupt:  # Ctrl-C is how a viewer ends: close and print the counts
         pass
     finally:
         follower.close()

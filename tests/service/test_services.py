@@ -3,6 +3,7 @@ bad input of every kind is reported and survived, good frames give the offline p
 
 from __future__ import annotations
 
+import contextlib
 import os
 import resource
 import threading
@@ -368,6 +369,29 @@ def test_replay_of_a_synthetic_scene(service):
     assert st.tail.done() and st.tail.exception() is None
 
 
+@contextlib.contextmanager
+def _held_after_pose(worker, stream: str, released=None):
+    """The stream's work after the pose of frame 1 held until the yielded gate is set (held_at: it is waiting there);
+    `released()` runs as it goes on. The real work runs after it; the worker is as it was on leaving."""
+    gate, held_at = threading.Event(), threading.Event()
+    steps = worker._after_pose_steps
+
+    def held(s, st, msg, *args):
+        if s == stream and msg.seq == 1:
+            held_at.set()
+            gate.wait(30)
+            if released is not None:
+                released()
+        return steps(s, st, msg, *args)
+
+    worker._after_pose_steps = held
+    try:
+        yield gate, held_at
+    finally:
+        gate.set()
+        worker._after_pose_steps = steps
+
+
 def test_a_lane_waiting_for_its_streams_after_pose_work_raises_it_to_the_lanes_priority(service):
     """Priority inheritance: niced work a pose waits for runs at the lane's priority until it ends, then is niced again."""
     from occvo_services.commands.replay import load_scene
@@ -376,33 +400,25 @@ def test_a_lane_waiting_for_its_streams_after_pose_work_raises_it_to_the_lanes_p
         pytest.skip("raising a thread's priority needs root or RLIMIT_NICE >= 20 (LimitNICE=+0)")
     worker = next(w for w in service.workers if w.role == "registration")
     scene = load_scene("synthetic:2", frames=3)
-    gate, seen, held_at = threading.Event(), [], threading.Event()
-    steps = worker._after_pose_steps
-
-    def held(stream, st, msg, *args):  # the real work, held at frame 1 until the lane is seen waiting for it
-        if stream == "boost" and msg.seq == 1:
-            held_at.set()
-            gate.wait(30)
-            seen.append(os.getpriority(os.PRIO_PROCESS, threading.get_native_id()))
-        return steps(stream, st, msg, *args)
-
-    worker._after_pose_steps = held
-    try:
-        with OccVOClient(service.endpoint, "boost") as c:
-            c.reset()
-            for i in range(3):
-                c.publish(scene[i])
-            st = worker.states["boost"]
-            lane_nice = os.getpriority(os.PRIO_PROCESS, worker.lanes["boost"].thread.native_id)
-            deadline = time.monotonic() + 30
-            # frame 2 waits in the lane for frame 1's work (frame 0's, boosted by frame 1's lane, is over once it holds)
-            while not (held_at.is_set() and st.tail_boosted) and time.monotonic() < deadline:
-                time.sleep(0.01)
-            gate.set()
-            c.wait_pose(2, timeout=60)
-    finally:
+    seen = []
+    # the real work, held at frame 1 until the lane is seen waiting for it; its priority once let go
+    with (
+        _held_after_pose(
+            worker, "boost", lambda: seen.append(os.getpriority(os.PRIO_PROCESS, threading.get_native_id()))
+        ) as (gate, held_at),
+        OccVOClient(service.endpoint, "boost") as c,
+    ):
+        c.reset()
+        for i in range(3):
+            c.publish(scene[i])
+        st = worker.states["boost"]
+        lane_nice = os.getpriority(os.PRIO_PROCESS, worker.lanes["boost"].thread.native_id)
+        deadline = time.monotonic() + 30
+        # frame 2 waits in the lane for frame 1's work (frame 0's, boosted by frame 1's lane, is over once it holds)
+        while not (held_at.is_set() and st.tail_boosted) and time.monotonic() < deadline:
+            time.sleep(0.01)
         gate.set()
-        worker._after_pose_steps = steps
+        c.wait_pose(2, timeout=60)
     worker.drain()
     assert seen == [lane_nice]  # frame 1's work finished at the lane's priority
     (thread,) = st.after_pose._threads
@@ -417,33 +433,19 @@ def test_a_pose_is_published_while_its_work_after_the_pose_is_held(service):
 
     worker = next(w for w in service.workers if w.role == "registration")
     scene = load_scene("synthetic:4", frames=3)
-    gate, held_at = threading.Event(), threading.Event()
-    steps = worker._after_pose_steps
-
-    def held(stream, st, msg, *args):
-        if stream == "early" and msg.seq == 1:
-            held_at.set()
-            gate.wait(30)
-        return steps(stream, st, msg, *args)
-
-    worker._after_pose_steps = held
-    try:
-        with OccVOClient(service.endpoint, "early") as c:
-            c.reset()
-            for i in range(3):
-                c.publish(scene[i])
-            pose = c.wait_pose(1, timeout=60)  # while frame 1's work after its pose is held
-            assert held_at.wait(30) and not worker.states["early"].tail.done()
-            time.sleep(0.5)  # frame 2 is in the lane by now: it waits for frame 1's work
-            assert 2 not in c.poses
-            gate.set()
-            last = c.wait_pose(2, timeout=60)
-            assert not c.errors
-            ref = offline([scene[i] for i in range(3)]).poses
-            assert np.array_equal(np.array([c.poses[i].matrix() for i in range(3)]), ref)
-    finally:
+    with _held_after_pose(worker, "early") as (gate, held_at), OccVOClient(service.endpoint, "early") as c:
+        c.reset()
+        for i in range(3):
+            c.publish(scene[i])
+        pose = c.wait_pose(1, timeout=60)  # while frame 1's work after its pose is held
+        assert held_at.wait(30) and not worker.states["early"].tail.done()
+        time.sleep(0.5)  # frame 2 is in the lane by now: it waits for frame 1's work
+        assert 2 not in c.poses
         gate.set()
-        worker._after_pose_steps = steps
+        last = c.wait_pose(2, timeout=60)
+        assert not c.errors
+        ref = offline([scene[i] for i in range(3)]).poses
+        assert np.array_equal(np.array([c.poses[i].matrix() for i in range(3)]), ref)
     worker.drain()
     on_the_way = {"occupancy_hop", "decode", "registration_queue", "after_pose_wait", "validate", "registration"}
     assert on_the_way | {"core_wait", "camera_decode", "inference"} <= set(pose.timings_ms)

@@ -229,6 +229,7 @@ class OccVO:
                 "change to the odometry (step, complete, evict_tiles, restore_tiles, reset, load)"
             )
         p.watch.restart()  # the time between the halves (a service publishing the pose) is no stage's
+        use_threads(self.threads)  # a service runs it in a thread of its own
         if p.t == 0:
             self._commit(p.frame, np.eye(4), np.zeros(0, np.int64))
             p.watch.lap("voxel_pfilter")

@@ -33,7 +33,8 @@ def add_parser(sub) -> None:
         "--threads",
         type=int,
         default=0,
-        help="cores the registration kernels may use (default 0: all); the result does not depend on it",
+        help="cores the registration kernels may use (default 0: those other processes leave free); the result does not "
+        "depend on it",
     )
     p.add_argument(
         "--skip-bad-frames", action="store_true", help="skip frames that fail validation instead of stopping"

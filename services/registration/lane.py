@@ -12,6 +12,7 @@ import zenoh
 
 from occvo_core.errors import InvalidFrameError
 from occvo_core.frame import OccupancyFrame
+from occvo_core.free_cores import FREE_CORES
 from occvo_schemas import keys
 from occvo_schemas.codec import encode
 from occvo_schemas.models import OccupancyFrameMsg, PoseEstimate
@@ -68,11 +69,11 @@ class StreamLanes:
             st.map_tail.result()
 
     def _fair_threads(self) -> int:
-        """Kernel threads for a frame about to be registered: this shard's share of the cores (shards are processes
-        on the same cores, each blind to the others' lanes) divided among its lanes busy now (this one included), so
-        one stream alone uses every core and several streams do not oversubscribe them."""
+        """Kernel threads for a frame about to be registered: the cores other processes (other shards among them)
+        leave free, divided among this worker's lanes busy now (this one included), so one stream alone uses every
+        free core and several streams do not oversubscribe them."""
         busy = sum(1 for lane in list(self.lanes.values()) if lane.busy)
-        return max(1, CORES // self.config.shards // max(1, busy))
+        return max(1, FREE_CORES.threads(CORES) // max(1, busy))
 
     def check_seq(self, stream: str, seq: int, key: str) -> bool:
         return True  # judged in the lane against the stream's trajectory: a step back may be a resend

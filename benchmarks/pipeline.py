@@ -12,7 +12,7 @@ Per scene, medians over the repeats of:
   - pose latency p50/p99 at 2 Hz (client send to pose arrival) beside the offline registration time a frame (the
     whole step, median and p99; goal p50 <= median + 10 ms, p99 <= 2 x p99);
   - a stage row: the offline stages of the same frames beside the service's (the pose's timings_ms medians, the
-    worker stats' p50 for the work after the pose);
+    worker stats' p50 for the work after the pose), and the poses' stages at RATE_HZ (where the latency goes);
   - tile query p50/p99 (one 20 m tile, client -> router -> map service -> client).
 And the per-hop transport latency p50/p99 of a 30k-voxel occupancy frame, publisher -> router -> subscriber,
 including encode and decode, exact (float64) and compact (voxel index) encodings (--hop-messages 0 skips it).
@@ -134,6 +134,15 @@ def offline(frames: list) -> dict:
     }
 
 
+def _stage_lists(pose_msgs: dict) -> dict[str, list[float]]:
+    """Stage -> its times over the poses (PoseEstimate.timings_ms)."""
+    timings = {}
+    for pose in pose_msgs.values():
+        for k, v in pose.timings_ms.items():
+            timings.setdefault(k, []).append(v)
+    return timings
+
+
 def service(scene, store_dir: Path, window: int, registration_args: list[str]) -> dict:
     """The scene through the router and the three worker processes, both stores on: a lossless replay as fast as
     the pipeline takes, then one at RATE_HZ."""
@@ -144,10 +153,7 @@ def service(scene, store_dir: Path, window: int, registration_args: list[str]) -
     with LocalService(quiet=True, worker_args=args) as svc, OccVOClient(svc.endpoint, scene.name) as client:
         fast = replay(client, scene, window=window)
         health = {h.role: h for h in client.stats()}
-        timings = {}
-        for pose in fast["pose_msgs"].values():
-            for k, v in pose.timings_ms.items():
-                timings.setdefault(k, []).append(v)
+        timings = _stage_lists(fast["pose_msgs"])
         info = client.map_info()
         ix, iy = info.tiles[len(info.tiles) // 2]
         for _ in range(20):
@@ -161,6 +167,7 @@ def service(scene, store_dir: Path, window: int, registration_args: list[str]) -
             live = replay(live_client, scene, rate_hz=RATE_HZ, window=len(scene))
             arrived = live_client.arrived
             latency = [(arrived[s] - t) * 1000.0 for s, t in enumerate(live["sent_at"]) if s in arrived]
+            live_timings = _stage_lists(live["pose_msgs"])
     reg = health["registration"].stages
     return {
         "fps": fast["fps"],
@@ -173,6 +180,7 @@ def service(scene, store_dir: Path, window: int, registration_args: list[str]) -
             role: {k: s.p50_ms for k, s in h.stages.items()} for role, h in health.items() if h.stages
         },
         "latency_ms": latency,
+        "latency_timings": {k: float(np.median(v[1:] if len(v) > 1 else v)) for k, v in live_timings.items()},
         "tile_query_ms": tq,
     }
 
@@ -228,6 +236,9 @@ def run_scene(scene_dir: Path, repeats: int, window: int, registration_args: lis
         "offline_stage_median_ms": offline_stages,
         "service_stage_median_ms": service_stages,
         "worker_stats_p50_ms": svcs[0]["worker_stats_p50"],
+        "latency_stage_median_ms": {  # the stages of the poses at RATE_HZ: where the latency goes
+            k: float(np.median([s["latency_timings"].get(k, np.nan) for s in svcs])) for k in svcs[0]["latency_timings"]
+        },
         "tile_query_p50_ms": float(np.median([np.percentile(s["tile_query_ms"], 50) for s in svcs])),
         "tile_query_p99_ms": float(np.median([np.percentile(s["tile_query_ms"], 99) for s in svcs])),
         "runs": [
@@ -262,6 +273,8 @@ def print_scene(name: str, r: dict) -> None:
     for k in AFTER_POSE_STAGES:
         if k in svc:
             print(f"    {k:<32}{'':>9}{svc[k]:>9.1f}")
+    live = r["latency_stage_median_ms"]
+    print(f"  at {r['latency_rate_hz']:g} Hz, a pose's stages: " + ", ".join(f"{k} {v:.1f}" for k, v in live.items()))
 
 
 def main(argv=None) -> int:

@@ -30,7 +30,7 @@ class FreeCores:
         self._last = self._sample()
 
     def _sample(self) -> tuple[float, float, float] | None:
-        """(time, jiffies other processes kept this process's cpus busy + jiffies of those cpus, own jiffies)."""
+        """(time, busy jiffies of this process's cpus less its own, all jiffies of those cpus); None off Linux."""
         try:
             busy = total = 0
             with open("/proc/stat") as f:

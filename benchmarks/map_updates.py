@@ -20,8 +20,9 @@ from occvo_core import OccVO
 from occvo_core.datasets.occvo_release import OccVOReleaseScene
 from occvo_core.map_tiles import changed_tiles, retile_region
 from occvo_schemas.codec import decode, encode
-from occvo_schemas.models import Array, MapTile, MapUpdate
+from occvo_schemas.models import MapUpdate
 from occvo_services.map_store import open_map_store
+from occvo_services.registration.map_publisher import map_update
 
 DATA = Path(__file__).resolve().parents[2] / "shared/data/occvo-sample/occupancy"
 TILE_M = 20.0  # the workers' default tile_m
@@ -56,24 +57,7 @@ def main(argv=None) -> int:
             changed = dict(new) if seq == 0 else changed_tiles(old, {k: new[k] for k in dirty if k in new})
             tiles = new
             watch.append(time.perf_counter())
-            update = MapUpdate(
-                stream="s",
-                seq=seq,
-                reset=seq == 0,
-                tile_m=TILE_M,
-                tiles=[
-                    MapTile(
-                        stream="s",
-                        ix=ix,
-                        iy=iy,
-                        tile_m=TILE_M,
-                        seq=seq,
-                        points=Array.from_numpy(np.asarray(p, np.float64)),
-                        labels=Array.from_numpy(np.asarray(lab, np.uint8)),
-                    )
-                    for (ix, iy), (p, lab) in sorted(changed.items())
-                ],
-            )
+            update = map_update("s", seq, seq == 0, TILE_M, changed)
             data = encode(update, 1 << 30)
             watch.append(time.perf_counter())
             received = decode(data, MapUpdate, 1 << 30)

@@ -22,6 +22,28 @@ def _tile_digest(tile) -> bytes:
     ).digest()
 
 
+def map_update(stream: str, seq: int, reset: bool, tile_m: float, tiles: dict) -> MapUpdate:
+    """The MapUpdate of {(ix, iy): (points, labels)}, tiles in key order."""
+    return MapUpdate(
+        stream=stream,
+        seq=seq,
+        reset=reset,
+        tile_m=tile_m,
+        tiles=[
+            MapTile(
+                stream=stream,
+                ix=ix,
+                iy=iy,
+                tile_m=tile_m,
+                seq=seq,
+                points=Array.from_numpy(np.asarray(p, np.float64)),
+                labels=Array.from_numpy(np.asarray(l, np.uint8)),
+            )
+            for (ix, iy), (p, l) in sorted(tiles.items())
+        ],
+    )
+
+
 class MapPublisher:
     """RegistrationWorker's map updates."""
 
@@ -57,25 +79,7 @@ class MapPublisher:
                 st.cold_digest[k] = _tile_digest(tiles[k])
         st.send_all_tiles = False
         st.tiles = {k: v for k, v in tiles.items() if k not in evicted} if evicted else tiles
-        tile_m = self.config.tile_m
-        update = MapUpdate(
-            stream=stream,
-            seq=seq,
-            reset=restart,
-            tile_m=tile_m,
-            tiles=[
-                MapTile(
-                    stream=stream,
-                    ix=ix,
-                    iy=iy,
-                    tile_m=tile_m,
-                    seq=seq,
-                    points=Array.from_numpy(np.asarray(p, np.float64)),
-                    labels=Array.from_numpy(np.asarray(l, np.uint8)),
-                )
-                for (ix, iy), (p, l) in sorted(changed.items())
-            ],
-        )
+        update = map_update(stream, seq, restart, self.config.tile_m, changed)
         return len(update.tiles), self._put_update(stream, update)
 
     def _put_update(self, stream: str, update: MapUpdate) -> int:

@@ -19,6 +19,7 @@ import numpy as np
 from occvo_core import OccVO
 from occvo_core.datasets.occvo_release import OccVOReleaseScene
 from occvo_core.map_tiles import changed_tiles, retile_region
+from occvo_core.working_map import changed_map
 from occvo_schemas.codec import decode, encode
 from occvo_schemas.models import MapUpdate
 from occvo_services.map_store import open_map_store
@@ -26,16 +27,6 @@ from occvo_services.registration.map_publisher import map_update
 
 DATA = Path(__file__).resolve().parents[2] / "shared/data/occvo-sample/occupancy"
 TILE_M = 20.0  # the workers' default tile_m
-
-
-def region_points(vo: OccVO) -> tuple:
-    """The map points in the tiles this frame changed (the worker's Paging._changed_map)."""
-    region = vo.pop_changed_region()
-    if region is None:
-        return (None, *vo.map_points())
-    lo = np.floor(np.asarray(region[:2]) / TILE_M).astype(np.int64)
-    hi = np.floor(np.asarray(region[2:]) / TILE_M).astype(np.int64)
-    return (region, *vo.map_points((lo, hi, TILE_M)))
 
 
 def main(argv=None) -> int:
@@ -50,7 +41,7 @@ def main(argv=None) -> int:
         for seq, frame in enumerate(OccVOReleaseScene(args.data / args.scene)):
             vo.step(frame)
             watch = [time.perf_counter()]
-            region, *cut = region_points(vo)
+            region, *cut = changed_map(vo, TILE_M)
             watch.append(time.perf_counter())
             new, dirty = retile_region(tiles, lambda *_, cut=cut: cut, region, TILE_M)
             old = {k: tiles[k] for k in dirty if k in tiles}

@@ -134,13 +134,13 @@ def offline(frames: list) -> dict:
     }
 
 
-def _stage_lists(pose_msgs: dict) -> dict[str, list[float]]:
-    """Stage -> its times over the poses (PoseEstimate.timings_ms)."""
+def _stage_medians(pose_msgs: dict) -> dict[str, float]:
+    """Stage -> its median over the poses (PoseEstimate.timings_ms), the first pose left out when there are more."""
     timings = {}
     for pose in pose_msgs.values():
         for k, v in pose.timings_ms.items():
             timings.setdefault(k, []).append(v)
-    return timings
+    return {k: float(np.median(v[1:] if len(v) > 1 else v)) for k, v in timings.items()}
 
 
 def service(scene, store_dir: Path, window: int, registration_args: list[str]) -> dict:
@@ -153,7 +153,7 @@ def service(scene, store_dir: Path, window: int, registration_args: list[str]) -
     with LocalService(quiet=True, worker_args=args) as svc, OccVOClient(svc.endpoint, scene.name) as client:
         fast = replay(client, scene, window=window)
         health = {h.role: h for h in client.stats()}
-        timings = _stage_lists(fast["pose_msgs"])
+        timings = _stage_medians(fast["pose_msgs"])
         info = client.map_info()
         ix, iy = info.tiles[len(info.tiles) // 2]
         for _ in range(20):
@@ -167,20 +167,20 @@ def service(scene, store_dir: Path, window: int, registration_args: list[str]) -
             live = replay(live_client, scene, rate_hz=RATE_HZ, window=len(scene))
             arrived = live_client.arrived
             latency = [(arrived[s] - t) * 1000.0 for s, t in enumerate(live["sent_at"]) if s in arrived]
-            live_timings = _stage_lists(live["pose_msgs"])
+            live_timings = _stage_medians(live["pose_msgs"])
     reg = health["registration"].stages
     return {
         "fps": fast["fps"],
         "poses": fast["poses"],
         "errors": fast["errors"] + live["errors"],
         "trajectory": fast["trajectory"],
-        "timings": {k: float(np.median(v[1:] if len(v) > 1 else v)) for k, v in timings.items()},
+        "timings": timings,
         "after_pose": {k: reg[k].p50_ms for k in AFTER_POSE_STAGES if k in reg},
         "worker_stats_p50": {
             role: {k: s.p50_ms for k, s in h.stages.items()} for role, h in health.items() if h.stages
         },
         "latency_ms": latency,
-        "latency_timings": {k: float(np.median(v[1:] if len(v) > 1 else v)) for k, v in live_timings.items()},
+        "latency_timings": live_timings,
         "tile_query_ms": tq,
     }
 

@@ -51,11 +51,11 @@ class FreeCores:
 
     def threads(self, most: int) -> int:
         """Threads for the next kernels: the free cores, at least 1 and at most `most`."""
-        now = time.monotonic()
-        if self._last is not None and now - self._last[0] >= WINDOW_S:
+        last = self._last  # lanes in threads call this at once: one window's ends, not two
+        if last is not None and time.monotonic() - last[0] >= WINDOW_S:
             sample = self._sample()
-            if sample is not None and sample[2] > self._last[2]:
-                others = (sample[1] - self._last[1]) / (sample[2] - self._last[2]) * len(self.cpus)
+            if sample is not None and sample[2] > last[2]:
+                others = (sample[1] - last[1]) / (sample[2] - last[2]) * len(self.cpus)
                 self.free = len(self.cpus) - max(0.0, others)
                 self._last = sample
         taken = int(len(self.cpus) - self.free + 1.0 - TAKEN_AT)

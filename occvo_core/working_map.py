@@ -23,6 +23,19 @@ Tile = tuple[int, int]
 REACH_MARGIN_M = 1.0  # a map voxel merged with a frame point moves at most this far
 
 
+def changed_map(vo: OccVO, tile_m: float) -> tuple:
+    """(region, points, labels): the x-y box of the map the last frame changed (None: anywhere) and the map's points
+    in the tiles it overlaps, copied (what a caller cuts into tiles and publishes)."""
+    region = vo.pop_changed_region()
+    if region is None:
+        return (None, *vo.map_points())
+    if region[0] > region[2]:  # nothing changed
+        return (region, np.zeros((0, 3)), np.zeros(0, np.uint8))
+    lo = np.floor(np.asarray(region[:2]) / tile_m).astype(np.int64)
+    hi = np.floor(np.asarray(region[2:]) / tile_m).astype(np.int64)
+    return (region, *vo.map_points((lo, hi, tile_m)))
+
+
 def evict_tiles(vo: OccVO, center_xy, radius_m: float, tile_m: float) -> dict[Tile, dict[str, np.ndarray]]:
     """Take every tile wholly farther than radius_m from center_xy out of the odometry's map; returns {tile: voxels}
     for the caller to keep (bounded memory on long drives)."""

@@ -3,7 +3,6 @@ work after the pose (loop closure, map update, snapshot schedule) in the stream'
 
 from __future__ import annotations
 
-import os
 import time
 from concurrent.futures import Future, ThreadPoolExecutor
 
@@ -21,7 +20,7 @@ from occvo_services.registration.state import StreamState
 from occvo_services.store_blobs import frame_digest, pack_frame
 from occvo_services.telemetry import log_event
 
-CORES = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
+CORES = len(FREE_CORES.cpus)  # the cores this process may run on
 _STATUS = {"ok": "ok", "lost": "lost", "initialised": "reinitialised", "reinitialised": "reinitialised"}
 
 

@@ -59,7 +59,7 @@ class MapPublisher:
     ) -> tuple[int, int]:
         """Changed tiles of the working map as it was before this frame's eviction (an evicted tile goes out with its
         last content, then is not sent as emptied: the map service keeps it); a restored tile only if it changed.
-        `cut`: Paging._changed_map's copy of the changed part. Returns (tiles sent, bytes sent)."""
+        `cut`: occvo_core.working_map.changed_map's copy of the changed part. Returns (tiles sent, bytes sent)."""
         t0 = time.perf_counter()
         region, points, labels = cut
         tiles, dirty = retile_region(st.tiles, lambda *_: (points, labels), region, self.config.tile_m)

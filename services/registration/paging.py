@@ -8,7 +8,7 @@ import time
 import numpy as np
 
 from occvo_core.frame import OccupancyFrame
-from occvo_core.working_map import tiles_near, tiles_reached
+from occvo_core.working_map import changed_map, tiles_near, tiles_reached
 from occvo_services.registration.state import StreamState
 from occvo_services.store_blobs import unpack_arrays
 
@@ -39,7 +39,7 @@ class Paging:
         t_map = time.perf_counter()
         cut = None
         if publish:  # only the part of the map this frame changed is cut again (a replay leaves the region open)
-            cut = self._changed_map(st)
+            cut = changed_map(st.vo, self.config.tile_m)  # copied: cut and sent beside the next registration
         st.extract_ms = (time.perf_counter() - t_map) * 1000.0
         t_evict = time.perf_counter()
         evicted = self._evict_far(st, seq, pose)
@@ -50,18 +50,6 @@ class Paging:
         st.restored_for_next = self._restore(stream, st, self._near(st))
         st.restore_ms = (t_map - t0 + time.perf_counter() - t_near) * 1000.0
         return result, restored, evicted, cut
-
-    def _changed_map(self, st: StreamState) -> tuple:
-        """(region, points, labels): the x-y box of the map this frame changed (None: anywhere) and the map's points
-        in the tiles it overlaps, copied, so the tiles are cut and sent beside the next frame's registration."""
-        region, tile_m = st.vo.pop_changed_region(), self.config.tile_m
-        if region is None:
-            return (None, *st.vo.map_points())
-        if region[0] > region[2]:  # nothing changed
-            return (region, np.zeros((0, 3)), np.zeros(0, np.uint8))
-        lo = np.floor(np.asarray(region[:2]) / tile_m).astype(np.int64)
-        hi = np.floor(np.asarray(region[2:]) / tile_m).astype(np.int64)
-        return (region, *st.vo.map_points((lo, hi, tile_m)))
 
     def _reached(self, st: StreamState, frame: OccupancyFrame, pose: np.ndarray) -> list[tuple[int, int]]:
         """Cold tiles the frame's points reach at `pose` (occvo_core.working_map.tiles_reached)."""

@@ -14,7 +14,8 @@ For each run: APE RMSE, and the time shift dt (-300..300 ms) of the ground truth
   l = a lead along the direction of travel (e.g. a scale): +l in all four;
 so d, e and l are read off the four shifts by least squares (each is a sum of the four with signs, over 4); the
 fourth such sum, signs +, +, -, -, is what the three leave unexplained (the residual; 0 if they explain it all).
-Last, the APE that an exact odometry would score against these poses if the frames lie d after them.
+Last, the APE that an exact odometry would score against these poses if the frames lie d after them, and its
+path length over the truth's.
 Prints a table and one JSON line.
 """
 
@@ -34,6 +35,7 @@ from occvo_core import OccVO, OccVOConfig  # noqa: E402
 from occvo_core.datasets import OccVOReleaseScene  # noqa: E402
 from occvo_core.eval import ape_rmse  # noqa: E402
 from occvo_core.frame import OccupancyFrame  # noqa: E402
+from occvo_core.trajectory_stats import path_length  # noqa: E402
 
 FRAME_MS = 500.0  # nuScenes keyframes, 2 Hz
 SHIFTS = np.arange(-0.6, 0.6001, 0.01)  # keyframes: -300..300 ms
@@ -97,6 +99,8 @@ def measure(root: Path, name: str, config: OccVOConfig) -> dict:
         travel_lead_ms=float(lead),
         residual_ms=float(residual),
         exact_odometry_ape_m=ape_rmse(forward, shifted(forward, d / FRAME_MS)),
+        # the offset alone makes a path longer or shorter when the car speeds up or slows down
+        exact_odometry_path_ratio=path_length(shifted(forward, d / FRAME_MS)) / path_length(forward),
     )
     return out
 
@@ -112,7 +116,7 @@ def print_scene(name: str, r: dict) -> None:
         f"  data offset d {r['data_offset_ms']:+.0f} ms, lead fixed in the ego frame {r['ego_lead_ms']:+.0f} ms, "
         f"lead along the travel {r['travel_lead_ms']:+.0f} ms, residual {r['residual_ms']:+.0f} ms;\n"
         f"  an exact odometry of frames {r['data_offset_ms']:.0f} ms after their poses scores APE "
-        f"{r['exact_odometry_ape_m']:.3f} m"
+        f"{r['exact_odometry_ape_m']:.3f} m, its path {r['exact_odometry_path_ratio']:.4f} times the truth's"
     )
 
 

@@ -26,7 +26,10 @@ class GICPConfig(_Section):
         1, ge=1, le=3, description="covariance from the (2r+1)^3 voxel neighbourhood on the grid"
     )
     covariance_epsilon: float = Field(
-        1e-3, gt=0, description="plane regularisation: eigenvalues (eps, 1, 1), Segal et al."
+        1e-2,
+        gt=0,
+        description="plane regularisation: eigenvalues (eps, 1, 1), Segal et al.; a normal fitted to voxel "
+        "centres quantised on the ego grid is unsure, so less than Segal's 1e-3 weight rests on it",
     )
     coarse_max_correspondence_m: float = Field(1.2, gt=0)
     wide_trust_m: float = Field(

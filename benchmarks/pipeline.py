@@ -13,7 +13,10 @@ Per scene, medians over the repeats of:
     whole step, median and p99; goal p50 <= median + 10 ms, p99 <= 2 x p99);
   - a stage row: the offline stages of the same frames beside the service's (the pose's timings_ms medians, the
     worker stats' p50 for the work after the pose), and the poses' stages at RATE_HZ (where the latency goes);
-  - tile query p50/p99 (one 20 m tile, client -> router -> map service -> client).
+  - tile query p50/p99 (one 20 m tile, client -> router -> map service -> client);
+  - CPU a frame (user + system) of the offline run and, over the lossless replay, of each service process: what
+    the service adds to the odometry's work on the same cores, and the ratio that leaves possible at best
+    (offline CPU over offline plus added, when the odometry's kernels already keep every core busy).
 And the per-hop transport latency p50/p99 of a 30k-voxel occupancy frame, publisher -> router -> subscriber,
 including encode and decode, exact (float64) and compact (voxel index) encodings (--hop-messages 0 skips it).
 """
@@ -30,6 +33,7 @@ import warnings
 from pathlib import Path
 
 import numpy as np
+import psutil
 import zenoh
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
@@ -118,7 +122,7 @@ def offline(frames: list) -> dict:
     stages' medians and the poses."""
     vo = OccVO(threads=0)
     step_ms, stages = [], {}
-    t_run = time.perf_counter()
+    t_run, cpu_run = time.perf_counter(), time.process_time()
     for frame in frames:
         t0 = time.perf_counter()
         result = vo.step(frame)
@@ -128,6 +132,7 @@ def offline(frames: list) -> dict:
     seconds = time.perf_counter() - t_run
     return {
         "fps": len(frames) / seconds,
+        "cpu_ms": (time.process_time() - cpu_run) * 1000.0 / len(frames),
         "step_ms": step_ms[1:],  # the first frame only seeds the map
         "stages": {k: float(np.median(v[1:] if len(v) > 1 else v)) for k, v in stages.items()},
         "poses": np.array(vo.poses),
@@ -151,7 +156,10 @@ def service(scene, store_dir: Path, window: int, registration_args: list[str]) -
         "map": ["--store-path", str(store_dir / "map.sqlite")],
     }
     with LocalService(quiet=True, worker_args=args) as svc, OccVOClient(svc.endpoint, scene.name) as client:
+        procs = {"router + client": psutil.Process()} | {r: psutil.Process(p.pid) for r, p in svc.procs.items()}
+        cpu0 = {r: sum(p.cpu_times()[:2]) for r, p in procs.items()}
         fast = replay(client, scene, window=window)
+        cpu = {r: (sum(p.cpu_times()[:2]) - cpu0[r]) * 1000.0 / len(scene) for r, p in procs.items()}
         health = {h.role: h for h in client.stats()}
         timings = _stage_medians(fast["pose_msgs"])
         info = client.map_info()
@@ -171,6 +179,7 @@ def service(scene, store_dir: Path, window: int, registration_args: list[str]) -
     reg = health["registration"].stages
     return {
         "fps": fast["fps"],
+        "cpu_ms": cpu,
         "poses": fast["poses"],
         "errors": fast["errors"] + live["errors"],
         "trajectory": fast["trajectory"],
@@ -206,6 +215,11 @@ def run_scene(scene_dir: Path, repeats: int, window: int, registration_args: lis
         s["poses"] == len(frames) and np.array_equal(s["trajectory"], o["poses"]) for o, s in zip(offs, svcs)
     )
     offline_stages = {k: float(np.median([o["stages"][k] for o in offs])) for k in offs[0]["stages"]}
+    offline_cpu = float(np.median([o["cpu_ms"] for o in offs]))
+    service_cpu = {r: float(np.median([s["cpu_ms"][r] for s in svcs])) for r in svcs[0]["cpu_ms"]}
+    added_cpu = (
+        sum(service_cpu.values()) - service_cpu["registration"] + max(0.0, service_cpu["registration"] - offline_cpu)
+    )
     service_stages = {k: float(np.median([s["timings"].get(k, np.nan) for s in svcs])) for k in svcs[0]["timings"]}
     service_stages |= {
         k: float(np.median([s["after_pose"].get(k, np.nan) for s in svcs])) for k in svcs[0]["after_pose"]
@@ -234,6 +248,10 @@ def run_scene(scene_dir: Path, repeats: int, window: int, registration_args: lis
             "latency p99 <= 2 x offline p99": lat_p99 <= 2.0 * step_p99,
         },
         "offline_stage_median_ms": offline_stages,
+        "offline_cpu_ms": offline_cpu,
+        "service_cpu_ms": service_cpu,
+        "service_added_cpu_ms": added_cpu,
+        "ratio_bound": offline_cpu / (offline_cpu + added_cpu),
         "service_stage_median_ms": service_stages,
         "worker_stats_p50_ms": svcs[0]["worker_stats_p50"],
         "latency_stage_median_ms": {  # the stages of the poses at RATE_HZ: where the latency goes
@@ -273,6 +291,11 @@ def print_scene(name: str, r: dict) -> None:
     for k in AFTER_POSE_STAGES:
         if k in svc:
             print(f"    {k:<32}{'':>9}{svc[k]:>9.1f}")
+    cpu = ", ".join(f"{k} {v:.1f}" for k, v in r["service_cpu_ms"].items())
+    print(
+        f"  CPU a frame: offline {r['offline_cpu_ms']:.1f} ms; service {cpu} ms; the service adds "
+        f"{r['service_added_cpu_ms']:.1f} ms: on cores the odometry keeps busy, ratio {r['ratio_bound']:.2f} at best"
+    )
     live = r["latency_stage_median_ms"]
     print(f"  at {r['latency_rate_hz']:g} Hz, a pose's stages: " + ", ".join(f"{k} {v:.1f}" for k, v in live.items()))
 

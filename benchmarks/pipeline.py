@@ -134,18 +134,23 @@ def offline(frames: list) -> dict:
         "fps": len(frames) / seconds,
         "cpu_ms": (time.process_time() - cpu_run) * 1000.0 / len(frames),
         "step_ms": step_ms[1:],  # the first frame only seeds the map
-        "stages": {k: float(np.median(v[1:] if len(v) > 1 else v)) for k, v in stages.items()},
+        "stages": _medians(stages),
         "poses": np.array(vo.poses),
     }
 
 
+def _medians(timings: dict[str, list[float]]) -> dict[str, float]:
+    """Stage -> its median over the frames, the first left out when there are more (it only seeds the map)."""
+    return {k: float(np.median(v[1:] if len(v) > 1 else v)) for k, v in timings.items()}
+
+
 def _stage_medians(pose_msgs: dict) -> dict[str, float]:
-    """Stage -> its median over the poses (PoseEstimate.timings_ms), the first pose left out when there are more."""
+    """Stage -> its median over the poses (PoseEstimate.timings_ms)."""
     timings = {}
     for pose in pose_msgs.values():
         for k, v in pose.timings_ms.items():
             timings.setdefault(k, []).append(v)
-    return {k: float(np.median(v[1:] if len(v) > 1 else v)) for k, v in timings.items()}
+    return _medians(timings)
 
 
 def service(scene, store_dir: Path, window: int, registration_args: list[str]) -> dict:

@@ -93,14 +93,15 @@ def measure(root: Path, name: str, config: OccVOConfig) -> dict:
     signs = np.array([RUNS[r] for r in inputs], np.float64)
     shifts = np.array([out["runs"][r]["best_shift_ms"] for r in inputs])
     d, e, lead, residual = signs.T @ shifts / 4.0  # the sign columns are orthogonal
+    exact = shifted(forward, d / FRAME_MS)  # an exact odometry of frames d after their poses
     out.update(
         data_offset_ms=float(d),
         ego_lead_ms=float(e),
         travel_lead_ms=float(lead),
         residual_ms=float(residual),
-        exact_odometry_ape_m=ape_rmse(forward, shifted(forward, d / FRAME_MS)),
+        exact_odometry_ape_m=ape_rmse(forward, exact),
         # the offset alone makes a path longer or shorter when the car speeds up or slows down
-        exact_odometry_path_ratio=path_length(shifted(forward, d / FRAME_MS)) / path_length(forward),
+        exact_odometry_path_ratio=path_length(exact) / path_length(forward),
     )
     return out
 

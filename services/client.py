@@ -6,9 +6,10 @@
             pose = env.step(frame)          # PoseEstimate, like a Gymnasium env step
         tile = env.tile(0, 1)
 
-Frames sent but not answered are sent again when the liveliness token of the registration worker of the stream's
-shard comes back (it restarted: its durable state answers frames it already registered with their stored poses) or
-after `resend_after` seconds without any answer. A pose that arrives twice is kept once. A frame that closed a loop
+Frames sent but not answered are sent again when the liveliness token of an inference worker or of the registration
+worker of the stream's shard comes back (it restarted: the frames it held are lost; the registration worker's durable
+state answers frames it already registered with their stored poses) or after `resend_after` seconds without any
+answer. New frames wait meanwhile: one that overtook a lost frame would make it old. A pose that arrives twice is kept once. A frame that closed a loop
 has its pose published twice: the odometry pose as soon as it is known, then (status "relocalised") the pose on the
 map seen long ago, which replaces it in `poses` (step() returns the first).
 """
@@ -86,14 +87,17 @@ class OccVOClient:
         self._unanswered: dict[int, bytes] = {}  # seq -> the encoded frame, until its pose or error comes back
         self._send_lock = threading.Lock()  # resends and new frames leave in seq order
         self._last_answer = time.monotonic()
-        self._registration: set[str] = set()  # live tokens of the registration workers of this stream's shard
-        self._down = False  # the registration worker left: hold new frames until it is back and the lost ones resent
+        # live tokens of the workers a frame passes: inference, and registration of this stream's shard
+        self._path: dict[str, set[str]] = {"inference": set(), "registration": set()}
+        self._seen: set[str] = set()
+        self._down = False  # a worker of the path left: hold new frames until it is back and the lost ones resent
         self._back_at: float | None = None
         self.resends = 0
         self._subs = [
             self.session.declare_subscriber(keys.pose(stream), self._on_pose),
             self.session.declare_subscriber(keys.errors(stream), self._on_error),
             self.session.liveliness().declare_subscriber(keys.registration_shard(), self._on_alive, history=True),
+            self.session.liveliness().declare_subscriber(keys.alive("inference"), self._on_alive, history=True),
         ]
         self._pub = self.session.declare_publisher(
             keys.camera(stream), congestion_control=zenoh.CongestionControl.BLOCK
@@ -135,18 +139,28 @@ class OccVOClient:
     def _on_alive(self, sample: zenoh.Sample) -> None:
         key = str(sample.key_expr)
         shard = keys.parse_registration_shard(key)
-        if shard is None or keys.shard_of(self.stream, shard[1]) != shard[0]:
-            return  # another shard's worker: its coming and going does not touch this stream
+        if shard is not None:
+            if keys.shard_of(self.stream, shard[1]) != shard[0]:
+                return  # another shard's worker: its coming and going does not touch this stream
+            live = self._path["registration"]
+        else:
+            live = self._path["inference"]
         with self._cv:
             if sample.kind == zenoh.SampleKind.PUT:
-                if key not in self._registration and (self._down or self._unanswered):
+                fresh = key not in live
+                live.add(key)
+                self._seen.add("registration" if shard is not None else "inference")
+                if fresh and (self._down or self._unanswered) and self._path_up():
                     self._back_at = time.monotonic()  # a (re)started worker: resend what it cannot have seen
-                self._registration.add(key)
             else:
-                self._registration.discard(key)
-                self._down = not self._registration
-                self._back_at = None
+                live.discard(key)
+                self._down = True  # even with another worker of its role up, the frames it held are lost
+                self._back_at = time.monotonic() if self._path_up() else None
             self._cv.notify_all()
+
+    def _path_up(self) -> bool:
+        """Every role of the path that was ever seen has a live worker (a role never seen is not waited for)."""
+        return all(live or role not in self._seen for role, live in self._path.items())
 
     # -- resending what a restarted worker lost
     def _resend_loop(self, settle_s: float = 0.3) -> None:
@@ -197,7 +211,7 @@ class OccVOClient:
         )
         payload = encode(msg)
         self._seq += 1
-        with self._cv:  # while the registration worker is away, a new frame would overtake the lost ones
+        with self._cv:  # while a worker of the path is away, a new frame would overtake the lost ones
             deadline = time.monotonic() + self.timeout
             while self._down and self.resend_after is not None and time.monotonic() < deadline:
                 self._cv.wait(0.1)

@@ -20,7 +20,8 @@ import pytest
 
 from occvo_core import OccVO
 from occvo_core.eval import ape_rmse
-from occvo_services.client import OccVOClient
+from occvo_schemas import keys
+from occvo_services.client import OccVOClient, ServiceError
 from occvo_services.commands.replay import replay
 from occvo_services.local import REPO, wait_alive
 from occvo_services.sessions import free_port, open_router, open_session
@@ -132,3 +133,64 @@ def test_kill9_registration_worker_mid_replay_scene_0101(tmp_path, capsys):
     scene, n = OccVOReleaseScene(SCENE), 16
     gt = read_trajectory(DATA / "trajectory/scene-0101.kitti")[:n]
     _kill9_run(tmp_path, [scene[i] for i in range(n)], gt, seed=11, capsys=capsys)
+
+
+def test_frames_wait_while_the_inference_worker_is_away_and_none_is_lost(tmp_path, scene, uninterrupted):
+    """A frame sent while the inference worker is dead reaches nobody; had the next frame gone out once it was back,
+    the registration worker would take it as a gap and the lost frame could never be registered. The client holds
+    new frames until the worker is back, resends what it lost, and every pose comes, equal to the offline run."""
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    router = open_router(endpoint)
+    procs = {
+        "inference": _spawn("occvo_services.inference_worker", endpoint, "inference-k9", tmp_path / "inference.log"),
+        "registration": _spawn("occvo_services.registration_worker", endpoint, "registration-k9", tmp_path / "r.log"),
+    }
+    n, k = len(scene), 4
+    back = threading.Event()
+
+    def send():  # frame k while the worker is away, the rest once it is back
+        client.publish(scene[k])
+        back.wait(60)
+        for i in range(k + 1, n):
+            client.publish(scene[i])
+
+    try:
+        probe = open_session(endpoint)
+        wait_alive(probe, ["inference", "registration"], 60)
+        with OccVOClient(endpoint, "held", timeout=60, resend_after=5.0) as client:
+            client.reset()
+            for i in range(k):
+                client.step(scene[i])
+            procs["inference"].kill()
+            procs["inference"].wait(10)
+            deadline = time.monotonic() + 30
+            while any(r.ok for r in probe.liveliness().get(keys.alive("inference"), timeout=2.0)):
+                assert time.monotonic() < deadline, "the router still lists the killed inference worker"
+                time.sleep(0.05)
+            sender = threading.Thread(target=send)
+            sender.start()
+            time.sleep(0.5)
+            procs["inference"] = _spawn(
+                "occvo_services.inference_worker", endpoint, "inference-k9b", tmp_path / "inference.log"
+            )
+            wait_alive(probe, ["inference"], 60)
+            back.set()
+            sender.join(60)
+            assert not sender.is_alive()
+            for i in range(k, n):
+                try:
+                    client.wait_pose(i, timeout=20)
+                except ServiceError:
+                    break
+            assert sorted(client.poses) == list(range(n)) and not client.errors, [
+                f"{e.seq} {e.code}: {e.message}" for e in client.errors
+            ]
+            got = np.array([client.poses[i].matrix() for i in range(n)])
+        probe.close()
+        assert np.allclose(got, np.array(uninterrupted), atol=1e-9)
+    finally:
+        for p in procs.values():
+            if p.poll() is None:
+                p.kill()
+                p.wait(10)
+        router.close()

@@ -167,10 +167,11 @@ class OccVO:
         """Register one frame. A bad frame raises InvalidFrameError and leaves poses and map as they were."""
         return self.complete(self.register(frame))
 
-    def prepare(self, frame: OccupancyFrame) -> Prepared:
+    def prepare(self, frame: OccupancyFrame, threads: int | None = None) -> Prepared:
         """register()'s first box, which reads nothing of the odometry's state: a service runs it for the next frame
-        while complete() of this one runs. Raises InvalidFrameError as register() would."""
-        use_threads(self.threads)
+        while complete() of this one runs (on `threads` kernel threads, if not self.threads). Raises
+        InvalidFrameError as register() would."""
+        use_threads(self.threads if threads is None else threads)
         return preprocess(frame, self.config)
 
     def register(self, frame: OccupancyFrame, prepared: Prepared | None = None) -> Registration:
@@ -229,7 +230,7 @@ class OccVO:
                 "change to the odometry (step, complete, evict_tiles, restore_tiles, reset, load)"
             )
         p.watch.restart()  # the time between the halves (a service publishing the pose) is no stage's
-        use_threads(self.threads)  # a service runs it in a thread of its own
+        use_threads(self.threads)  # a service may run it in another thread than register()
         if p.t == 0:
             self._commit(p.frame, np.eye(4), np.zeros(0, np.int64))
             p.watch.lap("voxel_pfilter")

@@ -13,6 +13,7 @@ from concurrent.futures import Future
 import numpy as np
 
 from occvo_core.frame import OccupancyFrame
+from occvo_core.registration.kernels import use_threads
 from occvo_services.os_tuning import hold_priority, lower_priority, name_os_thread, release_priority
 from occvo_services.registration.state import StreamState
 from occvo_services.telemetry import log_event
@@ -58,8 +59,11 @@ class AfterPose:
                 )
 
     def _background_thread(self) -> None:
-        """Start of a thread doing work off the poses' path: after_pose_nice below the lanes."""
+        """Start of a thread doing work off the poses' path: after_pose_nice below the lanes. Its own kernels (tiles
+        restored, evicted, snapshot copies) run on one thread; OccVO.complete goes to the worker's kernel team
+        (StreamLanes._kernels), the one thread of the process whose kernels run on several."""
         name_os_thread()
+        use_threads(1)
         if not lower_priority(self.config.after_pose_nice):
             log_event(
                 self.log,

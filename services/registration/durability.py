@@ -21,6 +21,7 @@ class Durability:
     def after_leaving(self) -> None:
         """Off the network (the frames in hand finished): end the streams' after-pose threads, then snapshot every
         stream with unsnapshotted frames."""
+        self._team.shutdown(wait=False)  # idle unless a lane's frame did not finish in time
         for stream, st in list(self.states.items()):
             lane = self.lanes.get(stream)
             if st.after_pose is not None and not (lane is not None and lane.thread.is_alive()):

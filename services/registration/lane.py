@@ -12,6 +12,7 @@ import zenoh
 from occvo_core.errors import InvalidFrameError
 from occvo_core.frame import OccupancyFrame
 from occvo_core.free_cores import FREE_CORES
+from occvo_core.registration.kernels import use_threads
 from occvo_schemas import keys
 from occvo_schemas.codec import encode
 from occvo_schemas.models import OccupancyFrameMsg, PoseEstimate
@@ -22,6 +23,12 @@ from occvo_services.telemetry import log_event
 
 CORES = len(FREE_CORES.cpus)  # the cores this process may run on
 _STATUS = {"ok": "ok", "lost": "lost", "initialised": "reinitialised", "reinitialised": "reinitialised"}
+
+
+def _map_thread_start() -> None:
+    """The map thread keeps the lane's priority; its kernels run on one thread (AfterPose._background_thread)."""
+    name_os_thread()
+    use_threads(1)
 
 
 class StreamLanes:
@@ -74,6 +81,21 @@ class StreamLanes:
         busy = sum(1 for lane in list(self.lanes.values()) if lane.busy)
         return max(1, FREE_CORES.threads(CORES) // max(1, busy))
 
+    def _kernels(self, vo, waited: list[float], fn, *args):
+        """fn(*args) (OccVO.prepare, register or complete) in the worker's kernel team thread when vo may use several
+        kernel threads, else in the calling thread; adds the team thread's wait for a core to waited[0]."""
+        if vo.threads == 1:
+            return fn(*args)
+
+        def call():
+            w0 = run_delay_ms()
+            try:
+                return fn(*args)
+            finally:
+                waited[0] += run_delay_ms() - w0
+
+        return self._team.submit(call).result()
+
     def check_seq(self, stream: str, seq: int, key: str) -> bool:
         return True  # judged in the lane against the stream's trajectory: a step back may be a resend
 
@@ -107,11 +129,16 @@ class StreamLanes:
         digest = frame_digest(frame.points, frame.labels, msg.stamp)
         t_prepare = time.perf_counter()
         prepared, bad, vo = None, None, st.vo  # vo: this lane's; only the config and thread count are read
+        team_wait = [0.0]  # ms the kernel team thread waited for a core for this frame
         if vo is not None:
             if self.config.kernel_threads == 0:
                 vo.threads = self._fair_threads()
             try:
-                prepared = vo.prepare(frame)  # the worker's config: valid for a reset or resumed OccVO too
+                # beside the last frame's work after its pose (in the team) on one thread, alone in the team
+                if st.tail is not None and not st.tail.done():
+                    prepared = vo.prepare(frame, threads=1)
+                else:
+                    prepared = self._kernels(vo, team_wait, vo.prepare, frame)
             except InvalidFrameError as exc:
                 bad = exc  # reported where register() would have raised it
         t_wait = time.perf_counter()
@@ -178,7 +205,13 @@ class StreamLanes:
         try:
             if bad is not None:
                 raise bad
-            reg = st.vo.register(frame, prepared)
+            lane = self.lanes.get(stream)
+            if lane is not None and lane.queue.q.qsize() > 0:
+                # frames wait behind this one: here, on one thread (use_threads), the kernels thread's spin would
+                # take the core the last frame's map work and the other processes need; caught up: on both cores
+                reg = st.vo.register(frame, prepared)
+            else:
+                reg = self._kernels(st.vo, team_wait, st.vo.register, frame, prepared)
         except InvalidFrameError as exc:
             if restart and self.store is not None:
                 st.vo = None  # reset for nothing: the stored trajectory stands and resumes at the next frame
@@ -194,7 +227,7 @@ class StreamLanes:
         if st.after_pose is None:
             st.after_pose = ThreadPoolExecutor(1, f"after-{stream}", initializer=self._background_thread)
         if st.map_thread is None:  # started from here: a thread starts at the niceness of the thread that made it
-            st.map_thread = ThreadPoolExecutor(1, f"map-{stream}", initializer=name_os_thread)
+            st.map_thread = ThreadPoolExecutor(1, f"map-{stream}", initializer=_map_thread_start)
             st.map_tail = st.map_thread.submit(int)
         pose_out: Future = Future()
         st.tail_running = True
@@ -218,7 +251,8 @@ class StreamLanes:
             if self.store is not None:  # where a slow commit waited: this worker's writers, another process, the sync
                 timings.update(store_commit=store_ms, **{f"store_commit.{k}": v for k, v in phases.items()})
             timings.update({f"registration.{k}": float(v) for k, v in reg_timings.items()})
-            timings["core_wait"] = run_delay_ms() - waited0  # of the above, runnable but without a core (this thread)
+            # of the above, runnable but without a core (this thread and the kernel team's)
+            timings["core_wait"] = run_delay_ms() - waited0 + team_wait[0]
             self._publish_pose(stream, st, msg.seq, msg.stamp, pose_m, status, digest, timings, restart)
             if restart:
                 log_event(self.log, "trajectory started", stream=stream, seq=msg.seq)

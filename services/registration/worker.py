@@ -5,10 +5,12 @@ from __future__ import annotations
 
 import queue
 import threading
+from concurrent.futures import ThreadPoolExecutor
 
 from occvo_core.errors import ConfigError
+from occvo_core.registration.kernels import own_team
 from occvo_schemas import keys
-from occvo_services.os_tuning import trim_heap
+from occvo_services.os_tuning import name_os_thread, trim_heap
 from occvo_services.registration.after_pose import AfterPose
 from occvo_services.registration.durability import Durability
 from occvo_services.registration.lane import StreamLanes
@@ -61,8 +63,18 @@ class RegistrationWorker(StreamLanes, AfterPose, Durability, Paging, MapPublishe
         if config.warm_up:  # before the worker is announced: no kernel compiles while frames wait (occvo_core.warm_up)
             from occvo_core.warm_up import warm_up
 
-            log_event(self.log, "kernels ready", **warm_up(self.occvo_config, config.kernel_threads))
+            # in a thread that ends: its OpenMP team goes with it (AfterPose._background_thread)
+            ready = {}
+            warming = threading.Thread(target=lambda: ready.update(warm_up(self.occvo_config, config.kernel_threads)))
+            warming.start()
+            warming.join()
+            log_event(self.log, "kernels ready", **ready)
             trim_heap()
+        # the one thread whose kernels run on several cores (occvo_core.registration.kernels.use_threads): a lane
+        # hands its frame's kernel work to it when it may use more than one core
+        self._team = ThreadPoolExecutor(1, "kernels", initializer=_team_start)
+        if not self._team.submit(own_team).result():
+            log_event(self.log, "another thread of this process runs kernels on several cores: lanes run on one")
 
     def owns(self, stream: str) -> bool:
         """This worker's shard registers the stream (a malformed stream id is shard 0's to report)."""
@@ -97,6 +109,11 @@ class RegistrationWorker(StreamLanes, AfterPose, Durability, Paging, MapPublishe
                     "working radius below a frame's reach: eviction changes registration",
                     working_radius_m=self.config.working_radius_m,
                 )
+
+
+def _team_start() -> None:
+    name_os_thread()
+    own_team()
 
 
 def _args(p) -> None:

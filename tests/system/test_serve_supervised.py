@@ -90,7 +90,9 @@ def test_serve_restarts_a_worker_killed_mid_replay_and_no_pose_is_lost(role, tmp
                 time.sleep(0.005)
             os.kill(victim, signal.SIGKILL)
             replayer.join(180)
-            assert not replayer.is_alive() and out.get("poses") == n, [f"{e.seq} {e.code}: {e.message}" for e in client.errors]
+            assert not replayer.is_alive() and out.get("poses") == n, [
+                f"{e.seq} {e.code}: {e.message}" for e in client.errors
+            ]
             assert sorted(client.poses) == list(range(n)) and not client.errors, [e.message for e in client.errors]
             got = np.array([client.poses[i].matrix() for i in range(n)])
             if role == "map":  # back, serving what its store holds (updates sent while it was away are lost)

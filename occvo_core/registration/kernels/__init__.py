@@ -7,6 +7,7 @@ order, and whatever depends on order (new row numbers, grid cells two voxels sha
 from __future__ import annotations
 
 import os
+import threading
 
 import numba
 
@@ -22,8 +23,26 @@ CHUNKS = 16  # fixed slices of parallel loops (see above)
 MODULES = ("grid", "sources", "covariance", "nearest", "gicp", "clusters", "voxel_pfilter", "map_window", "map_rows")
 
 
+_team_thread: list[threading.Thread | None] = [None]  # the one thread of this process whose kernels run on several
+_team_lock = threading.Lock()
+
+
 def use_threads(threads: int) -> None:
     """Kernel threads for calls from this Python thread: 0 = the cores other processes leave free (numba's thread
-    count is per thread)."""
+    count is per thread). Only one thread of a process at a time runs kernels on several threads: each keeps an
+    OpenMP team of its own, and once a process holds more team threads than cores, libgomp has them all sleep at
+    every barrier instead of spinning, and every parallel kernel then waits for its threads to wake (8 to 12 ms a
+    frame of scene-0268 at 2 Hz). The first thread to ask for several keeps them until it ends; others run on one."""
     most = numba.config.NUMBA_NUM_THREADS
-    numba.set_num_threads(FREE_CORES.threads(most) if threads <= 0 else min(threads, most))
+    n = FREE_CORES.threads(most) if threads <= 0 else min(threads, most)
+    numba.set_num_threads(n if n == 1 or own_team() else 1)
+
+
+def own_team() -> bool:
+    """Whether the calling thread is the one whose kernels may run on several threads; it becomes it when no live
+    thread is."""
+    me = threading.current_thread()
+    with _team_lock:
+        if _team_thread[0] is None or not _team_thread[0].is_alive():
+            _team_thread[0] = me
+        return _team_thread[0] is me

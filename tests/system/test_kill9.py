@@ -44,6 +44,14 @@ def _spawn(module: str, endpoint: str, worker_id: str, log: Path, *args: str) ->
         )
 
 
+def _stop(procs: dict, router) -> None:
+    for p in procs.values():
+        if p.poll() is None:
+            p.kill()
+            p.wait(10)
+    router.close()
+
+
 def _kill9_run(tmp_path: Path, frames: list, gt: np.ndarray, seed: int, capsys) -> None:
     n = len(frames)
     store_path = tmp_path / "state.sqlite"
@@ -111,11 +119,7 @@ def _kill9_run(tmp_path: Path, frames: list, gt: np.ndarray, seed: int, capsys) 
         events = log.read_text()
         assert '"stream resumed"' in events and events.count('"started"') == 2
     finally:
-        for p in procs.values():
-            if p.poll() is None:
-                p.kill()
-                p.wait(10)
-        router.close()
+        _stop(procs, router)
 
 
 def test_kill9_registration_worker_mid_replay_synthetic(tmp_path, capsys):
@@ -189,8 +193,4 @@ def test_frames_wait_while_the_inference_worker_is_away_and_none_is_lost(tmp_pat
         probe.close()
         assert np.allclose(got, np.array(uninterrupted), atol=1e-9)
     finally:
-        for p in procs.values():
-            if p.poll() is None:
-                p.kill()
-                p.wait(10)
-        router.close()
+        _stop(procs, router)

@@ -134,7 +134,7 @@ class StreamLanes:
             if self.config.kernel_threads == 0:
                 vo.threads = self._fair_threads()
             try:
-                # beside the last frame's work after its pose (in the team) on one thread, alone in the team
+                # while the last frame's complete() holds the kernels thread: here, on one thread
                 if st.tail is not None and not st.tail.done():
                     prepared = vo.prepare(frame, threads=1)
                 else:

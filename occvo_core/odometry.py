@@ -167,11 +167,10 @@ class OccVO:
         """Register one frame. A bad frame raises InvalidFrameError and leaves poses and map as they were."""
         return self.complete(self.register(frame))
 
-    def prepare(self, frame: OccupancyFrame, threads: int | None = None) -> Prepared:
+    def prepare(self, frame: OccupancyFrame) -> Prepared:
         """register()'s first box, which reads nothing of the odometry's state: a service runs it for the next frame
-        while complete() of this one runs (on `threads` kernel threads, if not self.threads). Raises
-        InvalidFrameError as register() would."""
-        use_threads(self.threads if threads is None else threads)
+        while complete() of this one runs. Raises InvalidFrameError as register() would."""
+        use_threads(self.threads)
         return preprocess(frame, self.config)
 
     def register(self, frame: OccupancyFrame, prepared: Prepared | None = None) -> Registration:

@@ -9,9 +9,9 @@
 Frames sent but not answered are sent again when the liveliness token of an inference worker or of the registration
 worker of the stream's shard comes back (it restarted: the frames it held are lost; the registration worker's durable
 state answers frames it already registered with their stored poses) or after `resend_after` seconds without any
-answer. New frames wait meanwhile: one that overtook a lost frame would make it old. A pose that arrives twice is kept once. A frame that closed a loop
-has its pose published twice: the odometry pose as soon as it is known, then (status "relocalised") the pose on the
-map seen long ago, which replaces it in `poses` (step() returns the first).
+answer. New frames wait meanwhile: one that overtook a lost frame would make it old. A pose that arrives twice is
+kept once. A frame that closed a loop has its pose published twice: the odometry pose as soon as it is known, then
+(status "relocalised") the pose on the map seen long ago, which replaces it in `poses` (step() returns the first).
 """
 
 from __future__ import annotations
@@ -139,17 +139,15 @@ class OccVOClient:
     def _on_alive(self, sample: zenoh.Sample) -> None:
         key = str(sample.key_expr)
         shard = keys.parse_registration_shard(key)
-        if shard is not None:
-            if keys.shard_of(self.stream, shard[1]) != shard[0]:
-                return  # another shard's worker: its coming and going does not touch this stream
-            live = self._path["registration"]
-        else:
-            live = self._path["inference"]
+        if shard is not None and keys.shard_of(self.stream, shard[1]) != shard[0]:
+            return  # another shard's worker: its coming and going does not touch this stream
+        role = "inference" if shard is None else "registration"
+        live = self._path[role]
         with self._cv:
             if sample.kind == zenoh.SampleKind.PUT:
                 fresh = key not in live
                 live.add(key)
-                self._seen.add("registration" if shard is not None else "inference")
+                self._seen.add(role)
                 if fresh and (self._down or self._unanswered) and self._path_up():
                     self._back_at = time.monotonic()  # a (re)started worker: resend what it cannot have seen
             else:

@@ -81,7 +81,7 @@ class StreamLanes:
         busy = sum(1 for lane in list(self.lanes.values()) if lane.busy)
         return max(1, FREE_CORES.threads(CORES) // max(1, busy))
 
-    def _kernels(self, vo, waited: list[float], fn, *args):
+    def _kernels(self, vo, waited: list[float] | None, fn, *args):
         """fn(*args) (OccVO.prepare, register or complete) in the worker's kernel team thread when vo may use several
         kernel threads, else in the calling thread; adds the team thread's wait for a core to waited[0]."""
         if vo.threads == 1:
@@ -92,7 +92,8 @@ class StreamLanes:
             try:
                 return fn(*args)
             finally:
-                waited[0] += run_delay_ms() - w0
+                if waited is not None:
+                    waited[0] += run_delay_ms() - w0
 
         return self._team.submit(call).result()
 
@@ -134,9 +135,9 @@ class StreamLanes:
             if self.config.kernel_threads == 0:
                 vo.threads = self._fair_threads()
             try:
-                # while the last frame's complete() holds the kernels thread: here, on one thread
+                # while the last frame's complete() holds the kernels thread: here, on one thread (use_threads)
                 if st.tail is not None and not st.tail.done():
-                    prepared = vo.prepare(frame, threads=1)
+                    prepared = vo.prepare(frame)
                 else:
                     prepared = self._kernels(vo, team_wait, vo.prepare, frame)
             except InvalidFrameError as exc:

@@ -29,7 +29,7 @@ class Paging:
         Returns (result, tiles restored, evicted blocks, the changed part of the map before eviction if publish:
         what _publish_map cuts into tiles)."""
         t_complete = time.perf_counter()
-        result = self._kernels(st.vo, [0.0], st.vo.complete, reg)
+        result = self._kernels(st.vo, None, st.vo.complete, reg)
         pose = np.asarray(result.pose, float)
         t0 = time.perf_counter()
         st.complete_ms = (t0 - t_complete) * 1000.0

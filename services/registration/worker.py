@@ -72,7 +72,7 @@ class RegistrationWorker(StreamLanes, AfterPose, Durability, Paging, MapPublishe
             trim_heap()
         # the one thread whose kernels run on several cores (occvo_core.registration.kernels.use_threads): a lane
         # hands its frame's kernel work to it when it may use more than one core
-        self._team = ThreadPoolExecutor(1, "kernels", initializer=_team_start)
+        self._team = ThreadPoolExecutor(1, "kernels", initializer=name_os_thread)
         if not self._team.submit(own_team).result():
             log_event(self.log, "another thread of this process runs kernels on several cores: lanes run on one")
 
@@ -109,11 +109,6 @@ class RegistrationWorker(StreamLanes, AfterPose, Durability, Paging, MapPublishe
                     "working radius below a frame's reach: eviction changes registration",
                     working_radius_m=self.config.working_radius_m,
                 )
-
-
-def _team_start() -> None:
-    name_os_thread()
-    own_team()
 
 
 def _args(p) -> None:

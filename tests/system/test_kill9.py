@@ -151,6 +151,7 @@ def test_frames_wait_while_the_inference_worker_is_away_and_none_is_lost(tmp_pat
     }
     n, k = len(scene), 4
     back = threading.Event()
+    probe = None
 
     def send():  # frame k while the worker is away, the rest once it is back
         client.publish(scene[k])
@@ -190,7 +191,8 @@ def test_frames_wait_while_the_inference_worker_is_away_and_none_is_lost(tmp_pat
                 f"{e.seq} {e.code}: {e.message}" for e in client.errors
             ]
             got = np.array([client.poses[i].matrix() for i in range(n)])
-        probe.close()
         assert np.allclose(got, np.array(uninterrupted), atol=1e-9)
     finally:
+        if probe is not None:
+            probe.close()
         _stop(procs, router)

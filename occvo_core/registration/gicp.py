@@ -46,7 +46,7 @@ def gicp(
     points: np.ndarray,
     covs: np.ndarray,
     labels: np.ndarray,
-    local_map: LocalMap,
+    local_map: LocalMap | EgoMap,
     initial_pose: np.ndarray,
     *,
     usable: np.ndarray | None = None,
@@ -70,6 +70,7 @@ def gicp(
     labels = labels.astype(np.int64)
     usable = local_map.usable if usable is None else usable
     map_labels = local_map.labels.astype(np.int64)
+    origin, dims = local_map.padded_box()
     verify = False
     for it in range(1, iterations + 1):  # noqa: B007 - the last `it` is the result's count
         rot, trans = pose[:3, :3].copy(), pose[:3, 3].copy()
@@ -88,8 +89,8 @@ def gicp(
                 map_labels,
                 usable,
                 local_map.grid,
-                local_map.origin,
-                local_map.dims,
+                origin,
+                dims,
                 local_map.voxel,
                 radius,
                 max_correspondence_m,

@@ -6,7 +6,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
-import numba
 import numpy as np
 
 from occvo_core.grid import NUM_CLASSES, OCC3D_GRID
@@ -19,6 +18,7 @@ if TYPE_CHECKING:
 
 GRID_CORNERS = np.array(np.meshgrid(*zip(OCC3D_GRID.lower, OCC3D_GRID.upper), indexing="ij")).reshape(3, -1).T
 EGO_LOWER, EGO_UPPER = np.array(OCC3D_GRID.lower), np.array(OCC3D_GRID.upper)
+GRID_PAD = 2  # empty cells around an EgoMap's grid: GICP's searches of up to two rings need no bounds checks
 
 
 def transform(pose: np.ndarray, points: np.ndarray) -> np.ndarray:
@@ -60,6 +60,10 @@ class LocalMap:
 
     def __len__(self) -> int:
         return len(self.rows)
+
+    def padded_box(self) -> tuple[np.ndarray, np.ndarray]:
+        """(origin, dims) of the whole grid (EgoMap's has a pad)."""
+        return self.origin, self.dims
 
     @property
     def cov(self) -> np.ndarray:
@@ -114,6 +118,11 @@ class EgoMap:
     source: np.ndarray  # index into the LocalMap of each point (-1 for pooled points)
     weight: np.ndarray | None = None  # map voxels behind each pooled point (None: not pooled)
     votes: np.ndarray | None = None  # their label votes
+    pad: int = GRID_PAD  # empty cells on every side of the box origin..origin + dims in grid
+
+    def padded_box(self) -> tuple[np.ndarray, np.ndarray]:
+        """(origin, dims) of the whole grid, pad included."""
+        return self.origin - self.pad, self.dims + 2 * self.pad
 
     def __len__(self) -> int:
         return len(self.pos)
@@ -141,6 +150,7 @@ class EgoMap:
             origin,
             dims,
             voxel,
+            GRID_PAD,
         )
         return cls(pose, pos, cov, local.labels[idx], np.ones(len(idx), bool), grid, origin, dims, voxel, idx)
 
@@ -166,7 +176,7 @@ class EgoMap:
             origin,
             dims,
             NUM_CLASSES,
-            numba.get_num_threads(),
+            GRID_PAD,
         )
         return EgoMap(
             self.pose,

@@ -75,12 +75,9 @@ class VoxelPFilterMap(VoxelRows):
     def entered(self, rows: np.ndarray, away: np.ndarray, t: int) -> None:
         """Record enter()'s window: t0 and the last sighting move on by the frames away (persistence, seen over the
         frames in view, stays as it was), and the window held them at frame t. Rows dropped since are skipped."""
-        live = self.alive[rows]
-        rows, away = rows[live], away[live]
-        self.t0[rows] += away.astype(np.int32)
-        self.last[rows] += away.astype(np.int32)
-        self.returning[rows[away > 0]] = True
-        self.in_window[rows] = t
+        pfilter_kernels.record_window(
+            rows, away, self.alive, self.t0, self.last, self.returning, self.in_window, np.int32(t)
+        )
 
     def merge(
         self,

@@ -9,6 +9,12 @@ from occvo_core.registration.kernels import CACHE, CHUNKS
 from occvo_core.registration.voxel_pfilter import p_index as voxel_p_index
 
 
+@njit(cache=CACHE, nogil=True, inline="always")
+def _padded_cell(i, j, k, dims, pad):
+    """Index of cell (i, j, k) of a box of dims in its grid with pad empty cells on every side."""
+    return ((i + pad) * (dims[1] + 2 * pad) + j + pad) * (dims[2] + 2 * pad) + k + pad
+
+
 @njit(cache=CACHE, nogil=True)
 def key_bounds(keys, alive, n, lower, upper):
     """(min, max) key of the live rows < n with keys in [lower, upper]; min > max when there are none."""
@@ -58,27 +64,33 @@ def window_voxels(keys, alive, f, t0, pos, label, n, lower, upper, t):
     out_pos = np.empty((m, 3))
     out_label = np.empty(m, np.uint8)
     p_index = np.empty(m)
+    cell_of = np.empty(m, np.int64)
     for a in prange(m):
         r = rows[a]
+        cell_of[a] = ((keys[r, 0] - lower[0]) * dims[1] + keys[r, 1] - lower[1]) * dims[2] + keys[r, 2] - lower[2]
         out_pos[a, 0] = pos[r, 0]
         out_pos[a, 1] = pos[r, 1]
         out_pos[a, 2] = pos[r, 2]
         out_label[a] = label[r]
         p_index[a] = voxel_p_index(f[r], t - t0[r])
     for a in range(m):  # in row order: a later row with the same key wins
-        r = rows[a]
-        grid[((keys[r, 0] - lower[0]) * dims[1] + keys[r, 1] - lower[1]) * dims[2] + keys[r, 2] - lower[2]] = a
+        grid[cell_of[a]] = a
     return rows, out_pos, out_label, p_index, grid
 
 
 @njit(cache=CACHE, nogil=True, parallel=True)
-def ego_points(idx, rows, map_pos, map_cov, rot, trans, origin, dims, voxel):
+def ego_points(idx, rows, map_pos, map_cov, rot, trans, origin, dims, voxel, pad):
     """Map voxels rows[idx] moved into the frame of the pose (rot, trans): positions R^T (p - t), covariances
-    R^T C R, and the dense grid of their cells (a later voxel in the same cell wins)."""
+    R^T C R, and the dense grid of their cells in the box origin..origin + dims (a later voxel in the same cell
+    wins), with pad empty cells on every side."""
     n = idx.shape[0]
     pos = np.empty((n, 3))
     cov = np.empty((n, 3, 3))
-    grid = np.full(dims[0] * dims[1] * dims[2], -1, np.int32)
+    n_cells = (dims[0] + 2 * pad) * (dims[1] + 2 * pad) * (dims[2] + 2 * pad)
+    grid = np.empty(n_cells, np.int32)
+    for c in prange(CHUNKS):
+        grid[n_cells * c // CHUNKS : n_cells * (c + 1) // CHUNKS] = -1
+    cell_of = np.empty(n, np.int64)
     for a in prange(n):
         r = rows[idx[a]]
         d0 = map_pos[r, 0] - trans[0]
@@ -92,37 +104,54 @@ def ego_points(idx, rows, map_pos, map_cov, rot, trans, origin, dims, voxel):
             t2 = rot[0, u] * map_cov[r, 0, 2] + rot[1, u] * map_cov[r, 1, 2] + rot[2, u] * map_cov[r, 2, 2]
             for v in range(3):
                 cov[a, u, v] = t0 * rot[0, v] + t1 * rot[1, v] + t2 * rot[2, v]
-    for a in range(n):  # in order: a later voxel in the same cell wins
         i = int(np.floor(pos[a, 0] / voxel)) - origin[0]
         j = int(np.floor(pos[a, 1] / voxel)) - origin[1]
         k = int(np.floor(pos[a, 2] / voxel)) - origin[2]
-        if 0 <= i < dims[0] and 0 <= j < dims[1] and 0 <= k < dims[2]:
-            grid[(i * dims[1] + j) * dims[2] + k] = a
+        inside = 0 <= i < dims[0] and 0 <= j < dims[1] and 0 <= k < dims[2]
+        cell_of[a] = _padded_cell(i, j, k, dims, pad) if inside else -1
+    for a in range(n):  # in order: a later voxel in the same cell wins
+        if cell_of[a] >= 0:
+            grid[cell_of[a]] = a
     return pos, cov, grid
 
 
 @njit(cache=CACHE, nogil=True, parallel=True)
-def pool_voxels(pos, cov, labels, usable, weight, votes_in, voxel, origin, dims, n_classes, parts):
+def pool_voxels(pos, cov, labels, usable, weight, votes_in, voxel, origin, dims, n_classes, pad):
     """Weighted mean position and covariance and majority label of the usable points in each cell of a coarser grid.
     weight and votes_in (empty: one point, one vote of its label) carry a pooled map's counts, so pooling it again
-    equals pooling its voxels directly. Returns pos, cov, labels, dense grid of the cells, weights, votes."""
-    n_cells = dims[0] * dims[1] * dims[2]
-    grid = np.full(n_cells, -1, np.int32)
-    slot = np.full(pos.shape[0], -1, np.int64)
+    equals pooling its voxels directly. Returns pos, cov, labels, dense grid of the cells (with pad empty cells on
+    every side), weights, votes."""
+    n_pts = pos.shape[0]
+    grid = np.full((dims[0] + 2 * pad) * (dims[1] + 2 * pad) * (dims[2] + 2 * pad), -1, np.int32)
+    cell_of = np.empty(n_pts, np.int64)
+    for n in prange(n_pts):
+        cell_of[n] = -1
+        if usable[n]:
+            i = int(np.floor(pos[n, 0] / voxel)) - origin[0]
+            j = int(np.floor(pos[n, 1] / voxel)) - origin[1]
+            k = int(np.floor(pos[n, 2] / voxel)) - origin[2]
+            if 0 <= i < dims[0] and 0 <= j < dims[1] and 0 <= k < dims[2]:
+                cell_of[n] = _padded_cell(i, j, k, dims, pad)
+    slot = np.empty(n_pts, np.int64)
+    start = np.zeros(n_pts + 1, np.int64)
     n_out = 0
-    for n in range(pos.shape[0]):  # cells numbered in order of first point, serially
-        if not usable[n]:
-            continue
-        i = int(np.floor(pos[n, 0] / voxel)) - origin[0]
-        j = int(np.floor(pos[n, 1] / voxel)) - origin[1]
-        k = int(np.floor(pos[n, 2] / voxel)) - origin[2]
-        if i < 0 or j < 0 or k < 0 or i >= dims[0] or j >= dims[1] or k >= dims[2]:
-            continue
-        cell = (i * dims[1] + j) * dims[2] + k
-        if grid[cell] < 0:
-            grid[cell] = n_out
-            n_out += 1
-        slot[n] = grid[cell]
+    for n in range(n_pts):  # cells numbered in order of first point, serially
+        c = cell_of[n]
+        slot[n] = -1
+        if c >= 0:
+            if grid[c] < 0:
+                grid[c] = n_out
+                n_out += 1
+            slot[n] = grid[c]
+            start[slot[n] + 1] += 1
+    for s in range(n_out):
+        start[s + 1] += start[s]
+    order = np.empty(start[n_out], np.int64)  # each cell's points, in point order (a stable counting sort)
+    fill = start[:n_out].copy()
+    for n in range(n_pts):
+        if slot[n] >= 0:
+            order[fill[slot[n]]] = n
+            fill[slot[n]] += 1
     out_pos = np.zeros((n_out, 3))
     out_cov = np.zeros((n_out, 3, 3))
     votes = np.zeros((n_out, n_classes), np.int32)
@@ -130,13 +159,10 @@ def pool_voxels(pos, cov, labels, usable, weight, votes_in, voxel, origin, dims,
     out_lab = np.empty(n_out, np.uint8)
     weighted = weight.shape[0] > 0
     pooled_votes = votes_in.shape[0] > 0
-    # part c owns the cells s with (s // 64) % parts == c and adds their points in point order: the same sums on
-    # any number of parts
-    for c in prange(parts):
-        for n in range(pos.shape[0]):
-            s = slot[n]
-            if s < 0 or (s >> 6) % parts != c:
-                continue
+    # a cell sums its points in point order: the same sums on any number of threads
+    for s in prange(n_out):
+        for q in range(start[s], start[s + 1]):
+            n = order[q]
             w = weight[n] if weighted else 1.0
             for a in range(3):
                 out_pos[s, a] += w * pos[n, a]
@@ -148,7 +174,6 @@ def pool_voxels(pos, cov, labels, usable, weight, votes_in, voxel, origin, dims,
             else:
                 votes[s, labels[n]] += 1
             count[s] += w
-    for s in prange(n_out):
         for a in range(3):
             out_pos[s, a] /= count[s]
             for b in range(3):

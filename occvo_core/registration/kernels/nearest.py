@@ -59,6 +59,57 @@ def nearest_in_window(q, map_pos, grid, origin, dims, voxel, radius, usable):
 
 
 @njit(cache=CACHE, nogil=True)
+def ring_offsets(radius, dims):
+    """Grid offsets of the cells nearest_in_window reads, in its order, ring r being offsets[starts[r]:starts[r + 1]]."""
+    offsets = np.empty((2 * radius + 1) ** 3, np.int64)
+    starts = np.zeros(radius + 2, np.int64)
+    n = 0
+    for r in range(radius + 1):
+        for di in range(-r, r + 1):
+            for dj in range(-r, r + 1):
+                edge = di == -r or di == r or dj == -r or dj == r
+                for dk in range(-r, r + 1):
+                    if edge or dk == -r or dk == r:
+                        offsets[n] = (di * dims[1] + dj) * dims[2] + dk
+                        n += 1
+        starts[r + 1] = n
+    return offsets[:n], starts
+
+
+@njit(cache=CACHE, nogil=True, inline="always")
+def nearest_in_padded(q, map_pos, grid, origin, dims, voxel, radius, usable, offsets, starts):
+    """nearest_in_window, the same answer in the same tie order: a query at least `radius` cells from the grid's
+    edges reads its rings through ring_offsets, without a bounds check a cell (an EgoMap's grid has that many empty
+    cells on every side, so every query in its box does)."""
+    ci = int(np.floor(q[0] / voxel)) - origin[0]
+    cj = int(np.floor(q[1] / voxel)) - origin[1]
+    ck = int(np.floor(q[2] / voxel)) - origin[2]
+    if min(ci, cj, ck) < radius or ci >= dims[0] - radius or cj >= dims[1] - radius or ck >= dims[2] - radius:
+        return nearest_in_window(q, map_pos, grid, origin, dims, voxel, radius, usable)
+    c = (ci * dims[1] + cj) * dims[2] + ck
+    best = -1
+    best_d2 = np.inf
+    for r in range(radius + 1):
+        for s in range(starts[r], starts[r + 1]):
+            m = grid[c + offsets[s]]
+            if m >= 0 and usable[m]:
+                d0 = map_pos[m, 0] - q[0]
+                d1 = map_pos[m, 1] - q[1]
+                d2 = map_pos[m, 2] - q[2]
+                d = d0 * d0 + d1 * d1 + d2 * d2
+                if d < best_d2:
+                    best_d2 = d
+                    best = m
+        if best >= 0:
+            gap = np.inf
+            for a, cell in ((0, ci), (1, cj), (2, ck)):
+                gap = min(gap, q[a] - (cell + origin[a] - r) * voxel, (cell + origin[a] + r + 1) * voxel - q[a])
+            if best_d2 <= gap * gap:
+                break
+    return best, best_d2
+
+
+@njit(cache=CACHE, nogil=True)
 def nearest_distances(queries, map_pos, grid, origin, dims, voxel, radius, usable):
     out = np.empty(queries.shape[0])
     idx = np.empty(queries.shape[0], np.int64)

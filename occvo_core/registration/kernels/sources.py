@@ -25,6 +25,24 @@ def _cell_hash(ijk, n, shape):
 
 
 @njit(cache=CACHE, nogil=True)
+def _pick_blocks(ijk, ground, on, f, shape, pick, h, chosen):
+    """Mark in `chosen` the source of every f^3 block, among all points (on 0), those off the ground (1) or on it
+    (2); pick and h as thin_sources'."""
+    nb = ((shape[0] + f - 1) // f) * ((shape[1] + f - 1) // f) * ((shape[2] + f - 1) // f)
+    picks = np.full(nb, -1, np.int64)
+    for n in range(ijk.shape[0]):
+        if (on == 1 and ground[n]) or (on == 2 and not ground[n]):
+            continue
+        b, odd = _source_block(ijk, n, f, shape)
+        p = picks[b]
+        if p < 0 or (pick == 1 and odd == 1) or (pick == 2 and h[n] < h[p]):
+            picks[b] = n
+    for b in range(nb):
+        if picks[b] >= 0:
+            chosen[picks[b]] = True
+
+
+@njit(cache=CACHE, nogil=True)
 def thin_sources(ijk, ground, shape, wide, coarse, fine, fine_ground, pick=0):
     """The registration source sets, each one point of every factor^3 block of voxels (0: no set): one point per wide
     and per coarse block, and for fine one per fine block off the ground and per fine_ground block on it (the ground
@@ -32,32 +50,17 @@ def thin_sources(ijk, ground, shape, wide, coarse, fine, fine_ground, pick=0):
     makes its rear-most (lowest x); 1 (balanced): its last (front-most) in blocks of odd parity; 2 (uniform): the
     point whose cell has the smallest fixed hash, so every voxel of a block is as likely a source and the picks lean
     no way. Indices ascending."""
-    factors = (wide, coarse, fine, fine_ground)
-    picks = []
-    best = []
-    for f in factors:
-        g = max(f, 1)
-        size = ((shape[0] + g - 1) // g) * ((shape[1] + g - 1) // g) * ((shape[2] + g - 1) // g)
-        picks.append(np.full(size, -1, np.int32))
-        best.append(np.zeros(size if pick == 2 else 1, np.uint64))
-    out = np.empty((3, ijk.shape[0]), np.int64)
-    count = np.zeros(3, np.int64)
-    for n in range(ijk.shape[0]):
-        h = _cell_hash(ijk, n, shape) if pick == 2 else np.uint64(0)
-        for s in range(4):
-            f = factors[s]
-            if f == 0 or (s == 2 and ground[n]) or (s == 3 and not ground[n]):
-                continue
-            b, odd = _source_block(ijk, n, f, shape)
-            if picks[s][b] < 0 and pick == 0:  # the first: listed at once, in point order
-                o = min(s, 2)
-                out[o, count[o]] = n
-                count[o] += 1
-            if picks[s][b] < 0 or (pick == 1 and odd == 1) or (pick == 2 and h < best[s][b]):
-                picks[s][b] = n
-                if pick == 2:
-                    best[s][b] = h
-    if pick != 0:  # the picks are final only now
-        sets = [np.sort(p[p >= 0]).astype(np.int64) for p in picks]
-        return sets[0], sets[1], np.sort(np.concatenate((sets[2], sets[3])))
-    return out[0, : count[0]].copy(), out[1, : count[1]].copy(), out[2, : count[2]].copy()
+    n = ijk.shape[0]
+    h = np.zeros(n, np.uint64)
+    if pick == 2:
+        for i in range(n):
+            h[i] = _cell_hash(ijk, i, shape)
+    out = []
+    for f, on, f2, on2 in ((wide, 0, 0, 0), (coarse, 0, 0, 0), (fine, 1, fine_ground, 2)):
+        chosen = np.zeros(n, np.bool_)
+        if f > 0:
+            _pick_blocks(ijk, ground, on, f, shape, pick, h, chosen)
+        if f2 > 0:
+            _pick_blocks(ijk, ground, on2, f2, shape, pick, h, chosen)
+        out.append(np.flatnonzero(chosen))
+    return out[0], out[1], out[2]

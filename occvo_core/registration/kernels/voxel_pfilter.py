@@ -126,9 +126,9 @@ def mark_observed(points, map_pos, grid, origin, dims, voxel, radius_m, map_rows
     n_win = map_rows.shape[0]
     # window-local "already counted at t": neighbouring frame points test the same voxels many times over
     counted = np.empty(n_win, np.bool_)
-    for m in range(n_win):
-        counted[m] = last[map_rows[m]] == t or not alive[m]
-    seen = counted.copy()  # threads only ever write True here, so any interleaving gives the same set
+    seen = np.empty(n_win, np.bool_)  # threads only ever write True here, so any interleaving gives the same set
+    for m in prange(n_win):
+        counted[m] = seen[m] = last[map_rows[m]] == t or not alive[m]
     n_pts = points.shape[0]
     for c in prange(CHUNKS):
         for n in range(n_pts * c // CHUNKS, n_pts * (c + 1) // CHUNKS):
@@ -147,12 +147,36 @@ def mark_observed(points, map_pos, grid, origin, dims, voxel, radius_m, map_rows
                         d2 = map_pos[m, 2] - points[n, 2]
                         if d0 * d0 + d1 * d1 + d2 * d2 <= r2:
                             seen[m] = True
-    for m in range(n_win):
-        if seen[m] and not counted[m]:
-            _grow_box(changed, map_pos[m, 0], map_pos[m, 1])
-            row = map_rows[m]
-            f[row] += 1
-            last[row] = t
+    # window rows are distinct map rows: slices count theirs apart, and a box's min and max take any order
+    boxes = np.empty((CHUNKS, 4))
+    for c in prange(CHUNKS):
+        box = boxes[c]
+        box[0] = box[1] = np.inf
+        box[2] = box[3] = -np.inf
+        for m in range(n_win * c // CHUNKS, n_win * (c + 1) // CHUNKS):
+            if seen[m] and not counted[m]:
+                _grow_box(box, map_pos[m, 0], map_pos[m, 1])
+                row = map_rows[m]
+                f[row] += 1
+                last[row] = t
+    for c in range(CHUNKS):
+        if boxes[c, 0] <= boxes[c, 2]:
+            _grow_box(changed, boxes[c, 0], boxes[c, 1])
+            _grow_box(changed, boxes[c, 2], boxes[c, 3])
+
+
+@njit(cache=CACHE, nogil=True)
+def record_window(rows, away, alive, t0, last, returning, in_window, t):
+    """VoxelPFilterMap.entered() on the live rows: t0 and the last sighting move on by the frames away, returning
+    marks those that were away, and in_window says frame t's window held them."""
+    for n in range(rows.shape[0]):
+        r = rows[n]
+        if alive[r]:
+            t0[r] += away[n]
+            last[r] += away[n]
+            if away[n] > 0:
+                returning[r] = True
+            in_window[r] = t
 
 
 @njit(cache=CACHE, nogil=True)

@@ -83,6 +83,27 @@ class GridSpec:
     def inside(self, indices: np.ndarray) -> np.ndarray:
         return np.all((indices >= 0) & (indices < np.array(self.shape)), axis=1)
 
+    def axis_tables(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
+        """Points as voxel indices (N,3) and a table (3, max(shape)) whose row a holds the coordinate of each index
+        along axis a (the nominal centre where no point says otherwise), which give the points back bit for bit
+        (points_of); None when they do not (a point outside, or an index with two coordinates). Recorded frames hold
+        voxel centres only to within rounding: this way they travel and are kept exactly, 3 bytes a voxel."""
+        points = np.asarray(points, np.float64)
+        idx = self.indices_of(points)
+        if len(idx) and not self.inside(idx).all():
+            return None
+        table = np.array(self.lower)[:, None] + (np.arange(max(self.shape)) + 0.5) * self.voxel_size
+        for a in range(3):
+            table[a, idx[:, a]] = points[:, a]
+            if not np.array_equal(table[a, idx[:, a]], points[:, a]):
+                return None
+        return idx, table
+
+    @staticmethod
+    def points_of(indices: np.ndarray, table: np.ndarray) -> np.ndarray:
+        """The points axis_tables() describes."""
+        return np.stack([table[a, indices[:, a]] for a in range(3)], axis=1)
+
 
 OCC3D_GRID = GridSpec()
 

@@ -82,14 +82,33 @@ def _col_extremes(a: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return np.array([a[:, i].min() for i in range(a.shape[1])]), np.array([a[:, i].max() for i in range(a.shape[1])])
 
 
+def _check_axes(axes: Array, grid: GridSpec) -> None:
+    """SparseOccupancy.axes: one finite coordinate an index, inside the grid."""
+    if axes.dtype != "float64" or axes.shape != [3, max(grid.shape)]:
+        raise ValueError(f"axes must be (3, {max(grid.shape)}) float64, got {axes.dtype} {axes.shape}")
+    a = axes.to_numpy()
+    inside = (a >= np.array(grid.lower)[:, None]) & (a < np.array(grid.upper)[:, None])  # NaN fails both
+    for k, n in enumerate(grid.shape):
+        if not inside[k, :n].all():
+            raise ValueError(
+                f"axes: {int((~inside[k, :n]).sum())} coordinates of axis {k} outside the grid or not finite"
+            )
+
+
 class SparseOccupancy(_Model):
     """Occupied voxels of one grid with their labels (N,). Voxels travel either as integer indices (N,3) on the grid
-    (compact: 4 bytes a voxel; network output) or as exact float64 ego-frame coordinates (N,3) (recorded data whose
-    coordinates are voxel centres only to within rounding; replay sends these so a replay reproduces an offline run
-    bit for bit). Exactly one of `voxels` and `points` is set."""
+    (compact: 4 bytes a voxel; network output) or as exact float64 ego-frame coordinates (N,3). Recorded data holds
+    voxel centres only to within rounding, and a replay must reproduce an offline run bit for bit: such a frame
+    travels as indices with `axes`, each index's exact coordinate along each axis (GridSpec.axis_tables), or, when
+    its coordinates are not one per index, as points. Exactly one of `voxels` and `points` is set."""
 
     grid: GridSpecModel = GridSpecModel()
     voxels: Array | None = Field(None, description="(N,3) uint8 or uint16 voxel indices i, j, k on the grid")
+    axes: Array | None = Field(
+        None,
+        description="(3, K) float64, K the grid's largest dimension, with voxels only: row a holds the coordinate "
+        "of each index along axis a (none given: the voxel centres)",
+    )
     points: Array | None = Field(None, description="(N,3) float64 ego-frame voxel coordinates, inside the grid")
     labels: Array = Field(description="(N,) uint8 Occ3D class ids 0..17")
 
@@ -107,7 +126,11 @@ class SparseOccupancy(_Model):
             if n and (_col_extremes(v.to_numpy())[1] >= np.array(grid.shape)).any():  # one pass on the happy path
                 over = np.any(v.to_numpy() >= np.array(grid.shape), axis=1)
                 raise ValueError(f"{int(over.sum())} voxel indices outside the grid shape {grid.shape}")
+            if self.axes is not None:
+                _check_axes(self.axes, grid)
         else:
+            if self.axes is not None:
+                raise ValueError("axes come with voxels (indices), not with points")
             v = self.points
             if v.dtype != "float64" or len(v.shape) != 2 or v.shape[1] != 3:
                 raise ValueError(f"points must be (N,3) float64, got {v.dtype} {v.shape}")
@@ -131,9 +154,16 @@ class SparseOccupancy(_Model):
 
     @classmethod
     def from_points(cls, points: np.ndarray, labels: np.ndarray, grid: GridSpec, exact: bool = True) -> SparseOccupancy:
-        """exact: send the coordinates as they are; else snap them to voxel indices (compact)."""
+        """exact: the coordinates bit for bit (as indices with axes where they allow it); else snapped to voxel
+        indices (compact)."""
         labels = Array.from_numpy(np.asarray(labels, dtype=np.uint8))
+        dtype = np.uint8 if max(grid.shape) <= 256 else np.uint16
         if exact:
+            tables = grid.axis_tables(points)
+            if tables is not None:
+                idx, axes = tables
+                voxels, axes = Array.from_numpy(idx.astype(dtype)), Array.from_numpy(axes)
+                return cls(grid=GridSpecModel.from_grid(grid), voxels=voxels, axes=axes, labels=labels)
             return cls(
                 grid=GridSpecModel.from_grid(grid),
                 points=Array.from_numpy(np.asarray(points, np.float64)),
@@ -142,14 +172,16 @@ class SparseOccupancy(_Model):
         idx = grid.indices_of(points)
         if len(idx) and not grid.inside(idx).all():
             raise ValueError(f"{int((~grid.inside(idx)).sum())} points fall outside the grid")
-        dtype = np.uint8 if max(grid.shape) <= 256 else np.uint16
         return cls(grid=GridSpecModel.from_grid(grid), voxels=Array.from_numpy(idx.astype(dtype)), labels=labels)
 
     def to_points(self) -> np.ndarray:
         """Ego-frame coordinates (N,3) float64: as sent, or the voxel centres of the indices."""
         if self.points is not None:
             return self.points.to_numpy().copy()
-        return self.grid.to_grid().centres_of(self.voxels.to_numpy().astype(np.int64))
+        idx = self.voxels.to_numpy().astype(np.int64)
+        if self.axes is not None:
+            return GridSpec.points_of(idx, self.axes.to_numpy())
+        return self.grid.to_grid().centres_of(idx)
 
     def __len__(self) -> int:
         return self.labels.shape[0]

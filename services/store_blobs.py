@@ -69,18 +69,27 @@ def frame_digest(points: np.ndarray, labels: np.ndarray, stamp: float) -> bytes:
 
 
 def pack_frame(frame: OccupancyFrame) -> bytes:
-    """A journal entry. Frames on the Occ3D grid (what the workers send: voxel indices) are kept as uint8 indices,
-    3 bytes a voxel instead of 24: the journal is most of what the store writes, and its WAL checkpoints held every
-    stream's commit. Exact: used only when the grid's centres give back the very same coordinates."""
+    """A journal entry. Frames on the Occ3D grid are kept as uint8 indices, 3 bytes a voxel instead of 24, with the
+    grid's per-axis coordinates where they are not the nominal centres (recorded frames: GridSpec.axis_tables): the
+    journal is most of what the store writes, and its WAL checkpoints held every stream's commit. Exact: the same
+    coordinates come back bit for bit."""
     head = {"labels": frame.labels, "index": np.int64(frame.index), "stamp": np.float64(frame.stamp)}
     points = np.asarray(frame.points, np.float64)
-    ijk = OCC3D_GRID.indices_of(points)
-    if OCC3D_GRID.inside(ijk).all() and np.array_equal(OCC3D_GRID.centres_of(ijk), points):
+    tables = OCC3D_GRID.axis_tables(points)
+    if tables is None:
+        return pack_arrays({"points": points, **head})
+    ijk, axes = tables
+    if np.array_equal(OCC3D_GRID.centres_of(ijk), points):
         return pack_arrays({"ijk": ijk.astype(np.uint8), **head})
-    return pack_arrays({"points": points, **head})
+    return pack_arrays({"ijk": ijk.astype(np.uint8), "axes": axes, **head})
 
 
 def unpack_frame(blob: bytes) -> OccupancyFrame:
     a = unpack_arrays(blob)
-    points = OCC3D_GRID.centres_of(a["ijk"].astype(np.int64)) if "ijk" in a else a["points"]
+    if "ijk" not in a:
+        points = a["points"]
+    elif "axes" in a:
+        points = OCC3D_GRID.points_of(a["ijk"].astype(np.int64), a["axes"])
+    else:
+        points = OCC3D_GRID.centres_of(a["ijk"].astype(np.int64))
     return OccupancyFrame(points, a["labels"], index=int(a["index"]), stamp=float(a["stamp"]))

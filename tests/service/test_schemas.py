@@ -8,6 +8,7 @@ from pydantic import ValidationError
 
 from occvo_core.grid import OCC3D_GRID
 from occvo_schemas import keys
+from occvo_schemas.codec import decode, encode
 from occvo_schemas.export import JSON_DIR, drift, rendered
 from occvo_schemas.models import (
     MESSAGES,
@@ -67,9 +68,40 @@ def _occ(n=10, exact=True):
 def test_sparse_occupancy_both_encodings_give_the_points(exact):
     pts, labels = _occ()
     occ = SparseOccupancy.from_points(pts, labels, OCC3D_GRID, exact=exact)
-    assert (occ.points is not None) == exact and (occ.voxels is not None) != exact
-    np.testing.assert_allclose(occ.to_points(), pts, atol=1e-9)
+    assert occ.points is None and occ.voxels.dtype == "uint8" and (occ.axes is not None) == exact
+    np.testing.assert_array_equal(occ.to_points(), pts)
     assert len(occ) == 10
+
+
+def test_recorded_coordinates_travel_as_indices_and_come_back_bit_for_bit():
+    """The release's frames hold voxel centres to within rounding, one coordinate an index along each axis: they
+    travel as 3 bytes a voxel plus the axes, and decode to the very same floats; points off that pattern travel as
+    float64 coordinates."""
+    pts, labels = _occ(500)
+    idx = OCC3D_GRID.indices_of(pts)
+    wobble = np.random.default_rng(1).integers(-3, 4, size=(3, 200)) * 2.0**-48  # per index, as the release's
+    recorded = pts + np.stack([wobble[a, idx[:, a]] for a in range(3)], axis=1)
+    assert not np.array_equal(recorded, pts)
+    occ = SparseOccupancy.from_points(recorded, labels, OCC3D_GRID)
+    assert occ.voxels is not None and occ.axes.shape == [3, 200]
+    back = decode(encode(OccupancyFrameMsg(stream="s", seq=0, stamp=0.0, source="replay", occupancy=occ)))
+    assert back.occupancy.to_points().tobytes() == recorded.tobytes()
+    recorded[7, 0] += 1e-3  # now index idx[7, 0] holds two x coordinates
+    occ = SparseOccupancy.from_points(recorded, labels, OCC3D_GRID)
+    assert occ.voxels is None and occ.to_points().tobytes() == recorded.tobytes()
+
+
+def test_sparse_occupancy_rejects_bad_axes():
+    pts, labels = _occ()
+    occ = SparseOccupancy.from_points(pts, labels, OCC3D_GRID)
+    axes = occ.axes.to_numpy().copy()
+    axes[2, 3] = np.nan
+    with pytest.raises(ValidationError, match="axis 2 outside the grid or not finite"):
+        SparseOccupancy(voxels=occ.voxels, axes=Array.from_numpy(axes), labels=occ.labels)
+    with pytest.raises(ValidationError, match=r"axes must be \(3, 200\) float64"):
+        SparseOccupancy(voxels=occ.voxels, axes=Array.from_numpy(axes[:, :16]), labels=occ.labels)
+    with pytest.raises(ValidationError, match="axes come with voxels"):
+        SparseOccupancy(points=Array.from_numpy(pts), axes=occ.axes, labels=occ.labels)
 
 
 def test_sparse_occupancy_rejects_bad_content():

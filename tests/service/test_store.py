@@ -120,7 +120,12 @@ def test_journal_frames_on_the_grid_are_kept_as_indices_exactly(scene):
     assert "ijk" in unpack_arrays(blob) and len(blob) < 0.25 * f.points.nbytes  # 3 bytes a voxel, not 24
     assert np.array_equal(back.points, f.points) and np.array_equal(back.labels, f.labels)
     assert (back.index, back.stamp) == (f.index, f.stamp)
-    off = OccupancyFrame(f.points + 0.01, f.labels, index=f.index, stamp=f.stamp)  # not voxel centres: kept as given
+    assert "axes" not in unpack_arrays(blob)  # voxel centres: the grid gives them
+    off = OccupancyFrame(f.points + 0.01, f.labels, index=f.index, stamp=f.stamp)  # one coordinate an index: axes
+    a = unpack_arrays(pack_frame(off))
+    assert "axes" in a and unpack_frame(pack_frame(off)).points.tobytes() == off.points.tobytes()
+    jitter = np.random.default_rng(0).uniform(-0.01, 0.01, f.points.shape)  # two coordinates an index: kept as given
+    off = OccupancyFrame(f.points + jitter, f.labels, index=f.index, stamp=f.stamp)
     a = unpack_arrays(pack_frame(off))
     assert "ijk" not in a and np.array_equal(unpack_frame(pack_frame(off)).points, off.points)
 

@@ -18,7 +18,8 @@ Per scene, medians over the repeats of:
     the service adds to the odometry's work on the same cores, and the ratio that leaves possible at best
     (offline CPU over offline plus added, when the odometry's kernels already keep every core busy).
 And the per-hop transport latency p50/p99 of a 30k-voxel occupancy frame, publisher -> router -> subscriber,
-including encode and decode, exact (float64) and compact (voxel index) encodings (--hop-messages 0 skips it).
+including encode and decode: a recorded frame's exact coordinates as float64 points or as indices with axes (what
+replay sends), and indices only (--hop-messages 0 skips it).
 """
 
 from __future__ import annotations
@@ -44,7 +45,7 @@ from occvo_core.datasets.occvo_release import OccVOReleaseScene  # noqa: E402
 from occvo_core.grid import OCC3D_GRID  # noqa: E402
 from occvo_schemas import keys  # noqa: E402
 from occvo_schemas.codec import decode, encode  # noqa: E402
-from occvo_schemas.models import OccupancyFrameMsg, SparseOccupancy  # noqa: E402
+from occvo_schemas.models import Array, OccupancyFrameMsg, SparseOccupancy  # noqa: E402
 from occvo_services.client import OccVOClient  # noqa: E402
 from occvo_services.commands.replay import replay  # noqa: E402
 from occvo_services.local import LocalService  # noqa: E402
@@ -82,14 +83,22 @@ AFTER_POSE_STAGES = (  # the after-pose thread's (the next frame waits for it), 
 )
 
 
-def hop_latency(n: int = 300, voxels: int = 30000, exact: bool = True) -> tuple[np.ndarray, int]:
-    """ms from encode+put on one session to decoded message on another, through a router; one message at a time."""
+def hop_latency(n: int = 300, voxels: int = 30000, encoding: str = "axes") -> tuple[np.ndarray, int]:
+    """ms from encode+put on one session to decoded message on another, through a router; one message at a time.
+    encoding: a recorded frame's exact coordinates as float64 "points" or as indices with "axes" (what replay
+    sends), or "voxels" (indices only: the network's output)."""
     ep = f"tcp/127.0.0.1:{free_port()}"
     router = open_router(ep)
     pub_s, sub_s = open_session(ep), open_session(ep)
     rng = np.random.default_rng(0)
     idx = rng.integers(0, OCC3D_GRID.shape, (voxels, 3))
-    occ = SparseOccupancy.from_points(OCC3D_GRID.centres_of(idx), rng.integers(0, 17, voxels), OCC3D_GRID, exact=exact)
+    wobble = rng.integers(-3, 4, (3, max(OCC3D_GRID.shape))) * 2.0**-48  # the release's last bits, one value an index
+    points = OCC3D_GRID.centres_of(idx) + np.stack([wobble[a, idx[:, a]] for a in range(3)], axis=1)
+    labels = rng.integers(0, 17, voxels)
+    if encoding == "points":
+        occ = SparseOccupancy(points=Array.from_numpy(points), labels=Array.from_numpy(labels.astype(np.uint8)))
+    else:
+        occ = SparseOccupancy.from_points(points, labels, OCC3D_GRID, exact=encoding == "axes")
     msg = OccupancyFrameMsg(stream="bench", seq=0, stamp=0.0, source="replay", occupancy=occ)
     got = threading.Event()
     lat = []
@@ -318,9 +327,8 @@ def main(argv=None) -> int:
     args = ap.parse_args(argv)
 
     results = {"hop": {}, "scenes": {}}
-    for exact in (True, False) if args.hop_messages > 0 else ():
-        name = "exact_float64" if exact else "compact_indices"
-        runs = [hop_latency(args.hop_messages, exact=exact) for _ in range(args.repeats)]
+    for name in ("points", "axes", "voxels") if args.hop_messages > 0 else ():
+        runs = [hop_latency(args.hop_messages, encoding=name) for _ in range(args.repeats)]
         size = runs[0][1]
         runs = [r for r, _ in runs]
         p50 = float(np.median([np.percentile(r, 50) for r in runs]))

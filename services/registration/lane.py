@@ -207,7 +207,8 @@ class StreamLanes:
             if bad is not None:
                 raise bad
             lane = self.lanes.get(stream)
-            if lane is not None and lane.queue.q.qsize() > 0:
+            backlog = lane is not None and lane.queue.q.qsize() > 0
+            if backlog:
                 # frames wait behind this one: here, on one thread (use_threads), the kernels thread's spin would
                 # take the core the last frame's map work and the other processes need; caught up: on both cores
                 reg = st.vo.register(frame, prepared)
@@ -232,9 +233,17 @@ class StreamLanes:
             st.map_tail = st.map_thread.submit(int)
         pose_out: Future = Future()
         st.tail_running = True
-        st.tail = st.after_pose.submit(
-            self._after_pose, stream, st, msg, reg, frame, digest, pose_m, restart, t_valid, pose_out
-        )
+
+        def after_pose() -> None:
+            st.tail = st.after_pose.submit(
+                self._after_pose, stream, st, msg, reg, frame, digest, pose_m, restart, t_valid, pose_out
+            )
+
+        # with frames waiting it starts now, beside the commit (the next frame waits for it); caught up, once the
+        # pose is out: its kernels on both cores would slow the commit a pose waits for
+        tail_at_once = backlog
+        if tail_at_once:
+            after_pose()
         try:
             t_store = time.perf_counter()
             phases = {}
@@ -245,6 +254,9 @@ class StreamLanes:
                     )
                 except Exception as exc:  # noqa: BLE001 - e.g. disk full: publish nothing the store lacks
                     pose_out.set_result(False)
+                    if not tail_at_once:
+                        tail_at_once = True
+                        after_pose()
                     st.tail.result()  # its OccVO.complete: then the state goes, rebuilt from the store
                     return self._store_failed(stream, st, msg.seq, exc, "not stored, pose not published")
             store_ms = (time.perf_counter() - t_store) * 1000.0
@@ -263,6 +275,8 @@ class StreamLanes:
         finally:
             if not pose_out.done():  # the pose did not go out: its work after it stores and publishes nothing
                 pose_out.set_result(False)
+            if not tail_at_once:
+                after_pose()
         for stage in ("validate", "after_pose_wait", "core_wait"):
             self.stats.observe(stage, timings[stage])
         self.stats.observe("registration", reg_ms)

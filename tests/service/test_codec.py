@@ -20,10 +20,15 @@ from occvo_schemas.models import (
 )
 
 
-def occupancy_msg(n=300, exact=True, seq=0):
+def occupancy_msg(n=300, exact=True, seq=0, as_points=False):
+    """as_points: the coordinates as float64 points (what a frame off the grid's pattern travels as)."""
     rng = np.random.default_rng(seq)
     idx = rng.integers(0, OCC3D_GRID.shape, size=(n, 3))
-    occ = SparseOccupancy.from_points(OCC3D_GRID.centres_of(idx), rng.integers(0, 17, n), OCC3D_GRID, exact=exact)
+    pts, labels = OCC3D_GRID.centres_of(idx), rng.integers(0, 17, n).astype(np.uint8)
+    if as_points:
+        occ = SparseOccupancy(points=Array.from_numpy(pts), labels=Array.from_numpy(labels))
+    else:
+        occ = SparseOccupancy.from_points(pts, labels, OCC3D_GRID, exact=exact)
     return OccupancyFrameMsg(
         stream="s0", seq=seq, stamp=seq * 0.5, source="replay", occupancy=occ, timings_ms={"inference": 1.5}
     )
@@ -115,12 +120,12 @@ def test_oversize_on_both_sides():
 
 
 def test_wrong_array_size_nan_and_label_range_are_invalid_messages():
-    d = _raw(occupancy_msg())
+    d = _raw(occupancy_msg(as_points=True))
     d["occupancy"]["points"]["data"] = d["occupancy"]["points"]["data"][:-8]
     e = _code(_pack(d))
     assert e.code == "invalid_message" and "bytes" in e.message
 
-    m = occupancy_msg(50)
+    m = occupancy_msg(50, as_points=True)
     pts = m.occupancy.points.to_numpy().copy()
     pts[7] = np.nan
     d = _raw(m)

@@ -38,6 +38,7 @@ from occvo_core.grid import OCC3D_GRID
 from occvo_schemas import keys
 from occvo_schemas.codec import CodecError, decode, encode
 from occvo_schemas.models import (
+    Array,
     CameraFrame,
     ErrorEvent,
     GridSpecModel,
@@ -536,11 +537,9 @@ def check_counts_and_survival(f: Fuzz, what: str, lanes: list[str], good) -> Non
 
 def _near_limit_frame(stream: str) -> CameraFrame:
     rng = np.random.default_rng(3)
-    n = MAXB // 25  # exact coordinates and a label: 25 bytes a voxel
+    n = MAXB // 25  # float64 coordinates and a label: 25 bytes a voxel
     while True:
-        occ = SparseOccupancy.from_points(
-            OCC3D_GRID.centres_of(rng.integers(0, OCC3D_GRID.shape, (n, 3))), rng.integers(0, 17, n), OCC3D_GRID
-        )
+        occ = _as_points(OCC3D_GRID.centres_of(rng.integers(0, OCC3D_GRID.shape, (n, 3))), rng.integers(0, 17, n))
         msg = CameraFrame(stream=stream, seq=0, stamp=0.0, gt_occupancy=occ)
         size = len(encode(msg, 1 << 30))
         if size <= MAXB:
@@ -549,11 +548,16 @@ def _near_limit_frame(stream: str) -> CameraFrame:
         n -= 1
 
 
+def _as_points(points, labels) -> SparseOccupancy:
+    """Occupancy as float64 coordinates (the form whose bytes the fuzz cases bend), not indices with axes."""
+    return SparseOccupancy(
+        points=Array.from_numpy(np.asarray(points, np.float64)), labels=Array.from_numpy(np.asarray(labels, np.uint8))
+    )
+
+
 def _good(what: str):
     rng = np.random.default_rng(7)
-    occ = SparseOccupancy.from_points(
-        OCC3D_GRID.centres_of(rng.integers(0, OCC3D_GRID.shape, (100, 3))), rng.integers(0, 17, 100), OCC3D_GRID
-    )
+    occ = _as_points(OCC3D_GRID.centres_of(rng.integers(0, OCC3D_GRID.shape, (100, 3))), rng.integers(0, 17, 100))
     if what == "camera":
         return CameraFrame(stream="x", seq=0, stamp=0.0, gt_occupancy=occ)
     if what == "occupancy":

@@ -19,7 +19,7 @@ import zenoh
 from occvo_core.map_tiles import changed_tiles, tiles_from_map
 from occvo_schemas import keys
 from occvo_schemas.codec import decode, encode
-from occvo_schemas.models import ErrorEvent, OccupancyFrameMsg
+from occvo_schemas.models import Array, ErrorEvent, OccupancyFrameMsg, SparseOccupancy
 from occvo_services.client import OccVOClient, ServiceError, camera_frame_of
 from occvo_services.local import InProcessService
 from occvo_services.runtime import SeqTracker, StageQueue
@@ -154,6 +154,8 @@ def test_bad_input_is_reported_and_good_poses_still_come(service):
     errors = ErrorLog(session, "bad")
     errors.make_live(session, keys.camera("bad"))
     good = camera_frame_of(frames[0], "bad", 0)
+    as_points = SparseOccupancy(points=Array.from_numpy(frames[0].points), labels=good.gt_occupancy.labels)
+    good = good.model_copy(update={"gt_occupancy": as_points})  # float64 coordinates: the bytes bent below
     raw = msgpack.unpackb(encode(good), raw=False)
 
     def variant(mutate):

@@ -8,6 +8,29 @@ from numba import njit
 from occvo_core.registration.kernels import CACHE
 
 
+@njit(cache=CACHE, nogil=True, inline="always")
+def _nearer(q, map_pos, m, usable, best, best_d2):
+    """(best, squared distance) after looking at grid entry m: m when it is a usable point strictly nearer (on a tie
+    the one seen first stays)."""
+    if m >= 0 and usable[m]:
+        d0 = map_pos[m, 0] - q[0]
+        d1 = map_pos[m, 1] - q[1]
+        d2 = map_pos[m, 2] - q[2]
+        d = d0 * d0 + d1 * d1 + d2 * d2
+        if d < best_d2:
+            return m, d
+    return best, best_d2
+
+
+@njit(cache=CACHE, nogil=True, inline="always")
+def _beyond_best(q, ci, cj, ck, origin, r, voxel, best_d2):
+    """Whether every point outside the cube of rings 0..r around cell (ci, cj, ck) lies farther than the best."""
+    gap = np.inf
+    for a, c in ((0, ci), (1, cj), (2, ck)):
+        gap = min(gap, q[a] - (c + origin[a] - r) * voxel, (c + origin[a] + r + 1) * voxel - q[a])
+    return best_d2 <= gap * gap
+
+
 @njit(cache=CACHE, nogil=True)
 def nearest_in_window(q, map_pos, grid, origin, dims, voxel, radius, usable):
     """Nearest usable map point to q within `radius` voxel rings: (index or -1, squared distance).
@@ -36,25 +59,11 @@ def nearest_in_window(q, map_pos, grid, origin, dims, voxel, radius, usable):
                 while dk <= r:
                     k = ck + dk
                     if 0 <= k < dims[2]:
-                        m = grid[base + k]
-                        if m >= 0 and usable[m]:
-                            d0 = map_pos[m, 0] - q[0]
-                            d1 = map_pos[m, 1] - q[1]
-                            d2 = map_pos[m, 2] - q[2]
-                            d = d0 * d0 + d1 * d1 + d2 * d2
-                            if d < best_d2:
-                                best_d2 = d
-                                best = m
+                        best, best_d2 = _nearer(q, map_pos, grid[base + k], usable, best, best_d2)
                     dk += step if step > 0 else 1
-        if best >= 0:
-            # every unsearched point lies outside the searched cube: stop once the best is nearer than its faces
-            gap = np.inf
-            for a, c in ((0, ci), (1, cj), (2, ck)):
-                lo_face = (c + origin[a] - r) * voxel
-                hi_face = (c + origin[a] + r + 1) * voxel
-                gap = min(gap, q[a] - lo_face, hi_face - q[a])
-            if best_d2 <= gap * gap:
-                break
+        # every unsearched point lies outside the searched cube: stop once the best is nearer than its faces
+        if best >= 0 and _beyond_best(q, ci, cj, ck, origin, r, voxel, best_d2):
+            break
     return best, best_d2
 
 
@@ -91,21 +100,9 @@ def nearest_in_padded(q, map_pos, grid, origin, dims, voxel, radius, usable, off
     best_d2 = np.inf
     for r in range(radius + 1):
         for s in range(starts[r], starts[r + 1]):
-            m = grid[c + offsets[s]]
-            if m >= 0 and usable[m]:
-                d0 = map_pos[m, 0] - q[0]
-                d1 = map_pos[m, 1] - q[1]
-                d2 = map_pos[m, 2] - q[2]
-                d = d0 * d0 + d1 * d1 + d2 * d2
-                if d < best_d2:
-                    best_d2 = d
-                    best = m
-        if best >= 0:
-            gap = np.inf
-            for a, cell in ((0, ci), (1, cj), (2, ck)):
-                gap = min(gap, q[a] - (cell + origin[a] - r) * voxel, (cell + origin[a] + r + 1) * voxel - q[a])
-            if best_d2 <= gap * gap:
-                break
+            best, best_d2 = _nearer(q, map_pos, grid[c + offsets[s]], usable, best, best_d2)
+        if best >= 0 and _beyond_best(q, ci, cj, ck, origin, r, voxel, best_d2):
+            break
     return best, best_d2
 
 

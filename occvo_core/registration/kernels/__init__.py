@@ -6,8 +6,10 @@ order, and whatever depends on order (new row numbers, grid cells two voxels sha
 
 from __future__ import annotations
 
+import hashlib
 import os
 import threading
+from pathlib import Path
 
 import numba
 
@@ -18,6 +20,19 @@ if "NUMBA_THREADING_LAYER" not in os.environ:
     # fallback (workqueue) would abort on that, OpenMP and TBB take it (the variable survives numba's config reloads)
     os.environ["NUMBA_THREADING_LAYER"] = numba.config.THREADING_LAYER = "threadsafe"
 
+
+def _cache_dir() -> str:
+    """numba keys a cached kernel by its own file only, so one that inlines a helper from another file would keep the
+    old helper after a change to it alone (a `git pull`): the kernels are cached in a directory of their own for each
+    version of the registration package's sources (under NUMBA_CACHE_DIR when set, else beside the sources)."""
+    root = Path(__file__).resolve().parents[1]
+    digest = hashlib.blake2b(b"".join(f.read_bytes() for f in sorted(root.rglob("*.py"))), digest_size=8).hexdigest()
+    base = os.environ.get("NUMBA_CACHE_DIR") or str(Path(__file__).parent / "__pycache__")
+    name = f"occvo-kernels-{digest}"
+    return base if Path(base).name == name else str(Path(base) / name)  # a worker inherits its parent's
+
+
+os.environ["NUMBA_CACHE_DIR"] = numba.config.CACHE_DIR = _cache_dir()  # the variable survives config reloads
 CACHE = True  # compiled kernels are kept on disk: a worker's start does not wait for numba
 CHUNKS = 16  # fixed slices of parallel loops (see above)
 MODULES = ("grid", "sources", "covariance", "nearest", "gicp", "clusters", "voxel_pfilter", "map_window", "map_rows")

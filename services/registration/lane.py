@@ -240,7 +240,7 @@ class StreamLanes:
             )
 
         # with frames waiting it starts now, beside the commit (the next frame waits for it); caught up, once the
-        # pose is out: its kernels on both cores would slow the commit a pose waits for
+        # commit is done: its kernels on both cores would slow the commit a pose waits for
         tail_at_once = backlog
         if tail_at_once:
             after_pose()
@@ -266,6 +266,9 @@ class StreamLanes:
             timings.update({f"registration.{k}": float(v) for k, v in reg_timings.items()})
             # of the above, runnable but without a core (this thread and the kernel team's)
             timings["core_wait"] = run_delay_ms() - waited0 + team_wait[0]
+            if not tail_at_once:  # before the pose goes out: whoever has the pose and waits for st.tail waits for this
+                tail_at_once = True
+                after_pose()
             self._publish_pose(stream, st, msg.seq, msg.stamp, pose_m, status, digest, timings, restart)
             if restart:
                 log_event(self.log, "trajectory started", stream=stream, seq=msg.seq)

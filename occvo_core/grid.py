@@ -92,12 +92,16 @@ class GridSpec:
         idx = self.indices_of(points)
         if len(idx) and not self.inside(idx).all():
             return None
-        table = np.array(self.lower)[:, None] + (np.arange(max(self.shape)) + 0.5) * self.voxel_size
+        table = self.centre_table()
         for a in range(3):
             table[a, idx[:, a]] = points[:, a]
             if not np.array_equal(table[a, idx[:, a]], points[:, a]):
                 return None
         return idx, table
+
+    def centre_table(self) -> np.ndarray:
+        """(3, max(shape)): row a holds the centre of each index along axis a, as centres_of computes it."""
+        return np.array(self.lower)[:, None] + (np.arange(max(self.shape)) + 0.5) * self.voxel_size
 
     @staticmethod
     def points_of(indices: np.ndarray, table: np.ndarray) -> np.ndarray:

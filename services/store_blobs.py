@@ -79,7 +79,7 @@ def pack_frame(frame: OccupancyFrame) -> bytes:
     if tables is None:
         return pack_arrays({"points": points, **head})
     ijk, axes = tables
-    if np.array_equal(OCC3D_GRID.centres_of(ijk), points):
+    if np.array_equal(axes, OCC3D_GRID.centre_table()):  # voxel centres: the grid gives them back
         return pack_arrays({"ijk": ijk.astype(np.uint8), **head})
     return pack_arrays({"ijk": ijk.astype(np.uint8), "axes": axes, **head})
 

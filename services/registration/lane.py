@@ -234,15 +234,21 @@ class StreamLanes:
         pose_out: Future = Future()
         st.tail_running = True
 
+        submitted: list[Future] = []
+
         def after_pose() -> None:
-            st.tail = st.after_pose.submit(
-                self._after_pose, stream, st, msg, reg, frame, digest, pose_m, restart, t_valid, pose_out
-            )
+            """This frame's work after its pose, submitted once (the first of the calls below)."""
+            if not submitted:
+                submitted.append(
+                    st.after_pose.submit(
+                        self._after_pose, stream, st, msg, reg, frame, digest, pose_m, restart, t_valid, pose_out
+                    )
+                )
+                st.tail = submitted[0]
 
         # with frames waiting it starts now, beside the commit (the next frame waits for it); caught up, once the
         # commit is done: its kernels on both cores would slow the commit a pose waits for
-        tail_at_once = backlog
-        if tail_at_once:
+        if backlog:
             after_pose()
         try:
             t_store = time.perf_counter()
@@ -254,9 +260,7 @@ class StreamLanes:
                     )
                 except Exception as exc:  # noqa: BLE001 - e.g. disk full: publish nothing the store lacks
                     pose_out.set_result(False)
-                    if not tail_at_once:
-                        tail_at_once = True
-                        after_pose()
+                    after_pose()
                     st.tail.result()  # its OccVO.complete: then the state goes, rebuilt from the store
                     return self._store_failed(stream, st, msg.seq, exc, "not stored, pose not published")
             store_ms = (time.perf_counter() - t_store) * 1000.0
@@ -266,9 +270,7 @@ class StreamLanes:
             timings.update({f"registration.{k}": float(v) for k, v in reg_timings.items()})
             # of the above, runnable but without a core (this thread and the kernel team's)
             timings["core_wait"] = run_delay_ms() - waited0 + team_wait[0]
-            if not tail_at_once:  # before the pose goes out: whoever has the pose and waits for st.tail waits for this
-                tail_at_once = True
-                after_pose()
+            after_pose()  # before the pose goes out: whoever has the pose and waits for st.tail waits for this
             self._publish_pose(stream, st, msg.seq, msg.stamp, pose_m, status, digest, timings, restart)
             if restart:
                 log_event(self.log, "trajectory started", stream=stream, seq=msg.seq)
@@ -278,8 +280,7 @@ class StreamLanes:
         finally:
             if not pose_out.done():  # the pose did not go out: its work after it stores and publishes nothing
                 pose_out.set_result(False)
-            if not tail_at_once:
-                after_pose()
+            after_pose()
         for stage in ("validate", "after_pose_wait", "core_wait"):
             self.stats.observe(stage, timings[stage])
         self.stats.observe("registration", reg_ms)

@@ -15,6 +15,15 @@ def _padded_cell(i, j, k, dims, pad):
     return ((i + pad) * (dims[1] + 2 * pad) + j + pad) * (dims[2] + 2 * pad) + k + pad
 
 
+@njit(cache=CACHE, nogil=True, parallel=True)
+def _empty_grid(n_cells):
+    """A dense grid of n_cells, every cell empty (-1), filled in CHUNKS slices at once: the grid is megabytes."""
+    grid = np.empty(n_cells, np.int32)
+    for c in prange(CHUNKS):
+        grid[n_cells * c // CHUNKS : n_cells * (c + 1) // CHUNKS] = -1
+    return grid
+
+
 @njit(cache=CACHE, nogil=True)
 def key_bounds(keys, alive, n, lower, upper):
     """(min, max) key of the live rows < n with keys in [lower, upper]; min > max when there are none."""
@@ -37,10 +46,7 @@ def window_voxels(keys, alive, f, t0, pos, label, n, lower, upper, t):
     """Live rows < n with keys in [lower, upper], in row order, with copies of their positions and labels, their
     p-index f / max(t - t0, 1), and the dense grid of the box holding each one's window index (one pass, not five)."""
     dims = upper - lower + 1
-    n_cells = dims[0] * dims[1] * dims[2]
-    grid = np.empty(n_cells, np.int32)
-    for c in prange(CHUNKS):
-        grid[n_cells * c // CHUNKS : n_cells * (c + 1) // CHUNKS] = -1
+    grid = _empty_grid(dims[0] * dims[1] * dims[2])
     inside = np.empty(n, np.bool_)
     counts = np.zeros(CHUNKS + 1, np.int64)
     for c in prange(CHUNKS):  # the scan of every row is the cost: count each slice's rows in parallel
@@ -86,10 +92,7 @@ def ego_points(idx, rows, map_pos, map_cov, rot, trans, origin, dims, voxel, pad
     n = idx.shape[0]
     pos = np.empty((n, 3))
     cov = np.empty((n, 3, 3))
-    n_cells = (dims[0] + 2 * pad) * (dims[1] + 2 * pad) * (dims[2] + 2 * pad)
-    grid = np.empty(n_cells, np.int32)
-    for c in prange(CHUNKS):
-        grid[n_cells * c // CHUNKS : n_cells * (c + 1) // CHUNKS] = -1
+    grid = _empty_grid((dims[0] + 2 * pad) * (dims[1] + 2 * pad) * (dims[2] + 2 * pad))
     cell_of = np.empty(n, np.int64)
     for a in prange(n):
         r = rows[idx[a]]
@@ -122,7 +125,7 @@ def pool_voxels(pos, cov, labels, usable, weight, votes_in, voxel, origin, dims,
     equals pooling its voxels directly. Returns pos, cov, labels, dense grid of the cells (with pad empty cells on
     every side), weights, votes."""
     n_pts = pos.shape[0]
-    grid = np.full((dims[0] + 2 * pad) * (dims[1] + 2 * pad) * (dims[2] + 2 * pad), -1, np.int32)
+    grid = _empty_grid((dims[0] + 2 * pad) * (dims[1] + 2 * pad) * (dims[2] + 2 * pad))
     cell_of = np.empty(n_pts, np.int64)
     for n in prange(n_pts):
         cell_of[n] = -1

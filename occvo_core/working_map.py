@@ -42,6 +42,11 @@ def evict_tiles(vo: OccVO, center_xy, radius_m: float, tile_m: float) -> dict[Ti
     return vo.map.take_far_tiles(center_xy, radius_m, tile_m, len(vo.poses))
 
 
+def has_far_tiles(vo: OccVO, center_xy, radius_m: float, tile_m: float) -> bool:
+    """Whether evict_tiles would take any tile now (a caller publishing the map must cut it before they go)."""
+    return len(vo.map.far_tile_rows(center_xy, radius_m, tile_m)) > 0
+
+
 def restore_tiles(vo: OccVO, blocks: dict[Tile, dict[str, np.ndarray]]) -> int:
     """Put evicted tiles back (as evict_tiles returned them), moved by the loops closed since they were taken;
     returns the voxels restored."""

@@ -56,6 +56,9 @@ class WorkerConfig(BaseModel):
     shard: int = Field(0, ge=0)
     shards: int = Field(1, ge=1, le=1024)
     tile_m: float = Field(20.0, gt=0)
+    # registration: with frames of a stream waiting, their map tiles go out together, in one update at most this long
+    # after the last (every update re-sends whole tiles); a stream caught up gets one a frame. 0: one a frame always
+    map_coalesce_s: float = Field(0.5, ge=0)
     occvo_config: str | None = None
     # registration: cores each stream's kernels may use; 0 = this shard's share of the cores (cores / shards), shared
     # by its streams registering at that moment (one stream alone uses them all). Poses are the same for any value

@@ -163,12 +163,16 @@ class VoxelRows:
         self.alive[rows] = False
         return block
 
-    def take_far_tiles(self, center_xy, radius_m: float, tile_m: float, t: int) -> dict[tuple[int, int], dict]:
-        """take() every tile whose square lies wholly farther than radius_m from center_xy: {tile: its voxels}."""
+    def far_tile_rows(self, center_xy, radius_m: float, tile_m: float) -> np.ndarray:
+        """Live rows, ascending, of the tiles whose square lies wholly farther than radius_m from center_xy."""
         center = np.asarray(center_xy, np.float64)
-        rows = map_rows.far_tile_rows(
+        return map_rows.far_tile_rows(
             self.pos, self.alive, self._n, center[0], center[1], float(tile_m), float(radius_m)
         )
+
+    def take_far_tiles(self, center_xy, radius_m: float, tile_m: float, t: int) -> dict[tuple[int, int], dict]:
+        """take() every tile whose square lies wholly farther than radius_m from center_xy: {tile: its voxels}."""
+        rows = self.far_tile_rows(center_xy, radius_m, tile_m)
         if len(rows) == 0:
             return {}
         tiles = self.tile_ids(tile_m, rows)

@@ -84,10 +84,12 @@ class AfterPose:
         restart: bool,
         t0: float,
         pose_out: Future,
+        entered: int,
     ) -> None:
         t_tail = time.perf_counter()
         registered = set(reg.timings_ms)  # complete() adds its stages to the same stopwatch
-        result, restored, evicted, cut = self._finish(stream, st, reg, frame, msg.seq, publish=True)
+        publish = True if restart else None  # None: now or with a later frame's (Paging._map_due)
+        result, restored, evicted, cut = self._finish(stream, st, reg, frame, msg.seq, publish, entered)
         if not pose_out.result():  # not committed: nothing of it is stored or published (the lane rebuilds the state)
             return
         t_finished = time.perf_counter()
@@ -125,8 +127,11 @@ class AfterPose:
         # it holds the GIL for most of its work, and a niced holder the cores pass over would stall the lane waiting
         # for the GIL (the after-pose thread's boost covers only the waits for its end)
         t_map = time.perf_counter()
-        self._map_done(st)
-        st.map_tail = st.map_thread.submit(self._send_tiles, stream, st, msg.seq, restart, cut, evicted, restored)
+        if cut is not None:
+            self._map_done(st)
+            st.map_tail = st.map_thread.submit(self._send_tiles, stream, st, msg.seq, restart, cut, evicted, restored)
+        else:
+            self.stats.inc("map_updates_coalesced")
         t_end = time.perf_counter()
         for k, v in result.timings_ms.items():
             if k not in registered:

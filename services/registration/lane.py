@@ -48,6 +48,7 @@ class StreamLanes:
             return
         if st.tail is not None:
             st.tail.result()
+        self._flush_map(stream, st)
         self._map_done(st)
         if st.after_pose is not None:
             st.after_pose.shutdown(wait=True)
@@ -110,9 +111,22 @@ class StreamLanes:
 
     # -- one frame ------------------------------------------------------------------------------------------------
     def _register(self, stream: str, item) -> None:
+        st = self.state(stream)
+        st.entered += 1
+        tail = st.tail
+        try:
+            self._register_frame(stream, st, item, st.entered)
+        finally:
+            lane = self.lanes.get(stream)
+            caught_up = lane is None or lane.queue.q.qsize() == 0
+            if st.tail is tail and st.after_pose is not None and caught_up:
+                # no work after a pose followed (refused, a resend) and no frame waits: the tiles held back for it go
+                # now (the job runs after the last frame's work, which may hold some back yet)
+                st.tail = st.after_pose.submit(self._flush_map, stream, st)
+
+    def _register_frame(self, stream: str, st: StreamState, item, entered: int) -> None:
         msg, hop_ms, t_queued, decode_ms = item
         t0, waited0 = time.perf_counter(), run_delay_ms()
-        st = self.state(stream)
         # what needs nothing of the stream's state runs while the last frame's work after its pose may still run:
         # building and validating the frame, its digest and OccVO.prepare
         frame = OccupancyFrame(
@@ -208,12 +222,9 @@ class StreamLanes:
                 raise bad
             lane = self.lanes.get(stream)
             backlog = lane is not None and lane.queue.q.qsize() > 0
-            if backlog:
-                # frames wait behind this one: here, on one thread (use_threads), the kernels thread's spin would
-                # take the core the last frame's map work and the other processes need; caught up: on both cores
-                reg = st.vo.register(frame, prepared)
-            else:
-                reg = self._kernels(st.vo, team_wait, st.vo.register, frame, prepared)
+            # on the cores this stream may use, also with frames waiting: their map updates are coalesced
+            # (map_coalesce_s), which leaves the second core little else to do
+            reg = self._kernels(st.vo, team_wait, st.vo.register, frame, prepared)
         except InvalidFrameError as exc:
             if restart and self.store is not None:
                 st.vo = None  # reset for nothing: the stored trajectory stands and resumes at the next frame
@@ -241,7 +252,18 @@ class StreamLanes:
             if not submitted:
                 submitted.append(
                     st.after_pose.submit(
-                        self._after_pose, stream, st, msg, reg, frame, digest, pose_m, restart, t_valid, pose_out
+                        self._after_pose,
+                        stream,
+                        st,
+                        msg,
+                        reg,
+                        frame,
+                        digest,
+                        pose_m,
+                        restart,
+                        t_valid,
+                        pose_out,
+                        entered,
                     )
                 )
                 st.tail = submitted[0]

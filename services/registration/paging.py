@@ -8,7 +8,7 @@ import time
 import numpy as np
 
 from occvo_core.frame import OccupancyFrame
-from occvo_core.working_map import changed_map, tiles_near, tiles_reached
+from occvo_core.working_map import changed_map, has_far_tiles, tiles_near, tiles_reached
 from occvo_services.registration.state import StreamState
 from occvo_services.store_blobs import unpack_arrays
 
@@ -23,11 +23,15 @@ class Paging:
         reproduces the poses."""
         return self._finish(stream, st, st.vo.register(frame), frame, seq, publish)
 
-    def _finish(self, stream: str, st: StreamState, reg, frame: OccupancyFrame, seq: int, publish: bool):
+    def _finish(
+        self, stream: str, st: StreamState, reg, frame: OccupancyFrame, seq: int, publish: bool | None, entered: int = 0
+    ):
         """After the pose: loop closure and map update (OccVO.complete), keep every tile wholly resident or wholly
         cold, evict far map, and bring back the cold map near the new pose, which the next frame registers against.
         Returns (result, tiles restored, evicted blocks, the changed part of the map before eviction if publish:
-        what _publish_map cuts into tiles)."""
+        what _publish_map cuts into tiles). publish None: when _map_due (the frame that entered the lane as `entered`)
+        or tiles come back or leave now (their content goes out with this frame's); else the change waits for a later
+        frame's cut."""
         t_complete = time.perf_counter()
         result = self._kernels(st.vo, None, st.vo.complete, reg)
         pose = np.asarray(result.pose, float)
@@ -38,8 +42,11 @@ class Paging:
             restored += self._restore(stream, st, self._reached(st, frame, pose))
         t_map = time.perf_counter()
         cut = None
-        if publish:  # only the part of the map this frame changed is cut again (a replay leaves the region open)
-            cut = changed_map(st.vo, self.config.tile_m)  # copied: cut and sent beside the next registration
+        if publish is None:
+            publish = bool(restored) or self._evicts(st, pose) or self._map_due(stream, st, entered)
+            st.map_pending = not publish
+        if publish:  # only the part of the map changed since the last cut is cut again (a replay leaves it open)
+            cut = self._cut(st)  # copied: cut and sent beside the next registration
         st.extract_ms = (time.perf_counter() - t_map) * 1000.0
         t_evict = time.perf_counter()
         evicted = self._evict_far(st, seq, pose)
@@ -50,6 +57,32 @@ class Paging:
         st.restored_for_next = self._restore(stream, st, self._near(st))
         st.restore_ms = (t_map - t0 + time.perf_counter() - t_near) * 1000.0
         return result, restored, evicted, cut
+
+    def _cut(self, st: StreamState) -> tuple:
+        """The map changed since the last cut, copied (occvo_core.working_map.changed_map)."""
+        st.map_cut_at, st.map_pending = time.monotonic(), False
+        return changed_map(st.vo, self.config.tile_m)
+
+    def _map_due(self, stream: str, st: StreamState, entered: int) -> bool:
+        """Whether the map is cut for tiles now: every frame of a stream caught up, while frames wait behind it (each
+        update re-sends whole tiles) at most every map_coalesce_s, and after a resume at once."""
+        period = self.config.map_coalesce_s
+        if st.send_all_tiles or period <= 0 or time.monotonic() - st.map_cut_at >= period:
+            return True
+        lane = self.lanes.get(stream)
+        return st.entered == entered and (lane is None or lane.queue.q.qsize() == 0)
+
+    def _flush_map(self, stream: str, st: StreamState) -> None:
+        """In the after-pose thread: the tiles held back for a frame that did not come (refused, or none followed)."""
+        if st.map_pending and st.vo is not None and st.seqs and st.map_thread is not None:
+            cut = self._cut(st)
+            self._map_done(st)
+            st.map_tail = st.map_thread.submit(self._send_tiles, stream, st, st.seqs[-1], False, cut, {}, [])
+
+    def _evicts(self, st: StreamState, pose: np.ndarray) -> bool:
+        """Whether _evict_far takes any tile at this pose."""
+        radius = self.config.working_radius_m
+        return radius is not None and has_far_tiles(st.vo, pose[:2, 3], radius, self.config.tile_m)
 
     def _reached(self, st: StreamState, frame: OccupancyFrame, pose: np.ndarray) -> list[tuple[int, int]]:
         """Cold tiles the frame's points reach at `pose` (occvo_core.working_map.tiles_reached)."""

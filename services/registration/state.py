@@ -35,6 +35,9 @@ class StreamState:
         self.snapshot_idle.set()
         self.snapshot_retry = False  # the last snapshot failed: take one at the next frame
         self.send_all_tiles = False  # after a resume: the map service may lack the last frames' tiles
+        self.entered = 0  # frames that entered the lane: the work after a pose sees whether another came
+        self.map_cut_at = -np.inf  # time.monotonic() of the last cut of the map for tiles
+        self.map_pending = False  # the map changed since that cut (its tiles go out with a later frame's)
         self.tiling_ms = self.complete_ms = self.extract_ms = 0.0
         self.restore_ms = self.evict_ms = 0.0  # the last step's working-map restores and evictions
         self.restored_for_next: list[tuple[int, int]] = []  # tiles restored after the last frame, not yet published

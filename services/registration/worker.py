@@ -115,6 +115,9 @@ def _args(p) -> None:
     p.add_argument("--shard", type=int, help="register the streams of this shard (0..shards-1)")
     p.add_argument("--shards", type=int, help="registration workers sharing the streams (by a hash of the stream id)")
     p.add_argument("--tile-m", type=float)
+    p.add_argument(
+        "--map-coalesce-s", type=float, help="with frames waiting, one map update for them at most this often (0: each)"
+    )
     p.add_argument("--occvo-config")
     p.add_argument("--store-path", help="SQLite file of the trajectories, snapshots and evicted map (default: none)")
     p.add_argument("--snapshot-every", type=int, help="frames between state snapshots")

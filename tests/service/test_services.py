@@ -372,14 +372,14 @@ def test_replay_of_a_synthetic_scene(service):
 
 
 @contextlib.contextmanager
-def _held_after_pose(worker, stream: str, released=None):
-    """The stream's work after the pose of frame 1 held until the yielded gate is set (held_at: it is waiting there);
-    `released()` runs as it goes on. The real work runs after it; the worker is as it was on leaving."""
+def _held_after_pose(worker, stream: str, released=None, seq: int = 1):
+    """The stream's work after the pose of frame `seq` held until the yielded gate is set (held_at: it is waiting
+    there); `released()` runs as it goes on. The real work runs after it; the worker is as it was on leaving."""
     gate, held_at = threading.Event(), threading.Event()
     steps = worker._after_pose_steps
 
     def held(s, st, msg, *args):
-        if s == stream and msg.seq == 1:
+        if s == stream and msg.seq == seq:
             held_at.set()
             gate.wait(30)
             if released is not None:
@@ -468,6 +468,67 @@ def test_a_pose_is_published_while_its_work_after_the_pose_is_held(service):
     (map_thread,) = st.map_thread._threads
     nice = os.getpriority(os.PRIO_PROCESS, worker.lanes["early"].thread.native_id)
     assert os.getpriority(os.PRIO_PROCESS, map_thread.native_id) == nice and st.map_tail.done()
+
+
+def _wait_for(what, timeout: float = 60.0) -> None:
+    deadline = time.monotonic() + timeout
+    while not what():
+        assert time.monotonic() < deadline, "timed out"
+        time.sleep(0.01)
+
+
+def test_frames_waiting_share_one_map_update_and_the_last_frames_tiles_are_never_held_back():
+    """With frames of a stream waiting behind a frame, its tiles go out with a later frame's (every update re-sends
+    whole tiles); the last frame's go out, also when what follows it is refused or a resend. The tiles served are
+    the offline map's, bit for bit."""
+    from occvo_schemas.models import MapUpdate
+    from occvo_services.commands.replay import load_scene
+
+    scene = load_scene("synthetic:3", frames=6)
+    with InProcessService(map_coalesce_s=60.0) as svc, OccVOClient(svc.endpoint, "batch") as c:
+        worker = svc.worker("registration")
+        updates = []
+        sub = c.session.declare_subscriber(
+            keys.map_updates("batch"), lambda s: updates.append(decode(s.payload.to_bytes(), MapUpdate, 1 << 30).seq)
+        )
+
+        def served(frames: int) -> None:
+            """The map service's tiles equal the offline map of the first `frames` frames."""
+            _wait_for(lambda: c.map_info().last_seq == frames - 1)
+            want = tiles_from_map(*offline([scene[i] for i in range(frames)]).map_points(), 20.0)
+            got = {(t.ix, t.iy): t for t in c.region()}
+            assert set(got) == set(want)
+            for k, (p, l) in want.items():
+                assert np.array_equal(got[k].points.to_numpy(), p) and np.array_equal(got[k].labels.to_numpy(), l)
+
+        with _held_after_pose(worker, "batch") as (gate, held_at):
+            c.reset()
+            for i in range(5):
+                c.publish(scene[i])
+            # frame 2 in the lane waits for frame 1's work, frames 3 and 4 in its queue
+            _wait_for(
+                lambda: held_at.is_set() and "batch" in worker.lanes and worker.lanes["batch"].queue.q.qsize() == 2
+            )
+            gate.set()
+            c.wait_pose(4, timeout=60)
+        worker.drain()
+        _wait_for(lambda: 4 in updates)
+        assert updates == [0, 4]  # the first frame's (a new trajectory), then one for frames 1-4
+        assert worker.stats.snapshot()[0]["map_updates_coalesced"] == 3
+        served(5)
+
+        # frame 5's work held while a resend of frame 2 comes: that is refused (answered, nothing registered), and
+        # frame 5's tiles, held back for it, still go out
+        with _held_after_pose(worker, "batch", seq=5) as (gate, held_at):
+            c.publish(scene[5])
+            assert held_at.wait(60)
+            c.session.put(keys.camera("batch"), encode(camera_frame_of(scene[2], "batch", 2)))
+            _wait_for(lambda: worker.states["batch"].entered == 7)
+            gate.set()
+        _wait_for(lambda: 5 in updates, timeout=10.0)  # not at the stream's retirement (idle_stream_s 30)
+        assert updates == [0, 4, 5] and not c.errors
+        served(6)
+        sub.undeclare()
 
 
 def test_kernel_threads_0_shares_the_cores_between_the_streams_registering():

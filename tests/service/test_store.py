@@ -594,6 +594,34 @@ def test_crash_with_eviction_resumes_exactly_and_the_map_service_keeps_far_tiles
         svc.close()
 
 
+def test_coalesced_map_updates_still_carry_every_evicted_tiles_last_content(tmp_path):
+    """A backlog of frames (the whole drive sent at once) shares map updates, but a tile leaving the working map
+    goes out with the content it had: the map service ends equal to a stream stepped frame by frame. (Frames at
+    0.5 Hz, 60 m radius: a tile a frame changed can be out of the radius at the next, and not every frame evicts.)"""
+    from occvo_core.sim import SyntheticScene
+    from occvo_services.client import OccVOClient
+    from occvo_services.commands.replay import replay
+
+    drive = SyntheticScene(seed=5, frames=N, rate_hz=0.5)
+    scene = [drive[i] for i in range(N)]
+    svc = Pipeline(tmp_path / "state.sqlite", working_radius_m=60.0, tile_m=EVICT_TILE_M, map_coalesce_s=60.0)
+    try:
+        reg = svc.start_registration()
+        with OccVOClient(svc.endpoint, "ref") as ref, OccVOClient(svc.endpoint, "cut") as cut:
+            ref.reset()
+            want = np.array([ref.step(f).matrix() for f in scene])
+            stepped = reg.stats.snapshot()[0].get("map_updates_coalesced", 0)
+            out = replay(cut, scene, window=N)
+            assert np.array_equal(out["trajectory"], want) and not cut.errors
+            _wait_map(ref, N - 1)
+            _wait_map(cut, N - 1)
+            counters = reg.stats.snapshot()[0]
+            assert counters["map_updates_coalesced"] > stepped and counters["tiles_evicted"] > 0
+            assert _same_tiles(ref, cut) > 0
+    finally:
+        svc.close()
+
+
 def test_a_frame_stopped_between_its_pose_and_its_map_update_is_finished_by_the_resume(tmp_path, scene):
     """The worker commits and publishes a frame's pose before its loop-closure search and map update, then stores
     what those did (evicted tiles, restores). When that second write fails (disk full, injected once) or the worker

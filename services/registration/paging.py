@@ -47,7 +47,7 @@ class Paging:
         t_map = time.perf_counter()
         cut = None
         if publish is None:
-            publish = bool(restored) or self._evicts(st, pose) or self._map_due(stream, st, entered)
+            publish = bool(restored) or self._map_due(stream, st, entered) or self._evicts(st, pose)
             st.map_pending = not publish
         if publish:  # only the part of the map changed since the last cut is cut again (a replay leaves it open)
             cut = self._cut(st)  # copied: cut and sent beside the next registration

@@ -111,6 +111,8 @@ class StreamLanes:
 
     # -- one frame ------------------------------------------------------------------------------------------------
     def _register(self, stream: str, item) -> None:
+        """One frame of the stream (_register_frame); counts it as entered, so the last frame's work after its pose
+        sees that another came (its map update can wait for this one's)."""
         st = self.state(stream)
         st.entered += 1
         tail = st.tail

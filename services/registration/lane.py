@@ -75,6 +75,11 @@ class StreamLanes:
         if st.map_tail is not None:
             st.map_tail.result()
 
+    def _queued(self, stream: str) -> bool:
+        """Whether frames of the stream wait in its lane's queue."""
+        lane = self.lanes.get(stream)
+        return lane is not None and lane.queue.q.qsize() > 0
+
     def _fair_threads(self) -> int:
         """Kernel threads for a frame about to be registered: the cores other processes (other shards among them)
         leave free, divided among this worker's lanes busy now (this one included), so one stream alone uses every
@@ -119,9 +124,7 @@ class StreamLanes:
         try:
             self._register_frame(stream, st, item, st.entered)
         finally:
-            lane = self.lanes.get(stream)
-            caught_up = lane is None or lane.queue.q.qsize() == 0
-            if st.tail is tail and st.after_pose is not None and caught_up:
+            if st.tail is tail and st.after_pose is not None and not self._queued(stream):
                 # no work after a pose followed (refused, a resend) and no frame waits: the tiles held back for it go
                 # now (the job runs after the last frame's work, which may hold some back yet)
                 st.tail = st.after_pose.submit(self._flush_map, stream, st)
@@ -222,8 +225,7 @@ class StreamLanes:
         try:
             if bad is not None:
                 raise bad
-            lane = self.lanes.get(stream)
-            backlog = lane is not None and lane.queue.q.qsize() > 0
+            backlog = self._queued(stream)
             # on the cores this stream may use, also with frames waiting: their map updates are coalesced
             # (map_coalesce_s), which leaves the second core little else to do
             reg = self._kernels(st.vo, team_wait, st.vo.register, frame, prepared)

@@ -77,8 +77,7 @@ class Paging:
 
     def _frames_waiting(self, stream: str, st: StreamState, entered: int) -> bool:
         """Whether a frame of the stream came after the one that entered the lane as `entered`."""
-        lane = self.lanes.get(stream)
-        return st.entered != entered or (lane is not None and lane.queue.q.qsize() > 0)
+        return st.entered != entered or self._queued(stream)
 
     def _flush_map(self, stream: str, st: StreamState) -> None:
         """In the after-pose thread: the tiles held back for a frame that did not come (refused, or none followed)."""

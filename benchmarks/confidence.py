@@ -2,12 +2,13 @@
 
     python benchmarks/confidence.py --checkpoint DIR/checkpoint.pt --seeds 2000 2001 2002 2003 2004   # choose
     python benchmarks/confidence.py --checkpoint DIR/checkpoint.pt --seeds 1000 1001 1002 1003 1004 --pairs 0,0 0.9,0.95
+    python benchmarks/confidence.py --checkpoint DIR/checkpoint.pt --pairs 0.9,0.95 --config default A.json5 B.json5
 
 Each synthetic seed (40 frames, 2 Hz) is rendered and run through the network once (OccupancyPredictor.predict_labels);
 then, for each (min_confidence, min_ground_confidence) pair, the voxels below it are set free (confident_labels, as
 the predictor and the inference worker do) and OccVO runs over the frames, with the semantic BEV motion search on
-(as `occvo run --from-images` has it). Prints the APE RMSE (m) of every seed and
-the successes (APE < 5 m) per pair. Choose on seeds that are neither training seeds (0-199 for the model of
+(as `occvo run --from-images` has it), once per --config (JSON5 OccVOConfig overrides; "default" the built-in one).
+Prints the APE RMSE (m) of every seed and the successes (APE < 5 m) per pair and config. Choose on seeds that are neither training seeds (0-199 for the model of
 docs/results.md) nor the held-out 1000-1004, then measure the chosen pair on those.
 """
 
@@ -30,7 +31,12 @@ from occvo_core.models.image_source import ImageOccupancySource  # noqa: E402
 from occvo_core.models.tpvformer.predictor import OccupancyPredictor, confident_labels  # noqa: E402
 from occvo_core.sim import SyntheticScene  # noqa: E402
 
-CONFIG = OccVOConfig().with_motion_search()  # as occvo run --from-images has it
+
+def _config(name: str) -> OccVOConfig:
+    config = OccVOConfig() if name == "default" else OccVOConfig.load(name)
+    return config.with_motion_search()  # as occvo run --from-images has it
+
+
 PAIRS = ["0,0", "0.8,0", "0.9,0", "0.8,0.9", "0.85,0.9", "0.9,0.9", "0.8,0.95", "0.85,0.95", "0.9,0.95"]
 
 
@@ -39,11 +45,13 @@ def main() -> int:
     ap.add_argument("--checkpoint", required=True)
     ap.add_argument("--seeds", type=int, nargs="+", default=[2000, 2001, 2002, 2003, 2004])
     ap.add_argument("--pairs", nargs="+", default=PAIRS, help="min_confidence,min_ground_confidence")
+    ap.add_argument("--config", nargs="+", default=["default"], help="OccVOConfig JSON5 files, or 'default'")
     ap.add_argument("--frames", type=int, default=40)
     ap.add_argument("--threads", type=int, default=2)
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
-    pairs = [tuple(float(v) for v in p.split(",")) for p in args.pairs]
+    configs = {name: _config(name) for name in args.config}
+    pairs = [(name, *(float(v) for v in p.split(","))) for name in configs for p in args.pairs]
     predictor = OccupancyPredictor(args.checkpoint, device="cpu")
     ape = {p: [] for p in pairs}
     for seed in args.seeds:
@@ -51,22 +59,28 @@ def main() -> int:
         source = ImageOccupancySource(scene, predictor)
         predicted = [predictor.predict_labels(*source.camera_frame(i)) for i in range(len(scene))]
         for p in pairs:
-            vo = OccVO(CONFIG)
+            vo = OccVO(configs[p[0]])
             for i, (labels, confidence) in enumerate(predicted):
-                points, classes = grid_to_points(confident_labels(labels, confidence, *p).to(torch.uint8).numpy())
+                points, classes = grid_to_points(confident_labels(labels, confidence, *p[1:]).to(torch.uint8).numpy())
                 vo.step(OccupancyFrame(points, classes, i, float(scene.times[i]), {"seed": seed}))
             ape[p].append(ape_rmse(scene.gt_poses, vo.poses))
-        print(f"seed {seed}: " + "  ".join(f"{a},{b}: {ape[(a, b)][-1]:.2f}" for a, b in pairs), flush=True)
-    print(f"\n{'min_confidence':>14} {'ground':>6}  succeeded  APE RMSE (m) of seeds {' '.join(map(str, args.seeds))}")
-    for a, b in pairs:
-        r = ape[(a, b)]
-        print(f"{a:>14g} {b:>6g}  {sum(x < 5.0 for x in r)} of {len(r):<5}  {' '.join(f'{x:.2f}' for x in r)}")
-    print(
-        json.dumps(
-            {"seeds": args.seeds, "ape_rmse_m": {f"{a},{b}": [round(x, 3) for x in ape[(a, b)]] for a, b in pairs}}
+        print(f"seed {seed}: " + "  ".join(f"{_key(p)}: {ape[p][-1]:.2f}" for p in pairs), flush=True)
+    head = f"{'config':<24} {'min_confidence':>14} {'ground':>6}  succeeded  mean  "
+    print(f"\n{head}APE RMSE (m) of seeds {' '.join(map(str, args.seeds))}")
+    for p in pairs:
+        r = ape[p]
+        mean = sum(r) / len(r)
+        print(
+            f"{p[0]:<24} {p[1]:>14g} {p[2]:>6g}  {sum(x < 5.0 for x in r)} of {len(r):<5} {mean:5.2f}  "
+            f"{' '.join(f'{x:.2f}' for x in r)}"
         )
-    )
+    print(json.dumps({"seeds": args.seeds, "ape_rmse_m": {_key(p): [round(x, 3) for x in ape[p]] for p in pairs}}))
     return 0
+
+
+def _key(p: tuple) -> str:
+    name, a, b = p
+    return f"{a:g},{b:g}" if name == "default" else f"{name}:{a:g},{b:g}"
 
 
 if __name__ == "__main__":

@@ -6,7 +6,7 @@ import numpy as np
 from numba import njit, prange
 
 from occvo_core.registration.kernels import CACHE, CHUNKS
-from occvo_core.registration.kernels.nearest import nearest_in_padded, ring_offsets
+from occvo_core.registration.kernels.nearest import nearest_within, ring_offsets
 from occvo_core.registration.semantic_label_filter import semantic_label_filter
 
 
@@ -113,7 +113,7 @@ def _linearise_range(
         pairs[n] = -1
         for a in range(3):
             q[a] = rot[a, 0] * src[n, 0] + rot[a, 1] * src[n, 1] + rot[a, 2] * src[n, 2] + trans[a]
-        m, d2 = nearest_in_padded(q, map_pos, grid, origin, dims, voxel, radius, usable, offsets, starts)
+        m, d2 = nearest_within(q, map_pos, grid, origin, dims, voxel, radius, usable, offsets, starts, max_d2)
         if m < 0 or d2 > max_d2:
             continue
         out[28] += 1.0
@@ -175,7 +175,7 @@ def gicp_linearise(
     pairs=None,
 ):
     """One Gauss-Newton step of GICP: H, g of the Mahalanobis cost, plus counts of pairs found and kept; the kept
-    pairs go into `pairs` (map index per source, -1 none) when given. The grid is padded (nearest_in_padded).
+    pairs go into `pairs` (map index per source, -1 none) when given. The grid is padded (nearest_within).
     Sums run over CHUNKS fixed slices of the sources, added in order."""
     n = src.shape[0]
     if pairs is None:

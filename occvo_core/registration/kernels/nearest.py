@@ -86,21 +86,49 @@ def ring_offsets(radius, dims):
 
 
 @njit(cache=CACHE, nogil=True, inline="always")
-def nearest_in_padded(q, map_pos, grid, origin, dims, voxel, radius, usable, offsets, starts):
-    """nearest_in_window, the same answer in the same tie order: a query at least `radius` cells from the grid's
-    edges reads its rings through ring_offsets, without a bounds check a cell (an EgoMap's grid has that many empty
-    cells on every side, so every query in its box does)."""
+def _axis_gap(o, lo, hi, voxel):
+    """Distance along one axis from a query to the cell o cells away (lo, hi: the query to its own cell's faces),
+    less a nanometre, so that rounding never makes it more than the distance of a point in that cell."""
+    if o == 0:
+        return 0.0
+    return max(0.0, (abs(o) - 1) * voxel + (hi if o > 0 else lo) - 1e-9)
+
+
+@njit(cache=CACHE, nogil=True, inline="always")
+def nearest_within(q, map_pos, grid, origin, dims, voxel, radius, usable, offsets, starts, max_d2):
+    """nearest_in_window for a caller that keeps only a point within max_d2: the same point whenever that one is
+    within it (a farther one or none otherwise). A query at least `radius` cells from the grid's edges reads its
+    first rings through ring_offsets, without a bounds check a cell (an EgoMap's grid has that many empty cells on
+    every side); beyond the first ring (most queries stop there) only the cells that can hold a point nearer than
+    the best so far and within max_d2, row by row in nearest_in_window's order."""
     ci = int(np.floor(q[0] / voxel)) - origin[0]
     cj = int(np.floor(q[1] / voxel)) - origin[1]
     ck = int(np.floor(q[2] / voxel)) - origin[2]
     if min(ci, cj, ck) < radius or ci >= dims[0] - radius or cj >= dims[1] - radius or ck >= dims[2] - radius:
         return nearest_in_window(q, map_pos, grid, origin, dims, voxel, radius, usable)
     c = (ci * dims[1] + cj) * dims[2] + ck
-    best = -1
-    best_d2 = np.inf
-    for r in range(radius + 1):
+    best, best_d2 = -1, np.inf
+    for r in range(min(radius, 1) + 1):
         for s in range(starts[r], starts[r + 1]):
             best, best_d2 = _nearer(q, map_pos, grid[c + offsets[s]], usable, best, best_d2)
+        if best >= 0 and _beyond_best(q, ci, cj, ck, origin, r, voxel, best_d2):
+            return best, best_d2
+    lo0, lo1, lo2 = q[0] - (ci + origin[0]) * voxel, q[1] - (cj + origin[1]) * voxel, q[2] - (ck + origin[2]) * voxel
+    for r in range(2, radius + 1):
+        for di in range(-r, r + 1):
+            gi = _axis_gap(di, lo0, voxel - lo0, voxel) ** 2
+            if gi >= best_d2 or gi > max_d2:
+                continue
+            for dj in range(-r, r + 1):
+                gij = gi + _axis_gap(dj, lo1, voxel - lo1, voxel) ** 2
+                if gij >= best_d2 or gij > max_d2:
+                    continue
+                base = c + (di * dims[1] + dj) * dims[2]
+                step = 1 if di == -r or di == r or dj == -r or dj == r else 2 * r  # inside: only the two z faces
+                for dk in range(-r, r + 1, step):
+                    d2 = gij + _axis_gap(dk, lo2, voxel - lo2, voxel) ** 2
+                    if d2 < best_d2 and d2 <= max_d2:
+                        best, best_d2 = _nearer(q, map_pos, grid[base + dk], usable, best, best_d2)
         if best >= 0 and _beyond_best(q, ci, cj, ck, origin, r, voxel, best_d2):
             break
     return best, best_d2

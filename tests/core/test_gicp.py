@@ -8,7 +8,7 @@ from occvo_core.registration.gicp import gicp
 from occvo_core.registration.kernels.covariance import _smallest_eigenvector, plane_covariances
 from occvo_core.registration.kernels.gicp import gicp_linearise, gicp_linearise_pairs
 from occvo_core.registration.kernels.grid import dense_index, surface_mask
-from occvo_core.registration.kernels.nearest import nearest_within, ring_offsets
+from occvo_core.registration.kernels.nearest import nearest_within
 from occvo_core.registration.kernels.sources import thin_sources
 from occvo_core.registration.voxel_map import VoxelPFilterMap
 
@@ -94,12 +94,13 @@ def test_nearest_in_window_is_the_true_nearest_within_radius():
     assert np.allclose(dist[within], best[within])
 
 
-def test_nearest_within_finds_the_true_nearest_whenever_it_is_within_the_limit():
-    """Beyond the first ring the search reads only cells that can hold a nearer point within the limit: the answer
+@pytest.mark.parametrize("voxel, radius, max_d", [(0.4, 2, 0.6), (1.2, 1, 1.2)])  # fine GICP's, coarse GICP's
+def test_nearest_within_finds_the_true_nearest_whenever_it_is_within_the_limit(voxel, radius, max_d):
+    """Beyond its own cell the search reads only cells that can hold a nearer point within the limit: the answer
     must still be the brute-force nearest of the grid's points, on queries inside the padded box and at its edges."""
     rng = np.random.default_rng(3)
-    voxel, radius, pad, max_d = 0.4, 2, 2, 0.6
-    pts = np.concatenate([rng.uniform(-3, 3, (1500, 3)), rng.normal(0, 0.3, (300, 3))])
+    pad, s = radius, voxel / 0.4
+    pts = np.concatenate([rng.uniform(-3, 3, (1500, 3)), rng.normal(0, 0.3, (300, 3))]) * s
     usable = rng.random(len(pts)) < 0.9
     cells = np.floor(pts / voxel).astype(np.int64)
     origin = cells.min(axis=0) - pad
@@ -108,11 +109,10 @@ def test_nearest_within_finds_the_true_nearest_whenever_it_is_within_the_limit()
     for n, (i, j, k) in enumerate(cells - origin):  # a later point in the same cell wins, as on an EgoMap
         grid[(i * dims[1] + j) * dims[2] + k] = n
     held = np.flatnonzero(np.isin(np.arange(len(pts)), grid) & usable)
-    offsets, starts = ring_offsets(radius, dims)
-    queries = np.concatenate([rng.uniform(-3.5, 3.5, (3000, 3)), rng.normal(0, 0.3, (500, 3))])
+    queries = np.concatenate([rng.uniform(-3.5, 3.5, (3000, 3)), rng.normal(0, 0.3, (500, 3))]) * s
     close = 0
     for q in queries:
-        m, d2 = nearest_within(q, pts, grid, origin, dims, voxel, radius, usable, offsets, starts, max_d**2)
+        m, d2 = nearest_within(q, pts, grid, origin, dims, voxel, radius, usable, max_d**2)
         d = np.linalg.norm(pts[held] - q, axis=1)
         if d.min() <= max_d:
             close += 1

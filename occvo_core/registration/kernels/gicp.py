@@ -6,7 +6,7 @@ import numpy as np
 from numba import njit, prange
 
 from occvo_core.registration.kernels import CACHE, CHUNKS
-from occvo_core.registration.kernels.nearest import nearest_within, ring_offsets
+from occvo_core.registration.kernels.nearest import nearest_within
 from occvo_core.registration.semantic_label_filter import semantic_label_filter
 
 
@@ -103,8 +103,6 @@ def _linearise_range(
     robust_scale,
     pairs,
     out,
-    offsets,
-    starts,
 ):
     """Search the nearest map point of sources lo..hi, record it in pairs (-1: none kept) and add the GICP terms
     of the kept pairs into out = (H upper triangle 21, g 6, cost, found, kept)."""
@@ -113,7 +111,7 @@ def _linearise_range(
         pairs[n] = -1
         for a in range(3):
             q[a] = rot[a, 0] * src[n, 0] + rot[a, 1] * src[n, 1] + rot[a, 2] * src[n, 2] + trans[a]
-        m, d2 = nearest_within(q, map_pos, grid, origin, dims, voxel, radius, usable, offsets, starts, max_d2)
+        m, d2 = nearest_within(q, map_pos, grid, origin, dims, voxel, radius, usable, max_d2)
         if m < 0 or d2 > max_d2:
             continue
         out[28] += 1.0
@@ -182,7 +180,6 @@ def gicp_linearise(
         pairs = np.empty(n, np.int64)
     parts = np.zeros((CHUNKS, 30))
     max_d2 = max_dist * max_dist
-    offsets, starts = ring_offsets(radius, dims)
     for c in prange(CHUNKS):
         _linearise_range(
             n * c // CHUNKS,
@@ -206,7 +203,5 @@ def gicp_linearise(
             robust_scale,
             pairs,
             parts[c],
-            offsets,
-            starts,
         )
     return _sum_parts(parts)

@@ -67,24 +67,6 @@ def nearest_in_window(q, map_pos, grid, origin, dims, voxel, radius, usable):
     return best, best_d2
 
 
-@njit(cache=CACHE, nogil=True)
-def ring_offsets(radius, dims):
-    """Grid offsets of the cells nearest_in_window reads, in its order, ring r being offsets[starts[r]:starts[r + 1]]."""
-    offsets = np.empty((2 * radius + 1) ** 3, np.int64)
-    starts = np.zeros(radius + 2, np.int64)
-    n = 0
-    for r in range(radius + 1):
-        for di in range(-r, r + 1):
-            for dj in range(-r, r + 1):
-                edge = di == -r or di == r or dj == -r or dj == r
-                for dk in range(-r, r + 1):
-                    if edge or dk == -r or dk == r:
-                        offsets[n] = (di * dims[1] + dj) * dims[2] + dk
-                        n += 1
-        starts[r + 1] = n
-    return offsets[:n], starts
-
-
 @njit(cache=CACHE, nogil=True, inline="always")
 def _axis_gap(o, lo, hi, voxel):
     """Distance along one axis from a query to the cell o cells away (lo, hi: the query to its own cell's faces),
@@ -95,26 +77,23 @@ def _axis_gap(o, lo, hi, voxel):
 
 
 @njit(cache=CACHE, nogil=True, inline="always")
-def nearest_within(q, map_pos, grid, origin, dims, voxel, radius, usable, offsets, starts, max_d2):
+def nearest_within(q, map_pos, grid, origin, dims, voxel, radius, usable, max_d2):
     """nearest_in_window for a caller that keeps only a point within max_d2: the same point whenever that one is
-    within it (a farther one or none otherwise). A query at least `radius` cells from the grid's edges reads its
-    first rings through ring_offsets, without a bounds check a cell (an EgoMap's grid has that many empty cells on
-    every side); beyond the first ring (most queries stop there) only the cells that can hold a point nearer than
-    the best so far and within max_d2, row by row in nearest_in_window's order."""
+    within it (a farther one or none otherwise). Beyond the query's own cell it reads only the cells that can hold a
+    point nearer than the best so far and within max_d2, row by row in nearest_in_window's order (whole rows out of
+    reach skipped). A query at least `radius` cells from the grid's edges needs no bounds check a cell (an EgoMap's
+    grid has that many empty cells on every side)."""
     ci = int(np.floor(q[0] / voxel)) - origin[0]
     cj = int(np.floor(q[1] / voxel)) - origin[1]
     ck = int(np.floor(q[2] / voxel)) - origin[2]
     if min(ci, cj, ck) < radius or ci >= dims[0] - radius or cj >= dims[1] - radius or ck >= dims[2] - radius:
         return nearest_in_window(q, map_pos, grid, origin, dims, voxel, radius, usable)
     c = (ci * dims[1] + cj) * dims[2] + ck
-    best, best_d2 = -1, np.inf
-    for r in range(min(radius, 1) + 1):
-        for s in range(starts[r], starts[r + 1]):
-            best, best_d2 = _nearer(q, map_pos, grid[c + offsets[s]], usable, best, best_d2)
-        if best >= 0 and _beyond_best(q, ci, cj, ck, origin, r, voxel, best_d2):
-            return best, best_d2
+    best, best_d2 = _nearer(q, map_pos, grid[c], usable, -1, np.inf)
+    if best >= 0 and _beyond_best(q, ci, cj, ck, origin, 0, voxel, best_d2):
+        return best, best_d2
     lo0, lo1, lo2 = q[0] - (ci + origin[0]) * voxel, q[1] - (cj + origin[1]) * voxel, q[2] - (ck + origin[2]) * voxel
-    for r in range(2, radius + 1):
+    for r in range(1, radius + 1):
         for di in range(-r, r + 1):
             gi = _axis_gap(di, lo0, voxel - lo0, voxel) ** 2
             if gi >= best_d2 or gi > max_d2:
@@ -124,7 +103,7 @@ def nearest_within(q, map_pos, grid, origin, dims, voxel, radius, usable, offset
                 if gij >= best_d2 or gij > max_d2:
                     continue
                 base = c + (di * dims[1] + dj) * dims[2]
-                step = 1 if di == -r or di == r or dj == -r or dj == r else 2 * r  # inside: only the two z faces
+                step = 1 if di == -r or di == r or dj == -r or dj == r else 2 * r  # inside the ring: the z faces
                 for dk in range(-r, r + 1, step):
                     d2 = gij + _axis_gap(dk, lo2, voxel - lo2, voxel) ** 2
                     if d2 < best_d2 and d2 <= max_d2:

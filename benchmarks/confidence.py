@@ -8,8 +8,9 @@ Each synthetic seed (40 frames, 2 Hz) is rendered and run through the network on
 then, for each (min_confidence, min_ground_confidence) pair, the voxels below it are set free (confident_labels, as
 the predictor and the inference worker do) and OccVO runs over the frames, with the semantic BEV motion search on
 (as `occvo run --from-images` has it), once per --config (JSON5 OccVOConfig overrides; "default" the built-in one).
-Prints the APE RMSE (m) of every seed and the successes (APE < 5 m) per pair and config. Choose on seeds that are neither training seeds (0-199 for the model of
-docs/results.md) nor the held-out 1000-1004, then measure the chosen pair on those.
+Prints the APE RMSE (m) of every seed and the successes (APE < 5 m) per pair and config. Choose on seeds that are
+neither training seeds (0-199 for the model of docs/results.md) nor the held-out 1000-1004, then measure the chosen
+pair on those.
 """
 
 from __future__ import annotations

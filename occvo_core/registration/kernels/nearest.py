@@ -68,12 +68,12 @@ def nearest_in_window(q, map_pos, grid, origin, dims, voxel, radius, usable):
 
 
 @njit(cache=CACHE, nogil=True, inline="always")
-def _axis_gap(o, lo, hi, voxel):
-    """Distance along one axis from a query to the cell o cells away (lo, hi: the query to its own cell's faces),
+def _axis_gap(o, lo, voxel):
+    """Distance along one axis from a query to the cell o cells away (lo: the query to its own cell's lower face),
     less a nanometre, so that rounding never makes it more than the distance of a point in that cell."""
     if o == 0:
         return 0.0
-    return max(0.0, (abs(o) - 1) * voxel + (hi if o > 0 else lo) - 1e-9)
+    return max(0.0, (abs(o) - 1) * voxel + ((voxel - lo) if o > 0 else lo) - 1e-9)
 
 
 @njit(cache=CACHE, nogil=True, inline="always")
@@ -95,17 +95,17 @@ def nearest_within(q, map_pos, grid, origin, dims, voxel, radius, usable, max_d2
     lo0, lo1, lo2 = q[0] - (ci + origin[0]) * voxel, q[1] - (cj + origin[1]) * voxel, q[2] - (ck + origin[2]) * voxel
     for r in range(1, radius + 1):
         for di in range(-r, r + 1):
-            gi = _axis_gap(di, lo0, voxel - lo0, voxel) ** 2
+            gi = _axis_gap(di, lo0, voxel) ** 2
             if gi >= best_d2 or gi > max_d2:
                 continue
             for dj in range(-r, r + 1):
-                gij = gi + _axis_gap(dj, lo1, voxel - lo1, voxel) ** 2
+                gij = gi + _axis_gap(dj, lo1, voxel) ** 2
                 if gij >= best_d2 or gij > max_d2:
                     continue
                 base = c + (di * dims[1] + dj) * dims[2]
                 step = 1 if di == -r or di == r or dj == -r or dj == r else 2 * r  # inside the ring: the z faces
                 for dk in range(-r, r + 1, step):
-                    d2 = gij + _axis_gap(dk, lo2, voxel - lo2, voxel) ** 2
+                    d2 = gij + _axis_gap(dk, lo2, voxel) ** 2
                     if d2 < best_d2 and d2 <= max_d2:
                         best, best_d2 = _nearer(q, map_pos, grid[base + dk], usable, best, best_d2)
         if best >= 0 and _beyond_best(q, ci, cj, ck, origin, r, voxel, best_d2):

@@ -22,6 +22,8 @@ from pathlib import Path
 import numpy as np
 
 from occvo_core import OccVO
+from occvo_core.grid import OCC3D_GRID
+from occvo_schemas.models import SparseOccupancy
 from occvo_services.store import TrajectoryStore, frame_digest, pack_frame, unpack_arrays
 
 warnings.filterwarnings("ignore", category=RuntimeWarning)
@@ -81,9 +83,12 @@ def main() -> None:
             r = vo.step(f)
             t["step"].append(time.perf_counter() - t0)
             digest = frame_digest(f.points, f.labels, f.stamp)
+            tables = SparseOccupancy.from_points(f.points, f.labels, OCC3D_GRID).index_tables(OCC3D_GRID)  # as sent
             for store, key in ((full, "commit_full"), (normal, "commit_normal")):
                 t0 = time.perf_counter()
-                store.commit_frame("s", i, f.stamp, digest, r.status, r.pose, pack_frame(f), new_trajectory=i == 0)
+                store.commit_frame(
+                    "s", i, f.stamp, digest, r.status, r.pose, pack_frame(f, tables), new_trajectory=i == 0
+                )
                 t[key].append(time.perf_counter() - t0)
             t0 = time.perf_counter()
             vo.evict_tiles(r.pose[:2, 3], 120.0, 20.0)

@@ -4,7 +4,8 @@ on) beside offline OccVO on the same frames, in the same run.
     python benchmarks/pipeline.py [--repeats 3] [--scenes scene-0101 scene-0268] [--output results.json]
         [--registration-args "--after-pose-nice 0"]
 
-Per scene, medians over the repeats of:
+Per scene, medians over the repeats of (each goal read on one repeat's offline and service runs side by side, the
+host's speed drifting between repeats):
   - offline_fps: OccVO.step (all cores, as `occvo run`) over the scene's frames, per repeat;
   - service_fps: lossless replay (window of 4 frames in flight) through the router, the inference, registration and
     map workers, both stores on, from the first frame sent to the last pose received; ratio = service / offline
@@ -225,6 +226,12 @@ def run_scene(scene_dir: Path, repeats: int, window: int, registration_args: lis
     step_p99 = float(np.median([np.percentile(o["step_ms"], 99) for o in offs]))
     lat_p50 = float(np.median([np.percentile(s["latency_ms"], 50) for s in svcs]))
     lat_p99 = float(np.median([np.percentile(s["latency_ms"], 99) for s in svcs]))
+    # the host's speed drifts between runs: each goal is read on one repeat's offline and service runs side by
+    # side, then the median over the repeats
+    ratios = [s["fps"] / o["fps"] for o, s in zip(offs, svcs)]
+    p50_margins = [np.percentile(s["latency_ms"], 50) - np.median(o["step_ms"]) for o, s in zip(offs, svcs)]
+    p99_ratios = [np.percentile(s["latency_ms"], 99) / np.percentile(o["step_ms"], 99) for o, s in zip(offs, svcs)]
+    ratio, p50_margin, p99_ratio = (float(np.median(v)) for v in (ratios, p50_margins, p99_ratios))
     identical = all(
         s["poses"] == len(frames) and np.array_equal(s["trajectory"], o["poses"]) for o, s in zip(offs, svcs)
     )
@@ -248,7 +255,10 @@ def run_scene(scene_dir: Path, repeats: int, window: int, registration_args: lis
         "repeats": repeats,
         "offline_fps": offline_fps,
         "service_fps": service_fps,
-        "ratio": service_fps / offline_fps,
+        "ratio": ratio,
+        "ratios": ratios,
+        "latency_p50_over_offline_median_ms": p50_margin,
+        "latency_p99_over_offline_p99": p99_ratio,
         "offline_registration_median_ms": step_med,
         "offline_registration_p99_ms": step_p99,
         "latency_p50_ms": lat_p50,
@@ -257,9 +267,9 @@ def run_scene(scene_dir: Path, repeats: int, window: int, registration_args: lis
         "poses_identical": identical,
         "errors": int(sum(s["errors"] for s in svcs)),
         "goals": {
-            "ratio >= 0.8": service_fps / offline_fps >= 0.8,
-            "latency p50 <= offline median + 10 ms": lat_p50 <= step_med + 10.0,
-            "latency p99 <= 2 x offline p99": lat_p99 <= 2.0 * step_p99,
+            "ratio >= 0.8": ratio >= 0.8,
+            "latency p50 <= offline median + 10 ms": p50_margin <= 10.0,
+            "latency p99 <= 2 x offline p99": p99_ratio <= 2.0,
         },
         "offline_stage_median_ms": offline_stages,
         "offline_cpu_ms": offline_cpu,
@@ -284,10 +294,13 @@ def print_scene(name: str, r: dict) -> None:
     print(
         f"\n{name}: {r['frames']} frames, {r['repeats']} runs (medians)\n"
         f"  offline {r['offline_fps']:.1f} frames/s   service {r['service_fps']:.1f} frames/s   ratio "
-        f"{r['ratio']:.2f} (goal >= 0.8)   poses bit-identical: {r['poses_identical']}   errors {r['errors']}\n"
+        f"{r['ratio']:.2f} (goal >= 0.8; by run {', '.join(f'{x:.2f}' for x in r['ratios'])})   poses bit-identical: "
+        f"{r['poses_identical']}   errors {r['errors']}\n"
         f"  latency at {r['latency_rate_hz']:g} Hz p50 {r['latency_p50_ms']:.1f} ms p99 {r['latency_p99_ms']:.1f} ms"
         f"   offline registration median {r['offline_registration_median_ms']:.1f} ms "
-        f"p99 {r['offline_registration_p99_ms']:.1f} ms   goals {json.dumps(r['goals'])}\n"
+        f"p99 {r['offline_registration_p99_ms']:.1f} ms; paired: p50 offline median "
+        f"{r['latency_p50_over_offline_median_ms']:+.1f} ms, p99 {r['latency_p99_over_offline_p99']:.2f} x offline p99\n"
+        f"  goals {json.dumps(r['goals'])}\n"
         f"  tile query p50 {r['tile_query_p50_ms']:.2f} ms p99 {r['tile_query_p99_ms']:.2f} ms",
         flush=True,
     )

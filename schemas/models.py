@@ -183,6 +183,12 @@ class SparseOccupancy(_Model):
             return GridSpec.points_of(idx, self.axes.to_numpy())
         return self.grid.to_grid().centres_of(idx)
 
+    def index_tables(self, grid: GridSpec) -> tuple[np.ndarray, np.ndarray | None] | None:
+        """(indices, axes or None for the centres) as sent, when the voxels came as indices on `grid`; else None."""
+        if self.voxels is None or self.grid.to_grid() != grid:
+            return None
+        return self.voxels.to_numpy(), None if self.axes is None else self.axes.to_numpy()
+
     def __len__(self) -> int:
         return self.labels.shape[0]
 

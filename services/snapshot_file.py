@@ -8,8 +8,8 @@ from pathlib import Path
 
 import numpy as np
 
+from occvo_services.array_pack import chunks, layout, pack_arrays
 from occvo_services.sqlite_wal import transaction
-from occvo_services.store_blobs import BlobFile, pack_arrays, savez
 
 SNAPSHOT_SCHEMA = """
 CREATE TABLE IF NOT EXISTS snapshots (
@@ -61,8 +61,9 @@ class SnapshotFile:
         self, stream: str, seq: int, state: dict[str, np.ndarray] | bytes, created: float | None = None
     ) -> bool:
         """The state after frame `seq` (arrays, or pack_arrays' bytes) replaces the older snapshot; then the journal
-        up to it and the cold rows restored by then go. Arrays are written into the row in place (Python >= 3.11):
-        packing them first would hold a copy of the whole state, and the worker's peak RSS with it. Frame commits
+        up to it and the cold rows restored by then go. Arrays are written into the row in place, each from its own
+        memory (Python >= 3.11): packing them first would hold a copy of the whole state, and the worker's peak RSS
+        with it. Frame commits
         go on meanwhile (another file). `created`: the trajectory the state belongs to (created(stream) when the state
         was taken), by default the current one. False, and the journal kept, if the stream started another since."""
         created = self.created(stream) if created is None else created
@@ -71,17 +72,16 @@ class SnapshotFile:
         in_place = hasattr(sqlite3.Connection, "blobopen")
         if isinstance(state, dict) and not in_place:
             state = pack_arrays(state)
-        write = (lambda fp: savez(fp, state)) if isinstance(state, dict) else (lambda fp: fp.write(state))
-        size = BlobFile()
-        write(size)
+        head, items, size = layout(state) if isinstance(state, dict) else (state, [], len(state))
 
         def snap_tx(db):
             if in_place:
                 rowid = db.execute(
-                    "INSERT OR REPLACE INTO snapshots VALUES (?, ?, ?, zeroblob(?))", (stream, created, seq, size.size)
+                    "INSERT OR REPLACE INTO snapshots VALUES (?, ?, ?, zeroblob(?))", (stream, created, seq, size)
                 ).lastrowid
                 with db.blobopen("snapshots", "state", rowid) as blob:
-                    write(BlobFile(blob))
+                    for chunk in chunks(head, items):
+                        blob.write(chunk)
             else:
                 db.execute("INSERT OR REPLACE INTO snapshots VALUES (?, ?, ?, ?)", (stream, created, seq, state))
 

@@ -12,6 +12,7 @@ import zenoh
 from occvo_core.errors import InvalidFrameError
 from occvo_core.frame import OccupancyFrame
 from occvo_core.free_cores import FREE_CORES
+from occvo_core.grid import OCC3D_GRID
 from occvo_core.registration.kernels import use_threads
 from occvo_schemas import keys
 from occvo_schemas.codec import encode
@@ -282,7 +283,14 @@ class StreamLanes:
             if self.store is not None:
                 try:
                     phases = self.store.commit_frame(
-                        stream, msg.seq, msg.stamp, digest, status, pose_m, pack_frame(frame), new_trajectory=restart
+                        stream,
+                        msg.seq,
+                        msg.stamp,
+                        digest,
+                        status,
+                        pose_m,
+                        pack_frame(frame, msg.occupancy.index_tables(OCC3D_GRID)),
+                        new_trajectory=restart,
                     )
                 except Exception as exc:  # noqa: BLE001 - e.g. disk full: publish nothing the store lacks
                     pose_out.set_result(False)

@@ -18,6 +18,8 @@ from conftest import SERVICE_FRAMES as N  # frames of the `scene` fixture
 
 from occvo_core import OccVO
 from occvo_core.frame import OccupancyFrame
+from occvo_core.grid import OCC3D_GRID, GridSpec
+from occvo_schemas.models import SparseOccupancy
 from occvo_services.store import (
     TrajectoryStore,
     frame_digest,
@@ -128,6 +130,22 @@ def test_journal_frames_on_the_grid_are_kept_as_indices_exactly(scene):
     off = OccupancyFrame(f.points + jitter, f.labels, index=f.index, stamp=f.stamp)
     a = unpack_arrays(pack_frame(off))
     assert "ijk" not in a and np.array_equal(unpack_frame(pack_frame(off)).points, off.points)
+
+
+def test_journal_frames_keep_the_indices_they_arrived_with(scene):
+    """The lane journals a frame's indices and axes as sent, instead of deriving them again from its points."""
+    f = scene[3]
+    for frame in (f, OccupancyFrame(f.points + 0.01, f.labels, index=f.index, stamp=f.stamp)):
+        occ = SparseOccupancy.from_points(frame.points, frame.labels, OCC3D_GRID, exact=True)
+        tables = occ.index_tables(OCC3D_GRID)
+        assert tables is not None
+        back = unpack_frame(pack_frame(frame, tables))
+        assert back.points.tobytes() == occ.to_points().tobytes() == frame.points.tobytes()
+        assert np.array_equal(back.labels, frame.labels)
+    other = GridSpec(lower=(-20.0, -20.0, -1.0), upper=(20.0, 20.0, 5.4))  # not the Occ3D grid: derived as before
+    near = np.all(np.abs(f.points[:, :2]) < 20, axis=1)
+    occ = SparseOccupancy.from_points(f.points[near], f.labels[near], other)
+    assert occ.voxels is not None and occ.index_tables(OCC3D_GRID) is None
 
 
 def test_cold_tiles_round_trip(tmp_path, scene):

@@ -33,11 +33,7 @@ class Paging:
         or tiles come back or leave now (their content goes out with this frame's); else the change waits for a later
         frame's cut."""
         t_complete = time.perf_counter()
-        if publish is None and self._frames_waiting(stream, st, entered):
-            # here on one thread, beside the next frame's prepare on one: both on two cores took longer together
-            result = st.vo.complete(reg)
-        else:
-            result = self._kernels(st.vo, None, st.vo.complete, reg)
+        result = self._kernels(st.vo, None, st.vo.complete, reg)  # the next frame's prepare waits for it (lane)
         pose = np.asarray(result.pose, float)
         t0 = time.perf_counter()
         st.complete_ms = (t0 - t_complete) * 1000.0

@@ -63,9 +63,9 @@ class SnapshotFile:
         """The state after frame `seq` (arrays, or pack_arrays' bytes) replaces the older snapshot; then the journal
         up to it and the cold rows restored by then go. Arrays are written into the row in place, each from its own
         memory (Python >= 3.11): packing them first would hold a copy of the whole state, and the worker's peak RSS
-        with it. Frame commits
-        go on meanwhile (another file). `created`: the trajectory the state belongs to (created(stream) when the state
-        was taken), by default the current one. False, and the journal kept, if the stream started another since."""
+        with it. Frame commits go on meanwhile (another file). `created`: the trajectory the state belongs to
+        (created(stream) when the state was taken), by default the current one. False, and the journal kept, if the
+        stream started another since."""
         created = self.created(stream) if created is None else created
         if created is None:
             return False

@@ -36,10 +36,11 @@ from typing import Literal
 import numpy as np
 
 from occvo_core.frame import OccupancyFrame
+from occvo_services.array_pack import pack_arrays, unpack_arrays
 from occvo_services.os_tuning import hold_priority, lower_priority, name_os_thread, release_priority
 from occvo_services.snapshot_file import SNAPSHOT_SCHEMA, SnapshotFile, snapshot_path
 from occvo_services.sqlite_wal import connect, transaction
-from occvo_services.store_blobs import frame_digest, pack_arrays, pack_frame, unpack_arrays, unpack_frame
+from occvo_services.store_blobs import frame_digest, pack_frame, unpack_frame
 from occvo_services.telemetry import log_event
 
 __all__ = [  # importers of these names from here predate the split

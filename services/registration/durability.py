@@ -10,8 +10,8 @@ import numpy as np
 
 from occvo_core.registration.voxel_map import copied
 from occvo_schemas import keys
+from occvo_services.array_pack import unpack_arrays
 from occvo_services.registration.state import StreamState
-from occvo_services.store_blobs import unpack_arrays
 from occvo_services.telemetry import log_event
 
 

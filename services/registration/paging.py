@@ -9,8 +9,8 @@ import numpy as np
 
 from occvo_core.frame import OccupancyFrame
 from occvo_core.working_map import changed_map, has_far_tiles, tiles_near, tiles_reached
+from occvo_services.array_pack import unpack_arrays
 from occvo_services.registration.state import StreamState
-from occvo_services.store_blobs import unpack_arrays
 
 MIN_SAFE_RADIUS_M = 60.0  # a frame reaches ~57 m (the grid's corners): eviction closer than that changes registration
 

@@ -8,7 +8,8 @@ Per scene, medians over the repeats of (each goal read on one repeat's offline a
 host's speed drifting between repeats):
   - offline_fps: OccVO.step (all cores, as `occvo run`) over the scene's frames, per repeat;
   - service_fps: lossless replay (window of 4 frames in flight) through the router, the inference, registration and
-    map workers, both stores on, from the first frame sent to the last pose received; ratio = service / offline
+    map workers, both stores on, from the first frame sent to the last pose received (the frames read before, as
+    offline's are); ratio = service / offline
     (goal >= 0.8); poses checked equal to the offline ones bit for bit;
   - pose latency p50/p99 at 2 Hz (client send to pose arrival) beside the offline registration time a frame (the
     whole step, median and p99; goal p50 <= median + 10 ms, p99 <= 2 x p99);
@@ -163,18 +164,18 @@ def _stage_medians(pose_msgs: dict) -> dict[str, float]:
     return _medians(timings)
 
 
-def service(scene, store_dir: Path, window: int, registration_args: list[str]) -> dict:
-    """The scene through the router and the three worker processes, both stores on: a lossless replay as fast as
-    the pipeline takes, then one at RATE_HZ."""
+def service(name: str, frames: list, store_dir: Path, window: int, registration_args: list[str]) -> dict:
+    """The scene's frames through the router and the three worker processes, both stores on: a lossless replay as
+    fast as the pipeline takes, then one at RATE_HZ. The frames are read before, as offline's are."""
     args = {
         "registration": ["--store-path", str(store_dir / "occvo.sqlite"), *registration_args],
         "map": ["--store-path", str(store_dir / "map.sqlite")],
     }
-    with LocalService(quiet=True, worker_args=args) as svc, OccVOClient(svc.endpoint, scene.name) as client:
+    with LocalService(quiet=True, worker_args=args) as svc, OccVOClient(svc.endpoint, name) as client:
         procs = {"router + client": psutil.Process()} | {r: psutil.Process(p.pid) for r, p in svc.procs.items()}
         cpu0 = {r: sum(p.cpu_times()[:2]) for r, p in procs.items()}
-        fast = replay(client, scene, window=window)
-        cpu = {r: (sum(p.cpu_times()[:2]) - cpu0[r]) * 1000.0 / len(scene) for r, p in procs.items()}
+        fast = replay(client, frames, window=window)
+        cpu = {r: (sum(p.cpu_times()[:2]) - cpu0[r]) * 1000.0 / len(frames) for r, p in procs.items()}
         health = {h.role: h for h in client.stats()}
         timings = _stage_medians(fast["pose_msgs"])
         info = client.map_info()
@@ -186,8 +187,8 @@ def service(scene, store_dir: Path, window: int, registration_args: list[str]) -
             t0 = time.perf_counter()
             client.tile(ix, iy)
             tq.append((time.perf_counter() - t0) * 1000.0)
-        with OccVOClient(svc.endpoint, f"{scene.name}-live") as live_client:  # a new stream: nothing is a resend
-            live = replay(live_client, scene, rate_hz=RATE_HZ, window=len(scene))
+        with OccVOClient(svc.endpoint, f"{name}-live") as live_client:  # a new stream: nothing is a resend
+            live = replay(live_client, frames, rate_hz=RATE_HZ, window=len(frames))
             arrived = live_client.arrived
             latency = [(arrived[s] - t) * 1000.0 for s, t in enumerate(live["sent_at"]) if s in arrived]
             live_timings = _stage_medians(live["pose_msgs"])
@@ -217,7 +218,7 @@ def run_scene(scene_dir: Path, repeats: int, window: int, registration_args: lis
     for _ in range(repeats):
         off = offline(frames)  # beside each service run: the same machine state
         with tempfile.TemporaryDirectory(prefix="occvo-pipeline-") as tmp:
-            svc = service(scene, Path(tmp), window, registration_args)
+            svc = service(scene.name, frames, Path(tmp), window, registration_args)
         runs.append((off, svc))
     offs, svcs = [r[0] for r in runs], [r[1] for r in runs]
     offline_fps = float(np.median([o["fps"] for o in offs]))

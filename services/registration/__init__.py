@@ -10,7 +10,7 @@ then publishes its relocalised pose (status "relocalised"), which replaces the f
 
 Durable state (`store_path`, services/store.py): every pose is committed with its frame before it is published, the
 OccVO state is snapshotted every `snapshot_every` frames (less often when snapshots would take more than
-`snapshot_max_share` of the stream's time) and at shutdown; a restarted worker resumes a stream at its
+`snapshot_max_share` of the stream's time, the first one too) and at shutdown; a restarted worker resumes a stream at its
 next frame from the snapshot plus the journaled frames. The lane only copies the state; one writer thread writes the
 copies into the store's snapshot file, so neither this stream's next frame nor another stream's commit waits for it.
 A resent frame already registered gets its stored pose again.

@@ -165,7 +165,7 @@ class AfterPose:
         if self.store is not None:
             st.since_snapshot += 1
             due = st.snapshot_retry or (
-                st.since_snapshot >= self.config.snapshot_every and time.monotonic() >= st.snapshot_due
+                st.since_snapshot >= self.config.snapshot_every and self._snapshot_affordable(st)
             )
             if due and st.snapshot_idle.is_set():
                 self._queue_snapshot(stream, st)

@@ -64,6 +64,16 @@ class Durability:
             seq,
         )
 
+    def _snapshot_affordable(self, st: StreamState) -> bool:
+        """Whether a snapshot now keeps the stream's snapshots within snapshot_max_share of its time: the cost of
+        one, from the state's size at this worker's last measured speed, against the time since the stream's last
+        snapshot, start or resume (so a short stream is not snapshotted at once: the journal covers it)."""
+        share = self.config.snapshot_max_share
+        if share is None:
+            return True
+        size = sum(a.nbytes for a in st.vo.state_dict(copy=False).values())
+        return time.monotonic() - st.snapshot_since >= size * self._snapshot_s_per_byte / share
+
     def _queue_snapshot(self, stream: str, st: StreamState) -> None:
         """Copy the state for the snapshot writer (a few ms): the lane steps on while the copy is written."""
         t0 = time.perf_counter()
@@ -92,8 +102,8 @@ class Durability:
             if self.store.write_snapshot(stream, seq, state, created):
                 self.stats.inc("snapshots")
             took = time.perf_counter() - t0
-            if self.config.snapshot_max_share is not None:
-                st.snapshot_due = time.monotonic() + took / self.config.snapshot_max_share
+            st.snapshot_since = time.monotonic()
+            self._snapshot_s_per_byte = took / max(1, sum(a.nbytes for a in state.values()))
             self.stats.observe("snapshot", took * 1000.0)
         except Exception as exc:  # noqa: BLE001 - the journal keeps the frames; retried at the stream's next frame
             st.snapshot_retry = True
@@ -167,7 +177,7 @@ class Durability:
                 keys.occupancy(stream),
             )
             st.cold = now
-        st.since_snapshot = len(journal)
+        st.since_snapshot, st.snapshot_since = len(journal), time.monotonic()
         self.stats.inc("resumes")
         log_event(
             self.log,

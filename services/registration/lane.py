@@ -19,7 +19,7 @@ from occvo_schemas.codec import encode
 from occvo_schemas.models import OccupancyFrameMsg, PoseEstimate
 from occvo_services.os_tuning import name_os_thread, run_delay_ms
 from occvo_services.registration.state import StreamState
-from occvo_services.store_blobs import frame_digest, pack_frame
+from occvo_services.store_blobs import frame_digest, legacy_frame_digest, pack_frame
 from occvo_services.telemetry import log_event
 
 CORES = len(FREE_CORES.cpus)  # the cores this process may run on
@@ -147,7 +147,8 @@ class StreamLanes:
         except InvalidFrameError as exc:
             self.report_error(stream, "invalid_frame", f"seq {msg.seq}: {exc.reason}", keys.occupancy(stream), msg.seq)
             return
-        digest = frame_digest(frame.points, frame.labels, msg.stamp)
+        tables = msg.occupancy.index_tables(OCC3D_GRID)  # the compact form it came in: digested and journaled as is
+        digest = frame_digest(frame.points, frame.labels, msg.stamp, tables)
         t_wait = time.perf_counter()
         if st.tail is not None:  # the previous frame's work after its pose: the odometry is that work's until it ends
             if not st.tail.done():
@@ -179,7 +180,9 @@ class StreamLanes:
         if prepared is not None:
             timings["registration.preprocess"] = (t_valid - t_prepare) * 1000.0
         known = st.stored(msg.seq)
-        if known is not None and known.digest == digest:  # a resend: answer it, register nothing twice
+        if known is not None and (
+            known.digest == digest or known.digest == legacy_frame_digest(frame.points, frame.labels, msg.stamp)
+        ):  # a resend (of a store from before the compact digest, too): answer it, register nothing twice
             self.stats.inc("republished")
             self.session.put(
                 keys.pose(stream),
@@ -217,7 +220,7 @@ class StreamLanes:
             st.vo = st.vo or self._OccVO(self.occvo_config, threads=self.config.kernel_threads)
             st.vo.reset()
             st.cold, st.cold_digest, st.pending_restored, st.tiles, st.restored_for_next = {}, {}, [], {}, []
-            st.since_snapshot, st.send_all_tiles, st.ego_xy = 0, False, None
+            st.since_snapshot, st.send_all_tiles, st.ego_xy, st.snapshot_since = 0, False, None, time.monotonic()
         if self.config.kernel_threads == 0:
             st.vo.threads = self._fair_threads()
         t_reg = time.perf_counter()
@@ -287,7 +290,7 @@ class StreamLanes:
                         digest,
                         status,
                         pose_m,
-                        pack_frame(frame, msg.occupancy.index_tables(OCC3D_GRID)),
+                        pack_frame(frame, tables),
                         new_trajectory=restart,
                     )
                 except Exception as exc:  # noqa: BLE001 - e.g. disk full: publish nothing the store lacks

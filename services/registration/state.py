@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import threading
+import time
 from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
@@ -30,7 +31,7 @@ class StreamState:
         self.cold_digest: dict[tuple[int, int], bytes] = {}  # published content of an evicted tile
         self.pending_restored: list[tuple[int, int, int]] = []  # restored, not yet stored (finish_frame)
         self.since_snapshot = 0
-        self.snapshot_due = 0.0  # time.monotonic() before which a snapshot would overrun snapshot_max_share
+        self.snapshot_since = time.monotonic()  # the stream's start, resume or last snapshot: what its share is of
         self.snapshot_idle = threading.Event()  # no snapshot of this stream queued or being written
         self.snapshot_idle.set()
         self.snapshot_retry = False  # the last snapshot failed: take one at the next frame

@@ -22,6 +22,8 @@ from occvo_services.runtime import Worker, WorkerConfig, worker_main
 from occvo_services.store import TrajectoryStore
 from occvo_services.telemetry import log_event
 
+SNAPSHOT_BYTES_PER_S = 200e6  # a snapshot's writing speed until this worker has measured one (SSD: 150-270 MB/s)
+
 
 class RegistrationWorker(StreamLanes, AfterPose, Durability, Paging, MapPublisher, Queries, Worker):
     """Occupancy frames -> OccVO poses and map tiles."""
@@ -50,6 +52,7 @@ class RegistrationWorker(StreamLanes, AfterPose, Durability, Paging, MapPublishe
         self._snapshots: queue.Queue = queue.Queue()
         self._boost_refused = False
         self._snapshot_writer = None
+        self._snapshot_s_per_byte = 1 / SNAPSHOT_BYTES_PER_S  # measured by each snapshot written
         if self.store is not None:
             self._snapshot_writer = threading.Thread(target=self._write_snapshots, name="snapshot-writer", daemon=True)
             self._snapshot_writer.start()

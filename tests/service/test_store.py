@@ -29,6 +29,7 @@ from occvo_services.store import (
     unpack_arrays,
     unpack_frame,
 )
+from occvo_services.store_blobs import legacy_frame_digest
 
 warnings.filterwarnings("ignore", category=RuntimeWarning)
 
@@ -146,6 +147,28 @@ def test_journal_frames_keep_the_indices_they_arrived_with(scene):
     near = np.all(np.abs(f.points[:, :2]) < 20, axis=1)
     occ = SparseOccupancy.from_points(f.points[near], f.labels[near], other)
     assert occ.voxels is not None and occ.index_tables(OCC3D_GRID) is None
+
+
+def test_a_frame_has_one_digest_whether_it_came_as_points_or_as_indices(scene):
+    """The digest of a frame on the grid is taken over its compact form, as it arrived or derived from its points;
+    a sender naming an index for a coordinate outside that voxel gets the digest of the points it described."""
+    f = scene[3]
+    for frame in (f, OccupancyFrame(f.points + 0.01, f.labels, index=f.index, stamp=f.stamp)):
+        occ = SparseOccupancy.from_points(frame.points, frame.labels, OCC3D_GRID, exact=True)
+        tables = occ.index_tables(OCC3D_GRID)
+        assert frame_digest(occ.to_points(), frame.labels, f.stamp, tables) == frame_digest(
+            frame.points, frame.labels, f.stamp
+        )
+    plain = frame_digest(f.points, f.labels, f.stamp)
+    assert plain != frame_digest(f.points, f.labels, f.stamp + 0.5)
+    moved = f.points.copy()
+    moved[7, 2] += 0.4  # one voxel up: another frame
+    assert plain != frame_digest(moved, f.labels, f.stamp)
+    idx, axes = SparseOccupancy.from_points(f.points, f.labels, OCC3D_GRID).index_tables(OCC3D_GRID)
+    axes = OCC3D_GRID.centre_table() if axes is None else axes.copy()
+    axes[0, idx[0, 0]] += 0.8  # index i given the coordinate of voxel i + 2
+    points = OCC3D_GRID.points_of(idx.astype(np.int64), axes)
+    assert frame_digest(points, f.labels, f.stamp, (idx, axes)) == frame_digest(points, f.labels, f.stamp)
 
 
 def test_cold_tiles_round_trip(tmp_path, scene):
@@ -518,11 +541,42 @@ def test_clean_restart_continues_the_stream_and_answers_resends(tmp_path, scene,
         svc.close()
 
 
+def test_a_store_digested_before_the_compact_digest_still_knows_its_frames(tmp_path, scene, uninterrupted):
+    """Frames a store took under the old digest (over the float64 points): a resend is answered, not refused."""
+    from occvo_schemas import keys
+    from occvo_schemas.codec import encode
+    from occvo_services.client import OccVOClient, camera_frame_of
+
+    path = tmp_path / "state.sqlite"
+    store, vo = TrajectoryStore(path), OccVO()
+    for i in range(4):
+        r = vo.step(scene[i])
+        digest = legacy_frame_digest(scene[i].points, scene[i].labels, scene[i].stamp)
+        store.commit_frame(
+            "car", i, scene[i].stamp, digest, r.status, r.pose, pack_frame(scene[i]), new_trajectory=i == 0
+        )
+    store.close()
+    svc = Pipeline(path)
+    try:
+        reg = svc.start_registration()
+        with OccVOClient(svc.endpoint, "car") as client:
+            client.session.put(keys.camera("car"), encode(camera_frame_of(scene[3], "car", 3)))
+            deadline = time.monotonic() + 20
+            while time.monotonic() < deadline and not reg.stats.snapshot()[0].get("republished"):
+                time.sleep(0.05)
+            assert reg.stats.snapshot()[0]["republished"] == 1 and not client.errors
+            client._seq = 4
+            got = [client.step(scene[i]).matrix() for i in range(4, N)]
+            assert np.array_equal(got, uninterrupted[4:])
+    finally:
+        svc.close()
+
+
 def test_snapshots_keep_to_their_share_of_the_time_and_shutdown_still_writes_one(tmp_path, scene, uninterrupted):
     from occvo_services.client import OccVOClient
 
     path = tmp_path / "state.sqlite"
-    # a share so small that the first snapshot's cost puts the next one hours away
+    # a share so small that even the stream's first snapshot is hours away: the journal covers the stream
     svc = Pipeline(path, snapshot_every=2, snapshot_max_share=1e-6)
     try:
         reg = svc.start_registration()
@@ -530,16 +584,21 @@ def test_snapshots_keep_to_their_share_of_the_time_and_shutdown_still_writes_one
             client.reset()
             for i in range(8):
                 client.step(scene[i])
-            assert reg.snapshots_written(30) and reg.stats.snapshot()[0]["snapshots"] == 1
+            assert reg.snapshots_written(30) and "snapshots" not in reg.stats.snapshot()[0]
             probe = TrajectoryStore(path)
-            assert probe.record("car").snapshot_seq == 1 and [s for s, _ in probe.journal("car", 1)] == list(
-                range(2, 8)
+            assert probe.record("car").snapshot_seq is None and [s for s, _ in probe.journal("car", None)] == list(
+                range(8)
             )
             svc.reg.stop()  # shutdown snapshots whatever the share
             assert probe.record("car").snapshot_seq == 7 and probe.sizes("car")["journal_rows"] == 0
-            svc.start_registration()
+            # a share of the whole time: snapshots every snapshot_every frames once the last one's time has passed
+            svc.config = svc.config.model_copy(update={"snapshot_max_share": 1.0})
+            reg = svc.start_registration()
             got = [client.step(scene[i]).matrix() for i in range(8, N)]
             assert np.array_equal(np.array([client.poses[i].matrix() for i in range(8)] + got), uninterrupted)
+            assert reg.snapshots_written(30) and reg.stats.snapshot()[0]["snapshots"] >= 1
+            assert probe.record("car").snapshot_seq > 7
+            probe.close()
     finally:
         svc.close()
 

@@ -77,6 +77,12 @@ class GridSpec:
             np.int64
         )
 
+    def axis_indices(self, a: int, coords: np.ndarray) -> np.ndarray:
+        """Voxel indices along axis a of coordinates along it, bit for bit those of indices_of; NaN / inf give a
+        negative index."""
+        with np.errstate(invalid="ignore"):
+            return np.floor((np.asarray(coords, np.float64) - self.lower[a]) / self.voxel_size).astype(np.int64)
+
     def centres_of(self, indices: np.ndarray) -> np.ndarray:
         return np.array(self.lower) + (np.asarray(indices, dtype=np.float64) + 0.5) * self.voxel_size
 
@@ -91,10 +97,9 @@ class GridSpec:
         points = np.asarray(points, np.float64)
         table = self.centre_table()
         idx = np.empty((len(points), 3), np.int64)
-        for a, (low, n) in enumerate(zip(self.lower, self.shape)):  # one contiguous column at a time: 3x faster
+        for a, n in enumerate(self.shape):  # one contiguous column at a time: 3x faster
             col = np.ascontiguousarray(points[:, a])
-            with np.errstate(invalid="ignore"):  # NaN / inf: a negative index, refused below
-                ia = np.floor((col - low) / self.voxel_size).astype(np.int64)  # as indices_of, bit for bit
+            ia = self.axis_indices(a, col)
             if len(ia) and (ia.min() < 0 or ia.max() >= n):
                 return None
             table[a, ia] = col

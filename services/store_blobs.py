@@ -42,7 +42,7 @@ def frame_digest(
 def _used(idx: np.ndarray, axes: np.ndarray | None) -> list[np.ndarray] | None:
     """Per axis, the grid indices in use; None unless they are the ones axis_tables gives for the points they
     describe (each coordinate in use lies in its own voxel: a sender may name any index for a coordinate)."""
-    g, n = OCC3D_GRID, max(OCC3D_GRID.shape)
+    n = max(OCC3D_GRID.shape)
     if len(idx) and int(idx.max()) >= n:
         return None
     used = [np.bincount(idx[:, a], minlength=n)[:n] > 0 for a in range(3)]
@@ -50,7 +50,7 @@ def _used(idx: np.ndarray, axes: np.ndarray | None) -> list[np.ndarray] | None:
         return used
     for a in range(3):
         at = np.flatnonzero(used[a])
-        if not np.array_equal(np.floor((axes[a, at] - g.lower[a]) / g.voxel_size).astype(np.int64), at):
+        if not np.array_equal(OCC3D_GRID.axis_indices(a, axes[a, at]), at):
             return None
     return used
 

@@ -71,7 +71,7 @@ class Durability:
         share = self.config.snapshot_max_share
         if share is None:
             return True
-        size = sum(a.nbytes for a in st.vo.state_dict(copy=False).values())
+        size = _nbytes(st.vo.state_dict(copy=False))
         return time.monotonic() - st.snapshot_since >= size * self._snapshot_s_per_byte / share
 
     def _queue_snapshot(self, stream: str, st: StreamState) -> None:
@@ -103,7 +103,7 @@ class Durability:
                 self.stats.inc("snapshots")
             took = time.perf_counter() - t0
             st.snapshot_since = time.monotonic()
-            self._snapshot_s_per_byte = took / max(1, sum(a.nbytes for a in state.values()))
+            self._snapshot_s_per_byte = took / max(1, _nbytes(state))
             self.stats.observe("snapshot", took * 1000.0)
         except Exception as exc:  # noqa: BLE001 - the journal keeps the frames; retried at the stream's next frame
             st.snapshot_retry = True
@@ -214,3 +214,8 @@ class Durability:
         )
         if relocalised:
             self._publish_pose(stream, st, seq, stored.stamp, pose, "relocalised", stored.digest, {}, False)
+
+
+def _nbytes(state: dict[str, np.ndarray]) -> int:
+    """A state's size: what a snapshot of it writes."""
+    return sum(a.nbytes for a in state.values())

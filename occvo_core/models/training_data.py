@@ -3,6 +3,7 @@ depth and pixel labels for the auxiliary losses), rendered once into a cache and
 
 from __future__ import annotations
 
+from collections import OrderedDict
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -45,10 +46,13 @@ def make_sample(
 
 
 class SyntheticOccDataset:
-    """Frames of SyntheticScene(seed) for each seed; each rendered once on first use and kept (small at tiny sizes).
+    """Frames of SyntheticScene(seed) for each seed; each rendered on first use.
 
-    With `cache_dir`, rendered frames are also kept on disk (one .npz each, named by seed, frame and image size) and
-    read back by later runs, so training time goes to training steps rather than to ray casting.
+    With `cache_dir`, rendered frames are kept on disk (one .npz each, named by seed, frame and image size) and read
+    back by later runs, so training time goes to training steps rather than to ray casting. In memory at most
+    `memory_frames` are kept (the most recently used): a tiny frame is about 4 MB there, and 600 seeds' 6,000 frames
+    took a 24 GB machine's memory (the training run was killed). A frame let go is read from disk again, or rendered
+    again without `cache_dir`.
     """
 
     def __init__(
@@ -59,6 +63,7 @@ class SyntheticOccDataset:
         stride: int = 1,
         cache_dir: str | Path | None = None,
         first: int = 0,
+        memory_frames: int = 512,
     ):
         from occvo_core.sim import SyntheticScene  # the sim is only needed for synthetic training/eval
 
@@ -66,7 +71,8 @@ class SyntheticOccDataset:
         self._scene_cls, self._frames, self._stride = SyntheticScene, frames, stride
         self._scenes: dict[int, object] = {}
         self.index = [(s, i) for s in self.seeds for i in range(first, frames, stride)]
-        self._cache: dict[int, Sample] = {}
+        self._cache: OrderedDict[int, Sample] = OrderedDict()
+        self.memory_frames = max(1, memory_frames)
         self.cache_dir = Path(cache_dir) if cache_dir is not None else None
 
     def __len__(self) -> int:
@@ -77,32 +83,36 @@ class SyntheticOccDataset:
         return self.cache_dir / f"seed{seed}_of{self._frames}_frame{i}_{w}x{h}_v2.npz"
 
     def __getitem__(self, k: int) -> Sample:
-        if k not in self._cache:
-            seed, i = self.index[k]
-            path = self._disk_path(seed, i) if self.cache_dir is not None else None
-            if path is not None and path.is_file():
-                with np.load(path) as z:
-                    self._cache[k] = _sample(
-                        z["images"], self.rig, z["semantics"], z["camera_mask"], z["depth"], z["labels"]
-                    )
-                return self._cache[k]
-            if seed not in self._scenes:
-                self._scenes[seed] = self._scene_cls(seed=seed, frames=self._frames)
-            semantics = np.asarray(self._scenes[seed].true_grid(i), np.uint8)
-            frame = render(semantics, self.rig, RenderStyle(), seed * 1000 + i)
-            self._cache[k] = _sample(frame.images, self.rig, semantics, frame.camera_mask, frame.depth, frame.labels)
-            if path is not None:
-                path.parent.mkdir(parents=True, exist_ok=True)
-                tmp = path.with_suffix(".tmp.npz")
-                np.savez_compressed(
-                    tmp,
-                    images=frame.images,
-                    semantics=semantics,
-                    camera_mask=frame.camera_mask,
-                    depth=frame.depth.astype(np.float32),
-                    labels=frame.labels,
+        if k in self._cache:
+            self._cache.move_to_end(k)
+            return self._cache[k]
+        while len(self._cache) >= self.memory_frames:
+            self._cache.popitem(last=False)
+        seed, i = self.index[k]
+        path = self._disk_path(seed, i) if self.cache_dir is not None else None
+        if path is not None and path.is_file():
+            with np.load(path) as z:
+                self._cache[k] = _sample(
+                    z["images"], self.rig, z["semantics"], z["camera_mask"], z["depth"], z["labels"]
                 )
-                tmp.replace(path)
+            return self._cache[k]
+        if seed not in self._scenes:
+            self._scenes[seed] = self._scene_cls(seed=seed, frames=self._frames)
+        semantics = np.asarray(self._scenes[seed].true_grid(i), np.uint8)
+        frame = render(semantics, self.rig, RenderStyle(), seed * 1000 + i)
+        self._cache[k] = _sample(frame.images, self.rig, semantics, frame.camera_mask, frame.depth, frame.labels)
+        if path is not None:
+            path.parent.mkdir(parents=True, exist_ok=True)
+            tmp = path.with_suffix(".tmp.npz")
+            np.savez_compressed(
+                tmp,
+                images=frame.images,
+                semantics=semantics,
+                camera_mask=frame.camera_mask,
+                depth=frame.depth.astype(np.float32),
+                labels=frame.labels,
+            )
+            tmp.replace(path)
         return self._cache[k]
 
 

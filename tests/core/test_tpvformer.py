@@ -377,3 +377,17 @@ def test_rendered_training_frames_are_cached_on_disk_and_read_back(tmp_path):
     np.testing.assert_array_equal(first.camera_mask, second.camera_mask)
     np.testing.assert_array_equal(first.depth, second.depth)
     np.testing.assert_array_equal(first.pixel_labels, second.pixel_labels)
+
+
+def test_training_frames_in_memory_are_bounded_and_read_back_from_disk(tmp_path):
+    from occvo_core.models.training_data import SyntheticOccDataset
+
+    data = SyntheticOccDataset([3], frames=4, rig=nuscenes_rig(96, 54), stride=2, cache_dir=tmp_path, memory_frames=1)
+    first, second = data[0], data[1]
+    assert list(data._cache) == [1]  # frame 0 let go: 6,000 frames held at once took a 24 GB machine
+    data._scene_cls = None  # frame 0 comes back from disk, not from the renderer
+    again = data[0]
+    assert list(data._cache) == [0] and again is not first
+    assert torch.equal(first.images, again.images)
+    np.testing.assert_array_equal(first.semantics, again.semantics)
+    assert not torch.equal(first.images, second.images)

@@ -73,13 +73,12 @@ class GridSpec:
 
     def indices_of(self, points: np.ndarray) -> np.ndarray:
         """Integer voxel indices (N,3) of points (N,3); may fall outside the grid."""
-        return np.floor((np.asarray(points, dtype=np.float64) - np.array(self.lower)) / self.voxel_size).astype(
-            np.int64
-        )
+        points = np.asarray(points, np.float64)
+        return np.stack([self.axis_indices(a, points[:, a]) for a in range(3)], axis=1)
 
     def axis_indices(self, a: int, coords: np.ndarray) -> np.ndarray:
-        """Voxel indices along axis a of coordinates along it, bit for bit those of indices_of; NaN / inf give a
-        negative index."""
+        """Voxel indices along axis a of coordinates along it (may fall outside the grid); NaN / inf give a negative
+        index."""
         with np.errstate(invalid="ignore"):
             return np.floor((np.asarray(coords, np.float64) - self.lower[a]) / self.voxel_size).astype(np.int64)
 

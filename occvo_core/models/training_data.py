@@ -118,10 +118,10 @@ class SyntheticOccDataset:
 
 def _render_seed(job: tuple[int, int, int, tuple[int, int], str]) -> int:
     seed, frames, stride, size, cache_dir = job
-    data = SyntheticOccDataset([seed], frames, nuscenes_rig(*size), stride=stride, cache_dir=cache_dir)
+    # on disk once rendered: a worker holds one frame at a time
+    data = SyntheticOccDataset([seed], frames, nuscenes_rig(*size), stride=stride, cache_dir=cache_dir, memory_frames=1)
     for k in range(len(data)):
         data[k]
-        data._cache.clear()  # on disk now; a worker holds one frame at a time
     return len(data)
 
 

@@ -48,8 +48,8 @@ class WorkerConfig(BaseModel):
     checkpoint: str | None = None  # TPV-Former checkpoint of the model source (occvo train-occ)
     torch_threads: int = Field(1, ge=1)
     # model source: voxels the network is less sure of than this are reported free (OccupancyPredictor)
-    min_confidence: float = Field(0.0, ge=0, lt=1)
-    min_ground_confidence: float = Field(0.0, ge=0, lt=1)
+    min_confidence: float = Field(0.0, ge=0, le=1)
+    min_ground_confidence: float = Field(0.0, ge=0, le=1)
     # registration worker
     # shards: registration workers sharing the streams; this one registers the streams of `shard`
     # (occvo_schemas.keys.shard_of: CRC-32 of the stream id mod shards). `occvo up` sets both from a role's count

@@ -57,11 +57,14 @@ def add_parser(sub) -> None:
     p.add_argument(
         "--min-confidence",
         type=float,
-        default=0.0,
-        help="--from-images: voxels the network is less sure of than this (softmax of its class) are free",
+        help="--from-images: voxels the network is less sure of than this (softmax of its class) are free "
+        "(default: 0.9 with the shipped model, 0 with --checkpoint)",
     )
     p.add_argument(
-        "--min-ground-confidence", type=float, default=0.0, help="--from-images: the same for the ground classes"
+        "--min-ground-confidence",
+        type=float,
+        help="--from-images: the same for the ground classes, 1: no ground voxel at all "
+        "(default: 1 with the shipped model, 0 with --checkpoint)",
     )
     p.add_argument(
         "--motion-search",
@@ -111,15 +114,18 @@ def run(args) -> int:
         source = truth = SyntheticScene(seed=args.seed, frames=args.frames, rate_hz=args.rate, noise=args.noise)
         if args.from_images:
             from occvo_core.models.image_source import ImageOccupancySource
-            from occvo_core.models.tpvformer.checkpoint import shipped_checkpoint
+            from occvo_core.models.tpvformer.checkpoint import SHIPPED_THRESHOLDS, shipped_checkpoint
             from occvo_core.models.tpvformer.predictor import OccupancyPredictor
 
+            served = (0.0, 0.0) if args.checkpoint else SHIPPED_THRESHOLDS
             source = ImageOccupancySource(
                 source,
                 OccupancyPredictor(
                     args.checkpoint or shipped_checkpoint(),
-                    min_confidence=args.min_confidence,
-                    min_ground_confidence=args.min_ground_confidence,
+                    min_confidence=served[0] if args.min_confidence is None else args.min_confidence,
+                    min_ground_confidence=served[1]
+                    if args.min_ground_confidence is None
+                    else args.min_ground_confidence,
                 ),
             )
     else:

@@ -11,6 +11,7 @@ import torch
 from test_tpvformer import micro  # the tiny architecture at toy sizes (tests/core is on the path)
 
 from occvo_core.cameras import nuscenes_rig
+from occvo_core.grid import GROUND_CLASSES
 from occvo_core.models.metrics import OccMetrics
 from occvo_core.models.tpvformer import (
     CheckpointMismatchError,
@@ -103,35 +104,28 @@ def test_eval_occ_re_evaluates_the_shipped_checkpoint_on_held_out_seeds(tmp_path
     assert summary["geometry_iou"] >= TWO_FRAMES_GEOMETRY_IOU and summary["miou"] >= TWO_FRAMES_MIOU, summary
 
 
-@pytest.mark.slow  # two frames rendered, predicted and registered: ~30 s on one loaded core
-def test_occvo_run_from_images_uses_the_shipped_checkpoint_by_default(tmp_path):
-    out = tmp_path / "out"
-    proc = subprocess.run(
-        [
-            sys.executable,
-            "-m",
-            "occvo_cli",
-            "run",
-            "--synthetic",
-            "--from-images",
-            "--seed",
-            "1000",
-            "--frames",
-            "2",
-            "--threads",
-            "1",
-            "--out",
-            str(out),
-            "--quiet",
-        ],
+def _run_from_images(out, *extra) -> subprocess.CompletedProcess:
+    return subprocess.run(
+        [sys.executable, "-m", "occvo_cli", "run", "--synthetic", "--from-images", "--seed", "1000", "--frames", "2"]
+        + ["--threads", "1", "--out", str(out), "--quiet", *extra],
         capture_output=True,
         text=True,
         timeout=300,
         check=False,
     )
+
+
+@pytest.mark.slow  # two frames rendered, predicted and registered, twice: ~60 s on one loaded core
+def test_occvo_run_from_images_uses_the_shipped_checkpoint_by_default(tmp_path):
+    proc = _run_from_images(tmp_path / "out")
     assert proc.returncode == 0, proc.stderr
-    summary = json.loads((out / "summary.json").read_text())
+    summary = json.loads((tmp_path / "out" / "summary.json").read_text())
     assert summary["frames"] == 2 and summary["scene"].endswith("-from-images")
+    # served with its thresholds: no predicted ground in the map, which the network does predict
+    assert not np.isin(np.load(tmp_path / "out" / "map.npz")["labels"], GROUND_CLASSES).any()
+    plain = _run_from_images(tmp_path / "plain", "--min-confidence", "0", "--min-ground-confidence", "0")
+    assert plain.returncode == 0, plain.stderr
+    assert np.isin(np.load(tmp_path / "plain" / "map.npz")["labels"], GROUND_CLASSES).any()
 
 
 @pytest.mark.slow  # 3 + 2 steps of a toy-sized model: ~15 s on one loaded core

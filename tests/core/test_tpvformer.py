@@ -21,6 +21,7 @@ from occvo_core.models.tpvformer import (
     save_checkpoint,
 )
 from occvo_core.models.tpvformer.attention import ImageCrossAttention
+from occvo_core.models.tpvformer.predictor import confident_labels
 from occvo_core.models.train import lovasz_softmax, train
 from occvo_core.models.training_data import make_sample
 
@@ -219,7 +220,15 @@ def test_confidence_thresholds_report_unsure_voxels_free(tmp_path):
     dropped = (plain != FREE) & (grid == FREE)
     assert dropped.any() and (grid != FREE).any()
     assert np.all(grid[grid != FREE] == plain[grid != FREE])  # nothing is relabelled, only set free
-    for bad in (-0.1, 1.0):
+    # a threshold of 1: every voxel of its classes free (the ground here), the others as without thresholds
+    no_ground = OccupancyPredictor(path, device="cpu", min_ground_confidence=1.0)
+    grid = no_ground.predict_grid(images, rig.intrinsics, rig.cam_to_ego)
+    assert np.isin(plain, GROUND_CLASSES).any() and not np.isin(grid, GROUND_CLASSES).any()
+    np.testing.assert_array_equal(grid[~np.isin(plain, GROUND_CLASSES)], plain[~np.isin(plain, GROUND_CLASSES)])
+    # a threshold of 1 sets free even a softmax that rounds to exactly 1 (driveable surface, barrier, free)
+    certain = confident_labels(torch.tensor([11, 1, FREE]), torch.ones(3), 0.9, 1.0)
+    assert certain.tolist() == [FREE, 1, FREE]
+    for bad in (-0.1, 1.01):
         with pytest.raises(ValueError, match="min_confidence"):
             OccupancyPredictor(path, device="cpu", min_confidence=bad)
 

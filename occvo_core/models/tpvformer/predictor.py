@@ -23,11 +23,12 @@ def confident_labels(
     labels: torch.Tensor, confidence: torch.Tensor | None, min_confidence: float, min_ground_confidence: float
 ) -> torch.Tensor:
     """labels with every voxel whose confidence is below its threshold (ground classes: min_ground_confidence)
-    set free."""
+    set free; a threshold of 1 sets every voxel of its classes free (a softmax may round to exactly 1)."""
     if confidence is None or (min_confidence <= 0 and min_ground_confidence <= 0):
         return labels
     ground = torch.isin(labels, torch.tensor(GROUND_CLASSES, device=labels.device))
-    return labels.masked_fill(confidence < torch.where(ground, min_ground_confidence, min_confidence), FREE)
+    threshold = torch.where(ground, min_ground_confidence, min_confidence)
+    return labels.masked_fill((confidence < threshold) | (threshold >= 1.0), FREE)
 
 
 class OccupancyPredictor:
@@ -48,8 +49,8 @@ class OccupancyPredictor:
         min_ground_confidence: float = 0.0,
     ):
         for name, v in (("min_confidence", min_confidence), ("min_ground_confidence", min_ground_confidence)):
-            if not 0.0 <= v < 1.0:
-                raise ValueError(f"{name} must be in [0, 1), got {v}")
+            if not 0.0 <= v <= 1.0:
+                raise ValueError(f"{name} must be in [0, 1], got {v}")
         self.min_confidence, self.min_ground_confidence = float(min_confidence), float(min_ground_confidence)
         self.device = select_device(device if device != "auto" else None)
         self.model = load_checkpoint(checkpoint, device=self.device)

@@ -117,17 +117,13 @@ def run(args) -> int:
             from occvo_core.models.tpvformer.checkpoint import SHIPPED_THRESHOLDS, shipped_checkpoint
             from occvo_core.models.tpvformer.predictor import OccupancyPredictor
 
+            given = (args.min_confidence, args.min_ground_confidence)
             served = (0.0, 0.0) if args.checkpoint else SHIPPED_THRESHOLDS
-            source = ImageOccupancySource(
-                source,
-                OccupancyPredictor(
-                    args.checkpoint or shipped_checkpoint(),
-                    min_confidence=served[0] if args.min_confidence is None else args.min_confidence,
-                    min_ground_confidence=served[1]
-                    if args.min_ground_confidence is None
-                    else args.min_ground_confidence,
-                ),
+            min_conf, min_ground = (s if g is None else g for g, s in zip(given, served))
+            predictor = OccupancyPredictor(
+                args.checkpoint or shipped_checkpoint(), min_confidence=min_conf, min_ground_confidence=min_ground
             )
+            source = ImageOccupancySource(source, predictor)
     else:
         source = open_scene(args.input, gt=args.gt, scene=args.scene, mask=args.mask)
     config = config_from_args(args)

@@ -9,7 +9,7 @@ then, for each (min_confidence, min_ground_confidence) pair, the voxels below it
 the predictor and the inference worker do) and OccVO runs over the frames, with the semantic BEV motion search on
 (as `occvo run --from-images` has it), once per --config (JSON5 OccVOConfig overrides; "default" the built-in one).
 Prints the APE RMSE (m) of every seed and the successes (APE < 5 m) per pair and config. Choose on seeds that are
-neither training seeds (0-199 for the model of docs/results.md) nor the held-out 1000-1004, then measure the chosen
+neither training seeds (docs/model.md lists each run's) nor the held-out 1000-1004, then measure the chosen
 pair on those.
 """
 
@@ -58,6 +58,7 @@ def main() -> int:
     for seed in args.seeds:
         scene = SyntheticScene(seed=seed, frames=args.frames)
         source = ImageOccupancySource(scene, predictor)
+        torch.set_num_threads(args.threads)  # numba's thread setting in OccVO resets torch's (one OpenMP runtime)
         predicted = [predictor.predict_labels(*source.camera_frame(i)) for i in range(len(scene))]
         for p in pairs:
             vo = OccVO(configs[p[0]])

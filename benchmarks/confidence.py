@@ -58,7 +58,6 @@ def main() -> int:
     for seed in args.seeds:
         scene = SyntheticScene(seed=seed, frames=args.frames)
         source = ImageOccupancySource(scene, predictor)
-        torch.set_num_threads(args.threads)  # numba's thread setting in OccVO resets torch's (one OpenMP runtime)
         predicted = [predictor.predict_labels(*source.camera_frame(i)) for i in range(len(scene))]
         for p in pairs:
             vo = OccVO(configs[p[0]])

@@ -52,3 +52,14 @@ def test_only_one_thread_at_a_time_runs_kernels_on_several():
     assert got["second"] == (1, False)  # the first thread is alive: this one runs on one
     assert got["one"] == (1, False)  # asking for one claims nothing
     assert got["after"] == (2, True)  # the first ended (its team with it): the next to ask has several
+
+
+def test_kernel_threads_leave_torchs_thread_count_alone():
+    """numba's OpenMP start-up used to reset torch's count to all cores, so a model's predictions (whose last bits
+    depend on it) changed with whether registration had run yet in the process."""
+    script = (
+        "import torch\nfrom occvo_core.registration.kernels import use_threads\n"
+        "torch.set_num_threads(1)\ntorch.get_num_threads()\nuse_threads(0)\nprint(torch.get_num_threads())"
+    )
+    out = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=120, check=True)
+    assert out.stdout.strip().splitlines()[-1] == "1"

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import hashlib
 import os
+import sys
 import threading
 from pathlib import Path
 
@@ -50,7 +51,11 @@ def use_threads(threads: int) -> None:
     frame of scene-0268 at 2 Hz). The first thread to ask for several keeps them until it ends; others run on one."""
     most = numba.config.NUMBA_NUM_THREADS
     n = FREE_CORES.threads(most) if threads <= 0 else min(threads, most)
+    torch = sys.modules.get("torch")  # numba's OpenMP start-up resets torch's thread count (one libgomp): kept
+    before = torch.get_num_threads() if torch else 0
     numba.set_num_threads(n if n == 1 or own_team() else 1)
+    if torch and torch.get_num_threads() != before:
+        torch.set_num_threads(before)
 
 
 def own_team() -> bool:

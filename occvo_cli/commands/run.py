@@ -33,8 +33,8 @@ def add_parser(sub) -> None:
         "--threads",
         type=int,
         default=0,
-        help="cores the registration kernels may use (default 0: those other processes leave free); the result does not "
-        "depend on it",
+        help="cores the registration kernels may use (default 0: those other processes leave free), and with "
+        "--from-images torch's threads too; registration's result does not depend on it, the network's last bits do",
     )
     p.add_argument(
         "--skip-bad-frames", action="store_true", help="skip frames that fail validation instead of stopping"
@@ -123,6 +123,10 @@ def run(args) -> int:
             predictor = OccupancyPredictor(
                 args.checkpoint or shipped_checkpoint(), min_confidence=min_conf, min_ground_confidence=min_ground
             )
+            import torch
+
+            if args.threads:  # torch's sums split by thread count: one count, the same voxels on any machine
+                torch.set_num_threads(args.threads)
             source = ImageOccupancySource(source, predictor)
     else:
         source = open_scene(args.input, gt=args.gt, scene=args.scene, mask=args.mask)
@@ -136,6 +140,8 @@ def run(args) -> int:
         view.finish(pipeline.odometry)
     if args.input is None:
         extra["map_metrics"] = _synthetic_map_metrics(truth, pipeline)
+    if args.from_images:
+        extra["torch_threads"] = torch.get_num_threads()
     summary = pipeline.write(args.out, extra)
     shown = {k: summary[k] for k in summary if k not in ("skipped_frames",)}
     if args.json:

@@ -6,7 +6,8 @@
 
 Each synthetic seed (40 frames, 2 Hz) is rendered and run through the network once (OccupancyPredictor.predict_labels);
 then, for each (min_confidence, min_ground_confidence) pair, the voxels below it are set free (confident_labels, as
-the predictor and the inference worker do) and OccVO runs over the frames, with the semantic BEV motion search on
+the predictor and the inference worker do), the camera mask keeps the voxels the cameras see (`--mask none`: all),
+and OccVO runs over the frames, with the semantic BEV motion search on
 (as `occvo run --from-images` has it), once per --config (JSON5 OccVOConfig overrides; "default" the built-in one).
 Prints the APE RMSE (m) of every seed and the successes (APE < 5 m) per pair and config. Choose on seeds that are
 neither training seeds (docs/model.md lists each run's) nor the held-out 1000-1004, then measure the chosen
@@ -28,6 +29,7 @@ from occvo_core import OccVO, OccVOConfig  # noqa: E402
 from occvo_core.eval import ape_rmse  # noqa: E402
 from occvo_core.frame import OccupancyFrame  # noqa: E402
 from occvo_core.grid import grid_to_points  # noqa: E402
+from occvo_core.models.camera_mask import masked  # noqa: E402
 from occvo_core.models.image_source import ImageOccupancySource  # noqa: E402
 from occvo_core.models.tpvformer.predictor import OccupancyPredictor, confident_labels  # noqa: E402
 from occvo_core.sim import SyntheticScene  # noqa: E402
@@ -49,6 +51,7 @@ def main() -> int:
     ap.add_argument("--config", nargs="+", default=["default"], help="OccVOConfig JSON5 files, or 'default'")
     ap.add_argument("--frames", type=int, default=40)
     ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--mask", choices=("camera", "none"), default="camera", help="as occvo run --from-images --mask")
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
     configs = {name: _config(name) for name in args.config}
@@ -62,7 +65,11 @@ def main() -> int:
         for p in pairs:
             vo = OccVO(configs[p[0]])
             for i, (labels, confidence) in enumerate(predicted):
-                points, classes = grid_to_points(confident_labels(labels, confidence, *p[1:]).to(torch.uint8).numpy())
+                grid = confident_labels(labels, confidence, *p[1:]).to(torch.uint8).numpy()
+                if args.mask == "camera":
+                    rig = source.rig  # the rendered images' calibration, at the network's input size
+                    grid = masked(grid, predictor.grid, rig.intrinsics, rig.cam_to_ego, predictor.cfg.input_size)
+                points, classes = grid_to_points(grid)
                 vo.step(OccupancyFrame(points, classes, i, float(scene.times[i]), {"seed": seed}))
             ape[p].append(ape_rmse(scene.gt_poses, vo.poses))
         print(f"seed {seed}: " + "  ".join(f"{_key(p)}: {ape[p][-1]:.2f}" for p in pairs), flush=True)

@@ -11,6 +11,7 @@ Runs in its own process, so inference of frame t+1 overlaps registration of fram
 
 from __future__ import annotations
 
+import argparse
 import sys
 import threading
 import time
@@ -48,6 +49,7 @@ class InferenceWorker(Worker):
                 config.device,
                 config.min_confidence,
                 config.min_ground_confidence,
+                config.camera_mask,
             )
             log_event(
                 self.log,
@@ -58,6 +60,7 @@ class InferenceWorker(Worker):
                 torch_threads=config.torch_threads,
                 min_confidence=config.min_confidence,
                 min_ground_confidence=config.min_ground_confidence,
+                camera_mask=config.camera_mask,
             )
 
     def declare(self) -> None:
@@ -167,6 +170,11 @@ def _args(p) -> None:
     p.add_argument("--torch-threads", type=int)
     p.add_argument("--min-confidence", type=float, help="model source: voxels below this softmax confidence are free")
     p.add_argument("--min-ground-confidence", type=float, help="the same for the ground classes")
+    p.add_argument(
+        "--camera-mask",
+        action=argparse.BooleanOptionalAction,
+        help="model source: keep only the voxels the cameras' rays reach (as the shipped model is served)",
+    )
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -172,6 +172,7 @@ def load_occupancy_model(
     device: str = "auto",
     min_confidence: float = 0.0,
     min_ground_confidence: float = 0.0,
+    camera_mask: bool = False,
 ) -> OccupancyModel:
     """The network of the worker's `model` source, or a ConfigError naming what is wrong (file, format, shapes)."""
     if checkpoint and model_weights:
@@ -193,7 +194,11 @@ def load_occupancy_model(
 
     try:
         model = OccupancyPredictor(
-            checkpoint, device=dev, min_confidence=min_confidence, min_ground_confidence=min_ground_confidence
+            checkpoint,
+            device=dev,
+            min_confidence=min_confidence,
+            min_ground_confidence=min_ground_confidence,
+            camera_mask=camera_mask,
         )
     except CheckpointError as exc:
         raise ConfigError(f"checkpoint {exc}") from None

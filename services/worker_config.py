@@ -50,6 +50,7 @@ class WorkerConfig(BaseModel):
     # model source: voxels the network is less sure of than this are reported free (OccupancyPredictor)
     min_confidence: float = Field(0.0, ge=0, le=1)
     min_ground_confidence: float = Field(0.0, ge=0, le=1)
+    camera_mask: bool = False  # model source: keep only the voxels the cameras' rays reach (Occ3D's mask_camera)
     # registration worker
     # shards: registration workers sharing the streams; this one registers the streams of `shard`
     # (occvo_schemas.keys.shard_of: CRC-32 of the stream id mod shards). `occvo up` sets both from a role's count

@@ -21,7 +21,8 @@ def add_parser(sub) -> None:
         "--mask",
         choices=("camera", "lidar", "none"),
         default="camera",
-        help="Occ3D input: the visibility mask whose voxels make a frame (default: camera)",
+        help="the visibility mask whose voxels make a frame (default: camera): of Occ3D input, or with --from-images "
+        "of the network's prediction (camera or none)",
     )
     p.add_argument("--gt", type=Path, help="ground-truth trajectory (KITTI or TUM) for APE")
     p.add_argument("--out", type=Path, default=Path("occvo-out"), help="output folder (default: occvo-out)")
@@ -120,8 +121,13 @@ def run(args) -> int:
             given = (args.min_confidence, args.min_ground_confidence)
             served = (0.0, 0.0) if args.checkpoint else SHIPPED_THRESHOLDS
             min_conf, min_ground = (s if g is None else g for g, s in zip(given, served))
+            if args.mask == "lidar":
+                raise ConfigError("--mask lidar: a camera model's prediction has no lidar; give camera or none")
             predictor = OccupancyPredictor(
-                args.checkpoint or shipped_checkpoint(), min_confidence=min_conf, min_ground_confidence=min_ground
+                args.checkpoint or shipped_checkpoint(),
+                min_confidence=min_conf,
+                min_ground_confidence=min_ground,
+                camera_mask=args.mask == "camera",
             )
             import torch
 
@@ -141,7 +147,7 @@ def run(args) -> int:
     if args.input is None:
         extra["map_metrics"] = _synthetic_map_metrics(truth, pipeline)
     if args.from_images:
-        extra["torch_threads"] = torch.get_num_threads()
+        extra["torch_threads"], extra["camera_mask"] = torch.get_num_threads(), args.mask == "camera"
     summary = pipeline.write(args.out, extra)
     shown = {k: summary[k] for k in summary if k not in ("skipped_frames",)}
     if args.json:

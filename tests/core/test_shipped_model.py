@@ -122,6 +122,7 @@ def test_occvo_run_from_images_uses_the_shipped_checkpoint_by_default(tmp_path):
     summary = json.loads((tmp_path / "out" / "summary.json").read_text())
     assert summary["frames"] == 2 and summary["scene"].endswith("-from-images")
     assert summary["torch_threads"] == 1  # --threads holds for the network too: its last bits depend on the count
+    assert summary["camera_mask"] is True  # served as chosen: only the voxels the cameras see
     # served with its thresholds: no predicted ground in the map, which the network does predict
     assert not np.isin(np.load(tmp_path / "out" / "map.npz")["labels"], GROUND_CLASSES).any()
     plain = _run_from_images(tmp_path / "plain", "--min-confidence", "0", "--min-ground-confidence", "0")

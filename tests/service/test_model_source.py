@@ -95,18 +95,20 @@ def test_worker_serves_the_checkpoint_equal_to_the_predictor(checkpoint):
     ep = f"tcp/127.0.0.1:{free_port()}"
     router = open_router(ep)
     worker = start_worker(
-        ep, "--checkpoint", str(checkpoint), "--worker-id", "inference-model-test"
+        ep, "--checkpoint", str(checkpoint), "--worker-id", "inference-model-test", "--camera-mask"
     )  # starts meanwhile
     session = open_session(ep)
     try:
         threads = torch.get_num_threads()
         torch.set_num_threads(1)  # as the worker (torch_threads 1): the same reduction order, the same logits
         try:
-            predictor = OccupancyPredictor(checkpoint, device="cpu")
+            predictor = OccupancyPredictor(checkpoint, device="cpu", camera_mask=True)
             frames, names = rendered_frames(predictor, 3)
             sent = [wire_images(*f, names, enc) for f, enc in zip(frames, ("raw_rgb8", "png", "jpeg"))]
             # the reference: the predictor called directly on what the worker decodes (jpeg is lossy)
             expected = [predictor.predict_grid(*camera_inputs(imgs)) for imgs in sent]
+            unmasked = OccupancyPredictor(checkpoint, device="cpu").predict_grid(*camera_inputs(sent[0]))
+            assert np.count_nonzero(expected[0] != 17) < np.count_nonzero(unmasked != 17)  # the mask took some
         finally:
             torch.set_num_threads(threads)
 

@@ -45,6 +45,7 @@ BAD_INPUT = [
     ["run", "--frames", "x"],
     ["run", "--input", "/no/such/scene"],
     ["run", "--from-images", "--checkpoint", "/no/such/checkpoint.pt"],
+    ["run", "--from-images", "--mask", "lidar"],
     ["eval", "--gt", "/no/gt.kitti", "--est", "/no/est.kitti"],
     ["ablation"],
     ["eval-map", "--est-map", "/no/map.npz", "--gt-map", "/no/gt.npz"],

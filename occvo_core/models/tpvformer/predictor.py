@@ -11,6 +11,7 @@ import torch.nn.functional as F
 from occvo_core.errors import OccVOError
 from occvo_core.frame import OccupancyFrame
 from occvo_core.grid import FREE, GROUND_CLASSES, OCC3D_GRID, GridSpec, grid_to_points
+from occvo_core.models.camera_mask import masked
 from occvo_core.models.tpvformer.checkpoint import load_checkpoint
 from occvo_core.models.tpvformer.device import autocast, select_device
 
@@ -38,7 +39,8 @@ class OccupancyPredictor:
     Images of another size than the checkpoint's input are resized and the intrinsics scaled to match.
     A voxel whose most likely class has a softmax probability below `min_confidence` (`min_ground_confidence` for
     the ground classes) is reported free: a network's unsure voxels are often ones it pins to the ego, and an
-    odometry fed with them is pulled towards "no motion".
+    odometry fed with them is pulled towards "no motion". With `camera_mask`, only the voxels the cameras' rays
+    reach are kept (Occ3D's mask_camera, from the calibration given with the images).
     """
 
     def __init__(
@@ -47,11 +49,13 @@ class OccupancyPredictor:
         device: str | None = None,
         min_confidence: float = 0.0,
         min_ground_confidence: float = 0.0,
+        camera_mask: bool = False,
     ):
         for name, v in (("min_confidence", min_confidence), ("min_ground_confidence", min_ground_confidence)):
             if not 0.0 <= v <= 1.0:
                 raise ValueError(f"{name} must be in [0, 1], got {v}")
         self.min_confidence, self.min_ground_confidence = float(min_confidence), float(min_ground_confidence)
+        self.camera_mask = bool(camera_mask)
         self.device = select_device(device if device != "auto" else None)
         self.model = load_checkpoint(checkpoint, device=self.device)
         self.cfg = self.model.cfg
@@ -70,7 +74,10 @@ class OccupancyPredictor:
         """images (6, H, W, 3) uint8 RGB; intrinsics (6, 3, 3) for that size; cam_to_ego (6, 4, 4)."""
         thresholds = self.min_confidence, self.min_ground_confidence
         labels, confidence = self.predict_labels(images, intrinsics, cam_to_ego, with_confidence=max(thresholds) > 0)
-        return confident_labels(labels, confidence, *thresholds).to(torch.uint8).cpu().numpy()
+        grid = confident_labels(labels, confidence, *thresholds).to(torch.uint8).cpu().numpy()
+        if self.camera_mask:
+            grid = masked(grid, self.grid, intrinsics, cam_to_ego, (images.shape[2], images.shape[1]))
+        return grid
 
     @torch.no_grad()
     def predict_labels(

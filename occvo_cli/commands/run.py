@@ -147,7 +147,7 @@ def run(args) -> int:
     if args.input is None:
         extra["map_metrics"] = _synthetic_map_metrics(truth, pipeline)
     if args.from_images:
-        extra["torch_threads"], extra["camera_mask"] = torch.get_num_threads(), args.mask == "camera"
+        extra["torch_threads"], extra["camera_mask"] = torch.get_num_threads(), predictor.camera_mask
     summary = pipeline.write(args.out, extra)
     shown = {k: summary[k] for k in summary if k not in ("skipped_frames",)}
     if args.json:

@@ -8,13 +8,12 @@ from __future__ import annotations
 import numpy as np
 
 from occvo_core.grid import FREE, GridSpec
-from occvo_core.sim import render
-from occvo_core.sim.scene import D_AZ
+from occvo_core.sim.render import visible
 
 
 def camera_fans(intrinsics: np.ndarray, cam_to_ego: np.ndarray, width: int, height: int) -> np.ndarray:
     """(n, 7) rows of x, y, z, yaw, half horizontal field of view, lowest and highest elevation (ego frame, rad):
-    each pinhole camera's field of view, as render.visibility takes it (principal points need not be centred)."""
+    each pinhole camera's field of view, as sim.render.visible takes it (principal points need not be centred)."""
     fans = np.empty((len(intrinsics), 7))
     for i, (k, pose) in enumerate(zip(np.asarray(intrinsics, float), np.asarray(cam_to_ego, float))):
         axis = pose[:3, 2]  # the optical axis in the ego frame
@@ -26,15 +25,8 @@ def camera_fans(intrinsics: np.ndarray, cam_to_ego: np.ndarray, width: int, heig
     return fans
 
 
-def camera_mask(grid: np.ndarray, spec: GridSpec, fans: np.ndarray) -> np.ndarray:
-    """bool mask of `grid` (labels, FREE = free): the voxels the cameras' rays reach, the surface hit included."""
-    mask = np.zeros(grid.shape, np.bool_)
-    render.visibility(grid != FREE, fans, np.asarray(spec.lower, float), float(spec.voxel_size), D_AZ, mask)
-    return mask
-
-
 def masked(grid: np.ndarray, spec: GridSpec, intrinsics: np.ndarray, cam_to_ego: np.ndarray, size) -> np.ndarray:
     """`grid` with every voxel outside the camera mask set free; size: the images' (width, height)."""
     out = grid.copy()
-    out[~camera_mask(grid, spec, camera_fans(intrinsics, cam_to_ego, *size))] = FREE
+    out[~visible(grid, camera_fans(intrinsics, cam_to_ego, *size), spec.lower, spec.voxel_size)] = FREE
     return out

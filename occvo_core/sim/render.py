@@ -12,6 +12,7 @@ from occvo_core.grid import FREE, OCC3D_GRID
 NX, NY, NZ = OCC3D_GRID.shape
 LOWER = np.array(OCC3D_GRID.lower)
 VOXEL = OCC3D_GRID.voxel_size
+D_AZ = 0.007  # ray fan spacing: 0.28 m apart at 40 m, 0.4 m at the grid's corners
 
 
 @njit(cache=True)
@@ -201,6 +202,14 @@ def visibility(occupied, cams, lower, voxel, d_az, mask):
                 else:
                     iy += sy
                     tmy += tdy
+
+
+def visible(grid: np.ndarray, sensors: np.ndarray, lower=LOWER, voxel: float = VOXEL) -> np.ndarray:
+    """bool mask of the label grid `grid` (FREE = free): the voxels some ray of `sensors` (rows as `visibility`
+    takes them) reaches, the surface hit included."""
+    mask = np.zeros(grid.shape, np.bool_)
+    visibility(grid != FREE, sensors, np.asarray(lower, np.float64), float(voxel), D_AZ, mask)
+    return mask
 
 
 def empty_grid() -> np.ndarray:

@@ -32,7 +32,6 @@ CAMERAS = np.array(
 )
 # The roof lidar (for Occ3D's mask_lidar in exports): 360 deg, -30.67 .. +10.67 deg.
 LIDAR = np.array([[0.94, 0.0, 1.84, 0.0, np.pi, np.radians(-30.67), np.radians(10.67)]])
-D_AZ = 0.007  # ray fan spacing: 0.28 m apart at 40 m, 0.4 m at the grid's corners
 
 LONG_DRIVE = 500  # frames: longer drives keep only a few frames cached and no per-frame static bookkeeping
 _KEY_BITS = 21  # world voxel keys: three signed 21-bit integers packed in an int64
@@ -351,9 +350,7 @@ class SyntheticScene:
 
     @staticmethod
     def _visible(grid: np.ndarray, sensors: np.ndarray) -> np.ndarray:
-        mask = np.zeros(grid.shape, np.bool_)
-        render.visibility(grid != FREE, sensors, render.LOWER, render.VOXEL, D_AZ, mask)
-        return mask
+        return render.visible(grid, sensors)
 
     def _remember_static(self, index: int, static: np.ndarray, full: np.ndarray, mask: np.ndarray) -> None:
         self._static[index] = self._static_of(index, static, full, mask)

@@ -7,8 +7,9 @@ import numpy as np
 
 from occvo_core.cameras import nuscenes_rig
 from occvo_core.grid import FREE, OCC3D_GRID
-from occvo_core.models.camera_mask import camera_fans, camera_mask, masked
+from occvo_core.models.camera_mask import camera_fans, masked
 from occvo_core.sim import SyntheticScene
+from occvo_core.sim.render import visible
 
 
 def test_fans_from_the_calibration_see_what_the_towns_camera_mask_sees():
@@ -16,7 +17,7 @@ def test_fans_from_the_calibration_see_what_the_towns_camera_mask_sees():
     fans = camera_fans(rig.intrinsics, rig.cam_to_ego, 200, 112)
     scene = SyntheticScene(seed=3, frames=2)
     grid = scene.true_grid(1)
-    ours, towns = camera_mask(grid, OCC3D_GRID, fans), scene.camera_mask(1)
+    ours, towns = visible(grid, fans), scene.camera_mask(1)
     occupied = grid != FREE
     seen_by_both = np.count_nonzero(ours & towns & occupied)
     # the town's fans are the same cameras with centred principal points and a lower top: edge voxels differ

@@ -1,22 +1,23 @@
 """The service against the odometry inside it: real scenes through the router and the three worker processes (store
 on) beside offline OccVO on the same frames, in the same run.
 
-    python benchmarks/pipeline.py [--repeats 3] [--scenes scene-0101 scene-0268] [--output results.json]
-        [--registration-args "--after-pose-nice 0"]
+    python benchmarks/pipeline.py [--repeats 10] [--live-runs 2] [--scenes scene-0101 scene-0268]
+        [--output results.json] [--registration-args "--after-pose-nice 0"]
 
-Per scene, medians over the repeats of (each goal read on one repeat's offline and service runs side by side, the
-host's speed drifting between repeats):
-  - offline_fps: OccVO.step (all cores, as `occvo run`) over the scene's frames, per repeat;
-  - service_fps: lossless replay (window of 4 frames in flight) through the router, the inference, registration and
-    map workers, both stores on, from the first frame sent to the last pose received (the frames read before, as
-    offline's are); ratio = service / offline
-    (goal >= 0.8); poses checked equal to the offline ones bit for bit;
-  - pose latency p50/p99 at 2 Hz (client send to pose arrival) beside the offline registration time a frame (the
-    whole step, median and p99; goal p50 <= median + 10 ms, p99 <= 2 x p99);
+Per scene, in one service (a 3-frame stream first: the workers' first use of a stream's path, as offline's warm-up):
+  - `repeats` lossless replays (window of 4 frames in flight, each a new stream) through the router, the inference,
+    registration and map workers, both stores on, from the first frame sent to the last pose received (the frames
+    read before, as offline's are), each between two offline runs (OccVO.step on all cores, as `occvo run`). The
+    host's speed drifts within seconds, so each replay's ratio is its frames/s over the mean of its two neighbours';
+    ratio = the median of those (goal >= 0.8); poses checked equal to the offline ones bit for bit;
+  - pose latency p50/p99 at 2 Hz (client send to pose arrival; `live_runs` streams, each between two offline runs
+    too) beside the time a frame of the offline runs beside it (the whole step, median and p99; goal p50 <= median
+    + 10 ms, p99 <= 2 x p99; the medians over the streams), and beside an offline run at 2 Hz (its steps start on
+    idle cores, as the service's do);
   - a stage row: the offline stages of the same frames beside the service's (the pose's timings_ms medians, the
     worker stats' p50 for the work after the pose), and the poses' stages at RATE_HZ (where the latency goes);
   - tile query p50/p99 (one 20 m tile, client -> router -> map service -> client);
-  - CPU a frame (user + system) of the offline run and, over the lossless replay, of each service process: what
+  - CPU a frame (user + system) of the offline run and, over the lossless replays, of each service process: what
     the service adds to the odometry's work on the same cores, and the ratio that leaves possible at best
     (offline CPU over offline plus added, when the odometry's kernels already keep every core busy).
 And the per-hop transport latency p50/p99 of a 30k-voxel occupancy frame, publisher -> router -> subscriber,
@@ -128,13 +129,15 @@ def hop_latency(n: int = 300, voxels: int = 30000, encoding: str = "axes") -> tu
     return np.array(lat[20:]), len(encode(msg))
 
 
-def offline(frames: list) -> dict:
+def offline(frames: list, rate_hz: float = 0.0) -> dict:
     """One run of OccVO over the frames as `occvo run` does (all cores): frames/s, each frame's step time, the
-    stages' medians and the poses."""
+    stages' medians and the poses. rate_hz: a frame every 1/rate_hz s (the steps' times only then mean anything)."""
     vo = OccVO(threads=0)
     step_ms, stages = [], {}
     t_run, cpu_run = time.perf_counter(), time.process_time()
-    for frame in frames:
+    for i, frame in enumerate(frames):
+        if rate_hz > 0:
+            time.sleep(max(0.0, t_run + i / rate_hz - time.perf_counter()))
         t0 = time.perf_counter()
         result = vo.step(frame)
         step_ms.append((time.perf_counter() - t0) * 1000.0)
@@ -164,143 +167,166 @@ def _stage_medians(pose_msgs: dict) -> dict[str, float]:
     return _medians(timings)
 
 
-def service(name: str, frames: list, store_dir: Path, window: int, registration_args: list[str]) -> dict:
-    """The scene's frames through the router and the three worker processes, both stores on: a lossless replay as
-    fast as the pipeline takes, then one at RATE_HZ. The frames are read before, as offline's are."""
-    args = {
-        "registration": ["--store-path", str(store_dir / "occvo.sqlite"), *registration_args],
+def service(name: str, frames: list, store_dir: Path, args) -> dict:
+    """The scene's frames through the router and the three worker processes, both stores on, in one service: a short
+    stream first (the workers' first use of a stream's path, as offline's warm-up), then `repeats` lossless replays,
+    each a new stream, with an offline run before and after each (the host's speed drifts within seconds: each
+    replay is read against the mean of its two neighbours), then `live_runs` streams at RATE_HZ. The frames are
+    read before, as offline's are."""
+    worker_args = {
+        "registration": ["--store-path", str(store_dir / "occvo.sqlite"), *args.registration_args.split()],
         "map": ["--store-path", str(store_dir / "map.sqlite")],
     }
-    with LocalService(quiet=True, worker_args=args) as svc, OccVOClient(svc.endpoint, name) as client:
+    fast, offs, stats = [], [], {}
+    with LocalService(quiet=True, worker_args=worker_args) as svc, OccVOClient(svc.endpoint, f"{name}-warm") as warm:
+        replay(warm, frames[:3], window=args.window)
         procs = {"router + client": psutil.Process()} | {r: psutil.Process(p.pid) for r, p in svc.procs.items()}
-        cpu0 = {r: sum(p.cpu_times()[:2]) for r, p in procs.items()}
-        fast = replay(client, frames, window=window)
-        cpu = {r: (sum(p.cpu_times()[:2]) - cpu0[r]) * 1000.0 / len(frames) for r, p in procs.items()}
-        health = {h.role: h for h in client.stats()}
-        timings = _stage_medians(fast["pose_msgs"])
-        info = client.map_info()
-        ix, iy = info.tiles[len(info.tiles) // 2]
-        for _ in range(20):
-            client.tile(ix, iy)
-        tq = []
-        for _ in range(200):
-            t0 = time.perf_counter()
-            client.tile(ix, iy)
-            tq.append((time.perf_counter() - t0) * 1000.0)
-        with OccVOClient(svc.endpoint, f"{name}-live") as live_client:  # a new stream: nothing is a resend
-            live = replay(live_client, frames, rate_hz=RATE_HZ, window=len(frames))
-            arrived = live_client.arrived
-            latency = [(arrived[s] - t) * 1000.0 for s, t in enumerate(live["sent_at"]) if s in arrived]
-            live_timings = _stage_medians(live["pose_msgs"])
-    reg = health["registration"].stages
+        cpu = dict.fromkeys(procs, 0.0)
+        offs.append(offline(frames))
+        for i in range(args.repeats):
+            with OccVOClient(svc.endpoint, f"{name}-{i}") as client:
+                cpu0 = {r: sum(p.cpu_times()[:2]) for r, p in procs.items()}
+                fast.append(replay(client, frames, window=args.window))
+                for r, p in procs.items():
+                    cpu[r] += (sum(p.cpu_times()[:2]) - cpu0[r]) * 1000.0 / len(frames) / args.repeats
+                stats = {h.role: h for h in client.stats()}  # the last replay's window of the workers' stats
+            _quiet(procs)  # the last frame's work after its pose, its tiles, the store's checkpoint: not in offline's
+            offs.append(offline(frames))
+        with OccVOClient(svc.endpoint, f"{name}-0") as client:
+            info = client.map_info()
+            ix, iy = info.tiles[len(info.tiles) // 2]
+            for _ in range(20):
+                client.tile(ix, iy)
+            tile_ms = []
+            for _ in range(200):
+                t0 = time.perf_counter()
+                client.tile(ix, iy)
+                tile_ms.append((time.perf_counter() - t0) * 1000.0)
+        live, live_offs = [], [offs[-1]]  # each stream at RATE_HZ between two offline runs too
+        for i in range(args.live_runs):
+            with OccVOClient(svc.endpoint, f"{name}-live-{i}") as client:  # a new stream: nothing is a resend
+                run = replay(client, frames, rate_hz=RATE_HZ, window=len(frames))
+                arrived = client.arrived
+                run["latency_ms"] = [(arrived[s] - t) * 1000.0 for s, t in enumerate(run["sent_at"]) if s in arrived]
+                live.append(run)
+            _quiet(procs)
+            live_offs.append(offline(frames))
+        paced = offline(frames, rate_hz=RATE_HZ)  # the odometry at the same rate: its steps start from idle cores
+    reg = stats["registration"].stages
     return {
-        "fps": fast["fps"],
+        "fast": fast,
+        "offline": offs,
         "cpu_ms": cpu,
-        "poses": fast["poses"],
-        "errors": fast["errors"] + live["errors"],
-        "trajectory": fast["trajectory"],
-        "timings": timings,
         "after_pose": {k: reg[k].p50_ms for k in AFTER_POSE_STAGES if k in reg},
-        "worker_stats_p50": {
-            role: {k: s.p50_ms for k, s in h.stages.items()} for role, h in health.items() if h.stages
-        },
-        "latency_ms": latency,
-        "latency_timings": live_timings,
-        "tile_query_ms": tq,
+        "worker_stats_p50": {role: {k: s.p50_ms for k, s in h.stages.items()} for role, h in stats.items() if h.stages},
+        "live": live,
+        "live_offline": live_offs,
+        "paced": paced,
+        "tile_query_ms": tile_ms,
     }
 
 
-def run_scene(scene_dir: Path, repeats: int, window: int, registration_args: list[str]) -> dict:
+def _quiet(procs: dict, timeout_s: float = 5.0) -> None:
+    """Wait until the service processes use under 2% of a core over 200 ms (at most timeout_s)."""
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        cpu0 = sum(sum(p.cpu_times()[:2]) for r, p in procs.items() if r != "router + client")
+        time.sleep(0.2)
+        if sum(sum(p.cpu_times()[:2]) for r, p in procs.items() if r != "router + client") - cpu0 < 0.004:
+            return
+
+
+def run_scene(scene_dir: Path, args) -> dict:
     scene = OccVOReleaseScene(scene_dir)
     frames = [scene[i] for i in range(len(scene))]
     offline(frames[:3])  # compile / warm caches
-    runs = []
-    for _ in range(repeats):
-        off = offline(frames)  # beside each service run: the same machine state
-        with tempfile.TemporaryDirectory(prefix="occvo-pipeline-") as tmp:
-            svc = service(scene.name, frames, Path(tmp), window, registration_args)
-        runs.append((off, svc))
-    offs, svcs = [r[0] for r in runs], [r[1] for r in runs]
-    offline_fps = float(np.median([o["fps"] for o in offs]))
-    service_fps = float(np.median([s["fps"] for s in svcs]))
-    step_med = float(np.median([np.median(o["step_ms"]) for o in offs]))
-    step_p99 = float(np.median([np.percentile(o["step_ms"], 99) for o in offs]))
-    lat_p50 = float(np.median([np.percentile(s["latency_ms"], 50) for s in svcs]))
-    lat_p99 = float(np.median([np.percentile(s["latency_ms"], 99) for s in svcs]))
-    # the host's speed drifts between runs: each goal is read on one repeat's offline and service runs side by
-    # side, then the median over the repeats
-    ratios = [s["fps"] / o["fps"] for o, s in zip(offs, svcs)]
-    p50_margins = [np.percentile(s["latency_ms"], 50) - np.median(o["step_ms"]) for o, s in zip(offs, svcs)]
-    p99_ratios = [np.percentile(s["latency_ms"], 99) / np.percentile(o["step_ms"], 99) for o, s in zip(offs, svcs)]
-    ratio, p50_margin, p99_ratio = (float(np.median(v)) for v in (ratios, p50_margins, p99_ratios))
-    identical = all(
-        s["poses"] == len(frames) and np.array_equal(s["trajectory"], o["poses"]) for o, s in zip(offs, svcs)
-    )
-    offline_stages = {k: float(np.median([o["stages"][k] for o in offs])) for k in offs[0]["stages"]}
+    with tempfile.TemporaryDirectory(prefix="occvo-pipeline-") as tmp:
+        s = service(scene.name, frames, Path(tmp), args)
+    offs, fast, live = s["offline"], s["fast"], s["live"]
+    # each replay against the mean of the offline runs just before and just after it
+    ratios = [f["fps"] / ((a["fps"] + b["fps"]) / 2) for f, a, b in zip(fast, offs, offs[1:])]
+    steps = np.concatenate([o["step_ms"] for o in offs])
+    step_med, step_p99 = float(np.median(steps)), float(np.percentile(steps, 99))
+    lat = np.concatenate([r["latency_ms"] for r in live])
+    lat_p50, lat_p99 = float(np.percentile(lat, 50)), float(np.percentile(lat, 99))
+    identical = all(f["poses"] == len(frames) and np.array_equal(f["trajectory"], offs[0]["poses"]) for f in fast)
+    identical &= all(np.array_equal(o["poses"], offs[0]["poses"]) for o in offs)
     offline_cpu = float(np.median([o["cpu_ms"] for o in offs]))
-    service_cpu = {r: float(np.median([s["cpu_ms"][r] for s in svcs])) for r in svcs[0]["cpu_ms"]}
+    service_cpu = s["cpu_ms"]
     added_cpu = (
         sum(service_cpu.values()) - service_cpu["registration"] + max(0.0, service_cpu["registration"] - offline_cpu)
     )
-    service_stages = {k: float(np.median([s["timings"].get(k, np.nan) for s in svcs])) for k in svcs[0]["timings"]}
-    service_stages |= {
-        k: float(np.median([s["after_pose"].get(k, np.nan) for s in svcs])) for k in svcs[0]["after_pose"]
-    }
-    service_stages |= {  # complete()'s stages (loop closure, map update), from the worker's stats
-        k: float(np.median([s["worker_stats_p50"]["registration"].get(k, np.nan) for s in svcs]))
-        for k in svcs[0]["worker_stats_p50"]["registration"]
-        if k.startswith("complete.")
-    }
+    p50_margins, p99_ratios = [], []  # each stream at RATE_HZ against the steps of the offline runs beside it
+    for r, a, b in zip(live, s["live_offline"], s["live_offline"][1:]):
+        near = np.concatenate([a["step_ms"], b["step_ms"]])
+        p50_margins.append(np.percentile(r["latency_ms"], 50) - np.median(near))
+        p99_ratios.append(np.percentile(r["latency_ms"], 99) / np.percentile(near, 99))
+    ratio, p50_margin, p99_ratio = (float(np.median(v)) for v in (ratios, p50_margins, p99_ratios))
+    service_stages = _medians_of([_stage_medians(f["pose_msgs"]) for f in fast])
+    service_stages |= s["after_pose"]
+    service_stages |= {k: v for k, v in s["worker_stats_p50"]["registration"].items() if k.startswith("complete.")}
     return {
         "frames": len(frames),
-        "repeats": repeats,
-        "offline_fps": offline_fps,
-        "service_fps": service_fps,
+        "repeats": len(fast),
+        "offline_fps": float(np.median([o["fps"] for o in offs])),
+        "service_fps": float(np.median([f["fps"] for f in fast])),
         "ratio": ratio,
         "ratios": ratios,
         "latency_p50_over_offline_median_ms": p50_margin,
         "latency_p99_over_offline_p99": p99_ratio,
+        "latency_p50_margins_ms": p50_margins,
+        "offline_at_rate_median_ms": float(np.median(s["paced"]["step_ms"])),
+        "latency_p50_over_offline_at_rate_ms": lat_p50 - float(np.median(s["paced"]["step_ms"])),
         "offline_registration_median_ms": step_med,
         "offline_registration_p99_ms": step_p99,
         "latency_p50_ms": lat_p50,
         "latency_p99_ms": lat_p99,
         "latency_rate_hz": RATE_HZ,
-        "poses_identical": identical,
-        "errors": int(sum(s["errors"] for s in svcs)),
+        "latency_poses": len(lat),
+        "poses_identical": bool(identical),
+        "errors": int(sum(f["errors"] for f in fast + live)),
         "goals": {
             "ratio >= 0.8": ratio >= 0.8,
             "latency p50 <= offline median + 10 ms": p50_margin <= 10.0,
             "latency p99 <= 2 x offline p99": p99_ratio <= 2.0,
         },
-        "offline_stage_median_ms": offline_stages,
+        "offline_stage_median_ms": _medians_of([o["stages"] for o in offs]),
         "offline_cpu_ms": offline_cpu,
         "service_cpu_ms": service_cpu,
         "service_added_cpu_ms": added_cpu,
         "ratio_bound": offline_cpu / (offline_cpu + added_cpu),
         "service_stage_median_ms": service_stages,
-        "worker_stats_p50_ms": svcs[0]["worker_stats_p50"],
-        "latency_stage_median_ms": {  # the stages of the poses at RATE_HZ: where the latency goes
-            k: float(np.median([s["latency_timings"].get(k, np.nan) for s in svcs])) for k in svcs[0]["latency_timings"]
+        "worker_stats_p50_ms": s["worker_stats_p50"],
+        "latency_stage_median_ms": _medians_of([_stage_medians(r["pose_msgs"]) for r in live]),
+        "tile_query_p50_ms": float(np.percentile(s["tile_query_ms"], 50)),
+        "tile_query_p99_ms": float(np.percentile(s["tile_query_ms"], 99)),
+        "runs": {
+            "offline_fps": [o["fps"] for o in offs],
+            "service_fps": [f["fps"] for f in fast],
+            "latency_ms": [r["latency_ms"] for r in live],
         },
-        "tile_query_p50_ms": float(np.median([np.percentile(s["tile_query_ms"], 50) for s in svcs])),
-        "tile_query_p99_ms": float(np.median([np.percentile(s["tile_query_ms"], 99) for s in svcs])),
-        "runs": [
-            {"offline_fps": o["fps"], "service_fps": s["fps"], "latency_ms": s["latency_ms"]}
-            for o, s in zip(offs, svcs)
-        ],
     }
+
+
+def _medians_of(dicts: list[dict[str, float]]) -> dict[str, float]:
+    """Key -> the median of its values over the dicts (those that have it)."""
+    return {k: float(np.median([d[k] for d in dicts if k in d])) for k in dicts[0]}
 
 
 def print_scene(name: str, r: dict) -> None:
     print(
-        f"\n{name}: {r['frames']} frames, {r['repeats']} runs (medians)\n"
+        f"\n{name}: {r['frames']} frames, {r['repeats']} replays, each between two offline runs (medians)\n"
         f"  offline {r['offline_fps']:.1f} frames/s   service {r['service_fps']:.1f} frames/s   ratio "
         f"{r['ratio']:.2f} (goal >= 0.8; by run {', '.join(f'{x:.2f}' for x in r['ratios'])})   poses bit-identical: "
         f"{r['poses_identical']}   errors {r['errors']}\n"
-        f"  latency at {r['latency_rate_hz']:g} Hz p50 {r['latency_p50_ms']:.1f} ms p99 {r['latency_p99_ms']:.1f} ms"
-        f"   offline registration median {r['offline_registration_median_ms']:.1f} ms "
-        f"p99 {r['offline_registration_p99_ms']:.1f} ms; paired: p50 offline median "
-        f"{r['latency_p50_over_offline_median_ms']:+.1f} ms, p99 {r['latency_p99_over_offline_p99']:.2f} x offline p99\n"
+        f"  latency at {r['latency_rate_hz']:g} Hz ({r['latency_poses']} poses) p50 {r['latency_p50_ms']:.1f} ms "
+        f"p99 {r['latency_p99_ms']:.1f} ms   offline step median {r['offline_registration_median_ms']:.1f} ms "
+        f"p99 {r['offline_registration_p99_ms']:.1f} ms\n"
+        f"  each stream against the offline runs beside it: p50 offline median "
+        f"{r['latency_p50_over_offline_median_ms']:+.1f} ms (by stream "
+        f"{', '.join(f'{x:+.1f}' for x in r['latency_p50_margins_ms'])}), "
+        f"p99 {r['latency_p99_over_offline_p99']:.2f} x offline p99; offline at {r['latency_rate_hz']:g} Hz: step median "
+        f"{r['offline_at_rate_median_ms']:.1f} ms, p50 over it {r['latency_p50_over_offline_at_rate_ms']:+.1f} ms\n"
         f"  goals {json.dumps(r['goals'])}\n"
         f"  tile query p50 {r['tile_query_p50_ms']:.2f} ms p99 {r['tile_query_p99_ms']:.2f} ms",
         flush=True,
@@ -331,7 +357,8 @@ def print_scene(name: str, r: dict) -> None:
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--scenes", nargs="+", default=["scene-0101", "scene-0268"])
-    ap.add_argument("--repeats", type=int, default=3)
+    ap.add_argument("--repeats", type=int, default=10, help="lossless replays a scene, each between two offline runs")
+    ap.add_argument("--live-runs", type=int, default=3, help="streams a scene at 2 Hz for the pose latency")
     ap.add_argument("--window", type=int, default=4)
     ap.add_argument("--hop-messages", type=int, default=300, help="0: no hop latency measurement")
     ap.add_argument("--output")
@@ -342,7 +369,7 @@ def main(argv=None) -> int:
 
     results = {"hop": {}, "scenes": {}}
     for name in ("points", "axes", "voxels") if args.hop_messages > 0 else ():
-        runs = [hop_latency(args.hop_messages, encoding=name) for _ in range(args.repeats)]
+        runs = [hop_latency(args.hop_messages, encoding=name) for _ in range(3)]
         size = runs[0][1]
         runs = [r for r, _ in runs]
         p50 = float(np.median([np.percentile(r, 50) for r in runs]))
@@ -355,7 +382,7 @@ def main(argv=None) -> int:
         if not d.is_dir():
             print(f"{name}: not found at {d}, skipped")
             continue
-        results["scenes"][name] = r = run_scene(d, args.repeats, args.window, args.registration_args.split())
+        results["scenes"][name] = r = run_scene(d, args)
         print_scene(name, r)
     if args.output:
         Path(args.output).write_text(json.dumps(results, indent=2, default=float) + "\n")

@@ -60,6 +60,9 @@ class WorkerConfig(BaseModel):
     # registration: with frames of a stream waiting, their map tiles go out together, in one update at most this long
     # after the last (every update re-sends whole tiles); a stream caught up gets one a frame. 0: one a frame always
     map_coalesce_s: float = Field(0.5, ge=0)
+    # registration: a stream caught up lets its pose reach the client for this long (or until its next frame comes)
+    # before the frame's work after the pose (map update, loop closure) takes the cores. 0: no head start
+    pose_head_start_ms: float = Field(5.0, ge=0, le=60_000)
     occvo_config: str | None = None
     # registration: cores each stream's kernels may use; 0 = this shard's share of the cores (cores / shards), shared
     # by its streams registering at that moment (one stream alone uses them all). Poses are the same for any value

@@ -22,9 +22,11 @@ from occvo_services.telemetry import log_event
 class AfterPose:
     """RegistrationWorker's work after a pose."""
 
-    def _after_pose(self, stream: str, st: StreamState, msg, *rest) -> None:
+    def _after_pose(self, stream: str, st: StreamState, msg, *rest, head_start: bool = False) -> None:
         """A frame's work after its pose (_after_pose_steps: OccVO.complete and _finish, their second store write, a
         relocalised pose, the map update and the snapshot schedule). A failure is reported as a lane reports one."""
+        if head_start:
+            st.head_start.wait(self.config.pose_head_start_ms / 1000.0)
         st.tail_tid = threading.get_native_id()
         try:
             self._after_pose_steps(stream, st, msg, *rest)

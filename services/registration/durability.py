@@ -120,6 +120,7 @@ class Durability:
     def drain(self) -> None:
         """Wait for every stream's work after its last pose (its map update, loop closure, snapshot queueing)."""
         for st in list(self.states.values()):
+            st.head_start.set()
             if st.tail is not None:
                 st.tail.result()
             self._map_done(st)

@@ -47,6 +47,7 @@ class StreamLanes:
         st = self.states.get(stream)
         if st is None:
             return
+        st.head_start.set()
         if st.tail is not None:
             st.tail.result()
         self._flush_map(stream, st)
@@ -121,6 +122,7 @@ class StreamLanes:
         sees that another came (its map update can wait for this one's)."""
         st = self.state(stream)
         st.entered += 1
+        st.head_start.set()  # the last pose's work after it starts now if it still waits
         tail = st.tail
         try:
             self._register_frame(stream, st, item, st.entered)
@@ -253,9 +255,12 @@ class StreamLanes:
 
         submitted: list[Future] = []
 
-        def after_pose() -> None:
-            """This frame's work after its pose, submitted once (the first of the calls below)."""
+        def after_pose(head_start: bool = False) -> None:
+            """This frame's work after its pose, submitted once (the first of the calls below); head_start: it
+            waits up to pose_head_start_ms or until the stream's next frame comes."""
             if not submitted:
+                if head_start:
+                    st.head_start.clear()
                 submitted.append(
                     st.after_pose.submit(
                         self._after_pose,
@@ -270,6 +275,7 @@ class StreamLanes:
                         t_valid,
                         pose_out,
                         entered,
+                        head_start=head_start,
                     )
                 )
                 st.tail = submitted[0]
@@ -305,7 +311,10 @@ class StreamLanes:
             timings.update({f"registration.{k}": float(v) for k, v in reg_timings.items()})
             # of the above, runnable but without a core (this thread and the kernel team's)
             timings["core_wait"] = run_delay_ms() - waited0 + team_wait[0]
-            after_pose()  # before the pose goes out: whoever has the pose and waits for st.tail waits for this
+            # before the pose goes out: whoever has the pose and waits for st.tail waits for this. Caught up, it lets
+            # the pose through the router to its client first: beside the map update's kernels on both cores the
+            # pose's hops each waited for a core
+            after_pose(head_start=self.config.pose_head_start_ms > 0)
             self._publish_pose(stream, st, msg.seq, msg.stamp, pose_m, status, digest, timings, restart)
             if restart:
                 log_event(self.log, "trajectory started", stream=stream, seq=msg.seq)

@@ -45,6 +45,9 @@ class StreamState:
         self.ego_xy: np.ndarray | None = None  # x-y of the last registered pose (eviction and restore centre)
         self.after_pose: ThreadPoolExecutor | None = None  # the stream's thread for the work after a pose
         self.tail = None  # Future of the last frame's work after its pose
+        # set: that work may start (a frame came in, or the pose had its head start: StreamLanes._register_frame)
+        self.head_start = threading.Event()
+        self.head_start.set()
         self.map_thread: ThreadPoolExecutor | None = None  # the stream's thread cutting and sending its map tiles
         self.map_tail = None  # Future of the last frame's tiles (st.tiles, cold_digest, send_all_tiles are its)
         self.tail_lock = threading.Lock()  # orders the lane's priority boost against the end of that work

@@ -121,6 +121,9 @@ def _args(p) -> None:
     p.add_argument(
         "--map-coalesce-s", type=float, help="with frames waiting, one map update for them at most this often (0: each)"
     )
+    p.add_argument(
+        "--pose-head-start-ms", type=float, help="caught up, a pose's lead over the frame's work after it (0: none)"
+    )
     p.add_argument("--occvo-config")
     p.add_argument("--store-path", help="SQLite file of the trajectories, snapshots and evicted map (default: none)")
     p.add_argument("--snapshot-every", type=int, help="frames between state snapshots")

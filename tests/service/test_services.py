@@ -477,20 +477,27 @@ def _wait_for(what, timeout: float = 60.0) -> None:
         time.sleep(0.01)
 
 
+def _map_update_seqs(client: OccVOClient, stream: str):
+    """The seqs of the stream's map updates as they arrive, and the subscriber collecting them."""
+    from occvo_schemas.models import MapUpdate
+
+    seqs: list[int] = []
+    sub = client.session.declare_subscriber(
+        keys.map_updates(stream), lambda s: seqs.append(decode(s.payload.to_bytes(), MapUpdate, 1 << 30).seq)
+    )
+    return seqs, sub
+
+
 def test_frames_waiting_share_one_map_update_and_the_last_frames_tiles_are_never_held_back():
     """With frames of a stream waiting behind a frame, its tiles go out with a later frame's (every update re-sends
     whole tiles); the last frame's go out, also when what follows it is refused or a resend. The tiles served are
     the offline map's, bit for bit."""
-    from occvo_schemas.models import MapUpdate
     from occvo_services.commands.replay import load_scene
 
     scene = load_scene("synthetic:3", frames=6)
     with InProcessService(map_coalesce_s=60.0) as svc, OccVOClient(svc.endpoint, "batch") as c:
         worker = svc.worker("registration")
-        updates = []
-        sub = c.session.declare_subscriber(
-            keys.map_updates("batch"), lambda s: updates.append(decode(s.payload.to_bytes(), MapUpdate, 1 << 30).seq)
-        )
+        updates, sub = _map_update_seqs(c, "batch")
 
         def served(frames: int) -> None:
             """The map service's tiles equal the offline map of the first `frames` frames."""
@@ -528,6 +535,31 @@ def test_frames_waiting_share_one_map_update_and_the_last_frames_tiles_are_never
         _wait_for(lambda: 5 in updates, timeout=10.0)  # not at the stream's retirement (idle_stream_s 30)
         assert updates == [0, 4, 5] and not c.errors
         served(6)
+        sub.undeclare()
+
+
+def test_a_caught_up_pose_gets_a_head_start_on_its_frames_work_after_it():
+    """Caught up, a frame's work after its pose (map update, loop closure) waits pose_head_start_ms, so the pose's hops
+    to its client do not share the cores with that work's kernels; the stream's next frame lets it go at once."""
+    from occvo_services.commands.replay import load_scene
+
+    scene = load_scene("synthetic:5", frames=2)
+    with InProcessService(pose_head_start_ms=30_000.0) as svc, OccVOClient(svc.endpoint, "lead") as c:
+        worker = svc.worker("registration")
+        updates, sub = _map_update_seqs(c, "lead")
+        c.reset()
+        c.step(scene[0])
+        time.sleep(1.0)
+        assert not worker.states["lead"].tail.done() and updates == []  # frame 0's work still waits
+        c.publish(scene[1])
+        c.wait_pose(1, timeout=10.0)  # frame 1 let it go: no 30 s wait
+        _wait_for(lambda: 0 in updates, timeout=10.0)
+        assert updates == [0]  # frame 1's work waits in turn
+        worker.drain()  # ends every head start
+        _wait_for(lambda: 1 in updates, timeout=10.0)
+        assert not c.errors
+        ref = offline([scene[i] for i in range(2)]).poses
+        assert np.array_equal(np.array([c.poses[i].matrix() for i in range(2)]), ref)
         sub.undeclare()
 
 

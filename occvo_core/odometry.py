@@ -167,21 +167,13 @@ class OccVO:
         """Register one frame. A bad frame raises InvalidFrameError and leaves poses and map as they were."""
         return self.complete(self.register(frame))
 
-    def prepare(self, frame: OccupancyFrame) -> Prepared:
-        """register()'s first box, which reads nothing of the odometry's state: a service runs it for the next frame
-        while complete() of this one runs. Raises InvalidFrameError as register() would."""
-        use_threads(self.threads)
-        return preprocess(frame, self.config)
-
-    def register(self, frame: OccupancyFrame, prepared: Prepared | None = None) -> Registration:
+    def register(self, frame: OccupancyFrame) -> Registration:
         """The first half of step(): the frame's odometry pose, through fine GICP. Nothing changes until complete()
-        takes it, so a service can publish the pose before the loop-closure search and the map update. `prepared`:
-        prepare(frame) run earlier (its time is then not in the timings)."""
+        takes it, so a service can publish the pose before the loop-closure search and the map update."""
         watch = Stopwatch()
         use_threads(self.threads)
-        if prepared is None:
-            prepared = preprocess(frame, self.config)
-            watch.lap("preprocess")
+        prepared = preprocess(frame, self.config)
+        watch.lap("preprocess")
         t = len(self._poses)
         if t == 0:
             return Registration(

@@ -90,7 +90,7 @@ class StreamLanes:
         return max(1, FREE_CORES.threads(CORES) // max(1, busy))
 
     def _kernels(self, vo, waited: list[float] | None, fn, *args):
-        """fn(*args) (OccVO.prepare, register or complete) in the worker's kernel team thread when vo may use several
+        """fn(*args) (OccVO.register or complete) in the worker's kernel team thread when vo may use several
         kernel threads, else in the calling thread; adds the team thread's wait for a core to waited[0]."""
         if vo.threads == 1:
             return fn(*args)
@@ -156,18 +156,6 @@ class StreamLanes:
             if not st.tail.done():
                 self._boost_tail(st)
             st.tail.result()
-        # then prepare on the stream's cores, as offline: beside the last frame's complete() on one thread each, the
-        # shorter one left its core idle until the other ended (lossless replay 0.8 of this speed)
-        t_prepare = time.perf_counter()
-        prepared, bad, vo = None, None, st.vo  # only the config and thread count are read
-        team_wait = [0.0]  # ms the kernel team thread waited for a core for this frame
-        if vo is not None:
-            if self.config.kernel_threads == 0:
-                vo.threads = self._fair_threads()
-            try:
-                prepared = self._kernels(vo, team_wait, vo.prepare, frame)
-            except InvalidFrameError as exc:
-                bad = exc  # reported where register() would have raised it
         t_valid = time.perf_counter()
         timings = dict(msg.timings_ms)
         timings.update(
@@ -176,11 +164,9 @@ class StreamLanes:
                 "decode": decode_ms,
                 "registration_queue": (t0 - t_queued) * 1000.0,
                 "validate": (t_wait - t0) * 1000.0,
-                "after_pose_wait": (t_prepare - t_wait) * 1000.0,  # the last frame's work after its pose, still running
+                "after_pose_wait": (t_valid - t_wait) * 1000.0,  # the last frame's work after its pose, still running
             }
         )
-        if prepared is not None:
-            timings["registration.preprocess"] = (t_valid - t_prepare) * 1000.0
         known = st.stored(msg.seq)
         if known is not None and (
             known.digest == digest or known.digest == legacy_frame_digest(frame.points, frame.labels, msg.stamp)
@@ -225,21 +211,20 @@ class StreamLanes:
             st.since_snapshot, st.send_all_tiles, st.ego_xy, st.snapshot_since = 0, False, None, time.monotonic()
         if self.config.kernel_threads == 0:
             st.vo.threads = self._fair_threads()
+        team_wait = [0.0]  # ms the kernel team thread waited for a core for this frame
         t_reg = time.perf_counter()
         try:
-            if bad is not None:
-                raise bad
             backlog = self._queued(stream)
-            # on the cores this stream may use, also with frames waiting: their map updates are coalesced
-            # (map_coalesce_s), which leaves the second core little else to do
-            reg = self._kernels(st.vo, team_wait, st.vo.register, frame, prepared)
+            # preprocess and registration in one call on the stream's cores, also with frames waiting (their map
+            # updates are coalesced, map_coalesce_s, which leaves the second core little else to do)
+            reg = self._kernels(st.vo, team_wait, st.vo.register, frame)
         except InvalidFrameError as exc:
             if restart and self.store is not None:
                 st.vo = None  # reset for nothing: the stored trajectory stands and resumes at the next frame
             self.report_error(stream, "invalid_frame", f"seq {msg.seq}: {exc.reason}", keys.occupancy(stream), msg.seq)
             return
-        reg_ms = (time.perf_counter() - t_reg) * 1000.0
         reg_timings = reg.timings_ms  # now: complete() adds its own stages to the same stopwatch
+        reg_ms = (time.perf_counter() - t_reg) * 1000.0 - reg_timings.get("preprocess", 0.0)  # through fine GICP
         pose_m = np.asarray(reg.pose, float)
         status = _STATUS.get(reg.status, "ok")
         # the work after the pose (loop closure, the map update, eviction, the next frame's restores) starts now, in

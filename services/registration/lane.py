@@ -265,12 +265,9 @@ class StreamLanes:
                 )
                 st.tail = submitted[0]
 
-        # with frames waiting it starts now, beside the commit (the next frame waits for it); caught up, once the
-        # commit is done: its kernels on both cores would slow the commit a pose waits for
-        if backlog:
-            after_pose()
-        try:
-            t_store = time.perf_counter()
+        def commit_and_publish() -> Exception | None:
+            """The pose stored, then published; a store failure is returned (nothing published), not raised."""
+            w0, t_store = run_delay_ms(), time.perf_counter()
             phases = {}
             if self.store is not None:
                 try:
@@ -285,22 +282,35 @@ class StreamLanes:
                         new_trajectory=restart,
                     )
                 except Exception as exc:  # noqa: BLE001 - e.g. disk full: publish nothing the store lacks
-                    pose_out.set_result(False)
-                    after_pose()
-                    st.tail.result()  # its OccVO.complete: then the state goes, rebuilt from the store
-                    return self._store_failed(stream, st, msg.seq, exc, "not stored, pose not published")
-            store_ms = (time.perf_counter() - t_store) * 1000.0
+                    return exc
             timings["registration"] = reg_ms
             if self.store is not None:  # where a slow commit waited: this worker's writers, another process, the sync
+                store_ms = (time.perf_counter() - t_store) * 1000.0
                 timings.update(store_commit=store_ms, **{f"store_commit.{k}": v for k, v in phases.items()})
             timings.update({f"registration.{k}": float(v) for k, v in reg_timings.items()})
-            # of the above, runnable but without a core (this thread and the kernel team's)
-            timings["core_wait"] = run_delay_ms() - waited0 + team_wait[0]
+            # of the above, runnable but without a core (the lane and the kernel team's thread)
+            timings["core_wait"] = lane_wait + team_wait[0] + run_delay_ms() - w0
             # before the pose goes out: whoever has the pose and waits for st.tail waits for this. Caught up, it lets
             # the pose through the router to its client first: beside the map update's kernels on both cores the
             # pose's hops each waited for a core
             after_pose(head_start=self.config.pose_head_start_ms > 0)
             self._publish_pose(stream, st, msg.seq, msg.stamp, pose_m, status, digest, timings, restart)
+            return None
+
+        # with frames waiting the work after the pose starts now, beside the commit (the next frame waits for it);
+        # caught up, once the pose is out: its kernels on both cores would slow the commit a pose waits for
+        if backlog:
+            after_pose()
+        try:
+            lane_wait = run_delay_ms() - waited0
+            # caught up, the commit and the publication run on in the kernel team's thread, still on its core: the
+            # lane, woken for them, waited behind the team's spinning OpenMP thread (about 3 ms a frame at 2 Hz)
+            failed = commit_and_publish() if backlog else self._kernels(st.vo, None, commit_and_publish)
+            if failed is not None:
+                pose_out.set_result(False)
+                after_pose()
+                st.tail.result()  # its OccVO.complete: then the state goes, rebuilt from the store
+                return self._store_failed(stream, st, msg.seq, failed, "not stored, pose not published")
             if restart:
                 log_event(self.log, "trajectory started", stream=stream, seq=msg.seq)
                 if self.store is not None:
@@ -315,7 +325,7 @@ class StreamLanes:
         self.stats.observe("registration", reg_ms)
         self.stats.observe("occupancy_hop", hop_ms)
         if self.store is not None:
-            self.stats.observe("store_commit", store_ms)
+            self.stats.observe("store_commit", timings["store_commit"])
 
     def _publish_pose(
         self,

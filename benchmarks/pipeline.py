@@ -185,10 +185,10 @@ def service(name: str, frames: list, store_dir: Path, args) -> dict:
         offs.append(offline(frames))
         for i in range(args.repeats):
             with OccVOClient(svc.endpoint, f"{name}-{i}") as client:
-                cpu0 = {r: sum(p.cpu_times()[:2]) for r, p in procs.items()}
+                cpu0 = {r: _cpu_s(p) for r, p in procs.items()}
                 fast.append(replay(client, frames, window=args.window))
                 for r, p in procs.items():
-                    cpu[r] += (sum(p.cpu_times()[:2]) - cpu0[r]) * 1000.0 / len(frames) / args.repeats
+                    cpu[r] += (_cpu_s(p) - cpu0[r]) * 1000.0 / len(frames) / args.repeats
                 stats = {h.role: h for h in client.stats()}  # the last replay's window of the workers' stats
             _quiet(procs)  # the last frame's work after its pose, its tiles, the store's checkpoint: not in offline's
             offs.append(offline(frames))
@@ -226,13 +226,19 @@ def service(name: str, frames: list, store_dir: Path, args) -> dict:
     }
 
 
+def _cpu_s(proc: psutil.Process) -> float:
+    """User + system CPU seconds of a process so far."""
+    return sum(proc.cpu_times()[:2])
+
+
 def _quiet(procs: dict, timeout_s: float = 5.0) -> None:
     """Wait until the service processes use under 2% of a core over 200 ms (at most timeout_s)."""
+    workers = [p for r, p in procs.items() if r != "router + client"]
     deadline = time.monotonic() + timeout_s
     while time.monotonic() < deadline:
-        cpu0 = sum(sum(p.cpu_times()[:2]) for r, p in procs.items() if r != "router + client")
+        cpu0 = sum(map(_cpu_s, workers))
         time.sleep(0.2)
-        if sum(sum(p.cpu_times()[:2]) for r, p in procs.items() if r != "router + client") - cpu0 < 0.004:
+        if sum(map(_cpu_s, workers)) - cpu0 < 0.004:
             return
 
 

@@ -265,8 +265,9 @@ class StreamLanes:
                 )
                 st.tail = submitted[0]
 
-        def commit_and_publish() -> Exception | None:
-            """The pose stored, then published; a store failure is returned (nothing published), not raised."""
+        def commit_and_publish(lane_wait: float) -> Exception | None:
+            """The pose stored, then published; a store failure is returned (nothing published), not raised.
+            lane_wait: ms the lane waited for a core on this frame so far."""
             w0, t_store = run_delay_ms(), time.perf_counter()
             phases = {}
             if self.store is not None:
@@ -305,7 +306,10 @@ class StreamLanes:
             lane_wait = run_delay_ms() - waited0
             # caught up, the commit and the publication run on in the kernel team's thread, still on its core: the
             # lane, woken for them, waited behind the team's spinning OpenMP thread (about 3 ms a frame at 2 Hz)
-            failed = commit_and_publish() if backlog else self._kernels(st.vo, None, commit_and_publish)
+            if backlog:
+                failed = commit_and_publish(lane_wait)
+            else:
+                failed = self._kernels(st.vo, None, commit_and_publish, lane_wait)
             if failed is not None:
                 pose_out.set_result(False)
                 after_pose()

@@ -124,3 +124,68 @@ def run_delay_ms() -> float:
             return int(f.read().split()[1]) / 1e6
     except (OSError, IndexError, ValueError):
         return 0.0
+
+
+def may_raise_to(nice: int) -> bool:
+    """Whether this process may set a thread's niceness back to `nice` once it is higher: CAP_SYS_NICE, or an
+    RLIMIT_NICE that allows it (systemd's LimitNICE)."""
+    try:
+        import resource
+
+        soft = resource.getrlimit(resource.RLIMIT_NICE)[0]
+        if soft == resource.RLIM_INFINITY or 20 - nice <= soft:
+            return True
+        with open("/proc/self/status") as f:
+            caps = next(line for line in f if line.startswith("CapEff:"))
+        return bool(int(caps.split()[1], 16) >> 23 & 1)  # CAP_SYS_NICE
+    except (OSError, ImportError, AttributeError, StopIteration, ValueError):
+        return False
+
+
+class IdleTeam:
+    """A kernel team's OpenMP threads spin on a core for about 7 ms after the team's last kernel (libgomp's default
+    wait policy; sleeping at every barrier made each kernel wait for them to wake). Once a frame's kernels are done,
+    lower() drops them to the lowest priority so that what its pose waits for next (the commit's fsync, the hops to
+    the client) takes the core; restore() raises them again before the team's next kernels. Both are called from the
+    team thread; its OpenMP threads are the threads of the process with its OS name (they inherit it). Inactive where
+    the priority could not be raised back (no CAP_SYS_NICE or RLIMIT_NICE)."""
+
+    def __init__(self):
+        self.tids: list[int] = []
+        self.scanned_for = 0  # the team size the threads were last looked up for
+        self.nice: int | None = None  # the team thread's niceness, while its threads are lowered
+        self.active: bool | None = None
+
+    def lower(self, team_size: int) -> None:
+        me = threading.get_native_id()
+        nice = os.getpriority(os.PRIO_PROCESS, me)
+        if self.active is None:
+            self.active = may_raise_to(nice)
+        if not self.active:
+            return
+        if team_size > self.scanned_for:  # a larger team than before has more threads
+            self.tids, self.scanned_for = [t for t in _threads_named(_os_name(me)) if t != me], team_size
+        self.nice = nice
+        self.tids = [t for t in self.tids if set_thread_nice(t, 19)]  # a thread that ended is dropped
+
+    def restore(self) -> None:
+        if self.nice is not None:
+            for t in self.tids:
+                set_thread_nice(t, self.nice)
+            self.nice = None
+
+
+def _os_name(tid: int) -> str:
+    with open(f"/proc/self/task/{tid}/comm") as f:
+        return f.read().strip()
+
+
+def _threads_named(name: str) -> list[int]:
+    out = []
+    for t in os.listdir("/proc/self/task"):
+        try:
+            if _os_name(int(t)) == name:
+                out.append(int(t))
+        except OSError:  # ended meanwhile
+            continue
+    return out

@@ -97,6 +97,7 @@ class StreamLanes:
 
         def call():
             w0 = run_delay_ms()
+            self._idle_team.restore()  # kernels follow: the team's threads back to the lanes' priority
             try:
                 return fn(*args)
             finally:
@@ -213,36 +214,30 @@ class StreamLanes:
             st.vo.threads = self._fair_threads()
         team_wait = [0.0]  # ms the kernel team thread waited for a core for this frame
         t_reg = time.perf_counter()
-        try:
-            backlog = self._queued(stream)
-            # preprocess and registration in one call on the stream's cores, also with frames waiting (their map
-            # updates are coalesced, map_coalesce_s, which leaves the second core little else to do)
-            reg = self._kernels(st.vo, team_wait, st.vo.register, frame)
-        except InvalidFrameError as exc:
-            if restart and self.store is not None:
-                st.vo = None  # reset for nothing: the stored trajectory stands and resumes at the next frame
-            self.report_error(stream, "invalid_frame", f"seq {msg.seq}: {exc.reason}", keys.occupancy(stream), msg.seq)
-            return
-        reg_timings = reg.timings_ms  # now: complete() adds its own stages to the same stopwatch
-        reg_ms = (time.perf_counter() - t_reg) * 1000.0 - reg_timings.get("preprocess", 0.0)  # through fine GICP
-        pose_m = np.asarray(reg.pose, float)
-        status = _STATUS.get(reg.status, "ok")
-        # the work after the pose (loop closure, the map update, eviction, the next frame's restores) starts now, in
-        # the stream's after-pose thread below the lanes' priority, beside the commit; it stores and publishes nothing
-        # before the pose is out (pose_out)
+        backlog = self._queued(stream)
         if st.after_pose is None:
             st.after_pose = ThreadPoolExecutor(1, f"after-{stream}", initializer=self._background_thread)
         if st.map_thread is None:  # started from here: a thread starts at the niceness of the thread that made it
             st.map_thread = ThreadPoolExecutor(1, f"map-{stream}", initializer=_map_thread_start)
             st.map_tail = st.map_thread.submit(int)
         pose_out: Future = Future()
-        st.tail_running = True
-
+        done: dict = {}  # the registration once it ended: reg, pose_m, status, reg_ms
         submitted: list[Future] = []
 
+        def register() -> None:
+            """Preprocess and registration through fine GICP in one call on the stream's cores, also with frames
+            waiting (their map updates are coalesced, map_coalesce_s, which leaves the second core little else)."""
+            reg = st.vo.register(frame)
+            reg_ms = (time.perf_counter() - t_reg) * 1000.0 - reg.timings_ms.get("preprocess", 0.0)
+            done.update(reg=reg, pose_m=np.asarray(reg.pose, float), status=_STATUS.get(reg.status, "ok"))
+            done.update(reg_ms=reg_ms, reg_timings=reg.timings_ms)  # now: complete() adds its stages to the same watch
+            st.tail_running = True
+
         def after_pose(head_start: bool = False) -> None:
-            """This frame's work after its pose, submitted once (the first of the calls below); head_start: it
-            waits up to pose_head_start_ms or until the stream's next frame comes."""
+            """This frame's work after its pose (loop closure, the map update, eviction, the next frame's restores) in
+            the stream's after-pose thread below the lanes' priority, submitted once (the first of the calls below);
+            it stores and publishes nothing before the pose is out (pose_out). head_start: it waits up to
+            pose_head_start_ms or until the stream's next frame comes."""
             if not submitted:
                 if head_start:
                     st.head_start.clear()
@@ -252,10 +247,10 @@ class StreamLanes:
                         stream,
                         st,
                         msg,
-                        reg,
+                        done["reg"],
                         frame,
                         digest,
-                        pose_m,
+                        done["pose_m"],
                         restart,
                         t_valid,
                         pose_out,
@@ -267,8 +262,9 @@ class StreamLanes:
 
         def commit_and_publish(lane_wait: float) -> Exception | None:
             """The pose stored, then published; a store failure is returned (nothing published), not raised.
-            lane_wait: ms the lane waited for a core on this frame so far."""
+            lane_wait: ms this frame waited for a core so far, other than in the kernel team's thread."""
             w0, t_store = run_delay_ms(), time.perf_counter()
+            pose_m, status = done["pose_m"], done["status"]
             phases = {}
             if self.store is not None:
                 try:
@@ -284,11 +280,11 @@ class StreamLanes:
                     )
                 except Exception as exc:  # noqa: BLE001 - e.g. disk full: publish nothing the store lacks
                     return exc
-            timings["registration"] = reg_ms
+            timings["registration"] = done["reg_ms"]
             if self.store is not None:  # where a slow commit waited: this worker's writers, another process, the sync
                 store_ms = (time.perf_counter() - t_store) * 1000.0
                 timings.update(store_commit=store_ms, **{f"store_commit.{k}": v for k, v in phases.items()})
-            timings.update({f"registration.{k}": float(v) for k, v in reg_timings.items()})
+            timings.update({f"registration.{k}": float(v) for k, v in done["reg_timings"].items()})
             # of the above, runnable but without a core (the lane and the kernel team's thread)
             timings["core_wait"] = lane_wait + team_wait[0] + run_delay_ms() - w0
             # before the pose goes out: whoever has the pose and waits for st.tail waits for this. Caught up, it lets
@@ -298,18 +294,33 @@ class StreamLanes:
             self._publish_pose(stream, st, msg.seq, msg.stamp, pose_m, status, digest, timings, restart)
             return None
 
-        # with frames waiting the work after the pose starts now, beside the commit (the next frame waits for it);
-        # caught up, once the pose is out: its kernels on both cores would slow the commit a pose waits for
-        if backlog:
-            after_pose()
+        def register_commit_and_publish(lane_wait: float) -> Exception | None:
+            """A caught-up frame's way to its pose in one thread; lane_wait: the lane's wait for a core before it."""
+            w_call = run_delay_ms()
+            register()
+            if st.vo.threads > 1:  # in the kernel team's thread: its OpenMP threads, spinning, make way for the pose
+                self._idle_team.lower(st.vo.threads)
+            return commit_and_publish(lane_wait + run_delay_ms() - w_call)
+
         try:
-            lane_wait = run_delay_ms() - waited0
-            # caught up, the commit and the publication run on in the kernel team's thread, still on its core: the
-            # lane, woken for them, waited behind the team's spinning OpenMP thread (about 3 ms a frame at 2 Hz)
-            if backlog:
-                failed = commit_and_publish(lane_wait)
-            else:
-                failed = self._kernels(st.vo, None, commit_and_publish, lane_wait)
+            try:
+                if backlog:  # the work after the pose starts now, beside the commit (the next frame waits for it)
+                    self._kernels(st.vo, team_wait, register)
+                    after_pose()
+                    failed = commit_and_publish(run_delay_ms() - waited0)
+                else:
+                    # caught up, registration, the commit and the publication are one call in the kernel team's
+                    # thread, still on its core: a lane woken between them waited behind the team's spinning OpenMP
+                    # thread (1.2 ms of a pose's latency at 2 Hz); the work after the pose waits until it is out
+                    # (its kernels on both cores would slow the commit)
+                    failed = self._kernels(st.vo, None, register_commit_and_publish, run_delay_ms() - waited0)
+            except InvalidFrameError as exc:  # from register(): nothing registered, nothing to do after it
+                if restart and self.store is not None:
+                    st.vo = None  # reset for nothing: the stored trajectory stands and resumes at the next frame
+                self.report_error(
+                    stream, "invalid_frame", f"seq {msg.seq}: {exc.reason}", keys.occupancy(stream), msg.seq
+                )
+                return
             if failed is not None:
                 pose_out.set_result(False)
                 after_pose()
@@ -321,12 +332,13 @@ class StreamLanes:
                     self._snapshots.put(lambda: self.store.drop_old_snapshots(stream))
             pose_out.set_result(True)
         finally:
-            if not pose_out.done():  # the pose did not go out: its work after it stores and publishes nothing
-                pose_out.set_result(False)
-            after_pose()
+            if "reg" in done:  # registered: its work after the pose runs whatever happened since
+                if not pose_out.done():  # the pose did not go out: its work after it stores and publishes nothing
+                    pose_out.set_result(False)
+                after_pose()
+        self.stats.observe("registration", done["reg_ms"])
         for stage in ("validate", "after_pose_wait", "core_wait"):
             self.stats.observe(stage, timings[stage])
-        self.stats.observe("registration", reg_ms)
         self.stats.observe("occupancy_hop", hop_ms)
         if self.store is not None:
             self.stats.observe("store_commit", timings["store_commit"])

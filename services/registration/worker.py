@@ -10,7 +10,7 @@ from concurrent.futures import ThreadPoolExecutor
 from occvo_core.errors import ConfigError
 from occvo_core.registration.kernels import own_team
 from occvo_schemas import keys
-from occvo_services.os_tuning import name_os_thread, trim_heap
+from occvo_services.os_tuning import IdleTeam, name_os_thread, trim_heap
 from occvo_services.registration.after_pose import AfterPose
 from occvo_services.registration.durability import Durability
 from occvo_services.registration.lane import StreamLanes
@@ -76,6 +76,7 @@ class RegistrationWorker(StreamLanes, AfterPose, Durability, Paging, MapPublishe
         # the one thread whose kernels run on several cores (occvo_core.registration.kernels.use_threads): a lane
         # hands its frame's kernel work to it when it may use more than one core
         self._team = ThreadPoolExecutor(1, "kernels", initializer=name_os_thread)
+        self._idle_team = IdleTeam()
         if not self._team.submit(own_team).result():
             log_event(self.log, "another thread of this process runs kernels on several cores: lanes run on one")
 

@@ -563,6 +563,32 @@ def test_a_caught_up_pose_gets_a_head_start_on_its_frames_work_after_it():
         sub.undeclare()
 
 
+def test_a_caught_up_poses_kernel_team_leaves_it_the_cores(tmp_path):
+    """Caught up, once a frame's kernels are done, the registration worker lowers the OpenMP threads of its kernel
+    team (they spin for ms after a kernel) to niceness 19, so the pose's commit and hops take the cores; the team
+    thread itself keeps its priority (the threads come back before the next kernels: test_os_tuning)."""
+    from occvo_services.commands.replay import load_scene
+    from occvo_services.local import LocalService
+    from occvo_services.os_tuning import may_raise_to
+
+    if (os.cpu_count() or 1) < 2 or not may_raise_to(0):
+        pytest.skip("one core, or no right to raise a thread's priority back (CAP_SYS_NICE or RLIMIT_NICE)")
+    config = tmp_path / "registration.json5"
+    config.write_text("{kernel_threads: 2, pose_head_start_ms: 30000}")  # the team, no kernels after the pose
+    scene = load_scene("synthetic:5", frames=2)
+    with (
+        LocalService(quiet=True, worker_args={"registration": ["--config", str(config)]}) as svc,
+        OccVOClient(svc.endpoint, "lead") as c,
+    ):
+        c.reset()
+        c.step(scene[0])
+        c.step(scene[1])
+        task = Path(f"/proc/{svc.procs['registration'].pid}/task")
+        team = sorted(int(t.name) for t in task.iterdir() if (t / "comm").read_text().strip() == "kernels_0")
+        nice = [os.getpriority(os.PRIO_PROCESS, t) for t in team]
+        assert len(team) >= 2 and nice[0] == 0 and set(nice[1:]) == {19}, nice  # the team thread came first
+
+
 def test_kernel_threads_0_shares_the_cores_between_the_streams_registering():
     from occvo_core.free_cores import FREE_CORES
     from occvo_services.registration import lane as lane_mod

@@ -738,6 +738,46 @@ def test_a_frame_stopped_between_its_pose_and_its_map_update_is_finished_by_the_
         svc.close()
 
 
+def test_a_caught_up_frame_whose_commit_fails_publishes_no_pose_and_the_stream_resumes(tmp_path, scene):
+    """Caught up, a frame's registration, commit and pose publication are one call in the kernel team's thread. When
+    its commit fails (disk full, injected once) no pose goes out, the client hears why in one line, and the next
+    frame resumes the stream from the store: the poses are an offline run's over the frames without the failed one."""
+    from occvo_services.client import OccVOClient, ServiceError
+
+    fail_at = N // 2
+    svc = Pipeline(tmp_path / "state.sqlite", kernel_threads=2)  # two kernel threads: the team's thread does it all
+    try:
+        worker = svc.start_registration()
+        store_commit, failed = worker.store.commit_frame, []
+
+        def disk_full_once(stream, seq, *a, **kw):
+            if seq == fail_at and not failed:
+                failed.append(seq)
+                raise sqlite3.OperationalError("database or disk is full")
+            return store_commit(stream, seq, *a, **kw)
+
+        worker.store.commit_frame = disk_full_once
+        got = []
+        with OccVOClient(svc.endpoint, "car") as client:
+            client.reset()
+            for i, f in enumerate(scene):
+                if i != fail_at:
+                    got.append(client.step(f).matrix())
+                    continue
+                with pytest.raises(ServiceError, match=f"seq {fail_at} not stored, pose not published .*disk is full"):
+                    client.step(f)
+            assert fail_at not in client.poses
+        vo = OccVO()
+        want = [vo.step(f).pose for i, f in enumerate(scene) if i != fail_at]
+        assert failed == [fail_at] and np.array_equal(np.array(got), np.array(want))
+        assert worker.stats.snapshot()[0]["resumes"] == 1
+        stored = TrajectoryStore(tmp_path / "state.sqlite")
+        assert [p.seq for p in stored.poses("car")] == [i for i in range(N) if i != fail_at]
+        stored.close()
+    finally:
+        svc.close()
+
+
 def test_a_closed_loop_publishes_the_odometry_pose_then_the_relocalised_one(tmp_path):
     """A frame that closes a loop is answered at once with its odometry pose; the search and the correction run
     after it, and the relocalised pose follows (status "relocalised"), replacing it in the client, the store and

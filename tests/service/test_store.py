@@ -695,6 +695,20 @@ def test_coalesced_map_updates_still_carry_every_evicted_tiles_last_content(tmp_
         svc.close()
 
 
+def _disk_full_once(store, method: str, stream: str, seq: int) -> list[int]:
+    """store.<method> fails once for the stream's frame `seq`, as on a full disk; returns the seqs it failed."""
+    real, failed = getattr(store, method), []
+
+    def once(s, q, *a, **kw):
+        if s == stream and q == seq and not failed:
+            failed.append(q)
+            raise sqlite3.OperationalError("database or disk is full")
+        return real(s, q, *a, **kw)
+
+    setattr(store, method, once)
+    return failed
+
+
 def test_a_frame_stopped_between_its_pose_and_its_map_update_is_finished_by_the_resume(tmp_path, scene):
     """The worker commits and publishes a frame's pose before its loop-closure search and map update, then stores
     what those did (evicted tiles, restores). When that second write fails (disk full, injected once) or the worker
@@ -709,15 +723,7 @@ def test_a_frame_stopped_between_its_pose_and_its_map_update_is_finished_by_the_
             evicted_at = sorted({e for seqs in probe.cold_index("ref", as_of_seq=N - 3).values() for e in seqs})
             probe.close()
             stop_at = next(e for e in evicted_at if 4 <= e < N - 2)
-            store_finish, failed = worker.store.finish_frame, []
-
-            def disk_full_once(stream, seq, *a, **kw):
-                if stream == "cut" and seq == stop_at and not failed:
-                    failed.append(seq)
-                    raise sqlite3.OperationalError("database or disk is full")
-                return store_finish(stream, seq, *a, **kw)
-
-            worker.store.finish_frame = disk_full_once
+            failed = _disk_full_once(worker.store, "finish_frame", "cut", stop_at)
             for f in scene:
                 cut.step(f)
             got = np.array([cut.poses[i].matrix() for i in range(N)])
@@ -748,15 +754,7 @@ def test_a_caught_up_frame_whose_commit_fails_publishes_no_pose_and_the_stream_r
     svc = Pipeline(tmp_path / "state.sqlite", kernel_threads=2)  # two kernel threads: the team's thread does it all
     try:
         worker = svc.start_registration()
-        store_commit, failed = worker.store.commit_frame, []
-
-        def disk_full_once(stream, seq, *a, **kw):
-            if seq == fail_at and not failed:
-                failed.append(seq)
-                raise sqlite3.OperationalError("database or disk is full")
-            return store_commit(stream, seq, *a, **kw)
-
-        worker.store.commit_frame = disk_full_once
+        failed = _disk_full_once(worker.store, "commit_frame", "car", fail_at)
         got = []
         with OccVOClient(svc.endpoint, "car") as client:
             client.reset()

@@ -93,6 +93,8 @@ class OccVOClient:
         self._down = False  # a worker of the path left: hold new frames until it is back and the lost ones resent
         self._back_at: float | None = None
         self.resends = 0
+        self._alive: set[str] = set()  # worker tokens seen (workers())
+        self._alive_sub = None
         self._subs = [
             self.session.declare_subscriber(keys.pose(stream), self._on_pose),
             self.session.declare_subscriber(keys.errors(stream), self._on_error),
@@ -325,10 +327,23 @@ class OccVOClient:
         return self._get(keys.stats(worker), WorkerHealth)
 
     def workers(self) -> list[str]:
-        """Keys of the live workers' liveliness tokens."""
-        return sorted(
-            str(r.ok.key_expr) for r in self.session.liveliness().get(keys.alive("*", "*"), timeout=5.0) if r.ok
-        )
+        """Keys of the live workers' liveliness tokens: those the client has seen come and not go, and those a
+        liveliness query finds now (a query through a router may miss a token that is there)."""
+        with self._cv:
+            if self._alive_sub is None:
+                self._alive_sub = self.session.liveliness().declare_subscriber(
+                    keys.alive("*", "*"), self._on_worker_token, history=True
+                )
+        found = {str(r.ok.key_expr) for r in self.session.liveliness().get(keys.alive("*", "*"), timeout=5.0) if r.ok}
+        with self._cv:
+            return sorted(found | self._alive)
+
+    def _on_worker_token(self, sample: zenoh.Sample) -> None:
+        with self._cv:
+            if sample.kind == zenoh.SampleKind.PUT:
+                self._alive.add(str(sample.key_expr))
+            else:
+                self._alive.discard(str(sample.key_expr))
 
     def wait_for_workers(self, roles=("inference", "registration", "map"), timeout: float = 30.0) -> None:
         deadline = time.monotonic() + timeout
@@ -342,7 +357,7 @@ class OccVOClient:
     def close(self) -> None:
         self._closed.set()
         self._resender.join(timeout=5)
-        for s in self._subs:
+        for s in self._subs + ([self._alive_sub] if self._alive_sub is not None else []):
             s.undeclare()
         self._pub.undeclare()
         if self._own:

@@ -94,7 +94,8 @@ def _store_after_pose(s: StreamSession, seq: int, relocalised_pose, evicted: dic
     store, pager = s.ctx.store, s.pager
     if store is not None and (relocalised_pose is not None or evicted or pager.pending_restored):
         try:
-            store.finish_frame(s.stream, seq, relocalised_pose, evicted=evicted, restored=pager.pending_restored)
+            restored = pager.pending_restored
+            store.finish_frame(s.stream, seq, relocalised_pose, evicted=evicted, restored=restored, **s.fence())
         except Exception as exc:  # noqa: BLE001 - the journal has the frame: a resume redoes this part
             s.store_failed(seq, exc, "pose stored and published, its map update not stored")
             return False
@@ -149,4 +150,4 @@ def _schedule_snapshot(s: StreamSession) -> None:
         and s.ctx.snapshots.affordable(sched, s.vo.state_dict(copy=False), config.snapshot_max_share)
     )
     if due and sched.idle.is_set():
-        s.ctx.snapshots.queue(s.stream, sched, s.trajectory.last_seq, s.vo)
+        s.ctx.snapshots.queue(s.stream, sched, s.trajectory.last_seq, s.vo, s.fence())

@@ -86,7 +86,8 @@ def _finish_last(s: StreamSession, seq: int, result, evicted: dict) -> None:
     relocalised = result.loop_correction is not None and stored is not None and not np.array_equal(stored.pose, pose)
     if not relocalised and store.cold_index(s.stream) == pager.cold:
         return
-    store.finish_frame(s.stream, seq, pose if relocalised else None, evicted=evicted, restored=pager.pending_restored)
+    relocated = pose if relocalised else None
+    store.finish_frame(s.stream, seq, relocated, evicted=evicted, restored=pager.pending_restored, **s.fence())
     log_event(
         s.ctx.log,
         "finished the last journaled frame",

@@ -53,6 +53,7 @@ class SessionContext:
     frames_queued: object  # stream -> whether frames of it wait in its lane
     busy_lanes: object  # () -> lanes registering now
     after_pose: object = after_pose  # (session, job): the work after a pose (services/registration/after_pose.py)
+    leases: object = None  # placement "members": the worker's stream leases (membership.Leases)
 
 
 @dataclass
@@ -90,6 +91,7 @@ class StreamSession:
         self.threads = StreamThreads(stream, ctx.scheduler)
         self.snapshot = SnapshotSchedule()
         self.entered = 0  # frames that entered the lane: the work after a pose sees whether another came
+        self.epoch: int | None = None  # placement "members": the fencing epoch of this worker's lease on the stream
         self.complete_ms = self.restore_ms = self.evict_ms = 0.0
 
     def load_trajectory(self) -> None:
@@ -130,7 +132,7 @@ class StreamSession:
             validate=(t_wait - t0) * 1000.0,
             after_pose_wait=(job.t_valid - t_wait) * 1000.0,  # the last frame's work after its pose, still running
         )
-        if self._answer_resend(job) or not self._sequence(job):
+        if not self._own(job) or self._answer_resend(job) or not self._sequence(job):
             return
         if self._register_commit_publish(job, waited0):
             self._observe_frame(job)
@@ -153,6 +155,27 @@ class StreamSession:
         tables = msg.occupancy.index_tables(OCC3D_GRID)
         digest = frame_digest(frame.points, frame.labels, msg.stamp, tables)
         return FrameJob(msg, frame, tables, digest, dict(msg.timings_ms), 0.0, entered)
+
+    def _own(self, job: FrameJob) -> bool:
+        """Placement "members": the stream's lease held before anything is written here. Taken, the stream is
+        reloaded from the store: another worker may have moved it on since this one last had it."""
+        leases = self.ctx.leases
+        if leases is None or self.epoch is not None:
+            return True
+        epoch, owner = leases.acquire(self.stream)
+        if epoch is None:
+            message = f"seq {job.msg.seq}: stream {self.stream} is still held by worker {owner}; send it again"
+            self._report("stream_busy", message, job.msg.seq)
+            return False
+        self.threads.drain()
+        self.epoch, self.vo = epoch, None
+        self.trajectory = StreamTrajectory()
+        self.load_trajectory()
+        return True
+
+    def fence(self) -> dict:
+        """The keyword a store write of this stream carries: its lease's epoch, checked in the write's transaction."""
+        return {} if self.epoch is None else {"epoch": self.epoch}
 
     def _answer_resend(self, job: FrameJob) -> bool:
         """A frame registered already (a resend, also of a store from before the compact digest): its stored pose
@@ -259,6 +282,7 @@ class StreamSession:
                     job.pose_m,
                     pack_frame(job.frame, job.tables),
                     new_trajectory=job.restart,
+                    **self.fence(),
                 )
             except Exception as exc:  # noqa: BLE001 - e.g. disk full: publish nothing the store lacks
                 return exc
@@ -354,7 +378,7 @@ class StreamSession:
             return
         self.snapshot.idle.wait()
         if self.snapshot.unsaved:
-            self.ctx.snapshots.write_now(self.stream, self.snapshot, self.trajectory.last_seq, self.vo)
+            self.ctx.snapshots.write_now(self.stream, self.snapshot, self.trajectory.last_seq, self.vo, self.fence())
         self.vo = None  # heap trimmed by the worker
         self.pager.reset()
         self.map.reset()

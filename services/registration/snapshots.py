@@ -57,29 +57,30 @@ class SnapshotWriter:
             return True
         return time.monotonic() - schedule.since_t >= state_bytes(state) * self._s_per_byte / share
 
-    def queue(self, stream: str, schedule: SnapshotSchedule, seq: int, vo) -> None:
+    def queue(self, stream: str, schedule: SnapshotSchedule, seq: int, vo, fence: dict) -> None:
         """Copy the state for the writer (a few ms): the lane steps on while the copy is written."""
         t0 = time.perf_counter()
         state = {k: copied(v) for k, v in vo.state_dict(copy=False).items()}  # the big ones without the GIL
         schedule.idle.clear()
         schedule.since, schedule.retry = 0, False
-        self._queue.put((stream, schedule, seq, self.store.created(stream), state))
+        self._queue.put((stream, schedule, seq, self.store.created(stream), state, fence))
         self.stats.observe("snapshot_copy", (time.perf_counter() - t0) * 1000.0)
 
     def forget_old(self, stream: str) -> None:
         """A reset stream's old snapshot deleted, in order with the writes queued before."""
         self._queue.put(lambda: self.store.drop_old_snapshots(stream))
 
-    def write_now(self, stream: str, schedule: SnapshotSchedule, seq: int, vo) -> None:
+    def write_now(self, stream: str, schedule: SnapshotSchedule, seq: int, vo, fence: dict) -> None:
         """A snapshot of the state in place, in the calling thread (nothing steps this OccVO any more)."""
         schedule.idle.wait()
         schedule.idle.clear()
-        self.write(stream, schedule, seq, self.store.created(stream), vo.state_dict(copy=False))
+        self.write(stream, schedule, seq, self.store.created(stream), vo.state_dict(copy=False), fence)
 
-    def write(self, stream: str, schedule: SnapshotSchedule, seq: int, created: float | None, state: dict) -> None:
+    def write(self, stream: str, schedule: SnapshotSchedule, seq: int, created, state: dict, fence: dict) -> None:
+        """fence: the lease epoch the write carries (placement "members"), else nothing."""
         t0 = time.perf_counter()
         try:
-            if self.store.write_snapshot(stream, seq, state, created):
+            if self.store.write_snapshot(stream, seq, state, created, **fence):
                 self.stats.inc("snapshots")
             took = time.perf_counter() - t0
             schedule.since_t = time.monotonic()

@@ -14,6 +14,7 @@ from occvo_core.errors import ConfigError
 from occvo_schemas import keys
 from occvo_schemas.models import OccupancyFrameMsg
 from occvo_services.os_tuning import trim_heap
+from occvo_services.registration.membership import Leases, Members
 from occvo_services.registration.paging import MIN_SAFE_RADIUS_M
 from occvo_services.registration.queries import Queries
 from occvo_services.registration.scheduling import Scheduler
@@ -43,6 +44,12 @@ class RegistrationWorker(Worker):
                 "within working_radius_m - tile_m"
             )
         self.store = TrajectoryStore(config.store_path, config.store_sync.upper()) if config.store_path else None
+        self.members = self.leases = None
+        if config.placement == "members":
+            if self.store is None:
+                raise ConfigError('placement "members" needs a store: the workers hand streams over through it')
+            self.members = Members(self.worker_id, self._members_changed)
+            self.leases = Leases(self.store, self.worker_id, config.lease_s, self.members, self.log)
         self.sessions: dict[str, StreamSession] = {}
         self._sessions_lock = threading.Lock()
         occvo_config = OccVOConfig.load(config.occvo_config) if config.occvo_config else OccVOConfig()
@@ -56,10 +63,10 @@ class RegistrationWorker(Worker):
             )
         self.ctx = SessionContext(
             config, occvo_config, OccVO, self.store, self.stats, self.log, self.scheduler, snapshots,
-            self._put, self.report_error, self._frames_queued, self._busy_lanes,
+            self._put, self.report_error, self._frames_queued, self._busy_lanes, leases=self.leases,
         )  # fmt: skip
         self.queries = Queries(self)
-        if self.store is not None:
+        if self.store is not None and self.members is None:
             for stream in filter(self.owns, self.store.streams()):  # queries answer at once; resumed at the next frame
                 self.session_of(stream).load_trajectory()
 
@@ -87,7 +94,10 @@ class RegistrationWorker(Worker):
             return list(self.sessions.items())
 
     def owns(self, stream: str) -> bool:
-        """This worker's shard registers the stream (a malformed stream id is shard 0's to report)."""
+        """This worker's shard registers the stream (a malformed stream id is shard 0's to report); placement
+        "members": it is the stream's owner among the live workers."""
+        if self.members is not None:
+            return self.members.owner(stream) == self.worker_id
         c = self.config
         return keys.shard_of(stream, c.shards) == c.shard if keys.STREAM_RE.match(stream) else c.shard == 0
 
@@ -101,8 +111,36 @@ class RegistrationWorker(Worker):
 
     def retire_stream(self, stream: str) -> None:
         session = self.sessions.get(stream)
-        if session is not None:
+        if session is None:
+            return
+        if self.members is not None and not self.owns(stream):
+            self._hand_over(stream)
+        else:
             session.close()
+
+    def _members_changed(self) -> None:
+        """A registration worker came or went: the sessions this one no longer owns are handed over, each after the
+        frames its lane holds (it still holds their lease); an idle one at once, off Zenoh's callback thread."""
+        for stream, _ in self.sessions_now():
+            if self.owns(stream):
+                continue
+            with self._lanes_lock:
+                lane = self.lanes.get(stream)
+            if lane is not None:
+                lane.hand_over()
+            else:
+                threading.Thread(target=self._hand_over, args=(stream,), name="hand-over", daemon=True).start()
+
+    def _hand_over(self, stream: str) -> None:
+        """The session closed (its state to the store), forgotten here, its lease given back for the new owner."""
+        with self._sessions_lock:
+            session = self.sessions.pop(stream, None)
+        if session is None:
+            return
+        session.close()
+        if session.epoch is not None:
+            self.leases.release(stream)
+        log_event(self.log, "stream handed over", stream=stream, owner=self.members.owner(stream))
 
     def _frames_queued(self, stream: str) -> bool:
         lane = self.lanes.get(stream)
@@ -123,7 +161,12 @@ class RegistrationWorker(Worker):
             s.declare_queryable(keys.trajectory("*"), self.bounded(self.queries.on_trajectory)),
         ]
         # clients watch their shard's token: frames sent while their stream's worker is away are resent when it is back
-        token = keys.registration_shard(self.config.shard, self.config.shards, self.worker_id)
+        if self.members is not None:
+            token = keys.registration_shard(0, 0, self.worker_id)
+            self._declared.append(self.members.declare(s))
+            self.leases.start()
+        else:
+            token = keys.registration_shard(self.config.shard, self.config.shards, self.worker_id)
         self._declared.append(s.liveliness().declare_token(token))
         c = self.config
         if self.evict_off:
@@ -176,8 +219,13 @@ class RegistrationWorker(Worker):
             if stream in in_hand or s.vo is None or not s.snapshot.unsaved:
                 continue  # a frame in hand that did not finish in time: its OccVO is not touched from here
             t0 = time.perf_counter()
-            self.ctx.snapshots.write_now(stream, s.snapshot, s.trajectory.last_seq, s.vo)  # in place
+            self.ctx.snapshots.write_now(stream, s.snapshot, s.trajectory.last_seq, s.vo, s.fence())  # in place
             self._shutdown_step("snapshot at shutdown", t0, stream=stream, map_voxels=len(s.vo.map))
+        if self.leases is not None:  # the next owners take the streams at once
+            self.leases.stop()
+            for stream, s in self.sessions_now():
+                if s.epoch is not None and stream not in in_hand:
+                    self.leases.release(stream)
         t0, sizes = time.perf_counter(), self.store.file_sizes_mb()  # the WAL is checkpointed into the file on close
         self.store.close()
         self._shutdown_step("store closed", t0, **sizes)
@@ -207,6 +255,12 @@ def _args(p) -> None:
         "--after-pose-nice", type=int, help="niceness of the work after a pose, relative to the lanes (0: same)"
     )
     p.add_argument("--store-sync", choices=["full", "normal"], help="full: a published pose survives a power cut too")
+    p.add_argument(
+        "--placement",
+        choices=["shards", "members"],
+        help="members: the live registration workers share the streams, each under a lease in the shared store",
+    )
+    p.add_argument("--lease-s", type=float, help="placement members: how long a silent owner keeps its streams")
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -144,6 +144,13 @@ class TrajectoryStore(SqliteLeases, SnapshotFile):
             )
             self._checkpointer.start()
 
+    @staticmethod
+    def open(url_or_path: str | Path, synchronous: str = "FULL"):
+        """The store at a path, sqlite:///path or postgresql:// URL (services/store_api.open_store)."""
+        from occvo_services.store_api import open_store
+
+        return open_store(url_or_path, synchronous)
+
     CHECKPOINT_EVERY_S = 1.0
     WAL_BLOCK_PAGES = 65536  # a WAL this long (256 MB of 4 kB pages) after a pass: checkpoint it whole, writers waiting
 

@@ -48,7 +48,7 @@ class RegistrationWorker(StreamLanes, AfterPose, Durability, Paging, MapPublishe
                 f"working_radius_m ({radius}) must exceed tile_m ({config.tile_m}): tiles come back "
                 "within working_radius_m - tile_m"
             )
-        self.store = TrajectoryStore(config.store_path, config.store_sync.upper()) if config.store_path else None
+        self.store = TrajectoryStore.open(config.store_url, config.store_sync.upper()) if config.store_url else None
         self._snapshots: queue.Queue = queue.Queue()
         self._boost_refused = False
         self._snapshot_writer = None

@@ -79,3 +79,9 @@ def pg_cluster():
 def pg_url(pg_cluster) -> str:
     """The URL of a new, empty database on the session's server."""
     return pg_cluster.new_database()
+
+
+@pytest.fixture(params=["sqlite", "postgresql"])
+def store_url(request, tmp_path) -> str:
+    """A new store of each backend: a SQLite file, a PostgreSQL database (a test using it runs on both)."""
+    return str(tmp_path / "s.sqlite") if request.param == "sqlite" else request.getfixturevalue("pg_url")

@@ -17,11 +17,6 @@ from occvo_services.store_blobs import pack_frame
 FRAME_BLOB = b"f" * 4096
 
 
-@pytest.fixture(params=["sqlite", "postgresql"])
-def store_url(request, tmp_path) -> str:
-    return str(tmp_path / "s.sqlite") if request.param == "sqlite" else request.getfixturevalue("pg_url")
-
-
 def _commit(store, stream, seq, epoch=None, blob=FRAME_BLOB):
     return store.commit_frame(
         stream, seq, float(seq), bytes(16), "ok", np.eye(4) * (seq + 1), blob, new_trajectory=seq == 0, epoch=epoch

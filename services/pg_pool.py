@@ -17,7 +17,13 @@ from occvo_services.store_api import StoreUnavailable, redact
 
 CONNECT_TIMEOUT_S = 5
 # a host gone without a FIN (partition, power) is noticed in seconds, not after the kernel's two hours
-KEEPALIVE = {"keepalives": 1, "keepalives_idle": 5, "keepalives_interval": 2, "keepalives_count": 3}
+KEEPALIVE = {
+    "keepalives": 1,
+    "keepalives_idle": 5,
+    "keepalives_interval": 2,
+    "keepalives_count": 3,
+    "tcp_user_timeout": 10_000,  # ms: data unacknowledged this long (a call in flight) breaks the connection
+}
 
 
 def _psycopg():

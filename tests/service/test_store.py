@@ -869,3 +869,38 @@ def test_frame_commits_leave_the_wal_checkpoint_to_the_stores_own_thread(tmp_pat
     # a new snapshots' file has 64 kB pages (a third of 4 kB pages' CPU per snapshot)
     assert store.snap_db.execute("PRAGMA page_size").fetchone()[0] == 65536
     store.close()
+
+
+def test_the_database_down_refuses_frames_by_name_and_the_stream_goes_on_when_it_is_back(pg_cluster, pg_url, scene):
+    """PostgreSQL stopped mid-drive: the frame in hand is refused with one line naming the store (its pose not
+    published), and once the server is back the stream resumes from the store: the poses are an offline run's over
+    the frames without the refused one, every one of them stored."""
+    from occvo_services.client import OccVOClient, ServiceError
+
+    fail_at = N // 2
+    svc = Pipeline(pg_url, kernel_threads=2)
+    try:
+        worker = svc.start_registration()
+        got = []
+        with OccVOClient(svc.endpoint, "car") as client:
+            client.reset()
+            for i, f in enumerate(scene):
+                if i != fail_at:
+                    got.append(client.step(f).matrix())
+                    continue
+                pg_cluster.stop()
+                try:
+                    with pytest.raises(
+                        ServiceError, match=f"seq {fail_at} not stored.*store postgresql://.*unreachable"
+                    ):
+                        client.step(f)
+                finally:
+                    pg_cluster.start()
+        vo = OccVO()
+        want = [vo.step(f).pose for i, f in enumerate(scene) if i != fail_at]
+        assert np.array_equal(np.array(got), np.array(want)) and worker.stats.snapshot()[0]["resumes"] == 1
+        stored = open_store(pg_url)
+        assert [p.seq for p in stored.poses("car")] == [i for i in range(N) if i != fail_at]
+        stored.close()
+    finally:
+        svc.close()

@@ -249,7 +249,7 @@ def test_two_processes_write_one_file(tmp_path):
 # ------------------------------------------------------------------ the service, killed and restarted
 
 
-def start_map_service(ep: str, store: Path, wid: str) -> subprocess.Popen:
+def start_map_service(ep: str, store: Path | str, wid: str) -> subprocess.Popen:
     env = dict(os.environ, PYTHONPATH=str(REPO))
     return subprocess.Popen(
         [
@@ -258,7 +258,7 @@ def start_map_service(ep: str, store: Path, wid: str) -> subprocess.Popen:
             "occvo_services.map_service",
             "--connect",
             ep,
-            "--store-path",
+            "--store-url",
             str(store),
             "--worker-id",
             wid,
@@ -295,9 +295,9 @@ def wait_seq(session, stream, seq, timeout=20.0) -> MapInfo:
     raise AssertionError(f"map service did not reach seq {seq} of {stream}")
 
 
-def test_map_service_killed_and_restarted_serves_the_same_tiles(tmp_path):
+def test_map_service_killed_and_restarted_serves_the_same_tiles(store_url):
     ep = f"tcp/127.0.0.1:{free_port()}"
-    store = tmp_path / "occvo.sqlite"
+    store = store_url
     router = open_router(ep)
     session = open_session(ep)
     procs = []

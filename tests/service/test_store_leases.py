@@ -11,7 +11,7 @@ import time
 import numpy as np
 import pytest
 
-from occvo_services.store_api import FencedError, StoreUnavailable, open_store
+from occvo_services.store_api import FencedError, Store, StoreUnavailable, open_store
 from occvo_services.store_blobs import pack_frame
 
 FRAME_BLOB = b"f" * 4096
@@ -188,9 +188,10 @@ def test_the_factory_picks_the_backend_by_url(tmp_path, pg_url):
     for spec in (tmp_path / "a.sqlite", str(tmp_path / "b.sqlite"), f"sqlite:///{tmp_path}/c.sqlite"):
         s = open_store(spec)
         assert isinstance(s, TrajectoryStore) and s.path == str(tmp_path / str(spec).rsplit("/", 1)[-1])
+        assert isinstance(s, Store)  # every method of the interface
         s.close()
     s = open_store(pg_url)
-    assert isinstance(s, PgTrajectoryStore)
+    assert isinstance(s, PgTrajectoryStore) and isinstance(s, Store)
     s.close()
     assert WorkerConfig(store_path="x.sqlite").store_url == "x.sqlite"
     assert WorkerConfig(store_url=pg_url).store_path == pg_url  # the worker's earlier name reads the same

@@ -2,8 +2,9 @@
 tile queries: occvo/<stream>/map/tile/<ix>/<iy> (one tile), a wildcard such as occvo/<stream>/map/tile/*/*
 (a region, optionally bounded by a MapTileQuery payload), and occvo/<stream>/map/info (bounds, tile count, size).
 
-With `store_path` (config or --store-path) the tiles live in a SQLite file (services/map_store.py): each update is
-one transaction, queries read the file, and a restarted service serves what the file holds. Without it, in memory."""
+With `store_url` (config or --store-url; store_path and --store-path are its earlier names) the tiles live in a
+SQLite file (services/map_store.py) or a PostgreSQL database (services/map_store_pg.py): each update is one
+transaction, queries read the store, and a restarted service serves what it holds. Without it, in memory."""
 
 from __future__ import annotations
 
@@ -17,6 +18,7 @@ from occvo_schemas.codec import CodecError, decode, encode
 from occvo_schemas.models import ErrorEvent, MapTileQuery, MapUpdate
 from occvo_services.map_store import open_map_store
 from occvo_services.runtime import Worker, WorkerConfig, log_event, worker_main
+from occvo_services.store_api import redact
 
 
 class MapService(Worker):
@@ -26,7 +28,7 @@ class MapService(Worker):
 
     def __init__(self, config: WorkerConfig):
         super().__init__(config)
-        self.store = open_map_store(config.store_path)
+        self.store = open_map_store(config.store_url)
 
     def declare(self) -> None:
         s = self.session
@@ -37,8 +39,8 @@ class MapService(Worker):
             s.declare_queryable(keys.map_tile("*", "*", "*"), self.bounded(self._on_tile_query), complete=True),
             s.declare_queryable(keys.map_info("*"), self.bounded(self._on_info), complete=True),
         ]
-        if self.config.store_path:
-            log_event(self.log, "map store", path=self.config.store_path, streams=self.store.streams())
+        if self.config.store_url:
+            log_event(self.log, "map store", path=redact(self.config.store_url), streams=self.store.streams())
 
     def after_leaving(self) -> None:
         self.store.close()
@@ -138,7 +140,7 @@ class MapService(Worker):
 
 
 def _args(p) -> None:
-    p.add_argument("--store-path", help="SQLite file holding the tiles across restarts (default: in memory)")
+    p.add_argument("--store-path", help="the tiles' store across restarts, as --store-url (default: in memory)")
 
 
 if __name__ == "__main__":

@@ -81,8 +81,10 @@ class WorkerConfig(BaseModel):
     # registration: call every kernel once at start-up, before taking frames (compiled on a fresh install, else
     # loaded from numba's cache; see occvo_core/warm_up.py)
     warm_up: bool = True
-    # durable state (SQLite file; the registration worker and the map service may share one)
-    store_path: str | None = None
+    # durable state: a SQLite file (a path or sqlite:///path; the registration worker and the map service of one
+    # host may share one) or a PostgreSQL database (postgresql://user@host/db) that workers on many hosts share
+    store_url: str | None = None
+    store_path: str | None = None  # the earlier name of store_url: either may be given, both read the same
     snapshot_every: int = Field(
         20, ge=1
     )  # registration: frames between state snapshots at least (a journal covers the rest)
@@ -94,6 +96,14 @@ class WorkerConfig(BaseModel):
     store_sync: Literal["full", "normal"] = (
         "full"  # registration: SQLite synchronous; normal survives kill -9, not power loss
     )
+
+    @model_validator(mode="after")
+    def _one_store(self) -> WorkerConfig:
+        if self.store_url and self.store_path and self.store_url != self.store_path:
+            raise ValueError(f"store_url {self.store_url!r} and store_path {self.store_path!r} name two stores")
+        # assigned through __dict__: validate_assignment is off, and a model_copy must not re-run this
+        self.__dict__["store_url"] = self.__dict__["store_path"] = self.store_url or self.store_path
+        return self
 
     @model_validator(mode="after")
     def _shard_in_range(self) -> WorkerConfig:

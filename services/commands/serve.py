@@ -36,7 +36,14 @@ def add_parser(subparsers) -> None:
     p.add_argument("--source", choices=["replay", "model"], default="replay", help="inference source")
     p.add_argument("--device", choices=["auto", "cpu", "cuda"], default="auto")
     p.add_argument("--checkpoint", help="TPV-Former checkpoint for --source model (occvo train-occ)")
-    p.add_argument("--store-path", help="SQLite file for the trajectories and the map; a restart resumes from it")
+    p.add_argument(
+        "--store",
+        "--store-path",
+        dest="store",
+        metavar="URL",
+        help="the trajectories' and the map's store, a restart resumes from it: a SQLite file (path or sqlite:///path) "
+        "or postgresql://user@host/db shared by the workers of many hosts",
+    )
     p.add_argument("--policy", choices=["lossless", "latest"], default="lossless")
     p.add_argument("--queue-size", type=int, default=4)
     p.add_argument(
@@ -94,7 +101,7 @@ def _up_config(args, router_config: str):
     """The router and the three workers `occvo serve` supervises, from its flags."""
     from occvo_services.supervisor import RouterSpec, UpConfig, WorkerSpec
 
-    store = ["--store-path", args.store_path] if args.store_path else []
+    store = ["--store-url", args.store] if args.store else []
     common = ["--policy", args.policy, "--queue-size", str(args.queue_size)]
     model = [
         "--source",

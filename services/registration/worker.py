@@ -22,6 +22,7 @@ from occvo_services.registration.session import SessionContext, StreamSession
 from occvo_services.registration.snapshots import SnapshotWriter
 from occvo_services.runtime import Worker, WorkerConfig, worker_main
 from occvo_services.store import TrajectoryStore
+from occvo_services.store_api import redact
 from occvo_services.telemetry import log_event
 
 
@@ -34,7 +35,7 @@ class RegistrationWorker(Worker):
         super().__init__(config)
         from occvo_core import OccVO, OccVOConfig
 
-        self.evict_off = config.working_radius_m is not None and config.store_path is None
+        self.evict_off = config.working_radius_m is not None and config.store_url is None
         if self.evict_off:  # the deploy config sets a radius; eviction starts when a store is given
             self.config = config = config.model_copy(update={"working_radius_m": None})
         radius = config.working_radius_m
@@ -43,7 +44,7 @@ class RegistrationWorker(Worker):
                 f"working_radius_m ({radius}) must exceed tile_m ({config.tile_m}): tiles come back "
                 "within working_radius_m - tile_m"
             )
-        self.store = TrajectoryStore(config.store_path, config.store_sync.upper()) if config.store_path else None
+        self.store = TrajectoryStore.open(config.store_url, config.store_sync.upper()) if config.store_url else None
         self.members = self.leases = None
         if config.placement == "members":
             if self.store is None:
@@ -175,7 +176,7 @@ class RegistrationWorker(Worker):
             log_event(
                 self.log,
                 "trajectory store",
-                path=c.store_path,
+                store=redact(c.store_url),
                 streams=sorted(self.sessions),
                 working_radius_m=c.working_radius_m,
                 snapshot_every=c.snapshot_every,

@@ -29,6 +29,7 @@ from occvo_services.registration.resume import resume
 from occvo_services.registration.scheduling import StreamThreads
 from occvo_services.registration.snapshots import SnapshotSchedule
 from occvo_services.registration.trajectory import StreamTrajectory, pose_message
+from occvo_services.store_api import FencedError
 from occvo_services.store_blobs import frame_digest, legacy_frame_digest, pack_frame
 from occvo_services.telemetry import log_event
 
@@ -351,9 +352,12 @@ class StreamSession:
         self.snapshot.restart()
 
     def store_failed(self, seq: int, exc: Exception, what: str) -> None:
-        """A write failed (e.g. disk full): drop the in-memory state; the stream resumes from the store at its next
-        frame (replaying the journal redoes what was not stored)."""
+        """A write failed (e.g. disk full, the database away, or fenced: another worker owns the stream now): drop
+        the in-memory state; the stream resumes from the store at its next frame (replaying the journal redoes what
+        was not stored), after taking the lease again if it was fenced."""
         self.vo = None  # the tiles too are started again by the resume
+        if isinstance(exc, FencedError):
+            self.epoch = None
         message = f"seq {seq} {what} ({type(exc).__name__}: {exc}); the stream resumes from the store at its next frame"
         self._report("internal", message, seq)
 

@@ -204,5 +204,6 @@ def test_a_paused_owner_writes_nothing_after_its_streams_moved(hosts, drives):
         assert np.array_equal(np.array([c.poses[k].matrix() for k in range(FRAMES)]), want)
         assert next(lease.epoch for lease in store.leases() if lease.stream == stream) >= epoch_after_move
         store.close()
+    # the frame it held when it stopped (delivered before the router gave it up) was refused by its lease's epoch
     log = (hosts.tmp / f"{victim}.log").read_text()
-    assert "FencedError" in log or "moved to another worker" in log or '"stream_busy"' in log or "handed over" in log
+    assert f"seq {half} not stored, pose not published (FencedError: stream {stream}" in log

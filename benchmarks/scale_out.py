@@ -121,8 +121,10 @@ def main() -> int:
     want = offline(drives)
     cluster = None
     if args.store_url is None:
-        from occvo_services.pg_local import PgCluster
+        from occvo_services.pg_local import PgCluster, missing
 
+        if missing():
+            raise SystemExit(missing())
         cluster = PgCluster()
     try:
         url = (lambda: args.store_url) if args.store_url else cluster.new_database

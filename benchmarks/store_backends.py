@@ -5,14 +5,13 @@
 
 Real frames of the scene (packed as the worker journals them, with their Occ3D indices) are committed in turn to each
 store, one commit of each per step, so that the machine's load falls on all alike. Without --pg-url a PostgreSQL 15
-server is started in a temporary folder as the tests do (tests/pg.py). Also times a snapshot write of the scene's
+server is started in a temporary folder as the tests do (services/pg_local.py). Also times a snapshot write of the scene's
 OccVO state after --state-frames frames. Prints JSON: median and p90 ms per backend, the ratio of the medians."""
 
 from __future__ import annotations
 
 import argparse
 import json
-import sys
 import tempfile
 import time
 import warnings
@@ -58,8 +57,7 @@ def main() -> None:
 
     cluster = None
     if args.pg_url is None:
-        sys.path.insert(0, str(ROOT / "tests"))
-        from pg import PgCluster, missing
+        from occvo_services.pg_local import PgCluster, missing
 
         if missing():
             raise SystemExit(missing())

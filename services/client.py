@@ -141,6 +141,7 @@ class OccVOClient:
     def _on_alive(self, sample: zenoh.Sample) -> None:
         key = str(sample.key_expr)
         shard = keys.parse_registration_shard(key)
+        # shards 0: placement "members", where any registration worker may hold this stream
         if shard is not None and shard[1] and keys.shard_of(self.stream, shard[1]) != shard[0]:
             return  # another shard's worker: its coming and going does not touch this stream
         role = "inference" if shard is None else "registration"
@@ -150,24 +151,13 @@ class OccVOClient:
                 fresh = key not in live
                 live.add(key)
                 self._seen.add(role)
-                if fresh and self._owns(key, live) and (self._down or self._unanswered) and self._path_up():
+                if fresh and (self._down or self._unanswered) and self._path_up():
                     self._back_at = time.monotonic()  # a (re)started worker: resend what it cannot have seen
             else:
-                owned = self._owns(key, live | {key})
                 live.discard(key)
-                if owned:  # even with another worker of its role up, the frames it held are lost
-                    self._down = True
-                    self._back_at = time.monotonic() if self._path_up() else None
+                self._down = True  # even with another worker of its role up, the frames it held are lost
+                self._back_at = time.monotonic() if self._path_up() else None
             self._cv.notify_all()
-
-    def _owns(self, key: str, live: set[str]) -> bool:
-        """Whether the worker of this token holds this stream's frames: under placement "members" (shards 0) the
-        stream's owner among the live registration workers (keys.owner_of); else every worker on its path."""
-        shard = keys.parse_registration_shard(key)
-        if shard is None or shard[1]:
-            return True
-        members = {k.rsplit("/", 1)[1] for k in live if keys.parse_registration_shard(k) == (0, 0)}
-        return keys.owner_of(self.stream, members) == key.rsplit("/", 1)[1]
 
     def _path_up(self) -> bool:
         """Every role of the path that was ever seen has a live worker (a role never seen is not waited for)."""

@@ -89,7 +89,6 @@ class SeqTracker:
 
 
 EVICT = object()  # put on an idle lane's queue: the lane ends and its stream's state is given back (services/memory.py)
-HANDOVER = object()  # the stream moved to another worker: the lane ends once the frames it holds are done
 
 
 class StreamLane:
@@ -101,21 +100,12 @@ class StreamLane:
         self.worker, self.stream, self.handler = worker, stream, handler
         self.busy = False
         self.evicting = False  # EVICT is on its way to this lane
-        self.moving = False  # its stream moves to another worker (hand_over)
         self.last_active = time.monotonic()  # the end of its last frame (the stream idle longest is evicted first)
         self.pending = 0  # frames handed to this lane and not yet in its queue (Worker.enqueue); guarded by _lanes_lock
         self.after = after  # the stream's retired lane, still giving back its state: this one starts when it is done
         self.queue = StageQueue(worker.config.queue_size, worker.config.policy, self._dropped, worker.stopping)
         self.thread = threading.Thread(target=self._run, name=f"{worker.role}-{stream}", daemon=True)
         self.thread.start()
-
-    def hand_over(self) -> None:
-        """The stream is another worker's now: the lane finishes the frames it holds, then ends."""
-        self.moving = True
-        try:
-            self.queue.q.put_nowait(HANDOVER)  # wakes a waiting lane; a full one sees `moving` after its next frame
-        except queue.Full:
-            pass
 
     def _dropped(self, item) -> None:
         self.worker.stats.inc("drops")
@@ -138,9 +128,7 @@ class StreamLane:
                 if self.worker.retire_lane(self, "memory"):
                     return
                 continue
-            if item is None or item is HANDOVER:
-                if self.moving and self.worker.retire_lane(self, "moved"):
-                    return
+            if item is None:
                 continue
             self.busy = True
             try:
@@ -157,5 +145,3 @@ class StreamLane:
             finally:
                 self.busy = False
                 self.last_active = time.monotonic()
-            if self.moving and self.worker.retire_lane(self, "moved"):
-                return

@@ -157,10 +157,7 @@ class Worker:
                     del self._retired[lane.stream]
                 if lane.stream not in self.lanes:
                     self.admission.release(lane.stream)
-        if why == "moved":
-            self.stats.inc("streams_moved")
-            log_event(self.log, "stream moved to another worker", stream=lane.stream)
-        elif why == "memory":
+        if why == "memory":
             self.stats.inc("streams_evicted_memory")
             log_event(
                 self.log,

@@ -1,26 +1,30 @@
-"""Placement "members": the live registration workers share the streams by rendezvous hashing over their liveliness
-tokens (keys.owner_of), so a worker that comes or goes moves only the streams it takes or had. The store's lease
-with its fencing epoch makes each stream's owner its only writer: a worker that was paused or cut off and comes back
-cannot write over the new owner."""
+"""Placement "members": the live registration workers share the streams through the store's leases. A stream stays
+with the worker holding its lease while that worker lives; a new stream, or one whose owner is gone, goes to the
+live worker with the fewest streams (ties: rendezvous hashing, keys.owner_of), so a worker that joins takes new
+streams and one that leaves moves only its own. The lease's fencing epoch makes the owner the stream's only writer:
+a worker that was paused or cut off and comes back cannot write over the new owner."""
 
 from __future__ import annotations
 
+import collections
 import logging
 import threading
-import time
 
 import zenoh
 
 from occvo_schemas import keys
 from occvo_services.telemetry import log_event
 
+MAX_STREAMS_KNOWN = 4096  # streams whose owner a worker remembers (ids are the clients' to invent)
 
-class Members:
-    """The live registration workers, this one included, as their tokens come and go."""
 
-    def __init__(self, me: str, on_change):
-        self.me, self.on_change = me, on_change
+class Placement:
+    """Which live worker owns each stream, as this worker sees it (the lease holder, else the least loaded)."""
+
+    def __init__(self, me: str, store, log):
+        self.me, self.store, self.log = me, store, log
         self.live = {me}
+        self._owners: dict[str, str] = {}  # stream -> its owner, while that worker lives
         self._lock = threading.Lock()
 
     def declare(self, session: zenoh.Session):
@@ -30,29 +34,46 @@ class Members:
         worker = str(sample.key_expr).rsplit("/", 1)[1]
         with self._lock:
             if sample.kind == zenoh.SampleKind.PUT:
-                changed = worker not in self.live
                 self.live.add(worker)
-            else:
-                changed = worker != self.me and worker in self.live
+            elif worker != self.me:
                 self.live.discard(worker)
-        if changed:
-            self.on_change()
+                self._owners = {s: w for s, w in self._owners.items() if w != worker}
+        log_event(self.log, "registration workers", live=sorted(self.live))
 
-    def owner(self, stream: str) -> str:
-        with self._lock:
-            return keys.owner_of(stream, self.live)
-
-    def is_live(self, worker: str) -> bool:
+    def is_live(self, worker: str | None) -> bool:
         with self._lock:
             return worker in self.live
 
+    def owner(self, stream: str) -> str:
+        with self._lock:
+            owner = self._owners.get(stream)
+        if owner is not None:
+            return owner
+        holder = self.store.owner_of(stream)
+        with self._lock:
+            owner = holder if holder in self.live else self._least_loaded(stream)
+            self._owners[stream] = owner
+            if len(self._owners) > MAX_STREAMS_KNOWN:  # the oldest looked-up stream is looked up again if it comes
+                del self._owners[next(iter(self._owners))]
+        return owner
+
+    def _least_loaded(self, stream: str) -> str:
+        held = collections.Counter(lease.owner for lease in self.store.leases() if lease.remaining_s > 0)
+        fewest = min(held[w] for w in self.live)
+        return keys.owner_of(stream, [w for w in self.live if held[w] == fewest])
+
+    def forget(self, stream: str) -> None:
+        """The stream's owner is looked up again at its next frame (this worker lost its lease)."""
+        with self._lock:
+            self._owners.pop(stream, None)
+
 
 class Leases:
-    """This worker's stream leases in the store: taken before its first write of a stream (from a lost owner at
-    once), renewed while the worker lives, given back when a stream moves on."""
+    """This worker's stream leases: taken before its first write of a stream (at once from an owner that is gone),
+    renewed while the worker lives, given back when it stops."""
 
-    def __init__(self, store, me: str, lease_s: float, members: Members, log):
-        self.store, self.me, self.lease_s, self.members, self.log = store, me, lease_s, members, log
+    def __init__(self, store, me: str, lease_s: float, placement: Placement, log):
+        self.store, self.me, self.lease_s, self.placement, self.log = store, me, lease_s, placement, log
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._renew, name="lease-renewal", daemon=True)
 
@@ -60,18 +81,11 @@ class Leases:
         self._thread.start()
 
     def acquire(self, stream: str) -> tuple[int | None, str | None]:
-        """(epoch, None) once this worker holds the stream's lease; (None, owner) if a live owner still held it after
-        lease_s (it hands the stream over as soon as its queued frames are done)."""
-        deadline = time.monotonic() + self.lease_s
-        while True:
-            owner = self.store.owner_of(stream)
-            lost = owner if owner is not None and owner != self.me and not self.members.is_live(owner) else None
-            epoch = self.store.acquire(stream, self.me, self.lease_s, take_from=lost)
-            if epoch is not None:
-                return epoch, None
-            if time.monotonic() > deadline or self._stop.is_set():
-                return None, owner
-            time.sleep(0.05)
+        """(epoch, None) once this worker holds the stream's lease; (None, owner) while a live worker holds it."""
+        holder = self.store.owner_of(stream)
+        lost = holder if holder not in (None, self.me) and not self.placement.is_live(holder) else None
+        epoch = self.store.acquire(stream, self.me, self.lease_s, take_from=lost)
+        return (epoch, None) if epoch is not None else (None, self.store.owner_of(stream))
 
     def release(self, stream: str) -> None:
         try:

@@ -21,7 +21,7 @@ class Queries:
         found = [
             (stream, s)
             for stream, s in sorted(self.worker.sessions_now(), key=lambda i: i[0])
-            if s.trajectory.started and q.intersects(zenoh.KeyExpr(key_of(stream)))
+            if s.trajectory.started and q.intersects(zenoh.KeyExpr(key_of(stream))) and self.worker.answers(stream)
         ]
         return found[: self.worker.config.max_query_streams]  # a wildcard asks for every stream: the first ones answer
 

@@ -164,9 +164,9 @@ class StreamSession:
         if leases is None or self.epoch is not None:
             return True
         epoch, owner = leases.acquire(self.stream)
-        if epoch is None:
-            message = f"seq {job.msg.seq}: stream {self.stream} is still held by worker {owner}; send it again"
-            self._report("stream_busy", message, job.msg.seq)
+        if epoch is None:  # another live worker took it meanwhile: its frames are that worker's (it has them too)
+            leases.placement.forget(self.stream)
+            log_event(self.ctx.log, "stream taken by another worker", stream=self.stream, owner=owner)
             return False
         self.threads.drain()
         self.epoch, self.vo = epoch, None
@@ -356,8 +356,19 @@ class StreamSession:
         the in-memory state; the stream resumes from the store at its next frame (replaying the journal redoes what
         was not stored), after taking the lease again if it was fenced."""
         self.vo = None  # the tiles too are started again by the resume
-        if isinstance(exc, FencedError):
+        if isinstance(exc, FencedError):  # the new owner has this frame too: not this worker's to answer
             self.epoch = None
+            self.ctx.leases.placement.forget(self.stream)
+            self.ctx.stats.inc("fenced")
+            log_event(
+                self.ctx.log,
+                "fenced: the stream has another owner",
+                logging.WARNING,
+                stream=self.stream,
+                seq=seq,
+                error=str(exc),
+            )
+            return
         message = f"seq {seq} {what} ({type(exc).__name__}: {exc}); the stream resumes from the store at its next frame"
         self._report("internal", message, seq)
 

@@ -14,7 +14,7 @@ from occvo_core.errors import ConfigError
 from occvo_schemas import keys
 from occvo_schemas.models import OccupancyFrameMsg
 from occvo_services.os_tuning import trim_heap
-from occvo_services.registration.membership import Leases, Members
+from occvo_services.registration.membership import Leases, Placement
 from occvo_services.registration.paging import MIN_SAFE_RADIUS_M
 from occvo_services.registration.queries import Queries
 from occvo_services.registration.scheduling import Scheduler
@@ -45,12 +45,12 @@ class RegistrationWorker(Worker):
                 "within working_radius_m - tile_m"
             )
         self.store = TrajectoryStore.open(config.store_url, config.store_sync.upper()) if config.store_url else None
-        self.members = self.leases = None
+        self.placement = self.leases = None
         if config.placement == "members":
             if self.store is None:
                 raise ConfigError('placement "members" needs a store: the workers hand streams over through it')
-            self.members = Members(self.worker_id, self._members_changed)
-            self.leases = Leases(self.store, self.worker_id, config.lease_s, self.members, self.log)
+            self.placement = Placement(self.worker_id, self.store, self.log)
+            self.leases = Leases(self.store, self.worker_id, config.lease_s, self.placement, self.log)
         self.sessions: dict[str, StreamSession] = {}
         self._sessions_lock = threading.Lock()
         occvo_config = OccVOConfig.load(config.occvo_config) if config.occvo_config else OccVOConfig()
@@ -67,7 +67,7 @@ class RegistrationWorker(Worker):
             self._put, self.report_error, self._frames_queued, self._busy_lanes, leases=self.leases,
         )  # fmt: skip
         self.queries = Queries(self)
-        if self.store is not None and self.members is None:
+        if self.store is not None and self.placement is None:
             for stream in filter(self.owns, self.store.streams()):  # queries answer at once; resumed at the next frame
                 self.session_of(stream).load_trajectory()
 
@@ -97,10 +97,16 @@ class RegistrationWorker(Worker):
     def owns(self, stream: str) -> bool:
         """This worker's shard registers the stream (a malformed stream id is shard 0's to report); placement
         "members": it is the stream's owner among the live workers."""
-        if self.members is not None:
-            return self.members.owner(stream) == self.worker_id
+        if self.placement is not None:
+            if not keys.STREAM_RE.match(stream):
+                return min(self.placement.live) == self.worker_id
+            return self.placement.owner(stream) == self.worker_id
         c = self.config
         return keys.shard_of(stream, c.shards) == c.shard if keys.STREAM_RE.match(stream) else c.shard == 0
+
+    def answers(self, stream: str) -> bool:
+        """Whether this worker answers queries of a stream it has a session of (placement members: while it owns it)."""
+        return self.placement is None or self.owns(stream)
 
     def _on_occupancy(self, sample: zenoh.Sample) -> None:
         if self.owns(keys.stream_of(str(sample.key_expr))):  # another shard's stream: not ours to count or judge
@@ -114,34 +120,7 @@ class RegistrationWorker(Worker):
         session = self.sessions.get(stream)
         if session is None:
             return
-        if self.members is not None and not self.owns(stream):
-            self._hand_over(stream)
-        else:
-            session.close()
-
-    def _members_changed(self) -> None:
-        """A registration worker came or went: the sessions this one no longer owns are handed over, each after the
-        frames its lane holds (it still holds their lease); an idle one at once, off Zenoh's callback thread."""
-        for stream, _ in self.sessions_now():
-            if self.owns(stream):
-                continue
-            with self._lanes_lock:
-                lane = self.lanes.get(stream)
-            if lane is not None:
-                lane.hand_over()
-            else:
-                threading.Thread(target=self._hand_over, args=(stream,), name="hand-over", daemon=True).start()
-
-    def _hand_over(self, stream: str) -> None:
-        """The session closed (its state to the store), forgotten here, its lease given back for the new owner."""
-        with self._sessions_lock:
-            session = self.sessions.pop(stream, None)
-        if session is None:
-            return
         session.close()
-        if session.epoch is not None:
-            self.leases.release(stream)
-        log_event(self.log, "stream handed over", stream=stream, owner=self.members.owner(stream))
 
     def _frames_queued(self, stream: str) -> bool:
         lane = self.lanes.get(stream)
@@ -162,9 +141,9 @@ class RegistrationWorker(Worker):
             s.declare_queryable(keys.trajectory("*"), self.bounded(self.queries.on_trajectory)),
         ]
         # clients watch their shard's token: frames sent while their stream's worker is away are resent when it is back
-        if self.members is not None:
+        if self.placement is not None:
             token = keys.registration_shard(0, 0, self.worker_id)
-            self._declared.append(self.members.declare(s))
+            self._declared.append(self.placement.declare(s))
             self.leases.start()
         else:
             token = keys.registration_shard(self.config.shard, self.config.shards, self.worker_id)

@@ -1,6 +1,7 @@
-"""A real PostgreSQL 15 server for the tests: a cluster made with initdb in a temporary folder, listening on a free
-loopback port (its unix socket in that folder), fsync on as deployed, run by the `postgres` user when the tests run as
-root (the server refuses root; CI runs as root). Debian keeps the binaries off PATH: /usr/lib/postgresql/15/bin."""
+"""A throwaway PostgreSQL 15 server for the tests and benchmarks: a cluster made with initdb in a temporary folder,
+listening on a free loopback port (its unix socket in that folder), fsync on as deployed, run by the `postgres` user
+when run as root (the server refuses root; CI runs as root). Debian keeps the binaries off PATH:
+/usr/lib/postgresql/15/bin."""
 
 from __future__ import annotations
 
@@ -58,7 +59,7 @@ class PgCluster:
         """A fresh, empty database of the cluster: its URL (one a test, so tests never see each other's rows)."""
         import psycopg
 
-        name = f"t_{uuid.uuid4().hex[:12]}"
+        name = f"occvo_{uuid.uuid4().hex[:12]}"
         with psycopg.connect(self.url(), autocommit=True) as conn:
             conn.execute(f'CREATE DATABASE "{name}"')
         return self.url(name)

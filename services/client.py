@@ -93,6 +93,8 @@ class OccVOClient:
         self._down = False  # a worker of the path left: hold new frames until it is back and the lost ones resent
         self._back_at: float | None = None
         self.resends = 0
+        self._alive: set[str] = set()  # worker tokens seen (workers())
+        self._alive_sub = None
         self._subs = [
             self.session.declare_subscriber(keys.pose(stream), self._on_pose),
             self.session.declare_subscriber(keys.errors(stream), self._on_error),
@@ -139,7 +141,7 @@ class OccVOClient:
     def _on_alive(self, sample: zenoh.Sample) -> None:
         key = str(sample.key_expr)
         shard = keys.parse_registration_shard(key)
-        if shard is not None and keys.shard_of(self.stream, shard[1]) != shard[0]:
+        if shard is not None and shard[1] and keys.shard_of(self.stream, shard[1]) != shard[0]:
             return  # another shard's worker: its coming and going does not touch this stream
         role = "inference" if shard is None else "registration"
         live = self._path[role]
@@ -148,13 +150,24 @@ class OccVOClient:
                 fresh = key not in live
                 live.add(key)
                 self._seen.add(role)
-                if fresh and (self._down or self._unanswered) and self._path_up():
+                if fresh and self._owns(key, live) and (self._down or self._unanswered) and self._path_up():
                     self._back_at = time.monotonic()  # a (re)started worker: resend what it cannot have seen
             else:
+                owned = self._owns(key, live | {key})
                 live.discard(key)
-                self._down = True  # even with another worker of its role up, the frames it held are lost
-                self._back_at = time.monotonic() if self._path_up() else None
+                if owned:  # even with another worker of its role up, the frames it held are lost
+                    self._down = True
+                    self._back_at = time.monotonic() if self._path_up() else None
             self._cv.notify_all()
+
+    def _owns(self, key: str, live: set[str]) -> bool:
+        """Whether the worker of this token holds this stream's frames: under placement "members" (shards 0) the
+        stream's owner among the live registration workers (keys.owner_of); else every worker on its path."""
+        shard = keys.parse_registration_shard(key)
+        if shard is None or shard[1]:
+            return True
+        members = {k.rsplit("/", 1)[1] for k in live if keys.parse_registration_shard(k) == (0, 0)}
+        return keys.owner_of(self.stream, members) == key.rsplit("/", 1)[1]
 
     def _path_up(self) -> bool:
         """Every role of the path that was ever seen has a live worker (a role never seen is not waited for)."""
@@ -248,7 +261,9 @@ class OccVOClient:
         deadline, wait = time.monotonic() + timeout, 0.01
         while True:
             out, errs = [], []
-            for reply in self.session.get(selector, payload=payload, timeout=timeout):
+            # the best match: one complete queryable (a map service replica) where there is one, else every match
+            target = zenoh.QueryTarget.BEST_MATCHING
+            for reply in self.session.get(selector, payload=payload, timeout=timeout, target=target):
                 if reply.ok is not None:
                     out.append(decode(reply.ok.payload.to_bytes(), expect, 1 << 30))
                 else:
@@ -325,10 +340,23 @@ class OccVOClient:
         return self._get(keys.stats(worker), WorkerHealth)
 
     def workers(self) -> list[str]:
-        """Keys of the live workers' liveliness tokens."""
-        return sorted(
-            str(r.ok.key_expr) for r in self.session.liveliness().get(keys.alive("*", "*"), timeout=5.0) if r.ok
-        )
+        """Keys of the live workers' liveliness tokens: those the client has seen come and not go, and those a
+        liveliness query finds now (a query through a router may miss a token that is there)."""
+        with self._cv:
+            if self._alive_sub is None:
+                self._alive_sub = self.session.liveliness().declare_subscriber(
+                    keys.alive("*", "*"), self._on_worker_token, history=True
+                )
+        found = {str(r.ok.key_expr) for r in self.session.liveliness().get(keys.alive("*", "*"), timeout=5.0) if r.ok}
+        with self._cv:
+            return sorted(found | self._alive)
+
+    def _on_worker_token(self, sample: zenoh.Sample) -> None:
+        with self._cv:
+            if sample.kind == zenoh.SampleKind.PUT:
+                self._alive.add(str(sample.key_expr))
+            else:
+                self._alive.discard(str(sample.key_expr))
 
     def wait_for_workers(self, roles=("inference", "registration", "map"), timeout: float = 30.0) -> None:
         deadline = time.monotonic() + timeout
@@ -342,7 +370,7 @@ class OccVOClient:
     def close(self) -> None:
         self._closed.set()
         self._resender.join(timeout=5)
-        for s in self._subs:
+        for s in self._subs + ([self._alive_sub] if self._alive_sub is not None else []):
             s.undeclare()
         self._pub.undeclare()
         if self._own:

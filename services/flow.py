@@ -55,36 +55,41 @@ class StageQueue:
         return self.q.qsize()
 
 
+def judge_seq(seq: int, last: int | None, max_jump: int | None, older: str = "") -> tuple[bool, str | None, str | None]:
+    """Every worker's sequence rule: (accept, error code, message) of frame `seq` after frame `last` (None: nothing
+    before it). seq 0 starts a new trajectory; a gap is reported as missing and accepted; a step back is out of order
+    (`older` says more of it); a step forward of more than max_jump is reported and not adopted: one stray seq must not
+    make every following real frame a step back."""
+    if last is None or seq == 0 or seq == last + 1:
+        return True, None, None
+    if max_jump is not None and seq - last > max_jump:
+        return (
+            False,
+            "seq_jump",
+            f"seq {seq} is {seq - last} after seq {last}, beyond the window of {max_jump}; dropped",
+        )
+    if seq > last + 1:
+        return True, "missing_seq", f"missing seq {last + 1}..{seq - 1} ({seq - last - 1} frames) before seq {seq}"
+    return False, "out_of_order", f"seq {seq} arrived after seq {last}{older}; dropped"
+
+
 class SeqTracker:
-    """Per-stream sequence check. seq 0 starts a new trajectory; a gap is reported as missing, a step back as out of order."""
+    """Per-stream sequence check of a worker that keeps no trajectory (judge_seq against the last accepted seq)."""
 
     def __init__(self, max_jump: int | None = None):
         self.expected: int | None = None
         self.max_jump = max_jump
 
     def check(self, seq: int) -> tuple[bool, str | None, str | None]:
-        """(accept, error code, message). A step forward of more than max_jump is reported and not adopted: one
-        stray seq must not make every following real frame a step back."""
-        if self.expected is None or seq == 0 or seq == self.expected:
+        """(accept, error code, message); an accepted seq is the one the next is judged against."""
+        verdict = judge_seq(seq, None if self.expected is None else self.expected - 1, self.max_jump)
+        if verdict[0]:
             self.expected = seq + 1
-            return True, None, None
-        if self.max_jump is not None and seq - self.expected >= self.max_jump:
-            return (
-                False,
-                "seq_jump",
-                (
-                    f"seq {seq} is {seq - self.expected + 1} after seq {self.expected - 1}, beyond "
-                    f"the window of {self.max_jump}; dropped"
-                ),
-            )
-        if seq > self.expected:
-            msg = f"missing seq {self.expected}..{seq - 1} ({seq - self.expected} frames) before seq {seq}"
-            self.expected = seq + 1
-            return True, "missing_seq", msg
-        return False, "out_of_order", f"seq {seq} arrived after seq {self.expected - 1}; dropped"
+        return verdict
 
 
 EVICT = object()  # put on an idle lane's queue: the lane ends and its stream's state is given back (services/memory.py)
+HANDOVER = object()  # the stream moved to another worker: the lane ends once the frames it holds are done
 
 
 class StreamLane:
@@ -96,12 +101,21 @@ class StreamLane:
         self.worker, self.stream, self.handler = worker, stream, handler
         self.busy = False
         self.evicting = False  # EVICT is on its way to this lane
+        self.moving = False  # its stream moves to another worker (hand_over)
         self.last_active = time.monotonic()  # the end of its last frame (the stream idle longest is evicted first)
         self.pending = 0  # frames handed to this lane and not yet in its queue (Worker.enqueue); guarded by _lanes_lock
         self.after = after  # the stream's retired lane, still giving back its state: this one starts when it is done
         self.queue = StageQueue(worker.config.queue_size, worker.config.policy, self._dropped, worker.stopping)
         self.thread = threading.Thread(target=self._run, name=f"{worker.role}-{stream}", daemon=True)
         self.thread.start()
+
+    def hand_over(self) -> None:
+        """The stream is another worker's now: the lane finishes the frames it holds, then ends."""
+        self.moving = True
+        try:
+            self.queue.q.put_nowait(HANDOVER)  # wakes a waiting lane; a full one sees `moving` after its next frame
+        except queue.Full:
+            pass
 
     def _dropped(self, item) -> None:
         self.worker.stats.inc("drops")
@@ -124,7 +138,9 @@ class StreamLane:
                 if self.worker.retire_lane(self, "memory"):
                     return
                 continue
-            if item is None:
+            if item is None or item is HANDOVER:
+                if self.moving and self.worker.retire_lane(self, "moved"):
+                    return
                 continue
             self.busy = True
             try:
@@ -141,3 +157,5 @@ class StreamLane:
             finally:
                 self.busy = False
                 self.last_active = time.monotonic()
+            if self.moving and self.worker.retire_lane(self, "moved"):
+                return

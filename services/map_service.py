@@ -34,8 +34,10 @@ class MapService(Worker):
         s = self.session
         self._declared += [
             s.declare_subscriber(keys.map_updates("*"), self._on_update),
-            s.declare_queryable(keys.map_tile("*", "*", "*"), self.bounded(self._on_tile_query)),
-            s.declare_queryable(keys.map_info("*"), self.bounded(self._on_info)),
+            # complete: every map service answers every tile and info query, so a query goes to one of them (the
+            # nearest: Zenoh's default target), not to each replica, nor to a queryable that is not complete
+            s.declare_queryable(keys.map_tile("*", "*", "*"), self.bounded(self._on_tile_query), complete=True),
+            s.declare_queryable(keys.map_info("*"), self.bounded(self._on_info), complete=True),
         ]
         if self.config.store_url:
             log_event(self.log, "map store", path=redact(self.config.store_url), streams=self.store.streams())

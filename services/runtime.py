@@ -157,7 +157,10 @@ class Worker:
                     del self._retired[lane.stream]
                 if lane.stream not in self.lanes:
                     self.admission.release(lane.stream)
-        if why == "memory":
+        if why == "moved":
+            self.stats.inc("streams_moved")
+            log_event(self.log, "stream moved to another worker", stream=lane.stream)
+        elif why == "memory":
             self.stats.inc("streams_evicted_memory")
             log_event(
                 self.log,
@@ -175,9 +178,12 @@ class Worker:
     def retire_stream(self, stream: str) -> None:
         """Give back an idle stream's per-stream state (roles override); its lane is gone already."""
 
-    def enqueue(self, sample: zenoh.Sample, expect, handler: Callable[[str, object], None]) -> None:
-        """Decode a stream message, check its sequence number and queue it on its stream's lane with its hop
-        latency; bad messages are reported by decode_input and check_seq, never raised."""
+    def enqueue(
+        self, sample: zenoh.Sample, expect, handler: Callable[[str, object], None], judge_seq: bool = True
+    ) -> None:
+        """Decode a stream message, check its sequence number (judge_seq False: the handler does, against what it
+        committed) and queue it on its stream's lane with its hop latency; bad messages are reported by decode_input
+        and check_seq, never raised."""
         t_recv, t_decode = time.time(), time.perf_counter()
         msg = self.decode_input(sample, expect)
         if msg is None or self.stopping.is_set():
@@ -193,7 +199,7 @@ class Worker:
             self.stats.inc("streams_refused")
             self.report_error(msg.stream, "stream_limit", refused, str(sample.key_expr), msg.seq)
             return
-        if not self.check_seq(msg.stream, msg.seq, str(sample.key_expr)):
+        if judge_seq and not self.check_seq(msg.stream, msg.seq, str(sample.key_expr)):
             with self._lanes_lock:
                 if msg.stream not in self.lanes:  # admitted for nothing: its place goes back
                     self.admission.release(msg.stream)

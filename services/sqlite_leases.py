@@ -30,16 +30,17 @@ def fence(db, stream: str, epoch: int | None) -> None:
 class SqliteLeases:
     """TrajectoryStore's lease methods (self._write runs a write transaction, self._read a read)."""
 
-    def acquire(self, stream: str, owner: str, ttl_s: float) -> int | None:
+    def acquire(self, stream: str, owner: str, ttl_s: float, take_from: str | None = None) -> int | None:
         """The stream's lease for `owner` for ttl_s: its epoch, or None while another owner holds it. Taking it
-        from another owner (expired or released) moves the epoch on; the same owner keeps its epoch."""
+        from another owner (expired, released, or `take_from`: one known lost) moves the epoch on; the same owner
+        keeps its epoch."""
 
         def tx(db):
             now = time.time()
             row = db.execute("SELECT owner, epoch, expires_at FROM leases WHERE stream=?", (stream,)).fetchone()
             if row is None:
                 epoch = 1
-            elif row[0] == owner or row[2] <= now:
+            elif row[0] == owner or row[2] <= now or (take_from is not None and row[0] == take_from):
                 epoch = int(row[1]) + (row[0] != owner)
             else:
                 return None

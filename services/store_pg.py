@@ -95,16 +95,17 @@ class PgTrajectoryStore:
         return self.pool.run(lambda conn: conn.execute(sql, args, binary=binary).fetchall())
 
     # -- leases
-    def acquire(self, stream: str, owner: str, ttl_s: float) -> int | None:
+    def acquire(self, stream: str, owner: str, ttl_s: float, take_from: str | None = None) -> int | None:
         """The stream's lease for `owner` for ttl_s: its epoch, or None while another owner holds it. Taking it
-        from another owner (expired or released) moves the epoch on; the same owner keeps its epoch."""
+        from another owner (expired, released, or `take_from`: one known lost) moves the epoch on; the same owner
+        keeps its epoch."""
         rows = self.pool.run(
             lambda conn: conn.execute(
                 "INSERT INTO leases AS l VALUES (%s, %s, 1, now() + make_interval(secs => %s)) "
                 "ON CONFLICT (stream) DO UPDATE SET epoch = l.epoch + (l.owner IS DISTINCT FROM excluded.owner)::int, "
                 "owner = excluded.owner, expires_at = excluded.expires_at "
-                "WHERE l.owner = excluded.owner OR l.expires_at <= now() RETURNING epoch",
-                (stream, owner, float(ttl_s)),
+                "WHERE l.owner = excluded.owner OR l.expires_at <= now() OR l.owner = %s RETURNING epoch",
+                (stream, owner, float(ttl_s), take_from),
             ).fetchall()
         )
         return int(rows[0][0]) if rows else None

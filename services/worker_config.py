@@ -56,6 +56,11 @@ class WorkerConfig(BaseModel):
     # (occvo_schemas.keys.shard_of: CRC-32 of the stream id mod shards). `occvo up` sets both from a role's count
     shard: int = Field(0, ge=0)
     shards: int = Field(1, ge=1, le=1024)
+    # registration: "members": the live registration workers share the streams by rendezvous hashing (keys.owner_of),
+    # each stream written by its owner only, under a lease with a fencing epoch in the store (hosts sharing a
+    # PostgreSQL store); a lost worker's streams move to the others. lease_s: how long a silent owner keeps them
+    placement: Literal["shards", "members"] = "shards"
+    lease_s: float = Field(10.0, gt=0)
     tile_m: float = Field(20.0, gt=0)
     # registration: with frames of a stream waiting, their map tiles go out together, in one update at most this long
     # after the last (every update re-sends whole tiles); a stream caught up gets one a frame. 0: one a frame always

@@ -44,36 +44,21 @@ def replay(
     client.reset()
     t0 = time.perf_counter()
     sent_at = []
-
-    def settled() -> int:
-        with client._cv:
-            return len(client.poses) + len(
-                {
-                    e.seq
-                    for e in client.errors
-                    if e.seq is not None and e.seq not in client.poses and e.code != "missing_seq"
-                }
-            )
-
     for i in range(n):
         frame = scene[i]
         if rate_hz > 0:
             delay = t0 + i / rate_hz - time.perf_counter()
             if delay > 0:
                 time.sleep(delay)
-        deadline = time.monotonic() + timeout
-        with client._cv:
-            while i - settled() >= window:
-                if not client._cv.wait(max(0.0, deadline - time.monotonic())) and time.monotonic() > deadline:
-                    raise ServiceError(f"pipeline stalled: no pose for {timeout} s with {window} frames in flight")
+        _wait_settled(client, i - window + 1, timeout, f"no pose for {timeout} s with {window} frames in flight")
         sent_at.append(time.perf_counter())
         client.publish(frame)
         if progress:
             progress(i, n)
-    deadline = time.monotonic() + timeout
-    with client._cv:
-        while settled() < n and time.monotonic() < deadline:
-            client._cv.wait(max(0.0, deadline - time.monotonic()))
+    try:
+        _wait_settled(client, n, timeout, "")
+    except ServiceError:
+        pass  # the summary says how many came
     elapsed = time.perf_counter() - t0
     poses = dict(client.poses)
     return {
@@ -88,6 +73,23 @@ def replay(
         "pose_msgs": poses,
         "sent_at": sent_at,  # time.perf_counter() each frame left, by seq (client.arrived: when its pose came)
     }
+
+
+def _settled(client: OccVOClient) -> int:
+    """Frames answered: a pose, or an error that is the frame's end (a missing seq is not)."""
+    failed = {
+        e.seq for e in client.errors if e.seq is not None and e.seq not in client.poses and e.code != "missing_seq"
+    }
+    return len(client.poses) + len(failed)
+
+
+def _wait_settled(client: OccVOClient, count: int, timeout: float, stalled: str) -> None:
+    """Until `count` frames are answered; ServiceError ("pipeline stalled: ...") after `timeout` s."""
+    deadline = time.monotonic() + timeout
+    with client._cv:
+        while _settled(client) < count:
+            if not client._cv.wait(max(0.0, deadline - time.monotonic())) and time.monotonic() > deadline:
+                raise ServiceError(f"pipeline stalled: {stalled}")
 
 
 def add_parser(subparsers) -> None:

@@ -97,19 +97,10 @@ def _wait_alive(sup, timeout: float) -> None:
         probe.close()
 
 
-def run(args) -> int:
-    from occvo_services.runtime import structured_logger
-    from occvo_services.supervisor import RouterSpec, Supervisor, UpConfig, WorkerSpec
+def _up_config(args, router_config: str):
+    """The router and the three workers `occvo serve` supervises, from its flags."""
+    from occvo_services.supervisor import RouterSpec, UpConfig, WorkerSpec
 
-    if args.registration_workers < 1:
-        raise ConfigError(f"--registration-workers must be at least 1, not {args.registration_workers}")
-    if args.queue_size < 1:
-        raise ConfigError(f"--queue-size must be at least 1, not {args.queue_size}")
-    router_config = args.router_config or str(defaults.path("router.json5"))
-    if args.log_dir:
-        Path(args.log_dir).mkdir(parents=True, exist_ok=True)
-    ep = args.listen or endpoint(args)
-    check_listen_secure(router_config, [ep], args.insecure)
     store = ["--store-url", args.store] if args.store else []
     common = ["--policy", args.policy, "--queue-size", str(args.queue_size)]
     model = [
@@ -119,7 +110,7 @@ def run(args) -> int:
         args.device,
         *(["--checkpoint", args.checkpoint] if args.checkpoint else []),
     ]
-    config = UpConfig(
+    return UpConfig(
         router=RouterSpec(config=router_config, listen=args.listen),
         log_dir=args.log_dir,
         workers=[
@@ -133,6 +124,22 @@ def run(args) -> int:
             WorkerSpec(role="map", config=_worker_config(args, "map_service.json5"), args=[*common, *store]),
         ],
     )
+
+
+def run(args) -> int:
+    from occvo_services.runtime import structured_logger
+    from occvo_services.supervisor import Supervisor
+
+    if args.registration_workers < 1:
+        raise ConfigError(f"--registration-workers must be at least 1, not {args.registration_workers}")
+    if args.queue_size < 1:
+        raise ConfigError(f"--queue-size must be at least 1, not {args.queue_size}")
+    router_config = args.router_config or str(defaults.path("router.json5"))
+    if args.log_dir:
+        Path(args.log_dir).mkdir(parents=True, exist_ok=True)
+    ep = args.listen or endpoint(args)
+    check_listen_secure(router_config, [ep], args.insecure)
+    config = _up_config(args, router_config)
     sup = Supervisor(
         config, structured_logger("occvo.serve", "WARNING") if args.quiet else None, role_names=True, quiet=args.quiet
     )
@@ -140,6 +147,11 @@ def run(args) -> int:
         signal.signal(sig, lambda *_: sup.stopping.set())
     emit(args, {"event": "listening", "endpoint": ep}, f"listening on {ep}")
     progress(args, f"starting the inference, registration and map workers; the registration worker {WARM_UP_NOTE}")
+    return _supervise(args, sup, ep)
+
+
+def _supervise(args, sup, ep: str) -> int:
+    """Start the workers, say when they are ready, restart crashed ones until Ctrl-C; the exit code of the stop."""
 
     def ready(role: str, seconds: float) -> None:
         if role == "warm-up":

@@ -676,10 +676,10 @@ def test_crash_with_eviction_resumes_exactly_and_the_map_service_keeps_far_tiles
             _wait_map(ref, N - 1)
             _wait_map(cut, N - 1)
             # the working map stays within the radius (checked when the ego changes half-tile cell)
-            vo = second.states["cut"].vo
+            vo = second.sessions["cut"].vo
             resident = np.array(sorted(vo.resident_tiles(tile_m)))
             assert (tile_distance(resident, got[-1][:2, 3], tile_m) <= radius + tile_m).all()
-            assert set(second.states["cut"].tiles) <= set(map(tuple, resident))
+            assert set(second.sessions["cut"].map.tiles) <= set(map(tuple, resident))
             # the map service holds resident and evicted tiles alike, equal to the uninterrupted stream's
             assert _same_tiles(ref, cut) > len(resident)
             probe.close()
@@ -776,7 +776,8 @@ def test_a_caught_up_frame_whose_commit_fails_publishes_no_pose_and_the_stream_r
         worker = svc.start_registration()
         failed = _disk_full_once(worker.store, "commit_frame", "car", fail_at)
         got = []
-        with OccVOClient(svc.endpoint, "car") as client:
+        # no resends: a slow answer on a busy machine would send the failed frame again (the next test's case)
+        with OccVOClient(svc.endpoint, "car", resend_after=None) as client:
             client.reset()
             for i, f in enumerate(scene):
                 if i != fail_at:
@@ -791,6 +792,59 @@ def test_a_caught_up_frame_whose_commit_fails_publishes_no_pose_and_the_stream_r
         assert worker.stats.snapshot()[0]["resumes"] == 1
         stored = TrajectoryStore(tmp_path / "state.sqlite")
         assert [p.seq for p in stored.poses("car")] == [i for i in range(N) if i != fail_at]
+        stored.close()
+    finally:
+        svc.close()
+
+
+def test_a_failed_frame_resent_before_its_error_arrives_is_registered_once_and_its_pose_is_stored(tmp_path, scene):
+    """The interleaving a busy machine makes: the client, answered nothing for resend_after, sends a frame again while
+    the worker still works on it, and the first copy's commit fails. The failed copy publishes no pose; the resent copy
+    is a new attempt: registered (after the stream resumes from the store), committed, then published. So the pose the
+    client holds for that seq is the stored one, and the stream is an offline run's over every frame."""
+    from occvo_services.client import OccVOClient
+
+    fail_at = N // 2
+    svc = Pipeline(tmp_path / "state.sqlite", kernel_threads=1)
+    try:
+        worker = svc.start_registration()
+        real, failed = worker.store.commit_frame, []
+        resent = threading.Event()
+
+        def fails_once_resent(s, q, *a, **kw):
+            if s == "car" and q == fail_at and not failed:
+                failed.append(q)
+                # the commit fails only once the client's resend reached the worker (made, not hoped for)
+                resent.wait(60)
+                raise sqlite3.OperationalError("database or disk is full")
+            return real(s, q, *a, **kw)
+
+        worker.store.commit_frame = fails_once_resent
+        with OccVOClient(svc.endpoint, "car", resend_after=0.2) as client:
+            client.reset()
+            got = [client.step(f).matrix() for f in scene[:fail_at]]
+            frames_in = worker.stats.snapshot()[0]["frames_in"]
+            client.publish(scene[fail_at])
+            deadline = time.monotonic() + 60
+            while worker.stats.snapshot()[0]["frames_in"] < frames_in + 2 and time.monotonic() < deadline:
+                time.sleep(0.01)  # the original and its resend both reached the worker
+            resent.set()
+            with client._cv:  # both answers: the failed copy's error and the resend's pose
+                assert client._cv.wait_for(
+                    lambda: fail_at in client.poses and any(e.seq == fail_at for e in client.errors), 60
+                )
+            (error,) = [e for e in client.errors if e.seq == fail_at]
+            assert error.code == "internal" and f"seq {fail_at} not stored, pose not published" in error.message
+            pose = client.poses[fail_at]
+            got.append(pose.matrix())
+            got += [client.step(f).matrix() for f in scene[fail_at + 1 :]]
+            assert client.resends >= 1
+        vo = OccVO()
+        want = [vo.step(f).pose for f in scene]
+        assert failed == [fail_at] and np.array_equal(np.array(got), np.array(want))
+        stored = TrajectoryStore(tmp_path / "state.sqlite")
+        assert [p.seq for p in stored.poses("car")] == list(range(N))
+        assert np.array_equal(stored.pose("car", fail_at).pose, pose.matrix())
         stored.close()
     finally:
         svc.close()
@@ -828,14 +882,14 @@ def test_a_closed_loop_publishes_the_odometry_pose_then_the_relocalised_one(tmp_
             cold = {}
             start = loop.gt_poses[0, :2, 3]
             for i in range(FRAMES):
-                vo = worker.states["lap"].vo if i else None
+                vo = worker.sessions["lap"].vo if i else None
                 if cold and np.linalg.norm(loop.gt_poses[i, :2, 3] - start) < 40.0:
                     vo.restore_tiles(cold)  # between frames: the lane has finished the last one (its map is out)
                     cold = {}
                 client.step(loop[i])
                 _wait_map(client, i)
                 if i == EVICT_AT:
-                    cold = inject_drift(worker.states["lap"].vo, drift)
+                    cold = inject_drift(worker.sessions["lap"].vo, drift)
             deadline = time.monotonic() + 10
             while len(heard) < FRAMES + len(closures) and time.monotonic() < deadline:
                 time.sleep(0.05)

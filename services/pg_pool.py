@@ -24,6 +24,9 @@ KEEPALIVE = {
     "keepalives_count": 3,
     "tcp_user_timeout": 10_000,  # ms: data unacknowledged this long (a call in flight) breaks the connection
 }
+# a process stopped inside a transaction (SIGSTOP, a paused VM) would hold its lease row, and so a takeover of its
+# streams, for as long as it stays stopped: the server ends such a session after this long
+IDLE_IN_TRANSACTION_S = 5
 
 
 def _psycopg():
@@ -48,7 +51,13 @@ class PgPool:
 
     def _connect(self):
         try:
-            conn = self.pg.connect(self.url, autocommit=True, connect_timeout=CONNECT_TIMEOUT_S, **KEEPALIVE)
+            conn = self.pg.connect(
+                self.url,
+                autocommit=True,
+                connect_timeout=CONNECT_TIMEOUT_S,
+                options=f"-c idle_in_transaction_session_timeout={IDLE_IN_TRANSACTION_S * 1000}",
+                **KEEPALIVE,
+            )
         except self.pg.OperationalError as exc:
             raise StoreUnavailable(f"{self.label} unreachable: {_first_line(exc)}") from None
         if self.setup:
@@ -96,13 +105,11 @@ class PgPool:
                 reused = reused and attempt == 0
                 try:
                     return fn(conn)
-                except self.pg.OperationalError as exc:
+                except self.pg.Error as exc:
                     if not conn.broken and not conn.closed:
                         raise  # the server answered (disk full, a timeout): its error, as it is
-                    conn.close()
-                    if not reused:
-                        raise StoreUnavailable(f"{self.label} unreachable: {_first_line(exc)}") from None
-                except self.pg.InterfaceError as exc:  # the connection closed under the call
+                    # the connection is gone (server down or restarted, the session ended by the server, a peer
+                    # silent past the keepalives)
                     conn.close()
                     if not reused:
                         raise StoreUnavailable(f"{self.label} unreachable: {_first_line(exc)}") from None

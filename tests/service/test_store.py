@@ -385,6 +385,27 @@ def test_a_store_written_before_the_snapshot_file_keeps_its_snapshot(tmp_path, s
     store.close()
 
 
+def test_a_snapshots_file_from_before_leases_gets_its_epoch_column(tmp_path, scene):
+    path = tmp_path / "s.sqlite"
+    store = TrajectoryStore(path)
+    vo = OccVO()
+    for i in range(3):
+        _commit(store, "car", vo, scene[i], i)
+    packed = pack_arrays(vo.state_dict())
+    store.write_snapshot("car", 2, packed)
+    store.close()
+    db = sqlite3.connect(snapshot_path(path))
+    db.execute("ALTER TABLE snapshots DROP COLUMN epoch")  # as the release before leases wrote it
+    db.commit()
+    db.close()
+    store = TrajectoryStore(path)
+    assert store.snapshot("car") == (2, packed)
+    epoch = store.acquire("car", "w1", 30.0)
+    assert store.write_snapshot("car", 2, packed, epoch=epoch) and store.snapshot("car") == (2, packed)
+    assert store.snap_db.execute("SELECT epoch FROM snapshots").fetchall() == [(epoch,)]
+    store.close()
+
+
 def test_store_refuses_an_unusable_path(tmp_path):
     from occvo_core.errors import ConfigError
 

@@ -238,3 +238,116 @@ def test_a_store_that_cannot_be_reached_at_open_says_which(pg_cluster):
     url = f"postgresql://occvo:pw@127.0.0.1:{free_port()}/occvo"
     with pytest.raises(StoreUnavailable, match=r"trajectory store postgresql://occvo:\*\*\*@127.0.0.1:\d+/occvo "):
         open_store(url)
+
+
+OWNER = """
+import sys, numpy as np
+from occvo_services.store_api import FencedError, open_store
+store = open_store(sys.argv[1])
+epoch = store.acquire("car", "w1", float(sys.argv[2]))
+seq = 0
+while True:
+    try:
+        store.commit_frame("car", seq, float(seq), bytes(16), "ok", np.eye(4), b"f" * 4096, seq == 0, epoch=epoch)
+        print("committed", seq, flush=True)
+        seq += 1
+    except FencedError as exc:
+        print("fenced", exc, flush=True)
+        break
+"""
+
+
+def test_a_paused_owner_writes_nothing_after_its_stream_moved(tmp_path, pg_url):
+    """An owner process stopped (SIGSTOP) past its lease, perhaps inside a commit: another worker takes the stream
+    (the server ends the stopped session's transaction, which held the lease row, so the takeover does not wait for
+    it to wake), and once continued (SIGCONT) the old owner's next commit is refused and nothing of it lands."""
+    import os
+    import signal
+    import subprocess
+    import sys
+
+    ttl = 1.0
+    proc = subprocess.Popen(
+        [sys.executable, "-c", OWNER, pg_url, str(ttl)], stdout=subprocess.PIPE, text=True, cwd=tmp_path
+    )
+    store = open_store(pg_url)
+    try:
+        lines = [proc.stdout.readline() for _ in range(5)]
+        assert all(line.startswith("committed") for line in lines), lines
+        os.kill(proc.pid, signal.SIGSTOP)
+        _wait_expired(store, "car")
+        assert store.acquire("car", "w2", 60.0) == 2
+        taken = (store.record("car").last_seq, [p.seq for p in store.poses("car")])
+        os.kill(proc.pid, signal.SIGCONT)
+        out = proc.communicate(timeout=60)[0].splitlines()
+        assert out[-1].startswith("fenced stream car: write under lease epoch 1 refused") and "epoch 2" in out[-1]
+        assert (store.record("car").last_seq, [p.seq for p in store.poses("car")]) == taken
+        assert taken[1] == list(range(taken[0] + 1))
+    finally:
+        if proc.poll() is None:
+            os.kill(proc.pid, signal.SIGCONT)
+            proc.kill()
+            proc.wait()
+        store.close()
+
+
+def test_a_takeover_does_not_wait_for_a_stopped_transaction_holding_the_lease(pg_url):
+    """What the server sees of an owner stopped inside a commit: a transaction holding the lease row FOR SHARE and
+    saying nothing more. The takeover waits for it at most the server's idle-in-transaction timeout."""
+    import psycopg
+
+    from occvo_services.pg_pool import IDLE_IN_TRANSACTION_S
+
+    store = open_store(pg_url)
+    try:
+        assert store.acquire("car", "w1", 0.2) == 1
+        stopped = psycopg.connect(pg_url, options=f"-c idle_in_transaction_session_timeout={IDLE_IN_TRANSACTION_S}s")
+        stopped.execute("SELECT epoch FROM leases WHERE stream = 'car' FOR SHARE")  # a transaction left open
+        _wait_expired(store, "car")
+        assert store.acquire("car", "w2", 30.0) == 2
+        with pytest.raises(psycopg.errors.IdleInTransactionSessionTimeout):  # its session was ended under it
+            stopped.execute("SELECT 1")
+        stopped.close()
+    finally:
+        store.close()
+
+
+def test_an_owner_paused_inside_its_commit_past_its_lease_is_refused_when_it_wakes(pg_url):
+    """The owner stops right after its commit took the lease row (the pause injected once, as a SIGSTOP would): the
+    server ends its session, another worker takes the stream, and the woken commit, run again on a new connection,
+    is refused; nothing of it lands."""
+    from occvo_services.pg_pool import IDLE_IN_TRANSACTION_S
+
+    w1, w2 = open_store(pg_url), open_store(pg_url)
+    try:
+        e1 = w1.acquire("car", "w1", 0.5)
+        _commit(w1, "car", 0, e1)
+        real, paused = w1._fence, threading.Event()
+
+        def fence_then_pause(conn, stream, epoch):
+            real(conn, stream, epoch)
+            if not paused.is_set():
+                paused.set()
+                time.sleep(IDLE_IN_TRANSACTION_S + 1.0)
+
+        w1._fence = fence_then_pause
+        result = {}
+
+        def owner():
+            try:
+                _commit(w1, "car", 1, e1)
+                result["committed"] = True
+            except FencedError as exc:
+                result["fenced"] = exc
+
+        t = threading.Thread(target=owner)
+        t.start()
+        assert paused.wait(30)
+        _wait_expired(w2, "car")
+        assert w2.acquire("car", "w2", 60.0) == e1 + 1  # waits for the server to end the paused transaction
+        t.join(60)
+        assert isinstance(result.get("fenced"), FencedError) and result["fenced"].current == e1 + 1
+        assert w2.record("car").last_seq == 0 and [p.seq for p in w2.poses("car")] == [0]
+    finally:
+        w1.close()
+        w2.close()

@@ -21,8 +21,8 @@ MAX_STREAMS_KNOWN = 4096  # streams whose owner a worker remembers (ids are the 
 class Placement:
     """Which live worker owns each stream, as this worker sees it (the lease holder, else the least loaded)."""
 
-    def __init__(self, me: str, store, log):
-        self.me, self.store, self.log = me, store, log
+    def __init__(self, me: str, store, lease_s: float, log):
+        self.me, self.store, self.lease_s, self.log = me, store, lease_s, log
         self.live = {me}
         self._owners: dict[str, str] = {}  # stream -> its owner, while that worker lives
         self._lock = threading.Lock()
@@ -45,22 +45,37 @@ class Placement:
             return worker in self.live
 
     def owner(self, stream: str) -> str:
+        """The stream's owner: its lease holder while that worker lives, else the least-loaded live worker, which the
+        first worker to decide records as the lease's owner (every other then reads that decision: no two workers
+        can each leave the stream to the other)."""
         with self._lock:
             owner = self._owners.get(stream)
         if owner is not None:
             return owner
-        holder = self.store.owner_of(stream)
+        for _ in range(3):  # another worker's decision may land between a read and a write: read it then
+            holder = self.store.owner_of(stream)
+            if holder is not None and self.is_live(holder):
+                owner = holder
+                break
+            chosen = self._least_loaded(stream)
+            # a holder that is not live is gone: its lease is taken (a free or expired one reads as no holder)
+            if self.store.acquire(stream, chosen, self.lease_s, take_from=holder) is not None:
+                owner = chosen
+                break
+        else:
+            owner = self.store.owner_of(stream) or self.me
         with self._lock:
-            owner = holder if holder in self.live else self._least_loaded(stream)
             self._owners[stream] = owner
             if len(self._owners) > MAX_STREAMS_KNOWN:  # the oldest looked-up stream is looked up again if it comes
                 del self._owners[next(iter(self._owners))]
         return owner
 
     def _least_loaded(self, stream: str) -> str:
+        with self._lock:
+            live = set(self.live)
         held = collections.Counter(lease.owner for lease in self.store.leases() if lease.remaining_s > 0)
-        fewest = min(held[w] for w in self.live)
-        return keys.owner_of(stream, [w for w in self.live if held[w] == fewest])
+        fewest = min(held[w] for w in live)
+        return keys.owner_of(stream, [w for w in live if held[w] == fewest])
 
     def forget(self, stream: str) -> None:
         """The stream's owner is looked up again at its next frame (this worker lost its lease)."""

@@ -49,7 +49,7 @@ class RegistrationWorker(Worker):
         if config.placement == "members":
             if self.store is None:
                 raise ConfigError('placement "members" needs a store: the workers hand streams over through it')
-            self.placement = Placement(self.worker_id, self.store, self.log)
+            self.placement = Placement(self.worker_id, self.store, config.lease_s, self.log)
             self.leases = Leases(self.store, self.worker_id, config.lease_s, self.placement, self.log)
         self.sessions: dict[str, StreamSession] = {}
         self._sessions_lock = threading.Lock()

@@ -99,6 +99,7 @@ def config_from_args(args) -> OccVOConfig:
 
 
 def run(args) -> int:
+    from occvo_cli.run_record import write_run_record
     from occvo_core.datasets import open_scene
     from occvo_core.errors import ConfigError
     from occvo_core.pipeline import OdometryPipeline
@@ -149,6 +150,7 @@ def run(args) -> int:
     if args.from_images:
         extra["torch_threads"], extra["camera_mask"] = torch.get_num_threads(), predictor.camera_mask
     summary = pipeline.write(args.out, extra)
+    write_run_record(args.out, args, config)
     shown = {k: summary[k] for k in summary if k not in ("skipped_frames",)}
     if args.json:
         print(json.dumps({**shown, "out": str(args.out)}, indent=2, default=float))
@@ -197,8 +199,10 @@ def _text(s: dict, out: Path) -> str:
         ms, warm = s["ms_per_frame_median"], s.get("compile_s", 0.0)
         lines.append(f"{ms:.1f} ms a frame (median); kernel warm-up before the frames {warm:.1f} s")
     lines.append(f"map: {s['map_voxels']} voxels")
+    truth = " groundtruth.kitti groundtruth.tum" if "ape_rmse_m" in s else ""
     lines.append(
-        f"wrote {out}/: trajectory.kitti trajectory.tum map.ply map.npz map_voxels.npz trajectory.png summary.json"
+        f"wrote {out}/: trajectory.kitti trajectory.tum{truth} map.ply map.npz map_voxels.npz trajectory.png "
+        "summary.json run.json"
     )
     return "\n".join(lines)
 

@@ -7,6 +7,7 @@ import json
 import sys
 from pathlib import Path
 
+from occvo_cli.outputs import add_output_flags
 from occvo_core import OccVOConfig
 
 
@@ -74,11 +75,7 @@ def add_parser(sub) -> None:
         help="refine each frame's constant-velocity guess by the semantic BEV motion search "
         "(initialisation.motion_search; default: on with --from-images, else as the config says)",
     )
-    p.add_argument(
-        "--view", action="store_true", help="show the run live in a rerun viewer (pip install 'occvo[view]')"
-    )
-    p.add_argument("--rerun", type=Path, metavar="FILE.rrd", help="save the live view as a rerun recording")
-    p.add_argument("--map-every", type=int, default=5, help="--view/--rerun: log the global map every N frames")
+    add_output_flags(p)
     p.add_argument("--json", action="store_true", help="the summary as JSON on stdout")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=run)
@@ -99,6 +96,7 @@ def config_from_args(args) -> OccVOConfig:
 
 
 def run(args) -> int:
+    from occvo_cli.outputs import open_outputs
     from occvo_cli.run_record import write_run_record
     from occvo_core.datasets import open_scene
     from occvo_core.errors import ConfigError
@@ -139,7 +137,7 @@ def run(args) -> int:
         source = open_scene(args.input, gt=args.gt, scene=args.scene, mask=args.mask)
     config = config_from_args(args)
     extra = {"compile_s": _warm_up(config, args)}
-    view = _open_view(args)
+    view = open_outputs(args)
     pipeline = OdometryPipeline(
         source, config, skip_bad_frames=args.skip_bad_frames, threads=args.threads, progress=not args.quiet
     ).run(on_step=view.step if view else None)
@@ -164,20 +162,6 @@ def run(args) -> int:
         )
         return 1
     return 0
-
-
-def _open_view(args):
-    if not (args.view or args.rerun):
-        return None
-    from occvo_core.errors import ConfigError
-
-    try:
-        from occvo_core.viz.rerun_log import RerunView
-    except ModuleNotFoundError as exc:
-        if exc.name != "rerun":
-            raise
-        raise ConfigError("--view and --rerun need rerun-sdk: pip install 'occvo[view]'") from None
-    return RerunView.open("occvo", spawn=args.view, save=args.rerun, map_every=args.map_every)
 
 
 def _list_scenes(root) -> int:

@@ -38,22 +38,8 @@ def _needs(extra: str, flags: str, exc: ModuleNotFoundError, modules: tuple[str,
     raise ConfigError(f"{flags} needs the {extra} extra: pip install 'occvo[{extra}]'") from None
 
 
-class Outputs:
-    """Several outputs as one: step and finish go to each in turn."""
-
-    def __init__(self, outputs: list):
-        self.outputs = outputs
-
-    def step(self, frame, result, odometry) -> None:
-        for o in self.outputs:
-            o.step(frame, result, odometry)
-
-    def finish(self, odometry) -> None:
-        for o in self.outputs:
-            o.finish(odometry)
-
-
-def open_outputs(args) -> Outputs | None:
+def open_outputs(args):
+    """The outputs asked for as one view (step, finish), or None."""
     outputs = []
     if args.view or args.rerun:
         try:
@@ -73,4 +59,6 @@ def open_outputs(args) -> Outputs | None:
         except ModuleNotFoundError as exc:
             _needs("ros", "--ros2-bag", exc, ("rosbags",))
         outputs.append(Ros2Bag(args.ros2_bag, map_every=args.map_every))
-    return Outputs(outputs) if outputs else None
+    from occvo_core.viz.views import Views
+
+    return Views(outputs) if outputs else None

@@ -26,9 +26,9 @@ def out(tmp_path_factory):
 def _evo(tool: str, *args: str) -> dict:
     """evo's command line (evo_ape / evo_rpe), its statistics table parsed."""
     code = (
-        "import sys\ntry:\n    from evo.cli.entry_points import {0}\nexcept ImportError:  # evo before 1.30\n"
-        "    from evo.entry_points import {0}\nsys.argv[0] = 'evo_{0}'\n{0}()"
-    ).format(tool)
+        f"import sys\ntry:\n    from evo.cli.entry_points import {tool}\nexcept ImportError:  # evo before 1.30\n"
+        f"    from evo.entry_points import {tool}\nsys.argv[0] = 'evo_{tool}'\n{tool}()"
+    )
     done = subprocess.run([sys.executable, "-c", code, *args], capture_output=True, text=True, timeout=300)
     assert done.returncode == 0, done.stderr
     rows = [line.split("\t") for line in done.stdout.splitlines() if "\t" in line]

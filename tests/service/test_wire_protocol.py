@@ -49,8 +49,6 @@ def test_every_message_kind_of_a_live_replay_validates_and_carries_its_encoding(
         watcher = open_session(svc.endpoint)
         try:
             subscriber = watcher.declare_subscriber("occvo/**", lambda s: keep(s.key_expr, s))
-            # a tile query's payload reaches every queryable on its key: one beside the map service's sees it
-            queryable = watcher.declare_queryable(keys.map_tile(STREAM, "*", "*"), lambda q: keep(q.key_expr, q))
             with OccVOClient(svc.endpoint, STREAM) as client:
                 client.wait_for_workers(timeout=30.0)
                 time.sleep(0.5)  # the watcher's subscription reaches the router before the first frame
@@ -71,8 +69,14 @@ def test_every_message_kind_of_a_live_replay_validates_and_carries_its_encoding(
                     for reply in watcher.get(selector, timeout=10.0):
                         assert reply.ok is not None, selector
                         keep(reply.ok.key_expr, reply.ok)
+                # the client asks the map service for a region with a MapTileQuery payload; with the map service
+                # gone, the watcher's queryable is the one left on the key and sees the query as sent
+                svc.worker("map").stop()
+                queryable = watcher.declare_queryable(keys.map_tile(STREAM, "*", "*"), lambda q: keep(q.key_expr, q))
+                time.sleep(0.5)  # the queryable reaches the router
+                client.region()
+                queryable.undeclare()
             subscriber.undeclare()
-            queryable.undeclare()
         finally:
             watcher.close()
 

@@ -27,7 +27,9 @@ def add_parser(sub) -> None:
     p.add_argument(
         "--rpe", action="store_true", help="the relative pose error (translation part) instead of APE, as evo_rpe"
     )
-    p.add_argument("--delta", type=float, default=1, help="--rpe: the distance between the poses compared (default 1)")
+    p.add_argument(
+        "--delta", type=float, default=1.0, help="--rpe: the distance between the poses compared (default 1)"
+    )
     p.add_argument(
         "--delta-unit",
         choices=("f", "m"),

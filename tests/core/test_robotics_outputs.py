@@ -113,3 +113,10 @@ def test_a_bag_folder_that_exists_is_refused_before_the_run(tmp_path, capsys):
         == 2
     )
     assert "already exists" in capsys.readouterr().err
+
+
+def test_a_unix_stamp_keeps_its_microseconds_and_a_scene_clock_its_nanoseconds():
+    from occvo_core.viz.foxglove_log import stamp_ns
+
+    assert stamp_ns(1531883530.449377) == 1531883530_449377000  # nuScenes: microseconds since 1970
+    assert stamp_ns(0.5) == 500_000_000 and stamp_ns(12.000000001) == 12_000_000_001

@@ -75,6 +75,7 @@ def error_line(exc: BaseException) -> str:
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
+    args.argv = sys.argv[1:] if argv is None else list(argv)  # the command as given, for run.json
     try:
         return int(args.func(args) or 0)
     except BrokenPipeError:  # `occvo poses | head`: the reader has what it wanted

@@ -102,6 +102,9 @@ class OdometryPipeline:
         np.savez_compressed(out / "map_voxels.npz", **self.odometry.map.arrays(len(poses)))
         write_ply(out / "map.ply", points, labels)
         gt = self.gt_of_registered()
+        if gt is not None:  # what the estimate is scored against, on the same stamps: evo_ape tum groundtruth.tum ...
+            write_kitti(out / "groundtruth.kitti", gt)
+            write_tum(out / "groundtruth.tum", gt, self.stamps())
         plot_trajectory(out / "trajectory.png", poses, gt, title=self.source.name)
         summary = {**self.summary(), **(extra or {})}
         (out / "summary.json").write_text(json.dumps(summary, indent=2, default=float) + "\n")

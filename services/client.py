@@ -39,6 +39,7 @@ from occvo_schemas.models import (
 )
 from occvo_services.runtime import DEFAULT_ENDPOINT
 from occvo_services.sessions import open_session
+from occvo_services.wire import encoding
 
 
 class ServiceError(RuntimeError):
@@ -102,7 +103,7 @@ class OccVOClient:
             self.session.liveliness().declare_subscriber(keys.alive("inference"), self._on_alive, history=True),
         ]
         self._pub = self.session.declare_publisher(
-            keys.camera(stream), congestion_control=zenoh.CongestionControl.BLOCK
+            keys.camera(stream), encoding=encoding("camera_frame"), congestion_control=zenoh.CongestionControl.BLOCK
         )
         self._closed = threading.Event()
         self._resender = threading.Thread(target=self._resend_loop, name=f"occvo-resend-{stream}", daemon=True)
@@ -253,7 +254,8 @@ class OccVOClient:
             out, errs = [], []
             # the best match: one complete queryable (a map service replica) where there is one, else every match
             target = zenoh.QueryTarget.BEST_MATCHING
-            for reply in self.session.get(selector, payload=payload, timeout=timeout, target=target):
+            tagged = encoding("map_tile_query") if payload is not None else None  # the one query with a payload
+            for reply in self.session.get(selector, payload=payload, encoding=tagged, timeout=timeout, target=target):
                 if reply.ok is not None:
                     out.append(decode(reply.ok.payload.to_bytes(), expect, 1 << 30))
                 else:

@@ -25,6 +25,7 @@ from occvo_schemas import keys
 from occvo_schemas.codec import encode
 from occvo_schemas.models import CameraFrame, OccupancyFrameMsg, SparseOccupancy
 from occvo_services.runtime import Worker, WorkerConfig, log_event, worker_main
+from occvo_services.wire import blocking
 
 
 class InferenceWorker(Worker):
@@ -114,7 +115,7 @@ class InferenceWorker(Worker):
         t_encode = time.perf_counter()
         data = encode(out, self.config.max_message_bytes)
         self.stats.observe("encode", (time.perf_counter() - t_encode) * 1000.0)
-        self.session.put(keys.occupancy(stream), data, congestion_control=zenoh.CongestionControl.BLOCK)
+        self.session.put(keys.occupancy(stream), data, **blocking("occupancy_frame"))
         self.stats.inc("frames_out")
         self.stats.observe("inference", infer_ms)
         self.stats.observe("camera_hop", hop_ms)

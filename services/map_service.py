@@ -19,6 +19,7 @@ from occvo_schemas.models import ErrorEvent, MapTileQuery, MapUpdate
 from occvo_services.map_store import open_map_store
 from occvo_services.runtime import Worker, WorkerConfig, log_event, worker_main
 from occvo_services.store_api import redact
+from occvo_services.wire import encoding
 
 
 class MapService(Worker):
@@ -110,7 +111,7 @@ class MapService(Worker):
         if not replies:
             return self.reply_error(query, stream, "bad_query", f"page {page} of {qkey} is past its last tile")
         for tkey, data in replies:
-            query.reply(tkey, data)
+            query.reply(tkey, data, encoding=encoding("map_tile"))
         if more:  # not an error of anyone's: the querier pages on
             self.stats.inc("query_pages_truncated")
             query.reply_err(
@@ -123,7 +124,8 @@ class MapService(Worker):
                         stamp=time.time(),
                         message=f"{cap} tiles sent (page {page}); ask page {page + 1} for more",
                     )
-                )
+                ),
+                encoding=encoding("error_event"),
             )
         self.stats.observe("tile_query", (time.perf_counter() - t0) * 1000.0)
 
@@ -136,7 +138,7 @@ class MapService(Worker):
         for s in found:
             info = self.store.info(s)
             if info is not None:
-                query.reply(keys.map_info(s), encode(info))
+                query.reply(keys.map_info(s), encode(info), encoding=encoding("map_info"))
 
 
 def _args(p) -> None:

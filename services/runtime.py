@@ -26,6 +26,7 @@ from occvo_services.os_tuning import few_malloc_arenas, large_blocks_from_mmap, 
 from occvo_services.query_gate import QueryGate
 from occvo_services.sessions import open_session
 from occvo_services.telemetry import Stats, log_event, structured_logger
+from occvo_services.wire import blocking, encoding
 from occvo_services.worker_config import DEFAULT_ENDPOINT, Policy, WorkerConfig
 
 __all__ = [  # importers of these names from here predate the split
@@ -291,7 +292,7 @@ class Worker:
                 self.session.put(
                     keys.errors(event.stream if event.stream != "*" else "_"),
                     encode(event),
-                    congestion_control=zenoh.CongestionControl.BLOCK,
+                    **blocking("error_event"),
                 )  # a report is never dropped
             except Exception as exc:  # noqa: BLE001
                 log_event(self.log, "cannot publish error event", logging.ERROR, error=repr(exc))
@@ -321,7 +322,7 @@ class Worker:
 
     def reply_error(self, query: zenoh.Query, stream: str, code: str, message: str) -> None:
         event = self.report_error(stream, code, message, str(query.key_expr))
-        query.reply_err(encode(event))
+        query.reply_err(encode(event), encoding=encoding("error_event"))
 
     def health(self) -> WorkerHealth:
         counters, stages = self.stats.snapshot()
@@ -341,7 +342,7 @@ class Worker:
         return sorted(set(self.lanes) | set(self.trackers))
 
     def _on_stats(self, query: zenoh.Query) -> None:
-        query.reply(keys.stats(self.worker_id), encode(self.health()))
+        query.reply(keys.stats(self.worker_id), encode(self.health()), encoding=encoding("worker_health"))
 
 
 def worker_main(

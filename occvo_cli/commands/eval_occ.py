@@ -17,7 +17,13 @@ def add_parser(sub) -> None:
     p.add_argument("--device", help="cpu or cuda (default: cuda when present)")
     p.add_argument("--threads", type=int, default=1, help="torch CPU threads")
     p.add_argument("--json", action="store_true", help="the metrics as JSON on stdout instead of the table")
-    p.add_argument("--output", type=Path, help="also write the metrics as JSON to this file")
+    p.add_argument(
+        "--out",
+        "--output",
+        dest="out",
+        type=Path,
+        help="also write the metrics as JSON to this file (--output: the old name)",
+    )
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=run)
 
@@ -40,8 +46,8 @@ def run(args) -> int:
     )
     summary = metrics.summary()
     summary.update({"checkpoint": str(args.checkpoint), "seeds": args.seeds})
-    if args.output:
-        args.output.write_text(json.dumps(summary, indent=1))
+    if args.out:
+        args.out.write_text(json.dumps(summary, indent=1))
     if args.json:
         print(json.dumps(summary, indent=1))
         return 0

@@ -7,6 +7,7 @@ import json
 import sys
 from pathlib import Path
 
+from occvo_cli.outputs import add_output_flags
 from occvo_core import OccVOConfig
 
 
@@ -74,11 +75,7 @@ def add_parser(sub) -> None:
         help="refine each frame's constant-velocity guess by the semantic BEV motion search "
         "(initialisation.motion_search; default: on with --from-images, else as the config says)",
     )
-    p.add_argument(
-        "--view", action="store_true", help="show the run live in a rerun viewer (pip install 'occvo[view]')"
-    )
-    p.add_argument("--rerun", type=Path, metavar="FILE.rrd", help="save the live view as a rerun recording")
-    p.add_argument("--map-every", type=int, default=5, help="--view/--rerun: log the global map every N frames")
+    add_output_flags(p)
     p.add_argument("--json", action="store_true", help="the summary as JSON on stdout")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=run)
@@ -99,6 +96,8 @@ def config_from_args(args) -> OccVOConfig:
 
 
 def run(args) -> int:
+    from occvo_cli.outputs import open_outputs
+    from occvo_cli.run_record import write_run_record
     from occvo_core.datasets import open_scene
     from occvo_core.errors import ConfigError
     from occvo_core.pipeline import OdometryPipeline
@@ -138,7 +137,7 @@ def run(args) -> int:
         source = open_scene(args.input, gt=args.gt, scene=args.scene, mask=args.mask)
     config = config_from_args(args)
     extra = {"compile_s": _warm_up(config, args)}
-    view = _open_view(args)
+    view = open_outputs(args)
     pipeline = OdometryPipeline(
         source, config, skip_bad_frames=args.skip_bad_frames, threads=args.threads, progress=not args.quiet
     ).run(on_step=view.step if view else None)
@@ -149,6 +148,7 @@ def run(args) -> int:
     if args.from_images:
         extra["torch_threads"], extra["camera_mask"] = torch.get_num_threads(), predictor.camera_mask
     summary = pipeline.write(args.out, extra)
+    write_run_record(args.out, args, config)
     shown = {k: summary[k] for k in summary if k not in ("skipped_frames",)}
     if args.json:
         print(json.dumps({**shown, "out": str(args.out)}, indent=2, default=float))
@@ -162,20 +162,6 @@ def run(args) -> int:
         )
         return 1
     return 0
-
-
-def _open_view(args):
-    if not (args.view or args.rerun):
-        return None
-    from occvo_core.errors import ConfigError
-
-    try:
-        from occvo_core.viz.rerun_log import RerunView
-    except ModuleNotFoundError as exc:
-        if exc.name != "rerun":
-            raise
-        raise ConfigError("--view and --rerun need rerun-sdk: pip install 'occvo[view]'") from None
-    return RerunView.open("occvo", spawn=args.view, save=args.rerun, map_every=args.map_every)
 
 
 def _list_scenes(root) -> int:
@@ -197,8 +183,10 @@ def _text(s: dict, out: Path) -> str:
         ms, warm = s["ms_per_frame_median"], s.get("compile_s", 0.0)
         lines.append(f"{ms:.1f} ms a frame (median); kernel warm-up before the frames {warm:.1f} s")
     lines.append(f"map: {s['map_voxels']} voxels")
+    truth = " groundtruth.kitti groundtruth.tum" if "ape_rmse_m" in s else ""
     lines.append(
-        f"wrote {out}/: trajectory.kitti trajectory.tum map.ply map.npz map_voxels.npz trajectory.png summary.json"
+        f"wrote {out}/: trajectory.kitti trajectory.tum{truth} map.ply map.npz map_voxels.npz trajectory.png "
+        "summary.json run.json"
     )
     return "\n".join(lines)
 

@@ -117,7 +117,9 @@ def add_parser(subparsers) -> None:
     p.add_argument("--rate", type=float, default=0.0, help="frames per second; 0 = as fast as the pipeline takes")
     p.add_argument("--window", type=int, default=4, help="frames in flight at most (lossless replay)")
     p.add_argument("--frames", type=int, default=None, help="replay only the first N frames")
-    p.add_argument("--timeout", type=float, default=120.0)
+    p.add_argument(
+        "--timeout", type=float, default=120.0, help="seconds to wait for the poses after the last frame (default 120)"
+    )
     p.add_argument(
         "--resend-after",
         type=float,
@@ -125,8 +127,15 @@ def add_parser(subparsers) -> None:
         help="send unanswered frames again after this many seconds without an answer (also when the "
         "registration worker comes back); 0 = never",
     )
-    p.add_argument("--output", help="write the received trajectory (KITTI) here")
-    p.add_argument("--tum", help="write the received trajectory as TUM here, stamped with the frames' stamps")
+    p.add_argument(
+        "--out",
+        "--output",
+        dest="out",
+        help="write the received trajectory here: TUM (stamped with the frames' stamps) when the name ends in .tum "
+        "or with --format tum, else KITTI (--output: the old name)",
+    )
+    p.add_argument("--format", choices=("kitti", "tum"), help="--out's format (default: by its name)")
+    p.add_argument("--tum", metavar="FILE", help="the same as --out FILE --format tum (the old spelling)")
     add_json(p, "the summary")
     p.add_argument("--quiet", action="store_true", help="no progress bar and no error events on stderr")
     p.set_defaults(func=run)
@@ -158,15 +167,7 @@ def run(args) -> int:
                 c, scene, args.rate, args.window, args.frames, args.timeout, progress=lambda i, n: bar.update()
             )
         errors = list(c.errors)
-    if args.output and len(out["trajectory"]):
-        from occvo_core.trajectory import write_kitti
-
-        write_kitti(args.output, out["trajectory"])
-    if args.tum and len(out["trajectory"]):
-        from occvo_core.trajectory import write_tum
-
-        msgs = out["pose_msgs"]
-        write_tum(args.tum, out["trajectory"], np.array([msgs[s].stamp for s in sorted(msgs)]))
+    _write_trajectory(args, out)
     if not args.quiet:
         for e in errors:
             print(f"occvo replay: frame {e.seq}: {e.code}: {e.message}", file=sys.stderr)
@@ -184,3 +185,18 @@ def run(args) -> int:
             "events above or the registration worker's log)"
         )
     return 0
+
+
+def _write_trajectory(args, out: dict) -> None:
+    from occvo_core.trajectory import write_kitti, write_tum
+
+    wanted = [(args.out, args.format or ("tum" if str(args.out).endswith(".tum") else "kitti"))] if args.out else []
+    wanted += [(args.tum, "tum")] if args.tum else []
+    for path, fmt in wanted:
+        if not len(out["trajectory"]):
+            continue
+        if fmt == "tum":
+            msgs = out["pose_msgs"]
+            write_tum(path, out["trajectory"], np.array([msgs[s].stamp for s in sorted(msgs)]))
+        else:
+            write_kitti(path, out["trajectory"])

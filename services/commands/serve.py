@@ -34,7 +34,12 @@ def add_parser(subparsers) -> None:
         "--insecure", action="store_true", help="allow a non-loopback listen endpoint without authentication"
     )
     p.add_argument("--source", choices=["replay", "model"], default="replay", help="inference source")
-    p.add_argument("--device", choices=["auto", "cpu", "cuda"], default="auto")
+    p.add_argument(
+        "--device",
+        choices=["auto", "cpu", "cuda"],
+        default="auto",
+        help="where --source model runs the network (auto: cuda when there is one)",
+    )
     p.add_argument("--checkpoint", help="TPV-Former checkpoint for --source model (occvo train-occ)")
     p.add_argument(
         "--store",
@@ -44,8 +49,13 @@ def add_parser(subparsers) -> None:
         help="the trajectories' and the map's store, a restart resumes from it: a SQLite file (path or sqlite:///path) "
         "or postgresql://user@host/db shared by the workers of many hosts",
     )
-    p.add_argument("--policy", choices=["lossless", "latest"], default="lossless")
-    p.add_argument("--queue-size", type=int, default=4)
+    p.add_argument(
+        "--policy",
+        choices=["lossless", "latest"],
+        default="lossless",
+        help="a full queue: lossless blocks the sender, latest drops the oldest frame (default lossless)",
+    )
+    p.add_argument("--queue-size", type=int, default=4, help="frames each worker holds a stream before its policy acts")
     p.add_argument(
         "--registration-workers",
         type=int,

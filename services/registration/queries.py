@@ -8,6 +8,7 @@ import zenoh
 from occvo_schemas import keys
 from occvo_schemas.codec import encode
 from occvo_schemas.models import Array, Trajectory
+from occvo_services.wire import encoding
 
 
 class Queries:
@@ -38,7 +39,7 @@ class Queries:
         for stream, s in found:
             with s.trajectory.lock:
                 latest = s.trajectory.latest
-            query.reply(keys.pose_latest(stream), encode(latest))
+            query.reply(keys.pose_latest(stream), encode(latest), encoding=encoding("pose_estimate"))
 
     def on_trajectory(self, query: zenoh.Query) -> None:
         found = self._matching(query, keys.trajectory)
@@ -53,4 +54,4 @@ class Queries:
                     stamps=Array.from_numpy(np.array(t.stamps, np.float64)),
                     poses=Array.from_numpy(np.array(t.poses, np.float64).reshape(-1, 4, 4)),
                 )
-            query.reply(keys.trajectory(stream), encode(traj, 1 << 30))
+            query.reply(keys.trajectory(stream), encode(traj, 1 << 30), encoding=encoding("trajectory"))

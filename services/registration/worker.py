@@ -24,6 +24,7 @@ from occvo_services.runtime import Worker, WorkerConfig, worker_main
 from occvo_services.store import TrajectoryStore
 from occvo_services.store_api import redact
 from occvo_services.telemetry import log_event
+from occvo_services.wire import blocking_at
 
 
 class RegistrationWorker(Worker):
@@ -130,7 +131,7 @@ class RegistrationWorker(Worker):
         return sum(1 for lane in list(self.lanes.values()) if lane.busy)
 
     def _put(self, key: str, data: bytes) -> None:
-        self.session.put(key, data, congestion_control=zenoh.CongestionControl.BLOCK)
+        self.session.put(key, data, **blocking_at(key))
 
     # -- lifecycle -----------------------------------------------------------------------------------------------------
     def declare(self) -> None:

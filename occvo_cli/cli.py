@@ -11,7 +11,9 @@ from __future__ import annotations
 import argparse
 import importlib
 import os
+import signal
 import sys
+import threading
 
 from occvo_cli import __version__
 from occvo_cli.commands import COMMANDS
@@ -73,21 +75,62 @@ def error_line(exc: BaseException) -> str:
     return f"{text or type(exc).__name__} ({type(exc).__name__}; --debug shows the traceback)"
 
 
+class _Sigint:
+    """Ctrl-C raises KeyboardInterrupt as Python's own handler does, and is remembered: a KeyboardInterrupt raised
+    inside a compiled (numba) call reaches Python as another error (a SystemError "returned a result with an
+    exception set"), which is then still read as the interrupt it was."""
+
+    received = False
+
+    @classmethod
+    def install(cls):
+        """Returns the handler it replaced (None off the main thread, where signal handlers cannot be set)."""
+        cls.received = False
+        if threading.current_thread() is threading.main_thread():
+            return signal.signal(signal.SIGINT, cls._handle)
+        return None
+
+    @classmethod
+    def _handle(cls, signum, frame):
+        cls.received = True
+        raise KeyboardInterrupt
+
+
+def interrupted(exc: BaseException) -> bool:
+    """Whether exc is a Ctrl-C: a KeyboardInterrupt anywhere in its chain, or any error after a SIGINT arrived."""
+    seen = set()
+    while exc is not None and id(exc) not in seen:
+        if isinstance(exc, KeyboardInterrupt):
+            return True
+        seen.add(id(exc))
+        exc = exc.__cause__ or exc.__context__
+    return _Sigint.received
+
+
 def main(argv: list[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
+    before = _Sigint.install()
+    command, debug = "occvo", "--debug" in (sys.argv[1:] if argv is None else argv)
     try:
+        args = build_parser().parse_args(argv)
+        command, debug = f"occvo {args.command}", args.debug
         return int(args.func(args) or 0)
     except BrokenPipeError:  # `occvo poses | head`: the reader has what it wanted
         os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
         return 0
-    except KeyboardInterrupt:
-        print(f"occvo {args.command}: interrupted", file=sys.stderr)
-        return INTERRUPTED
-    except Exception as exc:  # the one place every error becomes one line and an exit code
-        if args.debug:
+    except (KeyboardInterrupt, Exception) as exc:  # the one place every error becomes one line and an exit code
+        if interrupted(exc):
+            if before is not None:
+                signal.signal(signal.SIGINT, signal.SIG_IGN)  # a second Ctrl-C does not break the one line
+                before = None  # and the process ends with it ignored
+            print(f"{command}: interrupted", file=sys.stderr)
+            return INTERRUPTED
+        if debug:
             raise
-        print(f"occvo {args.command}: error: {error_line(exc)}", file=sys.stderr)
+        print(f"{command}: error: {error_line(exc)}", file=sys.stderr)
         return exit_code(exc)
+    finally:
+        if before is not None:  # main called in a process that goes on (a test): its own handler back
+            signal.signal(signal.SIGINT, before)
 
 
 if __name__ == "__main__":

@@ -139,11 +139,16 @@ def run(args) -> int:
     config = config_from_args(args)
     extra = {"compile_s": _warm_up(config, args)}
     view = _open_view(args)
-    pipeline = OdometryPipeline(
-        source, config, skip_bad_frames=args.skip_bad_frames, threads=args.threads, progress=not args.quiet
-    ).run(on_step=view.step if view else None)
-    if view:
-        view.finish(pipeline.odometry)
+    try:
+        pipeline = OdometryPipeline(
+            source, config, skip_bad_frames=args.skip_bad_frames, threads=args.threads, progress=not args.quiet
+        ).run(on_step=view.step if view else None)
+        if view:
+            view.finish(pipeline.odometry)
+    except BaseException:
+        if view:
+            view.abandon()  # no half-written recording
+        raise
     if args.input is None:
         extra["map_metrics"] = _synthetic_map_metrics(truth, pipeline)
     if args.from_images:
@@ -196,7 +201,7 @@ def _text(s: dict, out: Path) -> str:
     if s.get("ms_per_frame_median") is not None:
         ms, warm = s["ms_per_frame_median"], s.get("compile_s", 0.0)
         lines.append(f"{ms:.1f} ms a frame (median); kernel warm-up before the frames {warm:.1f} s")
-    lines.append(f"map: {s['map_voxels']} voxels")
+    lines.append(f"map: {s['map_voxels']} voxels (the voxel pfilter's persistent ones of {s['live_voxels']} live)")
     lines.append(
         f"wrote {out}/: trajectory.kitti trajectory.tum map.ply map.npz map_voxels.npz trajectory.png summary.json"
     )
@@ -209,11 +214,9 @@ def _warm_up(config: OccVOConfig, args) -> float:
     from occvo_core.warm_up import warm_up
 
     if not args.quiet:
-        print(
-            "occvo run: loading the registration kernels (a first run compiles them, ~40 s on 2 cores)",
-            file=sys.stderr,
-            flush=True,
-        )
+        # one write, line end included: a Ctrl-C between text and newline would put the next line on this one
+        sys.stderr.write("occvo run: loading the registration kernels (a first run compiles them, ~40 s on 2 cores)\n")
+        sys.stderr.flush()
     return float(warm_up(config, threads=args.threads)["seconds"])
 
 

@@ -7,7 +7,6 @@ from typing import Literal
 
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
-from occvo_core.errors import ConfigError
 from occvo_schemas.codec import DEFAULT_MAX_BYTES
 
 DEFAULT_ENDPOINT = "tcp/127.0.0.1:7447"
@@ -98,16 +97,8 @@ class WorkerConfig(BaseModel):
 
     @classmethod
     def load(cls, path: str | Path | None, **overrides) -> WorkerConfig:
-        import json5
+        from occvo_core import config_file
 
-        data = {}
-        if path is not None:
-            try:
-                data = json5.loads(Path(path).read_text())
-            except Exception as exc:  # noqa: BLE001
-                raise ConfigError(f"{path}: {exc}") from None
+        data = config_file.read(path) if path is not None else {}
         data.update({k: v for k, v in overrides.items() if v is not None})
-        try:
-            return cls.model_validate(data)
-        except Exception as exc:  # noqa: BLE001
-            raise ConfigError(f"worker config {path or ''}: {exc}") from None
+        return config_file.validate(cls, data, path or "worker config")

@@ -63,15 +63,20 @@ def _worded() -> tuple[type, ...]:
     """Errors whose message is already the line for the user: occvo's own and the service client's."""
     try:
         from occvo_services.client import ServiceError
+        from occvo_services.sessions import NoRouterError
     except ModuleNotFoundError:
         return (OccVOError,)
-    return OccVOError, ServiceError
+    return OccVOError, ServiceError, NoRouterError
 
 
 def error_line(exc: BaseException) -> str:
     text = (str(exc).strip().splitlines() or [""])[0]
     if isinstance(exc, _worded()):
         return text
+    if type(exc).__module__.split(".")[0] == "zenoh":  # its messages end in a Rust source path
+        from occvo_services.sessions import zenoh_reason
+
+        return f"the connection to the router failed: {zenoh_reason(exc)} (--debug shows the traceback)"
     return f"{text or type(exc).__name__} ({type(exc).__name__}; --debug shows the traceback)"
 
 

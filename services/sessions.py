@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import socket
 from pathlib import Path
 
@@ -53,7 +54,7 @@ def zenoh_config(
     try:
         c = zenoh.Config.from_file(str(base)) if base else zenoh.Config()
     except Exception as exc:  # noqa: BLE001 - zenoh names the key, we name the file
-        raise ConfigError(f"zenoh config {base}: {exc}") from None
+        raise ConfigError(f"zenoh config {base}: {zenoh_reason(exc)}") from None
     c.insert_json5("mode", json.dumps(mode))
     c.insert_json5("scouting/multicast/enabled", "false")
     if connect:
@@ -65,8 +66,31 @@ def zenoh_config(
     return limit_messages(c)
 
 
+class NoRouterError(ConnectionError):
+    """No Zenoh router answers at the endpoint (the message is the line for the user)."""
+
+
+def zenoh_reason(exc: BaseException) -> str:
+    """Zenoh's message for a user: one line, without the Rust source location or the error's struct around it."""
+    text = " ".join(str(exc).split())
+    quoted = re.search(r'msg: "(.*?)", location', text)  # Json5Err(Message { msg: "...", location: ... })
+    text = quoted.group(1) if quoted else text
+    parse = re.match(r"--> (\d+):(\d+) .*?= (.*)", text)  # a json5 parse error drawn as a source excerpt
+    text = f"line {parse.group(1)}, column {parse.group(2)}: {parse.group(3)}" if parse else text
+    return re.sub(r"\s*at /\S+\.rs:\d+\.?", "", text).strip(" .")
+
+
 def open_session(connect: str = DEFAULT_ENDPOINT, base: str | Path | None = None) -> zenoh.Session:
-    return zenoh.open(zenoh_config("client", connect=connect, base=base))
+    """A client session on the router at connect; a malformed endpoint is a ConfigError and no router answering a
+    NoRouterError, each one line."""
+    try:
+        config = zenoh_config("client", connect=connect, base=base)
+    except zenoh.ZError as exc:
+        raise ConfigError(f"{connect} is not a router endpoint: {zenoh_reason(exc)}") from None
+    try:
+        return zenoh.open(config)
+    except zenoh.ZError:
+        raise NoRouterError(f"no router at {connect}: start `occvo serve` or pass --connect") from None
 
 
 def open_router(listen: str | None = None, config_path: str | Path | None = None) -> zenoh.Session:

@@ -30,36 +30,43 @@ def run(args) -> int:
     from occvo_core.errors import ConfigError
 
     try:
-        from occvo_core.viz.follow import StreamFollower
         from occvo_core.viz.rerun_log import RerunView
+        from occvo_services.follow import StreamFollower
     except ModuleNotFoundError as exc:
         if exc.name != "rerun":
             raise
         raise ConfigError("occvo view needs rerun-sdk: pip install 'occvo[view]'") from None
     from occvo_services.sessions import open_session
 
-    view = RerunView.open(
-        f"occvo-{args.stream}", spawn=not (args.rerun or args.web_port), save=args.rerun, web_port=args.web_port
-    )
-    session = open_session(endpoint(args))
+    session = open_session(endpoint(args))  # first: no router, no viewer and no recording
+    try:
+        view = RerunView.open(
+            f"occvo-{args.stream}", spawn=not (args.rerun or args.web_port), save=args.rerun, web_port=args.web_port
+        )
+    except BaseException:
+        session.close()
+        raise
     follower = StreamFollower(session, args.stream, view)
     stop = threading.Event()
     signal.signal(signal.SIGTERM, lambda *_: stop.set())
-    if args.web_port:
-        print(
-            f"web viewer: http://127.0.0.1:{args.web_port}/?url=rerun%2Bhttp%3A%2F%2F127.0.0.1%3A{args.web_port + 1}"
-            "%2Fproxy",
-            flush=True,
-        )
+    ended = False
     try:
+        if args.web_port:
+            print(
+                f"web viewer: http://127.0.0.1:{args.web_port}/?url=rerun%2Bhttp%3A%2F%2F127.0.0.1%3A"
+                f"{args.web_port + 1}%2Fproxy",
+                flush=True,
+            )
         deadline = time.monotonic() + args.seconds if args.seconds > 0 else None
         while not stop.wait(0.2):
             if deadline is not None and time.monotonic() > deadline:
                 break
+        ended = True
     except KeyboardInterrupt:  # Ctrl-C is how a viewer ends: close and print the counts
-        pass
+        ended = True
     finally:
         follower.close()
         session.close()
+        view.close() if ended else view.abandon()  # a recording is kept only when it ended as asked
     print(json.dumps({"stream": args.stream, **follower.counts}))
     return 0

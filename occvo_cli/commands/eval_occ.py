@@ -47,9 +47,9 @@ def run(args) -> int:
         return 0
     width = max(len(k) for k in summary["per_class_iou"])
     for name, iou in summary["per_class_iou"].items():
-        print(f"  {name:<{width}}  {'   n/a' if iou is None else f'{100 * iou:6.2f}'}")
+        print(f"  {name:<{width}}  {'  n/a' if iou is None else f'{iou:.3f}'}")  # fractions, as the docs give them
     print(
-        f"mIoU (17 classes): {100 * summary['miou']:.2f}   geometry IoU: {100 * summary['geometry_iou']:.2f}   "
+        f"mIoU (17 classes): {summary['miou']:.3f}   geometry IoU: {summary['geometry_iou']:.3f}   "
         f"({summary['frames']} frames, seeds {args.seeds}, inside the camera mask)"
     )
     return 0

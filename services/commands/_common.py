@@ -36,8 +36,8 @@ def add_connection(p, stream: bool = True) -> None:
         p.add_argument("--stream", type=stream_id, default="default", help="stream id (default: default)")
 
 
-def add_json(p, what: str = "the result") -> None:
-    p.add_argument("--json", action="store_true", help=f"{what} as JSON on stdout")
+def add_json(p, what: str = "the result", lines: bool = False) -> None:
+    p.add_argument("--json", action="store_true", help=f"{what} as JSON{' lines' if lines else ''} on stdout")
 
 
 def endpoint(args) -> str:

@@ -52,7 +52,7 @@ def add_parser(subparsers) -> None:
         default=300.0,
         help="seconds the workers may take to come up (a first start compiles the kernels)",
     )
-    add_json(p, "the endpoint and events (listening, worker ready, ready, stopped) as JSON lines")
+    add_json(p, "the endpoint and events (listening, worker ready, ready, stopped)", lines=True)
     p.add_argument("--quiet", action="store_true", help="no progress lines and no worker logs on stderr")
     p.set_defaults(func=run)
 

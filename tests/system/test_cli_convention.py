@@ -136,6 +136,10 @@ def test_run_json_is_one_json_document_on_stdout(tmp_path):
     summary = json.loads(proc.stdout)
     assert summary["frames"] == 5 and summary["compile_s"] >= 0 and summary["success"] is True
     assert json.loads((out / "summary.json").read_text())["ms_per_frame_median"] == summary["ms_per_frame_median"]
+    # the map's voxel count is the map a user gets (map.npz: the persistent voxels), of the live ones (map_voxels.npz)
+    assert summary["map_voxels"] == len(np.load(out / "map.npz")["points"])
+    live = np.load(out / "map_voxels.npz")
+    assert summary["live_voxels"] == len(live["points"]) and summary["map_voxels"] == live["persistent"].sum()
 
 
 def test_unreadable_frames_stop_the_run_unless_skipped(files, tmp_path):

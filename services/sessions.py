@@ -24,8 +24,8 @@ def free_port() -> int:
 
 ZENOH_CONFIG_ENV = "OCCVO_ZENOH_CONFIG"  # a zenoh json5 for client sessions: TLS certificates, credentials (deploy/)
 CLIENT_RETRY = "{period_init_ms: 100, period_max_ms: 500, period_increase_factor: 2}"
-# Zenoh reassembles a fragmented message up to this many bytes and drops it beyond (its default, 1 GiB, let a 512 MiB
-# put cost the router and a worker 500 MB before the codec's check). The codec's limit, so every message that reaches
+# Zenoh reassembles a fragmented message up to this many bytes and drops it beyond (its default, 1 GiB, let a huge
+# put cost the router and a worker its size in memory before the codec's check). The codec's limit, so every message that reaches
 # a worker's decode is within it; the registration worker splits bigger map updates (deploy/*.json5 set it too)
 TRANSPORT_MAX_BYTES = DEFAULT_MAX_BYTES
 _ZENOH_DEFAULT_MAX = 1 << 30
@@ -36,7 +36,7 @@ def limit_messages(c: zenoh.Config, max_bytes: int = TRANSPORT_MAX_BYTES) -> zen
 
     With zenoh's shared memory on (its default), every local client that sends more than 3 kB allocates a 16 MiB
     pool, and each process its messages reach (the router, the workers) maps that pool for as long as the client
-    lives: the inference worker stayed +16 MB for each flooding client, given back only when it left. Off, the router
+    lives: the inference worker grew by a pool for each flooding client, given back only when it left. Off, the router
     and workers get their own copy of a message over the socket (a frame's copy costs well under a millisecond)."""
     if json.loads(c.get_json("transport/link/rx/max_message_size")) == _ZENOH_DEFAULT_MAX:
         c.insert_json5("transport/link/rx/max_message_size", str(max_bytes))

@@ -29,7 +29,7 @@ class WorkerConfig(BaseModel):
     idle_stream_s: float = Field(30.0, gt=0)  # a stream without frames this long gives back its lane (and its memory)
     # resident set this worker keeps under (services/memory.py): near it idle streams are evicted and new streams
     # refused (stream_limit). None: no cap. 4 GiB leaves a 24 GiB machine room for the router, the other workers
-    # and a model source; the registration worker's 64 admitted one-frame streams peak at ~1.1 GB
+    # and a model source; the registration worker's admitted streams stay well under it (docs/results.md, Hostile clients)
     max_rss_mb: int | None = Field(4096, ge=64)
     max_seq_jump: int = Field(100_000, ge=1)  # a seq this far beyond the next expected is reported, not adopted
     error_events_per_s: float = Field(20.0, gt=0)  # error events a stream may cause a second (bursts of error_burst)
@@ -81,7 +81,7 @@ class WorkerConfig(BaseModel):
         20, ge=1
     )  # registration: frames between state snapshots at least (a journal covers the rest)
     # registration: snapshots of a stream take at most this share of its time; a big map is snapshotted less often
-    # (a resume replays more journal) instead of stalling every stream (a 10^6-voxel state is ~200 MB, ~1 s to write);
+    # (a resume replays more journal) instead of stalling every stream (a big map's state takes long to write);
     # None: every snapshot_every frames whatever they cost
     snapshot_max_share: float | None = Field(0.02, gt=0, le=1)
     working_radius_m: float | None = Field(None, gt=0)  # registration: map farther from the ego goes to the store

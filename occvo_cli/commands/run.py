@@ -88,7 +88,7 @@ def config_from_args(args) -> OccVOConfig:
     cfg = OccVOConfig.load(args.config) if args.config else OccVOConfig()
     search = getattr(args, "motion_search", None)
     if search is None and getattr(args, "from_images", False):
-        search = True  # camera occupancy needs it to follow turns; it costs 16-21 ms a frame
+        search = True  # camera occupancy needs it to follow turns; it costs time every frame
     if search is not None:
         cfg = cfg.with_motion_search(search)
     return cfg.with_filters(

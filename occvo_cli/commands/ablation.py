@@ -26,6 +26,7 @@ def run(args) -> int:
 
     from occvo_core.ablation import filter_combinations, format_table, run_ablation
     from occvo_core.errors import ConfigError
+    from occvo_core.io import write_text_atomic
 
     map_metrics = None
     if args.seeds:
@@ -48,5 +49,5 @@ def run(args) -> int:
     bar.close()
     print(json.dumps(rows, indent=2, default=float) if args.json else format_table(rows))
     if args.output:
-        args.output.write_text(json.dumps(rows, indent=2, default=float) + "\n")
+        write_text_atomic(args.output, json.dumps(rows, indent=2, default=float) + "\n")
     return 0

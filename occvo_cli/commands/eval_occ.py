@@ -26,6 +26,7 @@ def run(args) -> int:
     import torch
 
     from occvo_core.errors import DatasetError
+    from occvo_core.io import write_text_atomic
     from occvo_core.models.tpvformer import load_checkpoint, select_device, shipped_checkpoint
     from occvo_core.models.train import evaluate
 
@@ -41,7 +42,7 @@ def run(args) -> int:
     summary = metrics.summary()
     summary.update({"checkpoint": str(args.checkpoint), "seeds": args.seeds})
     if args.output:
-        args.output.write_text(json.dumps(summary, indent=1))
+        write_text_atomic(args.output, json.dumps(summary, indent=1))
     if args.json:
         print(json.dumps(summary, indent=1))
         return 0

@@ -90,7 +90,9 @@ def open_session(connect: str = DEFAULT_ENDPOINT, base: str | Path | None = None
     try:
         return zenoh.open(config)
     except zenoh.ZError:
-        raise NoRouterError(f"no router at {connect}: start `occvo serve` or pass --connect") from None
+        base = base or os.environ.get(ZENOH_CONFIG_ENV)
+        refused = f" (or it refused the session of {base}: check its certificates or credentials)" if base else ""
+        raise NoRouterError(f"no router at {connect}{refused}: start `occvo serve` or pass --connect") from None
 
 
 def open_router(listen: str | None = None, config_path: str | Path | None = None) -> zenoh.Session:

@@ -98,6 +98,11 @@ class _Sigint:
     @classmethod
     def _handle(cls, signum, frame):
         cls.received = True
+        if frame is not None and f"{os.sep}llvmlite{os.sep}" in frame.f_code.co_filename:
+            # a callback from compiled code (numba's cache) would print the interrupt and swallow it: the signal is
+            # sent again once the callback has returned
+            threading.Timer(0.05, os.kill, (os.getpid(), signal.SIGINT)).start()
+            return
         raise KeyboardInterrupt
 
 

@@ -63,3 +63,30 @@ def test_ctrl_c_leaves_no_partial_recording(tmp_path):
     assert code == 130, err
     assert _not_progress(err) == ["occvo run: interrupted"], err
     assert not list(tmp_path.glob("run.rrd*"))
+
+
+CALLBACK = """
+import os, signal, time
+from occvo_cli.cli import _Sigint
+_Sigint.install()
+# code whose frame is in llvmlite, as numba's object-cache callback from compiled code is: a KeyboardInterrupt
+# raised there would be printed and swallowed by ctypes
+inside = compile("os.kill(os.getpid(), signal.SIGINT)\\nfor _ in range(1000): pass\\nreached = True", os.path.join(os.sep, "x", "llvmlite", "callback.py"), "exec")
+scope = {"os": os, "signal": signal}
+exec(inside, scope)
+print("callback ran to its end:", scope.get("reached"), flush=True)
+try:
+    for _ in range(600):
+        time.sleep(0.05)
+    print("no interrupt after the callback", flush=True)
+except KeyboardInterrupt:
+    print("interrupted after the callback:", _Sigint.received, flush=True)
+"""
+
+
+def test_ctrl_c_inside_a_compiled_codes_callback_arrives_after_it():
+    proc = subprocess.run([sys.executable, "-c", CALLBACK], capture_output=True, text=True, env=ENV, timeout=120)
+    assert proc.stdout.splitlines() == ["callback ran to its end: True", "interrupted after the callback: True"], (
+        proc.stdout + proc.stderr
+    )
+    assert proc.stderr == ""

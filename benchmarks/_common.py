@@ -50,6 +50,10 @@ def stage_medians(timings: list[dict[str, float]]) -> dict[str, float]:
 def _text(v) -> str:
     if isinstance(v, float):
         return f"{v:.4g}"
+    if isinstance(v, list) and v and all(isinstance(x, list) for x in v):  # samples by run: their sizes
+        return "; ".join(_text(x) for x in v)
+    if isinstance(v, list) and len(v) > 12 and all(isinstance(x, (int, float)) for x in v):
+        return f"{len(v)} values, median {_text(float(np.median(v)))}"
     if isinstance(v, list) and all(isinstance(x, (int, float)) for x in v):
         return ", ".join(_text(x) for x in v)
     return json.dumps(v, default=float) if isinstance(v, (dict, list)) else str(v)

@@ -85,7 +85,8 @@ def _unknown(model: type[BaseModel], section_loc: tuple, keys: list[str]) -> str
         close = difflib.get_close_matches(key, allowed, n=1)
         home = None if close else _home(model, key)
         if close or home:
-            hints.append(f"{key}: did you mean {close[0]}?" if close else f"{key} belongs in {home}")
+            hint = f"did you mean {close[0]}?" if close else f"it belongs in {home}"
+            hints.append(hint if len(keys) == 1 else f"{key}: {hint}")
     prefix = ".".join(str(k) for k in section_loc)
     names = ", ".join(f"{prefix}.{k}" if prefix else k for k in keys)
     hint = "; ".join(hints) + "; " if hints else ""
@@ -111,7 +112,7 @@ def _problem(model: type[BaseModel], error: dict) -> str:
 
 def validation_line(model: type[BaseModel], exc: ValidationError) -> str:
     """Every error of exc, '; '-joined, unknown keys of a section together:
-    `gicp.souce_pick: unknown key (souce_pick: did you mean source_pick?; allowed: wide_voxel_m, ...)`."""
+    `gicp.souce_pick: unknown key (did you mean source_pick?; allowed: wide_voxel_m, ...)`."""
     unknown: dict[tuple, list[str]] = {}
     problems = []
     for e in exc.errors():

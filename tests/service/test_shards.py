@@ -171,5 +171,5 @@ def test_a_worker_config_typo_names_the_key_and_what_is_allowed(tmp_path):
     with pytest.raises(ConfigError) as caught:
         WorkerConfig.load(path)
     line = str(caught.value)
-    assert "querue_size: unknown key (querue_size: did you mean queue_size?" in line
+    assert "querue_size: unknown key (did you mean queue_size?" in line
     assert "policy: 'newest' is not allowed: input should be 'lossless' or 'latest'" in line

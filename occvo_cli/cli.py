@@ -14,6 +14,7 @@ import os
 import signal
 import sys
 import threading
+import weakref
 
 from occvo_cli import __version__
 from occvo_cli.commands import COMMANDS
@@ -117,6 +118,17 @@ def interrupted(exc: BaseException) -> bool:
     return _Sigint.received
 
 
+def _end_progress_bars() -> None:
+    """A progress bar left open ends its line first, so the error's line is a line of its own."""
+    tqdm = sys.modules.get("tqdm")
+    for bar in list(getattr(getattr(tqdm, "tqdm", None), "_instances", ())):
+        bar = bar() if isinstance(bar, weakref.ref) else bar  # tqdm keeps its bars as weak references
+        try:
+            bar.close()
+        except Exception:  # noqa: BLE001 - a bar that cannot close leaves its line as it is
+            pass
+
+
 def main(argv: list[str] | None = None) -> int:
     before = _Sigint.install()
     command, debug = "occvo", "--debug" in (sys.argv[1:] if argv is None else argv)
@@ -128,6 +140,7 @@ def main(argv: list[str] | None = None) -> int:
         os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
         return 0
     except (KeyboardInterrupt, Exception) as exc:  # the one place every error becomes one line and an exit code
+        _end_progress_bars()
         if interrupted(exc):
             if before is not None:
                 signal.signal(signal.SIGINT, signal.SIG_IGN)  # a second Ctrl-C does not break the one line

@@ -57,6 +57,25 @@ def test_ctrl_c_exits_130_with_one_line(moment, tmp_path):
     assert (out / "summary.json").read_text() == "an earlier run's\n"
 
 
+def test_ctrl_c_ends_another_commands_progress_bar_before_its_line(tmp_path):
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "occvo_cli", "ablation", "--seeds", "0", "1"],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        env=ENV,
+    )
+    seen = b""
+    while b"ablation:" not in seen:  # the bar is up
+        chunk = os.read(proc.stderr.fileno(), 4096)
+        assert chunk, seen.decode(errors="replace")
+        seen += chunk
+    proc.send_signal(signal.SIGINT)
+    _, rest = proc.communicate(timeout=600)
+    err = (seen + rest).decode(errors="replace")
+    assert proc.returncode == 130, err
+    assert err.endswith("\noccvo ablation: interrupted\n"), err  # on a line of its own, after the bar's
+
+
 def test_ctrl_c_leaves_no_partial_recording(tmp_path):
     pytest.importorskip("rerun")
     code, err = _interrupt_when(FRAMES, tmp_path / "out", "--rerun", str(tmp_path / "run.rrd"))

@@ -87,11 +87,12 @@ class _Sigint:
     exception set"), which is then still read as the interrupt it was."""
 
     received = False
+    deferred = False  # received inside a callback from compiled code and sent again, not yet raised
 
     @classmethod
     def install(cls):
         """Returns the handler it replaced (None off the main thread, where signal handlers cannot be set)."""
-        cls.received = False
+        cls.received = cls.deferred = False
         if threading.current_thread() is threading.main_thread():
             return signal.signal(signal.SIGINT, cls._handle)
         return None
@@ -99,10 +100,13 @@ class _Sigint:
     @classmethod
     def _handle(cls, signum, frame):
         cls.received = True
-        if frame is not None and f"{os.sep}llvmlite{os.sep}" in frame.f_code.co_filename:
+        cls.deferred = frame is not None and f"{os.sep}llvmlite{os.sep}" in frame.f_code.co_filename
+        if cls.deferred:
             # a callback from compiled code (numba's cache) would print the interrupt and swallow it: the signal is
             # sent again once the callback has returned
-            threading.Timer(0.05, os.kill, (os.getpid(), signal.SIGINT)).start()
+            again = threading.Timer(0.05, os.kill, (os.getpid(), signal.SIGINT))
+            again.daemon = True
+            again.start()
             return
         raise KeyboardInterrupt
 
@@ -135,7 +139,10 @@ def main(argv: list[str] | None = None) -> int:
     try:
         args = build_parser().parse_args(argv)
         command, debug = f"occvo {args.command}", args.debug
-        return int(args.func(args) or 0)
+        code = int(args.func(args) or 0)
+        if _Sigint.deferred:  # the command ended before the Ctrl-C it got could be raised
+            raise KeyboardInterrupt
+        return code
     except BrokenPipeError:  # `occvo poses | head`: the reader has what it wanted
         os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
         return 0
@@ -144,7 +151,6 @@ def main(argv: list[str] | None = None) -> int:
         if interrupted(exc):
             if before is not None:
                 signal.signal(signal.SIGINT, signal.SIG_IGN)  # a second Ctrl-C does not break the one line
-                before = None  # and the process ends with it ignored
             print(f"{command}: interrupted", file=sys.stderr)
             return INTERRUPTED
         if debug:
@@ -152,8 +158,10 @@ def main(argv: list[str] | None = None) -> int:
         print(f"{command}: error: {error_line(exc)}", file=sys.stderr)
         return exit_code(exc)
     finally:
-        if before is not None:  # main called in a process that goes on (a test): its own handler back
-            signal.signal(signal.SIGINT, before)
+        if before is not None:
+            # a process that ends with main: a Ctrl-C from now on comes after the work is done (and must not turn
+            # its exit into a traceback); main called in a process that goes on (a test): its own handler back
+            signal.signal(signal.SIGINT, signal.SIG_IGN if argv is None else before)
 
 
 if __name__ == "__main__":

@@ -117,7 +117,7 @@ class StreamLane:
             self.after.thread.join()
             self.after = None
         while not self.worker.stopping.is_set():
-            try:  # blocks: a stop puts None, an idle stream's lane ends (no polling: 500 idle lanes cost 16% of a core)
+            try:  # blocks: a stop puts None, an idle stream's lane ends (no polling: idle lanes would cost a core's share)
                 item = self.queue.get(timeout=self.worker.config.idle_stream_s)
             except queue.Empty:
                 if self.worker.retire_lane(self):

@@ -84,7 +84,7 @@ class MapService(Worker):
                 return self.reply_error(query, stream, exc.code, f"tile query payload: {exc.message}")
         tile = keys.tile_of(str(qkey))
         replies = []
-        # a region or wildcard gets max_query_tiles tiles a page (a 60-byte get on occvo/** returned 107 MB); the
+        # a region or wildcard gets max_query_tiles tiles a page (a tiny get on occvo/** returned every tile); the
         # tiles are in (stream, ix, iy) order and MapTileQuery.page asks for the next ones
         cap = self.config.max_query_tiles
         page = bounds.page if bounds is not None else 0

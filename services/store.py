@@ -121,8 +121,8 @@ class TrajectoryStore(SqliteLeases, SnapshotFile):
         self.path, self.snapshot_path = str(path), snapshot_path(path)
         self.synchronous = synchronous
         self.db = connect(self.path, synchronous, busy_timeout_s, SCHEMA)
-        # 64 kB pages for the snapshots' file: a 50 MB snapshot written in 4 kB pages cost 170 ms of CPU (SQLite's
-        # work per page and WAL frame), in 64 kB pages 60 ms; a file made with other pages keeps them
+        # 64 kB pages for the snapshots' file: SQLite works per page and WAL frame, so a snapshot in 4 kB pages costs
+        # several times the CPU; a file made with other pages keeps them
         self.snap_db = connect(self.snapshot_path, synchronous, busy_timeout_s, SNAPSHOT_SCHEMA, page_size=65536)
         self.lock, self.snap_lock = threading.Lock(), threading.Lock()
         self._writer_nice = os.getpriority(os.PRIO_PROCESS, 0)  # the opening thread's: _write_lock holds writers at it
@@ -136,7 +136,7 @@ class TrajectoryStore(SqliteLeases, SnapshotFile):
         if self.path != ":memory:":
             # the frames' WAL is copied into the file by a thread of its own, not by the commit that crosses SQLite's
             # autocheckpoint threshold: that commit held the store's lock, and every stream's commit behind it, for
-            # the copy and its fsync (70 to 200 ms beside a snapshot's flush, eight streams)
+            # the copy and its fsync (long beside a snapshot's flush with many streams)
             self.db.execute("PRAGMA wal_autocheckpoint=0")
             self._stop = threading.Event()
             self._checkpointer = threading.Thread(
@@ -185,8 +185,8 @@ class TrajectoryStore(SqliteLeases, SnapshotFile):
     def _write_lock(self, phases: dict | None = None):
         """The store's write lock, held at the priority of the thread that opened the store (the lanes'): a niced
         after-pose thread or snapshot writer holding it must not keep the lanes' commits waiting while other work
-        takes the cores (priority ceiling; without it, on a shared host, 70% of the time of commits over 100 ms
-        went to waiting for this lock)."""
+        takes the cores (priority ceiling; without it, on a shared host, most of a slow commit's time went to waiting for
+        this lock)."""
         t0 = time.perf_counter()
         with self.lock:
             if phases is not None:

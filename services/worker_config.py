@@ -7,7 +7,6 @@ from typing import Literal
 
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
-from occvo_core.errors import ConfigError
 from occvo_schemas.codec import DEFAULT_MAX_BYTES
 
 DEFAULT_ENDPOINT = "tcp/127.0.0.1:7447"
@@ -30,7 +29,7 @@ class WorkerConfig(BaseModel):
     idle_stream_s: float = Field(30.0, gt=0)  # a stream without frames this long gives back its lane (and its memory)
     # resident set this worker keeps under (services/memory.py): near it idle streams are evicted and new streams
     # refused (stream_limit). None: no cap. 4 GiB leaves a 24 GiB machine room for the router, the other workers
-    # and a model source; the registration worker's 64 admitted one-frame streams peak at ~1.1 GB
+    # and a model source; the registration worker's admitted streams stay well under it (docs/results.md, Hostile clients)
     max_rss_mb: int | None = Field(4096, ge=64)
     max_seq_jump: int = Field(100_000, ge=1)  # a seq this far beyond the next expected is reported, not adopted
     error_events_per_s: float = Field(20.0, gt=0)  # error events a stream may cause a second (bursts of error_burst)
@@ -89,7 +88,7 @@ class WorkerConfig(BaseModel):
         20, ge=1
     )  # registration: frames between state snapshots at least (a journal covers the rest)
     # registration: snapshots of a stream take at most this share of its time; a big map is snapshotted less often
-    # (a resume replays more journal) instead of stalling every stream (a 10^6-voxel state is ~200 MB, ~1 s to write);
+    # (a resume replays more journal) instead of stalling every stream (a big map's state takes long to write);
     # None: every snapshot_every frames whatever they cost
     snapshot_max_share: float | None = Field(0.02, gt=0, le=1)
     working_radius_m: float | None = Field(None, gt=0)  # registration: map farther from the ego goes to the store
@@ -113,16 +112,8 @@ class WorkerConfig(BaseModel):
 
     @classmethod
     def load(cls, path: str | Path | None, **overrides) -> WorkerConfig:
-        import json5
+        from occvo_core import config_file
 
-        data = {}
-        if path is not None:
-            try:
-                data = json5.loads(Path(path).read_text())
-            except Exception as exc:  # noqa: BLE001
-                raise ConfigError(f"{path}: {exc}") from None
+        data = config_file.read(path) if path is not None else {}
         data.update({k: v for k, v in overrides.items() if v is not None})
-        try:
-            return cls.model_validate(data)
-        except Exception as exc:  # noqa: BLE001
-            raise ConfigError(f"worker config {path or ''}: {exc}") from None
+        return config_file.validate(cls, data, path or "worker config")

@@ -32,6 +32,7 @@ def run(args) -> int:
 
     from occvo_core.ablation import filter_combinations, format_table, run_ablation
     from occvo_core.errors import ConfigError
+    from occvo_core.io import write_text_atomic
 
     map_metrics = None
     if args.seeds:
@@ -54,5 +55,5 @@ def run(args) -> int:
     bar.close()
     print(json.dumps(rows, indent=2, default=float) if args.json else format_table(rows))
     if args.out:
-        args.out.write_text(json.dumps(rows, indent=2, default=float) + "\n")
+        write_text_atomic(args.out, json.dumps(rows, indent=2, default=float) + "\n")
     return 0

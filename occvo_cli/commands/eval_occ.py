@@ -32,6 +32,7 @@ def run(args) -> int:
     import torch
 
     from occvo_core.errors import DatasetError
+    from occvo_core.io import write_text_atomic
     from occvo_core.models.tpvformer import load_checkpoint, select_device, shipped_checkpoint
     from occvo_core.models.train import evaluate
 
@@ -47,15 +48,15 @@ def run(args) -> int:
     summary = metrics.summary()
     summary.update({"checkpoint": str(args.checkpoint), "seeds": args.seeds})
     if args.out:
-        args.out.write_text(json.dumps(summary, indent=1))
+        write_text_atomic(args.out, json.dumps(summary, indent=1))
     if args.json:
         print(json.dumps(summary, indent=1))
         return 0
     width = max(len(k) for k in summary["per_class_iou"])
     for name, iou in summary["per_class_iou"].items():
-        print(f"  {name:<{width}}  {'   n/a' if iou is None else f'{100 * iou:6.2f}'}")
+        print(f"  {name:<{width}}  {'  n/a' if iou is None else f'{iou:.3f}'}")  # fractions, as the docs give them
     print(
-        f"mIoU (17 classes): {100 * summary['miou']:.2f}   geometry IoU: {100 * summary['geometry_iou']:.2f}   "
+        f"mIoU (17 classes): {summary['miou']:.3f}   geometry IoU: {summary['geometry_iou']:.3f}   "
         f"({summary['frames']} frames, seeds {args.seeds}, inside the camera mask)"
     )
     return 0

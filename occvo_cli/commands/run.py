@@ -85,7 +85,7 @@ def config_from_args(args) -> OccVOConfig:
     cfg = OccVOConfig.load(args.config) if args.config else OccVOConfig()
     search = getattr(args, "motion_search", None)
     if search is None and getattr(args, "from_images", False):
-        search = True  # camera occupancy needs it to follow turns; it costs 16-21 ms a frame
+        search = True  # camera occupancy needs it to follow turns; it costs time every frame
     if search is not None:
         cfg = cfg.with_motion_search(search)
     return cfg.with_filters(
@@ -138,11 +138,16 @@ def run(args) -> int:
     config = config_from_args(args)
     extra = {"compile_s": _warm_up(config, args)}
     view = open_outputs(args)
-    pipeline = OdometryPipeline(
-        source, config, skip_bad_frames=args.skip_bad_frames, threads=args.threads, progress=not args.quiet
-    ).run(on_step=view.step if view else None)
-    if view:
-        view.finish(pipeline.odometry)
+    try:
+        pipeline = OdometryPipeline(
+            source, config, skip_bad_frames=args.skip_bad_frames, threads=args.threads, progress=not args.quiet
+        ).run(on_step=view.step if view else None)
+        if view:
+            view.finish(pipeline.odometry)
+    except BaseException:
+        if view:
+            view.abandon()  # no half-written recording
+        raise
     if args.input is None:
         extra["map_metrics"] = _synthetic_map_metrics(truth, pipeline)
     if args.from_images:
@@ -182,7 +187,7 @@ def _text(s: dict, out: Path) -> str:
     if s.get("ms_per_frame_median") is not None:
         ms, warm = s["ms_per_frame_median"], s.get("compile_s", 0.0)
         lines.append(f"{ms:.1f} ms a frame (median); kernel warm-up before the frames {warm:.1f} s")
-    lines.append(f"map: {s['map_voxels']} voxels")
+    lines.append(f"map: {s['map_voxels']} voxels (the voxel pfilter's persistent ones of {s['live_voxels']} live)")
     truth = " groundtruth.kitti groundtruth.tum" if "ape_rmse_m" in s else ""
     lines.append(
         f"wrote {out}/: trajectory.kitti trajectory.tum{truth} map.ply map.npz map_voxels.npz trajectory.png "
@@ -197,11 +202,9 @@ def _warm_up(config: OccVOConfig, args) -> float:
     from occvo_core.warm_up import warm_up
 
     if not args.quiet:
-        print(
-            "occvo run: loading the registration kernels (a first run compiles them, ~40 s on 2 cores)",
-            file=sys.stderr,
-            flush=True,
-        )
+        # one write, line end included: a Ctrl-C between text and newline would put the next line on this one
+        sys.stderr.write("occvo run: loading the registration kernels (a first run compiles them, ~40 s on 2 cores)\n")
+        sys.stderr.flush()
     return float(warm_up(config, threads=args.threads)["seconds"])
 
 

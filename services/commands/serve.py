@@ -69,7 +69,7 @@ def add_parser(subparsers) -> None:
         default=300.0,
         help="seconds the workers may take to come up (a first start compiles the kernels)",
     )
-    add_json(p, "the endpoint and events (listening, worker ready, ready, stopped) as JSON lines")
+    add_json(p, "the endpoint and events (listening, worker ready, ready, stopped)", lines=True)
     p.add_argument("--quiet", action="store_true", help="no progress lines and no worker logs on stderr")
     p.set_defaults(func=run)
 
@@ -86,10 +86,19 @@ def _worker_config(args, name: str) -> str:
 def _wait_alive(sup, timeout: float) -> None:
     """Until every worker's liveliness token is up (a fresh install compiles kernels first), restarting crashes."""
     from occvo_schemas import keys
-    from occvo_services.sessions import open_session
+    from occvo_services.sessions import NoRouterError, open_session
 
     roles = {"inference", "registration", "map"}
-    probe = open_session(sup.endpoint)
+    try:
+        probe = open_session(sup.endpoint)
+    except NoRouterError:
+        router = sup.router.proc if sup.router is not None else None
+        if router is None or router.poll() is None:
+            raise
+        raise ServiceError(
+            f"the router could not listen on {sup.endpoint} (exit code {router.returncode}; is the port taken by "
+            "another program?): give another --listen"
+        ) from None
     try:
         deadline = time.monotonic() + timeout
         while not sup.stopping.is_set():

@@ -41,39 +41,47 @@ def add_parser(subparsers) -> None:
 
 
 def run(args) -> int:
-    from occvo_core.viz.follow import StreamFollower
     from occvo_core.viz.views import Views
+    from occvo_services.follow import StreamFollower
     from occvo_services.sessions import open_session
 
     foxglove = args.mcap is not None or args.foxglove is not None
+    session = open_session(endpoint(args))  # first: no router, no viewer and no recording
     views = []
-    if args.rerun or args.web_port or not foxglove:
-        views.append(_rerun_view(args))
-    if foxglove:
-        views.append(_foxglove_view(args))
+    try:
+        if args.rerun or args.web_port or not foxglove:
+            views.append(_rerun_view(args))
+        if foxglove:
+            views.append(_foxglove_view(args))
+    except BaseException:
+        Views(views).abandon()
+        session.close()
+        raise
     view = Views(views)
-    session = open_session(endpoint(args))
     follower = StreamFollower(session, args.stream, view)
     stop = threading.Event()
     signal.signal(signal.SIGTERM, lambda *_: stop.set())
-    if args.web_port:
-        print(
-            f"web viewer: http://127.0.0.1:{args.web_port}/?url=rerun%2Bhttp%3A%2F%2F127.0.0.1%3A{args.web_port + 1}"
-            "%2Fproxy",
-            flush=True,
-        )
-    if args.foxglove is not None:  # Foxglove: Open connection, Foxglove WebSocket, this URL
-        print(f"foxglove: ws://127.0.0.1:{views[-1].port}", flush=True)
+    ended = False
     try:
+        if args.web_port:
+            print(
+                f"web viewer: http://127.0.0.1:{args.web_port}/?url=rerun%2Bhttp%3A%2F%2F127.0.0.1%3A"
+                f"{args.web_port + 1}%2Fproxy",
+                flush=True,
+            )
+        if args.foxglove is not None:  # Foxglove: Open connection, Foxglove WebSocket, this URL
+            print(f"foxglove: ws://127.0.0.1:{views[-1].port}", flush=True)
         deadline = time.monotonic() + args.seconds if args.seconds > 0 else None
         while not stop.wait(0.2):
             if deadline is not None and time.monotonic() > deadline:
                 break
+        ended = True
     except KeyboardInterrupt:  # Ctrl-C is how a viewer ends: close and print the counts
-        pass
+        ended = True
     finally:
         follower.close()
         session.close()
+        view.close() if ended else view.abandon()  # a recording is kept only when it ended as asked
     print(json.dumps({"stream": args.stream, **follower.counts}))
     return 0
 

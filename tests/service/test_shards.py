@@ -160,3 +160,16 @@ def test_a_stream_moves_to_its_new_shard_through_the_store(tmp_path, scene, unin
             if not w.stopping.is_set():
                 w.stop()
         router.close()
+
+
+def test_a_worker_config_typo_names_the_key_and_what_is_allowed(tmp_path):
+    from occvo_core.errors import ConfigError
+    from occvo_services.worker_config import WorkerConfig
+
+    path = tmp_path / "worker.json5"
+    path.write_text("{querue_size: 3, policy: 'newest'}")
+    with pytest.raises(ConfigError) as caught:
+        WorkerConfig.load(path)
+    line = str(caught.value)
+    assert "querue_size: unknown key (did you mean queue_size?" in line
+    assert "policy: 'newest' is not allowed: input should be 'lossless' or 'latest'" in line

@@ -76,6 +76,6 @@ class StreamFollower:
             self.counts["tiles"] += len(u.tiles)
 
     def close(self) -> None:
+        """Stop following (the view is its owner's to close)."""
         for s in self._subs:
             s.undeclare()
-        self.view.close()

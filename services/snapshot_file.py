@@ -100,42 +100,9 @@ class SnapshotFile:
         in_place = hasattr(sqlite3.Connection, "blobopen")
         if isinstance(state, dict) and not in_place:
             state = pack_arrays(state)
-        head, items, size = layout(state) if isinstance(state, dict) else (state, [], len(state))
-
-        def snap_tx(db):
-            if epoch is not None:
-                held = db.execute("SELECT epoch FROM snapshots WHERE stream=?", (stream,)).fetchone()
-                if held is not None and held[0] is not None and held[0] > epoch:
-                    raise FencedError(stream, epoch, held[0])
-            if in_place:
-                rowid = db.execute(
-                    "INSERT OR REPLACE INTO snapshots (stream, created, seq, state, epoch) VALUES (?, ?, ?, zeroblob(?), ?)",
-                    (stream, created, seq, size, epoch),
-                ).lastrowid
-                with db.blobopen("snapshots", "state", rowid) as blob:
-                    for chunk in chunks(head, items):
-                        blob.write(chunk)
-            else:
-                db.execute(
-                    "INSERT OR REPLACE INTO snapshots (stream, created, seq, state, epoch) VALUES (?, ?, ?, ?, ?)",
-                    (stream, created, seq, state, epoch),
-                )
-
         with self.snap_lock:
-            transaction(self.snap_db, snap_tx)
-
-        def tx(db):  # only if the trajectory is still the one snapshotted
-            fence(db, stream, epoch)
-            if db.execute("SELECT created FROM streams WHERE stream=?", (stream,)).fetchone() != (created,):
-                return False
-            db.execute("DELETE FROM journal WHERE stream=? AND seq<=?", (stream, seq))
-            db.execute(
-                "DELETE FROM cold_tiles WHERE stream=? AND restored_seq IS NOT NULL AND restored_seq<=?", (stream, seq)
-            )
-            db.execute("UPDATE streams SET snapshot_seq=? WHERE stream=?", (seq, stream))
-            return True
-
-        return self._write_unsynced(tx)  # lost in a power cut, the rows go with the next snapshot
+            transaction(self.snap_db, lambda db: _write_row(db, stream, created, seq, epoch, state, in_place))
+        return self._write_unsynced(lambda db: _covered(db, stream, seq, created, epoch))  # a power cut: next one's
 
     def drop_old_snapshots(self, stream: str, *, epoch: int | None = None) -> int:
         """Delete the stream's snapshot of a trajectory it no longer has (a reset started another): never read again,
@@ -168,3 +135,37 @@ class SnapshotFile:
         ):
             return None
         return int(rows[0][1]), rows[0][2]
+
+
+def _write_row(db, stream: str, created: float, seq: int, epoch: int | None, state, in_place: bool) -> None:
+    """The snapshot's row, unless one of a later epoch is there; arrays written into the row in place."""
+    if epoch is not None:
+        held = db.execute("SELECT epoch FROM snapshots WHERE stream=?", (stream,)).fetchone()
+        if held is not None and held[0] is not None and held[0] > epoch:
+            raise FencedError(stream, epoch, held[0])
+    if not in_place:
+        db.execute(
+            "INSERT OR REPLACE INTO snapshots (stream, created, seq, state, epoch) VALUES (?, ?, ?, ?, ?)",
+            (stream, created, seq, state, epoch),
+        )
+        return
+    head, items, size = layout(state) if isinstance(state, dict) else (state, [], len(state))
+    rowid = db.execute(
+        "INSERT OR REPLACE INTO snapshots (stream, created, seq, state, epoch) VALUES (?, ?, ?, zeroblob(?), ?)",
+        (stream, created, seq, size, epoch),
+    ).lastrowid
+    with db.blobopen("snapshots", "state", rowid) as blob:
+        for chunk in chunks(head, items):
+            blob.write(chunk)
+
+
+def _covered(db, stream: str, seq: int, created: float, epoch: int | None) -> bool:
+    """In the frames' file, fenced: the journal and restored cold rows the snapshot covers go, if the trajectory is
+    still the one snapshotted."""
+    fence(db, stream, epoch)
+    if db.execute("SELECT created FROM streams WHERE stream=?", (stream,)).fetchone() != (created,):
+        return False
+    db.execute("DELETE FROM journal WHERE stream=? AND seq<=?", (stream, seq))
+    db.execute("DELETE FROM cold_tiles WHERE stream=? AND restored_seq IS NOT NULL AND restored_seq<=?", (stream, seq))
+    db.execute("UPDATE streams SET snapshot_seq=? WHERE stream=?", (seq, stream))
+    return True

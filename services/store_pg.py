@@ -18,9 +18,10 @@ import numpy as np
 
 from occvo_core.frame import OccupancyFrame
 from occvo_services.array_pack import chunks, layout, pack_arrays
+from occvo_services.pg_leases import PgLeases
 from occvo_services.pg_pool import PgPool
 from occvo_services.store import StoredPose, StreamRecord, _pose
-from occvo_services.store_api import FencedError, Lease, StoreUnavailable
+from occvo_services.store_api import FencedError, StoreUnavailable
 from occvo_services.store_blobs import unpack_frame
 
 # blobs are stored as they are (STORAGE EXTERNAL): compressing a frame or a snapshot costs CPU in the commit's path
@@ -80,7 +81,7 @@ def _field(data: bytes) -> bytes:
     return struct.pack("!i", len(data)) + data
 
 
-class PgTrajectoryStore:
+class PgTrajectoryStore(PgLeases):
     """TrajectoryStore's methods (services/store_api.Store) on a PostgreSQL database, by URL."""
 
     def __init__(self, url: str, synchronous: str = "FULL", pool_size: int = 4):
@@ -93,65 +94,6 @@ class PgTrajectoryStore:
 
     def _read(self, sql: str, args=(), binary: bool = False) -> list:
         return self.pool.run(lambda conn: conn.execute(sql, args, binary=binary).fetchall())
-
-    # -- leases
-    def acquire(self, stream: str, owner: str, ttl_s: float, take_from: str | None = None) -> int | None:
-        """The stream's lease for `owner` for ttl_s: its epoch, or None while another owner holds it. Taking it
-        from another owner (expired, released, or `take_from`: one known lost) moves the epoch on; the same owner
-        keeps its epoch."""
-        rows = self.pool.run(
-            lambda conn: conn.execute(
-                "INSERT INTO leases AS l VALUES (%s, %s, 1, now() + make_interval(secs => %s)) "
-                "ON CONFLICT (stream) DO UPDATE SET epoch = l.epoch + (l.owner IS DISTINCT FROM excluded.owner)::int, "
-                "owner = excluded.owner, expires_at = excluded.expires_at "
-                "WHERE l.owner = excluded.owner OR l.expires_at <= now() OR l.owner = %s RETURNING epoch",
-                (stream, owner, float(ttl_s), take_from),
-            ).fetchall()
-        )
-        return int(rows[0][0]) if rows else None
-
-    def renew(self, owner: str, ttl_s: float) -> list[str]:
-        """Extends every unexpired lease of `owner` by ttl_s from now; the streams it still holds."""
-        rows = self.pool.run(
-            lambda conn: conn.execute(
-                "UPDATE leases SET expires_at = now() + make_interval(secs => %s) "
-                "WHERE owner = %s AND expires_at > now() RETURNING stream",
-                (float(ttl_s), owner),
-            ).fetchall()
-        )
-        return sorted(r[0] for r in rows)
-
-    def release(self, stream: str, owner: str) -> bool:
-        """Gives the stream's lease up (the next owner moves the epoch on); False if `owner` did not hold it."""
-        return self.pool.run(
-            lambda conn: (
-                conn.execute(
-                    "UPDATE leases SET owner = NULL, expires_at = now() WHERE stream = %s AND owner = %s",
-                    (stream, owner),
-                ).rowcount
-                > 0
-            )
-        )
-
-    def owner_of(self, stream: str) -> str | None:
-        """The owner holding the stream's lease now (None: free, released or expired)."""
-        rows = self._read("SELECT owner FROM leases WHERE stream = %s AND expires_at > now()", (stream,))
-        return rows[0][0] if rows else None
-
-    def leases(self) -> list[Lease]:
-        rows = self._read(
-            "SELECT stream, owner, epoch, EXTRACT(EPOCH FROM expires_at - now()) FROM leases ORDER BY stream"
-        )
-        return [Lease(s, o, int(e), float(r)) for s, o, e, r in rows]
-
-    @staticmethod
-    def _fence(conn, stream: str, epoch: int | None) -> None:
-        """Inside a write's transaction: the lease row locked against a takeover until it commits."""
-        if epoch is None:
-            return
-        row = conn.execute("SELECT epoch, owner FROM leases WHERE stream = %s FOR SHARE", (stream,)).fetchone()
-        if row is None or int(row[0]) != epoch:
-            raise FencedError(stream, epoch, None if row is None else int(row[0]), None if row is None else row[1])
 
     # -- streams and poses
     def streams(self) -> list[str]:
@@ -308,43 +250,47 @@ class PgTrajectoryStore:
             + struct.pack("!i", size)
         )
 
-        def snap_tx(conn):
-            with conn.transaction():
-                # one snapshot writer a stream at a time (the row is deleted and copied in again)
-                conn.execute("SELECT pg_advisory_xact_lock(54, hashtext(%s))", (stream,))
-                if epoch is not None:  # a lease already lost: no need to write megabytes first
-                    row = conn.execute("SELECT epoch FROM leases WHERE stream = %s", (stream,)).fetchone()
-                    if row is None or int(row[0]) != epoch:
-                        raise FencedError(stream, epoch, None if row is None else int(row[0]))
-                    held = conn.execute("SELECT epoch FROM snapshots WHERE stream = %s", (stream,)).fetchone()
-                    if held is not None and held[0] is not None and int(held[0]) > epoch:
-                        raise FencedError(stream, epoch, int(held[0]))
-                conn.execute("DELETE FROM snapshots WHERE stream = %s", (stream,))
-                with conn.cursor().copy(
-                    "COPY snapshots (stream, created, seq, epoch, state) FROM STDIN (FORMAT BINARY)"
-                ) as copy:
-                    copy.write(_COPY_HEAD + row_head)
-                    for chunk in chunks(head, items) if items else (head,):
-                        copy.write(chunk)
-                    copy.write(struct.pack("!h", -1))
+        self.pool.run(lambda conn: self._copy_snapshot(conn, stream, epoch, row_head, head, items))
+        return self.pool.run(lambda conn: self._snapshot_covers(conn, stream, seq, created, epoch))
 
-        def tx(conn):
-            with conn.transaction():
-                conn.execute("SET LOCAL synchronous_commit = off")  # lost in a crash: the next snapshot does it
-                self._fence(conn, stream, epoch)
-                row = conn.execute("SELECT created FROM streams WHERE stream = %s FOR UPDATE", (stream,)).fetchone()
-                if row is None or row[0] != created:
-                    return False
-                conn.execute("DELETE FROM journal WHERE stream = %s AND seq <= %s", (stream, seq))
-                conn.execute(
-                    "DELETE FROM cold_tiles WHERE stream = %s AND restored_seq IS NOT NULL AND restored_seq <= %s",
-                    (stream, seq),
-                )
-                conn.execute("UPDATE streams SET snapshot_seq = %s WHERE stream = %s", (seq, stream))
-                return True
+    @staticmethod
+    def _copy_snapshot(conn, stream: str, epoch: int | None, row_head: bytes, head: bytes, items: list) -> None:
+        """The first transaction: the snapshot row streamed in, unless the lease or a later snapshot fences it."""
+        with conn.transaction():
+            # one snapshot writer a stream at a time (the row is deleted and copied in again)
+            conn.execute("SELECT pg_advisory_xact_lock(54, hashtext(%s))", (stream,))
+            if epoch is not None:  # a lease already lost: no need to write megabytes first
+                row = conn.execute("SELECT epoch FROM leases WHERE stream = %s", (stream,)).fetchone()
+                if row is None or int(row[0]) != epoch:
+                    raise FencedError(stream, epoch, None if row is None else int(row[0]))
+                held = conn.execute("SELECT epoch FROM snapshots WHERE stream = %s", (stream,)).fetchone()
+                if held is not None and held[0] is not None and int(held[0]) > epoch:
+                    raise FencedError(stream, epoch, int(held[0]))
+            conn.execute("DELETE FROM snapshots WHERE stream = %s", (stream,))
+            with conn.cursor().copy(
+                "COPY snapshots (stream, created, seq, epoch, state) FROM STDIN (FORMAT BINARY)"
+            ) as copy:
+                copy.write(_COPY_HEAD + row_head)
+                for chunk in chunks(head, items) if items else (head,):
+                    copy.write(chunk)
+                copy.write(struct.pack("!h", -1))
 
-        self.pool.run(snap_tx)
-        return self.pool.run(tx)
+    def _snapshot_covers(self, conn, stream: str, seq: int, created: float, epoch: int | None) -> bool:
+        """The second, fenced: the journal and restored cold rows the snapshot covers deleted, if the trajectory is
+        still the one snapshotted."""
+        with conn.transaction():
+            conn.execute("SET LOCAL synchronous_commit = off")  # lost in a crash: the next snapshot does it
+            self._fence(conn, stream, epoch)
+            row = conn.execute("SELECT created FROM streams WHERE stream = %s FOR UPDATE", (stream,)).fetchone()
+            if row is None or row[0] != created:
+                return False
+            conn.execute("DELETE FROM journal WHERE stream = %s AND seq <= %s", (stream, seq))
+            conn.execute(
+                "DELETE FROM cold_tiles WHERE stream = %s AND restored_seq IS NOT NULL AND restored_seq <= %s",
+                (stream, seq),
+            )
+            conn.execute("UPDATE streams SET snapshot_seq = %s WHERE stream = %s", (seq, stream))
+            return True
 
     def drop_old_snapshots(self, stream: str, *, epoch: int | None = None) -> int:
         """Deletes the stream's snapshot of a trajectory it no longer has; the rows deleted."""

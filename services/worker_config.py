@@ -11,6 +11,8 @@ from occvo_schemas.codec import DEFAULT_MAX_BYTES
 
 DEFAULT_ENDPOINT = "tcp/127.0.0.1:7447"
 Policy = Literal["lossless", "latest"]
+# placement "members": snapshots often enough that a moved stream's resume replays a short journal
+MEMBERS_SNAPSHOT_EVERY, MEMBERS_SNAPSHOT_SHARE = 5, 0.2
 
 
 class WorkerConfig(BaseModel):
@@ -102,6 +104,17 @@ class WorkerConfig(BaseModel):
             raise ValueError(f"store_url {self.store_url!r} and store_path {self.store_path!r} name two stores")
         # assigned through __dict__: validate_assignment is off, and a model_copy must not re-run this
         self.__dict__["store_url"] = self.__dict__["store_path"] = self.store_url or self.store_path
+        return self
+
+    @model_validator(mode="after")
+    def _members_snapshot_often(self) -> WorkerConfig:
+        """Placement "members": a moved stream's next owner replays its journal since the last snapshot, so unless
+        set, snapshots come every MEMBERS_SNAPSHOT_EVERY frames within MEMBERS_SNAPSHOT_SHARE of a stream's time."""
+        if self.placement == "members":
+            if "snapshot_every" not in self.model_fields_set:
+                self.__dict__["snapshot_every"] = MEMBERS_SNAPSHOT_EVERY
+            if "snapshot_max_share" not in self.model_fields_set:
+                self.__dict__["snapshot_max_share"] = MEMBERS_SNAPSHOT_SHARE
         return self
 
     @model_validator(mode="after")

@@ -123,7 +123,8 @@ def interrupted(exc: BaseException) -> bool:
 
 
 def _end_progress_bars() -> None:
-    """A progress bar left open ends its line first, so the error's line is a line of its own."""
+    """A progress bar left open ends its line first, so the error's line is a line of its own (a bar interrupted
+    while it was being made is not among tqdm's bars yet: the line it left is ended too)."""
     tqdm = sys.modules.get("tqdm")
     for bar in list(getattr(getattr(tqdm, "tqdm", None), "_instances", ())):
         bar = bar() if isinstance(bar, weakref.ref) else bar  # tqdm keeps its bars as weak references
@@ -131,11 +132,31 @@ def _end_progress_bars() -> None:
             bar.close()
         except Exception:  # noqa: BLE001 - a bar that cannot close leaves its line as it is
             pass
+    if isinstance(sys.stderr, _LineEnds) and not sys.stderr.at_line_start:
+        sys.stderr.write("\n")
+
+
+class _LineEnds:
+    """stderr that knows whether its last write ended a line."""
+
+    def __init__(self, stream):
+        self._stream, self.at_line_start = stream, True
+
+    def write(self, text: str) -> int:
+        if text:
+            self.at_line_start = text.endswith("\n")
+        return self._stream.write(text)
+
+    def __getattr__(self, name: str):
+        return getattr(self._stream, name)
 
 
 def main(argv: list[str] | None = None) -> int:
     before = _Sigint.install()
     command, debug = "occvo", "--debug" in (sys.argv[1:] if argv is None else argv)
+    stderr = sys.stderr
+    if not isinstance(stderr, _LineEnds):
+        sys.stderr = _LineEnds(stderr)
     try:
         args = build_parser().parse_args(argv)
         args.argv = sys.argv[1:] if argv is None else list(argv)  # the command as given, for run.json
@@ -159,6 +180,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"{command}: error: {error_line(exc)}", file=sys.stderr)
         return exit_code(exc)
     finally:
+        sys.stderr = stderr
         if before is not None:
             # a process that ends with main: a Ctrl-C from now on comes after the work is done (and must not turn
             # its exit into a traceback); main called in a process that goes on (a test): its own handler back

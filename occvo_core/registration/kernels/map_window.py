@@ -6,6 +6,7 @@ import numpy as np
 from numba import njit, prange
 
 from occvo_core.registration.kernels import CACHE, CHUNKS
+from occvo_core.registration.kernels.turns import turn_before
 from occvo_core.registration.voxel_pfilter import p_index as voxel_p_index
 
 
@@ -87,8 +88,8 @@ def window_voxels(keys, alive, f, t0, pos, label, n, lower, upper, t):
 @njit(cache=CACHE, nogil=True, parallel=True)
 def ego_points(idx, rows, map_pos, map_cov, rot, trans, origin, dims, voxel, pad):
     """Map voxels rows[idx] moved into the frame of the pose (rot, trans): positions R^T (p - t), covariances
-    R^T C R, and the dense grid of their cells in the box origin..origin + dims (a later voxel in the same cell
-    wins), with pad empty cells on every side."""
+    R^T C R, and the dense grid of their cells in the box origin..origin + dims (of two voxels in one cell, the
+    first in turn_before's order), with pad empty cells on every side."""
     n = idx.shape[0]
     pos = np.empty((n, 3))
     cov = np.empty((n, 3, 3))
@@ -112,9 +113,12 @@ def ego_points(idx, rows, map_pos, map_cov, rot, trans, origin, dims, voxel, pad
         k = int(np.floor(pos[a, 2] / voxel)) - origin[2]
         inside = 0 <= i < dims[0] and 0 <= j < dims[1] and 0 <= k < dims[2]
         cell_of[a] = _padded_cell(i, j, k, dims, pad) if inside else -1
-    for a in range(n):  # in order: a later voxel in the same cell wins
-        if cell_of[a] >= 0:
-            grid[cell_of[a]] = a
+    for a in range(n):  # two voxels in one cell: turn_before's first wins (row order turns with the frames)
+        c = cell_of[a]
+        if c >= 0:
+            b = grid[c]
+            if b < 0 or turn_before(pos[a, 0], pos[a, 1], pos[a, 2], pos[b, 0], pos[b, 1], pos[b, 2]):
+                grid[c] = a
     return pos, cov, grid
 
 

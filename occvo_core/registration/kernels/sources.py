@@ -6,6 +6,7 @@ import numpy as np
 from numba import njit
 
 from occvo_core.registration.kernels import CACHE
+from occvo_core.registration.kernels.turns import turn_canonical_cell
 
 
 @njit(cache=CACHE, nogil=True, inline="always")
@@ -24,23 +25,10 @@ def _source_block(ijk, n, f, shape):
 
 
 @njit(cache=CACHE, nogil=True, inline="always")
-def _turn_canonical(i, j, shape):
-    """The smallest x-y cell index among the cell and its turns about the grid's centre by 90, 180 and 270 degrees
-    (180 only on a grid that is not square): the same number for a cell and its turned copy."""
-    ni, nj = shape[0], shape[1]
-    best = i * nj + j
-    best = min(best, (ni - 1 - i) * nj + (nj - 1 - j))
-    if ni == nj:
-        best = min(best, (nj - 1 - j) * nj + i)  # turned 90 degrees: (x, y) -> (-y, x)
-        best = min(best, j * nj + (ni - 1 - i))
-    return best
-
-
-@njit(cache=CACHE, nogil=True, inline="always")
 def _cell_hash(ijk, n, shape):
     """A fixed pseudo-random number of point n's grid cell (splitmix64 of its index, the index taken up to turns about
     z): picks by it favour no direction, and a turned frame picks the same voxels."""
-    cell = _turn_canonical(ijk[n, 0], ijk[n, 1], shape) * shape[2] + ijk[n, 2]
+    cell = turn_canonical_cell(ijk[n, 0], ijk[n, 1], shape) * shape[2] + ijk[n, 2]
     z = np.uint64(cell) + np.uint64(0x9E3779B97F4A7C15)
     z = (z ^ (z >> np.uint64(30))) * np.uint64(0xBF58476D1CE4E5B9)
     z = (z ^ (z >> np.uint64(27))) * np.uint64(0x94D049BB133111EB)

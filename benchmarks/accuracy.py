@@ -28,6 +28,7 @@ import argparse
 import contextlib
 import io
 import json
+import os
 import sys
 import tempfile
 from concurrent.futures import ProcessPoolExecutor
@@ -68,8 +69,9 @@ def synthetic(seed: int, cache: Path) -> tuple[list, np.ndarray, tuple]:
         points, labels = scene.static_map()
         sizes = np.array([len(f.labels) for f in frames])
         cache.mkdir(parents=True, exist_ok=True)
+        tmp = path.with_suffix(f".{os.getpid()}.tmp.npz")  # two processes may render one seed at once
         np.savez(
-            path.with_suffix(".tmp.npz"),
+            tmp,
             sizes=sizes,
             points=np.concatenate([f.points for f in frames]),
             labels=np.concatenate([f.labels for f in frames]),
@@ -77,7 +79,7 @@ def synthetic(seed: int, cache: Path) -> tuple[list, np.ndarray, tuple]:
             map_points=points,
             map_labels=labels,
         )
-        path.with_suffix(".tmp.npz").rename(path)
+        os.replace(tmp, path)
     z = np.load(path)
     cut = np.cumsum(z["sizes"])[:-1]
     frames = [
@@ -146,6 +148,10 @@ def score_variant(frames: list, gt: np.ndarray, config: OccVOConfig) -> dict:
         "time_offset_ms": e["time_offset_ms"],
         "path_ratio": path_length(est) / path_length(np.linalg.inv(gt[0]) @ gt),
     }
+
+
+def render(seed: int, cache: str) -> None:
+    synthetic(seed, Path(cache))
 
 
 def score(frames: list, gt: np.ndarray, config: OccVOConfig, truth_map=None) -> dict:
@@ -275,6 +281,11 @@ def main(argv=None) -> int:
     ]
     results: dict = {c: {} for c in args.config}
     with ProcessPoolExecutor(args.jobs) as pool:
+        seeds = sorted(
+            {key for _, kind, key, _ in jobs if kind in SETS}
+            | {key[0] for _, kind, key, _ in jobs if kind == "dihedral" and not isinstance(key[0], str)}
+        )
+        list(pool.map(render, seeds, [args.cache] * len(seeds)))  # each seed once, before the runs that share it
         for spec, kind, key, row in pool.map(job, jobs):
             results[spec].setdefault(kind, {})[key] = row
     report = {}

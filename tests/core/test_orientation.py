@@ -193,3 +193,19 @@ def test_synthetic_frame_pair_turned_gives_the_same_relative_pose():
 
     scene = SyntheticScene(seed=3, frames=8)
     _assert_same_relative_pose([scene[5], scene[6]])
+
+
+@pytest.mark.parametrize("margin_m", [0.0, 3.3, 4.0])
+def test_ego_grid_and_its_pooled_grids_are_symmetric_about_the_ego(margin_m):
+    """The ego map's box and the coarse and wide pooled boxes must reach as far to -x as to +x (and in y): a cell
+    more on one side holds map a turned frame does not see."""
+    from occvo_core.registration.local_map import EGO_LOWER, EGO_UPPER, _coarser_box, _ego_box, window_margin
+
+    margin = window_margin(margin_m)
+    origin, dims = _ego_box(EGO_LOWER - margin, EGO_UPPER + margin, 0.4)
+    boxes = [(origin, dims, 0.4)]
+    for coarse in (1.2, 2.4):
+        boxes.append((*_coarser_box(*boxes[-1], coarse), coarse))
+    for o, d, voxel in boxes:
+        assert np.array_equal(o[:2], -(o[:2] + d[:2])), (voxel, o, d)
+        assert o[0] * voxel <= EGO_LOWER[0] - margin[0] + 1e-9

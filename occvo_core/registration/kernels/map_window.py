@@ -166,8 +166,18 @@ def pool_voxels(pos, cov, labels, usable, weight, votes_in, voxel, origin, dims,
     out_lab = np.empty(n_out, np.uint8)
     weighted = weight.shape[0] > 0
     pooled_votes = votes_in.shape[0] > 0
-    # a cell sums its points in point order: the same sums on any number of threads
+    # a cell sums its points in turn_before's order: the same sums on any number of threads, and in a turned frame
+    # the same numbers in the same order (in point order, rounding would part two exactly equal distances)
     for s in prange(n_out):
+        for q in range(start[s] + 1, start[s + 1]):  # insertion sort: a cell holds a few points
+            n = order[q]
+            r = q - 1
+            while r >= start[s] and turn_before(
+                pos[n, 0], pos[n, 1], pos[n, 2], pos[order[r], 0], pos[order[r], 1], pos[order[r], 2]
+            ):
+                order[r + 1] = order[r]
+                r -= 1
+            order[r + 1] = n
         for q in range(start[s], start[s + 1]):
             n = order[q]
             w = weight[n] if weighted else 1.0

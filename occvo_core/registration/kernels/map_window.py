@@ -6,7 +6,7 @@ import numpy as np
 from numba import njit, prange
 
 from occvo_core.registration.kernels import CACHE, CHUNKS
-from occvo_core.registration.kernels.turns import turn_before
+from occvo_core.registration.kernels.turns import canonical_xy, turn_before
 from occvo_core.registration.voxel_pfilter import p_index as voxel_p_index
 
 
@@ -168,14 +168,25 @@ def pool_voxels(pos, cov, labels, usable, weight, votes_in, voxel, origin, dims,
     pooled_votes = votes_in.shape[0] > 0
     # a cell sums its points in turn_before's order: the same sums on any number of threads, and in a turned frame
     # the same numbers in the same order (in point order, rounding would part two exactly equal distances)
+    key = np.empty((n_pts, 2))
+    for n in prange(n_pts):
+        if slot[n] >= 0:
+            key[n, 0], key[n, 1] = canonical_xy(pos[n, 0], pos[n, 1])
     for s in prange(n_out):
         for q in range(start[s] + 1, start[s + 1]):  # insertion sort: a cell holds a few points
             n = order[q]
             r = q - 1
-            while r >= start[s] and turn_before(
-                pos[n, 0], pos[n, 1], pos[n, 2], pos[order[r], 0], pos[order[r], 1], pos[order[r], 2]
-            ):
-                order[r + 1] = order[r]
+            while r >= start[s]:
+                m = order[r]
+                if not (
+                    key[n, 0] < key[m, 0]
+                    or (
+                        key[n, 0] == key[m, 0]
+                        and (key[n, 1] < key[m, 1] or (key[n, 1] == key[m, 1] and pos[n, 2] < pos[m, 2]))
+                    )
+                ):
+                    break
+                order[r + 1] = m
                 r -= 1
             order[r + 1] = n
         for q in range(start[s], start[s + 1]):

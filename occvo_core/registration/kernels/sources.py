@@ -17,11 +17,11 @@ def _block_offset(size, f):
 
 
 @njit(cache=CACHE, nogil=True, inline="always")
-def _source_block(ijk, n, f, shape):
-    """(block of point n among the f^3 blocks of the grid, block parity); x and y blocks edge on the grid's centre."""
-    oi, oj = _block_offset(shape[0], f), _block_offset(shape[1], f)
+def _source_block(ijk, n, f, oi, oj, nj, nk):
+    """(block of point n among the f^3 blocks of the grid, block parity); x and y blocks shifted by oi and oj
+    (_block_offset), nj and nk blocks along y and z."""
     bi, bj, bk = (ijk[n, 0] + oi) // f, (ijk[n, 1] + oj) // f, ijk[n, 2] // f
-    return (bi * ((shape[1] + oj + f - 1) // f) + bj) * ((shape[2] + f - 1) // f) + bk, (bi + bj + bk) % 2
+    return (bi * nj + bj) * nk + bk, (bi + bj + bk) % 2
 
 
 @njit(cache=CACHE, nogil=True, inline="always")
@@ -39,16 +39,14 @@ def _cell_hash(ijk, n, shape):
 def _pick_blocks(ijk, ground, on, f, shape, pick, h, chosen):
     """Mark in `chosen` the source of every f^3 block, among all points (on 0), those off the ground (1) or on it
     (2); pick and h as thin_sources'."""
-    nb = (
-        ((shape[0] + _block_offset(shape[0], f) + f - 1) // f)
-        * ((shape[1] + _block_offset(shape[1], f) + f - 1) // f)
-        * ((shape[2] + f - 1) // f)
-    )
+    oi, oj = _block_offset(shape[0], f), _block_offset(shape[1], f)
+    nj, nk = (shape[1] + oj + f - 1) // f, (shape[2] + f - 1) // f
+    nb = ((shape[0] + oi + f - 1) // f) * nj * nk
     picks = np.full(nb, -1, np.int64)
     for n in range(ijk.shape[0]):
         if (on == 1 and ground[n]) or (on == 2 and not ground[n]):
             continue
-        b, odd = _source_block(ijk, n, f, shape)
+        b, odd = _source_block(ijk, n, f, oi, oj, nj, nk)
         p = picks[b]
         if p < 0 or (pick == 1 and odd == 1) or (pick == 2 and h[n] < h[p]):
             picks[b] = n

@@ -23,7 +23,7 @@ def turn_canonical_cell(i, j, shape):
 
 
 @njit(cache=CACHE, nogil=True, inline="always")
-def _canonical_xy(x, y):
+def canonical_xy(x, y):
     """The lexicographically smallest of (x, y) turned about the origin by 0, 90, 180 and 270 degrees (negation is
     exact, so a turned point gives the same pair bit for bit)."""
     bx, by = x, y
@@ -36,9 +36,10 @@ def _canonical_xy(x, y):
 @njit(cache=CACHE, nogil=True, inline="always")
 def turn_before(ax, ay, az, bx, by, bz):
     """Whether point a precedes point b in an order that turning both about the z axis through the origin by a
-    multiple of 90 degrees keeps (a tie-break; distinct points that are not turned copies of each other never tie)."""
-    pax, pay = _canonical_xy(ax, ay)
-    pbx, pby = _canonical_xy(bx, by)
+    multiple of 90 degrees keeps: canonical_xy, then z (a tie-break; distinct points that are not turned copies of
+    each other never tie)."""
+    pax, pay = canonical_xy(ax, ay)
+    pbx, pby = canonical_xy(bx, by)
     if pax != pbx:
         return pax < pbx
     if pay != pby:

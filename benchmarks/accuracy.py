@@ -35,20 +35,15 @@ from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
 import numpy as np
+from _common import RUNS, SAMPLE, four_ways
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+from occvo_core import OccVO, OccVOConfig
+from occvo_core.eval import ape_rmse, success
+from occvo_core.frame import OccupancyFrame
+from occvo_core.reproducible import is_pinned, restart_pinned
+from occvo_core.time_fit import fit_time_offset
+from occvo_core.trajectory_stats import path_length
 
-from time_offset import RUNS, four_ways  # noqa: E402
-
-from occvo_core import OccVO, OccVOConfig  # noqa: E402
-from occvo_core.eval import ape_rmse, success  # noqa: E402
-from occvo_core.frame import OccupancyFrame  # noqa: E402
-from occvo_core.reproducible import is_pinned, restart_pinned  # noqa: E402
-from occvo_core.time_fit import fit_time_offset  # noqa: E402
-from occvo_core.trajectory_stats import path_length  # noqa: E402
-
-SAMPLE = Path(__file__).resolve().parents[2] / "shared" / "data" / "occvo-sample"
 SETS = {"choose": range(0, 20), "confirm": range(100, 120)}
 TURNS = (0, 90, 180, 270)  # degrees about z
 DIRECTIONS = ("forward", "reversed")

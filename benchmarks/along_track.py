@@ -19,40 +19,21 @@ Prints a table and one JSON line.
 
 from __future__ import annotations
 
-import argparse
-import json
 import sys
 from pathlib import Path
 
 import numpy as np
 import open3d as o3d
+from _common import benchmark_main, shifted
+from _gt_map import GroundTruthMapOdometry
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+from occvo_core import OccVO, OccVOConfig
+from occvo_core.datasets import OccVOReleaseScene
+from occvo_core.eval import ape_rmse
+from occvo_core.grid import MOVABLE_CLASSES
+from occvo_core.trajectory import read_kitti
 
-from occvo_core import OccVO, OccVOConfig  # noqa: E402
-from occvo_core.datasets import OccVOReleaseScene  # noqa: E402
-from occvo_core.eval import ape_rmse  # noqa: E402
-from occvo_core.grid import MOVABLE_CLASSES  # noqa: E402
-from occvo_core.trajectory import read_kitti  # noqa: E402
-
-SAMPLE = Path(__file__).resolve().parents[2] / "shared" / "data" / "occvo-sample"
 PERIOD_S = 0.5  # nuScenes keyframes, nominally
-
-
-class GroundTruthMapOdometry(OccVO):
-    """OccVO whose guess is the ground-truth pose and whose map is built at ground-truth poses; the estimate of
-    each frame is kept aside in `estimates`."""
-
-    def __init__(self, config, gt):
-        self.gt, self.estimates = gt, []
-        super().__init__(config)
-
-    def _initial_guess(self, frame):
-        return self.gt[len(self._poses)]
-
-    def _commit(self, frame, pose, moved_rows, local=None, *args, **kwargs):
-        self.estimates.append(pose)
-        super()._commit(frame, self.gt[len(self._poses)], moved_rows, local, *args, **kwargs)
 
 
 def along_errors(gt: np.ndarray, est: np.ndarray, relative_to: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -94,17 +75,6 @@ def open3d_along_errors(frames, gt: np.ndarray, previous: int = 3) -> tuple[np.n
         err.append((got[:3, 3] - truth[:3, 3]) @ (truth[:3, 3] / max(n, 1e-9)))
         length.append(n)
     return np.array(err), np.array(length)
-
-
-def shifted(gt: np.ndarray, frames: float) -> np.ndarray:
-    """Ground-truth positions `frames` keyframes later (linear between keyframes, extrapolated past the ends)."""
-    out = gt.copy()
-    n = len(gt)
-    for t in range(n):
-        a = t + frames
-        i = int(np.clip(np.floor(a), 0, n - 2))
-        out[t, :3, 3] = gt[i, :3, 3] + (a - i) * (gt[i + 1, :3, 3] - gt[i, :3, 3])
-    return out
 
 
 def measure(root: Path, name: str, config: OccVOConfig | None = None) -> dict:
@@ -151,48 +121,8 @@ def measure(root: Path, name: str, config: OccVOConfig | None = None) -> dict:
     }
 
 
-def measure_scenes(argv, description: str, measure_one) -> dict | None:
-    """{scene: measure_one(sample, scene, config)} for the --sample, --scenes and --config of a benchmark on the real
-    scenes; None, after saying so, without the sample."""
-    ap = argparse.ArgumentParser(description=description, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--sample", type=Path, default=SAMPLE)
-    ap.add_argument("--scenes", nargs="+", default=["scene-0101", "scene-0268"])
-    ap.add_argument("--config", type=Path, help="odometry config (JSON5), e.g. {gicp: {source_pick: 'balanced'}}")
-    args = ap.parse_args(argv)
-    if not (args.sample / "occupancy").is_dir():
-        print(f"no sample data at {args.sample}", file=sys.stderr)
-        return None
-    config = OccVOConfig.load(args.config) if args.config else OccVOConfig()
-    return {name: measure_one(args.sample, name, config) for name in args.scenes}
-
-
-def benchmark_main(argv, description: str, measure_one, print_scene) -> int:
-    """A real-scene benchmark's main: measure_scenes, print_scene(name, result) for each, then one JSON line."""
-    report = measure_scenes(argv, description, measure_one)
-    if report is None:
-        return 2
-    for name, r in report.items():
-        print_scene(name, r)
-    print(json.dumps(report))
-    return 0
-
-
-def print_scene(name: str, r: dict) -> None:
-    print(
-        f"{name}: APE {r['ape_rmse_m']:.3f} m; odometry steps sum {r['odometry_along_sum_cm']:+.1f} cm along "
-        f"{r['distance_m']:.1f} m\n"
-        f"  gt-map registration: {r['gt_map_along_mean_cm']:+.1f} cm mean along the track "
-        f"({100 * r['gt_map_along_share']:+.2f}% of the distance), ahead in {r['gt_map_frames_ahead']} of "
-        f"{r['moving_frames']} moving frames\n"
-        f"  open3d GICP at ground-truth poses: {r['open3d_along_mean_cm']:+.1f} cm "
-        f"({100 * r['open3d_along_share']:+.2f}%), ahead in {r['open3d_frames_ahead']} of {r['moving_frames']}\n"
-        f"  best time shift {r['best_time_shift_ms']:+.0f} ms: APE {r['ape_at_best_shift_m']:.3f} m; "
-        f"best scale {r['best_scale']:.3f}: APE {r['ape_at_best_scale_m']:.3f} m"
-    )
-
-
 def main(argv=None) -> int:
-    return benchmark_main(argv, __doc__, measure, print_scene)
+    return benchmark_main(argv, __doc__, measure)
 
 
 if __name__ == "__main__":

@@ -17,19 +17,16 @@ from pathlib import Path
 
 import numpy as np
 import open3d as o3d
+from _common import benchmark_main
+from _gt_map import GroundTruthMapOdometry
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-
-from along_track import GroundTruthMapOdometry, benchmark_main  # noqa: E402
-
-from occvo_core import OccVOConfig  # noqa: E402
-from occvo_core.datasets import OccVOReleaseScene  # noqa: E402
-from occvo_core.grid import MOVABLE_CLASSES  # noqa: E402
-from occvo_core.registration.gicp import coarse_gicp, fine_gicp, register_sources  # noqa: E402
-from occvo_core.registration.local_map import EgoMap, frame_window  # noqa: E402
-from occvo_core.registration.preprocess import preprocess  # noqa: E402
-from occvo_core.trajectory import read_kitti  # noqa: E402
+from occvo_core import OccVOConfig
+from occvo_core.datasets import OccVOReleaseScene
+from occvo_core.grid import MOVABLE_CLASSES
+from occvo_core.registration.gicp import coarse_gicp, fine_gicp, register_sources
+from occvo_core.registration.local_map import EgoMap, frame_window
+from occvo_core.registration.preprocess import preprocess
+from occvo_core.trajectory import read_kitti
 
 COLUMNS = ("guess", "fine_only", "coarse", "coarse_fine", "every_voxel", "open3d")
 
@@ -97,24 +94,8 @@ def measure(root: Path, name: str, config: OccVOConfig) -> dict:
     }
 
 
-def print_scene(name: str, r: dict) -> None:
-    print(f"{name}: along-track error (cm, + = ahead) of each start, map at ground-truth poses")
-    print("  frame  step m  " + "  ".join(f"{c:>11s}" for c in COLUMNS))
-    for row in r["frames"]:
-        print(f"  {row['frame']:5d}  {row['step_m']:6.3f}  " + "  ".join(f"{row[c]:+11.1f}" for c in COLUMNS))
-    for label, key, n in (
-        ("slow (< 1 m)", "mean_slow_cm", r["slow_frames"]),
-        ("moving (> 0.3 m)", "mean_moving_cm", r["moving_frames"]),
-    ):
-        means = r[key]
-        print(
-            f"  mean, {label}, {n} frames: "
-            + "  ".join(f"{c} {means[c]:+.1f}" for c in COLUMNS if means[c] is not None)
-        )
-
-
 def main(argv=None) -> int:
-    return benchmark_main(argv, __doc__, measure, print_scene)
+    return benchmark_main(argv, __doc__, measure)
 
 
 if __name__ == "__main__":

@@ -19,20 +19,17 @@ from __future__ import annotations
 import argparse
 import json
 import sys
-from pathlib import Path
 
 import torch
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-
-from occvo_core import OccVO, OccVOConfig  # noqa: E402
-from occvo_core.eval import ape_rmse  # noqa: E402
-from occvo_core.frame import OccupancyFrame  # noqa: E402
-from occvo_core.grid import grid_to_points  # noqa: E402
-from occvo_core.models.camera_mask import masked  # noqa: E402
-from occvo_core.models.image_source import ImageOccupancySource  # noqa: E402
-from occvo_core.models.tpvformer.predictor import OccupancyPredictor, confident_labels  # noqa: E402
-from occvo_core.sim import SyntheticScene  # noqa: E402
+from occvo_core import OccVO, OccVOConfig
+from occvo_core.eval import ape_rmse
+from occvo_core.frame import OccupancyFrame
+from occvo_core.grid import grid_to_points
+from occvo_core.models.camera_mask import masked
+from occvo_core.models.image_source import ImageOccupancySource
+from occvo_core.models.tpvformer.predictor import OccupancyPredictor, confident_labels
+from occvo_core.sim import SyntheticScene
 
 
 def _config(name: str) -> OccVOConfig:

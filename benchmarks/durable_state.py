@@ -20,6 +20,7 @@ import warnings
 from pathlib import Path
 
 import numpy as np
+from _common import SAMPLE
 
 from occvo_core import OccVO
 from occvo_core.grid import OCC3D_GRID
@@ -27,7 +28,7 @@ from occvo_schemas.models import SparseOccupancy
 from occvo_services.store import TrajectoryStore, frame_digest, pack_frame, unpack_arrays
 
 warnings.filterwarnings("ignore", category=RuntimeWarning)
-DATA = Path(__file__).resolve().parents[2] / "shared/data/occvo-sample/occupancy/scene-0101"
+DATA = SAMPLE / "occupancy" / "scene-0101"
 
 
 def _status_mb(key: str) -> float:

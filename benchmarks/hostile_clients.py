@@ -31,8 +31,7 @@ from pathlib import Path
 import msgpack
 import numpy as np
 import zenoh
-
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+from _common import SAMPLE
 
 from occvo_core.datasets import OccVOReleaseScene
 from occvo_schemas import keys
@@ -44,7 +43,7 @@ from occvo_services.local import LocalService
 from occvo_services.runtime import WorkerConfig
 from occvo_services.sessions import open_session
 
-DATA = Path(__file__).resolve().parents[2] / "shared/data/occvo-sample/occupancy/scene-0101"
+DATA = SAMPLE / "occupancy" / "scene-0101"
 BLOCK = zenoh.CongestionControl.BLOCK
 
 

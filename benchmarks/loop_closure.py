@@ -16,19 +16,15 @@ from __future__ import annotations
 
 import argparse
 import sys
-from pathlib import Path
 
 import numpy as np
+from _drive_truth import START_TILES, true_start_map
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-
-from long_drive import START_TILES, true_start_map  # noqa: E402
-
-from occvo_core import OccVO, OccVOConfig  # noqa: E402
-from occvo_core.eval import ape_rmse  # noqa: E402
-from occvo_core.map_metrics import map_metrics  # noqa: E402
-from occvo_core.sim import SyntheticScene  # noqa: E402
-from occvo_core.working_map import tiles_near  # noqa: E402
+from occvo_core import OccVO, OccVOConfig
+from occvo_core.eval import ape_rmse
+from occvo_core.map_metrics import map_metrics
+from occvo_core.sim import SyntheticScene
+from occvo_core.working_map import tiles_near
 
 TILE_M = 20.0
 

@@ -15,6 +15,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+from _common import SAMPLE
 
 from occvo_core import OccVO
 from occvo_core.datasets.occvo_release import OccVOReleaseScene
@@ -23,9 +24,9 @@ from occvo_core.working_map import changed_map
 from occvo_schemas.codec import decode, encode
 from occvo_schemas.models import MapUpdate
 from occvo_services.map_store import open_map_store
-from occvo_services.registration.map_publisher import map_update
+from occvo_services.registration.map_output import map_update
 
-DATA = Path(__file__).resolve().parents[2] / "shared/data/occvo-sample/occupancy"
+DATA = SAMPLE / "occupancy"
 TILE_M = 20.0  # the workers' default tile_m
 
 

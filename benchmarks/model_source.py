@@ -25,7 +25,6 @@ import torch
 import zenoh
 
 REPO = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(REPO))
 
 from occvo_core.cameras import CAMERA_NAMES  # noqa: E402
 from occvo_core.models.image_source import ImageOccupancySource  # noqa: E402

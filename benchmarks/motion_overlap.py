@@ -16,17 +16,14 @@ from __future__ import annotations
 import argparse
 import json
 import sys
-from pathlib import Path
 
 import numpy as np
 import torch
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-
-from occvo_core.grid import FREE, GROUND_CLASSES, MOVABLE_CLASSES, OCC3D_GRID, STATIC_CLASSES  # noqa: E402
-from occvo_core.models.image_source import ImageOccupancySource  # noqa: E402
-from occvo_core.models.tpvformer.predictor import OccupancyPredictor, confident_labels  # noqa: E402
-from occvo_core.sim import SyntheticScene  # noqa: E402
+from occvo_core.grid import FREE, GROUND_CLASSES, MOVABLE_CLASSES, OCC3D_GRID, STATIC_CLASSES
+from occvo_core.models.image_source import ImageOccupancySource
+from occvo_core.models.tpvformer.predictor import OccupancyPredictor, confident_labels
+from occvo_core.sim import SyntheticScene
 
 ALPHAS = np.round(np.arange(0.0, 1.51, 0.1), 2)
 GROUPS = {

@@ -11,14 +11,12 @@ and for synthetic scenes under each noise preset.
 from __future__ import annotations
 
 import argparse
-from pathlib import Path
 
 import numpy as np
+from _common import SAMPLE
 from scipy.spatial import cKDTree
 
 from occvo_core.grid import STATIC_CLASSES
-
-SAMPLE = Path(__file__).resolve().parents[2] / "shared/data/occvo-sample"
 
 
 def consistency(source, poses, r_max: float = 25.0) -> tuple[float, float]:

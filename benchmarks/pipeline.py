@@ -31,46 +31,25 @@ import argparse
 import json
 import sys
 import tempfile
-import threading
 import time
 import warnings
 from pathlib import Path
 
 import numpy as np
 import psutil
-import zenoh
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 warnings.filterwarnings("ignore", category=RuntimeWarning)
+
+from _common import SAMPLE, print_scene  # noqa: E402
+from _hop_latency import hop_latency  # noqa: E402
 
 from occvo_core import OccVO  # noqa: E402
 from occvo_core.datasets.occvo_release import OccVOReleaseScene  # noqa: E402
-from occvo_core.grid import OCC3D_GRID  # noqa: E402
-from occvo_schemas import keys  # noqa: E402
-from occvo_schemas.codec import decode, encode  # noqa: E402
-from occvo_schemas.models import Array, OccupancyFrameMsg, SparseOccupancy  # noqa: E402
 from occvo_services.client import OccVOClient  # noqa: E402
 from occvo_services.commands.replay import replay  # noqa: E402
 from occvo_services.local import LocalService  # noqa: E402
-from occvo_services.sessions import free_port, open_router, open_session  # noqa: E402
 
-DATA = Path(__file__).resolve().parents[2] / "shared/data/occvo-sample/occupancy"
 RATE_HZ = 2.0  # the paper's camera rate
-# the service's own stages, in the order a frame meets them (pose timings_ms keys; after the pose: worker stats)
-SERVICE_STAGES = (
-    "camera_hop",
-    "camera_decode",
-    "inference_queue",
-    "inference",
-    "occupancy_hop",
-    "decode",
-    "registration_queue",
-    "after_pose_wait",
-    "validate",
-    "registration",
-    "store_commit",
-    "core_wait",
-)
 AFTER_POSE_STAGES = (  # the after-pose thread's (the next frame waits for it), then the map thread's
     "pose_encode",
     "complete",
@@ -84,49 +63,6 @@ AFTER_POSE_STAGES = (  # the after-pose thread's (the next frame waits for it), 
     "tiling",
     "map_publish",
 )
-
-
-def hop_latency(n: int = 300, voxels: int = 30000, encoding: str = "axes") -> tuple[np.ndarray, int]:
-    """ms from encode+put on one session to decoded message on another, through a router; one message at a time.
-    encoding: a recorded frame's exact coordinates as float64 "points" or as indices with "axes" (what replay
-    sends), or "voxels" (indices only: the network's output)."""
-    ep = f"tcp/127.0.0.1:{free_port()}"
-    router = open_router(ep)
-    pub_s, sub_s = open_session(ep), open_session(ep)
-    rng = np.random.default_rng(0)
-    idx = rng.integers(0, OCC3D_GRID.shape, (voxels, 3))
-    wobble = rng.integers(-3, 4, (3, max(OCC3D_GRID.shape))) * 2.0**-48  # the release's last bits, one value an index
-    points = OCC3D_GRID.centres_of(idx) + np.stack([wobble[a, idx[:, a]] for a in range(3)], axis=1)
-    labels = rng.integers(0, 17, voxels)
-    if encoding == "points":
-        occ = SparseOccupancy(points=Array.from_numpy(points), labels=Array.from_numpy(labels.astype(np.uint8)))
-    else:
-        occ = SparseOccupancy.from_points(points, labels, OCC3D_GRID, exact=encoding == "axes")
-    msg = OccupancyFrameMsg(stream="bench", seq=0, stamp=0.0, source="replay", occupancy=occ)
-    got = threading.Event()
-    lat = []
-
-    def on(sample):
-        m = decode(sample.payload.to_bytes(), OccupancyFrameMsg)
-        lat.append((time.perf_counter() - t0) * 1000.0)
-        assert len(m.occupancy) == voxels
-        got.set()
-
-    sub = sub_s.declare_subscriber(keys.occupancy("bench"), on)
-    pub = pub_s.declare_publisher(keys.occupancy("bench"), congestion_control=zenoh.CongestionControl.BLOCK)
-    time.sleep(0.5)
-    for i in range(n + 20):  # the first 20 warm the path up
-        got.clear()
-        t0 = time.perf_counter()
-        pub.put(encode(msg.model_copy(update={"seq": i})))
-        if not got.wait(5):
-            raise RuntimeError("hop benchmark: message lost")
-    sub.undeclare()
-    pub.undeclare()
-    pub_s.close()
-    sub_s.close()
-    router.close()
-    return np.array(lat[20:]), len(encode(msg))
 
 
 def offline(frames: list, rate_hz: float = 0.0) -> dict:
@@ -319,47 +255,6 @@ def _medians_of(dicts: list[dict[str, float]]) -> dict[str, float]:
     return {k: float(np.median([d[k] for d in dicts if k in d])) for k in dicts[0]}
 
 
-def print_scene(name: str, r: dict) -> None:
-    print(
-        f"\n{name}: {r['frames']} frames, {r['repeats']} replays, each between two offline runs (medians)\n"
-        f"  offline {r['offline_fps']:.1f} frames/s   service {r['service_fps']:.1f} frames/s   ratio "
-        f"{r['ratio']:.2f} (goal >= 0.8; by run {', '.join(f'{x:.2f}' for x in r['ratios'])})   poses bit-identical: "
-        f"{r['poses_identical']}   errors {r['errors']}\n"
-        f"  latency at {r['latency_rate_hz']:g} Hz ({r['latency_poses']} poses) p50 {r['latency_p50_ms']:.1f} ms "
-        f"p99 {r['latency_p99_ms']:.1f} ms   offline step median {r['offline_registration_median_ms']:.1f} ms "
-        f"p99 {r['offline_registration_p99_ms']:.1f} ms\n"
-        f"  each stream against the offline runs beside it: p50 offline median "
-        f"{r['latency_p50_over_offline_median_ms']:+.1f} ms (by stream "
-        f"{', '.join(f'{x:+.1f}' for x in r['latency_p50_margins_ms'])}), "
-        f"p99 {r['latency_p99_over_offline_p99']:.2f} x offline p99; offline at {r['latency_rate_hz']:g} Hz: step median "
-        f"{r['offline_at_rate_median_ms']:.1f} ms, p50 over it {r['latency_p50_over_offline_at_rate_ms']:+.1f} ms\n"
-        f"  goals {json.dumps(r['goals'])}\n"
-        f"  tile query p50 {r['tile_query_p50_ms']:.2f} ms p99 {r['tile_query_p99_ms']:.2f} ms",
-        flush=True,
-    )
-    off, svc = r["offline_stage_median_ms"], r["service_stage_median_ms"]
-    print(f"  {'stage (median ms a frame)':<34}{'offline':>9}{'service':>9}")
-    for k in SERVICE_STAGES:
-        if k == "registration":  # the odometry's own stages, each beside its service twin
-            for s in off:
-                twin = next((t for t in (f"registration.{s}", f"complete.{s}") if t in svc), s)
-                print(f"    {s:<32}{off[s]:>9.1f}{svc.get(twin, float('nan')):>9.1f}")
-            print(f"  {'registration (through fine GICP)':<34}{'':>9}{svc.get(k, float('nan')):>9.1f}")
-        elif k in svc:
-            print(f"  {k:<34}{'':>9}{svc[k]:>9.1f}")
-    print("  after the pose (worker stats p50):")
-    for k in AFTER_POSE_STAGES:
-        if k in svc:
-            print(f"    {k:<32}{'':>9}{svc[k]:>9.1f}")
-    cpu = ", ".join(f"{k} {v:.1f}" for k, v in r["service_cpu_ms"].items())
-    print(
-        f"  CPU a frame: offline {r['offline_cpu_ms']:.1f} ms; service {cpu} ms; the service adds "
-        f"{r['service_added_cpu_ms']:.1f} ms: on cores the odometry keeps busy, ratio {r['ratio_bound']:.2f} at best"
-    )
-    live = r["latency_stage_median_ms"]
-    print(f"  at {r['latency_rate_hz']:g} Hz, a pose's stages: " + ", ".join(f"{k} {v:.1f}" for k, v in live.items()))
-
-
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--scenes", nargs="+", default=["scene-0101", "scene-0268"])
@@ -384,7 +279,7 @@ def main(argv=None) -> int:
         print(f"hop 30k voxels {name:16s} {size / 1e6:5.2f} MB  p50 {p50:6.2f} ms  p99 {p99:6.2f} ms", flush=True)
 
     for name in args.scenes:
-        d = DATA / name
+        d = SAMPLE / "occupancy" / name
         if not d.is_dir():
             print(f"{name}: not found at {d}, skipped")
             continue

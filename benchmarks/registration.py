@@ -17,16 +17,13 @@ import time
 from pathlib import Path
 
 import numpy as np
+from _common import SAMPLE, start_neighbours
 
 from occvo_core import OccVO, OccVOConfig
 from occvo_core.datasets import OccVOReleaseScene
 from occvo_core.eval import ape_rmse
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from streams_load import start_neighbours  # noqa: E402
-
 GOAL_MS = 40.0
-SAMPLE = Path(__file__).resolve().parents[2] / "shared" / "data" / "occvo-sample"
 
 
 def run_once(frames, config, threads=0):

@@ -25,26 +25,14 @@ import sys
 from pathlib import Path
 
 import numpy as np
+from _common import RUNS, benchmark_main, four_ways, shifted
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-
-from along_track import benchmark_main, shifted  # noqa: E402
-
-from occvo_core import OccVO, OccVOConfig  # noqa: E402
-from occvo_core.datasets import OccVOReleaseScene  # noqa: E402
-from occvo_core.eval import ape_rmse  # noqa: E402
-from occvo_core.frame import OccupancyFrame  # noqa: E402
-from occvo_core.trajectory_stats import path_length  # noqa: E402
+from occvo_core import OccVO, OccVOConfig
+from occvo_core.eval import ape_rmse
+from occvo_core.trajectory_stats import path_length
 
 FRAME_MS = 500.0  # nuScenes keyframes, 2 Hz
 SHIFTS = np.arange(-0.6, 0.6001, 0.01)  # keyframes: -300..300 ms
-RUNS = {
-    "forward": (1, 1, 1, 1),
-    "reversed": (-1, -1, 1, 1),
-    "turned": (1, -1, 1, -1),  # signs of d, e, l, residual
-    "turned+rev": (-1, 1, 1, -1),
-}
 
 
 def best_shift_ms(gt: np.ndarray, est: np.ndarray) -> tuple[float, float]:
@@ -58,23 +46,6 @@ def run(frames: list, config: OccVOConfig) -> np.ndarray:
     for frame in frames:
         vo.step(frame)
     return vo.poses
-
-
-def four_ways(root: Path, name: str) -> dict[str, tuple[list, np.ndarray]]:
-    """{run: (frames, ground truth)} of a release scene in RUNS' four ways."""
-    source = OccVOReleaseScene(root / "occupancy" / name)
-    frames = [source[i] for i in range(len(source))]
-    gt = np.asarray(source.gt_poses)
-    gt = np.linalg.inv(gt[0]) @ gt
-    turn = np.diag([-1.0, -1.0, 1.0, 1.0])
-    turned = [OccupancyFrame(f.points * [-1.0, -1.0, 1.0], f.labels, f.index) for f in frames]
-    turned_gt = turn @ gt @ turn  # the turned ego's poses
-    return {
-        "forward": (frames, gt),
-        "reversed": (frames[::-1], gt[::-1]),
-        "turned": (turned, turned_gt),
-        "turned+rev": (turned[::-1], turned_gt[::-1]),
-    }
 
 
 def measure(root: Path, name: str, config: OccVOConfig) -> dict:
@@ -106,20 +77,5 @@ def measure(root: Path, name: str, config: OccVOConfig) -> dict:
     return out
 
 
-def print_scene(name: str, r: dict) -> None:
-    print(name)
-    for run_name, row in r["runs"].items():
-        print(
-            f"  {run_name:<11} APE {row['ape_rmse_m']:.3f} m, best time shift {row['best_shift_ms']:+5.0f} ms "
-            f"(APE there {row['ape_at_best_shift_m']:.3f} m)"
-        )
-    print(
-        f"  data offset d {r['data_offset_ms']:+.0f} ms, lead fixed in the ego frame {r['ego_lead_ms']:+.0f} ms, "
-        f"lead along the travel {r['travel_lead_ms']:+.0f} ms, residual {r['residual_ms']:+.0f} ms;\n"
-        f"  an exact odometry of frames {r['data_offset_ms']:.0f} ms after their poses scores APE "
-        f"{r['exact_odometry_ape_m']:.3f} m, its path {r['exact_odometry_path_ratio']:.4f} times the truth's"
-    )
-
-
 if __name__ == "__main__":
-    sys.exit(benchmark_main(sys.argv[1:], __doc__, measure, print_scene))
+    sys.exit(benchmark_main(sys.argv[1:], __doc__, measure))

@@ -21,13 +21,13 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial import cKDTree
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 warnings.filterwarnings("ignore", category=RuntimeWarning)
 
 from occvo_core import OccVO  # noqa: E402
 from occvo_core.sim import SyntheticScene  # noqa: E402
 from occvo_services.os_tuning import large_blocks_from_mmap  # noqa: E402
-from occvo_services.registration_worker import RegistrationWorker, StreamState  # noqa: E402
+from occvo_services.registration.after_pose import complete  # noqa: E402
+from occvo_services.registration_worker import RegistrationWorker  # noqa: E402
 from occvo_services.runtime import WorkerConfig  # noqa: E402
 from occvo_services.store import frame_digest, pack_frame  # noqa: E402
 
@@ -78,9 +78,9 @@ def main() -> int:
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
         worker = RegistrationWorker(WorkerConfig(store_path=str(Path(tmp) / "r.sqlite"), working_radius_m=args.radius))
-        st = worker.states["s"] = StreamState()
-        st.vo = OccVO(worker.occvo_config, threads=worker.config.kernel_threads)
-        st.started = True
+        st = worker.session_of("s")
+        st.vo = OccVO(st.ctx.occvo_config, threads=worker.config.kernel_threads)
+        st.trajectory.started = True
         for i in range(args.frames):
             frame = scene[i]
             reg = st.vo.register(frame)
@@ -94,11 +94,11 @@ def main() -> int:
                 pack_frame(frame),
                 new_trajectory=i == 0,
             )
-            st.append(i, frame.stamp, np.asarray(reg.pose), "ok", b"")
-            _, _, evicted, _ = worker._finish("s", st, reg, frame, i, publish=True)
-            if evicted or st.pending_restored:
-                worker.store.finish_frame("s", i, None, evicted=evicted, restored=st.pending_restored)
-            st.pending_restored = []
+            st.trajectory.append(i, frame.stamp, np.asarray(reg.pose), "ok", b"")
+            _, _, evicted, _ = complete(st, reg, frame, i, publish=True)
+            if evicted or st.pager.pending_restored:
+                worker.store.finish_frame("s", i, None, evicted=evicted, restored=st.pager.pending_restored)
+            st.pager.pending_restored = []
             if i in marks:
                 row = {"frame": i, "lap": marks[i], **census(st.vo, lap_starts)}
                 rows.append(row)

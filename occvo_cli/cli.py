@@ -11,7 +11,10 @@ from __future__ import annotations
 import argparse
 import importlib
 import os
+import signal
 import sys
+import threading
+import weakref
 
 from occvo_cli import __version__
 from occvo_cli.commands import COMMANDS
@@ -61,33 +64,105 @@ def _worded() -> tuple[type, ...]:
     """Errors whose message is already the line for the user: occvo's own and the service client's."""
     try:
         from occvo_services.client import ServiceError
+        from occvo_services.sessions import NoRouterError
     except ModuleNotFoundError:
         return (OccVOError,)
-    return OccVOError, ServiceError
+    return OccVOError, ServiceError, NoRouterError
 
 
 def error_line(exc: BaseException) -> str:
     text = (str(exc).strip().splitlines() or [""])[0]
     if isinstance(exc, _worded()):
         return text
+    if type(exc).__module__.split(".")[0] == "zenoh":  # its messages end in a Rust source path
+        from occvo_services.sessions import zenoh_reason
+
+        return f"the connection to the router failed: {zenoh_reason(exc)} (--debug shows the traceback)"
     return f"{text or type(exc).__name__} ({type(exc).__name__}; --debug shows the traceback)"
 
 
+class _Sigint:
+    """Ctrl-C raises KeyboardInterrupt as Python's own handler does, and is remembered: a KeyboardInterrupt raised
+    inside a compiled (numba) call reaches Python as another error (a SystemError "returned a result with an
+    exception set"), which is then still read as the interrupt it was."""
+
+    received = False
+    deferred = False  # received inside a callback from compiled code and sent again, not yet raised
+
+    @classmethod
+    def install(cls):
+        """Returns the handler it replaced (None off the main thread, where signal handlers cannot be set)."""
+        cls.received = cls.deferred = False
+        if threading.current_thread() is threading.main_thread():
+            return signal.signal(signal.SIGINT, cls._handle)
+        return None
+
+    @classmethod
+    def _handle(cls, signum, frame):
+        cls.received = True
+        cls.deferred = frame is not None and f"{os.sep}llvmlite{os.sep}" in frame.f_code.co_filename
+        if cls.deferred:
+            # a callback from compiled code (numba's cache) would print the interrupt and swallow it: the signal is
+            # sent again once the callback has returned
+            again = threading.Timer(0.05, os.kill, (os.getpid(), signal.SIGINT))
+            again.daemon = True
+            again.start()
+            return
+        raise KeyboardInterrupt
+
+
+def interrupted(exc: BaseException) -> bool:
+    """Whether exc is a Ctrl-C: a KeyboardInterrupt anywhere in its chain, or any error after a SIGINT arrived."""
+    seen = set()
+    while exc is not None and id(exc) not in seen:
+        if isinstance(exc, KeyboardInterrupt):
+            return True
+        seen.add(id(exc))
+        exc = exc.__cause__ or exc.__context__
+    return _Sigint.received
+
+
+def _end_progress_bars() -> None:
+    """A progress bar left open ends its line first, so the error's line is a line of its own."""
+    tqdm = sys.modules.get("tqdm")
+    for bar in list(getattr(getattr(tqdm, "tqdm", None), "_instances", ())):
+        bar = bar() if isinstance(bar, weakref.ref) else bar  # tqdm keeps its bars as weak references
+        try:
+            bar.close()
+        except Exception:  # noqa: BLE001 - a bar that cannot close leaves its line as it is
+            pass
+
+
 def main(argv: list[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
+    before = _Sigint.install()
+    command, debug = "occvo", "--debug" in (sys.argv[1:] if argv is None else argv)
     try:
-        return int(args.func(args) or 0)
+        args = build_parser().parse_args(argv)
+        args.argv = sys.argv[1:] if argv is None else list(argv)  # the command as given, for run.json
+        command, debug = f"occvo {args.command}", args.debug
+        code = int(args.func(args) or 0)
+        if _Sigint.deferred:  # the command ended before the Ctrl-C it got could be raised
+            raise KeyboardInterrupt
+        return code
     except BrokenPipeError:  # `occvo poses | head`: the reader has what it wanted
         os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
         return 0
-    except KeyboardInterrupt:
-        print(f"occvo {args.command}: interrupted", file=sys.stderr)
-        return INTERRUPTED
-    except Exception as exc:  # the one place every error becomes one line and an exit code
-        if args.debug:
+    except (KeyboardInterrupt, Exception) as exc:  # the one place every error becomes one line and an exit code
+        _end_progress_bars()
+        if interrupted(exc):
+            if before is not None:
+                signal.signal(signal.SIGINT, signal.SIG_IGN)  # a second Ctrl-C does not break the one line
+            print(f"{command}: interrupted", file=sys.stderr)
+            return INTERRUPTED
+        if debug:
             raise
-        print(f"occvo {args.command}: error: {error_line(exc)}", file=sys.stderr)
+        print(f"{command}: error: {error_line(exc)}", file=sys.stderr)
         return exit_code(exc)
+    finally:
+        if before is not None:
+            # a process that ends with main: a Ctrl-C from now on comes after the work is done (and must not turn
+            # its exit into a traceback); main called in a process that goes on (a test): its own handler back
+            signal.signal(signal.SIGINT, signal.SIG_IGN if argv is None else before)
 
 
 if __name__ == "__main__":

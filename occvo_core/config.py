@@ -7,8 +7,6 @@ from typing import Literal
 
 from pydantic import BaseModel, ConfigDict, Field
 
-from occvo_core.errors import ConfigError
-
 
 class _Section(BaseModel):
     model_config = ConfigDict(extra="forbid")
@@ -207,12 +205,9 @@ class OccVOConfig(_Section):
     @classmethod
     def load(cls, path: str | Path) -> OccVOConfig:
         """From a JSON or YAML-free JSON5 file; unknown keys are an error."""
-        import json5
+        from occvo_core import config_file
 
-        try:
-            return cls.model_validate(json5.loads(Path(path).read_text()))
-        except Exception as exc:  # noqa: BLE001 - one clear error for any bad config
-            raise ConfigError(f"{path}: {exc}") from None
+        return config_file.validate(cls, config_file.read(path), path)
 
     def with_filters(self, semantic: bool = True, dynamic: bool = True, pfilter: bool = True) -> OccVOConfig:
         return self.model_copy(

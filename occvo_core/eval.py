@@ -44,3 +44,40 @@ def success(rmse: float) -> bool:
 def success_ratio(rmses) -> float:
     rmses = list(rmses)
     return sum(success(r) for r in rmses) / len(rmses) if rmses else float("nan")
+
+
+def rpe_pairs(poses: np.ndarray, delta: float = 1, unit: str = "f") -> list[tuple[int, int]]:
+    """The pose pairs evo's RPE compares (consecutive pairs, chosen on the estimate as evo does by default): every
+    delta-th frame (unit "f"), or the next pose once delta metres of path have been driven since the last (unit "m")."""
+    poses = np.asarray(poses)
+    if delta <= 0:
+        raise ValueError(f"delta must be more than 0, not {delta}")
+    if unit == "f":
+        if float(delta) != int(delta):
+            raise ValueError(f"delta in frames must be a whole number, not {delta}")
+        ids = list(range(0, len(poses), int(delta)))
+    elif unit == "m":
+        ids, path = [0], 0.0
+        for i in range(1, len(poses)):
+            path += float(np.linalg.norm(poses[i, :3, 3] - poses[i - 1, :3, 3]))
+            if path >= delta:
+                ids.append(i)
+                path = 0.0
+    else:
+        raise ValueError(f"delta unit is f (frames) or m (metres), not {unit!r}")
+    pairs = list(zip(ids, ids[1:]))
+    if not pairs:
+        raise ValueError(f"delta {delta} {unit} leaves no pair of poses in {len(poses)}")
+    return pairs
+
+
+def rpe_errors(gt_poses: np.ndarray, est_poses: np.ndarray, delta: float = 1, unit: str = "f") -> np.ndarray:
+    """Per pair (i, j) the translation of (gt_i^-1 gt_j)^-1 (est_i^-1 est_j): evo_rpe's translation part. Relative
+    motions do not change under a rigid alignment, so no alignment is needed."""
+    gt, est = np.asarray(gt_poses), np.asarray(est_poses)
+    if gt.shape != est.shape or gt.ndim != 3 or gt.shape[1:] != (4, 4):
+        raise ValueError(f"trajectories must be (N,4,4) of equal length, got {gt.shape} and {est.shape}")
+    i, j = np.array(rpe_pairs(est, delta, unit)).T
+    rel_gt = np.linalg.inv(gt[i]) @ gt[j]
+    rel_est = np.linalg.inv(est[i]) @ est[j]
+    return np.linalg.norm((np.linalg.inv(rel_gt) @ rel_est)[:, :3, 3], axis=1)

@@ -96,7 +96,7 @@ class GridSpec:
         points = np.asarray(points, np.float64)
         table = self.centre_table()
         idx = np.empty((len(points), 3), np.int64)
-        for a, n in enumerate(self.shape):  # one contiguous column at a time: 3x faster
+        for a, n in enumerate(self.shape):  # one contiguous column at a time: a strided gather is the encoder's cost
             col = np.ascontiguousarray(points[:, a])
             ia = self.axis_indices(a, col)
             if len(ia) and (ia.min() < 0 or ia.max() >= n):

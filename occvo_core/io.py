@@ -2,11 +2,23 @@
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 import numpy as np
 
 from occvo_core.grid import CLASS_COLORS, CLASS_NAMES
+
+
+def write_text_atomic(path: str | Path, text: str) -> None:
+    """The whole text or nothing at path: written under a temporary name beside it, then renamed."""
+    path = Path(path)
+    tmp = path.with_name(f".{path.name}.partial")
+    try:
+        tmp.write_text(text)
+        os.replace(tmp, path)
+    finally:
+        tmp.unlink(missing_ok=True)
 
 
 def write_ply(path: str | Path, points: np.ndarray, labels: np.ndarray) -> None:

@@ -3,7 +3,9 @@
 from __future__ import annotations
 
 import json
+import os
 import resource
+import tempfile
 import time
 from pathlib import Path
 
@@ -41,26 +43,30 @@ class OdometryPipeline:
     def run(self, on_step=None) -> OdometryPipeline:
         """on_step(frame, result, odometry), when given, sees every registered frame (a live view logs it)."""
         self.odometry.reset()
-        for i in tqdm(
-            range(len(self.source)), desc=f"OCC-VO {self.source.name}", unit="frame", disable=not self.progress
-        ):
-            try:
-                frame = self.source[i]
-                start = time.perf_counter()
-                result = self.odometry.step(frame)
-                self.stamp_of[frame.index] = float(frame.stamp)
-            except InvalidFrameError as exc:
-                if not self.skip_bad_frames:
-                    raise
-                self.skipped.append(str(exc))
-                continue
-            if result.status == "ok":  # the first frame only seeds the map
-                self.frame_ms.append((time.perf_counter() - start) * 1e3)
-                for stage, ms in result.timings_ms.items():
-                    self.stage_ms.setdefault(stage, []).append(ms)
-            if on_step is not None:
-                on_step(frame, result, self.odometry)
+        bar = tqdm(total=len(self.source), desc=f"OCC-VO {self.source.name}", unit="frame", disable=not self.progress)
+        with bar:  # closed (its line ended) before an error or Ctrl-C is reported
+            for i in range(len(self.source)):
+                self._step(i, on_step)
+                bar.update()
         return self
+
+    def _step(self, i: int, on_step) -> None:
+        try:
+            frame = self.source[i]
+            start = time.perf_counter()
+            result = self.odometry.step(frame)
+            self.stamp_of[frame.index] = float(frame.stamp)
+        except InvalidFrameError as exc:
+            if not self.skip_bad_frames:
+                raise
+            self.skipped.append(str(exc))
+            return
+        if result.status == "ok":  # the first frame only seeds the map
+            self.frame_ms.append((time.perf_counter() - start) * 1e3)
+            for stage, ms in result.timings_ms.items():
+                self.stage_ms.setdefault(stage, []).append(ms)
+        if on_step is not None:
+            on_step(frame, result, self.odometry)
 
     def stamps(self) -> np.ndarray:
         """Stamps of the registered frames as the data gave them (index / rate only where a source has no clock)."""
@@ -87,13 +93,25 @@ class OdometryPipeline:
         out.update(path_length_m=path_length(poses), **vertical_drift(poses))
         out["ms_per_frame_median"] = float(np.median(self.frame_ms)) if self.frame_ms else None
         out["ms_per_stage_median"] = {k: float(np.median(v)) for k, v in self.stage_ms.items()}
-        out["map_voxels"] = len(self.odometry.map)
+        # the map a user gets (map.npz, map.ply, the service's tiles): the voxel pfilter's persistent voxels; the
+        # rest of the live voxels are candidates not yet seen often enough (map_voxels.npz holds them all)
+        out["map_voxels"] = int(np.count_nonzero(self.odometry.map.persistent()))
+        out["live_voxels"] = len(self.odometry.map)
         out["peak_rss_mb"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
         return out
 
     def write(self, out_dir: str | Path, extra: dict | None = None) -> dict:
+        """Every file is written under a temporary name in out_dir and renamed into place once all are written: an
+        error or Ctrl-C leaves the folder as it was, never a half-written file."""
         out = Path(out_dir)
         out.mkdir(parents=True, exist_ok=True)
+        with tempfile.TemporaryDirectory(dir=out, prefix=".partial-") as tmp:
+            summary = self._write_into(Path(tmp), extra)
+            for f in sorted(Path(tmp).iterdir()):
+                os.replace(f, out / f.name)
+        return summary
+
+    def _write_into(self, out: Path, extra: dict | None) -> dict:
         poses = self.odometry.poses
         write_kitti(out / "trajectory.kitti", poses)
         write_tum(out / "trajectory.tum", poses, self.stamps())
@@ -102,6 +120,9 @@ class OdometryPipeline:
         np.savez_compressed(out / "map_voxels.npz", **self.odometry.map.arrays(len(poses)))
         write_ply(out / "map.ply", points, labels)
         gt = self.gt_of_registered()
+        if gt is not None:  # what the estimate is scored against, on the same stamps: evo_ape tum groundtruth.tum ...
+            write_kitti(out / "groundtruth.kitti", gt)
+            write_tum(out / "groundtruth.tum", gt, self.stamps())
         plot_trajectory(out / "trajectory.png", poses, gt, title=self.source.name)
         summary = {**self.summary(), **(extra or {})}
         (out / "summary.json").write_text(json.dumps(summary, indent=2, default=float) + "\n")

@@ -24,6 +24,15 @@ MAX_ELEMENTS = 1 << 16  # all lists' and maps' entries together: many short cont
 T = TypeVar("T", bound=BaseModel)
 
 
+def schema_id(kind: str) -> str:
+    """The name of a message's schema: the $id of schemas/json/<kind>.json and, after "application/msgpack;", the
+    Zenoh encoding every put and reply of it carries."""
+    return f"occvo/{kind}/v{SCHEMA_VERSION}"
+
+
+MEDIA_TYPE = "application/msgpack"
+
+
 class CodecError(ValueError):
     def __init__(self, code: str, message: str):
         self.code = code

@@ -11,7 +11,8 @@ import json
 import sys
 from pathlib import Path
 
-from occvo_schemas.models import MESSAGES, SCHEMA_VERSION
+from occvo_schemas.codec import schema_id
+from occvo_schemas.models import MESSAGES
 
 JSON_DIR = Path(__file__).parent / "json"
 
@@ -19,11 +20,24 @@ JSON_DIR = Path(__file__).parent / "json"
 def rendered() -> dict[str, str]:
     out = {}
     for kind, model in sorted(MESSAGES.items()):
-        schema = model.model_json_schema(mode="validation")
-        schema["$id"] = f"occvo/{kind}/v{SCHEMA_VERSION}"
-        schema["x-msgpack"] = "bytes fields are msgpack bin; Array.data is C-order little-endian"
+        schema = _bin_fields(model.model_json_schema(mode="validation"))
+        schema["$id"] = schema_id(kind)
+        schema["x-msgpack"] = "bytes fields are msgpack bin (x-msgpack-type); Array.data is C-order little-endian"
         out[f"{kind}.json"] = json.dumps(schema, indent=2, sort_keys=True) + "\n"
     return out
+
+
+def _bin_fields(node):
+    """pydantic writes a bytes field as a JSON string; on the wire it is msgpack bin, which a msgpack reader hands
+    over as bytes, not text. Such a field says so (x-msgpack-type: bin) and names no JSON type, so a decoded payload
+    validates as it arrives."""
+    if isinstance(node, dict):
+        if node.get("format") == "binary" and node.get("type") == "string":
+            node = {k: v for k, v in node.items() if k not in ("type", "format")} | {"x-msgpack-type": "bin"}
+        return {k: _bin_fields(v) for k, v in node.items()}
+    if isinstance(node, list):
+        return [_bin_fields(v) for v in node]
+    return node
 
 
 def drift(directory: Path = JSON_DIR) -> list[str]:

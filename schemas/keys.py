@@ -12,12 +12,14 @@ Per stream:
   occvo/<stream>/errors               pub   ErrorEvent             any worker
 Per worker:
   occvo/@alive/<role>/<worker>        liveliness token
-  occvo/@shard/registration/<n>/<i>/<worker>   liveliness token: this worker registers the streams of shard i of n
+  occvo/@shard/registration/<n>/<i>/<worker>   liveliness token: this worker registers the streams of shard i of n;
+                                      0/0: placement "members", the streams owner_of gives it among the live workers
   occvo/@workers/<worker>/stats       query -> WorkerHealth
 """
 
 from __future__ import annotations
 
+import hashlib
 import re
 import zlib
 
@@ -84,6 +86,12 @@ def parse_registration_shard(key: str) -> tuple[int, int] | None:
 def shard_of(stream: str, shards: int) -> int:
     """The shard whose registration worker owns a stream: a stable hash (CRC-32), the same in every process."""
     return zlib.crc32(stream.encode()) % shards
+
+
+def owner_of(stream: str, workers) -> str | None:
+    """The live worker that owns a stream under placement "members": rendezvous hashing, so a worker that comes or
+    goes moves only the streams it takes or had, and every process that sees the same workers agrees."""
+    return max(workers, key=lambda w: hashlib.blake2b(f"{w}/{stream}".encode(), digest_size=8).digest(), default=None)
 
 
 def stats(worker: str = "*") -> str:

@@ -39,6 +39,7 @@ from occvo_schemas.models import (
 )
 from occvo_services.runtime import DEFAULT_ENDPOINT
 from occvo_services.sessions import open_session
+from occvo_services.wire import encoding
 
 
 class ServiceError(RuntimeError):
@@ -93,6 +94,8 @@ class OccVOClient:
         self._down = False  # a worker of the path left: hold new frames until it is back and the lost ones resent
         self._back_at: float | None = None
         self.resends = 0
+        self._alive: set[str] = set()  # worker tokens seen (workers())
+        self._alive_sub = None
         self._subs = [
             self.session.declare_subscriber(keys.pose(stream), self._on_pose),
             self.session.declare_subscriber(keys.errors(stream), self._on_error),
@@ -100,7 +103,7 @@ class OccVOClient:
             self.session.liveliness().declare_subscriber(keys.alive("inference"), self._on_alive, history=True),
         ]
         self._pub = self.session.declare_publisher(
-            keys.camera(stream), congestion_control=zenoh.CongestionControl.BLOCK
+            keys.camera(stream), encoding=encoding("camera_frame"), congestion_control=zenoh.CongestionControl.BLOCK
         )
         self._closed = threading.Event()
         self._resender = threading.Thread(target=self._resend_loop, name=f"occvo-resend-{stream}", daemon=True)
@@ -139,7 +142,8 @@ class OccVOClient:
     def _on_alive(self, sample: zenoh.Sample) -> None:
         key = str(sample.key_expr)
         shard = keys.parse_registration_shard(key)
-        if shard is not None and keys.shard_of(self.stream, shard[1]) != shard[0]:
+        # shards 0: placement "members", where any registration worker may hold this stream
+        if shard is not None and shard[1] and keys.shard_of(self.stream, shard[1]) != shard[0]:
             return  # another shard's worker: its coming and going does not touch this stream
         role = "inference" if shard is None else "registration"
         live = self._path[role]
@@ -248,7 +252,10 @@ class OccVOClient:
         deadline, wait = time.monotonic() + timeout, 0.01
         while True:
             out, errs = [], []
-            for reply in self.session.get(selector, payload=payload, timeout=timeout):
+            # the best match: one complete queryable (a map service replica) where there is one, else every match
+            target = zenoh.QueryTarget.BEST_MATCHING
+            tagged = encoding("map_tile_query") if payload is not None else None  # the one query with a payload
+            for reply in self.session.get(selector, payload=payload, encoding=tagged, timeout=timeout, target=target):
                 if reply.ok is not None:
                     out.append(decode(reply.ok.payload.to_bytes(), expect, 1 << 30))
                 else:
@@ -325,10 +332,23 @@ class OccVOClient:
         return self._get(keys.stats(worker), WorkerHealth)
 
     def workers(self) -> list[str]:
-        """Keys of the live workers' liveliness tokens."""
-        return sorted(
-            str(r.ok.key_expr) for r in self.session.liveliness().get(keys.alive("*", "*"), timeout=5.0) if r.ok
-        )
+        """Keys of the live workers' liveliness tokens: those the client has seen come and not go, and those a
+        liveliness query finds now (a query through a router may miss a token that is there)."""
+        with self._cv:
+            if self._alive_sub is None:
+                self._alive_sub = self.session.liveliness().declare_subscriber(
+                    keys.alive("*", "*"), self._on_worker_token, history=True
+                )
+        found = {str(r.ok.key_expr) for r in self.session.liveliness().get(keys.alive("*", "*"), timeout=5.0) if r.ok}
+        with self._cv:
+            return sorted(found | self._alive)
+
+    def _on_worker_token(self, sample: zenoh.Sample) -> None:
+        with self._cv:
+            if sample.kind == zenoh.SampleKind.PUT:
+                self._alive.add(str(sample.key_expr))
+            else:
+                self._alive.discard(str(sample.key_expr))
 
     def wait_for_workers(self, roles=("inference", "registration", "map"), timeout: float = 30.0) -> None:
         deadline = time.monotonic() + timeout
@@ -342,7 +362,7 @@ class OccVOClient:
     def close(self) -> None:
         self._closed.set()
         self._resender.join(timeout=5)
-        for s in self._subs:
+        for s in self._subs + ([self._alive_sub] if self._alive_sub is not None else []):
             s.undeclare()
         self._pub.undeclare()
         if self._own:

@@ -55,33 +55,37 @@ class StageQueue:
         return self.q.qsize()
 
 
+def judge_seq(seq: int, last: int | None, max_jump: int | None, older: str = "") -> tuple[bool, str | None, str | None]:
+    """Every worker's sequence rule: (accept, error code, message) of frame `seq` after frame `last` (None: nothing
+    before it). seq 0 starts a new trajectory; a gap is reported as missing and accepted; a step back is out of order
+    (`older` says more of it); a step forward of more than max_jump is reported and not adopted: one stray seq must not
+    make every following real frame a step back."""
+    if last is None or seq == 0 or seq == last + 1:
+        return True, None, None
+    if max_jump is not None and seq - last > max_jump:
+        return (
+            False,
+            "seq_jump",
+            f"seq {seq} is {seq - last} after seq {last}, beyond the window of {max_jump}; dropped",
+        )
+    if seq > last + 1:
+        return True, "missing_seq", f"missing seq {last + 1}..{seq - 1} ({seq - last - 1} frames) before seq {seq}"
+    return False, "out_of_order", f"seq {seq} arrived after seq {last}{older}; dropped"
+
+
 class SeqTracker:
-    """Per-stream sequence check. seq 0 starts a new trajectory; a gap is reported as missing, a step back as out of order."""
+    """Per-stream sequence check of a worker that keeps no trajectory (judge_seq against the last accepted seq)."""
 
     def __init__(self, max_jump: int | None = None):
         self.expected: int | None = None
         self.max_jump = max_jump
 
     def check(self, seq: int) -> tuple[bool, str | None, str | None]:
-        """(accept, error code, message). A step forward of more than max_jump is reported and not adopted: one
-        stray seq must not make every following real frame a step back."""
-        if self.expected is None or seq == 0 or seq == self.expected:
+        """(accept, error code, message); an accepted seq is the one the next is judged against."""
+        verdict = judge_seq(seq, None if self.expected is None else self.expected - 1, self.max_jump)
+        if verdict[0]:
             self.expected = seq + 1
-            return True, None, None
-        if self.max_jump is not None and seq - self.expected >= self.max_jump:
-            return (
-                False,
-                "seq_jump",
-                (
-                    f"seq {seq} is {seq - self.expected + 1} after seq {self.expected - 1}, beyond "
-                    f"the window of {self.max_jump}; dropped"
-                ),
-            )
-        if seq > self.expected:
-            msg = f"missing seq {self.expected}..{seq - 1} ({seq - self.expected} frames) before seq {seq}"
-            self.expected = seq + 1
-            return True, "missing_seq", msg
-        return False, "out_of_order", f"seq {seq} arrived after seq {self.expected - 1}; dropped"
+        return verdict
 
 
 EVICT = object()  # put on an idle lane's queue: the lane ends and its stream's state is given back (services/memory.py)
@@ -113,7 +117,7 @@ class StreamLane:
             self.after.thread.join()
             self.after = None
         while not self.worker.stopping.is_set():
-            try:  # blocks: a stop puts None, an idle stream's lane ends (no polling: 500 idle lanes cost 16% of a core)
+            try:  # blocks: a stop puts None, an idle stream's lane ends (no polling: idle lanes would cost a core's share)
                 item = self.queue.get(timeout=self.worker.config.idle_stream_s)
             except queue.Empty:
                 if self.worker.retire_lane(self):

@@ -25,6 +25,7 @@ from occvo_schemas import keys
 from occvo_schemas.codec import encode
 from occvo_schemas.models import CameraFrame, OccupancyFrameMsg, SparseOccupancy
 from occvo_services.runtime import Worker, WorkerConfig, log_event, worker_main
+from occvo_services.wire import blocking
 
 
 class InferenceWorker(Worker):
@@ -88,53 +89,13 @@ class InferenceWorker(Worker):
         self.enqueue(sample, CameraFrame, self._infer)
 
     def _infer(self, stream: str, item) -> None:
+        """One camera frame: its occupancy (recorded, or the network's), published for registration."""
         msg, hop_ms, t_queued, decode_ms = item
         t0 = time.perf_counter()
-        key = keys.camera(stream)
-        if self.config.source == "replay":
-            if msg.gt_occupancy is None:
-                self.report_error(
-                    stream,
-                    "invalid_frame",
-                    f"seq {msg.seq}: the replay source needs the frame's recorded occupancy (gt_occupancy)",
-                    key,
-                    msg.seq,
-                )
-                return
-            occupancy, source = msg.gt_occupancy, "replay"
-        else:
-            from occvo_core.models.tpvformer.predictor import InvalidCameraFrameError
-            from occvo_services.occupancy_model import camera_inputs
-
-            try:
-                images, K, T = camera_inputs(msg.images)
-                t1 = time.perf_counter()
-                with self._model_lock:
-                    t2 = time.perf_counter()
-                    idx, labels = self.model.predict(images, K, T)
-                    model_ms = (time.perf_counter() - t2) * 1000.0
-            except (ValueError, InvalidCameraFrameError) as exc:  # images or calibration the network cannot take
-                self.report_error(stream, "invalid_frame", f"seq {msg.seq}: {exc}", key, msg.seq)
-                return
-            self.stats.observe("decode_images", (t1 - t0) * 1000.0)
-            self.stats.observe("model", model_ms)
-            dtype = np.uint8 if max(self.model.grid.shape) <= 256 else np.uint16
-            occupancy = SparseOccupancy.model_validate(
-                {
-                    "grid": {
-                        "lower": self.model.grid.lower,
-                        "upper": self.model.grid.upper,
-                        "voxel_size": self.model.grid.voxel_size,
-                    },
-                    "voxels": {
-                        "dtype": np.dtype(dtype).name,
-                        "shape": [len(idx), 3],
-                        "data": idx.astype(dtype).tobytes(),
-                    },
-                    "labels": {"dtype": "uint8", "shape": [len(labels)], "data": labels.astype(np.uint8).tobytes()},
-                }
-            )
-            source = f"model:{self.model.name}"
+        got = self._replayed(stream, msg) if self.config.source == "replay" else self._predicted(stream, msg, t0)
+        if got is None:
+            return
+        occupancy, source = got
         infer_ms = (time.perf_counter() - t0) * 1000.0
         queue_ms = (t0 - t_queued) * 1000.0
         out = OccupancyFrameMsg(
@@ -154,12 +115,52 @@ class InferenceWorker(Worker):
         t_encode = time.perf_counter()
         data = encode(out, self.config.max_message_bytes)
         self.stats.observe("encode", (time.perf_counter() - t_encode) * 1000.0)
-        self.session.put(keys.occupancy(stream), data, congestion_control=zenoh.CongestionControl.BLOCK)
+        self.session.put(keys.occupancy(stream), data, **blocking("occupancy_frame"))
         self.stats.inc("frames_out")
         self.stats.observe("inference", infer_ms)
         self.stats.observe("camera_hop", hop_ms)
         self.stats.observe("queue", queue_ms)
         self.stats.observe("stage_total", (time.perf_counter() - t0) * 1000.0)
+
+    def _replayed(self, stream: str, msg) -> tuple[SparseOccupancy, str] | None:
+        if msg.gt_occupancy is None:
+            self.report_error(
+                stream,
+                "invalid_frame",
+                f"seq {msg.seq}: the replay source needs the frame's recorded occupancy (gt_occupancy)",
+                keys.camera(stream),
+                msg.seq,
+            )
+            return None
+        return msg.gt_occupancy, "replay"
+
+    def _predicted(self, stream: str, msg, t0: float) -> tuple[SparseOccupancy, str] | None:
+        """The network's occupancy of the six images; None (reported) for images or calibration it cannot take."""
+        from occvo_core.models.tpvformer.predictor import InvalidCameraFrameError
+        from occvo_services.occupancy_model import camera_inputs
+
+        try:
+            images, K, T = camera_inputs(msg.images)
+            t1 = time.perf_counter()
+            with self._model_lock:
+                t2 = time.perf_counter()
+                idx, labels = self.model.predict(images, K, T)
+                model_ms = (time.perf_counter() - t2) * 1000.0
+        except (ValueError, InvalidCameraFrameError) as exc:
+            self.report_error(stream, "invalid_frame", f"seq {msg.seq}: {exc}", keys.camera(stream), msg.seq)
+            return None
+        self.stats.observe("decode_images", (t1 - t0) * 1000.0)
+        self.stats.observe("model", model_ms)
+        dtype = np.uint8 if max(self.model.grid.shape) <= 256 else np.uint16
+        grid = self.model.grid
+        occupancy = SparseOccupancy.model_validate(
+            {
+                "grid": {"lower": grid.lower, "upper": grid.upper, "voxel_size": grid.voxel_size},
+                "voxels": {"dtype": np.dtype(dtype).name, "shape": [len(idx), 3], "data": idx.astype(dtype).tobytes()},
+                "labels": {"dtype": "uint8", "shape": [len(labels)], "data": labels.astype(np.uint8).tobytes()},
+            }
+        )
+        return occupancy, f"model:{self.model.name}"
 
 
 def _args(p) -> None:

@@ -49,6 +49,8 @@ class LocalService:
         log_dir: str | Path | None = None,
         quiet: bool = False,
         registration_shards: int = 1,
+        placement: str = "shards",
+        pin: dict[str, str] | None = None,
     ):
         self.endpoint = endpoint or f"tcp/127.0.0.1:{free_port()}"
         self.router_config = router_config
@@ -57,6 +59,8 @@ class LocalService:
         self.log_dir = Path(log_dir) if log_dir else None
         self.quiet = quiet
         self.registration_shards = registration_shards  # registration workers sharing the streams
+        self.placement = placement  # "members": they share them by rendezvous hashing under store leases
+        self.pin = pin or {}  # worker name -> the cores it may run on (taskset -c)
         self.procs: dict[str, subprocess.Popen] = {}  # by role, or registration-<shard> when sharded
         self.router = None
 
@@ -70,11 +74,12 @@ class LocalService:
         try:
             n = self.registration_shards
             for name, role, shard in [("inference", "inference", []), ("map", "map", [])] + (
-                [("registration", "registration", [])]
+                [("registration", "registration", self._placement(0, 1))]
                 if n == 1
-                else [(f"registration-{i}", "registration", ["--shard", str(i), "--shards", str(n)]) for i in range(n)]
+                else [(f"registration-{i}", "registration", self._placement(i, n)) for i in range(n)]
             ):
                 cmd = [
+                    *(["taskset", "-c", self.pin[name]] if name in self.pin else []),
                     sys.executable,
                     "-m",
                     WORKERS[role],
@@ -114,6 +119,11 @@ class LocalService:
             self.stop()
             raise
         return self
+
+    def _placement(self, i: int, n: int) -> list[str]:
+        if self.placement == "members":
+            return ["--placement", "members"]
+        return ["--shard", str(i), "--shards", str(n)]
 
     def stop(self, timeout: float = 30.0) -> dict[str, int | None]:
         """Stop the workers, then the router; returns the workers' exit codes."""

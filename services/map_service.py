@@ -2,8 +2,9 @@
 tile queries: occvo/<stream>/map/tile/<ix>/<iy> (one tile), a wildcard such as occvo/<stream>/map/tile/*/*
 (a region, optionally bounded by a MapTileQuery payload), and occvo/<stream>/map/info (bounds, tile count, size).
 
-With `store_path` (config or --store-path) the tiles live in a SQLite file (services/map_store.py): each update is
-one transaction, queries read the file, and a restarted service serves what the file holds. Without it, in memory."""
+With `store_url` (config or --store-url; store_path and --store-path are its earlier names) the tiles live in a
+SQLite file (services/map_store.py) or a PostgreSQL database (services/map_store_pg.py): each update is one
+transaction, queries read the store, and a restarted service serves what it holds. Without it, in memory."""
 
 from __future__ import annotations
 
@@ -17,6 +18,8 @@ from occvo_schemas.codec import CodecError, decode, encode
 from occvo_schemas.models import ErrorEvent, MapTileQuery, MapUpdate
 from occvo_services.map_store import open_map_store
 from occvo_services.runtime import Worker, WorkerConfig, log_event, worker_main
+from occvo_services.store_api import redact
+from occvo_services.wire import encoding
 
 
 class MapService(Worker):
@@ -26,17 +29,19 @@ class MapService(Worker):
 
     def __init__(self, config: WorkerConfig):
         super().__init__(config)
-        self.store = open_map_store(config.store_path)
+        self.store = open_map_store(config.store_url)
 
     def declare(self) -> None:
         s = self.session
         self._declared += [
             s.declare_subscriber(keys.map_updates("*"), self._on_update),
-            s.declare_queryable(keys.map_tile("*", "*", "*"), self.bounded(self._on_tile_query)),
-            s.declare_queryable(keys.map_info("*"), self.bounded(self._on_info)),
+            # complete: every map service answers every tile and info query, so a query goes to one of them (the
+            # nearest: Zenoh's default target), not to each replica, nor to a queryable that is not complete
+            s.declare_queryable(keys.map_tile("*", "*", "*"), self.bounded(self._on_tile_query), complete=True),
+            s.declare_queryable(keys.map_info("*"), self.bounded(self._on_info), complete=True),
         ]
-        if self.config.store_path:
-            log_event(self.log, "map store", path=self.config.store_path, streams=self.store.streams())
+        if self.config.store_url:
+            log_event(self.log, "map store", path=redact(self.config.store_url), streams=self.store.streams())
 
     def after_leaving(self) -> None:
         self.store.close()
@@ -79,7 +84,7 @@ class MapService(Worker):
                 return self.reply_error(query, stream, exc.code, f"tile query payload: {exc.message}")
         tile = keys.tile_of(str(qkey))
         replies = []
-        # a region or wildcard gets max_query_tiles tiles a page (a 60-byte get on occvo/** returned 107 MB); the
+        # a region or wildcard gets max_query_tiles tiles a page (a tiny get on occvo/** returned every tile); the
         # tiles are in (stream, ix, iy) order and MapTileQuery.page asks for the next ones
         cap = self.config.max_query_tiles
         page = bounds.page if bounds is not None else 0
@@ -106,7 +111,7 @@ class MapService(Worker):
         if not replies:
             return self.reply_error(query, stream, "bad_query", f"page {page} of {qkey} is past its last tile")
         for tkey, data in replies:
-            query.reply(tkey, data)
+            query.reply(tkey, data, encoding=encoding("map_tile"))
         if more:  # not an error of anyone's: the querier pages on
             self.stats.inc("query_pages_truncated")
             query.reply_err(
@@ -119,7 +124,8 @@ class MapService(Worker):
                         stamp=time.time(),
                         message=f"{cap} tiles sent (page {page}); ask page {page + 1} for more",
                     )
-                )
+                ),
+                encoding=encoding("error_event"),
             )
         self.stats.observe("tile_query", (time.perf_counter() - t0) * 1000.0)
 
@@ -132,11 +138,11 @@ class MapService(Worker):
         for s in found:
             info = self.store.info(s)
             if info is not None:
-                query.reply(keys.map_info(s), encode(info))
+                query.reply(keys.map_info(s), encode(info), encoding=encoding("map_info"))
 
 
 def _args(p) -> None:
-    p.add_argument("--store-path", help="SQLite file holding the tiles across restarts (default: in memory)")
+    p.add_argument("--store-path", help="the tiles' store across restarts, as --store-url (default: in memory)")
 
 
 if __name__ == "__main__":

@@ -1,5 +1,5 @@
-"""Where the map service keeps its tiles: in memory (MemoryMapStore) or in an embedded SQLite file (MapStore) that
-survives a restart.
+"""Where the map service keeps its tiles: in memory (MemoryMapStore), in an embedded SQLite file (MapStore) that
+survives a restart, or in a PostgreSQL database (services/map_store_pg.py) shared by replicas on many hosts.
 
 Both hold, per stream, the encoded MapTile bytes of every (ix, iy) with its voxel count and x/y/z bounds, the stream's
 tile_m and the seq of the last update. A tile stays until a reset of its stream or an explicit empty tile: the
@@ -21,6 +21,7 @@ import numpy as np
 from occvo_core.errors import ConfigError
 from occvo_schemas.models import MapInfo, MapTileQuery, MapUpdate
 from occvo_services.sqlite_wal import enable_wal
+from occvo_services.store_api import is_postgres_url, sqlite_path
 
 Bounds = MapTileQuery | None
 
@@ -243,10 +244,16 @@ class MapStore:
             self._w.close()
 
 
-def open_map_store(path: str | Path | None) -> MapStore | MemoryMapStore:
-    """A SQLite store at `path`, or in memory without one; ConfigError naming the file when it cannot be opened."""
+def open_map_store(path: str | Path | None):
+    """A PostgreSQL store for a postgresql:// URL (services/map_store_pg.py), a SQLite file for a path or sqlite:///
+    URL, or in memory without one; ConfigError naming the file when it cannot be opened."""
     if not path:
         return MemoryMapStore()
+    if is_postgres_url(path):
+        from occvo_services.map_store_pg import PgMapStore
+
+        return PgMapStore(str(path))
+    path = sqlite_path(path)
     try:
         return MapStore(path)
     except (sqlite3.Error, OSError) as exc:

@@ -82,11 +82,9 @@ def release_priority(tid: int) -> None:
 def large_blocks_from_mmap(threshold: int = 16 << 20, trim: int = 64 << 20) -> bool:
     """Fix glibc's mmap threshold and heap trim threshold (False where malloc is not glibc's). By default the mmap
     threshold rises to the largest block freed, up to 32 MB: then even the map's big arrays come from the heap, which
-    fragments, and a worker's RSS creeps up over hours (3,600-frame drive: median RSS +11% from the first half to the
-    second). Fixed, blocks over `threshold` (map arrays, snapshot copies) are mmapped and returned when freed; a
-    frame's temporaries (up to a few MB) come from a heap that keeps up to `trim` free at its top. A threshold as
-    low as 128 KB makes every temporary a fresh mapping faulted in page by page (20x the page faults, registration
-    p50 23.8 ms instead of 13.3 on a loaded stream)."""
+    fragments, and a worker's RSS creeps up over hours of a long drive. Fixed, blocks over `threshold` (map arrays, snapshot copies) are mmapped and returned when freed; a
+    frame's temporaries (up to a few MB) come from a heap that keeps up to `trim` free at its top. A much lower
+    threshold makes every temporary a fresh mapping faulted in page by page, and registration slower."""
     try:
         libc = ctypes.CDLL("libc.so.6")
         return bool(libc.mallopt(-3, threshold)) and bool(libc.mallopt(-1, trim))  # M_MMAP_THRESHOLD, M_TRIM_THRESHOLD
@@ -96,8 +94,8 @@ def large_blocks_from_mmap(threshold: int = 16 << 20, trim: int = 64 << 20) -> b
 
 def trim_heap() -> bool:
     """Give the heap's free pages back to the system now (glibc's malloc_trim; False elsewhere). Once, after start-up
-    work whose temporaries are gone (the kernels' warm-up left 43 MB free but resident); not per frame: trimmed pages
-    fault in again (README, Reliability: eight-stream p99 42 to 64 ms with a trim every 5 s)."""
+    work whose temporaries are gone (the kernels' warm-up leaves tens of MB free but resident); not per frame: trimmed pages
+    fault in again, and a periodic trim raised the eight-stream latency p99."""
     try:
         return bool(ctypes.CDLL("libc.so.6").malloc_trim(0))
     except (OSError, AttributeError):

@@ -1,14 +1,14 @@
-"""`python -m occvo_services.registration_worker`: the registration worker (services/registration/: the stream lane,
-durability, paging, map publishing and queries, wired to Zenoh in worker.py)."""
+"""`python -m occvo_services.registration_worker`: the registration worker (services/registration/: one session a
+stream, its phases, scheduling, paging, map output, snapshots and resume; wired to Zenoh in worker.py)."""
 
 from __future__ import annotations
 
 import sys
 
-from occvo_services.registration.state import StreamState
+from occvo_services.registration.session import StreamSession
 from occvo_services.registration.worker import RegistrationWorker, main
 
-__all__ = ["RegistrationWorker", "StreamState", "main"]
+__all__ = ["RegistrationWorker", "StreamSession", "main"]
 
 if __name__ == "__main__":
     sys.exit(main())

@@ -26,6 +26,7 @@ from occvo_services.os_tuning import few_malloc_arenas, large_blocks_from_mmap, 
 from occvo_services.query_gate import QueryGate
 from occvo_services.sessions import open_session
 from occvo_services.telemetry import Stats, log_event, structured_logger
+from occvo_services.wire import blocking, encoding
 from occvo_services.worker_config import DEFAULT_ENDPOINT, Policy, WorkerConfig
 
 __all__ = [  # importers of these names from here predate the split
@@ -169,15 +170,18 @@ class Worker:
         else:
             self.stats.inc("streams_retired")
             log_event(self.log, "idle stream retired", stream=lane.stream, idle_s=self.config.idle_stream_s)
-        trim_heap()  # the lane thread's malloc arena keeps its free pages otherwise (inference +28% after 300 streams)
+        trim_heap()  # the lane thread's malloc arena keeps its free pages otherwise (the inference worker's RSS grew with every stream served)
         return True
 
     def retire_stream(self, stream: str) -> None:
         """Give back an idle stream's per-stream state (roles override); its lane is gone already."""
 
-    def enqueue(self, sample: zenoh.Sample, expect, handler: Callable[[str, object], None]) -> None:
-        """Decode a stream message, check its sequence number and queue it on its stream's lane with its hop
-        latency; bad messages are reported by decode_input and check_seq, never raised."""
+    def enqueue(
+        self, sample: zenoh.Sample, expect, handler: Callable[[str, object], None], judge_seq: bool = True
+    ) -> None:
+        """Decode a stream message, check its sequence number (judge_seq False: the handler does, against what it
+        committed) and queue it on its stream's lane with its hop latency; bad messages are reported by decode_input
+        and check_seq, never raised."""
         t_recv, t_decode = time.time(), time.perf_counter()
         msg = self.decode_input(sample, expect)
         if msg is None or self.stopping.is_set():
@@ -193,7 +197,7 @@ class Worker:
             self.stats.inc("streams_refused")
             self.report_error(msg.stream, "stream_limit", refused, str(sample.key_expr), msg.seq)
             return
-        if not self.check_seq(msg.stream, msg.seq, str(sample.key_expr)):
+        if judge_seq and not self.check_seq(msg.stream, msg.seq, str(sample.key_expr)):
             with self._lanes_lock:
                 if msg.stream not in self.lanes:  # admitted for nothing: its place goes back
                     self.admission.release(msg.stream)
@@ -288,7 +292,7 @@ class Worker:
                 self.session.put(
                     keys.errors(event.stream if event.stream != "*" else "_"),
                     encode(event),
-                    congestion_control=zenoh.CongestionControl.BLOCK,
+                    **blocking("error_event"),
                 )  # a report is never dropped
             except Exception as exc:  # noqa: BLE001
                 log_event(self.log, "cannot publish error event", logging.ERROR, error=repr(exc))
@@ -318,7 +322,7 @@ class Worker:
 
     def reply_error(self, query: zenoh.Query, stream: str, code: str, message: str) -> None:
         event = self.report_error(stream, code, message, str(query.key_expr))
-        query.reply_err(encode(event))
+        query.reply_err(encode(event), encoding=encoding("error_event"))
 
     def health(self) -> WorkerHealth:
         counters, stages = self.stats.snapshot()
@@ -338,7 +342,7 @@ class Worker:
         return sorted(set(self.lanes) | set(self.trackers))
 
     def _on_stats(self, query: zenoh.Query) -> None:
-        query.reply(keys.stats(self.worker_id), encode(self.health()))
+        query.reply(keys.stats(self.worker_id), encode(self.health()), encoding=encoding("worker_health"))
 
 
 def worker_main(
@@ -356,6 +360,7 @@ def worker_main(
     p.add_argument("--max-message-bytes", type=int)
     p.add_argument("--log-level")
     p.add_argument("--max-rss-mb", type=int, help="memory cap: idle streams evicted near it, new streams refused")
+    p.add_argument("--store-url", help="the store: a SQLite file (path or sqlite:///path) or postgresql://...")
     if extra_args:
         extra_args(p)
     args = vars(p.parse_args(argv))

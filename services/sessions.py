@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import socket
 from pathlib import Path
 
@@ -23,8 +24,8 @@ def free_port() -> int:
 
 ZENOH_CONFIG_ENV = "OCCVO_ZENOH_CONFIG"  # a zenoh json5 for client sessions: TLS certificates, credentials (deploy/)
 CLIENT_RETRY = "{period_init_ms: 100, period_max_ms: 500, period_increase_factor: 2}"
-# Zenoh reassembles a fragmented message up to this many bytes and drops it beyond (its default, 1 GiB, let a 512 MiB
-# put cost the router and a worker 500 MB before the codec's check). The codec's limit, so every message that reaches
+# Zenoh reassembles a fragmented message up to this many bytes and drops it beyond (its default, 1 GiB, let a huge
+# put cost the router and a worker its size in memory before the codec's check). The codec's limit, so every message that reaches
 # a worker's decode is within it; the registration worker splits bigger map updates (deploy/*.json5 set it too)
 TRANSPORT_MAX_BYTES = DEFAULT_MAX_BYTES
 _ZENOH_DEFAULT_MAX = 1 << 30
@@ -35,7 +36,7 @@ def limit_messages(c: zenoh.Config, max_bytes: int = TRANSPORT_MAX_BYTES) -> zen
 
     With zenoh's shared memory on (its default), every local client that sends more than 3 kB allocates a 16 MiB
     pool, and each process its messages reach (the router, the workers) maps that pool for as long as the client
-    lives: the inference worker stayed +16 MB for each flooding client, given back only when it left. Off, the router
+    lives: the inference worker grew by a pool for each flooding client, given back only when it left. Off, the router
     and workers get their own copy of a message over the socket (a frame's copy costs well under a millisecond)."""
     if json.loads(c.get_json("transport/link/rx/max_message_size")) == _ZENOH_DEFAULT_MAX:
         c.insert_json5("transport/link/rx/max_message_size", str(max_bytes))
@@ -53,7 +54,7 @@ def zenoh_config(
     try:
         c = zenoh.Config.from_file(str(base)) if base else zenoh.Config()
     except Exception as exc:  # noqa: BLE001 - zenoh names the key, we name the file
-        raise ConfigError(f"zenoh config {base}: {exc}") from None
+        raise ConfigError(f"zenoh config {base}: {zenoh_reason(exc)}") from None
     c.insert_json5("mode", json.dumps(mode))
     c.insert_json5("scouting/multicast/enabled", "false")
     if connect:
@@ -65,8 +66,33 @@ def zenoh_config(
     return limit_messages(c)
 
 
+class NoRouterError(ConnectionError):
+    """No Zenoh router answers at the endpoint (the message is the line for the user)."""
+
+
+def zenoh_reason(exc: BaseException) -> str:
+    """Zenoh's message for a user: one line, without the Rust source location or the error's struct around it."""
+    text = " ".join(str(exc).split())
+    quoted = re.search(r'msg: "(.*?)", location', text)  # Json5Err(Message { msg: "...", location: ... })
+    text = quoted.group(1) if quoted else text
+    parse = re.match(r"--> (\d+):(\d+) .*?= (.*)", text)  # a json5 parse error drawn as a source excerpt
+    text = f"line {parse.group(1)}, column {parse.group(2)}: {parse.group(3)}" if parse else text
+    return re.sub(r"\s*at /\S+\.rs:\d+\.?", "", text).strip(" .")
+
+
 def open_session(connect: str = DEFAULT_ENDPOINT, base: str | Path | None = None) -> zenoh.Session:
-    return zenoh.open(zenoh_config("client", connect=connect, base=base))
+    """A client session on the router at connect; a malformed endpoint is a ConfigError and no router answering a
+    NoRouterError, each one line."""
+    try:
+        config = zenoh_config("client", connect=connect, base=base)
+    except zenoh.ZError as exc:
+        raise ConfigError(f"{connect} is not a router endpoint: {zenoh_reason(exc)}") from None
+    try:
+        return zenoh.open(config)
+    except zenoh.ZError:
+        base = base or os.environ.get(ZENOH_CONFIG_ENV)
+        refused = f" (or it refused the session of {base}: check its certificates or credentials)" if base else ""
+        raise NoRouterError(f"no router at {connect}{refused}: start `occvo serve` or pass --connect") from None
 
 
 def open_router(listen: str | None = None, config_path: str | Path | None = None) -> zenoh.Session:

@@ -9,6 +9,8 @@ Tables (they may share a file with the map service's map_streams/map_tiles, serv
   cold_tiles  (stream, ix, iy, evicted_seq): map tiles evicted from the working set, with restored_seq once they came
               back. A restored row stays until the next snapshot: resuming from an older snapshot replays the frames
               that restored it and needs the block as it was.
+  leases      stream: owner, fencing epoch, expires_at (services/sqlite_leases.py); writes given `epoch` check it in
+              their transaction (services/store_api.py)
 
 WAL journal (readers never block the writer), a busy timeout (another process may write the same file) and one
 transaction per frame. synchronous=FULL by default: a pose is committed before it is published, and FULL makes that
@@ -39,6 +41,7 @@ from occvo_core.frame import OccupancyFrame
 from occvo_services.array_pack import pack_arrays, unpack_arrays
 from occvo_services.os_tuning import hold_priority, lower_priority, name_os_thread, release_priority
 from occvo_services.snapshot_file import SNAPSHOT_SCHEMA, SnapshotFile, snapshot_path
+from occvo_services.sqlite_leases import LEASES_SCHEMA, SqliteLeases, fence
 from occvo_services.sqlite_wal import connect, transaction
 from occvo_services.store_blobs import frame_digest, pack_frame, unpack_frame
 from occvo_services.telemetry import log_event
@@ -55,7 +58,8 @@ __all__ = [  # importers of these names from here predate the split
 
 _LOG = logging.getLogger("occvo.registration.store")  # the worker's logger prints it
 
-SCHEMA = """
+SCHEMA = (
+    """
 CREATE TABLE IF NOT EXISTS streams (
     stream       TEXT PRIMARY KEY,
     created      REAL NOT NULL,
@@ -87,6 +91,8 @@ CREATE TABLE IF NOT EXISTS cold_tiles (
     PRIMARY KEY (stream, ix, iy, evicted_seq)
 );
 """
+    + LEASES_SCHEMA
+)
 _PER_STREAM = ("poses", "journal", "cold_tiles")
 
 
@@ -107,7 +113,7 @@ class StreamRecord:
     snapshot_seq: int | None
 
 
-class TrajectoryStore(SnapshotFile):
+class TrajectoryStore(SqliteLeases, SnapshotFile):
     """Two SQLite connections shared by the worker's stream lanes, each behind its lock: the frames' file and the
     snapshots' file (services/README.md). SQLite has one writer per file anyway."""
 
@@ -115,12 +121,13 @@ class TrajectoryStore(SnapshotFile):
         self.path, self.snapshot_path = str(path), snapshot_path(path)
         self.synchronous = synchronous
         self.db = connect(self.path, synchronous, busy_timeout_s, SCHEMA)
-        # 64 kB pages for the snapshots' file: a 50 MB snapshot written in 4 kB pages cost 170 ms of CPU (SQLite's
-        # work per page and WAL frame), in 64 kB pages 60 ms; a file made with other pages keeps them
+        # 64 kB pages for the snapshots' file: SQLite works per page and WAL frame, so a snapshot in 4 kB pages costs
+        # several times the CPU; a file made with other pages keeps them
         self.snap_db = connect(self.snapshot_path, synchronous, busy_timeout_s, SNAPSHOT_SCHEMA, page_size=65536)
         self.lock, self.snap_lock = threading.Lock(), threading.Lock()
         self._writer_nice = os.getpriority(os.PRIO_PROCESS, 0)  # the opening thread's: _write_lock holds writers at it
         self._move_old_snapshots()
+        self._add_snapshot_epochs()
         # reads on a connection of their own (WAL: a reader never waits for the writer): a restore reading megabytes
         # of cold tiles held every stream's commit behind the one connection's lock
         self.read_db = self.db if self.path == ":memory:" else connect(self.path, synchronous, busy_timeout_s, "")
@@ -129,13 +136,20 @@ class TrajectoryStore(SnapshotFile):
         if self.path != ":memory:":
             # the frames' WAL is copied into the file by a thread of its own, not by the commit that crosses SQLite's
             # autocheckpoint threshold: that commit held the store's lock, and every stream's commit behind it, for
-            # the copy and its fsync (70 to 200 ms beside a snapshot's flush, eight streams)
+            # the copy and its fsync (long beside a snapshot's flush with many streams)
             self.db.execute("PRAGMA wal_autocheckpoint=0")
             self._stop = threading.Event()
             self._checkpointer = threading.Thread(
                 target=self._checkpoint_loop, args=(busy_timeout_s,), name="store-checkpointer", daemon=True
             )
             self._checkpointer.start()
+
+    @staticmethod
+    def open(url_or_path: str | Path, synchronous: str = "FULL"):
+        """The store at a path, sqlite:///path or postgresql:// URL (services/store_api.open_store)."""
+        from occvo_services.store_api import open_store
+
+        return open_store(url_or_path, synchronous)
 
     CHECKPOINT_EVERY_S = 1.0
     WAL_BLOCK_PAGES = 65536  # a WAL this long (256 MB of 4 kB pages) after a pass: checkpoint it whole, writers waiting
@@ -171,8 +185,8 @@ class TrajectoryStore(SnapshotFile):
     def _write_lock(self, phases: dict | None = None):
         """The store's write lock, held at the priority of the thread that opened the store (the lanes'): a niced
         after-pose thread or snapshot writer holding it must not keep the lanes' commits waiting while other work
-        takes the cores (priority ceiling; without it, on a shared host, 70% of the time of commits over 100 ms
-        went to waiting for this lock)."""
+        takes the cores (priority ceiling; without it, on a shared host, most of a slow commit's time went to waiting for
+        this lock)."""
         t0 = time.perf_counter()
         with self.lock:
             if phases is not None:
@@ -233,13 +247,17 @@ class TrajectoryStore(SnapshotFile):
         pose: np.ndarray,
         frame_blob: bytes,
         new_trajectory: bool = False,
+        *,
+        epoch: int | None = None,
     ) -> dict[str, float]:
         """One frame, atomically, before its pose is published: the pose and the journal entry. new_trajectory first
         drops everything of the stream. What the frame does to the map after that is finish_frame's. Returns where
-        the time went, in ms: "lock" (this store's other writers), "begin" (other processes'), "commit"."""
+        the time went, in ms: "lock" (this store's other writers), "begin" (other processes'), "commit". Given
+        `epoch`, FencedError and nothing written if the stream's lease has moved on."""
         pose_bytes = np.ascontiguousarray(pose, np.float64).reshape(4, 4).tobytes()
 
         def tx(db):
+            fence(db, stream, epoch)
             if new_trajectory:
                 for table in _PER_STREAM:
                     db.execute(f"DELETE FROM {table} WHERE stream=?", (stream,))
@@ -264,6 +282,8 @@ class TrajectoryStore(SnapshotFile):
         pose: np.ndarray | None = None,
         evicted: dict | None = None,
         restored: Iterable[tuple[int, int, int]] = (),
+        *,
+        epoch: int | None = None,
     ) -> None:
         """What a committed frame did after its pose was published, atomically: its relocalised pose (a loop
         closed; status "relocalised"), the tiles it evicted ({(ix, iy): block arrays}) and the cold rows it restored
@@ -273,6 +293,7 @@ class TrajectoryStore(SnapshotFile):
         synced commit carries it), one fsync a frame, not two."""
 
         def tx(db):
+            fence(db, stream, epoch)
             if pose is not None:
                 db.execute(
                     "UPDATE poses SET status='relocalised', pose=? WHERE stream=? AND seq=?",

@@ -76,13 +76,10 @@ class UpConfig(BaseModel):
     @classmethod
     def load(cls, path: str | Path) -> UpConfig:
         """Read the json5 file; relative paths in it are relative to the file."""
-        import json5
+        from occvo_core import config_file
 
         path = Path(path)
-        try:
-            cfg = cls.model_validate(json5.loads(path.read_text()))
-        except Exception as exc:  # noqa: BLE001
-            raise ConfigError(f"{path}: {exc}") from None
+        cfg = config_file.validate(cls, config_file.read(path), path)
         base = path.resolve().parent
 
         def rel(p: str | None) -> str | None:

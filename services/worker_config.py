@@ -7,11 +7,12 @@ from typing import Literal
 
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
-from occvo_core.errors import ConfigError
 from occvo_schemas.codec import DEFAULT_MAX_BYTES
 
 DEFAULT_ENDPOINT = "tcp/127.0.0.1:7447"
 Policy = Literal["lossless", "latest"]
+# placement "members": snapshots often enough that a moved stream's resume replays a short journal
+MEMBERS_SNAPSHOT_EVERY, MEMBERS_SNAPSHOT_SHARE = 5, 0.2
 
 
 class WorkerConfig(BaseModel):
@@ -30,7 +31,7 @@ class WorkerConfig(BaseModel):
     idle_stream_s: float = Field(30.0, gt=0)  # a stream without frames this long gives back its lane (and its memory)
     # resident set this worker keeps under (services/memory.py): near it idle streams are evicted and new streams
     # refused (stream_limit). None: no cap. 4 GiB leaves a 24 GiB machine room for the router, the other workers
-    # and a model source; the registration worker's 64 admitted one-frame streams peak at ~1.1 GB
+    # and a model source; the registration worker's admitted streams stay well under it (docs/results.md, Hostile clients)
     max_rss_mb: int | None = Field(4096, ge=64)
     max_seq_jump: int = Field(100_000, ge=1)  # a seq this far beyond the next expected is reported, not adopted
     error_events_per_s: float = Field(20.0, gt=0)  # error events a stream may cause a second (bursts of error_burst)
@@ -56,6 +57,11 @@ class WorkerConfig(BaseModel):
     # (occvo_schemas.keys.shard_of: CRC-32 of the stream id mod shards). `occvo up` sets both from a role's count
     shard: int = Field(0, ge=0)
     shards: int = Field(1, ge=1, le=1024)
+    # registration: "members": the live registration workers share the streams by rendezvous hashing (keys.owner_of),
+    # each stream written by its owner only, under a lease with a fencing epoch in the store (hosts sharing a
+    # PostgreSQL store); a lost worker's streams move to the others. lease_s: how long a silent owner keeps them
+    placement: Literal["shards", "members"] = "shards"
+    lease_s: float = Field(10.0, gt=0)
     tile_m: float = Field(20.0, gt=0)
     # registration: with frames of a stream waiting, their map tiles go out together, in one update at most this long
     # after the last (every update re-sends whole tiles); a stream caught up gets one a frame. 0: one a frame always
@@ -76,19 +82,40 @@ class WorkerConfig(BaseModel):
     # registration: call every kernel once at start-up, before taking frames (compiled on a fresh install, else
     # loaded from numba's cache; see occvo_core/warm_up.py)
     warm_up: bool = True
-    # durable state (SQLite file; the registration worker and the map service may share one)
-    store_path: str | None = None
+    # durable state: a SQLite file (a path or sqlite:///path; the registration worker and the map service of one
+    # host may share one) or a PostgreSQL database (postgresql://user@host/db) that workers on many hosts share
+    store_url: str | None = None
+    store_path: str | None = None  # the earlier name of store_url: either may be given, both read the same
     snapshot_every: int = Field(
         20, ge=1
     )  # registration: frames between state snapshots at least (a journal covers the rest)
     # registration: snapshots of a stream take at most this share of its time; a big map is snapshotted less often
-    # (a resume replays more journal) instead of stalling every stream (a 10^6-voxel state is ~200 MB, ~1 s to write);
+    # (a resume replays more journal) instead of stalling every stream (a big map's state takes long to write);
     # None: every snapshot_every frames whatever they cost
     snapshot_max_share: float | None = Field(0.02, gt=0, le=1)
     working_radius_m: float | None = Field(None, gt=0)  # registration: map farther from the ego goes to the store
     store_sync: Literal["full", "normal"] = (
         "full"  # registration: SQLite synchronous; normal survives kill -9, not power loss
     )
+
+    @model_validator(mode="after")
+    def _one_store(self) -> WorkerConfig:
+        if self.store_url and self.store_path and self.store_url != self.store_path:
+            raise ValueError(f"store_url {self.store_url!r} and store_path {self.store_path!r} name two stores")
+        # assigned through __dict__: validate_assignment is off, and a model_copy must not re-run this
+        self.__dict__["store_url"] = self.__dict__["store_path"] = self.store_url or self.store_path
+        return self
+
+    @model_validator(mode="after")
+    def _members_snapshot_often(self) -> WorkerConfig:
+        """Placement "members": a moved stream's next owner replays its journal since the last snapshot, so unless
+        set, snapshots come every MEMBERS_SNAPSHOT_EVERY frames within MEMBERS_SNAPSHOT_SHARE of a stream's time."""
+        if self.placement == "members":
+            if "snapshot_every" not in self.model_fields_set:
+                self.__dict__["snapshot_every"] = MEMBERS_SNAPSHOT_EVERY
+            if "snapshot_max_share" not in self.model_fields_set:
+                self.__dict__["snapshot_max_share"] = MEMBERS_SNAPSHOT_SHARE
+        return self
 
     @model_validator(mode="after")
     def _shard_in_range(self) -> WorkerConfig:
@@ -98,16 +125,8 @@ class WorkerConfig(BaseModel):
 
     @classmethod
     def load(cls, path: str | Path | None, **overrides) -> WorkerConfig:
-        import json5
+        from occvo_core import config_file
 
-        data = {}
-        if path is not None:
-            try:
-                data = json5.loads(Path(path).read_text())
-            except Exception as exc:  # noqa: BLE001
-                raise ConfigError(f"{path}: {exc}") from None
+        data = config_file.read(path) if path is not None else {}
         data.update({k: v for k, v in overrides.items() if v is not None})
-        try:
-            return cls.model_validate(data)
-        except Exception as exc:  # noqa: BLE001
-            raise ConfigError(f"worker config {path or ''}: {exc}") from None
+        return config_file.validate(cls, data, path or "worker config")

@@ -60,3 +60,28 @@ def random_pose(rng: np.random.Generator, max_angle_rad: float, max_shift_m: flo
     pose[:3, :3] = Rotation.from_rotvec(axis / np.linalg.norm(axis) * rng.uniform(0, max_angle_rad)).as_matrix()
     pose[:3, 3] = rng.uniform(-max_shift_m, max_shift_m, 3)
     return pose
+
+
+@pytest.fixture(scope="session")
+def pg_cluster():
+    """A PostgreSQL 15 server of the session's own (services/pg_local.py); its restart tests stop and start it."""
+    from occvo_services.pg_local import PgCluster, missing
+
+    why = missing()
+    if why:
+        pytest.skip(why)
+    cluster = PgCluster()
+    yield cluster
+    cluster.close()
+
+
+@pytest.fixture
+def pg_url(pg_cluster) -> str:
+    """The URL of a new, empty database on the session's server."""
+    return pg_cluster.new_database()
+
+
+@pytest.fixture(params=["sqlite", "postgresql"])
+def store_url(request, tmp_path) -> str:
+    """A new store of each backend: a SQLite file, a PostgreSQL database (a test using it runs on both)."""
+    return str(tmp_path / "s.sqlite") if request.param == "sqlite" else request.getfixturevalue("pg_url")

@@ -16,7 +16,13 @@ def add_parser(sub) -> None:
     p.add_argument("--frames", type=int, default=40, help="synthetic scene length")
     p.add_argument("--noise", default="default", help="synthetic prediction noise preset")
     p.add_argument("--json", action="store_true", help="the rows as JSON on stdout instead of the table")
-    p.add_argument("--output", type=Path, help="also write the rows as JSON to this file")
+    p.add_argument(
+        "--out",
+        "--output",
+        dest="out",
+        type=Path,
+        help="also write the rows as JSON to this file (--output: the old name)",
+    )
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=run)
 
@@ -26,6 +32,7 @@ def run(args) -> int:
 
     from occvo_core.ablation import filter_combinations, format_table, run_ablation
     from occvo_core.errors import ConfigError
+    from occvo_core.io import write_text_atomic
 
     map_metrics = None
     if args.seeds:
@@ -47,6 +54,6 @@ def run(args) -> int:
     rows = run_ablation(sources, map_metrics=map_metrics, progress=bar.update)
     bar.close()
     print(json.dumps(rows, indent=2, default=float) if args.json else format_table(rows))
-    if args.output:
-        args.output.write_text(json.dumps(rows, indent=2, default=float) + "\n")
+    if args.out:
+        write_text_atomic(args.out, json.dumps(rows, indent=2, default=float) + "\n")
     return 0

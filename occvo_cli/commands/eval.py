@@ -1,4 +1,5 @@
-"""occvo eval: APE of an estimated trajectory against ground truth (as `evo_ape kitti GT EST -a`)."""
+"""occvo eval: APE (as `evo_ape kitti GT EST -a`) or RPE (as `evo_rpe kitti GT EST`) of an estimated trajectory against
+ground truth."""
 
 from __future__ import annotations
 
@@ -8,7 +9,7 @@ import numpy as np
 
 
 def add_parser(sub) -> None:
-    p = sub.add_parser("eval", help="APE RMSE (SE(3) Umeyama-aligned) of an estimate against ground truth")
+    p = sub.add_parser("eval", help="APE (SE(3) Umeyama-aligned) or RPE of an estimate against ground truth")
     p.add_argument("--gt", required=True, help="ground-truth trajectory, KITTI or TUM")
     p.add_argument("--est", required=True, help="estimated trajectory, KITTI or TUM")
     p.add_argument(
@@ -23,6 +24,18 @@ def add_parser(sub) -> None:
         default=2.0,
         help="--fit-time-offset: frames/s where a file has no stamps (KITTI); TUM files carry their own",
     )
+    p.add_argument(
+        "--rpe", action="store_true", help="the relative pose error (translation part) instead of APE, as evo_rpe"
+    )
+    p.add_argument(
+        "--delta", type=float, default=1.0, help="--rpe: the distance between the poses compared (default 1)"
+    )
+    p.add_argument(
+        "--delta-unit",
+        choices=("f", "m"),
+        default="f",
+        help="--rpe: --delta in frames (f, default) or metres of path driven (m), as evo_rpe's --delta_unit",
+    )
     p.add_argument("--json", action="store_true", help="print JSON")
     p.set_defaults(func=run)
 
@@ -35,14 +48,10 @@ def run(args) -> int:
     (gt_stamps, gt), (est_stamps, est) = read_stamped_trajectory(args.gt), read_stamped_trajectory(args.est)
     if len(gt) != len(est):
         raise DatasetError(args.est, f"{len(est)} poses against {len(gt)} in {args.gt}")
+    if args.rpe:
+        return _rpe(gt, est, args)
     err = ape_errors(gt, est)
-    stats = {
-        "rmse": float(np.sqrt(np.mean(err**2))),
-        "mean": float(err.mean()),
-        "median": float(np.median(err)),
-        "max": float(err.max()),
-        "poses": len(err),
-    }
+    stats = {**_stats(err), "poses": len(err)}
     stats["success"] = success(stats["rmse"])
     if args.fit_time_offset:
         stats.update(_time_fit(gt, est, gt_stamps if gt_stamps is not None else est_stamps, args))
@@ -78,3 +87,36 @@ def _time_fit(gt, est, stamps, args) -> dict:
         "time_offset_ms": fit.offset_ms,
         "time_fit_dropped_frames": fit.dropped_frames,
     }
+
+
+def _stats(err: np.ndarray) -> dict:
+    """evo's statistics of an error vector."""
+    return {
+        "rmse": float(np.sqrt(np.mean(err**2))),
+        "mean": float(err.mean()),
+        "median": float(np.median(err)),
+        "std": float(err.std()),
+        "min": float(err.min()),
+        "max": float(err.max()),
+        "sse": float(np.sum(err**2)),
+    }
+
+
+def _rpe(gt, est, args) -> int:
+    from occvo_core.errors import ConfigError
+    from occvo_core.eval import rpe_errors
+
+    try:
+        err = rpe_errors(gt, est, args.delta, args.delta_unit)
+    except ValueError as exc:
+        raise ConfigError(f"--rpe: {exc}") from None
+    unit = {"f": "frames", "m": "m"}[args.delta_unit]
+    stats = {**_stats(err), "pairs": len(err), "delta": args.delta, "delta_unit": args.delta_unit}
+    if args.json:
+        print(json.dumps(stats))
+    else:
+        print(f"RPE w.r.t. translation part (m) for delta = {args.delta:g} ({unit})")
+        for k in ("rmse", "mean", "median", "std", "min", "max", "sse"):
+            print(f"{k:>8}  {stats[k]:.6f}")
+        print(f"{'pairs':>8}  {stats['pairs']}")
+    return 0

@@ -17,7 +17,13 @@ def add_parser(sub) -> None:
     p.add_argument("--device", help="cpu or cuda (default: cuda when present)")
     p.add_argument("--threads", type=int, default=1, help="torch CPU threads")
     p.add_argument("--json", action="store_true", help="the metrics as JSON on stdout instead of the table")
-    p.add_argument("--output", type=Path, help="also write the metrics as JSON to this file")
+    p.add_argument(
+        "--out",
+        "--output",
+        dest="out",
+        type=Path,
+        help="also write the metrics as JSON to this file (--output: the old name)",
+    )
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=run)
 
@@ -26,6 +32,7 @@ def run(args) -> int:
     import torch
 
     from occvo_core.errors import DatasetError
+    from occvo_core.io import write_text_atomic
     from occvo_core.models.tpvformer import load_checkpoint, select_device, shipped_checkpoint
     from occvo_core.models.train import evaluate
 
@@ -40,16 +47,16 @@ def run(args) -> int:
     )
     summary = metrics.summary()
     summary.update({"checkpoint": str(args.checkpoint), "seeds": args.seeds})
-    if args.output:
-        args.output.write_text(json.dumps(summary, indent=1))
+    if args.out:
+        write_text_atomic(args.out, json.dumps(summary, indent=1))
     if args.json:
         print(json.dumps(summary, indent=1))
         return 0
     width = max(len(k) for k in summary["per_class_iou"])
     for name, iou in summary["per_class_iou"].items():
-        print(f"  {name:<{width}}  {'   n/a' if iou is None else f'{100 * iou:6.2f}'}")
+        print(f"  {name:<{width}}  {'  n/a' if iou is None else f'{iou:.3f}'}")  # fractions, as the docs give them
     print(
-        f"mIoU (17 classes): {100 * summary['miou']:.2f}   geometry IoU: {100 * summary['geometry_iou']:.2f}   "
+        f"mIoU (17 classes): {summary['miou']:.3f}   geometry IoU: {summary['geometry_iou']:.3f}   "
         f"({summary['frames']} frames, seeds {args.seeds}, inside the camera mask)"
     )
     return 0

@@ -7,6 +7,7 @@ import json
 import sys
 from pathlib import Path
 
+from occvo_cli.outputs import add_output_flags
 from occvo_core import OccVOConfig
 
 
@@ -74,11 +75,7 @@ def add_parser(sub) -> None:
         help="refine each frame's constant-velocity guess by the semantic BEV motion search "
         "(initialisation.motion_search; default: on with --from-images, else as the config says)",
     )
-    p.add_argument(
-        "--view", action="store_true", help="show the run live in a rerun viewer (pip install 'occvo[view]')"
-    )
-    p.add_argument("--rerun", type=Path, metavar="FILE.rrd", help="save the live view as a rerun recording")
-    p.add_argument("--map-every", type=int, default=5, help="--view/--rerun: log the global map every N frames")
+    add_output_flags(p)
     p.add_argument("--json", action="store_true", help="the summary as JSON on stdout")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=run)
@@ -88,7 +85,7 @@ def config_from_args(args) -> OccVOConfig:
     cfg = OccVOConfig.load(args.config) if args.config else OccVOConfig()
     search = getattr(args, "motion_search", None)
     if search is None and getattr(args, "from_images", False):
-        search = True  # camera occupancy needs it to follow turns; it costs 16-21 ms a frame
+        search = True  # camera occupancy needs it to follow turns; it costs time every frame
     if search is not None:
         cfg = cfg.with_motion_search(search)
     return cfg.with_filters(
@@ -99,6 +96,8 @@ def config_from_args(args) -> OccVOConfig:
 
 
 def run(args) -> int:
+    from occvo_cli.outputs import open_outputs
+    from occvo_cli.run_record import write_run_record
     from occvo_core.datasets import open_scene
     from occvo_core.errors import ConfigError
     from occvo_core.pipeline import OdometryPipeline
@@ -138,17 +137,23 @@ def run(args) -> int:
         source = open_scene(args.input, gt=args.gt, scene=args.scene, mask=args.mask)
     config = config_from_args(args)
     extra = {"compile_s": _warm_up(config, args)}
-    view = _open_view(args)
-    pipeline = OdometryPipeline(
-        source, config, skip_bad_frames=args.skip_bad_frames, threads=args.threads, progress=not args.quiet
-    ).run(on_step=view.step if view else None)
-    if view:
-        view.finish(pipeline.odometry)
+    view = open_outputs(args)
+    try:
+        pipeline = OdometryPipeline(
+            source, config, skip_bad_frames=args.skip_bad_frames, threads=args.threads, progress=not args.quiet
+        ).run(on_step=view.step if view else None)
+        if view:
+            view.finish(pipeline.odometry)
+    except BaseException:
+        if view:
+            view.abandon()  # no half-written recording
+        raise
     if args.input is None:
         extra["map_metrics"] = _synthetic_map_metrics(truth, pipeline)
     if args.from_images:
         extra["torch_threads"], extra["camera_mask"] = torch.get_num_threads(), predictor.camera_mask
     summary = pipeline.write(args.out, extra)
+    write_run_record(args.out, args, config)
     shown = {k: summary[k] for k in summary if k not in ("skipped_frames",)}
     if args.json:
         print(json.dumps({**shown, "out": str(args.out)}, indent=2, default=float))
@@ -162,20 +167,6 @@ def run(args) -> int:
         )
         return 1
     return 0
-
-
-def _open_view(args):
-    if not (args.view or args.rerun):
-        return None
-    from occvo_core.errors import ConfigError
-
-    try:
-        from occvo_core.viz.rerun_log import RerunView
-    except ModuleNotFoundError as exc:
-        if exc.name != "rerun":
-            raise
-        raise ConfigError("--view and --rerun need rerun-sdk: pip install 'occvo[view]'") from None
-    return RerunView.open("occvo", spawn=args.view, save=args.rerun, map_every=args.map_every)
 
 
 def _list_scenes(root) -> int:
@@ -196,9 +187,11 @@ def _text(s: dict, out: Path) -> str:
     if s.get("ms_per_frame_median") is not None:
         ms, warm = s["ms_per_frame_median"], s.get("compile_s", 0.0)
         lines.append(f"{ms:.1f} ms a frame (median); kernel warm-up before the frames {warm:.1f} s")
-    lines.append(f"map: {s['map_voxels']} voxels")
+    lines.append(f"map: {s['map_voxels']} voxels (the voxel pfilter's persistent ones of {s['live_voxels']} live)")
+    truth = " groundtruth.kitti groundtruth.tum" if "ape_rmse_m" in s else ""
     lines.append(
-        f"wrote {out}/: trajectory.kitti trajectory.tum map.ply map.npz map_voxels.npz trajectory.png summary.json"
+        f"wrote {out}/: trajectory.kitti trajectory.tum{truth} map.ply map.npz map_voxels.npz trajectory.png "
+        "summary.json run.json"
     )
     return "\n".join(lines)
 
@@ -209,11 +202,9 @@ def _warm_up(config: OccVOConfig, args) -> float:
     from occvo_core.warm_up import warm_up
 
     if not args.quiet:
-        print(
-            "occvo run: loading the registration kernels (a first run compiles them, ~40 s on 2 cores)",
-            file=sys.stderr,
-            flush=True,
-        )
+        # one write, line end included: a Ctrl-C between text and newline would put the next line on this one
+        sys.stderr.write("occvo run: loading the registration kernels (a first run compiles them, ~40 s on 2 cores)\n")
+        sys.stderr.flush()
     return float(warm_up(config, threads=args.threads)["seconds"])
 
 

@@ -17,7 +17,7 @@ def add_parser(sub) -> None:
     p.add_argument("--seeds", type=int, nargs="+", default=list(range(20)), help="synthetic training scene seeds")
     p.add_argument("--frames", type=int, default=20, help="frames per scene")
     p.add_argument("--stride", type=int, default=2, help="use every n-th frame")
-    p.add_argument("--lr", type=float, default=2e-3)
+    p.add_argument("--lr", type=float, default=2e-3, help="AdamW learning rate (default 2e-3)")
     p.add_argument("--max-steps", type=int, help="stop after this many steps even within the budget")
     p.add_argument("--cache", type=Path, help="keep rendered training frames here (.npz) and reuse them in later runs")
     p.add_argument("--threads", type=int, default=1, help="torch CPU threads (the machine is shared)")

@@ -11,6 +11,7 @@ from __future__ import annotations
 from collections import OrderedDict
 
 import gymnasium as gym
+from gymnasium.wrappers import TimeLimit
 
 from occvo_core.envs.replay import (
     ReplayEnv,
@@ -35,6 +36,7 @@ class SyntheticEnv(ReplayEnv):
         traffic: bool = True,
         capacity: int | None = None,
         cache: int = 2,
+        render_mode: str | None = None,
     ):
         from occvo_core.sim import SyntheticScene
 
@@ -48,15 +50,34 @@ class SyntheticEnv(ReplayEnv):
             return self._scenes[s]
 
         kwargs = {} if capacity is None else {"capacity": capacity}
-        super().__init__(scene_for_seed(seed), scene_for_seed=scene_for_seed, **kwargs)
+        super().__init__(scene_for_seed(seed), scene_for_seed=scene_for_seed, render_mode=render_mode, **kwargs)
+
+
+class SceneLength(TimeLimit):
+    """TimeLimit at the scene's length, so env.spec.max_episode_steps is known; it never cuts an episode short (the
+    last step terminates it, and is not also reported truncated)."""
+
+    def step(self, action):
+        obs, reward, terminated, truncated, info = super().step(action)
+        return obs, reward, terminated, truncated and not terminated, info
+
+
+def make_replay(**kwargs) -> gym.Env:
+    env = ReplayEnv(**kwargs)
+    return SceneLength(env, max_episode_steps=len(env.source))
+
+
+def make_synthetic(**kwargs) -> gym.Env:
+    env = SyntheticEnv(**kwargs)
+    return SceneLength(env, max_episode_steps=len(env.source))
 
 
 def register_envs() -> None:
     """Register occvo/Replay-v0 and occvo/Synthetic-v0 (idempotent)."""
     if "occvo/Replay-v0" not in gym.registry:
-        gym.register(id="occvo/Replay-v0", entry_point="occvo_core.envs.replay:ReplayEnv")
+        gym.register(id="occvo/Replay-v0", entry_point="occvo_core.envs:make_replay")
     if "occvo/Synthetic-v0" not in gym.registry:
-        gym.register(id="occvo/Synthetic-v0", entry_point="occvo_core.envs:SyntheticEnv")
+        gym.register(id="occvo/Synthetic-v0", entry_point="occvo_core.envs:make_synthetic")
 
 
 register_envs()

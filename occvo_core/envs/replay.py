@@ -10,6 +10,9 @@ Reward: minus the translation error (m) of that estimate after aligning the call
     truth's first pose (est aligned = gt_0 @ inv(est_0) @ est); 0 when the scene has no ground truth.
 Episode: reset() shows frame 0; each step() scores the estimate of the shown frame and shows the next one;
     `terminated` once the last frame has been scored (the last observation is repeated).
+Render (render_mode="rgb_array"): a bird's-eye image of the frames so far placed by the caller's estimates (the map)
+    and the estimated path, with the ground truth's path where known (occvo_core.envs.birds_eye).
+Episode length: len(scene) steps; gym.make gives the environments max_episode_steps = the scene's length.
 Info: frame_index, stamp (s, the data's clock), gt_pose (of the shown frame, None when unknown), and after a step:
     scored_index, translation_error, gt_pose_scored, dropped_points (points outside the grid or beyond capacity).
 """
@@ -68,7 +71,7 @@ def action_from_pose(pose: np.ndarray) -> np.ndarray:
 
 
 class ReplayEnv(gym.Env):
-    metadata = {"render_modes": []}
+    metadata = {"render_modes": ["rgb_array"], "render_fps": 2}
 
     def __init__(
         self,
@@ -76,12 +79,17 @@ class ReplayEnv(gym.Env):
         capacity: int = DEFAULT_CAPACITY,
         scene_for_seed: Callable[[int], Any] | None = None,
         scene: str | None = None,
+        render_mode: str | None = None,
     ):
         """source: a SceneSource, a scene folder (with `scene`: an Occ3D-nuScenes root), or "synthetic:<seed>".
         scene_for_seed: when given, reset(seed=s) replays scene_for_seed(s) instead (the synthetic environment uses it
         to draw a new town per seed)."""
         if source is None and scene_for_seed is None:
             raise ValueError("ReplayEnv needs a source or scene_for_seed")
+        if render_mode not in (None, *self.metadata["render_modes"]):
+            raise ValueError(f"render_mode {render_mode!r}: this environment renders {self.metadata['render_modes']}")
+        self.render_mode = render_mode
+        self._birds_eye = None
         self.capacity = int(capacity)
         self.scene_for_seed = scene_for_seed
         self.source = open_source(source, scene) if source is not None else scene_for_seed(0)
@@ -148,6 +156,11 @@ class ReplayEnv(gym.Env):
         self._index, self._first_est, self._done = 0, None, False
         obs, dropped = self._observe(0)
         self._last_obs = _copy(obs)
+        if self.render_mode == "rgb_array":
+            from occvo_core.envs.birds_eye import BirdsEye
+
+            self._birds_eye = self._birds_eye or BirdsEye()
+            self._birds_eye.reset()
         return obs, self._info(0, dropped)
 
     def step(self, action):
@@ -158,10 +171,13 @@ class ReplayEnv(gym.Env):
         if self._first_est is None:
             self._first_est = est
         gt = self._gt(scored)
-        error = float("nan")
+        error, aligned = float("nan"), est
         if gt is not None:
             aligned = self._gt(0) @ np.linalg.inv(self._first_est) @ est
             error = float(np.linalg.norm(aligned[:3, 3] - gt[:3, 3]))
+        if self._birds_eye is not None and np.all(np.isfinite(aligned)):  # the frame just scored, where it was put
+            n = int(self._last_obs["count"])
+            self._birds_eye.add(self._last_obs["points"][:n], self._last_obs["labels"][:n], aligned, gt)
         reward = -error if np.isfinite(error) else 0.0
         if not np.isfinite(reward):
             reward = -1e6
@@ -176,6 +192,15 @@ class ReplayEnv(gym.Env):
         info = self._info(self._index, dropped)
         info.update(scored_index=scored, translation_error=error, gt_pose_scored=gt)
         return obs, float(reward), bool(terminated), False, info
+
+    def render(self):
+        if self.render_mode != "rgb_array":
+            return None
+        if self._birds_eye is None:
+            from occvo_core.envs.birds_eye import BirdsEye
+
+            self._birds_eye = BirdsEye()
+        return self._birds_eye.image()
 
 
 def frame_from_observation(obs: dict, index: int = 0, stamp: float = 0.0) -> OccupancyFrame:

@@ -50,8 +50,8 @@ class SyntheticOccDataset:
 
     With `cache_dir`, rendered frames are kept on disk (one .npz each, named by seed, frame and image size) and read
     back by later runs, so training time goes to training steps rather than to ray casting. In memory at most
-    `memory_frames` are kept (the most recently used): a tiny frame is about 4 MB there, and 600 seeds' 6,000 frames
-    took a 24 GB machine's memory (the training run was killed). A frame let go is read from disk again, or rendered
+    `memory_frames` are kept (the most recently used): frames of a few MB each, and thousands of them
+    took a whole machine's memory (the training run was killed). A frame let go is read from disk again, or rendered
     again without `cache_dir`.
     """
 

@@ -36,8 +36,9 @@ def _keys(points: np.ndarray) -> np.ndarray:
 class RerunView:
     """Logs a run's steps to one rerun recording (a viewer, a .rrd file, or both)."""
 
-    def __init__(self, recording: rr.RecordingStream, map_every: int = 5):
+    def __init__(self, recording: rr.RecordingStream, map_every: int = 5, save: Path | None = None):
         self.rec = recording
+        self.save = save  # the recording goes to save + ".partial" and is renamed to save by close()
         self.map_every = max(1, int(map_every))
         self.path: list[np.ndarray] = []
         self._movable: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None  # keys, points, labels
@@ -58,8 +59,9 @@ class RerunView:
         rec = rr.RecordingStream(app)
         sinks = []
         if save is not None:
-            Path(save).parent.mkdir(parents=True, exist_ok=True)
-            sinks.append(rr.FileSink(str(save)))
+            save = Path(save)
+            save.parent.mkdir(parents=True, exist_ok=True)
+            sinks.append(rr.FileSink(str(_partial(save))))
         if spawn:
             rec.spawn(connect=False)
             sinks.append(rr.GrpcSink())
@@ -69,7 +71,7 @@ class RerunView:
             rr.serve_web_viewer(web_port=int(web_port), open_browser=False, connect_to=server.uri)
         if sinks:
             rec.set_sinks(*sinks)
-        return cls(rec, map_every)
+        return cls(rec, map_every, save)
 
     def time(self, index: int, stamp: float) -> None:
         self.rec.set_time("frame", sequence=int(index))
@@ -144,8 +146,21 @@ class RerunView:
         self.close()
 
     def close(self) -> None:
+        """Flush and end the recording; a saved one gets its name only now, complete."""
         self.rec.flush()
         self.rec.disconnect()
+        if self.save is not None:
+            _partial(self.save).replace(self.save)
+
+    def abandon(self) -> None:
+        """End the recording after an error or Ctrl-C: a saved one's partial file is removed."""
+        self.rec.disconnect()
+        if self.save is not None:
+            _partial(self.save).unlink(missing_ok=True)
+
+
+def _partial(path: Path) -> Path:
+    return path.with_name(path.name + ".partial")
 
 
 def _rows_in(a: np.ndarray, b: np.ndarray) -> np.ndarray:

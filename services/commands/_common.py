@@ -36,8 +36,8 @@ def add_connection(p, stream: bool = True) -> None:
         p.add_argument("--stream", type=stream_id, default="default", help="stream id (default: default)")
 
 
-def add_json(p, what: str = "the result") -> None:
-    p.add_argument("--json", action="store_true", help=f"{what} as JSON on stdout")
+def add_json(p, what: str = "the result", lines: bool = False) -> None:
+    p.add_argument("--json", action="store_true", help=f"{what} as JSON{' lines' if lines else ''} on stdout")
 
 
 def endpoint(args) -> str:
@@ -50,16 +50,10 @@ def endpoint(args) -> str:
 
 
 def client(args, **kw):
-    """An OccVOClient on the command's router, or one line saying that no router answers."""
-    import zenoh
+    """An OccVOClient on the command's router (no router answering: open_session's NoRouterError, one line)."""
+    from occvo_services.client import OccVOClient
 
-    from occvo_services.client import OccVOClient, ServiceError
-
-    ep = endpoint(args)
-    try:
-        return OccVOClient(ep, stream=getattr(args, "stream", "default"), **kw)
-    except zenoh.ZError:
-        raise ServiceError(f"no router at {ep}: start `occvo serve` or pass --connect") from None
+    return OccVOClient(endpoint(args), stream=getattr(args, "stream", "default"), **kw)
 
 
 def emit(args, record: dict, text: str) -> None:

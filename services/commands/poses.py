@@ -6,6 +6,8 @@ import json
 import signal
 import threading
 
+import numpy as np
+
 from occvo_core.errors import ConfigError
 from occvo_schemas import keys
 from occvo_schemas.codec import decode
@@ -16,6 +18,11 @@ from occvo_services.commands._common import add_connection, client, progress
 def _line(p: PoseEstimate, fmt: str) -> str:
     if fmt == "kitti":
         return " ".join(f"{v:.9e}" for row in p.pose[:3] for v in row)
+    if fmt == "tum":  # as trajectory.tum: stamp tx ty tz qx qy qz qw
+        from scipy.spatial.transform import Rotation
+
+        T = np.asarray(p.pose, np.float64)
+        return " ".join(f"{v:.9f}" for v in [p.stamp, *T[:3, 3], *Rotation.from_matrix(T[:3, :3]).as_quat()])
     return json.dumps(
         {
             "stream": p.stream,
@@ -34,7 +41,12 @@ def add_parser(subparsers) -> None:
     add_connection(p)
     p.add_argument("--follow", action="store_true", help="print new poses as they arrive, until Ctrl-C")
     p.add_argument("--count", type=int, default=None, help="with --follow: stop after N poses")
-    p.add_argument("--format", choices=["json", "kitti"], default="json", help="a JSON object or a KITTI row a pose")
+    p.add_argument(
+        "--format",
+        choices=["json", "kitti", "tum"],
+        default="json",
+        help="a JSON object, a KITTI row or a TUM row (stamp tx ty tz qx qy qz qw) a pose",
+    )
     p.add_argument("--json", action="store_const", const="json", dest="format", help="the same as --format json")
     p.add_argument("--quiet", action="store_true", help="with --follow: no 'following' line on stderr")
     p.set_defaults(func=run)

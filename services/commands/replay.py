@@ -44,36 +44,21 @@ def replay(
     client.reset()
     t0 = time.perf_counter()
     sent_at = []
-
-    def settled() -> int:
-        with client._cv:
-            return len(client.poses) + len(
-                {
-                    e.seq
-                    for e in client.errors
-                    if e.seq is not None and e.seq not in client.poses and e.code != "missing_seq"
-                }
-            )
-
     for i in range(n):
         frame = scene[i]
         if rate_hz > 0:
             delay = t0 + i / rate_hz - time.perf_counter()
             if delay > 0:
                 time.sleep(delay)
-        deadline = time.monotonic() + timeout
-        with client._cv:
-            while i - settled() >= window:
-                if not client._cv.wait(max(0.0, deadline - time.monotonic())) and time.monotonic() > deadline:
-                    raise ServiceError(f"pipeline stalled: no pose for {timeout} s with {window} frames in flight")
+        _wait_settled(client, i - window + 1, timeout, f"no pose for {timeout} s with {window} frames in flight")
         sent_at.append(time.perf_counter())
         client.publish(frame)
         if progress:
             progress(i, n)
-    deadline = time.monotonic() + timeout
-    with client._cv:
-        while settled() < n and time.monotonic() < deadline:
-            client._cv.wait(max(0.0, deadline - time.monotonic()))
+    try:
+        _wait_settled(client, n, timeout, "")
+    except ServiceError:
+        pass  # the summary says how many came
     elapsed = time.perf_counter() - t0
     poses = dict(client.poses)
     return {
@@ -88,6 +73,23 @@ def replay(
         "pose_msgs": poses,
         "sent_at": sent_at,  # time.perf_counter() each frame left, by seq (client.arrived: when its pose came)
     }
+
+
+def _settled(client: OccVOClient) -> int:
+    """Frames answered: a pose, or an error that is the frame's end (a missing seq is not)."""
+    failed = {
+        e.seq for e in client.errors if e.seq is not None and e.seq not in client.poses and e.code != "missing_seq"
+    }
+    return len(client.poses) + len(failed)
+
+
+def _wait_settled(client: OccVOClient, count: int, timeout: float, stalled: str) -> None:
+    """Until `count` frames are answered; ServiceError ("pipeline stalled: ...") after `timeout` s."""
+    deadline = time.monotonic() + timeout
+    with client._cv:
+        while _settled(client) < count:
+            if not client._cv.wait(max(0.0, deadline - time.monotonic())) and time.monotonic() > deadline:
+                raise ServiceError(f"pipeline stalled: {stalled}")
 
 
 def add_parser(subparsers) -> None:
@@ -115,7 +117,9 @@ def add_parser(subparsers) -> None:
     p.add_argument("--rate", type=float, default=0.0, help="frames per second; 0 = as fast as the pipeline takes")
     p.add_argument("--window", type=int, default=4, help="frames in flight at most (lossless replay)")
     p.add_argument("--frames", type=int, default=None, help="replay only the first N frames")
-    p.add_argument("--timeout", type=float, default=120.0)
+    p.add_argument(
+        "--timeout", type=float, default=120.0, help="seconds to wait for the poses after the last frame (default 120)"
+    )
     p.add_argument(
         "--resend-after",
         type=float,
@@ -123,8 +127,15 @@ def add_parser(subparsers) -> None:
         help="send unanswered frames again after this many seconds without an answer (also when the "
         "registration worker comes back); 0 = never",
     )
-    p.add_argument("--output", help="write the received trajectory (KITTI) here")
-    p.add_argument("--tum", help="write the received trajectory as TUM here, stamped with the frames' stamps")
+    p.add_argument(
+        "--out",
+        "--output",
+        dest="out",
+        help="write the received trajectory here: TUM (stamped with the frames' stamps) when the name ends in .tum "
+        "or with --format tum, else KITTI (--output: the old name)",
+    )
+    p.add_argument("--format", choices=("kitti", "tum"), help="--out's format (default: by its name)")
+    p.add_argument("--tum", metavar="FILE", help="the same as --out FILE --format tum (the old spelling)")
     add_json(p, "the summary")
     p.add_argument("--quiet", action="store_true", help="no progress bar and no error events on stderr")
     p.set_defaults(func=run)
@@ -156,15 +167,7 @@ def run(args) -> int:
                 c, scene, args.rate, args.window, args.frames, args.timeout, progress=lambda i, n: bar.update()
             )
         errors = list(c.errors)
-    if args.output and len(out["trajectory"]):
-        from occvo_core.trajectory import write_kitti
-
-        write_kitti(args.output, out["trajectory"])
-    if args.tum and len(out["trajectory"]):
-        from occvo_core.trajectory import write_tum
-
-        msgs = out["pose_msgs"]
-        write_tum(args.tum, out["trajectory"], np.array([msgs[s].stamp for s in sorted(msgs)]))
+    _write_trajectory(args, out)
     if not args.quiet:
         for e in errors:
             print(f"occvo replay: frame {e.seq}: {e.code}: {e.message}", file=sys.stderr)
@@ -182,3 +185,18 @@ def run(args) -> int:
             "events above or the registration worker's log)"
         )
     return 0
+
+
+def _write_trajectory(args, out: dict) -> None:
+    from occvo_core.trajectory import write_kitti, write_tum
+
+    wanted = [(args.out, args.format or ("tum" if str(args.out).endswith(".tum") else "kitti"))] if args.out else []
+    wanted += [(args.tum, "tum")] if args.tum else []
+    for path, fmt in wanted:
+        if not len(out["trajectory"]):
+            continue
+        if fmt == "tum":
+            msgs = out["pose_msgs"]
+            write_tum(path, out["trajectory"], np.array([msgs[s].stamp for s in sorted(msgs)]))
+        else:
+            write_kitti(path, out["trajectory"])

@@ -34,11 +34,28 @@ def add_parser(subparsers) -> None:
         "--insecure", action="store_true", help="allow a non-loopback listen endpoint without authentication"
     )
     p.add_argument("--source", choices=["replay", "model"], default="replay", help="inference source")
-    p.add_argument("--device", choices=["auto", "cpu", "cuda"], default="auto")
+    p.add_argument(
+        "--device",
+        choices=["auto", "cpu", "cuda"],
+        default="auto",
+        help="where --source model runs the network (auto: cuda when there is one)",
+    )
     p.add_argument("--checkpoint", help="TPV-Former checkpoint for --source model (occvo train-occ)")
-    p.add_argument("--store-path", help="SQLite file for the trajectories and the map; a restart resumes from it")
-    p.add_argument("--policy", choices=["lossless", "latest"], default="lossless")
-    p.add_argument("--queue-size", type=int, default=4)
+    p.add_argument(
+        "--store",
+        "--store-path",
+        dest="store",
+        metavar="URL",
+        help="the trajectories' and the map's store, a restart resumes from it: a SQLite file (path or sqlite:///path) "
+        "or postgresql://user@host/db shared by the workers of many hosts",
+    )
+    p.add_argument(
+        "--policy",
+        choices=["lossless", "latest"],
+        default="lossless",
+        help="a full queue: lossless blocks the sender, latest drops the oldest frame (default lossless)",
+    )
+    p.add_argument("--queue-size", type=int, default=4, help="frames each worker holds a stream before its policy acts")
     p.add_argument(
         "--registration-workers",
         type=int,
@@ -52,7 +69,7 @@ def add_parser(subparsers) -> None:
         default=300.0,
         help="seconds the workers may take to come up (a first start compiles the kernels)",
     )
-    add_json(p, "the endpoint and events (listening, worker ready, ready, stopped) as JSON lines")
+    add_json(p, "the endpoint and events (listening, worker ready, ready, stopped)", lines=True)
     p.add_argument("--quiet", action="store_true", help="no progress lines and no worker logs on stderr")
     p.set_defaults(func=run)
 
@@ -69,10 +86,19 @@ def _worker_config(args, name: str) -> str:
 def _wait_alive(sup, timeout: float) -> None:
     """Until every worker's liveliness token is up (a fresh install compiles kernels first), restarting crashes."""
     from occvo_schemas import keys
-    from occvo_services.sessions import open_session
+    from occvo_services.sessions import NoRouterError, open_session
 
     roles = {"inference", "registration", "map"}
-    probe = open_session(sup.endpoint)
+    try:
+        probe = open_session(sup.endpoint)
+    except NoRouterError:
+        router = sup.router.proc if sup.router is not None else None
+        if router is None or router.poll() is None:
+            raise
+        raise ServiceError(
+            f"the router could not listen on {sup.endpoint} (exit code {router.returncode}; is the port taken by "
+            "another program?): give another --listen"
+        ) from None
     try:
         deadline = time.monotonic() + timeout
         while not sup.stopping.is_set():
@@ -90,20 +116,11 @@ def _wait_alive(sup, timeout: float) -> None:
         probe.close()
 
 
-def run(args) -> int:
-    from occvo_services.runtime import structured_logger
-    from occvo_services.supervisor import RouterSpec, Supervisor, UpConfig, WorkerSpec
+def _up_config(args, router_config: str):
+    """The router and the three workers `occvo serve` supervises, from its flags."""
+    from occvo_services.supervisor import RouterSpec, UpConfig, WorkerSpec
 
-    if args.registration_workers < 1:
-        raise ConfigError(f"--registration-workers must be at least 1, not {args.registration_workers}")
-    if args.queue_size < 1:
-        raise ConfigError(f"--queue-size must be at least 1, not {args.queue_size}")
-    router_config = args.router_config or str(defaults.path("router.json5"))
-    if args.log_dir:
-        Path(args.log_dir).mkdir(parents=True, exist_ok=True)
-    ep = args.listen or endpoint(args)
-    check_listen_secure(router_config, [ep], args.insecure)
-    store = ["--store-path", args.store_path] if args.store_path else []
+    store = ["--store-url", args.store] if args.store else []
     common = ["--policy", args.policy, "--queue-size", str(args.queue_size)]
     model = [
         "--source",
@@ -112,7 +129,7 @@ def run(args) -> int:
         args.device,
         *(["--checkpoint", args.checkpoint] if args.checkpoint else []),
     ]
-    config = UpConfig(
+    return UpConfig(
         router=RouterSpec(config=router_config, listen=args.listen),
         log_dir=args.log_dir,
         workers=[
@@ -126,6 +143,22 @@ def run(args) -> int:
             WorkerSpec(role="map", config=_worker_config(args, "map_service.json5"), args=[*common, *store]),
         ],
     )
+
+
+def run(args) -> int:
+    from occvo_services.runtime import structured_logger
+    from occvo_services.supervisor import Supervisor
+
+    if args.registration_workers < 1:
+        raise ConfigError(f"--registration-workers must be at least 1, not {args.registration_workers}")
+    if args.queue_size < 1:
+        raise ConfigError(f"--queue-size must be at least 1, not {args.queue_size}")
+    router_config = args.router_config or str(defaults.path("router.json5"))
+    if args.log_dir:
+        Path(args.log_dir).mkdir(parents=True, exist_ok=True)
+    ep = args.listen or endpoint(args)
+    check_listen_secure(router_config, [ep], args.insecure)
+    config = _up_config(args, router_config)
     sup = Supervisor(
         config, structured_logger("occvo.serve", "WARNING") if args.quiet else None, role_names=True, quiet=args.quiet
     )
@@ -133,6 +166,11 @@ def run(args) -> int:
         signal.signal(sig, lambda *_: sup.stopping.set())
     emit(args, {"event": "listening", "endpoint": ep}, f"listening on {ep}")
     progress(args, f"starting the inference, registration and map workers; the registration worker {WARM_UP_NOTE}")
+    return _supervise(args, sup, ep)
+
+
+def _supervise(args, sup, ep: str) -> int:
+    """Start the workers, say when they are ready, restart crashed ones until Ctrl-C; the exit code of the stop."""
 
     def ready(role: str, seconds: float) -> None:
         if role == "warm-up":

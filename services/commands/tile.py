@@ -13,11 +13,13 @@ from occvo_services.commands._common import add_connection, add_json, client, em
 
 def add_parser(subparsers) -> None:
     p = subparsers.add_parser("tile", help="query one map tile")
-    p.add_argument("x", type=float)
-    p.add_argument("y", type=float)
+    p.add_argument("x", type=float, help="tile index along x (with --metres: a world x in metres)")
+    p.add_argument("y", type=float, help="tile index along y (with --metres: a world y in metres)")
     add_connection(p)
     p.add_argument("--metres", action="store_true", help="X Y are world coordinates, not tile indices")
-    p.add_argument("--output", help="save the tile as an (M,4) x,y,z,label .npy")
+    p.add_argument(
+        "--out", "--output", dest="out", help="save the tile as an (M,4) x,y,z,label .npy (--output: the old name)"
+    )
     add_json(p)
     p.set_defaults(func=run)
 
@@ -33,8 +35,8 @@ def run(args) -> int:
             ix, iy = int(args.x), int(args.y)
         t = c.tile(ix, iy)  # ServiceError (tile_not_found, ...): one line, exit code 1
     pts, labels = t.points.to_numpy(), t.labels.to_numpy()
-    if args.output:
-        np.save(args.output, np.column_stack([pts, labels.astype(np.float64)]))
+    if args.out:
+        np.save(args.out, np.column_stack([pts, labels.astype(np.float64)]))
     counts = np.bincount(labels, minlength=len(CLASS_NAMES))
     record = {
         "stream": t.stream,

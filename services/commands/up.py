@@ -15,7 +15,7 @@ def add_parser(subparsers) -> None:
     )
     p.add_argument("--listen", help="replace the router's listen endpoint, e.g. tcp/127.0.0.1:7447")
     p.add_argument("--log-dir", help="each child's log to <dir>/<name>.log (default: stderr)")
-    add_json(p, "the endpoint and events (listening, worker ready, stopped) as JSON lines")
+    add_json(p, "the endpoint and events (listening, worker ready, ready, stopped)", lines=True)
     p.add_argument(
         "--quiet", action="store_true", help="no progress lines and only warnings of the supervisor's log on stderr"
     )
@@ -43,7 +43,7 @@ def run(args) -> int:
         check_listen_secure(router_file, listen, args.insecure)
     sup = Supervisor(config, structured_logger("occvo.up", "WARNING") if args.quiet else None)
     roles = tuple(dict.fromkeys(w.role for w in config.workers))
-    watch = None
+    watch, ready = None, set()
 
     def worker_ready(role: str, seconds: float) -> None:
         if role == "warm-up":
@@ -52,10 +52,18 @@ def run(args) -> int:
         if args.json:
             emit(args, {"event": "worker ready", "role": role, "seconds": seconds}, "")
         progress(args, f"{role} worker ready after {seconds} s")
+        ready.add(role)
+        if ready == set(roles):  # the line a script waits for, as serve's
+            pids = sup.pids()
+            emit(
+                args,
+                {"event": "ready", "endpoint": sup.endpoint, "pids": pids},
+                f"ready: {', '.join(f'{r} (pid {pid})' for r, pid in pids.items())}; Ctrl-C stops",
+            )
 
     def started(s: Supervisor) -> None:
         nonlocal watch
-        emit(args, {"event": "ready", "endpoint": s.endpoint, "pids": s.pids()}, f"listening on {s.endpoint}")
+        emit(args, {"event": "listening", "endpoint": s.endpoint}, f"listening on {s.endpoint}")
         if "registration" in roles:
             progress(args, f"workers started: {', '.join(roles)}; the registration worker {WARM_UP_NOTE}")
         watch = ReadinessWatch(s.endpoint, worker_ready, roles).start()

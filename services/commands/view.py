@@ -1,4 +1,5 @@
-"""occvo view: follow a running service's stream (poses, occupancy, map updates over Zenoh) in a rerun view."""
+"""occvo view: follow a running service's stream (poses, occupancy, map updates over Zenoh) in a rerun view, into an
+MCAP file for Foxglove, or live to Foxglove over its WebSocket protocol."""
 
 from __future__ import annotations
 
@@ -13,7 +14,9 @@ from occvo_services.commands._common import add_connection, endpoint
 
 def add_parser(subparsers) -> None:
     p = subparsers.add_parser(
-        "view", help="follow a stream of the running service in a rerun viewer (pip install 'occvo[view]')"
+        "view",
+        help="follow a stream of the running service in a rerun viewer (pip install 'occvo[view]') or Foxglove "
+        "(--mcap, --foxglove; pip install 'occvo[foxglove]')",
     )
     add_connection(p)
     p.add_argument("--rerun", type=Path, metavar="FILE.rrd", help="save what arrives as a rerun recording")
@@ -22,44 +25,91 @@ def add_parser(subparsers) -> None:
         type=int,
         help="serve the web viewer on this port (the data on the next one) instead of spawning the native viewer",
     )
+    p.add_argument(
+        "--mcap", type=Path, metavar="FILE.mcap", help="write what arrives to an MCAP file in Foxglove's schemas"
+    )
+    p.add_argument(
+        "--foxglove",
+        type=int,
+        nargs="?",
+        const=8765,
+        metavar="PORT",
+        help="serve what arrives live to Foxglove over its WebSocket protocol on 127.0.0.1:PORT (default 8765)",
+    )
     p.add_argument("--seconds", type=float, default=0.0, help="stop after this long (0: until Ctrl-C)")
     p.set_defaults(func=run)
 
 
 def run(args) -> int:
+    from occvo_core.viz.views import Views
+    from occvo_services.follow import StreamFollower
+    from occvo_services.sessions import open_session
+
+    foxglove = args.mcap is not None or args.foxglove is not None
+    session = open_session(endpoint(args))  # first: no router, no viewer and no recording
+    views = []
+    try:
+        if args.rerun or args.web_port or not foxglove:
+            views.append(_rerun_view(args))
+        if foxglove:
+            views.append(_foxglove_view(args))
+    except BaseException:
+        Views(views).abandon()
+        session.close()
+        raise
+    view = Views(views)
+    follower = StreamFollower(session, args.stream, view)
+    stop = threading.Event()
+    signal.signal(signal.SIGTERM, lambda *_: stop.set())
+    ended = False
+    try:
+        if args.web_port:
+            print(
+                f"web viewer: http://127.0.0.1:{args.web_port}/?url=rerun%2Bhttp%3A%2F%2F127.0.0.1%3A"
+                f"{args.web_port + 1}%2Fproxy",
+                flush=True,
+            )
+        if args.foxglove is not None:  # Foxglove: Open connection, Foxglove WebSocket, this URL
+            print(f"foxglove: ws://127.0.0.1:{views[-1].port}", flush=True)
+        deadline = time.monotonic() + args.seconds if args.seconds > 0 else None
+        while not stop.wait(0.2):
+            if deadline is not None and time.monotonic() > deadline:
+                break
+        ended = True
+    except KeyboardInterrupt:  # Ctrl-C is how a viewer ends: close and print the counts
+        ended = True
+    finally:
+        follower.close()
+        session.close()
+        view.close() if ended else view.abandon()  # a recording is kept only when it ended as asked
+    print(json.dumps({"stream": args.stream, **follower.counts}))
+    return 0
+
+
+def _rerun_view(args):
     from occvo_core.errors import ConfigError
 
     try:
-        from occvo_core.viz.follow import StreamFollower
         from occvo_core.viz.rerun_log import RerunView
     except ModuleNotFoundError as exc:
         if exc.name != "rerun":
             raise
         raise ConfigError("occvo view needs rerun-sdk: pip install 'occvo[view]'") from None
-    from occvo_services.sessions import open_session
-
-    view = RerunView.open(
+    return RerunView.open(
         f"occvo-{args.stream}", spawn=not (args.rerun or args.web_port), save=args.rerun, web_port=args.web_port
     )
-    session = open_session(endpoint(args))
-    follower = StreamFollower(session, args.stream, view)
-    stop = threading.Event()
-    signal.signal(signal.SIGTERM, lambda *_: stop.set())
-    if args.web_port:
-        print(
-            f"web viewer: http://127.0.0.1:{args.web_port}/?url=rerun%2Bhttp%3A%2F%2F127.0.0.1%3A{args.web_port + 1}"
-            "%2Fproxy",
-            flush=True,
-        )
+
+
+def _foxglove_view(args):
+    from occvo_core.errors import ConfigError
+
     try:
-        deadline = time.monotonic() + args.seconds if args.seconds > 0 else None
-        while not stop.wait(0.2):
-            if deadline is not None and time.monotonic() > deadline:
-                break
-    except KeyboardInterrupt:  # Ctrl-C is how a viewer ends: close and print the counts
-        pass
-    finally:
-        follower.close()
-        session.close()
-    print(json.dumps({"stream": args.stream, **follower.counts}))
-    return 0
+        from occvo_core.viz.foxglove_log import FoxgloveView
+    except ModuleNotFoundError as exc:
+        if (exc.name or "").split(".")[0] not in ("foxglove", "mcap"):
+            raise
+        raise ConfigError("--mcap and --foxglove need foxglove-sdk: pip install 'occvo[foxglove]'") from None
+    try:
+        return FoxgloveView(mcap=args.mcap, port=args.foxglove)
+    except RuntimeError as exc:  # e.g. the port is taken
+        raise ConfigError(f"--foxglove {args.foxglove}: {exc}") from None

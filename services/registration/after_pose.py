@@ -1,187 +1,153 @@
-"""A frame's work after its pose, in the stream's after-pose thread (loop closure, map update, the second store
-write, a relocalised pose, the snapshot schedule), niced below the lanes unless a lane waits for it; its tiles go out
-in the stream's map thread."""
+"""A frame's work after its pose, in its session's after-pose thread: complete (loop closure, the voxel pfilter's map
+update, paging), store what that changed, a relocalised pose, the map update, the snapshot schedule. It stores and
+publishes nothing unless the pose went out (job.pose_out)."""
 
 from __future__ import annotations
 
 import logging
-import os
-import threading
 import time
-from concurrent.futures import Future
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from occvo_core.frame import OccupancyFrame
-from occvo_core.registration.kernels import use_threads
-from occvo_services.os_tuning import hold_priority, lower_priority, name_os_thread, release_priority
-from occvo_services.registration.state import StreamState
 from occvo_services.telemetry import log_event
 
+if TYPE_CHECKING:
+    from occvo_services.registration.session import FrameJob, StreamSession
 
-class AfterPose:
-    """RegistrationWorker's work after a pose."""
 
-    def _after_pose(self, stream: str, st: StreamState, msg, *rest, head_start: bool = False) -> None:
-        """A frame's work after its pose (_after_pose_steps: OccVO.complete and _finish, their second store write, a
-        relocalised pose, the map update and the snapshot schedule). A failure is reported as a lane reports one."""
-        if head_start:
-            st.head_start.wait(self.config.pose_head_start_ms / 1000.0)
-        st.tail_tid = threading.get_native_id()
+def after_pose(s: StreamSession, job: FrameJob) -> None:
+    """The phases after a pose; a failure is reported as a lane reports one (a worker never dies of one frame)."""
+    try:
+        _after_pose_steps(s, job)
+    except Exception as exc:  # noqa: BLE001
+        s.ctx.report_error(s.stream, "internal", f"{type(exc).__name__}: {exc}", seq=job.msg.seq)
+        log_event(s.ctx.log, "stage failed", logging.ERROR, stream=s.stream, error=repr(exc))
+
+
+def _after_pose_steps(s: StreamSession, job: FrameJob) -> None:
+    t_tail = time.perf_counter()
+    seq = job.msg.seq
+    publish = True if job.restart else None  # None: now or with a later frame's (MapOutput.due)
+    result, restored, evicted, cut = complete(s, job.reg, job.frame, seq, publish, job.entered)
+    if not job.pose_out.result():  # not committed: nothing of it is stored or published (the lane rebuilds the state)
+        return
+    t_finished = time.perf_counter()
+    relocalised = result.loop_correction is not None
+    if relocalised:
+        s.ctx.stats.inc("loop_closures")
+        moved = float(np.linalg.norm(result.pose[:3, 3] - job.pose_m[:3, 3]))
+        log_event(s.ctx.log, "loop closed", stream=s.stream, seq=seq, correction_m=round(moved, 3))
+    if not _store_after_pose(s, seq, np.asarray(result.pose, float) if relocalised else None, evicted):
+        return
+    if relocalised:  # supersedes the pose published before
+        timings = {"loop_closure": float(result.timings_ms.get("loop_closure", 0.0))}
+        s.publish_pose(seq, job.msg.stamp, np.asarray(result.pose, float), "relocalised", job.digest, timings, False)
+    # the tiles are cut and sent in the stream's map thread, beside the next frame's registration, at the lanes'
+    # priority: it holds the GIL for most of its work, and a niced holder would stall the lane waiting for the GIL
+    t_map = time.perf_counter()
+    if cut is not None:
+        s.threads.submit_map(s.map.send, seq, job.restart, cut, evicted, restored)
+    else:
+        s.ctx.stats.inc("map_updates_coalesced")
+    _observe(s, job, result, (t_tail, t_finished, t_map, time.perf_counter()), relocalised)
+    _schedule_snapshot(s)
+
+
+def complete(s: StreamSession, reg, frame: OccupancyFrame, seq: int, publish: bool | None, entered: int = 0):
+    """After the pose: loop closure and map update (OccVO.complete), keep every tile wholly resident or wholly
+    cold, evict far map, and bring back the cold map near the new pose, which the next frame registers against.
+    Returns (result, tiles restored, evicted blocks, the changed part of the map before eviction if published).
+    publish None: when MapOutput.due or tiles come back or leave now; else the change waits for a later frame's cut.
+    A resume's replay of the journal goes the same way, so it reproduces the poses."""
+    vo, pager = s.vo, s.pager
+    t_complete = time.perf_counter()
+    result, _ = s.ctx.scheduler.kernels(vo, vo.complete, reg)  # the next frame's registration waits for it
+    pose = np.asarray(result.pose, float)
+    t0 = time.perf_counter()
+    s.complete_ms = (t0 - t_complete) * 1000.0
+    restored = list(pager.restored_for_next)
+    if pager.cold:  # a frame that reached into an evicted tile: bring the rest back, so the tile stays whole
+        restored += pager.restore(vo, pager.reached(frame, pose))
+    t_map = time.perf_counter()
+    cut = None
+    if publish is None:
+        publish = bool(restored) or s.map.due(s.frames_waiting(entered)) or pager.evicts(vo, pose)
+        s.map.pending = not publish
+    if publish:  # only the part of the map changed since the last cut is cut again
+        cut = s.map.cut(vo)  # copied: cut and sent beside the next registration
+    s.map.extract_ms = (time.perf_counter() - t_map) * 1000.0
+    t_evict = time.perf_counter()
+    evicted = pager.evict_far(vo, seq, pose)
+    s.evict_ms = (time.perf_counter() - t_evict) * 1000.0
+    pager.ego_xy = pose[:2, 3].copy()
+    t_near = time.perf_counter()
+    # published with the next frame's tiles (they are cut then); committed with this frame
+    pager.restored_for_next = pager.restore(vo, pager.near())
+    s.restore_ms = (t_map - t0 + time.perf_counter() - t_near) * 1000.0
+    return result, restored, evicted, cut
+
+
+def _store_after_pose(s: StreamSession, seq: int, relocalised_pose, evicted: dict) -> bool:
+    """The frame's second write: a relocalised pose, tiles evicted and restored. False if it failed."""
+    store, pager = s.ctx.store, s.pager
+    if store is not None and (relocalised_pose is not None or evicted or pager.pending_restored):
         try:
-            self._after_pose_steps(stream, st, msg, *rest)
-        except Exception as exc:  # noqa: BLE001 - a worker never dies of one frame
-            self.report_error(stream, "internal", f"{type(exc).__name__}: {exc}", seq=msg.seq)
-            log_event(self.log, "stage failed", logging.ERROR, stream=stream, error=repr(exc))
-        finally:
-            with st.tail_lock:
-                st.tail_running = False
-                if st.tail_boosted:  # niced again for the next frame's work
-                    release_priority(st.tail_tid)
-                    st.tail_boosted = False
+            restored = pager.pending_restored
+            store.finish_frame(s.stream, seq, relocalised_pose, evicted=evicted, restored=restored, **s.fence())
+        except Exception as exc:  # noqa: BLE001 - the journal has the frame: a resume redoes this part
+            s.store_failed(seq, exc, "pose stored and published, its map update not stored")
+            return False
+    pager.pending_restored = []
+    return True
 
-    def _boost_tail(self, st: StreamState) -> None:
-        """The lane is about to wait for its stream's work after the last pose: that work now holds up a pose, so it
-        runs at the lane's priority until it ends (priority inheritance; without it a niced loop closure waited
-        behind every other stream's lane, up to 0.7 s). Raising a thread's priority needs CAP_SYS_NICE or an
-        RLIMIT_NICE that allows it (the systemd unit sets LimitNICE); without either the work stays niced."""
-        with st.tail_lock:
-            if not st.tail_running or st.tail_tid is None or st.tail_boosted:
-                return
-            if hold_priority(st.tail_tid, os.getpriority(os.PRIO_PROCESS, threading.get_native_id())):
-                st.tail_boosted = True
-                self.stats.inc("after_pose_boosted")
-            elif not self._boost_refused:
-                self._boost_refused = True
-                log_event(
-                    self.log,
-                    "cannot raise a waited-for after-pose thread to the lanes' priority (needs "
-                    "CAP_SYS_NICE or RLIMIT_NICE, e.g. LimitNICE=+0): it finishes niced",
-                    logging.WARNING,
-                )
 
-    def _background_thread(self) -> None:
-        """Start of a thread doing work off the poses' path: after_pose_nice below the lanes. Its own kernels (tiles
-        restored, evicted, snapshot copies) run on one thread; OccVO.complete goes to the worker's kernel team
-        (StreamLanes._kernels), the one thread of the process whose kernels run on several."""
-        name_os_thread()
-        use_threads(1)
-        if not lower_priority(self.config.after_pose_nice):
-            log_event(
-                self.log,
-                "cannot lower a background thread's priority here; it runs at the lanes'",
-                logging.WARNING,
-                thread=threading.current_thread().name,
-            )
+def _observe(s: StreamSession, job: FrameJob, result, marks: tuple, relocalised: bool) -> None:
+    """The after-pose stages in the worker's stats; a slow one logged (the stream's next frame waits for it)."""
+    t_tail, t_finished, t_map, t_end = marks
+    stats, config = s.ctx.stats, s.ctx.config
+    for k, v in result.timings_ms.items():
+        if k not in job.reg_timings:
+            stats.observe(f"complete.{k}", float(v))
+    stats.observe("complete", s.complete_ms)
+    stats.observe("map_extract", s.map.extract_ms)
+    stats.observe("map_wait", (t_end - t_map) * 1000.0)  # the last frame's tiles not sent yet
+    stats.observe("after_pose_store", (t_map - t_finished) * 1000.0)
+    if s.ctx.store is not None:
+        stats.observe("map_restore", s.restore_ms)
+        stats.observe("map_evict", s.evict_ms)
+    stats.observe("frame_after_pose", (t_end - t_tail) * 1000.0)
+    if t_end - t_tail > config.slow_after_pose_s:
+        log_event(
+            s.ctx.log,
+            "slow work after a pose",
+            logging.WARNING,
+            stream=s.stream,
+            seq=job.msg.seq,
+            ms=round((t_end - t_tail) * 1000.0),
+            timings_ms={k: round(v, 1) for k, v in result.timings_ms.items()},
+            finish_ms=round((t_finished - t_tail) * 1000.0),
+            extract_ms=round(s.map.extract_ms, 1),
+            restore_ms=round(s.restore_ms, 1),
+            evict_ms=round(s.evict_ms, 1),
+            store_ms=round((t_map - t_finished) * 1000.0),
+            map_wait_ms=round((t_end - t_map) * 1000.0),
+            relocalised=relocalised,
+        )
+    stats.observe("stage_total", (time.perf_counter() - job.t_valid) * 1000.0)
 
-    def _after_pose_steps(
-        self,
-        stream: str,
-        st: StreamState,
-        msg,
-        reg,
-        frame: OccupancyFrame,
-        digest: bytes,
-        pose_m: np.ndarray,
-        restart: bool,
-        t0: float,
-        pose_out: Future,
-        entered: int,
-    ) -> None:
-        t_tail = time.perf_counter()
-        registered = set(reg.timings_ms)  # complete() adds its stages to the same stopwatch
-        publish = True if restart else None  # None: now or with a later frame's (Paging._map_due)
-        result, restored, evicted, cut = self._finish(stream, st, reg, frame, msg.seq, publish, entered)
-        if not pose_out.result():  # not committed: nothing of it is stored or published (the lane rebuilds the state)
-            return
-        t_finished = time.perf_counter()
-        relocalised = result.loop_correction is not None
-        if relocalised:
-            self.stats.inc("loop_closures")
-            log_event(
-                self.log,
-                "loop closed",
-                stream=stream,
-                seq=msg.seq,
-                correction_m=round(float(np.linalg.norm(result.pose[:3, 3] - pose_m[:3, 3])), 3),
-            )
-        if self.store is not None and (relocalised or evicted or st.pending_restored):
-            try:
-                self.store.finish_frame(
-                    stream,
-                    msg.seq,
-                    np.asarray(result.pose, float) if relocalised else None,
-                    evicted=evicted,
-                    restored=st.pending_restored,
-                )
-            except Exception as exc:  # noqa: BLE001 - the journal has the frame: a resume redoes this part
-                return self._store_failed(
-                    stream, st, msg.seq, exc, "pose stored and published, its map update not stored"
-                )
-        st.pending_restored = []
-        if relocalised:  # supersedes the pose published above
-            timings = {"loop_closure": float(result.timings_ms.get("loop_closure", 0.0))}
-            self._publish_pose(
-                stream, st, msg.seq, msg.stamp, np.asarray(result.pose, float), "relocalised", digest, timings, False
-            )
-        # the tiles are cut from the copy and sent in the stream's map thread, beside the next frame's registration;
-        # one frame's tiles at most wait there (the copy of the last one's is not kept longer). At the lanes' priority:
-        # it holds the GIL for most of its work, and a niced holder the cores pass over would stall the lane waiting
-        # for the GIL (the after-pose thread's boost covers only the waits for its end)
-        t_map = time.perf_counter()
-        if cut is not None:
-            self._map_done(st)
-            st.map_tail = st.map_thread.submit(self._send_tiles, stream, st, msg.seq, restart, cut, evicted, restored)
-        else:
-            self.stats.inc("map_updates_coalesced")
-        t_end = time.perf_counter()
-        for k, v in result.timings_ms.items():
-            if k not in registered:
-                self.stats.observe(f"complete.{k}", float(v))
-        self.stats.observe("complete", st.complete_ms)
-        self.stats.observe("map_extract", st.extract_ms)
-        self.stats.observe("map_wait", (t_end - t_map) * 1000.0)  # the last frame's tiles not sent yet
-        self.stats.observe("after_pose_store", (t_map - t_finished) * 1000.0)
-        if self.store is not None:
-            self.stats.observe("map_restore", st.restore_ms)
-            self.stats.observe("map_evict", st.evict_ms)
-        self.stats.observe("frame_after_pose", (t_end - t_tail) * 1000.0)
-        if t_end - t_tail > self.config.slow_after_pose_s:  # the next frame of the stream waits for this
-            log_event(
-                self.log,
-                "slow work after a pose",
-                logging.WARNING,
-                stream=stream,
-                seq=msg.seq,
-                ms=round((t_end - t_tail) * 1000.0),
-                timings_ms={k: round(v, 1) for k, v in result.timings_ms.items()},
-                finish_ms=round((t_finished - t_tail) * 1000.0),
-                extract_ms=round(st.extract_ms, 1),
-                restore_ms=round(st.restore_ms, 1),
-                evict_ms=round(st.evict_ms, 1),
-                store_ms=round((t_map - t_finished) * 1000.0),
-                map_wait_ms=round((t_end - t_map) * 1000.0),
-                relocalised=relocalised,
-            )
-        self.stats.observe("stage_total", (time.perf_counter() - t0) * 1000.0)
-        if self.store is not None:
-            st.since_snapshot += 1
-            due = st.snapshot_retry or (
-                st.since_snapshot >= self.config.snapshot_every and self._snapshot_affordable(st)
-            )
-            if due and st.snapshot_idle.is_set():
-                self._queue_snapshot(stream, st)
 
-    def _send_tiles(self, stream: str, st: StreamState, seq: int, restart: bool, cut, evicted, restored) -> None:
-        """The stream's map thread: one frame's tiles cut and sent (MapPublisher._publish_map), in frame order."""
-        try:
-            t0 = time.perf_counter()
-            sent = self._publish_map(stream, st, seq, restart, cut, evicted, restored)
-            self.stats.observe("map_publish", (time.perf_counter() - t0) * 1000.0 - (st.tiling_ms - st.extract_ms))
-            self.stats.observe("tiling", st.tiling_ms)
-            self.stats.observe("map_update", (time.perf_counter() - t0) * 1000.0 + st.extract_ms)
-            if sent[0]:
-                self.stats.inc("tiles_sent", sent[0])
-        except Exception as exc:  # noqa: BLE001 - a worker never dies of one frame's tiles
-            self.report_error(stream, "internal", f"map update of seq {seq}: {type(exc).__name__}: {exc}", seq=seq)
-            log_event(self.log, "stage failed", logging.ERROR, stream=stream, error=repr(exc))
+def _schedule_snapshot(s: StreamSession) -> None:
+    """With a store: a snapshot once snapshot_every frames were committed since the last and its cost is within
+    snapshot_max_share of the stream's time (or the last one failed)."""
+    if s.ctx.store is None:
+        return
+    sched, config = s.snapshot, s.ctx.config
+    sched.since += 1
+    due = sched.retry or (
+        sched.since >= config.snapshot_every
+        and s.ctx.snapshots.affordable(sched, s.vo.state_dict(copy=False), config.snapshot_max_share)
+    )
+    if due and sched.idle.is_set():
+        s.ctx.snapshots.queue(s.stream, sched, s.trajectory.last_seq, s.vo, s.fence())

@@ -1,72 +1,57 @@
-"""Queries: a stream's latest pose and its trajectory, answered from memory by the stream's shard."""
+"""Queries: a stream's latest pose and its trajectory, answered from its session's memory by the stream's worker."""
 
 from __future__ import annotations
-
-import time
 
 import numpy as np
 import zenoh
 
 from occvo_schemas import keys
 from occvo_schemas.codec import encode
-from occvo_schemas.models import Array, PoseEstimate, Trajectory
-from occvo_services.registration.state import StreamState
-from occvo_services.store import StoredPose
+from occvo_schemas.models import Array, Trajectory
+from occvo_services.wire import encoding
 
 
 class Queries:
-    """RegistrationWorker's queryables."""
+    """The registration worker's queryables over its sessions."""
 
-    @staticmethod
-    def _pose_msg(stream: str, p: StoredPose) -> PoseEstimate:
-        return PoseEstimate(
-            stream=stream,
-            seq=p.seq,
-            stamp=p.stamp,
-            pose=np.asarray(p.pose, float).tolist(),
-            status=p.status,
-            timings_ms={},
-            sent_at=time.time(),
-        )
+    def __init__(self, worker):
+        self.worker = worker
 
-    def _matching(self, query: zenoh.Query, key_of) -> list[tuple[str, StreamState]]:
+    def _matching(self, query: zenoh.Query, key_of) -> list:
         q = query.key_expr
-        with self._states_lock:
-            items = list(self.states.items())
         found = [
-            (s, st)
-            for s, st in sorted(items, key=lambda i: i[0])
-            if st.started and q.intersects(zenoh.KeyExpr(key_of(s)))
+            (stream, s)
+            for stream, s in sorted(self.worker.sessions_now(), key=lambda i: i[0])
+            if s.trajectory.started and q.intersects(zenoh.KeyExpr(key_of(stream))) and self.worker.answers(stream)
         ]
-        return found[: self.config.max_query_streams]  # a wildcard asks for every stream: the first ones answer
+        return found[: self.worker.config.max_query_streams]  # a wildcard asks for every stream: the first ones answer
 
-    def _on_pose_latest(self, query: zenoh.Query) -> None:
+    def _miss(self, query: zenoh.Query, what: str) -> None:
+        """One worker answers a miss: the stream's (shard 0's for a wildcard)."""
+        stream = keys.stream_of(str(query.key_expr))
+        if self.worker.owns(stream):
+            self.worker.reply_error(query, stream, "bad_query", f"no {what} for {query.key_expr}")
+
+    def on_pose_latest(self, query: zenoh.Query) -> None:
         found = self._matching(query, keys.pose_latest)
-        if not found:  # one worker answers a miss: the stream's shard's (shard 0's for a wildcard)
-            if self.owns(keys.stream_of(str(query.key_expr))):
-                self.reply_error(
-                    query, keys.stream_of(str(query.key_expr)), "bad_query", f"no poses for {query.key_expr}"
-                )
-            return
-        for s, st in found:
-            with st.lock:
-                latest = st.latest
-            query.reply(keys.pose_latest(s), encode(latest))
+        if not found:
+            return self._miss(query, "poses")
+        for stream, s in found:
+            with s.trajectory.lock:
+                latest = s.trajectory.latest
+            query.reply(keys.pose_latest(stream), encode(latest), encoding=encoding("pose_estimate"))
 
-    def _on_trajectory(self, query: zenoh.Query) -> None:
+    def on_trajectory(self, query: zenoh.Query) -> None:
         found = self._matching(query, keys.trajectory)
-        if not found:  # one worker answers a miss: the stream's shard's (shard 0's for a wildcard)
-            if self.owns(keys.stream_of(str(query.key_expr))):
-                self.reply_error(
-                    query, keys.stream_of(str(query.key_expr)), "bad_query", f"no trajectory for {query.key_expr}"
-                )
-            return
-        for s, st in found:
-            with st.lock:
+        if not found:
+            return self._miss(query, "trajectory")
+        for stream, s in found:
+            t = s.trajectory
+            with t.lock:
                 traj = Trajectory(
-                    stream=s,
-                    seqs=Array.from_numpy(np.array(st.seqs, np.int64)),
-                    stamps=Array.from_numpy(np.array(st.stamps, np.float64)),
-                    poses=Array.from_numpy(np.array(st.poses, np.float64).reshape(-1, 4, 4)),
+                    stream=stream,
+                    seqs=Array.from_numpy(np.array(t.seqs, np.int64)),
+                    stamps=Array.from_numpy(np.array(t.stamps, np.float64)),
+                    poses=Array.from_numpy(np.array(t.poses, np.float64).reshape(-1, 4, 4)),
                 )
-            query.reply(keys.trajectory(s), encode(traj, 1 << 30))
+            query.reply(keys.trajectory(stream), encode(traj, 1 << 30), encoding=encoding("trajectory"))

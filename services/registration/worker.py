@@ -1,32 +1,34 @@
-"""The registration worker's Zenoh wiring: a session, the occupancy subscriber, the pose and trajectory queryables,
-the shard's liveliness token; each job is a module of services/registration/."""
+"""The registration worker: admits streams, routes each frame to its stream's session (services/registration/
+session.py), evicts idle sessions; its Zenoh wiring is the occupancy subscriber, the pose and trajectory queryables
+and the shard's liveliness token."""
 
 from __future__ import annotations
 
-import queue
+import logging
 import threading
-from concurrent.futures import ThreadPoolExecutor
+import time
+
+import zenoh
 
 from occvo_core.errors import ConfigError
-from occvo_core.registration.kernels import own_team
 from occvo_schemas import keys
-from occvo_services.os_tuning import IdleTeam, name_os_thread, trim_heap
-from occvo_services.registration.after_pose import AfterPose
-from occvo_services.registration.durability import Durability
-from occvo_services.registration.lane import StreamLanes
-from occvo_services.registration.map_publisher import MapPublisher
-from occvo_services.registration.paging import MIN_SAFE_RADIUS_M, Paging
+from occvo_schemas.models import OccupancyFrameMsg
+from occvo_services.os_tuning import trim_heap
+from occvo_services.registration.membership import Leases, Placement
+from occvo_services.registration.paging import MIN_SAFE_RADIUS_M
 from occvo_services.registration.queries import Queries
-from occvo_services.registration.state import StreamState
+from occvo_services.registration.scheduling import Scheduler
+from occvo_services.registration.session import SessionContext, StreamSession
+from occvo_services.registration.snapshots import SnapshotWriter
 from occvo_services.runtime import Worker, WorkerConfig, worker_main
 from occvo_services.store import TrajectoryStore
+from occvo_services.store_api import redact
 from occvo_services.telemetry import log_event
+from occvo_services.wire import blocking_at
 
-SNAPSHOT_BYTES_PER_S = 200e6  # a snapshot's writing speed until this worker has measured one (SSD: 150-270 MB/s)
 
-
-class RegistrationWorker(StreamLanes, AfterPose, Durability, Paging, MapPublisher, Queries, Worker):
-    """Occupancy frames -> OccVO poses and map tiles."""
+class RegistrationWorker(Worker):
+    """Occupancy frames -> OccVO poses and map tiles, one session a stream."""
 
     role = "registration"
 
@@ -34,85 +36,185 @@ class RegistrationWorker(StreamLanes, AfterPose, Durability, Paging, MapPublishe
         super().__init__(config)
         from occvo_core import OccVO, OccVOConfig
 
-        self._OccVO = OccVO
-        self.occvo_config = OccVOConfig.load(config.occvo_config) if config.occvo_config else OccVOConfig()
-        self.states: dict[str, StreamState] = {}
-        self._states_lock = threading.Lock()
-        radius = config.working_radius_m
-        self.evict_off = radius is not None and config.store_path is None
+        self.evict_off = config.working_radius_m is not None and config.store_url is None
         if self.evict_off:  # the deploy config sets a radius; eviction starts when a store is given
             self.config = config = config.model_copy(update={"working_radius_m": None})
-            radius = None
+        radius = config.working_radius_m
         if radius is not None and radius <= config.tile_m:
             raise ConfigError(
                 f"working_radius_m ({radius}) must exceed tile_m ({config.tile_m}): tiles come back "
                 "within working_radius_m - tile_m"
             )
-        self.store = TrajectoryStore(config.store_path, config.store_sync.upper()) if config.store_path else None
-        self._snapshots: queue.Queue = queue.Queue()
-        self._boost_refused = False
-        self._snapshot_writer = None
-        self._snapshot_s_per_byte = 1 / SNAPSHOT_BYTES_PER_S  # measured by each snapshot written
+        self.store = TrajectoryStore.open(config.store_url, config.store_sync.upper()) if config.store_url else None
+        self.placement = self.leases = None
+        if config.placement == "members":
+            if self.store is None:
+                raise ConfigError('placement "members" needs a store: the workers hand streams over through it')
+            self.placement = Placement(self.worker_id, self.store, config.lease_s, self.log)
+            self.leases = Leases(self.store, self.worker_id, config.lease_s, self.placement, self.log)
+        self.sessions: dict[str, StreamSession] = {}
+        self._sessions_lock = threading.Lock()
+        occvo_config = OccVOConfig.load(config.occvo_config) if config.occvo_config else OccVOConfig()
+        if config.warm_up:
+            self._warm_up(occvo_config)
+        self.scheduler = Scheduler(config.after_pose_nice, self.stats, self.log)
+        snapshots = None
         if self.store is not None:
-            self._snapshot_writer = threading.Thread(target=self._write_snapshots, name="snapshot-writer", daemon=True)
-            self._snapshot_writer.start()
+            snapshots = SnapshotWriter(
+                self.store, self.stats, self.log, self.report_error, self.scheduler.background_thread
+            )
+        self.ctx = SessionContext(
+            config, occvo_config, OccVO, self.store, self.stats, self.log, self.scheduler, snapshots,
+            self._put, self.report_error, self._frames_queued, self._busy_lanes, leases=self.leases,
+        )  # fmt: skip
+        self.queries = Queries(self)
+        if self.store is not None and self.placement is None:
             for stream in filter(self.owns, self.store.streams()):  # queries answer at once; resumed at the next frame
-                st = self.states[stream] = StreamState()
-                for p in self.store.poses(stream):
-                    st.append(p.seq, p.stamp, p.pose, p.status, p.digest)
-                st.started = bool(st.seqs)
-                if st.started:
-                    st.latest = self._pose_msg(stream, st.stored(st.seqs[-1]))
-        if config.warm_up:  # before the worker is announced: no kernel compiles while frames wait (occvo_core.warm_up)
-            from occvo_core.warm_up import warm_up
+                self.session_of(stream).load_trajectory()
 
-            # in a thread that ends: its OpenMP team goes with it (AfterPose._background_thread)
-            ready = {}
-            warming = threading.Thread(target=lambda: ready.update(warm_up(self.occvo_config, config.kernel_threads)))
-            warming.start()
-            warming.join()
-            log_event(self.log, "kernels ready", **ready)
-            trim_heap()
-        # the one thread whose kernels run on several cores (occvo_core.registration.kernels.use_threads): a lane
-        # hands its frame's kernel work to it when it may use more than one core
-        self._team = ThreadPoolExecutor(1, "kernels", initializer=name_os_thread)
-        self._idle_team = IdleTeam()
-        if not self._team.submit(own_team).result():
-            log_event(self.log, "another thread of this process runs kernels on several cores: lanes run on one")
+    def _warm_up(self, occvo_config) -> None:
+        """Before the worker is announced: no kernel compiles while frames wait (occvo_core.warm_up), in a thread that
+        ends: its OpenMP team goes with it."""
+        from occvo_core.warm_up import warm_up
+
+        ready = {}
+        warming = threading.Thread(target=lambda: ready.update(warm_up(occvo_config, self.config.kernel_threads)))
+        warming.start()
+        warming.join()
+        log_event(self.log, "kernels ready", **ready)
+        trim_heap()
+
+    # -- sessions ------------------------------------------------------------------------------------------------------
+    def session_of(self, stream: str) -> StreamSession:
+        with self._sessions_lock:
+            if stream not in self.sessions:
+                self.sessions[stream] = StreamSession(stream, self.ctx)
+            return self.sessions[stream]
+
+    def sessions_now(self) -> list[tuple[str, StreamSession]]:
+        with self._sessions_lock:
+            return list(self.sessions.items())
 
     def owns(self, stream: str) -> bool:
-        """This worker's shard registers the stream (a malformed stream id is shard 0's to report)."""
+        """This worker's shard registers the stream (a malformed stream id is shard 0's to report); placement
+        "members": it is the stream's owner among the live workers."""
+        if self.placement is not None:
+            if not keys.STREAM_RE.match(stream):
+                return min(self.placement.live) == self.worker_id
+            return self.placement.owner(stream) == self.worker_id
         c = self.config
         return keys.shard_of(stream, c.shards) == c.shard if keys.STREAM_RE.match(stream) else c.shard == 0
 
+    def answers(self, stream: str) -> bool:
+        """Whether this worker answers queries of a stream it has a session of (placement members: while it owns it)."""
+        return self.placement is None or self.owns(stream)
+
+    def _on_occupancy(self, sample: zenoh.Sample) -> None:
+        if self.owns(keys.stream_of(str(sample.key_expr))):  # another shard's stream: not ours to count or judge
+            # the session judges the seq against its committed trajectory: a step back may be a resend
+            self.enqueue(sample, OccupancyFrameMsg, self._route, judge_seq=False)
+
+    def _route(self, stream: str, item) -> None:
+        self.session_of(stream).handle(item)
+
+    def retire_stream(self, stream: str) -> None:
+        session = self.sessions.get(stream)
+        if session is None:
+            return
+        session.close()
+
+    def _frames_queued(self, stream: str) -> bool:
+        lane = self.lanes.get(stream)
+        return lane is not None and lane.queue.q.qsize() > 0
+
+    def _busy_lanes(self) -> int:
+        return sum(1 for lane in list(self.lanes.values()) if lane.busy)
+
+    def _put(self, key: str, data: bytes) -> None:
+        self.session.put(key, data, **blocking_at(key))
+
+    # -- lifecycle -----------------------------------------------------------------------------------------------------
     def declare(self) -> None:
         s = self.session
         self._declared += [
             s.declare_subscriber(keys.occupancy("*"), self._on_occupancy),
-            s.declare_queryable(keys.pose_latest("*"), self.bounded(self._on_pose_latest)),
-            s.declare_queryable(keys.trajectory("*"), self.bounded(self._on_trajectory)),
+            s.declare_queryable(keys.pose_latest("*"), self.bounded(self.queries.on_pose_latest)),
+            s.declare_queryable(keys.trajectory("*"), self.bounded(self.queries.on_trajectory)),
         ]
         # clients watch their shard's token: frames sent while their stream's worker is away are resent when it is back
-        self._declared.append(
-            s.liveliness().declare_token(keys.registration_shard(self.config.shard, self.config.shards, self.worker_id))
-        )
+        if self.placement is not None:
+            token = keys.registration_shard(0, 0, self.worker_id)
+            self._declared.append(self.placement.declare(s))
+            self.leases.start()
+        else:
+            token = keys.registration_shard(self.config.shard, self.config.shards, self.worker_id)
+        self._declared.append(s.liveliness().declare_token(token))
+        c = self.config
         if self.evict_off:
             log_event(self.log, "working_radius_m ignored: eviction needs store_path (the evicted map goes there)")
         if self.store is not None:
             log_event(
                 self.log,
                 "trajectory store",
-                path=self.config.store_path,
-                streams=sorted(self.states),
-                working_radius_m=self.config.working_radius_m,
-                snapshot_every=self.config.snapshot_every,
+                store=redact(c.store_url),
+                streams=sorted(self.sessions),
+                working_radius_m=c.working_radius_m,
+                snapshot_every=c.snapshot_every,
             )
-            if self.config.working_radius_m is not None and self.config.working_radius_m < MIN_SAFE_RADIUS_M:
+            if c.working_radius_m is not None and c.working_radius_m < MIN_SAFE_RADIUS_M:
                 log_event(
                     self.log,
                     "working radius below a frame's reach: eviction changes registration",
-                    working_radius_m=self.config.working_radius_m,
+                    working_radius_m=c.working_radius_m,
                 )
+
+    def drain(self) -> None:
+        """Wait for every session's work after its last pose (its map update, loop closure, snapshot queueing)."""
+        for _, s in self.sessions_now():
+            s.threads.drain()
+
+    def snapshots_written(self, timeout: float | None = None) -> bool:
+        """Wait until no snapshot is queued or being written (tests and benchmarks)."""
+        deadline = None if timeout is None else time.monotonic() + timeout
+        self.drain()
+        for _, s in self.sessions_now():
+            left = None if deadline is None else max(0.0, deadline - time.monotonic())
+            if not s.snapshot.idle.wait(left):
+                return False
+        return True
+
+    def after_leaving(self) -> None:
+        """Off the network (the frames in hand finished): end the sessions' threads, then snapshot every session
+        with unsnapshotted frames."""
+        self.scheduler.shutdown()
+        in_hand = {stream for stream, lane in list(self.lanes.items()) if lane.thread.is_alive()}
+        for stream, s in self.sessions_now():
+            if stream not in in_hand:  # drained already: its threads end now, not at interpreter exit
+                s.threads.close()
+        if self.store is None:
+            return
+        t0 = time.perf_counter()
+        self.ctx.snapshots.close()
+        self._shutdown_step("queued snapshots written", t0)
+        for stream, s in self.sessions_now():
+            if stream in in_hand or s.vo is None or not s.snapshot.unsaved:
+                continue  # a frame in hand that did not finish in time: its OccVO is not touched from here
+            t0 = time.perf_counter()
+            self.ctx.snapshots.write_now(stream, s.snapshot, s.trajectory.last_seq, s.vo, s.fence())  # in place
+            self._shutdown_step("snapshot at shutdown", t0, stream=stream, map_voxels=len(s.vo.map))
+        if self.leases is not None:  # the next owners take the streams at once
+            self.leases.stop()
+            for stream, s in self.sessions_now():
+                if s.epoch is not None and stream not in in_hand:
+                    self.leases.release(stream)
+        t0, sizes = time.perf_counter(), self.store.file_sizes_mb()  # the WAL is checkpointed into the file on close
+        self.store.close()
+        self._shutdown_step("store closed", t0, **sizes)
+
+    def _shutdown_step(self, step: str, t0: float, **fields) -> None:
+        """Log a shutdown step's time; a slow one at WARNING, since a supervisor's stop timeout may cut it short."""
+        took = time.perf_counter() - t0
+        log_event(self.log, step, logging.WARNING if took > 5.0 else logging.INFO, seconds=round(took, 2), **fields)
 
 
 def _args(p) -> None:
@@ -134,6 +236,12 @@ def _args(p) -> None:
         "--after-pose-nice", type=int, help="niceness of the work after a pose, relative to the lanes (0: same)"
     )
     p.add_argument("--store-sync", choices=["full", "normal"], help="full: a published pose survives a power cut too")
+    p.add_argument(
+        "--placement",
+        choices=["shards", "members"],
+        help="members: the live registration workers share the streams, each under a lease in the shared store",
+    )
+    p.add_argument("--lease-s", type=float, help="placement members: how long a silent owner keeps its streams")
 
 
 def main(argv: list[str] | None = None) -> int:

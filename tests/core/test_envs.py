@@ -89,3 +89,43 @@ def test_replay_over_the_release_sample():
 
 def test_single_frame_episode_passes_check_env():
     check_env(gym.make("occvo/Synthetic-v0", frames=1).unwrapped, skip_render_check=True)
+
+
+def test_max_episode_steps_is_the_scenes_length_and_never_cuts_an_episode():
+    env = gym.make("occvo/Synthetic-v0", frames=5)
+    assert env.spec.max_episode_steps == 5
+    env.reset(seed=0)
+    flags = [env.step(action_from_pose(np.eye(4)))[2:4] for _ in range(5)]
+    assert flags == [(False, False)] * 4 + [(True, False)]
+    replay = gym.make("occvo/Replay-v0", source=SyntheticScene(seed=1, frames=3))
+    assert replay.spec.max_episode_steps == 3
+
+
+def test_check_env_with_render():
+    env = gym.make("occvo/Synthetic-v0", frames=3, render_mode="rgb_array")
+    check_env(env.unwrapped)
+
+
+def test_rgb_array_shows_the_map_where_the_estimates_put_it_and_the_path():
+    """Perfect estimates: the image holds the frames' class colours and the orange path; an estimate 30 m off puts
+    the last frame's voxels and its path point elsewhere, so the image changes."""
+    from occvo_core.envs.birds_eye import EST_COLOUR
+
+    scene = SyntheticScene(seed=2, frames=4)
+    images = []
+    for shift in (0.0, 30.0):
+        env = ReplayEnv(scene, render_mode="rgb_array")
+        env.reset()
+        assert (env.render() == 255).all()  # nothing scored yet: a blank page
+        for i in range(4):
+            pose = np.linalg.inv(scene.gt_poses[0]) @ scene.gt_poses[i]
+            pose[:3, 3] += [shift * (i == 3), 0.0, 0.0]
+            env.step(action_from_pose(pose))
+        img = env.render()
+        assert img.shape == (512, 512, 3) and img.dtype == np.uint8
+        assert (img == EST_COLOUR).all(axis=2).sum() >= 9 and (img != 255).any(axis=2).mean() > 0.05
+        images.append(img)
+    assert not np.array_equal(*images)
+    assert ReplayEnv(scene).render() is None
+    with pytest.raises(ValueError, match="render_mode"):
+        ReplayEnv(scene, render_mode="human")

@@ -73,9 +73,12 @@ def contents(store, stream):
     return {(ix, iy): data for ix, iy, data in store.tiles(stream)}
 
 
-@pytest.fixture(params=["sqlite", "memory"])
+@pytest.fixture(params=["sqlite", "memory", "postgresql"])
 def store(request, tmp_path):
-    s = MapStore(tmp_path / "map.sqlite") if request.param == "sqlite" else MemoryMapStore()
+    if request.param == "postgresql":
+        s = open_map_store(request.getfixturevalue("pg_url"))
+    else:
+        s = MapStore(tmp_path / "map.sqlite") if request.param == "sqlite" else MemoryMapStore()
     yield s
     s.close()
 
@@ -129,9 +132,9 @@ def test_updates_resets_and_empty_tiles(store):
     assert store.info("nobody") is None and store.tiles("nobody") == []
 
 
-def test_sqlite_and_memory_agree(tmp_path):
+def test_sqlite_and_postgresql_agree_with_memory(tmp_path, pg_url):
     rng = np.random.default_rng(3)
-    a, b = MapStore(tmp_path / "m.sqlite"), MemoryMapStore()
+    a, b, c = MapStore(tmp_path / "m.sqlite"), MemoryMapStore(), open_map_store(pg_url)
     for seq in range(6):
         u = MapUpdate(
             stream="s",
@@ -141,10 +144,11 @@ def test_sqlite_and_memory_agree(tmp_path):
             tiles=random_tiles(rng, "s", seq, n=500 * (seq + 1))[: 2 + seq % 3]
             + [tile("s", 9, 9, seq, np.zeros((0, 3)))],
         )
-        apply(a, u)
-        apply(b, u)
-        assert a.info("s") == b.info("s") and contents(a, "s") == contents(b, "s")
+        for s in (a, b, c):
+            apply(s, u)
+        assert a.info("s") == b.info("s") == c.info("s") and contents(a, "s") == contents(b, "s") == contents(c, "s")
     a.close()
+    c.close()
 
 
 def test_reopen_gives_the_same_tiles(tmp_path):
@@ -245,7 +249,7 @@ def test_two_processes_write_one_file(tmp_path):
 # ------------------------------------------------------------------ the service, killed and restarted
 
 
-def start_map_service(ep: str, store: Path, wid: str) -> subprocess.Popen:
+def start_map_service(ep: str, store: Path | str, wid: str) -> subprocess.Popen:
     env = dict(os.environ, PYTHONPATH=str(REPO))
     return subprocess.Popen(
         [
@@ -254,7 +258,7 @@ def start_map_service(ep: str, store: Path, wid: str) -> subprocess.Popen:
             "occvo_services.map_service",
             "--connect",
             ep,
-            "--store-path",
+            "--store-url",
             str(store),
             "--worker-id",
             wid,
@@ -291,9 +295,9 @@ def wait_seq(session, stream, seq, timeout=20.0) -> MapInfo:
     raise AssertionError(f"map service did not reach seq {seq} of {stream}")
 
 
-def test_map_service_killed_and_restarted_serves_the_same_tiles(tmp_path):
+def test_map_service_killed_and_restarted_serves_the_same_tiles(store_url):
     ep = f"tcp/127.0.0.1:{free_port()}"
-    store = tmp_path / "occvo.sqlite"
+    store = store_url
     router = open_router(ep)
     session = open_session(ep)
     procs = []
@@ -352,7 +356,8 @@ def test_map_service_killed_and_restarted_serves_the_same_tiles(tmp_path):
         router.close()
 
 
-def test_pipeline_in_threads_map_survives_a_map_service_restart(tmp_path):
+@pytest.mark.parametrize("backend", ["sqlite", "postgresql"])
+def test_pipeline_in_threads_map_survives_a_map_service_restart(tmp_path, backend, request):
     """Router and the three workers as threads, map service on a store: a replayed synthetic scene's tiles equal
     the offline map, and a new map service on the same file serves them unchanged."""
     from occvo_core import OccVO
@@ -364,7 +369,7 @@ def test_pipeline_in_threads_map_survives_a_map_service_restart(tmp_path):
     from occvo_services.registration_worker import RegistrationWorker
 
     ep = f"tcp/127.0.0.1:{free_port()}"
-    store = tmp_path / "occvo.sqlite"
+    store = tmp_path / "occvo.sqlite" if backend == "sqlite" else request.getfixturevalue("pg_url")
     router = open_router(ep)
     cfg = {"connect": ep, "log_level": "WARNING"}
     workers = [

@@ -362,13 +362,13 @@ def test_replay_of_a_synthetic_scene(service):
     # the lane that registers its frames: other streams' poses go first on the cores
     worker = next(w for w in service.workers if w.role == "registration")
     worker.drain()
-    st, lane = worker.states["synthetic"], worker.lanes["synthetic"]
-    (after_pose,) = st.after_pose._threads
+    st, lane = worker.sessions["synthetic"], worker.lanes["synthetic"]
+    (after_pose,) = st.threads.after._threads
     assert (
         os.getpriority(os.PRIO_PROCESS, after_pose.native_id)
         == os.getpriority(os.PRIO_PROCESS, lane.thread.native_id) + 10
     )
-    assert st.tail.done() and st.tail.exception() is None
+    assert st.threads.tail.done() and st.threads.tail.exception() is None
 
 
 @contextlib.contextmanager
@@ -376,22 +376,22 @@ def _held_after_pose(worker, stream: str, released=None, seq: int = 1):
     """The stream's work after the pose of frame `seq` held until the yielded gate is set (held_at: it is waiting
     there); `released()` runs as it goes on. The real work runs after it; the worker is as it was on leaving."""
     gate, held_at = threading.Event(), threading.Event()
-    steps = worker._after_pose_steps
+    steps = worker.ctx.after_pose
 
-    def held(s, st, msg, *args):
-        if s == stream and msg.seq == seq:
+    def held(session, job):
+        if session.stream == stream and job.msg.seq == seq:
             held_at.set()
             gate.wait(30)
             if released is not None:
                 released()
-        return steps(s, st, msg, *args)
+        return steps(session, job)
 
-    worker._after_pose_steps = held
+    worker.ctx.after_pose = held
     try:
         yield gate, held_at
     finally:
         gate.set()
-        worker._after_pose_steps = steps
+        worker.ctx.after_pose = steps
 
 
 def test_a_lane_waiting_for_its_streams_after_pose_work_raises_it_to_the_lanes_priority(service):
@@ -413,19 +413,19 @@ def test_a_lane_waiting_for_its_streams_after_pose_work_raises_it_to_the_lanes_p
         c.reset()
         for i in range(3):
             c.publish(scene[i])
-        st = worker.states["boost"]
+        st = worker.sessions["boost"]
         lane_nice = os.getpriority(os.PRIO_PROCESS, worker.lanes["boost"].thread.native_id)
         deadline = time.monotonic() + 30
         # frame 2 waits in the lane for frame 1's work (frame 0's, boosted by frame 1's lane, is over once it holds)
-        while not (held_at.is_set() and st.tail_boosted) and time.monotonic() < deadline:
+        while not (held_at.is_set() and st.threads.boosted) and time.monotonic() < deadline:
             time.sleep(0.01)
         gate.set()
         c.wait_pose(2, timeout=60)
     worker.drain()
     assert seen == [lane_nice]  # frame 1's work finished at the lane's priority
-    (thread,) = st.after_pose._threads
+    (thread,) = st.threads.after._threads
     assert os.getpriority(os.PRIO_PROCESS, thread.native_id) == lane_nice + 10  # and was niced again
-    assert not st.tail_boosted and worker.stats.snapshot()[0]["after_pose_boosted"] >= 1
+    assert not st.threads.boosted and worker.stats.snapshot()[0]["after_pose_boosted"] >= 1
 
 
 def test_a_pose_is_published_while_its_work_after_the_pose_is_held(service):
@@ -440,7 +440,7 @@ def test_a_pose_is_published_while_its_work_after_the_pose_is_held(service):
         for i in range(3):
             c.publish(scene[i])
         pose = c.wait_pose(1, timeout=60)  # while frame 1's work after its pose is held
-        assert held_at.wait(30) and not worker.states["early"].tail.done()
+        assert held_at.wait(30) and not worker.sessions["early"].threads.tail.done()
         time.sleep(0.5)  # frame 2 is in the lane by now: it waits for frame 1's work
         assert 2 not in c.poses
         gate.set()
@@ -464,10 +464,10 @@ def test_a_pose_is_published_while_its_work_after_the_pose_is_held(service):
     }
     assert {"decode", "validate", "pose_encode"} | after <= set(stages) and "complete.fine_gicp" not in stages
     # the tiles were cut and sent in the stream's map thread, at the lane's priority (it holds the GIL)
-    st = worker.states["early"]
-    (map_thread,) = st.map_thread._threads
+    st = worker.sessions["early"]
+    (map_thread,) = st.threads.map._threads
     nice = os.getpriority(os.PRIO_PROCESS, worker.lanes["early"].thread.native_id)
-    assert os.getpriority(os.PRIO_PROCESS, map_thread.native_id) == nice and st.map_tail.done()
+    assert os.getpriority(os.PRIO_PROCESS, map_thread.native_id) == nice and st.threads.map_tail.done()
 
 
 def _wait_for(what, timeout: float = 60.0) -> None:
@@ -530,7 +530,7 @@ def test_frames_waiting_share_one_map_update_and_the_last_frames_tiles_are_never
             c.publish(scene[5])
             assert held_at.wait(60)
             c.session.put(keys.camera("batch"), encode(camera_frame_of(scene[2], "batch", 2)))
-            _wait_for(lambda: worker.states["batch"].entered == 7)
+            _wait_for(lambda: worker.sessions["batch"].entered == 7)
             gate.set()
         _wait_for(lambda: 5 in updates, timeout=10.0)  # not at the stream's retirement (idle_stream_s 30)
         assert updates == [0, 4, 5] and not c.errors
@@ -550,7 +550,7 @@ def test_a_caught_up_pose_gets_a_head_start_on_its_frames_work_after_it():
         c.reset()
         c.step(scene[0])
         time.sleep(1.0)
-        assert not worker.states["lead"].tail.done() and updates == []  # frame 0's work still waits
+        assert not worker.sessions["lead"].threads.tail.done() and updates == []  # frame 0's work still waits
         c.publish(scene[1])
         c.wait_pose(1, timeout=10.0)  # frame 1 let it go: no 30 s wait
         _wait_for(lambda: 0 in updates, timeout=10.0)
@@ -591,23 +591,11 @@ def test_a_caught_up_poses_kernel_team_leaves_it_the_cores(tmp_path):
 
 def test_kernel_threads_0_shares_the_cores_between_the_streams_registering():
     from occvo_core.free_cores import FREE_CORES
-    from occvo_services.registration import lane as lane_mod
-    from occvo_services.worker_config import WorkerConfig
+    from occvo_services.registration.scheduling import CORES, Scheduler
 
-    class Lane:
-        def __init__(self, busy):
-            self.busy = busy
-
-    class Lanes:
-        _fair_threads = lane_mod.StreamLanes._fair_threads
-
-    w = Lanes()
-    w.config = WorkerConfig()
-    w.lanes = {"a": Lane(True), "b": Lane(False)}
-    free = FREE_CORES.threads(lane_mod.CORES)  # other processes, other shards among them, seen through the counters
-    assert 1 <= w._fair_threads() <= lane_mod.CORES  # alone: every free core
-    w.lanes = {k: Lane(True) for k in "abcdefgh"}
-    assert w._fair_threads() <= max(1, max(free, FREE_CORES.threads(lane_mod.CORES)) // 8)
+    free = FREE_CORES.threads(CORES)  # other processes, other shards among them, seen through the counters
+    assert 1 <= Scheduler.fair_threads(1) <= CORES  # alone: every free core
+    assert Scheduler.fair_threads(8) <= max(1, max(free, FREE_CORES.threads(CORES)) // 8)
 
 
 def test_worker_process_memory_settings_and_thread_names():

@@ -78,7 +78,7 @@ def test_two_shards_share_the_streams_and_one_restarts_alone(tmp_path, scene, un
                 assert np.array_equal(a.step(scene[i]).matrix(), uninterrupted[i])
                 assert np.array_equal(b.step(scene[i]).matrix(), uninterrupted[i])
             # each worker registered its own stream only, and saw nothing of the other's
-            assert set(regs[0].states) == {name_a} and set(regs[1].states) == {name_b}
+            assert set(regs[0].sessions) == {name_a} and set(regs[1].sessions) == {name_b}
             assert [r.stats.snapshot()[0]["frames_out"] for r in regs] == [4, 4]
             assert [r.stats.snapshot()[0].get("frames_in") for r in regs] == [4, 4]
 
@@ -152,7 +152,7 @@ def test_a_stream_moves_to_its_new_shard_through_the_store(tmp_path, scene, unin
             workers += shards
             got = [client.step(scene[i]).matrix() for i in range(4, N)]
             assert np.array_equal(np.array([client.poses[i].matrix() for i in range(4)] + got), uninterrupted)
-            assert not shards[0].states and set(shards[1].states) == {name}
+            assert not shards[0].sessions and set(shards[1].sessions) == {name}
             assert shards[1].stats.snapshot()[0]["resumes"] == 1 and not client.errors
     finally:
         probe.close()
@@ -160,3 +160,16 @@ def test_a_stream_moves_to_its_new_shard_through_the_store(tmp_path, scene, unin
             if not w.stopping.is_set():
                 w.stop()
         router.close()
+
+
+def test_a_worker_config_typo_names_the_key_and_what_is_allowed(tmp_path):
+    from occvo_core.errors import ConfigError
+    from occvo_services.worker_config import WorkerConfig
+
+    path = tmp_path / "worker.json5"
+    path.write_text("{querue_size: 3, policy: 'newest'}")
+    with pytest.raises(ConfigError) as caught:
+        WorkerConfig.load(path)
+    line = str(caught.value)
+    assert "querue_size: unknown key (did you mean queue_size?" in line
+    assert "policy: 'newest' is not allowed: input should be 'lossless' or 'latest'" in line

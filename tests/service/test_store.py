@@ -1,7 +1,8 @@
-"""Durable state of the registration worker (services/store.py) on real SQLite files: commits survive a reopen,
-a snapshot plus the journal resume OccVO bit for bit, evicted tiles round-trip, two connections share the file; then
-the worker itself (real Zenoh on loopback, in this process): a clean stop and a new worker on the same store continue
-a stream exactly, with and without eviction of far map."""
+"""Durable state of the registration worker (services/store.py, services/store_pg.py) on real SQLite files and a
+real PostgreSQL server (tests parametrised by `store_url` run on both): commits survive a reopen, a snapshot plus the
+journal resume OccVO bit for bit, evicted tiles round-trip, two connections share the store; then the worker itself
+(real Zenoh on loopback, in this process): a clean stop and a new worker on the same store continue a stream
+exactly, with and without eviction of far map."""
 
 from __future__ import annotations
 
@@ -29,6 +30,7 @@ from occvo_services.store import (
     unpack_arrays,
     unpack_frame,
 )
+from occvo_services.store_api import open_store
 from occvo_services.store_blobs import legacy_frame_digest
 
 warnings.filterwarnings("ignore", category=RuntimeWarning)
@@ -50,9 +52,8 @@ def _commit(store, stream, vo, frame, seq, **kw):
     return r
 
 
-def test_commit_survives_reopen_and_new_trajectory_drops_the_old(tmp_path, scene):
-    path = tmp_path / "s.sqlite"
-    store = TrajectoryStore(path)
+def test_commit_survives_reopen_and_new_trajectory_drops_the_old(store_url, scene):
+    store = open_store(store_url)
     poses = [np.eye(4) + i for i in range(3)]
     for i in range(3):
         f = scene[i]
@@ -67,7 +68,7 @@ def test_commit_survives_reopen_and_new_trajectory_drops_the_old(tmp_path, scene
             new_trajectory=i == 0,
         )
     store.close()
-    store = TrajectoryStore(path)
+    store = open_store(store_url)
     assert store.streams() == ["car"]
     rec = store.record("car")
     assert rec.last_seq == 2 and rec.snapshot_seq is None
@@ -87,9 +88,8 @@ def test_commit_survives_reopen_and_new_trajectory_drops_the_old(tmp_path, scene
     store.close()
 
 
-def test_snapshot_and_journal_resume_bit_for_bit(tmp_path, scene, uninterrupted):
-    path = tmp_path / "s.sqlite"
-    store = TrajectoryStore(path)
+def test_snapshot_and_journal_resume_bit_for_bit(store_url, scene, uninterrupted):
+    store = open_store(store_url)
     vo = OccVO()
     for i in range(8):
         _commit(store, "car", vo, scene[i], i)
@@ -98,9 +98,9 @@ def test_snapshot_and_journal_resume_bit_for_bit(tmp_path, scene, uninterrupted)
             assert len(packed) > (1 << 22)  # more than one chunk of the bytes path
             store.write_snapshot("car", i, vo.state_dict(copy=False))  # as the worker: streamed into the row
     store.close()
-    del vo  # "crash": only the file remains
+    del vo  # "crash": only the store remains
 
-    store = TrajectoryStore(path)
+    store = open_store(store_url)
     seq, blob = store.snapshot("car")
     assert seq == 4 and store.record("car").snapshot_seq == 4 and blob == packed
     vo = OccVO()
@@ -171,8 +171,8 @@ def test_a_frame_has_one_digest_whether_it_came_as_points_or_as_indices(scene):
     assert frame_digest(points, f.labels, f.stamp, (idx, axes)) == frame_digest(points, f.labels, f.stamp)
 
 
-def test_cold_tiles_round_trip(tmp_path, scene):
-    store = TrajectoryStore(tmp_path / "s.sqlite")
+def test_cold_tiles_round_trip(store_url, scene):
+    store = open_store(store_url)
     vo = OccVO()
     for i in range(3):
         _commit(store, "car", vo, scene[i], i)
@@ -203,9 +203,8 @@ def test_cold_tiles_round_trip(tmp_path, scene):
     store.close()
 
 
-def test_two_connections_share_the_file(tmp_path, scene):
-    path = tmp_path / "s.sqlite"
-    a, b = TrajectoryStore(path), TrajectoryStore(path)
+def test_two_connections_share_the_store(store_url, scene):
+    a, b = open_store(store_url), open_store(store_url)
     f = scene[0]
     blob = pack_frame(f)
     assert unpack_frame(blob).index == f.index and np.array_equal(unpack_frame(blob).points, f.points)
@@ -224,7 +223,7 @@ def test_two_connections_share_the_file(tmp_path, scene):
     for t in threads:
         t.start()
     # a reader on a third connection sees committed rows while the writers go on (WAL)
-    c = TrajectoryStore(path)
+    c = open_store(store_url)
     seen = 0
     deadline = time.monotonic() + 30
     while any(t.is_alive() for t in threads) and time.monotonic() < deadline:
@@ -234,7 +233,8 @@ def test_two_connections_share_the_file(tmp_path, scene):
     assert not errors
     assert [p.seq for p in c.poses("one")] == list(range(30)) == [p.seq for p in a.poses("two")]
     assert np.array_equal(b.pose("one", 29).pose, np.eye(4) * 30)
-    assert c.db.execute("PRAGMA journal_mode").fetchone()[0] == "wal"
+    if isinstance(c, TrajectoryStore):
+        assert c.db.execute("PRAGMA journal_mode").fetchone()[0] == "wal"
     for s in (a, b, c):
         s.close()
 
@@ -346,8 +346,8 @@ def test_shards_and_the_map_service_open_a_new_store_at_once(tmp_path):
             assert sqlite3.connect(path).execute("PRAGMA journal_mode").fetchone()[0] == "wal"
 
 
-def test_a_snapshot_of_an_older_trajectory_does_not_count(tmp_path, scene):
-    store = TrajectoryStore(tmp_path / "s.sqlite")
+def test_a_snapshot_of_an_older_trajectory_does_not_count(store_url, scene):
+    store = open_store(store_url)
     vo = OccVO()
     for i in range(3):
         _commit(store, "car", vo, scene[i], i)
@@ -385,6 +385,27 @@ def test_a_store_written_before_the_snapshot_file_keeps_its_snapshot(tmp_path, s
     store.close()
 
 
+def test_a_snapshots_file_from_before_leases_gets_its_epoch_column(tmp_path, scene):
+    path = tmp_path / "s.sqlite"
+    store = TrajectoryStore(path)
+    vo = OccVO()
+    for i in range(3):
+        _commit(store, "car", vo, scene[i], i)
+    packed = pack_arrays(vo.state_dict())
+    store.write_snapshot("car", 2, packed)
+    store.close()
+    db = sqlite3.connect(snapshot_path(path))
+    db.execute("ALTER TABLE snapshots DROP COLUMN epoch")  # as the release before leases wrote it
+    db.commit()
+    db.close()
+    store = TrajectoryStore(path)
+    assert store.snapshot("car") == (2, packed)
+    epoch = store.acquire("car", "w1", 30.0)
+    assert store.write_snapshot("car", 2, packed, epoch=epoch) and store.snapshot("car") == (2, packed)
+    assert store.snap_db.execute("SELECT epoch FROM snapshots").fetchall() == [(epoch,)]
+    store.close()
+
+
 def test_store_refuses_an_unusable_path(tmp_path):
     from occvo_core.errors import ConfigError
 
@@ -399,7 +420,7 @@ def test_store_refuses_an_unusable_path(tmp_path):
 class Pipeline:
     """Router, map service, inference worker and a registration worker that can be stopped and started again."""
 
-    def __init__(self, store_path, **registration):
+    def __init__(self, store_url, **registration):
         from occvo_services.inference_worker import InferenceWorker
         from occvo_services.map_service import MapService
         from occvo_services.runtime import WorkerConfig
@@ -408,12 +429,12 @@ class Pipeline:
         self.endpoint = f"tcp/127.0.0.1:{free_port()}"
         self.router = open_router(self.endpoint)
         base = {"connect": self.endpoint, "log_level": "WARNING"}
-        # the map service keeps its tiles in the same SQLite file (its own tables, its own connection)
+        # the map service keeps its tiles in the same store (its own tables, its own connection)
         self.others = [
-            MapService(WorkerConfig(**base, worker_id="map-t", store_path=str(store_path))).start(),
+            MapService(WorkerConfig(**base, worker_id="map-t", store_url=str(store_url))).start(),
             InferenceWorker(WorkerConfig(**base, worker_id="inference-t")).start(),
         ]
-        self.config = WorkerConfig(**base, worker_id="registration-t", store_path=str(store_path), **registration)
+        self.config = WorkerConfig(**base, worker_id="registration-t", store_url=str(store_url), **registration)
         self.reg = None
 
     def start_registration(self):
@@ -451,8 +472,8 @@ def _sorted_rows(tile):
 EVICT_RADIUS_M, EVICT_TILE_M = 30.0, 10.0  # smaller than a frame's reach: tiles leave and come back within 12 frames
 
 
-def _evicting_pipeline(tmp_path):
-    path = tmp_path / "state.sqlite"
+def _evicting_pipeline(tmp_path, path=None):
+    path = path or tmp_path / "state.sqlite"
     return Pipeline(
         path, snapshot_every=3, snapshot_max_share=None, working_radius_m=EVICT_RADIUS_M, tile_m=EVICT_TILE_M
     ), path
@@ -492,13 +513,12 @@ def _wait_map(client, seq, timeout=20.0):
     raise AssertionError(f"map service did not reach seq {seq}")
 
 
-def test_clean_restart_continues_the_stream_and_answers_resends(tmp_path, scene, uninterrupted):
+def test_clean_restart_continues_the_stream_and_answers_resends(store_url, scene, uninterrupted):
     from occvo_schemas import keys
     from occvo_schemas.codec import encode
     from occvo_services.client import OccVOClient, camera_frame_of
 
-    path = tmp_path / "state.sqlite"
-    svc = Pipeline(path, snapshot_every=4)
+    svc = Pipeline(store_url, snapshot_every=4)
     try:
         svc.start_registration()
         with OccVOClient(svc.endpoint, "car") as client:
@@ -507,7 +527,7 @@ def test_clean_restart_continues_the_stream_and_answers_resends(tmp_path, scene,
                 client.step(scene[i])
             svc.reg.stop()  # clean: a snapshot of the frames since the last one
             assert not [t.name for t in threading.enumerate() if t.name.startswith("after-car")]  # its thread ended
-            probe = TrajectoryStore(path)
+            probe = open_store(store_url)
             rec = probe.record("car")
             assert (rec.last_seq, rec.snapshot_seq) == (6, 6) and probe.sizes("car")["journal_rows"] == 0
             reg = svc.start_registration()
@@ -629,11 +649,11 @@ def test_frames_are_answered_while_the_snapshot_file_is_locked(tmp_path, scene, 
         svc.close()
 
 
-def test_crash_with_eviction_resumes_exactly_and_the_map_service_keeps_far_tiles(tmp_path, scene):
+def test_crash_with_eviction_resumes_exactly_and_the_map_service_keeps_far_tiles(tmp_path, store_url, scene):
     from occvo_core.map_tiles import tile_distance
 
     radius, tile_m = EVICT_RADIUS_M, EVICT_TILE_M
-    svc, path = _evicting_pipeline(tmp_path)
+    svc, path = _evicting_pipeline(tmp_path, store_url)
     try:
         first = svc.start_registration()
         with _ref_and_cut(svc, scene) as (ref, cut, want):
@@ -641,7 +661,7 @@ def test_crash_with_eviction_resumes_exactly_and_the_map_service_keeps_far_tiles
                 cut.step(scene[i])
             assert first.snapshots_written(30)
             svc.crash_registration()
-            probe = TrajectoryStore(path)
+            probe = open_store(path)
             assert probe.record("cut").snapshot_seq == 5 and [s for s, _ in probe.journal("cut", 5)] == [6, 7]
             assert probe.sizes("cut")["cold_tiles_rows"] > 0
             second = svc.start_registration()
@@ -656,10 +676,10 @@ def test_crash_with_eviction_resumes_exactly_and_the_map_service_keeps_far_tiles
             _wait_map(ref, N - 1)
             _wait_map(cut, N - 1)
             # the working map stays within the radius (checked when the ego changes half-tile cell)
-            vo = second.states["cut"].vo
+            vo = second.sessions["cut"].vo
             resident = np.array(sorted(vo.resident_tiles(tile_m)))
             assert (tile_distance(resident, got[-1][:2, 3], tile_m) <= radius + tile_m).all()
-            assert set(second.states["cut"].tiles) <= set(map(tuple, resident))
+            assert set(second.sessions["cut"].map.tiles) <= set(map(tuple, resident))
             # the map service holds resident and evicted tiles alike, equal to the uninterrupted stream's
             assert _same_tiles(ref, cut) > len(resident)
             probe.close()
@@ -756,7 +776,8 @@ def test_a_caught_up_frame_whose_commit_fails_publishes_no_pose_and_the_stream_r
         worker = svc.start_registration()
         failed = _disk_full_once(worker.store, "commit_frame", "car", fail_at)
         got = []
-        with OccVOClient(svc.endpoint, "car") as client:
+        # no resends: a slow answer on a busy machine would send the failed frame again (the next test's case)
+        with OccVOClient(svc.endpoint, "car", resend_after=None) as client:
             client.reset()
             for i, f in enumerate(scene):
                 if i != fail_at:
@@ -771,6 +792,59 @@ def test_a_caught_up_frame_whose_commit_fails_publishes_no_pose_and_the_stream_r
         assert worker.stats.snapshot()[0]["resumes"] == 1
         stored = TrajectoryStore(tmp_path / "state.sqlite")
         assert [p.seq for p in stored.poses("car")] == [i for i in range(N) if i != fail_at]
+        stored.close()
+    finally:
+        svc.close()
+
+
+def test_a_failed_frame_resent_before_its_error_arrives_is_registered_once_and_its_pose_is_stored(tmp_path, scene):
+    """The interleaving a busy machine makes: the client, answered nothing for resend_after, sends a frame again while
+    the worker still works on it, and the first copy's commit fails. The failed copy publishes no pose; the resent copy
+    is a new attempt: registered (after the stream resumes from the store), committed, then published. So the pose the
+    client holds for that seq is the stored one, and the stream is an offline run's over every frame."""
+    from occvo_services.client import OccVOClient
+
+    fail_at = N // 2
+    svc = Pipeline(tmp_path / "state.sqlite", kernel_threads=1)
+    try:
+        worker = svc.start_registration()
+        real, failed = worker.store.commit_frame, []
+        resent = threading.Event()
+
+        def fails_once_resent(s, q, *a, **kw):
+            if s == "car" and q == fail_at and not failed:
+                failed.append(q)
+                # the commit fails only once the client's resend reached the worker (made, not hoped for)
+                resent.wait(60)
+                raise sqlite3.OperationalError("database or disk is full")
+            return real(s, q, *a, **kw)
+
+        worker.store.commit_frame = fails_once_resent
+        with OccVOClient(svc.endpoint, "car", resend_after=0.2) as client:
+            client.reset()
+            got = [client.step(f).matrix() for f in scene[:fail_at]]
+            frames_in = worker.stats.snapshot()[0]["frames_in"]
+            client.publish(scene[fail_at])
+            deadline = time.monotonic() + 60
+            while worker.stats.snapshot()[0]["frames_in"] < frames_in + 2 and time.monotonic() < deadline:
+                time.sleep(0.01)  # the original and its resend both reached the worker
+            resent.set()
+            with client._cv:  # both answers: the failed copy's error and the resend's pose
+                assert client._cv.wait_for(
+                    lambda: fail_at in client.poses and any(e.seq == fail_at for e in client.errors), 60
+                )
+            (error,) = [e for e in client.errors if e.seq == fail_at]
+            assert error.code == "internal" and f"seq {fail_at} not stored, pose not published" in error.message
+            pose = client.poses[fail_at]
+            got.append(pose.matrix())
+            got += [client.step(f).matrix() for f in scene[fail_at + 1 :]]
+            assert client.resends >= 1
+        vo = OccVO()
+        want = [vo.step(f).pose for f in scene]
+        assert failed == [fail_at] and np.array_equal(np.array(got), np.array(want))
+        stored = TrajectoryStore(tmp_path / "state.sqlite")
+        assert [p.seq for p in stored.poses("car")] == list(range(N))
+        assert np.array_equal(stored.pose("car", fail_at).pose, pose.matrix())
         stored.close()
     finally:
         svc.close()
@@ -808,14 +882,14 @@ def test_a_closed_loop_publishes_the_odometry_pose_then_the_relocalised_one(tmp_
             cold = {}
             start = loop.gt_poses[0, :2, 3]
             for i in range(FRAMES):
-                vo = worker.states["lap"].vo if i else None
+                vo = worker.sessions["lap"].vo if i else None
                 if cold and np.linalg.norm(loop.gt_poses[i, :2, 3] - start) < 40.0:
                     vo.restore_tiles(cold)  # between frames: the lane has finished the last one (its map is out)
                     cold = {}
                 client.step(loop[i])
                 _wait_map(client, i)
                 if i == EVICT_AT:
-                    cold = inject_drift(worker.states["lap"].vo, drift)
+                    cold = inject_drift(worker.sessions["lap"].vo, drift)
             deadline = time.monotonic() + 10
             while len(heard) < FRAMES + len(closures) and time.monotonic() < deadline:
                 time.sleep(0.05)
@@ -870,3 +944,38 @@ def test_frame_commits_leave_the_wal_checkpoint_to_the_stores_own_thread(tmp_pat
     # a new snapshots' file has 64 kB pages (a third of 4 kB pages' CPU per snapshot)
     assert store.snap_db.execute("PRAGMA page_size").fetchone()[0] == 65536
     store.close()
+
+
+def test_the_database_down_refuses_frames_by_name_and_the_stream_goes_on_when_it_is_back(pg_cluster, pg_url, scene):
+    """PostgreSQL stopped mid-drive: the frame in hand is refused with one line naming the store (its pose not
+    published), and once the server is back the stream resumes from the store: the poses are an offline run's over
+    the frames without the refused one, every one of them stored."""
+    from occvo_services.client import OccVOClient, ServiceError
+
+    fail_at = N // 2
+    svc = Pipeline(pg_url, kernel_threads=2)
+    try:
+        worker = svc.start_registration()
+        got = []
+        with OccVOClient(svc.endpoint, "car") as client:
+            client.reset()
+            for i, f in enumerate(scene):
+                if i != fail_at:
+                    got.append(client.step(f).matrix())
+                    continue
+                pg_cluster.stop()
+                try:
+                    with pytest.raises(
+                        ServiceError, match=f"seq {fail_at} not stored.*store postgresql://.*unreachable"
+                    ):
+                        client.step(f)
+                finally:
+                    pg_cluster.start()
+        vo = OccVO()
+        want = [vo.step(f).pose for i, f in enumerate(scene) if i != fail_at]
+        assert np.array_equal(np.array(got), np.array(want)) and worker.stats.snapshot()[0]["resumes"] == 1
+        stored = open_store(pg_url)
+        assert [p.seq for p in stored.poses("car")] == [i for i in range(N) if i != fail_at]
+        stored.close()
+    finally:
+        svc.close()

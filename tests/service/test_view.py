@@ -178,3 +178,19 @@ def test_occvo_view_follows_the_service_into_the_web_viewer(tmp_path):
     rows, _ = _read(rrd)
     assert rows["/world/ego"] == n and rows["/world/ego/occupancy"] == n
     assert any(p.startswith("/world/map/") for p in rows)
+
+
+def test_occvo_view_without_a_router_is_one_line_and_leaves_no_recording(tmp_path):
+    from occvo_services.sessions import free_port
+
+    rrd = tmp_path / "view.rrd"
+    proc = subprocess.run(
+        [sys.executable, "-m", "occvo_cli", "view", "--connect", f"tcp/127.0.0.1:{free_port()}", "--rerun", str(rrd)],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert proc.returncode == 1 and proc.stdout == ""
+    assert proc.stderr.startswith("occvo view: error: no router at tcp/127.0.0.1:") and proc.stderr.count("\n") == 1
+    assert ".rs" not in proc.stderr and "Error" not in proc.stderr
+    assert list(tmp_path.iterdir()) == []

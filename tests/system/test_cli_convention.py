@@ -136,6 +136,10 @@ def test_run_json_is_one_json_document_on_stdout(tmp_path):
     summary = json.loads(proc.stdout)
     assert summary["frames"] == 5 and summary["compile_s"] >= 0 and summary["success"] is True
     assert json.loads((out / "summary.json").read_text())["ms_per_frame_median"] == summary["ms_per_frame_median"]
+    # the map's voxel count is the map a user gets (map.npz: the persistent voxels), of the live ones (map_voxels.npz)
+    assert summary["map_voxels"] == len(np.load(out / "map.npz")["points"])
+    live = np.load(out / "map_voxels.npz")
+    assert summary["live_voxels"] == len(live["points"]) and summary["map_voxels"] == live["persistent"].sum()
 
 
 def test_unreadable_frames_stop_the_run_unless_skipped(files, tmp_path):
@@ -173,3 +177,16 @@ def test_a_run_failing_its_success_rule_exits_1(files, tmp_path):
     line = _check_one_line(proc.returncode, "", proc.stderr, 1)
     assert "success rule" in line
     assert json.loads((tmp_path / "o" / "summary.json").read_text())["success"] is False
+
+
+def test_serve_on_a_port_another_program_holds_says_so_in_one_line():
+    import socket
+
+    with socket.socket() as taken:
+        taken.bind(("127.0.0.1", 0))
+        taken.listen()
+        port = taken.getsockname()[1]
+        proc = _occvo("serve", "--listen", f"tcp/127.0.0.1:{port}", "--quiet")
+    assert proc.returncode == 1, proc.stderr
+    lines = proc.stderr.splitlines()
+    assert len(lines) == 1 and "the router could not listen on" in lines[0] and "--listen" in lines[0], proc.stderr

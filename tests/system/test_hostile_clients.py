@@ -190,12 +190,12 @@ def test_idle_stream_gives_back_its_lane_and_resumes_from_the_store(service, ses
     with OccVOClient(service.endpoint, "h6.idle", timeout=60, session=session) as c:
         c.reset()
         got = steps(c, scene[:3], 0)
-        assert "h6.idle" in reg.lanes and reg.states["h6.idle"].vo is not None
+        assert "h6.idle" in reg.lanes and reg.sessions["h6.idle"].vo is not None
         deadline = time.monotonic() + LIMITS["idle_stream_s"] + 10
-        while ("h6.idle" in reg.lanes or reg.states["h6.idle"].vo is not None) and time.monotonic() < deadline:
+        while ("h6.idle" in reg.lanes or reg.sessions["h6.idle"].vo is not None) and time.monotonic() < deadline:
             time.sleep(0.1)
-        assert "h6.idle" not in reg.lanes and reg.states["h6.idle"].vo is None  # threads and the OccVO given back
-        assert reg.states["h6.idle"].after_pose is None
+        assert "h6.idle" not in reg.lanes and reg.sessions["h6.idle"].vo is None  # threads and the OccVO given back
+        assert reg.sessions["h6.idle"].threads.after is None
         time.sleep(0.5)
         assert not [t.name for t in threading.enumerate() if "h6.idle" in t.name and "resend" not in t.name]
         got += steps(c, scene[3:6], 3)  # resumed from the store
@@ -240,7 +240,7 @@ def test_snapshot_of_a_reset_stream_is_deleted(service, session, scene):
         c.reset()
         steps(c, scene[:2], 0)
         deadline = time.monotonic() + LIMITS["idle_stream_s"] + 10  # retired: its state snapshotted
-        while reg.states["h8.reset"].vo is not None and time.monotonic() < deadline:
+        while reg.sessions["h8.reset"].vo is not None and time.monotonic() < deadline:
             time.sleep(0.1)
         old = reg.store.created("h8.reset")
         rows = reg.store.snap_db.execute("SELECT created FROM snapshots WHERE stream='h8.reset'").fetchall()

@@ -58,8 +58,8 @@ def use_threads(threads: int) -> None:
     """Kernel threads for calls from this Python thread: 0 = the cores other processes leave free (numba's thread
     count is per thread). Only one thread of a process at a time runs kernels on several threads: each keeps an
     OpenMP team of its own, and once a process holds more team threads than cores, libgomp has them all sleep at
-    every barrier instead of spinning, and every parallel kernel then waits for its threads to wake (8 to 12 ms a
-    frame of scene-0268 at 2 Hz). The first thread to ask for several keeps them until it ends; others run on one."""
+    every barrier instead of spinning, and every parallel kernel then waits for its threads to wake (several ms a
+    frame at 2 Hz). The first thread to ask for several keeps them until it ends; others run on one."""
     most = numba.config.NUMBA_NUM_THREADS
     n = FREE_CORES.threads(most) if threads <= 0 else min(threads, most)
     torch = sys.modules.get("torch")  # numba's OpenMP start-up resets torch's thread count (one libgomp): kept

@@ -1,5 +1,6 @@
-"""Follow a running service's stream into a RerunView: poses, the frames' occupancy and map tile updates over Zenoh.
-(Moved objects are not published by the service, so world/moved_objects stays empty here.)"""
+"""Follow a running service's stream into a view (RerunView, FoxgloveView, or several as Views): poses, the frames'
+occupancy and map tile updates over Zenoh. (Moved objects are not published by the service, so rerun's
+world/moved_objects stays empty here.)"""
 
 from __future__ import annotations
 
@@ -7,14 +8,12 @@ import threading
 
 import numpy as np
 
-from occvo_core.viz.rerun_log import RerunView
-
 
 class StreamFollower:
     """Subscribes to occvo/<stream>/{pose, occupancy, map/updates} on a Zenoh session and logs what arrives;
     a message that does not decode is counted and skipped (the viewer never dies of one)."""
 
-    def __init__(self, session, stream: str, view: RerunView):
+    def __init__(self, session, stream: str, view):
         from occvo_schemas import keys
 
         self.view, self.stream = view, stream
@@ -72,10 +71,11 @@ class StreamFollower:
                 self.view.clear_map()
             for t in u.tiles:
                 self.view.map_tile(t.ix, t.iy, t.points.to_numpy(), t.labels.to_numpy())
+            getattr(self.view, "map_updated", lambda: None)()
             self.counts["map_updates"] += 1
             self.counts["tiles"] += len(u.tiles)
 
     def close(self) -> None:
+        """Stop following (the view is its owner's to close)."""
         for s in self._subs:
             s.undeclare()
-        self.view.close()

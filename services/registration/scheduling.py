@@ -1,0 +1,199 @@
+"""Who runs what, at which priority, in the registration worker.
+
+- The kernel team (`Scheduler.kernels`): the one thread of the process whose numba kernels may use several cores
+  (occvo_core.registration.kernels.own_team). A session hands it its frame's registration when its OccVO may use
+  more than one thread; caught up, the frame's commit and pose publication follow in the same call. Once the kernels
+  are done, the team's OpenMP threads (spinning after a kernel) are lowered (IdleTeam) and raised before the next.
+- A session's after-pose thread (`StreamThreads.after`): its frames' work after their poses (loop closure, the map
+  update, the second store write), after_pose_nice below the lanes. When a lane waits for that work it is raised to
+  the lane's priority until it ends (priority inheritance: `StreamThreads.wait_after_pose`).
+- A session's map thread (`StreamThreads.map`): tiles cut and sent, at the lane's priority (it holds the GIL).
+- Kernel threads of a frame (`Scheduler.fair_threads`): the cores other processes leave free, shared among the
+  lanes registering now."""
+
+from __future__ import annotations
+
+import logging
+import os
+import threading
+from concurrent.futures import Future, ThreadPoolExecutor
+
+from occvo_core.free_cores import FREE_CORES
+from occvo_core.registration.kernels import own_team, use_threads
+from occvo_services.os_tuning import (
+    IdleTeam,
+    hold_priority,
+    lower_priority,
+    name_os_thread,
+    release_priority,
+    run_delay_ms,
+)
+from occvo_services.telemetry import log_event
+
+CORES = len(FREE_CORES.cpus)  # the cores this process may run on
+
+
+def _map_thread_start() -> None:
+    """The map thread keeps the lane's priority; its kernels run on one thread."""
+    name_os_thread()
+    use_threads(1)
+
+
+class Scheduler:
+    """The worker-wide part: the kernel team, background threads' niceness, and the one warning when a waited-for
+    thread cannot be raised."""
+
+    def __init__(self, after_pose_nice: int, stats, log):
+        self.after_pose_nice, self.stats, self.log = after_pose_nice, stats, log
+        self._team = ThreadPoolExecutor(1, "kernels", initializer=name_os_thread)
+        self._idle_team = IdleTeam()
+        self._boost_refused = False
+        if not self._team.submit(own_team).result():
+            log_event(log, "another thread of this process runs kernels on several cores: lanes run on one")
+
+    def kernels(self, vo, fn, *args) -> tuple[object, float]:
+        """(fn(*args), ms the team thread waited for a core): in the kernel team when vo may use several kernel
+        threads, else in the calling thread."""
+        if vo.threads == 1:
+            return fn(*args), 0.0
+
+        def call():
+            w0 = run_delay_ms()
+            self._idle_team.restore()  # kernels follow: the team's threads back to the lanes' priority
+            result = fn(*args)
+            return result, run_delay_ms() - w0
+
+        return self._team.submit(call).result()
+
+    def kernels_done(self, threads: int) -> None:
+        """In the team thread after a caught-up frame's kernels: its spinning OpenMP threads make way for the pose."""
+        if threads > 1:
+            self._idle_team.lower(threads)
+
+    @staticmethod
+    def fair_threads(busy_lanes: int) -> int:
+        """Kernel threads for a frame about to be registered: the cores other processes (other shards among them)
+        leave free, divided among this worker's lanes busy now (this one included), so one stream alone uses every
+        free core and several streams do not oversubscribe them."""
+        return max(1, FREE_CORES.threads(CORES) // max(1, busy_lanes))
+
+    def background_thread(self) -> None:
+        """Start of a thread doing work off the poses' path: after_pose_nice below the lanes; its own kernels run on
+        one thread (a session's OccVO.complete goes to the kernel team)."""
+        name_os_thread()
+        use_threads(1)
+        if not lower_priority(self.after_pose_nice):
+            log_event(
+                self.log,
+                "cannot lower a background thread's priority here; it runs at the lanes'",
+                logging.WARNING,
+                thread=threading.current_thread().name,
+            )
+
+    def boost_refused(self) -> None:
+        if not self._boost_refused:
+            self._boost_refused = True
+            log_event(
+                self.log,
+                "cannot raise a waited-for after-pose thread to the lanes' priority (needs "
+                "CAP_SYS_NICE or RLIMIT_NICE, e.g. LimitNICE=+0): it finishes niced",
+                logging.WARNING,
+            )
+
+    def shutdown(self) -> None:
+        self._team.shutdown(wait=False)  # idle unless a lane's frame did not finish in time
+
+
+class StreamThreads:
+    """A session's after-pose thread and map thread, started by its lane (a thread starts at the niceness of the
+    thread that made it), and the after-pose thread's priority inheritance."""
+
+    def __init__(self, stream: str, scheduler: Scheduler):
+        self.stream, self.scheduler = stream, scheduler
+        self.after: ThreadPoolExecutor | None = None
+        self.tail: Future | None = None  # the last job in the after-pose thread
+        self.map: ThreadPoolExecutor | None = None
+        self.map_tail: Future | None = None  # the last frame's tiles
+        # set: the after-pose work may start (a frame came in, or the pose had its head start)
+        self.head_start = threading.Event()
+        self.head_start.set()
+        self._lock = threading.Lock()  # orders a lane's boost against the end of the work it boosts
+        self._running = False  # a frame's work after its pose is due or running
+        self._tid: int | None = None  # native id of the after-pose thread
+        self.boosted = False  # that thread runs at the lane's priority (the lane waits for it)
+
+    def start(self) -> None:
+        if self.after is None:
+            self.after = ThreadPoolExecutor(1, f"after-{self.stream}", initializer=self.scheduler.background_thread)
+        if self.map is None:
+            self.map = ThreadPoolExecutor(1, f"map-{self.stream}", initializer=_map_thread_start)
+            self.map_tail = self.map.submit(int)
+
+    def work_due(self) -> None:
+        """A frame was registered: its work after the pose is due (a lane waiting for it now raises the thread)."""
+        self._running = True
+
+    def submit_after(self, fn, *args, head_start_s: float | None = None) -> Future:
+        """fn(*args) in the after-pose thread, after the jobs before it. head_start_s: it waits that long or until
+        the stream's next frame comes."""
+        if head_start_s is not None:
+            self.head_start.clear()
+        self.tail = self.after.submit(self._run, fn, args, head_start_s)
+        return self.tail
+
+    def _run(self, fn, args, head_start_s: float | None) -> None:
+        if head_start_s is not None:
+            self.head_start.wait(head_start_s)
+        self._tid = threading.get_native_id()
+        try:
+            fn(*args)
+        finally:
+            with self._lock:
+                self._running = False
+                if self.boosted:  # niced again for the next frame's work
+                    release_priority(self._tid)
+                    self.boosted = False
+
+    def wait_after_pose(self) -> None:
+        """The lane waits for the last frame's work after its pose: that work now holds up a pose, so it runs at the
+        lane's priority until it ends (without it a niced loop closure waited behind every other stream's lane).
+        Raising a thread needs CAP_SYS_NICE or an RLIMIT_NICE that allows it; without either it finishes niced."""
+        if self.tail is None:
+            return
+        if not self.tail.done():
+            self._boost()
+        self.tail.result()
+
+    def _boost(self) -> None:
+        with self._lock:
+            if not self._running or self._tid is None or self.boosted:
+                return
+            if hold_priority(self._tid, os.getpriority(os.PRIO_PROCESS, threading.get_native_id())):
+                self.boosted = True
+                self.scheduler.stats.inc("after_pose_boosted")
+            else:
+                self.scheduler.boost_refused()
+
+    def submit_map(self, fn, *args) -> None:
+        """fn(*args) in the map thread once the last frame's tiles are out (one frame's tiles at most wait there)."""
+        self.wait_map()
+        self.map_tail = self.map.submit(fn, *args)
+
+    def wait_map(self) -> None:
+        if self.map_tail is not None:
+            self.map_tail.result()
+
+    def drain(self) -> None:
+        """Every job handed to the threads done (head starts end now)."""
+        self.head_start.set()
+        if self.tail is not None:
+            self.tail.result()
+        self.wait_map()
+
+    def close(self) -> None:
+        """The threads end (after their jobs)."""
+        self.drain()
+        for pool in (self.after, self.map):
+            if pool is not None:
+                pool.shutdown(wait=True)
+        self.after = self.tail = self.map = self.map_tail = None

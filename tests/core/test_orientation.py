@@ -144,7 +144,7 @@ def test_new_voxels_do_not_depend_on_the_frames_point_order():
         m = VoxelPFilterMap(0.4, merge_radius_m=0.2)
         m.merge(old, np.zeros(1, np.uint8), np.eye(3)[None], 0)
         m.merge(np.array(frame), np.zeros(2, np.uint8), np.tile(np.eye(3), (2, 1, 1)), 1)
-        points = m.pos[: len(m)]
+        points = m.pos[: m._n]
         maps.append(points[np.lexsort(points.T)])
     assert len(maps[0]) == 2  # the old voxel and one new one holding both points
     assert np.array_equal(maps[0], maps[1])
@@ -209,3 +209,21 @@ def test_ego_grid_and_its_pooled_grids_are_symmetric_about_the_ego(margin_m):
     for o, d, voxel in boxes:
         assert np.array_equal(o[:2], -(o[:2] + d[:2])), (voxel, o, d)
         assert o[0] * voxel <= EGO_LOWER[0] - margin[0] + 1e-9
+
+
+def test_two_corrected_voxels_in_one_cell_keep_the_same_one_whatever_their_rows():
+    """A loop closure moves voxels; two landing in one cell keep one, which must not be the earlier row (rows come
+    in the order the frames were turned in)."""
+    pts = np.array([[4.85, 2.85, 0.05], [5.1, 3.1, 0.3], [-7.1, 2.2, 0.1]])  # after the correction
+    drift = np.array([[0.8, 0.0, 0.0], [0.0, 0.8, 0.0], [0.0, 0.0, 0.0]])  # before it, in three cells
+    kept = []
+    for degrees in (0, *TURNS):
+        for order in ([0, 1, 2], [1, 0, 2]):
+            m = VoxelPFilterMap(0.4, merge_radius_m=0.0)
+            m.merge(turned(pts[order] + drift[order], degrees), np.zeros(3, np.uint8), np.tile(np.eye(3), (3, 1, 1)), 0)
+            assert len(m) == 3
+            m.move(np.arange(3), np.tile(np.eye(3), (3, 1, 1)), turned(-drift[order], degrees))
+            alive = m.pos[: m._n][m.alive[: m._n]]
+            kept.append(as_set(turned(alive, (360 - degrees) % 360)))
+    assert len(kept[0]) == 2  # the first two share a cell after the correction
+    assert all(k == kept[0] for k in kept)

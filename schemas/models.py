@@ -372,6 +372,7 @@ ErrorCode = Literal[
     "stream_limit",  # a seq beyond the stream's window (not adopted); a worker's or client's streams full
     "truncated",  # a region's page is full: more tiles on the next page
     "busy",  # the querying client has max_queries_per_client queries in work: ask again when one is answered
+    "not_owner",  # a frame from another client than the one its stream is bound to (no seq: not its owner's answer)
 ]
 
 

@@ -104,6 +104,7 @@ class OccVOClient:
         self._pub = self.session.declare_publisher(
             keys.camera(stream), congestion_control=zenoh.CongestionControl.BLOCK
         )
+        self._sn = 0  # the source info's sequence number: the workers know this client by its session's zid
         self._closed = threading.Event()
         self._resender = threading.Thread(target=self._resend_loop, name=f"occvo-resend-{stream}", daemon=True)
         self._resender.start()
@@ -188,7 +189,7 @@ class OccVOClient:
             with self._cv:
                 pending = sorted(self._unanswered.items())
             for _, payload in pending:
-                self._pub.put(payload)
+                self._put(payload)
             self.resends += len(pending)
             return len(pending)
 
@@ -221,8 +222,19 @@ class OccVOClient:
                 if not self._unanswered:
                     self._last_answer = time.monotonic()  # the resend clock runs from the oldest frame in flight
                 self._unanswered[seq] = payload
-            self._pub.put(payload)
+            self._put(payload)
         return seq
+
+    def _put(self, payload: bytes) -> None:
+        """A frame out, with the source info that names this client's session (services/limits.py); under _send_lock."""
+        self._sn += 1
+        self._pub.put(payload, source_info=zenoh.SourceInfo(self._pub.id, self._sn))
+
+    def put_encoded(self, payload: bytes) -> None:
+        """An encoded camera frame of this stream sent as this client, not tracked (tools and tests: a resend, a
+        frame of any seq). A stream takes frames only from the client that opened it (services/limits.py)."""
+        with self._send_lock:
+            self._put(payload)
 
     def wait_pose(self, seq: int, timeout: float | None = None) -> PoseEstimate:
         """The pose of `seq`; ServiceError if a worker reported an error for that seq or nothing came in time."""

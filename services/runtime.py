@@ -20,7 +20,7 @@ from occvo_schemas import keys
 from occvo_schemas.codec import CodecError, decode, encode
 from occvo_schemas.models import ErrorEvent, WorkerHealth
 from occvo_services.flow import EVICT, SeqTracker, StageQueue, StreamLane
-from occvo_services.limits import MAX_KEY_CHARS, MAX_MESSAGE_CHARS, Admission, ErrorBudget, clip
+from occvo_services.limits import MAX_KEY_CHARS, MAX_MESSAGE_CHARS, Admission, ErrorBudget, clip, identity_of
 from occvo_services.memory import CHECK_EVERY_S, EVICT_IDLE_S, MemoryCap
 from occvo_services.os_tuning import few_malloc_arenas, large_blocks_from_mmap, trim_heap
 from occvo_services.query_gate import QueryGate
@@ -157,7 +157,10 @@ class Worker:
                     del self._retired[lane.stream]
                 if lane.stream not in self.lanes:
                     self.admission.release(lane.stream)
-        if why == "memory":
+        if why == "reclaimed":
+            self.stats.inc("streams_reclaimed")
+            log_event(self.log, "idle stream's place reclaimed for a new stream", stream=lane.stream)
+        elif why == "memory":
             self.stats.inc("streams_evicted_memory")
             log_event(
                 self.log,
@@ -188,13 +191,17 @@ class Worker:
         decode_ms = (time.perf_counter() - t_decode) * 1000.0
         self.stats.observe("decode", decode_ms)
         self._relieve_memory()
-        refused = None if msg.stream in self.admission.streams else self.memory.refuse(msg.stream)
-        if refused is not None:
+        client = identity_of(sample, msg.stream, self.config.client_identity)
+        refused = None
+        if msg.stream not in self.admission.streams and (why := self.memory.refuse(msg.stream)) is not None:
             self.stats.inc("streams_refused_memory")
-        refused = refused or self.admission.admit(msg.stream)
+            refused = ("stream_limit", why)
+        refused = refused or self.admission.admit(msg.stream, client, self._reclaim)
         if refused is not None:
-            self.stats.inc("streams_refused")
-            self.report_error(msg.stream, "stream_limit", refused, str(sample.key_expr), msg.seq)
+            code, why = refused
+            self.stats.inc("streams_refused" if code == "stream_limit" else "frames_not_owner")
+            # another client's frame: no seq in the event, the owner's client would take it for its own frame's answer
+            self.report_error(msg.stream, code, why, str(sample.key_expr), msg.seq if code == "stream_limit" else None)
             return
         if judge_seq and not self.check_seq(msg.stream, msg.seq, str(sample.key_expr)):
             with self._lanes_lock:
@@ -205,10 +212,29 @@ class Worker:
         hop_ms = (t_recv - msg.sent_at) * 1000.0 if 0 < msg.sent_at and abs(t_recv - msg.sent_at) < 86400 else 0.0
         lane = self.lane(msg.stream, handler)
         try:
-            lane.queue.put((msg, hop_ms, time.perf_counter(), decode_ms))
+            lane.queue.put((msg, hop_ms, time.perf_counter(), decode_ms, sample.source_info))
         finally:
             with self._lanes_lock:
                 lane.pending -= 1
+
+    def _reclaim(self, streams: list[str]) -> str | None:
+        """The first of `streams` whose lane is idle (no frame for EVICT_IDLE_S, none waiting): it is told to leave
+        and its stream returned (a new stream takes its place), else None. Reads the lanes without their lock (the
+        admission's is held); retire_lane checks again under it."""
+        now, lanes = time.monotonic(), self.lanes
+        for stream in streams:
+            lane = lanes.get(stream)
+            if lane is None or lane.busy or lane.pending or lane.evicting or lane.queue.qsize():
+                continue
+            if now - lane.last_active < EVICT_IDLE_S:
+                continue
+            try:
+                lane.queue.q.put_nowait(EVICT)
+            except queue.Full:
+                continue
+            lane.evicting, lane.evict_why = True, "reclaimed"
+            return stream
+        return None
 
     def _relieve_memory(self) -> None:
         """Over the eviction mark of max_rss_mb: the lane idle longest ends (one at a time, and the resident set is
@@ -234,7 +260,7 @@ class Worker:
                 lane.queue.q.put_nowait(EVICT)
             except queue.Full:
                 return
-            lane.evicting, self._evicted_at = True, now
+            lane.evicting, lane.evict_why, self._evicted_at = True, "memory", now
 
     def decode_input(self, sample: zenoh.Sample, expect):
         """Decode and check a sample; on any problem report it and return None."""

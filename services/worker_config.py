@@ -26,7 +26,10 @@ class WorkerConfig(BaseModel):
     log_level: str = "INFO"
     # what one client may cost (services/limits.py); the defaults fit a 2-core machine
     max_streams: int = Field(64, ge=1)  # streams a worker serves at once; more get a stream_limit error event
-    max_streams_per_client: int = Field(16, ge=1)  # of them, per client (the stream id's prefix before its first '.')
+    max_streams_per_client: int = Field(16, ge=1)  # of them, per client (client_identity)
+    # who a client is (services/limits.py): "session": the publishing Zenoh session (self-declared without the ACL);
+    # "user": the stream id's prefix before its first '.', which the shipped ACL ties to the authenticated user
+    client_identity: Literal["session", "user"] = "session"
     idle_stream_s: float = Field(30.0, gt=0)  # a stream without frames this long gives back its lane (and its memory)
     # resident set this worker keeps under (services/memory.py): near it idle streams are evicted and new streams
     # refused (stream_limit). None: no cap. 4 GiB leaves a 24 GiB machine room for the router, the other workers

@@ -91,6 +91,7 @@ class StreamSession:
         self.map = MapOutput(stream, c, ctx.stats, ctx.log, ctx.put, ctx.report_error)
         self.threads = StreamThreads(stream, ctx.scheduler)
         self.snapshot = SnapshotSchedule()
+        self.held: FrameJob | None = None  # a jump waiting for the frame after it (_sequence)
         self.entered = 0  # frames that entered the lane: the work after a pose sees whether another came
         self.epoch: int | None = None  # placement "members": the fencing epoch of this worker's lease on the stream
         self.complete_ms = self.restore_ms = self.evict_ms = 0.0
@@ -118,7 +119,7 @@ class StreamSession:
                 self.threads.submit_after(self.flush_map)
 
     def _frame(self, item, entered: int) -> None:
-        msg, hop_ms, t_queued, decode_ms = item
+        msg, hop_ms, t_queued, decode_ms, _ = item
         t0, waited0 = time.perf_counter(), run_delay_ms()
         job = self._validate(msg, entered)  # needs nothing of the state: beside the last frame's after-pose work
         if job is None:
@@ -133,9 +134,13 @@ class StreamSession:
             validate=(t_wait - t0) * 1000.0,
             after_pose_wait=(job.t_valid - t_wait) * 1000.0,  # the last frame's work after its pose, still running
         )
-        if not self._own(job) or self._answer_resend(job) or not self._sequence(job):
+        if not self._own(job) or self._answer_resend(job):
             return
-        if self._register_commit_publish(job, waited0):
+        held = self._confirmed(job)
+        if held is not None and self._sequence(held, confirmed=True):
+            if self._register_commit_publish(held, waited0):
+                self._observe_frame(held)
+        if self._sequence(job) and self._register_commit_publish(job, waited0):
             self._observe_frame(job)
 
     def _validate(self, msg, entered: int) -> FrameJob | None:
@@ -191,12 +196,30 @@ class StreamSession:
         self.ctx.put(keys.pose(self.stream), encode(pose_message(self.stream, known)))
         return True
 
-    def _sequence(self, job: FrameJob) -> bool:
+    def _confirmed(self, job: FrameJob) -> FrameJob | None:
+        """The held jump this frame confirms (it is the held frame's next seq), else None."""
+        held, t = self.held, self.trajectory
+        if held is None or job.msg.seq != held.msg.seq + 1 or not t.started or held.msg.seq <= t.last_seq + 1:
+            return None
+        self.held = None
+        return held
+
+    def _sequence(self, job: FrameJob, confirmed: bool = False) -> bool:
         """The frame's place after the committed trajectory (services/flow.judge_seq); then the OccVO it registers
-        on: a new one at seq 0, else the stream's, resumed from the store if this process has none."""
+        on: a new one at seq 0, else the stream's, resumed from the store if this process has none. A jump (a seq
+        more than one ahead, within max_seq_jump) is held, not adopted, until the frame after it confirms it: one
+        stray seq must not make the stream's real next frames steps back."""
         seq, t = job.msg.seq, self.trajectory
         job.restart = seq == 0 or not t.started
         if not job.restart:
+            jump = seq - t.last_seq
+            if not confirmed and 1 < jump <= self.ctx.config.max_seq_jump:
+                self.held = job  # a later jump replaces it; the stream's real next frame drops it
+                self.ctx.stats.inc("seq_held")
+                self._report("seq_jump", f"seq {seq} is {jump} after seq {t.last_seq}: held until seq {seq + 1}", seq)
+                return False
+            if jump == 1:
+                self.held = None
             known = t.stored(seq) is not None
             older = " and differs from the registered frame" if known else " and is older than the trajectory"
             ok, code, message = judge_seq(seq, t.last_seq, self.ctx.config.max_seq_jump, older)
@@ -208,6 +231,7 @@ class StreamSession:
             if self.vo is None:
                 self.reopen()
         else:
+            self.held = None
             self._new_trajectory()
         if self.ctx.config.kernel_threads == 0:
             self.vo.threads = self.ctx.scheduler.fair_threads(self.ctx.busy_lanes())

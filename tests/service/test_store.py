@@ -540,9 +540,9 @@ def test_clean_restart_continues_the_stream_and_answers_resends(store_url, scene
             assert counters["resumes"] == 1 and counters["frames_out"] == N - 7
 
             # a resend of a registered frame is answered with its stored pose, not registered twice
-            client.session.put(keys.camera("car"), encode(camera_frame_of(scene[N - 1], "car", N - 1)))
+            client.put_encoded(encode(camera_frame_of(scene[N - 1], "car", N - 1)))
             # another frame under a registered seq is refused by name
-            client.session.put(keys.camera("car"), encode(camera_frame_of(scene[2], "car", 5)))
+            client.put_encoded(encode(camera_frame_of(scene[2], "car", 5)))
             deadline = time.monotonic() + 20
             while time.monotonic() < deadline and not (reg.stats.snapshot()[0].get("republished") and client.errors):
                 time.sleep(0.05)

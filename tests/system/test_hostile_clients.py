@@ -15,7 +15,7 @@ import zenoh
 
 from occvo_schemas import keys
 from occvo_schemas.codec import decode, encode
-from occvo_schemas.models import ErrorEvent
+from occvo_schemas.models import ErrorEvent, PoseEstimate
 from occvo_services.client import OccVOClient, camera_frame_of
 from occvo_services.local import InProcessService
 from occvo_services.sessions import open_session
@@ -68,6 +68,12 @@ def steps(client, frames, first_seq):
     return [client.step(f).matrix() for f in frames]
 
 
+def put_as(session, key, payload, sn=[0]):  # noqa: B006 - one counter for the module's puts
+    """A put naming its session in its source info, as OccVOClient's do (the workers know a client by it)."""
+    sn[0] += 1
+    session.put(key, payload, congestion_control=BLOCK, source_info=zenoh.SourceInfo(session.id, sn[0]))
+
+
 def raw_frame(frame, stream, seq):
     """A camera frame's msgpack with any seq (the model would refuse to build one out of range)."""
     d = msgpack.unpackb(encode(camera_frame_of(frame, stream, 0)), raw=False)
@@ -94,13 +100,95 @@ def test_seq_jump_beyond_the_window_is_reported_and_not_adopted(service, session
     with OccVOClient(service.endpoint, "h1.jump", timeout=60, session=session) as c:
         c.reset()
         got = steps(c, scene[:2], 0)
-        session.put(keys.camera("h1.jump"), raw_frame(scene[2], "h1.jump", 1 + 5000), congestion_control=BLOCK)
+        put_as(session, keys.camera("h1.jump"), raw_frame(scene[2], "h1.jump", 1 + 5000))
         assert events.wait(lambda: events.of(code="seq_jump"))
         got += steps(c, scene[2:4], 2)  # the next real frames are not "out of order"
     jumps = events.of(code="seq_jump")
     assert len(jumps) == 1 and jumps[0].seq == 5001 and "window of 1000" in jumps[0].message
     assert not events.of(code="out_of_order") and not events.of(code="missing_seq")
     assert np.allclose(np.array(got), np.array(uninterrupted[:4]), atol=1e-9)
+
+
+def test_a_jump_within_the_window_is_held_and_the_real_frames_go_on(service, session, scene, uninterrupted):
+    """A stray seq within max_seq_jump (seq 99,999 under the default window) is held, not adopted: the stream's real
+    next frames are registered as before, and the trajectory is the offline one."""
+    events = Events(session, "h1.held")
+    with OccVOClient(service.endpoint, "h1.held", timeout=60, session=session) as c:
+        c.reset()
+        got = steps(c, scene[:2], 0)
+        put_as(session, keys.camera("h1.held"), encode(camera_frame_of(scene[5], "h1.held", 1 + 500)))
+        assert events.wait(lambda: events.of(code="seq_jump"))
+        got += steps(c, scene[2:5], 2)
+        traj = c.trajectory()
+    [held] = events.of(code="seq_jump")
+    assert held.seq == 501 and "held until seq 502" in held.message
+    assert not events.of(code="out_of_order") and not [e for e in c.errors if e.seq in range(5)]
+    assert traj.seqs.to_numpy().tolist() == [0, 1, 2, 3, 4]
+    assert np.array_equal(traj.poses.to_numpy(), np.array(uninterrupted[:5]))
+    assert np.allclose(np.array(got), np.array(uninterrupted[:5]), atol=1e-9)
+
+
+def test_a_jump_confirmed_by_its_next_frame_is_registered(service, session, scene):
+    """A gap the stream goes on from (frames lost upstream): the held frame and the one confirming it both get poses."""
+    events = Events(session, "h1.gap")
+    with OccVOClient(service.endpoint, "h1.gap", timeout=60, session=session) as c:
+        c.reset()
+        steps(c, scene[:2], 0)
+        for seq in (3, 4):
+            put_as(session, keys.camera("h1.gap"), encode(camera_frame_of(scene[seq], "h1.gap", seq)))
+        assert c.wait_pose(4).seq == 4 and c.wait_pose(3).seq == 3
+        assert c.trajectory().seqs.to_numpy().tolist() == [0, 1, 3, 4]
+    assert [e.seq for e in events.of(code="seq_jump")] == [3]
+    assert events.of(code="missing_seq") and not events.of(code="out_of_order")
+
+
+def test_exact_duplicates_are_answered_with_the_stored_pose(service, session, scene, uninterrupted):
+    events = Events(session, "h1.dup")
+    with OccVOClient(service.endpoint, "h1.dup", timeout=60, session=session) as c:
+        c.reset()
+        got = []
+        for i in range(4):
+            seq = c.publish(scene[i])
+            put_as(session, keys.camera("h1.dup"), encode(camera_frame_of(scene[i], "h1.dup", i)))
+            got.append(c.wait_pose(seq).matrix())
+        reg = service.worker("registration")
+        deadline = time.monotonic() + 20
+        while reg.stats.snapshot()[0].get("republished", 0) < 4 and time.monotonic() < deadline:
+            time.sleep(0.05)
+    assert not events.items and not c.errors, [(e.code, e.message) for e in events.items]
+    assert np.allclose(np.array(got), np.array(uninterrupted[:4]), atol=1e-9)
+
+
+def test_another_session_cannot_publish_on_a_bound_stream(service, session, scene, uninterrupted):
+    """A client that publishes seq k+1 on another's stream as soon as it sees pose k: its frames are refused (the
+    stream is bound to the session that opened it), with no seq in the event (the owner would take it for its own
+    frame's answer); the owner gets every pose, equal to offline, and no error."""
+    events = Events(session, "h1.victim")
+    hostile = open_session(service.endpoint)
+    stolen = [encode(camera_frame_of(scene[(i + 6) % len(scene)], "h1.victim", i)) for i in range(len(scene))]
+
+    def preempt(sample):
+        k = decode(sample.payload.to_bytes(), PoseEstimate).seq
+        if k + 1 < len(stolen):
+            put_as(hostile, keys.camera("h1.victim"), stolen[k + 1])  # its own session's source info
+            hostile.put(keys.camera("h1.victim"), stolen[k + 1], congestion_control=BLOCK)  # and none at all
+
+    sub = hostile.declare_subscriber(keys.pose("h1.victim"), preempt)
+    try:
+        time.sleep(0.3)
+        with OccVOClient(service.endpoint, "h1.victim", timeout=60, session=session) as c:
+            c.reset()
+            got = steps(c, scene[:6], 0)
+            traj = c.trajectory()
+        assert events.wait(lambda: len(events.of(code="not_owner")) >= 2)
+    finally:
+        sub.undeclare()
+        hostile.close()
+    assert not [e for e in c.errors if e.seq is not None] and not events.of(code="out_of_order")
+    assert all(e.seq is None and "bound to the client" in e.message for e in events.of(code="not_owner"))
+    assert traj.seqs.to_numpy().tolist() == list(range(6))
+    assert np.array_equal(traj.poses.to_numpy(), np.array(uninterrupted[:6]))
+    assert np.allclose(np.array(got), np.array(uninterrupted[:6]), atol=1e-9)
 
 
 def test_pathological_msgpack_is_refused_before_work_and_frames_keep_their_order(
@@ -169,16 +257,20 @@ def test_streams_over_the_limits_are_refused_with_an_error_naming_the_limit(serv
     events = Events(session, "*")
     inference = service.worker("inference")
     time.sleep(LIMITS["idle_stream_s"] + 1.0)  # the other tests' streams retired: their places are free
-    assert not inference.lanes
+    assert not inference.lanes and not inference.admission.owners, dict(inference.admission.owners)
     for s in ("h4.a", "h4.b", "h4.c"):  # client h4 may have 2
         session.put(keys.camera(s), encode(camera_frame_of(scene[0], s, 0)), congestion_control=BLOCK)
     assert events.wait(lambda: events.of("h4.c", "stream_limit"))
     [ev] = events.of("h4.c", "stream_limit")
     assert "max_streams_per_client=2" in ev.message
-    for i in range(5):  # the worker may serve 6 in all
+    others = [open_session(service.endpoint) for _ in range(5)]  # five more clients, one stream each
+    for i, other in enumerate(others):  # the worker may serve 6 in all
         s = f"h5x{i}.a"
-        session.put(keys.camera(s), encode(camera_frame_of(scene[0], s, 0)), congestion_control=BLOCK)
+        put_as(other, keys.camera(s), encode(camera_frame_of(scene[0], s, 0)))
+        assert events.wait(lambda s=s: s in inference.admission.owners or events.of(s))  # sessions are not ordered
     assert events.wait(lambda: events.of("h5x4.a", "stream_limit"))
+    for other in others:
+        other.close()
     assert "max_streams=6" in events.of("h5x4.a", "stream_limit")[0].message
     assert not events.of("h5x3.a", "stream_limit") and not events.of("h4.a") and not events.of("h4.b")
     assert inference.stats.snapshot()[0]["streams_refused"] >= 2

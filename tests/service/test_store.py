@@ -514,7 +514,6 @@ def _wait_map(client, seq, timeout=20.0):
 
 
 def test_clean_restart_continues_the_stream_and_answers_resends(store_url, scene, uninterrupted):
-    from occvo_schemas import keys
     from occvo_schemas.codec import encode
     from occvo_services.client import OccVOClient, camera_frame_of
 

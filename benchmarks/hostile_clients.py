@@ -13,8 +13,14 @@ Router in this process, workers as processes (occvo_services.local.LocalService,
   msgpack    a 13.7 MB payload of small maps, then a legitimate frame: that frame's round trip vs one sent alone
   oversize   a --big-mb MiB put: RSS rise of the router (this process) and of each worker
   queries    ten concurrent gets on occvo/** beside a tile query loop: its p50/p99 vs alone, the gets refused busy
+  sequence   a replay while its own client puts a stray seq 99,999 and exact duplicates of its frames, and another
+             session puts seq k+1 (and a seq 99,999) on it as soon as it sees pose k: poses and stored trajectory vs
+             alone, errors the replay's client got for its own frames
+  grabber    one session holding 50 stream ids (a frame on each every 2 s) beside a replay: replay time vs alone, all
+             poses; then a service with client_identity "user" (the ACL's rule) and 4 users holding 16 ids each
+             (max_streams 64 full) beside a replay of a fifth: the same figures
 `alone` always runs (the baseline and the map the queries ask for); --steps picks the others. Prints one JSON line
-per step."""
+per step and one per goal ({"goal": ..., "met": ...}); exits 1 if a goal is not met."""
 
 from __future__ import annotations
 
@@ -37,7 +43,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from occvo_core.datasets import OccVOReleaseScene
 from occvo_schemas import keys
 from occvo_schemas.codec import decode, encode
-from occvo_schemas.models import ErrorEvent, WorkerHealth
+from occvo_schemas.models import ErrorEvent, PoseEstimate, WorkerHealth
 from occvo_services.client import OccVOClient, camera_frame_of
 from occvo_services.commands.replay import replay
 from occvo_services.local import LocalService
@@ -98,6 +104,129 @@ def emit(step: str, **fields) -> None:
     print(json.dumps({"step": step, **fields}), flush=True)
 
 
+GOALS: list[bool] = []
+
+
+def goal(text: str, met: bool, **figure) -> None:
+    GOALS.append(bool(met))
+    print(json.dumps({"goal": text, "met": bool(met), **figure}), flush=True)
+
+
+def grab(endpoint: str, streams: list[str], frame, stop: threading.Event, period_s: float = 2.0) -> None:
+    """A slot grabber: one session putting a seq-0 frame on each of `streams` every period_s until stop."""
+    session = open_session(endpoint)
+    payloads = [(keys.camera(s), encode(camera_frame_of(frame, s, 0))) for s in streams]
+    sn = 0
+    while not stop.is_set():
+        t0 = time.monotonic()
+        for key, payload in payloads:
+            sn += 1
+            session.put(key, payload, congestion_control=BLOCK, source_info=zenoh.SourceInfo(session.id, sn))
+        stop.wait(max(0.0, period_s - (time.monotonic() - t0)))
+    session.close()
+
+
+def sequence_abuse(ep: str, frames, alone: np.ndarray, alone_s: float) -> None:
+    """A replay while its own client puts a stray seq 99,999 and duplicates, and another session pre-empts it."""
+    stream = "legit4"
+    hostile = open_session(ep)
+    stray = [encode(camera_frame_of(frames[(i + 7) % len(frames)], stream, i)) for i in range(len(frames))]
+    far = encode(camera_frame_of(frames[5], stream, 99_999))
+    sn = [0]
+
+    def preempt(sample):  # seq k+1 as soon as pose k is out, and a seq 99,999 once
+        k = decode(sample.payload.to_bytes(), PoseEstimate).seq
+        for payload in [stray[k + 1]] * (k + 1 < len(stray)) + [far] * (k == 1):
+            sn[0] += 1
+            hostile.put(
+                keys.camera(stream), payload, congestion_control=BLOCK, source_info=zenoh.SourceInfo(hostile.id, sn[0])
+            )
+
+    sub = hostile.declare_subscriber(keys.pose(stream), preempt)
+    time.sleep(0.5)
+    stop = threading.Event()
+    with OccVOClient(ep, stream, timeout=300) as c:
+
+        def own_abuse():  # the client's own session: a stray seq 99,999 after pose 1, an exact duplicate of each frame
+            sent = 0
+            while not stop.wait(0.01):
+                done = sorted(c.poses)
+                if 1 in done and sent == 0:
+                    c.put_encoded(far)
+                while sent < len(done):
+                    c.put_encoded(encode(camera_frame_of(frames[done[sent]], stream, done[sent])))
+                    sent += 1
+
+        abuser = threading.Thread(target=own_abuse)
+        abuser.start()
+        t0 = time.perf_counter()
+        out = replay(c, frames, window=4, timeout=600)
+        took = time.perf_counter() - t0
+        stop.set()
+        abuser.join()
+        poses = np.array([c.poses[i].matrix() for i in sorted(c.poses)])
+        traj = c.trajectory()
+        own_errors = [(e.code, e.seq) for e in c.errors if e.seq is not None and e.seq < len(frames)]
+    sub.undeclare()
+    hostile.close()
+    equal = bool(out["poses"] == len(frames) and np.array_equal(poses, alone))
+    stored = bool(
+        np.array_equal(traj.poses.to_numpy(), alone) and traj.seqs.to_numpy().tolist() == list(range(len(frames)))
+    )
+    emit(
+        "sequence",
+        replay_s=round(took, 2),
+        ratio_to_alone=round(took / alone_s, 2),
+        poses=out["poses"],
+        poses_equal=equal,
+        stored_trajectory_equal=stored,
+        errors_on_own_frames=own_errors,
+    )
+    goal(
+        "seq 99,999 and pre-emption leave the trajectory equal to offline",
+        equal and stored,
+        poses_equal=equal,
+        stored_trajectory_equal=stored,
+    )
+    goal(
+        "duplicates and another client's frames give the replay's client no error",
+        not own_errors,
+        errors=len(own_errors),
+    )
+
+
+def grabber(ep: str, frames, alone_s: float, groups: list[list[str]], stream: str, label: str) -> dict:
+    """A replay of `stream` beside grabbers (one session each, holding `groups` of stream ids)."""
+    stop = threading.Event()
+    ts = [threading.Thread(target=grab, args=(ep, ids, frames[0], stop)) for ids in groups]
+    for t in ts:
+        t.start()
+    time.sleep(5.0)  # their streams admitted (the rest refused)
+    try:
+        took, poses = run_replay(ep, stream, frames)
+    finally:
+        stop.set()
+        for t in ts:
+            t.join()
+    ratio = took / alone_s
+    emit(
+        "grabber",
+        mode=label,
+        grabbed_ids=sum(map(len, groups)),
+        replay_s=round(took, 2),
+        alone_s=round(alone_s, 2),
+        ratio_to_alone=round(ratio, 2),
+        poses=len(poses),
+    )
+    goal(
+        f"a replay beside a slot grabber ({label}) gets all its poses within 3x its solo time",
+        len(poses) == len(frames) and ratio <= 3.0,
+        ratio=round(ratio, 2),
+        poses=len(poses),
+    )
+    return {"ratio": ratio}
+
+
 def run_replay(endpoint: str, stream: str, frames) -> tuple[float, np.ndarray]:
     with OccVOClient(endpoint, stream, timeout=300) as c:
         t0 = time.perf_counter()
@@ -115,7 +244,11 @@ def main() -> int:
     p.add_argument("--settle-s", type=float, default=60.0)
     p.add_argument("--big-mb", type=int, default=512)
     p.add_argument("--frames", type=int, default=40)
-    p.add_argument("--steps", default="flood,msgpack,oversize,queries", help="steps after `alone`, comma separated")
+    p.add_argument(
+        "--steps",
+        default="flood,msgpack,oversize,queries,sequence,grabber",
+        help="steps after `alone`, comma separated",
+    )
     p.add_argument("--registration-max-rss-mb", type=int, help="the registration worker's cap instead of its config's")
     args = p.parse_args()
     steps = set(args.steps.split(","))
@@ -281,10 +414,30 @@ def main() -> int:
                 load_average=round(os.getloadavg()[0], 1),  # other jobs on the machine
                 map=counters(session, svc, "map", ("queries_refused",)),
             )
+        if "sequence" in steps:
+            sequence_abuse(ep, frames, alone, alone_s)
+        if "grabber" in steps:
+            grabber(ep, frames, alone_s, [[f"grab{i}" for i in range(50)]], "legit5", "plain default, one session")
         session.close()
     finally:
         svc.stop()
-    return 0
+    if "grabber" in steps:  # the ACL's identity rule: a client is the stream id's prefix (its user)
+        svc = LocalService(
+            quiet=True,
+            common_args=["--client-identity", "user"],
+            worker_args={
+                "registration": ["--config", reg_config, *store, *reg_cap],
+                "inference": ["--config", "deploy/inference_worker.json5"],
+                "map": ["--config", "deploy/map_service.json5", *store],
+            },
+        ).start()
+        try:
+            solo_s, _ = run_replay(svc.endpoint, "viewer.solo", frames)
+            users = [[f"camera{u}.s{i}" for i in range(16)] for u in range(1, 5)]
+            grabber(svc.endpoint, frames, solo_s, users, "viewer.car", "client_identity user, 4 users x 16 streams")
+        finally:
+            svc.stop()
+    return 0 if all(GOALS) else 1
 
 
 if __name__ == "__main__":

@@ -272,8 +272,9 @@ class OccupancyFrameMsg(_StreamMessage):
 
 
 Status = Literal[
-    "ok", "lost", "reinitialised", "relocalised"
-]  # relocalised: a loop closed; replaces the seq's earlier pose
+    "ok", "lost", "reinitialised", "relocalised", "degenerate"
+]  # relocalised: a loop closed; replaces the seq's earlier pose. degenerate: too few or collinear voxels to register,
+# the pose a constant-velocity guess
 
 
 class PoseEstimate(_StreamMessage):

@@ -385,6 +385,9 @@ def worker_main(
     p.add_argument("--max-message-bytes", type=int)
     p.add_argument("--log-level")
     p.add_argument("--max-rss-mb", type=int, help="memory cap: idle streams evicted near it, new streams refused")
+    p.add_argument(
+        "--client-identity", choices=["session", "user"], help="who a client is: its Zenoh session, or the ACL user"
+    )
     p.add_argument("--store-url", help="the store: a SQLite file (path or sqlite:///path) or postgresql://...")
     if extra_args:
         extra_args(p)

@@ -33,7 +33,13 @@ from occvo_services.store_api import FencedError
 from occvo_services.store_blobs import frame_digest, legacy_frame_digest, pack_frame
 from occvo_services.telemetry import log_event
 
-_STATUS = {"ok": "ok", "lost": "lost", "initialised": "reinitialised", "reinitialised": "reinitialised"}
+_STATUS = {
+    "ok": "ok",
+    "lost": "lost",
+    "initialised": "reinitialised",
+    "reinitialised": "reinitialised",
+    "degenerate": "degenerate",
+}
 
 
 @dataclass
@@ -208,12 +214,15 @@ class StreamSession:
         """The frame's place after the committed trajectory (services/flow.judge_seq); then the OccVO it registers
         on: a new one at seq 0, else the stream's, resumed from the store if this process has none. A jump (a seq
         more than one ahead, within max_seq_jump) is held, not adopted, until the frame after it confirms it: one
-        stray seq must not make the stream's real next frames steps back."""
+        stray seq must not make the stream's real next frames steps back (lossless policy; under "latest" frames
+        are dropped on purpose and a jump is taken at once)."""
         seq, t = job.msg.seq, self.trajectory
         job.restart = seq == 0 or not t.started
         if not job.restart:
             jump = seq - t.last_seq
-            if not confirmed and 1 < jump <= self.ctx.config.max_seq_jump:
+            # under the "latest" policy frames are dropped on purpose: a gap there is the normal case, not held
+            hold = not confirmed and self.ctx.config.policy == "lossless"
+            if hold and 1 < jump <= self.ctx.config.max_seq_jump:
                 self.held = job  # a later jump replaces it; the stream's real next frame drops it
                 self.ctx.stats.inc("seq_held")
                 self._report("seq_jump", f"seq {seq} is {jump} after seq {t.last_seq}: held until seq {seq + 1}", seq)

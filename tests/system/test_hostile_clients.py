@@ -401,3 +401,28 @@ def test_wildcard_gets_are_bounded_per_client_and_a_tile_query_is_answered(tmp_p
     assert busy and "max_wildcard_queries=1" in busy[0].message and busy[0].stream == "*"
     assert peak[0] == 1
     assert mapper.stats.snapshot()[0]["queries_refused"] >= 1
+
+
+def test_degenerate_frames_say_so_and_get_a_constant_velocity_pose(service, session, scene):
+    """One voxel, three collinear voxels, an all-zero coordinate table: status "degenerate" (not "ok"), the pose
+    the constant-velocity guess; the stream goes on, every pose equal to offline OccVO's over the same frames."""
+    from occvo_core import OccVO
+    from occvo_core.frame import OccupancyFrame
+
+    labels = scene[3].labels
+    bad = [
+        OccupancyFrame(scene[3].points[:1].copy(), labels[:1].copy(), index=3, stamp=scene[3].stamp),
+        OccupancyFrame(np.array([[0.2, 0.2, 0.2], [1.0, 0.2, 0.2], [1.8, 0.2, 0.2]]), labels[:3].copy(), index=4),
+        OccupancyFrame(np.zeros((50, 3)), labels[:50].copy(), index=5, stamp=scene[5].stamp),
+    ]
+    frames = [*scene[:3], *bad, *scene[6:8]]
+    vo = OccVO()
+    offline = [vo.step(f) for f in frames]
+    with OccVOClient(service.endpoint, "h10.degenerate", timeout=60, session=session) as c:
+        c.reset()
+        got = [c.step(f) for f in frames]
+    assert [p.status for p in got[3:6]] == ["degenerate"] * 3 and [r.status for r in offline[3:6]] == ["degenerate"] * 3
+    assert all(p.status == "ok" for p in got[6:])
+    p1, p2 = offline[1].pose, offline[2].pose
+    assert np.allclose(got[3].matrix(), p2 @ np.linalg.inv(p1) @ p2, atol=1e-9)  # constant velocity
+    assert np.allclose(np.array([p.matrix() for p in got]), np.array([r.pose for r in offline]), atol=1e-9)

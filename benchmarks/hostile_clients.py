@@ -136,7 +136,7 @@ def sequence_abuse(ep: str, frames, alone: np.ndarray, alone_s: float) -> None:
 
     def preempt(sample):  # seq k+1 as soon as pose k is out, and a seq 99,999 once
         k = decode(sample.payload.to_bytes(), PoseEstimate).seq
-        for payload in [stray[k + 1]] * (k + 1 < len(stray)) + [far] * (k == 1):
+        for payload in ([stray[k + 1]] if k + 1 < len(stray) else []) + ([far] if k == 1 else []):
             sn[0] += 1
             hostile.put(
                 keys.camera(stream), payload, congestion_control=BLOCK, source_info=zenoh.SourceInfo(hostile.id, sn[0])
@@ -233,7 +233,8 @@ def run_replay(endpoint: str, stream: str, frames) -> tuple[float, np.ndarray]:
         out = replay(c, frames, window=4, timeout=600)
         took = time.perf_counter() - t0
         poses = np.array([c.poses[i].matrix() for i in sorted(c.poses)]) if c.poses else np.zeros((0, 4, 4))
-    assert out["poses"] == len(frames), out
+        codes = sorted({(e.worker.split("-")[0], e.code, e.message[:120]) for e in c.errors})
+    assert out["poses"] == len(frames), (out["poses"], out["errors"], codes)
     return took, poses
 
 

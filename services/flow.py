@@ -119,6 +119,7 @@ class StreamLane:
         self.thread.start()
 
     def _dropped(self, item) -> None:
+        self._done(item)
         self.worker.stats.inc("drops")
         log_event(self.worker.log, "dropped oldest frame", logging.DEBUG, stream=self.stream)
 
@@ -155,5 +156,11 @@ class StreamLane:
                     self.worker.report_error(self.stream, "internal", f"{type(exc).__name__}: {exc}", seq=seq)
                 log_event(self.worker.log, "stage failed", logging.ERROR, stream=self.stream, error=repr(exc))
             finally:
+                self._done(item)
                 self.busy = False
                 self.last_active = time.monotonic()
+
+    def _done(self, item) -> None:
+        """A frame handled or dropped: its memory charge (Worker.enqueue) is given back."""
+        if isinstance(item, tuple) and len(item) > 5:
+            self.worker.memory.discharge(item[5])

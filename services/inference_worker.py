@@ -89,7 +89,7 @@ class InferenceWorker(Worker):
 
     def _infer(self, stream: str, item) -> None:
         """One camera frame: its occupancy (recorded, or the network's), published for registration."""
-        msg, hop_ms, t_queued, decode_ms, source_info = item
+        msg, hop_ms, t_queued, decode_ms, source_info = item[:5]
         t0 = time.perf_counter()
         got = self._replayed(stream, msg) if self.config.source == "replay" else self._predicted(stream, msg, t0)
         if got is None:

@@ -83,8 +83,8 @@ class Admission:
 
     def admit(self, stream: str, client: str, reclaim=None) -> tuple[str, str] | None:
         """None if the stream is (now) admitted for `client`, else (error code, why not naming the limit).
-        reclaim(prefer_client, only_client) -> a stream whose idle lane is now on its way out (or None): tried
-        before a new stream is refused, the place of an idle stream of `client` itself first."""
+        reclaim(candidates, idle_only) -> one of the (stream, rank) candidates whose lane is now on its way out
+        (or None): tried before a new stream is refused (_reclaim)."""
         with self._lock:
             owner = self.owners.get(stream)
             if owner is not None:
@@ -111,15 +111,21 @@ class Admission:
             return None
 
     def _reclaim(self, reclaim, client: str, own: bool) -> bool:
-        """An idle stream's place (of `client`'s own when `own`, else preferably of the client holding the most)."""
+        """A place taken back for `client`: an idle stream of its own when `own`; else a stream of a client holding
+        at least two streams more than it (the biggest first), idle or not, so that under contention every client
+        keeps a fair share and none takes a place from one holding fewer than it."""
         if reclaim is None:
             return False
+        mine = self.clients.get(client, 0)
         if own:
-            candidates = [s for s, c in self.owners.items() if c == client and s not in self.leaving]
+            candidates = [(s, 0) for s, c in self.owners.items() if c == client and s not in self.leaving]
         else:
-            candidates = [s for s in self.owners if s not in self.leaving]
-        rank = {c: n for c, n in self.clients.items()}
-        got = reclaim(sorted(candidates, key=lambda s: -rank.get(self.owners[s], 0)))
+            candidates = [
+                (s, -self.clients[c])
+                for s, c in self.owners.items()
+                if self.clients[c] > mine + 1 and s not in self.leaving
+            ]
+        got = reclaim(candidates, idle_only=own)
         if got is None:
             return False
         self.leaving.add(got)

@@ -208,26 +208,41 @@ class Worker:
                 if msg.stream not in self.lanes:  # admitted for nothing: its place goes back
                     self.admission.release(msg.stream)
             return
+        cost = self.frame_cost_mb(msg)
+        if (why := self.memory.charge(msg.stream, msg.seq, cost)) is not None:
+            self.stats.inc("frames_refused_memory")
+            self.report_error(msg.stream, "oversize", why, str(sample.key_expr), msg.seq)
+            return
         # a sent_at a day off (e.g. 1e308) would give an infinite hop: no hop latency then, not a failed stage
         hop_ms = (t_recv - msg.sent_at) * 1000.0 if 0 < msg.sent_at and abs(t_recv - msg.sent_at) < 86400 else 0.0
         lane = self.lane(msg.stream, handler)
         try:
-            lane.queue.put((msg, hop_ms, time.perf_counter(), decode_ms, sample.source_info))
+            if not lane.queue.put((msg, hop_ms, time.perf_counter(), decode_ms, sample.source_info, cost)):
+                self.memory.discharge(cost)  # stopping
         finally:
             with self._lanes_lock:
                 lane.pending -= 1
 
-    def _reclaim(self, streams: list[str]) -> str | None:
-        """The first of `streams` whose lane is idle (no frame for EVICT_IDLE_S, none waiting): it is told to leave
-        and its stream returned (a new stream takes its place), else None. Reads the lanes without their lock (the
-        admission's is held); retire_lane checks again under it."""
-        now, lanes = time.monotonic(), self.lanes
-        for stream in streams:
+    def frame_cost_mb(self, msg) -> float:
+        """What handling `msg` will cost this worker's memory (MB), charged against max_rss_mb before it is queued
+        (roles override; services/memory.py)."""
+        return 0.0
+
+    def _reclaim(self, candidates: list[tuple[str, int]], idle_only: bool) -> str | None:
+        """Of the (stream, rank) candidates, the lowest rank's lane without a frame for longest (idle_only: for
+        EVICT_IDLE_S at least) and none in work or waiting: told to leave, its stream returned (a new stream takes
+        its place), else None. Reads the lanes without their lock (the admission's is held); retire_lane checks
+        again under it."""
+        now, lanes, ready = time.monotonic(), self.lanes, []
+        for stream, rank in candidates:
             lane = lanes.get(stream)
             if lane is None or lane.busy or lane.pending or lane.evicting or lane.queue.qsize():
                 continue
-            if now - lane.last_active < EVICT_IDLE_S:
+            if idle_only and now - lane.last_active < EVICT_IDLE_S:
                 continue
+            ready.append((rank, lane.last_active, stream))
+        for _, _, stream in sorted(ready):
+            lane = lanes[stream]
             try:
                 lane.queue.q.put_nowait(EVICT)
             except queue.Full:

@@ -125,7 +125,7 @@ class StreamSession:
                 self.threads.submit_after(self.flush_map)
 
     def _frame(self, item, entered: int) -> None:
-        msg, hop_ms, t_queued, decode_ms, _ = item
+        msg, hop_ms, t_queued, decode_ms = item[:4]
         t0, waited0 = time.perf_counter(), run_delay_ms()
         job = self._validate(msg, entered)  # needs nothing of the state: beside the last frame's after-pose work
         if job is None:

@@ -263,16 +263,19 @@ def test_streams_over_the_limits_are_refused_with_an_error_naming_the_limit(serv
     assert events.wait(lambda: events.of("h4.c", "stream_limit"))
     [ev] = events.of("h4.c", "stream_limit")
     assert "max_streams_per_client=2" in ev.message
-    others = [open_session(service.endpoint) for _ in range(5)]  # five more clients, one stream each
-    for i, other in enumerate(others):  # the worker may serve 6 in all
+    # six more clients, one stream each: the worker serves 6 in all; the fifth takes a place from client h4 (two
+    # streams, two more than it has), the sixth finds every client at one stream and is refused
+    others = [open_session(service.endpoint) for _ in range(6)]
+    for i, other in enumerate(others):
         s = f"h5x{i}.a"
         put_as(other, keys.camera(s), encode(camera_frame_of(scene[0], s, 0)))
         assert events.wait(lambda s=s: s in inference.admission.owners or events.of(s))  # sessions are not ordered
-    assert events.wait(lambda: events.of("h5x4.a", "stream_limit"))
     for other in others:
         other.close()
-    assert "max_streams=6" in events.of("h5x4.a", "stream_limit")[0].message
-    assert not events.of("h5x3.a", "stream_limit") and not events.of("h4.a") and not events.of("h4.b")
+    assert [e.stream for e in events.of(code="stream_limit")] == ["h4.c", "h5x5.a"]
+    assert "max_streams=6" in events.of("h5x5.a", "stream_limit")[0].message
+    assert events.wait(lambda: inference.stats.snapshot()[0].get("streams_reclaimed") == 1)
+    assert not events.of("h4.a") and not events.of("h4.b")
     assert inference.stats.snapshot()[0]["streams_refused"] >= 2
 
 
@@ -408,21 +411,60 @@ def test_degenerate_frames_say_so_and_get_a_constant_velocity_pose(service, sess
     the constant-velocity guess; the stream goes on, every pose equal to offline OccVO's over the same frames."""
     from occvo_core import OccVO
     from occvo_core.frame import OccupancyFrame
+    from occvo_schemas.models import Array
 
     labels = scene[3].labels
+    zero = camera_frame_of(scene[5], "h10.degenerate", 5)
+    occ = zero.gt_occupancy
+    zero = zero.model_copy(
+        update={"gt_occupancy": occ.model_copy(update={"axes": Array.from_numpy(np.zeros(occ.axes.shape))})}
+    )
     bad = [
         OccupancyFrame(scene[3].points[:1].copy(), labels[:1].copy(), index=3, stamp=scene[3].stamp),
         OccupancyFrame(np.array([[0.2, 0.2, 0.2], [1.0, 0.2, 0.2], [1.8, 0.2, 0.2]]), labels[:3].copy(), index=4),
-        OccupancyFrame(np.zeros((50, 3)), labels[:50].copy(), index=5, stamp=scene[5].stamp),
+        zero,
     ]
-    frames = [*scene[:3], *bad, *scene[6:8]]
+    offline_bad = [*bad[:2], OccupancyFrame(zero.gt_occupancy.to_points(), occ.labels.to_numpy(), 5, scene[5].stamp)]
+    assert not offline_bad[2].points.any()
     vo = OccVO()
-    offline = [vo.step(f) for f in frames]
+    offline = [vo.step(f) for f in [*scene[:3], *offline_bad, *scene[6:8]]]
     with OccVOClient(service.endpoint, "h10.degenerate", timeout=60, session=session) as c:
         c.reset()
-        got = [c.step(f) for f in frames]
+        got = [c.step(f) for f in [*scene[:3], *bad, *scene[6:8]]]
     assert [p.status for p in got[3:6]] == ["degenerate"] * 3 and [r.status for r in offline[3:6]] == ["degenerate"] * 3
     assert all(p.status == "ok" for p in got[6:])
     p1, p2 = offline[1].pose, offline[2].pose
     assert np.allclose(got[3].matrix(), p2 @ np.linalg.inv(p1) @ p2, atol=1e-9)  # constant velocity
     assert np.allclose(np.array([p.matrix() for p in got]), np.array([r.pose for r in offline]), atol=1e-9)
+
+
+def test_duplicate_voxels_and_more_voxels_than_the_grid_are_refused_by_name(service, session, scene):
+    """A frame is a set of voxels: 1,000 copies of one voxel, or more voxels than the grid's 200x200x16 cells, get
+    one error naming it before any work; the stream's next good frame is registered."""
+    import msgpack
+
+    events = Events(session, "h11.heavy")
+    with OccVOClient(service.endpoint, "h11.heavy", timeout=60, session=session) as c:
+        c.reset()
+        c.step(scene[0])
+        good = msgpack.unpackb(encode(camera_frame_of(scene[1], "h11.heavy", 1)), raw=False)
+        copies = dict(good)
+        occ = dict(good["gt_occupancy"])
+        voxels = np.frombuffer(occ["voxels"]["data"], np.uint8).reshape(-1, 3)
+        occ["voxels"] = {**occ["voxels"], "shape": [1000, 3], "data": np.repeat(voxels[:1], 1000, 0).tobytes()}
+        occ["labels"] = {**occ["labels"], "shape": [1000], "data": bytes(1000)}
+        copies["gt_occupancy"] = occ
+        c.put_encoded(msgpack.packb(copies, use_bin_type=True))
+        assert events.wait(lambda: events.of(code="invalid_message"))
+        over = dict(copies)
+        n = 200 * 200 * 16 + 1
+        over["gt_occupancy"] = {
+            **occ,
+            "voxels": {**occ["voxels"], "shape": [n, 3], "data": bytes(3 * n)},
+            "labels": {**occ["labels"], "shape": [n], "data": bytes(n)},
+        }
+        c.put_encoded(msgpack.packb(over, use_bin_type=True))
+        assert events.wait(lambda: len(events.of(code="invalid_message")) == 2)
+        assert c.step(scene[1]).seq == 1
+    dup, big = (e.message for e in events.of(code="invalid_message"))
+    assert "999 duplicate voxels" in dup and "more than the grid's 640000 cells" in big, (dup, big)

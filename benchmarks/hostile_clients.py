@@ -19,6 +19,9 @@ Router in this process, workers as processes (occvo_services.local.LocalService,
   grabber    one session holding 50 stream ids (a frame on each every 2 s) beside a replay: replay time vs alone, all
              poses; then a service with client_identity "user" (the ACL's rule) and 4 users holding 16 ids each
              (max_streams 64 full) beside a replay of a fifth: the same figures
+  heavy      a service whose registration worker is capped at --heavy-max-rss-mb: 4 clients each put a frame of
+             3.5 M copies of one voxel then --heavy-frames full-grid frames (640,000 voxels) beside a replay: the
+             registration worker's RSS peak against its cap, frames refused, the replay's time vs its solo time
 `alone` always runs (the baseline and the map the queries ask for); --steps picks the others. Prints one JSON line
 per step and one per goal ({"goal": ..., "met": ...}); exits 1 if a goal is not met."""
 
@@ -138,6 +141,8 @@ def sequence_abuse(ep: str, frames, alone: np.ndarray, alone_s: float) -> None:
         k = decode(sample.payload.to_bytes(), PoseEstimate).seq
         for payload in ([stray[k + 1]] if k + 1 < len(stray) else []) + ([far] if k == 1 else []):
             sn[0] += 1
+            if hostile.is_closed():
+                return
             hostile.put(
                 keys.camera(stream), payload, congestion_control=BLOCK, source_info=zenoh.SourceInfo(hostile.id, sn[0])
             )
@@ -195,6 +200,101 @@ def sequence_abuse(ep: str, frames, alone: np.ndarray, alone_s: float) -> None:
     )
 
 
+def heavy(args, frames, store: list[str], reg_config: str) -> None:
+    """Heavy frames on 4 streams beside a replay, the registration worker capped at --heavy-max-rss-mb: a frame of
+    3.5 M copies of one voxel (refused: more voxels than the grid's cells) then full-grid frames (640,000 voxels)."""
+    from occvo_core.grid import OCC3D_GRID
+    from occvo_schemas.models import CameraFrame, SparseOccupancy
+
+    cap = args.heavy_max_rss_mb
+    svc = LocalService(
+        quiet=True,
+        worker_args={
+            "registration": ["--config", reg_config, *store, "--max-rss-mb", str(cap)],
+            "inference": ["--config", "deploy/inference_worker.json5"],
+            "map": ["--config", "deploy/map_service.json5", *store],
+        },
+    ).start()
+    try:
+        ep = svc.endpoint
+        solo_s, _ = run_replay(ep, "heavysolo", frames)
+        idx = np.indices(OCC3D_GRID.shape).reshape(3, -1).T.astype(np.uint8)
+        labels = np.random.default_rng(0).integers(1, 17, len(idx)).astype(np.uint8)
+
+        full = {
+            "voxels": {"dtype": "uint8", "shape": [len(idx), 3], "data": idx.tobytes()},
+            "labels": {"dtype": "uint8", "shape": [len(idx)], "data": labels.tobytes()},
+        }
+        n = 3_500_000
+        copies = {
+            "voxels": {"dtype": "uint8", "shape": [n, 3], "data": bytes(3 * n)},
+            "labels": {"dtype": "uint8", "shape": [n], "data": bytes(n)},
+        }
+        template = msgpack.unpackb(
+            encode(CameraFrame(stream="x", seq=0, stamp=0.0, gt_occupancy=SparseOccupancy.model_validate(full))),
+            raw=False,
+        )
+
+        def payload(stream, seq, occ):
+            d = dict(template, stream=stream, seq=seq, stamp=float(seq) * 0.5)
+            d["gt_occupancy"] = {**template["gt_occupancy"], **occ}
+            return msgpack.packb(d, use_bin_type=True)
+
+        peak, stop = {"rss_mb": 0.0}, threading.Event()
+
+        def watch():
+            while not stop.wait(0.05):
+                peak["rss_mb"] = max(peak["rss_mb"], proc_status(svc.procs["registration"].pid)["rss_mb"])
+
+        def heavy_client(i):
+            session, stream = open_session(ep), f"heavy{i}"
+            for sn, data in enumerate(
+                [payload(stream, 0, copies)] + [payload(stream, s, full) for s in range(args.heavy_frames)]
+            ):
+                session.put(
+                    keys.camera(stream),
+                    data,
+                    congestion_control=BLOCK,
+                    source_info=zenoh.SourceInfo(session.id, sn + 1),
+                )
+            session.close()
+
+        threading.Thread(target=watch, daemon=True).start()
+        clients = [threading.Thread(target=heavy_client, args=(i,)) for i in range(4)]
+        for t in clients:
+            t.start()
+        took, poses = run_replay(ep, "heavylegit", frames)
+        for t in clients:
+            t.join()
+        time.sleep(5.0)  # the heavy frames queued are registered
+        stop.set()
+        session = open_session(ep)
+        refused = counters(
+            session, svc, "registration", ("frames_refused_memory", "streams_refused_memory", "frames_out", "errors")
+        )
+        refused_inf = counters(session, svc, "inference", ("errors",))
+        session.close()
+        emit(
+            "heavy",
+            registration_max_rss_mb=cap,
+            registration_peak_rss_mb=peak["rss_mb"],
+            replay_s=round(took, 2),
+            solo_s=round(solo_s, 2),
+            ratio_to_solo=round(took / solo_s, 2),
+            poses=len(poses),
+            registration=refused,
+            inference=refused_inf,
+        )
+        goal(
+            "heavy-frame streams keep the registration worker's RSS under max_rss_mb",
+            peak["rss_mb"] < cap,
+            peak_rss_mb=peak["rss_mb"],
+            cap=cap,
+        )
+    finally:
+        svc.stop()
+
+
 def grabber(ep: str, frames, alone_s: float, groups: list[list[str]], stream: str, label: str) -> dict:
     """A replay of `stream` beside grabbers (one session each, holding `groups` of stream ids)."""
     stop = threading.Event()
@@ -247,9 +347,11 @@ def main() -> int:
     p.add_argument("--frames", type=int, default=40)
     p.add_argument(
         "--steps",
-        default="flood,msgpack,oversize,queries,sequence,grabber",
+        default="flood,msgpack,oversize,queries,sequence,grabber,heavy",
         help="steps after `alone`, comma separated",
     )
+    p.add_argument("--heavy-max-rss-mb", type=int, default=1024, help="the registration worker's cap in step heavy")
+    p.add_argument("--heavy-frames", type=int, default=5, help="full-grid frames on each of the 4 heavy streams")
     p.add_argument("--registration-max-rss-mb", type=int, help="the registration worker's cap instead of its config's")
     args = p.parse_args()
     steps = set(args.steps.split(","))
@@ -422,6 +524,8 @@ def main() -> int:
         session.close()
     finally:
         svc.stop()
+    if "heavy" in steps:
+        heavy(args, frames, store, reg_config)
     if "grabber" in steps:  # the ACL's identity rule: a client is the stream id's prefix (its user)
         svc = LocalService(
             quiet=True,

@@ -468,3 +468,40 @@ def test_duplicate_voxels_and_more_voxels_than_the_grid_are_refused_by_name(serv
         assert c.step(scene[1]).seq == 1
     dup, big = (e.message for e in events.of(code="invalid_message"))
     assert "999 duplicate voxels" in dup and "more than the grid's 640000 cells" in big, (dup, big)
+
+
+def test_a_frame_is_charged_against_the_memory_cap_before_it_is_queued(service, session, scene):
+    """A full-grid frame (every one of the 640,000 cells) on an admitted stream while the registration worker's
+    resident set and that frame's cost would pass max_rss_mb: refused with one error naming the cap, nothing
+    registered; the stream's next frame is registered."""
+    from occvo_core.grid import OCC3D_GRID
+    from occvo_schemas.models import CameraFrame, SparseOccupancy
+    from occvo_services.client import ServiceError
+    from occvo_services.registration.worker import FRAME_MB_PER_VOXEL
+
+    reg = service.worker("registration")
+    idx = np.indices(OCC3D_GRID.shape).reshape(3, -1).T.astype(np.uint8)
+    labels = np.random.default_rng(0).integers(1, 17, len(idx)).astype(np.uint8)
+    heavy = SparseOccupancy.model_validate(
+        {
+            "voxels": {"dtype": "uint8", "shape": [len(idx), 3], "data": idx.tobytes()},
+            "labels": {"dtype": "uint8", "shape": [len(idx)], "data": labels.tobytes()},
+        }
+    )
+    cost = FRAME_MB_PER_VOXEL * len(idx)
+    with OccVOClient(service.endpoint, "h12.charged", timeout=60, session=session) as c:
+        c.reset()
+        steps(c, scene[:2], 0)
+        saved = reg.memory.max_rss_mb
+        reg.memory.max_rss_mb = int(reg.memory.rss() + reg.memory.charged + cost / 2)  # the frame does not fit
+        try:
+            with pytest.raises(ServiceError, match="max_rss_mb") as refused:
+                c.step(CameraFrame(stream="h12.charged", seq=0, stamp=1.0, gt_occupancy=heavy))
+        finally:
+            reg.memory.max_rss_mb = saved
+        assert refused.value.event.code == "oversize" and refused.value.event.seq == 2
+        c.errors.clear()  # the refused frame's answer
+        steps(c, scene[2:3], 2)  # the refused seq again, a frame that fits
+        assert c.poses[2].status == "ok"
+        assert c.trajectory().seqs.to_numpy().tolist() == [0, 1, 2]
+    assert reg.memory.charged == 0.0

@@ -19,6 +19,9 @@ Router in this process, workers as processes (occvo_services.local.LocalService,
   grabber    one session holding 50 stream ids (a frame on each every 2 s) beside a replay: replay time vs alone, all
              poses; then a service with client_identity "user" (the ACL's rule) and 4 users holding 16 ids each
              (max_streams 64 full) beside a replay of a fifth: the same figures
+  silent     a queryable on occvo/** that never answers: the longest of 20 tile, map info, trajectory and pose
+             queries (and 5 stats queries, which wait for every answer); another session looping tile queries named
+             with the replay's stream: that stream's client's tile query p50/p99 and its gets refused busy
   heavy      a service whose registration worker is capped at --heavy-max-rss-mb: 4 clients each put a frame of
              3.5 M copies of one voxel then --heavy-frames full-grid frames (640,000 voxels) beside a replay: the
              registration worker's RSS peak against its cap, frames refused, the replay's time vs its solo time
@@ -295,6 +298,69 @@ def heavy(args, frames, store: list[str], reg_config: str) -> None:
         svc.stop()
 
 
+def silent_queryable(ep: str, stream: str) -> None:
+    """A queryable on occvo/** that never answers (its queries held open), and another session looping tile queries
+    named with `stream`: the stream's client's query times, and its gets refused busy."""
+    held, rogue = [], open_session(ep)
+    queryable = rogue.declare_queryable("occvo/**", held.append)  # held: never answered until their timeout
+    time.sleep(0.5)
+    with OccVOClient(ep, stream, timeout=60) as c:
+        ix, iy = c.map_info().tiles[0]
+        asks = {
+            "tile": lambda: c.tile(ix, iy),
+            "map_info": c.map_info,
+            "trajectory": c.trajectory,
+            "pose_latest": c.pose_latest,
+            "stats": c.stats,  # every worker's answer: waits out the query timeout for the rogue's
+        }
+        took = {}
+        for name, ask in asks.items():
+            times = []
+            for _ in range(5 if name == "stats" else 20):
+                t = time.perf_counter()
+                ask()
+                times.append(time.perf_counter() - t)
+            took[name] = round(max(times), 3)
+        stop, hostile_busy = threading.Event(), [0]
+        hostile = open_session(ep)
+        sel = keys.map_tile(stream, ix, iy)
+
+        def hammer():
+            while not stop.is_set():
+                for r in hostile.get(sel, timeout=5.0, target=zenoh.QueryTarget.BEST_MATCHING):
+                    if r.err is not None:
+                        hostile_busy[0] += 1
+
+        ts = [threading.Thread(target=hammer) for _ in range(10)]
+        for t in ts:
+            t.start()
+        victim, refused = [], 0
+        for k in range(200):  # one get each, as the stream's client's session, not asked again on busy
+            t = time.perf_counter()
+            info = zenoh.SourceInfo(c.session.id, 1_000_000 + k)
+            replies = list(c.session.get(sel, timeout=5.0, target=zenoh.QueryTarget.BEST_MATCHING, source_info=info))
+            victim.append((time.perf_counter() - t) * 1000)
+            refused += sum(1 for r in replies if r.err is not None)
+        stop.set()
+        for t in ts:
+            t.join()
+        hostile.close()
+    queryable.undeclare()
+    held.clear()
+    rogue.close()
+    worst = max(v for k, v in took.items())
+    emit(
+        "silent",
+        query_timeout_s=2.0,
+        max_query_s_with_a_silent_queryable=took,
+        victim_tile_p50_p99_ms=np.percentile(victim, [50, 99]).round(1).tolist(),
+        victim_gets_refused=refused,
+        hostile_gets_refused=hostile_busy[0],
+    )
+    goal("a silent queryable costs a query at most its timeout (2 s) in the plain default", worst <= 2.2, worst_s=worst)
+    goal("querying a victim's stream name does not use up its query budget", refused == 0, refused=refused)
+
+
 def grabber(ep: str, frames, alone_s: float, groups: list[list[str]], stream: str, label: str) -> dict:
     """A replay of `stream` beside grabbers (one session each, holding `groups` of stream ids)."""
     stop = threading.Event()
@@ -347,7 +413,7 @@ def main() -> int:
     p.add_argument("--frames", type=int, default=40)
     p.add_argument(
         "--steps",
-        default="flood,msgpack,oversize,queries,sequence,grabber,heavy",
+        default="flood,msgpack,oversize,queries,sequence,grabber,heavy,silent",
         help="steps after `alone`, comma separated",
     )
     p.add_argument("--heavy-max-rss-mb", type=int, default=1024, help="the registration worker's cap in step heavy")
@@ -519,6 +585,8 @@ def main() -> int:
             )
         if "sequence" in steps:
             sequence_abuse(ep, frames, alone, alone_s)
+        if "silent" in steps:
+            silent_queryable(ep, "legit0")
         if "grabber" in steps:
             grabber(ep, frames, alone_s, [[f"grab{i}" for i in range(50)]], "legit5", "plain default, one session")
         session.close()

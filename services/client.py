@@ -72,8 +72,11 @@ class OccVOClient:
         session: zenoh.Session | None = None,
         exact: bool = True,
         resend_after: float | None = 5.0,
+        query_timeout: float = 2.0,
     ):
         self.exact = exact
+        # a query waits at most this long for its answers: a queryable that never answers costs no more
+        self.query_timeout = query_timeout
         self.resend_after = resend_after
         self.stream = keys.check_stream(stream)
         self.timeout = timeout
@@ -257,17 +260,35 @@ class OccVOClient:
         return self.wait_pose(self.publish(frame))
 
     # -- queries
-    def _replies(self, selector: str, expect, payload: bytes | None, timeout: float) -> tuple[list, list[ErrorEvent]]:
-        """The decoded answers and error replies of a get. Answered only `busy` (this client has
+    def _replies(
+        self, selector: str, expect, payload: bytes | None, timeout: float | None = None, first: bool = False
+    ) -> tuple[list, list[ErrorEvent]]:
+        """The decoded answers and error replies of a get, within `timeout` (the client's query_timeout). first:
+        one answer is the whole answer (a tile, map info, a stream's trajectory or pose): taken as soon as it
+        comes, so a queryable that never answers delays nothing. Answered only `busy` (this client has
         max_queries_per_client queries in work, e.g. from other threads), it is asked again after a short wait."""
+        timeout = self.query_timeout if timeout is None else timeout
         deadline, wait = time.monotonic() + timeout, 0.01
         while True:
             out, errs = [], []
-            # the best match: one complete queryable (a map service replica) where there is one, else every match
-            target = zenoh.QueryTarget.BEST_MATCHING
-            for reply in self.session.get(selector, payload=payload, timeout=timeout, target=target):
+            # the best match: one complete queryable (a map service replica) where there is one, else every match;
+            # the source info names this client's session: the workers' query budgets are per client
+            with self._cv:
+                self._sn += 1
+                info = zenoh.SourceInfo(self.session.id, self._sn)
+            replies = self.session.get(
+                selector,
+                payload=payload,
+                timeout=max(0.01, deadline - time.monotonic()),
+                target=zenoh.QueryTarget.BEST_MATCHING,
+                consolidation=zenoh.ConsolidationMode.NONE,  # replies as they come; one per key kept below
+                source_info=info,
+            )
+            for reply in replies:
                 if reply.ok is not None:
                     out.append(decode(reply.ok.payload.to_bytes(), expect, 1 << 30))
+                    if first:
+                        break
                 else:
                     try:
                         errs.append(decode(reply.err.payload.to_bytes(), ErrorEvent))
@@ -285,8 +306,8 @@ class OccVOClient:
             time.sleep(wait)
             wait = min(0.5, wait * 2)
 
-    def _get(self, selector: str, expect, payload: bytes | None = None, timeout: float = 10.0) -> list:
-        out, errs = self._replies(selector, expect, payload, timeout)
+    def _get(self, selector: str, expect, payload: bytes | None = None, first: bool = True) -> list:
+        out, errs = self._replies(selector, expect, payload, first=first)
         if not out and errs:
             raise ServiceError(f"{selector}: {errs[0].code}: {errs[0].message}", errs[0])
         return out
@@ -303,7 +324,7 @@ class OccVOClient:
         tiles, page = [], 0
         while True:  # the map service answers a page of tiles at a time; a "truncated" error says more follow
             q = MapTileQuery(stream=self.stream, ix_min=ix_min, ix_max=ix_max, iy_min=iy_min, iy_max=iy_max, page=page)
-            out, errs = self._replies(keys.map_tile(self.stream, "*", "*"), MapTile, encode(q), 10.0)
+            out, errs = self._replies(keys.map_tile(self.stream, "*", "*"), MapTile, encode(q))
             tiles += out
             if not any(e.code == "truncated" for e in errs):
                 if not tiles and errs:
@@ -339,7 +360,7 @@ class OccVOClient:
         return found[0]
 
     def stats(self, worker: str = "*") -> list[WorkerHealth]:
-        return self._get(keys.stats(worker), WorkerHealth)
+        return self._get(keys.stats(worker), WorkerHealth, first=False)
 
     def workers(self) -> list[str]:
         """Keys of the live workers' liveliness tokens: those the client has seen come and not go, and those a

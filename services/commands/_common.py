@@ -34,6 +34,9 @@ def add_connection(p, stream: bool = True) -> None:
     p.add_argument("--router-config", default=None, help="router json5 config (default: the built-in one)")
     if stream:
         p.add_argument("--stream", type=stream_id, default="default", help="stream id (default: default)")
+    p.add_argument(
+        "--query-timeout", type=float, default=2.0, help="seconds a query waits for its answers (default: 2)"
+    )
 
 
 def add_json(p, what: str = "the result") -> None:
@@ -57,7 +60,10 @@ def client(args, **kw):
 
     ep = endpoint(args)
     try:
-        return OccVOClient(ep, stream=getattr(args, "stream", "default"), **kw)
+        timeout = getattr(args, "query_timeout", 2.0)
+        if timeout <= 0:
+            raise ConfigError(f"--query-timeout must be more than 0, got {timeout}")
+        return OccVOClient(ep, stream=getattr(args, "stream", "default"), query_timeout=timeout, **kw)
     except zenoh.ZError:
         raise ServiceError(f"no router at {ep}: start `occvo serve` or pass --connect") from None
 

@@ -505,3 +505,66 @@ def test_a_frame_is_charged_against_the_memory_cap_before_it_is_queued(service, 
         assert c.poses[2].status == "ok"
         assert c.trajectory().seqs.to_numpy().tolist() == [0, 1, 2]
     assert reg.memory.charged == 0.0
+
+
+def test_a_silent_queryable_and_a_querier_of_the_victims_stream_cost_it_no_answer(service, session, scene):
+    """A queryable on occvo/** that never answers: the client's tile, map info, trajectory and pose queries are
+    answered as before (one answer is taken as it comes; the map service's queryables are complete and the client
+    asks the best match). Another session looping queries named with the victim's stream: the victim's own query
+    budget is its session's, so none of its queries is refused busy."""
+    held, asked = [], threading.Event()
+    with OccVOClient(service.endpoint, "h13.victim", timeout=60, session=session) as c:
+        c.reset()
+        steps(c, scene[:2], 0)
+        mapper = service.worker("map")
+        deadline = time.monotonic() + 10
+        while not ((info := mapper.store.info("h13.victim")) and info.last_seq == 1):
+            assert time.monotonic() < deadline
+            time.sleep(0.05)
+        ix, iy = info.tiles[0]
+        expected = (c.tile(ix, iy).points.to_numpy(), c.map_info(), c.trajectory().poses.to_numpy())
+
+        def silent(query):
+            held.append(query)  # never answered while held: the query stays open here until its timeout
+            asked.set()
+
+        rogue = open_session(service.endpoint)
+        queryable = rogue.declare_queryable("occvo/**", silent)
+        try:
+            time.sleep(0.3)
+            tile, got_info, traj, latest = c.tile(ix, iy), c.map_info(), c.trajectory(), c.pose_latest()
+            assert asked.wait(5)  # the rogue was asked (trajectory and pose queries match every queryable)
+            assert np.array_equal(tile.points.to_numpy(), expected[0]) and got_info == expected[1]
+            assert np.array_equal(traj.poses.to_numpy(), expected[2]) and latest.seq == 1
+
+            stop, busy_for_hostile = threading.Event(), []
+            hostile = open_session(service.endpoint)
+
+            def hammer():
+                while not stop.is_set():
+                    sel = keys.map_tile("h13.victim", ix, iy)
+                    for r in hostile.get(sel, timeout=5.0, target=zenoh.QueryTarget.BEST_MATCHING):
+                        if r.err is not None and decode(r.err.payload.to_bytes(), ErrorEvent).code == "busy":
+                            busy_for_hostile.append(1)
+
+            threads = [threading.Thread(target=hammer) for _ in range(8)]
+            for t in threads:
+                t.start()
+            try:
+                for k in range(20):  # one get each, not asked again on busy: as the victim's session
+                    info = zenoh.SourceInfo(session.id, 10_000 + k)
+                    best = zenoh.QueryTarget.BEST_MATCHING  # the map service's complete queryable, not the rogue
+                    sel = keys.map_tile("h13.victim", ix, iy)
+                    replies = list(session.get(sel, timeout=10.0, source_info=info, target=best))
+                    errs = [decode(r.err.payload.to_bytes(), ErrorEvent) for r in replies if r.err is not None]
+                    assert [r for r in replies if r.ok is not None] and not errs, errs
+            finally:
+                stop.set()
+                for t in threads:
+                    t.join(30)
+                hostile.close()
+        finally:
+            queryable.undeclare()
+            held.clear()
+            rogue.close()
+    assert busy_for_hostile  # the hostile session's budget ran out, not the victim's

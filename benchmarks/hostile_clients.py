@@ -19,9 +19,13 @@ Router in this process, workers as processes (occvo_services.local.LocalService,
   grabber    one session holding 50 stream ids (a frame on each every 2 s) beside a replay: replay time vs alone, all
              poses; then a service with client_identity "user" (the ACL's rule) and 4 users holding 16 ids each
              (max_streams 64 full) beside a replay of a fifth: the same figures
-  silent     a queryable on occvo/** that never answers: the longest of 20 tile, map info, trajectory and pose
-             queries (and 5 stats queries, which wait for every answer); another session looping tile queries named
+  silent     a queryable on occvo/** that never answers: the longest of 20 tile, map info, trajectory, pose and
+             stats queries, and of 3 trajectory queries of an unknown stream (only errors come: the query waits for
+             the rogue until its timeout); another session looping tile queries named
              with the replay's stream: that stream's client's tile query p50/p99 and its gets refused busy
+  degenerate one voxel, three collinear voxels and an all-zero coordinate table among real frames: their statuses,
+             whether the first has the constant-velocity pose
+  config     `occvo serve` with each bad configuration of the issue: exit codes and stderr lines
   heavy      a service whose registration worker is capped at --heavy-max-rss-mb: 4 clients each put a frame of
              3.5 M copies of one voxel then --heavy-frames full-grid frames (640,000 voxels) beside a replay: the
              registration worker's RSS peak against its cap, frames refused, the replay's time vs its solo time
@@ -34,6 +38,7 @@ import argparse
 import json
 import multiprocessing
 import os
+import subprocess
 import sys
 import tempfile
 import threading
@@ -50,7 +55,7 @@ from occvo_core.datasets import OccVOReleaseScene
 from occvo_schemas import keys
 from occvo_schemas.codec import decode, encode
 from occvo_schemas.models import ErrorEvent, PoseEstimate, WorkerHealth
-from occvo_services.client import OccVOClient, camera_frame_of
+from occvo_services.client import OccVOClient, ServiceError, camera_frame_of
 from occvo_services.commands.replay import replay
 from occvo_services.local import LocalService
 from occvo_services.runtime import WorkerConfig
@@ -304,21 +309,25 @@ def silent_queryable(ep: str, stream: str) -> None:
     held, rogue = [], open_session(ep)
     queryable = rogue.declare_queryable("occvo/**", held.append)  # held: never answered until their timeout
     time.sleep(0.5)
-    with OccVOClient(ep, stream, timeout=60) as c:
+    with OccVOClient(ep, stream, timeout=60) as c, OccVOClient(ep, "nosuchstream", timeout=60) as nobody:
         ix, iy = c.map_info().tiles[0]
         asks = {
             "tile": lambda: c.tile(ix, iy),
             "map_info": c.map_info,
             "trajectory": c.trajectory,
             "pose_latest": c.pose_latest,
-            "stats": c.stats,  # every worker's answer: waits out the query timeout for the rogue's
+            "stats": c.stats,  # every worker's answer (occvo/** does not match the @workers chunk)
+            "unknown_stream_trajectory": lambda: nobody.trajectory(),  # no answer but errors: waits for the rogue
         }
         took = {}
         for name, ask in asks.items():
             times = []
-            for _ in range(5 if name == "stats" else 20):
+            for _ in range(3 if name.startswith("unknown") else 20):
                 t = time.perf_counter()
-                ask()
+                try:
+                    ask()
+                except ServiceError:  # the unknown stream's: its error replies, after the query timeout
+                    pass
                 times.append(time.perf_counter() - t)
             took[name] = round(max(times), 3)
         stop, hostile_busy = threading.Event(), [0]
@@ -359,6 +368,78 @@ def silent_queryable(ep: str, stream: str) -> None:
     )
     goal("a silent queryable costs a query at most its timeout (2 s) in the plain default", worst <= 2.2, worst_s=worst)
     goal("querying a victim's stream name does not use up its query budget", refused == 0, refused=refused)
+
+
+def degenerate_frames(ep: str, frames) -> None:
+    """One voxel, three collinear voxels and an all-zero coordinate table after 3 real frames, then real ones."""
+    from occvo_core.frame import OccupancyFrame
+    from occvo_schemas.models import Array
+
+    f = frames[3]
+    zero = camera_frame_of(frames[5], "legit7", 5)
+    occ = zero.gt_occupancy
+    zero = zero.model_copy(
+        update={"gt_occupancy": occ.model_copy(update={"axes": Array.from_numpy(np.zeros(occ.axes.shape))})}
+    )
+    line = np.array([[0.2, 0.2, 0.2], [1.0, 0.2, 0.2], [1.8, 0.2, 0.2]])
+    bad = [OccupancyFrame(f.points[:1], f.labels[:1], 3, f.stamp), OccupancyFrame(line, f.labels[:3], 4, f.stamp), zero]
+    with OccVOClient(ep, "legit7", timeout=120) as c:
+        c.reset()
+        got = [c.step(x) for x in [*frames[:3], *bad, *frames[6:8]]]
+    statuses = [p.status for p in got]
+    p1, p2 = got[1].matrix(), got[2].matrix()
+    velocity = bool(np.allclose(got[3].matrix(), p2 @ np.linalg.inv(p1) @ p2, atol=1e-9))
+    emit("degenerate", statuses=statuses, constant_velocity_pose=velocity)
+    goal("degenerate frames say so, with a constant-velocity pose", statuses[3:6] == ["degenerate"] * 3 and velocity)
+
+
+def bad_configs() -> None:
+    """`occvo serve` with each bad configuration the issue found: one line on stderr, exit code 2, in seconds."""
+    import json5
+
+    tmp = Path(tempfile.mkdtemp())
+    lan = "tcp/0.0.0.0:17447"
+    cases = {}
+    for name, setting in {
+        "tile_m 1.0": {"tile_m": 1.0},
+        "tile_m 0.001": {"tile_m": 0.001},
+        "max_rss_mb 64": {"max_rss_mb": 64},
+        "kernel_threads 100000": {"kernel_threads": 100000},
+    }.items():
+        d = tmp / name.replace(" ", "_")
+        d.mkdir()
+        for f in ("inference_worker.json5", "registration_worker.json5", "map_service.json5"):
+            data = json5.loads((Path("services/defaults") / f).read_text())
+            data.update(setting if f.startswith("registration") else {})
+            (d / f).write_text(json.dumps(data))
+        cases[name] = ["--config-dir", str(d), "--listen", "tcp/127.0.0.1:17448"]
+    (tmp / "router.json5").write_text(
+        json.dumps({"mode": "router", "listen": {"endpoints": ["tcp/127.0.0.1:17449", lan]}})
+    )
+    cases["loopback then LAN endpoint"] = ["--router-config", str(tmp / "router.json5")]
+    (tmp / "auth.json5").write_text(
+        json.dumps(
+            {
+                "mode": "router",
+                "listen": {"endpoints": [lan]},
+                "transport": {"auth": {"usrpwd": {"dictionary_file": str(tmp / "users.txt")}}},
+            }
+        )
+    )
+    (tmp / "users.txt").write_text("a:b\n")
+    cases["authentication without access control"] = ["--router-config", str(tmp / "auth.json5")]
+    cases["store folder missing"] = ["--store", str(tmp / "no" / "x.sqlite")]
+    results = {}
+    for name, argv in cases.items():
+        t = time.perf_counter()
+        r = subprocess.run(
+            [sys.executable, "-m", "occvo_cli", "serve", *argv], capture_output=True, text=True, timeout=120
+        )
+        lines = [line for line in r.stderr.splitlines() if line.strip()]
+        results[name] = {"exit": r.returncode, "stderr_lines": len(lines), "s": round(time.perf_counter() - t, 1)}
+    emit("config", cases=results)
+    ok = all(v["exit"] == 2 and v["stderr_lines"] == 1 for v in results.values())
+    goal("every bad configuration is one line and exit code 2", ok, cases=len(results))
 
 
 def grabber(ep: str, frames, alone_s: float, groups: list[list[str]], stream: str, label: str) -> dict:
@@ -413,7 +494,7 @@ def main() -> int:
     p.add_argument("--frames", type=int, default=40)
     p.add_argument(
         "--steps",
-        default="flood,msgpack,oversize,queries,sequence,grabber,heavy,silent",
+        default="flood,msgpack,oversize,queries,sequence,grabber,heavy,silent,degenerate,config",
         help="steps after `alone`, comma separated",
     )
     p.add_argument("--heavy-max-rss-mb", type=int, default=1024, help="the registration worker's cap in step heavy")
@@ -587,6 +668,8 @@ def main() -> int:
             sequence_abuse(ep, frames, alone, alone_s)
         if "silent" in steps:
             silent_queryable(ep, "legit0")
+        if "degenerate" in steps:
+            degenerate_frames(ep, frames)
         if "grabber" in steps:
             grabber(ep, frames, alone_s, [[f"grab{i}" for i in range(50)]], "legit5", "plain default, one session")
         session.close()
@@ -594,6 +677,8 @@ def main() -> int:
         svc.stop()
     if "heavy" in steps:
         heavy(args, frames, store, reg_config)
+    if "config" in steps:
+        bad_configs()
     if "grabber" in steps:  # the ACL's identity rule: a client is the stream id's prefix (its user)
         svc = LocalService(
             quiet=True,

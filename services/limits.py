@@ -116,14 +116,16 @@ class Admission:
         keeps a fair share and none takes a place from one holding fewer than it."""
         if reclaim is None:
             return False
-        mine = self.clients.get(client, 0)
+        staying: dict[str, int] = {}  # each client's streams not already on their way out
+        for s, c in self.owners.items():
+            if s not in self.leaving:
+                staying[c] = staying.get(c, 0) + 1
+        mine = staying.get(client, 0)
         if own:
             candidates = [(s, 0) for s, c in self.owners.items() if c == client and s not in self.leaving]
         else:
             candidates = [
-                (s, -self.clients[c])
-                for s, c in self.owners.items()
-                if self.clients[c] > mine + 1 and s not in self.leaving
+                (s, -staying[c]) for s, c in self.owners.items() if s not in self.leaving and staying[c] > mine + 1
             ]
         got = reclaim(candidates, idle_only=own)
         if got is None:

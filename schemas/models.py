@@ -392,6 +392,8 @@ ErrorCode = Literal[
     "truncated",  # a region's page is full: more tiles on the next page
     "busy",  # the querying client has max_queries_per_client queries in work: ask again when one is answered
     "not_owner",  # a frame from another client than the one its stream is bound to (no seq: not its owner's answer)
+    "seq_held",  # a jump held until the frame after it confirms it: not an answer yet (the client waits, resends)
+    "not_stored",  # the store refused the write (e.g. disk full): not an answer yet (the client resends it)
 ]
 
 

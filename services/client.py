@@ -40,6 +40,8 @@ from occvo_schemas.models import (
 from occvo_services.runtime import DEFAULT_ENDPOINT
 from occvo_services.sessions import open_session
 
+PENDING_CODES = ("missing_seq", "seq_held", "not_stored")  # error events that leave a frame waiting for its pose
+
 
 class ServiceError(RuntimeError):
     """The service answered with an error event (or did not answer in time)."""
@@ -137,7 +139,9 @@ class OccVOClient:
             return
         with self._cv:
             self.errors.append(event)
-            if event.seq is not None and event.code != "missing_seq":
+            # not answers: a gap before the frame, a jump held for its next frame, a write the store refused (the
+            # frame stays unanswered and is sent again after resend_after, until its pose comes)
+            if event.seq is not None and event.code not in PENDING_CODES:
                 self._unanswered.pop(event.seq, None)
                 self._last_answer = time.monotonic()
             self._cv.notify_all()
@@ -246,7 +250,7 @@ class OccVOClient:
             while True:
                 if seq in self.poses:
                     return self.poses[seq]
-                bad = [e for e in self.errors if e.seq == seq and e.code not in ("missing_seq",)]
+                bad = [e for e in self.errors if e.seq == seq and e.code not in PENDING_CODES]
                 if bad:
                     raise ServiceError(f"seq {seq}: {bad[0].code}: {bad[0].message}", bad[0])
                 left = deadline - time.monotonic()

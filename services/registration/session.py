@@ -98,6 +98,7 @@ class StreamSession:
         self.threads = StreamThreads(stream, ctx.scheduler)
         self.snapshot = SnapshotSchedule()
         self.held: FrameJob | None = None  # a jump waiting for the frame after it (_sequence)
+        self.refused_seq: int | None = None  # a frame the store refused: the ones after it wait for it
         self.entered = 0  # frames that entered the lane: the work after a pose sees whether another came
         self.epoch: int | None = None  # placement "members": the fencing epoch of this worker's lease on the stream
         self.complete_ms = self.restore_ms = self.evict_ms = 0.0
@@ -140,7 +141,7 @@ class StreamSession:
             validate=(t_wait - t0) * 1000.0,
             after_pose_wait=(job.t_valid - t_wait) * 1000.0,  # the last frame's work after its pose, still running
         )
-        if not self._own(job) or self._answer_resend(job):
+        if not self._own(job) or self._answer_resend(job) or self._waits_for_refused(job):
             return
         held = self._confirmed(job)
         if held is not None and self._sequence(held, confirmed=True):
@@ -202,6 +203,16 @@ class StreamSession:
         self.ctx.put(keys.pose(self.stream), encode(pose_message(self.stream, known)))
         return True
 
+    def _waits_for_refused(self, job: FrameJob) -> bool:
+        """After the store refused seq k (e.g. disk full), the frames after k wait for k, which the client sends again
+        with them in order: registered without it they would leave its pose missing for good."""
+        k, seq = self.refused_seq, job.msg.seq
+        if k is None or seq == 0 or seq <= k:
+            self.refused_seq = None if seq == 0 or seq == k else k
+            return False
+        self._report("not_stored", f"seq {seq} waits for seq {k}, which the store refused: send both again", seq)
+        return True
+
     def _confirmed(self, job: FrameJob) -> FrameJob | None:
         """The held jump this frame confirms (it is the held frame's next seq), else None."""
         held, t = self.held, self.trajectory
@@ -225,7 +236,7 @@ class StreamSession:
             if hold and 1 < jump <= self.ctx.config.max_seq_jump:
                 self.held = job  # a later jump replaces it; the stream's real next frame drops it
                 self.ctx.stats.inc("seq_held")
-                self._report("seq_jump", f"seq {seq} is {jump} after seq {t.last_seq}: held until seq {seq + 1}", seq)
+                self._report("seq_held", f"seq {seq} is {jump} after seq {t.last_seq}: held until seq {seq + 1}", seq)
                 return False
             if jump == 1:
                 self.held = None
@@ -272,6 +283,9 @@ class StreamSession:
                 self._submit_after_pose(job)
                 job.after.result()  # its OccVO.complete: then the state goes, rebuilt from the store
                 self.store_failed(job.msg.seq, failed, "not stored, pose not published")
+                if not isinstance(failed, FencedError):
+                    k = job.msg.seq
+                    self.refused_seq = k if self.refused_seq is None else min(self.refused_seq, k)
                 return False
             if job.restart:
                 log_event(self.ctx.log, "trajectory started", stream=self.stream, seq=job.msg.seq)
@@ -403,7 +417,7 @@ class StreamSession:
             )
             return
         message = f"seq {seq} {what} ({type(exc).__name__}: {exc}); the stream resumes from the store at its next frame"
-        self._report("internal", message, seq)
+        self._report("not_stored", message, seq)  # the client sends it again (OccVOClient's resends)
 
     def flush_map(self) -> None:
         """The tiles held back for a frame that did not come (refused, or none followed)."""

@@ -477,9 +477,9 @@ def drive(f: Fuzz, what: str, lanes: list[str], payloads: list, log: Counter) ->
             if last[0] == "output" or last[2] == "invalid_frame":
                 f.next_seq[lane] = msg.seq + 1
             if what == "camera" and msg.gt_occupancy is None:  # the replay source needs the recorded occupancy
-                assert last[2] in ("invalid_frame", "out_of_order", "seq_jump"), got
+                assert last[2] in ("invalid_frame", "out_of_order", "seq_jump", "seq_held"), got
             else:  # its normal output, a frame the odometry refuses, a step back or a jump beyond the window
-                assert last[0] == "output" or last[2] in ("invalid_frame", "out_of_order", "seq_jump"), got
+                assert last[0] == "output" or last[2] in ("invalid_frame", "out_of_order", "seq_jump", "seq_held"), got
                 assert what != "camera" or last[2] != "invalid_frame", got
     time.sleep(0.3)
     assert {lane: sum(map(terminal, fed(f, lane, role))) for lane in lanes} == total  # nothing answered twice
@@ -521,7 +521,7 @@ def check_counts_and_survival(f: Fuzz, what: str, lanes: list[str], good) -> Non
         check_map_applied(f, ok_lane)
     else:
         # a jump is passed on by the inference worker and held by the registration worker until its next seq comes
-        jump = ["missing_seq", "output"] if what == "camera" else ["seq_jump"]
+        jump = ["missing_seq", "output"] if what == "camera" else ["seq_held"]
         confirm = ["output"] if what == "camera" else ["missing_seq", "output", "output"]
         for seq, expect in ((0, ["output"]), (3, jump), (4, confirm), (2, ["out_of_order"])):
             base = len(f.obs.answers(ok_lane, role))

@@ -272,7 +272,7 @@ def test_sequence_gaps_and_steps_back_are_reported(service):
         events = errors.wait(4)
         codes = {e.code: e for e in events}
         assert "missing seq 2..2" in codes["missing_seq"].message and codes["out_of_order"].seq == 2
-        assert "held until seq 4" in codes["seq_jump"].message
+        assert "held until seq 4" in codes["seq_held"].message
         time.sleep(0.3)
         assert sorted(client.poses) == [0, 1, 3, 4]
     session.close()

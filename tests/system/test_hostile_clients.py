@@ -117,10 +117,10 @@ def test_a_jump_within_the_window_is_held_and_the_real_frames_go_on(service, ses
         c.reset()
         got = steps(c, scene[:2], 0)
         put_as(session, keys.camera("h1.held"), encode(camera_frame_of(scene[5], "h1.held", 1 + 500)))
-        assert events.wait(lambda: events.of(code="seq_jump"))
+        assert events.wait(lambda: events.of(code="seq_held"))
         got += steps(c, scene[2:5], 2)
         traj = c.trajectory()
-    [held] = events.of(code="seq_jump")
+    [held] = events.of(code="seq_held")
     assert held.seq == 501 and "held until seq 502" in held.message
     assert not events.of(code="out_of_order") and not [e for e in c.errors if e.seq in range(5)]
     assert traj.seqs.to_numpy().tolist() == [0, 1, 2, 3, 4]
@@ -138,7 +138,7 @@ def test_a_jump_confirmed_by_its_next_frame_is_registered(service, session, scen
             put_as(session, keys.camera("h1.gap"), encode(camera_frame_of(scene[seq], "h1.gap", seq)))
         assert c.wait_pose(4).seq == 4 and c.wait_pose(3).seq == 3
         assert c.trajectory().seqs.to_numpy().tolist() == [0, 1, 3, 4]
-    assert [e.seq for e in events.of(code="seq_jump")] == [3]
+    assert [e.seq for e in events.of(code="seq_held")] == [3]
     assert events.of(code="missing_seq") and not events.of(code="out_of_order")
 
 
@@ -568,3 +568,40 @@ def test_a_silent_queryable_and_a_querier_of_the_victims_stream_cost_it_no_answe
             held.clear()
             rogue.close()
     assert busy_for_hostile  # the hostile session's budget ran out, not the victim's
+
+
+def test_after_a_disk_full_spell_every_pose_is_there_and_the_map_complete(service, session, scene, uninterrupted):
+    """The registration worker's store refuses writes (SQLite's own `database or disk is full`, its page count
+    capped) while frames come: they get `not_stored` (not an answer), the frames after them wait, the client sends
+    them again; once there is room every pose is there, equal to offline, and the map is that of a stream that never
+    saw the spell."""
+    reg, mapper = service.worker("registration"), service.worker("map")
+    with OccVOClient(service.endpoint, "h14.ref", timeout=60, session=session) as ref:
+        ref.reset()
+        steps(ref, scene[:8], 0)
+    db = reg.store.db
+    with OccVOClient(service.endpoint, "h14.full", timeout=120, session=session, resend_after=0.5) as c:
+        c.reset()
+        got = steps(c, scene[:3], 0)
+        with reg.store.lock:
+            pages = db.execute("PRAGMA page_count").fetchone()[0]
+            db.execute(f"PRAGMA max_page_count={pages}")  # full: no page more
+        try:
+            for f in scene[3:6]:
+                c.publish(f)
+            with c._cv:
+                assert c._cv.wait_for(lambda: len({e.seq for e in c.errors if e.code == "not_stored"}) >= 3, 60)
+        finally:
+            with reg.store.lock:
+                db.execute("PRAGMA max_page_count=1073741823")  # room again
+        got += [c.wait_pose(seq).matrix() for seq in range(3, 6)]
+        got += steps(c, scene[6:8], 6)
+        traj = c.trajectory()
+    assert np.allclose(np.array(got), np.array(uninterrupted[:8]), atol=1e-9)
+    assert traj.seqs.to_numpy().tolist() == list(range(8))
+    assert "disk is full" in next(e.message for e in c.errors if e.code == "not_stored")
+    deadline = time.monotonic() + 20
+    while not ((info := mapper.store.info("h14.full")) and info.last_seq == 7) and time.monotonic() < deadline:
+        time.sleep(0.05)
+    want = mapper.store.info("h14.ref")
+    assert info.last_seq == 7 and info.tiles == want.tiles and info.voxel_count == want.voxel_count

@@ -26,6 +26,8 @@ Router in this process, workers as processes (occvo_services.local.LocalService,
   degenerate one voxel, three collinear voxels and an all-zero coordinate table among real frames: their statuses,
              whether the first has the constant-velocity pose
   config     `occvo serve` with each bad configuration of the issue: exit codes and stderr lines
+  disk_full  (with --disk-full-dir, a small filesystem) the store's filesystem filled for --full-s seconds after
+             pose 10 of a replay: every pose vs alone, the frames refused not_stored, the map vs alone's
   heavy      a service whose registration worker is capped at --heavy-max-rss-mb: 4 clients each put a frame of
              3.5 M copies of one voxel then --heavy-frames full-grid frames (640,000 voxels) beside a replay: the
              registration worker's RSS peak against its cap, frames refused, the replay's time vs its solo time
@@ -442,6 +444,73 @@ def bad_configs() -> None:
     goal("every bad configuration is one line and exit code 2", ok, cases=len(results))
 
 
+def disk_full(args, frames, alone: np.ndarray, reg_config: str) -> None:
+    """A service whose store is on --disk-full-dir (a small filesystem, e.g. a tmpfs): after pose 10 of a replay the
+    filesystem is filled for --full-s seconds, then freed. Every pose vs alone, the map's last seq and tiles."""
+    folder = Path(args.disk_full_dir)
+    store = ["--store-path", str(folder / f"occvo-{os.getpid()}.sqlite")]
+    svc = LocalService(
+        quiet=True,
+        worker_args={
+            "registration": ["--config", reg_config, *store],
+            "inference": ["--config", "deploy/inference_worker.json5"],
+            "map": ["--config", "deploy/map_service.json5", *store],
+        },
+    ).start()
+    filler = folder / f"filler-{os.getpid()}"
+    spell = {}
+    try:
+        with OccVOClient(svc.endpoint, "full", timeout=600, resend_after=1.0) as c:
+
+            def fill():
+                with c._cv:
+                    c._cv.wait_for(lambda: 10 in c.poses, 300)
+                with open(filler, "wb") as f:
+                    try:
+                        while True:
+                            f.write(b"\0" * (1 << 20))
+                            f.flush()
+                    except OSError:
+                        pass
+                spell["filled_at"] = time.perf_counter()
+                time.sleep(args.full_s)
+                filler.unlink()
+                spell["freed_at"] = time.perf_counter()
+
+            t = threading.Thread(target=fill)
+            t.start()
+            t0 = time.perf_counter()
+            out = replay(c, frames, window=4, timeout=600)
+            took = time.perf_counter() - t0
+            t.join()
+            poses = np.array([c.poses[i].matrix() for i in sorted(c.poses)])
+            refused = sorted({e.seq for e in c.errors if e.code == "not_stored"})
+            deadline = time.monotonic() + 60
+            while (info := c.map_info()).last_seq != len(frames) - 1 and time.monotonic() < deadline:
+                time.sleep(0.5)
+        emit(
+            "disk_full",
+            full_s=args.full_s,
+            replay_s=round(took, 2),
+            poses=out["poses"],
+            poses_equal=bool(np.array_equal(poses, alone)),
+            frames_refused_not_stored=refused,
+            resends=c.resends,
+            map_last_seq=info.last_seq,
+            map_tiles=len(info.tiles),
+            map_voxels=info.voxel_count,
+        )
+        goal(
+            "after a disk-full spell every pose is there and the map complete",
+            out["poses"] == len(frames) and np.array_equal(poses, alone) and info.last_seq == len(frames) - 1,
+            refused=len(refused),
+        )
+        return info
+    finally:
+        filler.unlink(missing_ok=True)
+        svc.stop()
+
+
 def grabber(ep: str, frames, alone_s: float, groups: list[list[str]], stream: str, label: str) -> dict:
     """A replay of `stream` beside grabbers (one session each, holding `groups` of stream ids)."""
     stop = threading.Event()
@@ -497,6 +566,8 @@ def main() -> int:
         default="flood,msgpack,oversize,queries,sequence,grabber,heavy,silent,degenerate,config",
         help="steps after `alone`, comma separated",
     )
+    p.add_argument("--disk-full-dir", help="step disk_full: a small filesystem for the store (e.g. a 64 MB tmpfs)")
+    p.add_argument("--full-s", type=float, default=5.0, help="step disk_full: how long the filesystem stays full")
     p.add_argument("--heavy-max-rss-mb", type=int, default=1024, help="the registration worker's cap in step heavy")
     p.add_argument("--heavy-frames", type=int, default=5, help="full-grid frames on each of the 4 heavy streams")
     p.add_argument("--registration-max-rss-mb", type=int, help="the registration worker's cap instead of its config's")
@@ -519,6 +590,10 @@ def main() -> int:
     try:
         ep = svc.endpoint
         alone_s, alone = run_replay(ep, "legit0", frames)
+        with OccVOClient(ep, "legit0", timeout=60) as c:
+            deadline = time.monotonic() + 60
+            while (alone_info := c.map_info()).last_seq != len(frames) - 1 and time.monotonic() < deadline:
+                time.sleep(0.2)
         session = open_session(ep)
         # the flood's baseline is the service at rest: the replay's stream retired (idle_stream_s), as the flood's will be
         deadline = time.monotonic() + WorkerConfig.load(reg_config).idle_stream_s + 60
@@ -679,6 +754,17 @@ def main() -> int:
         heavy(args, frames, store, reg_config)
     if "config" in steps:
         bad_configs()
+    if "disk_full" in steps and args.disk_full_dir:
+        full_info = disk_full(args, frames, alone, reg_config)
+        emit(
+            "disk_full_map_vs_alone",
+            same_tiles=full_info.tiles == alone_info.tiles,
+            same_voxels=full_info.voxel_count == alone_info.voxel_count,
+        )
+        goal(
+            "the map after the spell is the map of the run alone",
+            full_info.tiles == alone_info.tiles and full_info.voxel_count == alone_info.voxel_count,
+        )
     if "grabber" in steps:  # the ACL's identity rule: a client is the stream id's prefix (its user)
         svc = LocalService(
             quiet=True,

@@ -1,4 +1,4 @@
-"""What one client may cost a worker: streams admitted (per worker and per client), error events per stream per
+"""What one client may cost a worker: streams admitted (per worker and per client), error events per client per
 second, the length of keys and messages in logs and events. A refused stream gets one error event naming the limit.
 
 A client is the Zenoh session that published the frame (`client_identity: "session"`, the default): the zid of the
@@ -39,8 +39,9 @@ def identity_of(sample, stream: str, mode: str) -> str:
 
 
 class ErrorBudget:
-    """A token bucket per stream: `rate` events a second, bursts of `burst`. Suppressed events are counted and the
-    next event that goes out says how many. Only the `streams` most recently reporting streams are remembered."""
+    """A token bucket per client (Worker.report_error): `rate` events a second, bursts of `burst`. Suppressed events
+    are counted and the next event that goes out says how many. Only the `streams` most recently reporting clients
+    are remembered."""
 
     def __init__(self, rate: float, burst: int, streams: int = 4096):
         self.rate, self.burst, self.streams = rate, burst, streams

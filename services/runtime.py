@@ -185,7 +185,9 @@ class Worker:
         committed) and queue it on its stream's lane with its hop latency; bad messages are reported by decode_input
         and check_seq, never raised."""
         t_recv, t_decode = time.time(), time.perf_counter()
-        msg = self.decode_input(sample, expect)
+        msg = self.decode_input(
+            sample, expect, identity_of(sample, keys.stream_of(str(sample.key_expr)), self.config.client_identity)
+        )
         if msg is None or self.stopping.is_set():
             return
         decode_ms = (time.perf_counter() - t_decode) * 1000.0
@@ -277,15 +279,15 @@ class Worker:
                 return
             lane.evicting, lane.evict_why, self._evicted_at = True, "memory", now
 
-    def decode_input(self, sample: zenoh.Sample, expect):
-        """Decode and check a sample; on any problem report it and return None."""
+    def decode_input(self, sample: zenoh.Sample, expect, client: str | None = None):
+        """Decode and check a sample; on any problem report it (against `client`'s error budget) and return None."""
         key = str(sample.key_expr)
         stream = keys.stream_of(key)
         self.stats.inc("frames_in")
         try:
             msg = decode(sample.payload.to_bytes(), expect, self.config.max_message_bytes)
         except CodecError as exc:
-            self.report_error(stream, exc.code, exc.message, key)
+            self.report_error(stream, exc.code, exc.message, key, client=client)
             return None
         if getattr(msg, "stream", stream) != stream:
             self.report_error(
@@ -294,6 +296,7 @@ class Worker:
                 f"message says stream {msg.stream!r} but came on {key}",
                 key,
                 getattr(msg, "seq", None),
+                client=client,
             )
             return None
         return msg
@@ -305,15 +308,19 @@ class Worker:
             self.report_error(stream, code, message, key, seq)
         return ok
 
-    def report_error(self, stream: str, code: str, message: str, key: str = "", seq: int | None = None) -> ErrorEvent:
-        """Log and publish an error event, keys and messages clipped, at most error_events_per_s a stream (the
+    def report_error(
+        self, stream: str, code: str, message: str, key: str = "", seq: int | None = None, client: str | None = None
+    ) -> ErrorEvent:
+        """Log and publish an error event, keys and messages clipped, at most error_events_per_s a client (the
+        client given, else the stream's owner, else the stream: one client's flood of keys shares one budget; the
         rest counted as errors_suppressed and named in the next event)."""
         self.stats.inc("errors")
         stream = stream if keys.STREAM_RE.match(stream) else "*"
-        suppressed = self.error_budget.take(stream)
+        client = client or self.admission.owner(stream) or stream
+        suppressed = self.error_budget.take(client)
         message = clip(message, MAX_MESSAGE_CHARS)
         if suppressed:
-            message += f" (+{suppressed} error events of this stream suppressed before this one)"
+            message += f" (+{suppressed} error events of this client suppressed before this one)"
         event = ErrorEvent(
             stream=stream,
             worker=self.worker_id,
@@ -326,7 +333,8 @@ class Worker:
         if suppressed is None:
             self.stats.inc("errors_suppressed")
             return event
-        log_event(self.log, "error", logging.WARNING, **event.model_dump(exclude={"kind", "schema_version"}))
+        fields = event.model_dump(exclude={"kind", "schema_version"})
+        log_event(self.log, "error", logging.WARNING, client=clip(client, MAX_KEY_CHARS), **fields)
         if self.session is not None and not self.session.is_closed():
             try:
                 self.session.put(

@@ -241,13 +241,16 @@ def test_error_events_are_rate_limited_and_keys_clipped(service, session):
     assert len(ev.key) < 300 and "60013 chars" in ev.key
     inference = service.worker("inference")
     suppressed0 = inference.stats.snapshot()[0].get("errors_suppressed", 0)
+    # one client (its own session) puts garbage on 200 distinct keys: one error budget, the client's, not one a key
+    noisy = open_session(service.endpoint)
     t0 = time.monotonic()
-    for _ in range(200):
-        session.put(keys.camera("h3.noisy"), b"\xc1", congestion_control=BLOCK)
+    for i in range(200):
+        put_as(noisy, keys.camera(f"h3.noisy{i}"), b"\xc1")
     assert events.wait(lambda: inference.stats.snapshot()[0].get("errors_suppressed", 0) - suppressed0 > 0)
     time.sleep(0.5)
     elapsed = time.monotonic() - t0
-    sent = events.of(stream="h3.noisy")
+    noisy.close()
+    sent = [e for e in events.items if e.stream.startswith("h3.noisy")]
     assert 10 <= len(sent) <= 10 + 2.0 * elapsed + 1, (len(sent), elapsed)  # a burst of 10, then 2 a second
     counters = inference.stats.snapshot()[0]
     assert counters["errors_suppressed"] - suppressed0 + len(sent) == 200
@@ -590,7 +593,8 @@ def test_after_a_disk_full_spell_every_pose_is_there_and_the_map_complete(servic
             for f in scene[3:6]:
                 c.publish(f)
             with c._cv:
-                assert c._cv.wait_for(lambda: len({e.seq for e in c.errors if e.code == "not_stored"}) >= 3, 60)
+                assert c._cv.wait_for(lambda: any(e.code == "not_stored" for e in c.errors), 60)
+            time.sleep(1.0)  # resends refused meanwhile (their events within the client's error budget)
         finally:
             with reg.store.lock:
                 db.execute("PRAGMA max_page_count=1073741823")  # room again

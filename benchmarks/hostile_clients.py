@@ -25,6 +25,7 @@ Router in this process, workers as processes (occvo_services.local.LocalService,
              with the replay's stream: that stream's client's tile query p50/p99 and its gets refused busy
   degenerate one voxel, three collinear voxels and an all-zero coordinate table among real frames: their statuses,
              whether the first has the constant-velocity pose
+  log_flood  one session putting 1-byte payloads on distinct keys for 10 s: the inference worker's error log lines
   config     `occvo serve` with each bad configuration of the issue: exit codes and stderr lines
   disk_full  (with --disk-full-dir, a small filesystem) the store's filesystem filled for --full-s seconds after
              pose 10 of a replay: every pose vs alone, the frames refused not_stored, the map vs alone's
@@ -511,6 +512,33 @@ def disk_full(args, frames, alone: np.ndarray, reg_config: str) -> None:
         svc.stop()
 
 
+def log_flood(ep: str, svc, seconds: float = 10.0) -> None:
+    """One session putting 1-byte payloads on distinct keys for `seconds`: the error log lines the inference worker
+    writes (errors less errors_suppressed), each line under ~700 bytes."""
+    session = open_session(ep)
+    names = ("errors", "errors_suppressed")
+    before = counters(session, svc, "inference", names)
+    t0, n = time.perf_counter(), 0
+    while time.perf_counter() - t0 < seconds:
+        n += 1
+        session.put(
+            f"occvo/flood{n}/camera", b"\x01", congestion_control=BLOCK, source_info=zenoh.SourceInfo(session.id, n)
+        )
+    time.sleep(2.0)
+    after = counters(session, svc, "inference", names)
+    session.close()
+    lines = (after["errors"] - before["errors"]) - (after["errors_suppressed"] - before["errors_suppressed"])
+    config = WorkerConfig.load("deploy/inference_worker.json5")
+    bound = config.error_burst + config.error_events_per_s * (seconds + 2.0)
+    emit("log_flood", seconds=seconds, puts=n, log_lines=lines, log_mb_at_700_bytes_a_line=round(lines * 700 / 1e6, 3))
+    goal(
+        "one client's 1-byte puts on distinct keys log at most its error budget (and under 10 MB)",
+        lines <= bound + 5 and lines * 700 < 10e6,
+        lines=lines,
+        bound=bound,
+    )
+
+
 def grabber(ep: str, frames, alone_s: float, groups: list[list[str]], stream: str, label: str) -> dict:
     """A replay of `stream` beside grabbers (one session each, holding `groups` of stream ids)."""
     stop = threading.Event()
@@ -563,7 +591,7 @@ def main() -> int:
     p.add_argument("--frames", type=int, default=40)
     p.add_argument(
         "--steps",
-        default="flood,msgpack,oversize,queries,sequence,grabber,heavy,silent,degenerate,config",
+        default="flood,msgpack,oversize,queries,sequence,grabber,heavy,silent,degenerate,config,log_flood,disk_full",
         help="steps after `alone`, comma separated",
     )
     p.add_argument("--disk-full-dir", help="step disk_full: a small filesystem for the store (e.g. a 64 MB tmpfs)")
@@ -745,6 +773,8 @@ def main() -> int:
             silent_queryable(ep, "legit0")
         if "degenerate" in steps:
             degenerate_frames(ep, frames)
+        if "log_flood" in steps:
+            log_flood(ep, svc)
         if "grabber" in steps:
             grabber(ep, frames, alone_s, [[f"grab{i}" for i in range(50)]], "legit5", "plain default, one session")
         session.close()

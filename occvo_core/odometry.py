@@ -29,11 +29,21 @@ from occvo_core.registration.preprocess import Prepared, preprocess
 from occvo_core.registration.voxel_map import VoxelPFilterMap
 
 
+def degenerate(points: np.ndarray) -> bool:
+    """Fewer than three voxels, or all of them on one line (one voxel repeated, an all-zero coordinate table):
+    registration cannot fix the pose, the frame is "degenerate"."""
+    if len(points) < 3:
+        return True
+    centred = points - points.mean(axis=0)
+    spread = np.linalg.eigvalsh(centred.T @ centred)  # ascending
+    return bool(spread[1] <= 1e-9 * max(spread[2], 1e-300))
+
+
 @dataclass
 class StepResult:
     index: int
     pose: np.ndarray  # 4x4 ego -> world; the first frame defines the world
-    status: str  # "initialised" for the first frame, then "ok"
+    status: str  # "initialised" for the first frame, then "ok" ("degenerate": a constant-velocity guess)
     timings_ms: dict[str, float] = field(default_factory=dict)
     pairs: dict[str, int] = field(default_factory=dict)
     loop_correction: np.ndarray | None = None  # 4x4 world -> world when this frame closed a loop (see LoopClosure)
@@ -183,6 +193,10 @@ class OccVO:
 
     def register_frame(self, frame: Prepared, t: int, watch: Stopwatch) -> Registration:
         """Fig. 2 through fine GICP; complete() goes on with loop closure and the voxel pfilter's map update."""
+        if degenerate(frame.points):  # GICP has nothing to hold the pose across the missing directions
+            p = self._poses
+            pose = p[-1] @ np.linalg.inv(p[-2]) @ p[-1] if len(p) >= 2 else p[-1].copy()  # constant velocity
+            return Registration(frame.index, pose, "degenerate", _pending=_Pending(frame, t, watch, self._version))
         cfg = self.config
         guess = self._initial_guess(frame)
         watch.lap("initial_guess")
@@ -222,6 +236,12 @@ class OccVO:
             )
         p.watch.restart()  # the time between the halves (a service publishing the pose) is no stage's
         use_threads(self.threads)  # a service may run it in another thread than register()
+        if reg.status == "degenerate":  # no loop search; the last frame stays the motion search's reference
+            last = self._last
+            self._commit(p.frame, reg.pose, np.zeros(0, np.int64))
+            self._last = last
+            p.watch.lap("voxel_pfilter")
+            return StepResult(p.frame.index, reg.pose, "degenerate", p.watch.ms, {"map_voxels": len(self.map)})
         if p.t == 0:
             self._commit(p.frame, np.eye(4), np.zeros(0, np.int64))
             p.watch.lap("voxel_pfilter")

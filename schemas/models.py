@@ -82,6 +82,15 @@ def _col_extremes(a: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return np.array([a[:, i].min() for i in range(a.shape[1])]), np.array([a[:, i].max() for i in range(a.shape[1])])
 
 
+def _duplicates(v: np.ndarray, shape: tuple[int, int, int] | None) -> int:
+    """Rows of v (N,3) repeating an earlier row: voxel indices (`shape`: the grid's) or coordinates (None)."""
+    if shape is not None and math.prod(shape) <= 1 << 24:  # a count per grid cell: one pass, no sort
+        lin = (v[:, 0].astype(np.int64) * shape[1] + v[:, 1]) * shape[2] + v[:, 2]
+        return int(len(v) - np.count_nonzero(np.bincount(lin, minlength=math.prod(shape))))
+    rows = np.ascontiguousarray(v).view(np.dtype((np.void, v.dtype.itemsize * 3))).ravel()
+    return int(len(v) - len(np.unique(rows)))
+
+
 def _check_axes(axes: Array, grid: GridSpec) -> None:
     """SparseOccupancy.axes: one finite coordinate an index, inside the grid."""
     if axes.dtype != "float64" or axes.shape != [3, max(grid.shape)]:
@@ -146,6 +155,15 @@ class SparseOccupancy(_Model):
                     raise ValueError(f"{int(out.sum())} points outside the grid {grid.lower}..{grid.upper}")
         if l.dtype != "uint8" or len(l.shape) != 1 or l.shape[0] != n:
             raise ValueError(f"labels must be ({n},) uint8, got {l.dtype} {l.shape}")
+        # a frame is a set of voxels: at most one a grid cell, none twice (3.5 M copies of one voxel passed every
+        # size check and took registration past its memory cap)
+        cells = math.prod(grid.shape)
+        if n > cells:
+            raise ValueError(f"{n} voxels, more than the grid's {cells} cells {tuple(grid.shape)}")
+        if n > 1:
+            dup = _duplicates(v.to_numpy(), tuple(grid.shape) if self.voxels is not None else None)
+            if dup:
+                raise ValueError(f"{dup} duplicate voxels: a frame is a set of voxels, each once")
         if n:
             top = int(l.to_numpy().max())
             if top >= NUM_CLASSES:
@@ -272,8 +290,9 @@ class OccupancyFrameMsg(_StreamMessage):
 
 
 Status = Literal[
-    "ok", "lost", "reinitialised", "relocalised"
-]  # relocalised: a loop closed; replaces the seq's earlier pose
+    "ok", "lost", "reinitialised", "relocalised", "degenerate"
+]  # relocalised: a loop closed; replaces the seq's earlier pose. degenerate: too few or collinear voxels to register,
+# the pose a constant-velocity guess
 
 
 class PoseEstimate(_StreamMessage):
@@ -372,6 +391,9 @@ ErrorCode = Literal[
     "stream_limit",  # a seq beyond the stream's window (not adopted); a worker's or client's streams full
     "truncated",  # a region's page is full: more tiles on the next page
     "busy",  # the querying client has max_queries_per_client queries in work: ask again when one is answered
+    "not_owner",  # a frame from another client than the one its stream is bound to (no seq: not its owner's answer)
+    "seq_held",  # a jump held until the frame after it confirms it: not an answer yet (the client waits, resends)
+    "not_stored",  # the store refused the write (e.g. disk full): not an answer yet (the client resends it)
 ]
 
 

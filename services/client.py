@@ -41,6 +41,8 @@ from occvo_services.runtime import DEFAULT_ENDPOINT
 from occvo_services.sessions import open_session
 from occvo_services.wire import encoding
 
+PENDING_CODES = ("missing_seq", "seq_held", "not_stored")  # error events that leave a frame waiting for its pose
+
 
 class ServiceError(RuntimeError):
     """The service answered with an error event (or did not answer in time)."""
@@ -73,8 +75,11 @@ class OccVOClient:
         session: zenoh.Session | None = None,
         exact: bool = True,
         resend_after: float | None = 5.0,
+        query_timeout: float = 2.0,
     ):
         self.exact = exact
+        # a query waits at most this long for its answers: a queryable that never answers costs no more
+        self.query_timeout = query_timeout
         self.resend_after = resend_after
         self.stream = keys.check_stream(stream)
         self.timeout = timeout
@@ -105,6 +110,7 @@ class OccVOClient:
         self._pub = self.session.declare_publisher(
             keys.camera(stream), encoding=encoding("camera_frame"), congestion_control=zenoh.CongestionControl.BLOCK
         )
+        self._sn = 0  # the source info's sequence number: the workers know this client by its session's zid
         self._closed = threading.Event()
         self._resender = threading.Thread(target=self._resend_loop, name=f"occvo-resend-{stream}", daemon=True)
         self._resender.start()
@@ -134,7 +140,9 @@ class OccVOClient:
             return
         with self._cv:
             self.errors.append(event)
-            if event.seq is not None and event.code != "missing_seq":
+            # not answers: a gap before the frame, a jump held for its next frame, a write the store refused (the
+            # frame stays unanswered and is sent again after resend_after, until its pose comes)
+            if event.seq is not None and event.code not in PENDING_CODES:
                 self._unanswered.pop(event.seq, None)
                 self._last_answer = time.monotonic()
             self._cv.notify_all()
@@ -189,7 +197,7 @@ class OccVOClient:
             with self._cv:
                 pending = sorted(self._unanswered.items())
             for _, payload in pending:
-                self._pub.put(payload)
+                self._put(payload)
             self.resends += len(pending)
             return len(pending)
 
@@ -222,8 +230,19 @@ class OccVOClient:
                 if not self._unanswered:
                     self._last_answer = time.monotonic()  # the resend clock runs from the oldest frame in flight
                 self._unanswered[seq] = payload
-            self._pub.put(payload)
+            self._put(payload)
         return seq
+
+    def _put(self, payload: bytes) -> None:
+        """A frame out, with the source info that names this client's session (services/limits.py); under _send_lock."""
+        self._sn += 1
+        self._pub.put(payload, source_info=zenoh.SourceInfo(self._pub.id, self._sn))
+
+    def put_encoded(self, payload: bytes) -> None:
+        """An encoded camera frame of this stream sent as this client, not tracked (tools and tests: a resend, a
+        frame of any seq). A stream takes frames only from the client that opened it (services/limits.py)."""
+        with self._send_lock:
+            self._put(payload)
 
     def wait_pose(self, seq: int, timeout: float | None = None) -> PoseEstimate:
         """The pose of `seq`; ServiceError if a worker reported an error for that seq or nothing came in time."""
@@ -232,7 +251,7 @@ class OccVOClient:
             while True:
                 if seq in self.poses:
                     return self.poses[seq]
-                bad = [e for e in self.errors if e.seq == seq and e.code not in ("missing_seq",)]
+                bad = [e for e in self.errors if e.seq == seq and e.code not in PENDING_CODES]
                 if bad:
                     raise ServiceError(f"seq {seq}: {bad[0].code}: {bad[0].message}", bad[0])
                 left = deadline - time.monotonic()
@@ -246,18 +265,36 @@ class OccVOClient:
         return self.wait_pose(self.publish(frame))
 
     # -- queries
-    def _replies(self, selector: str, expect, payload: bytes | None, timeout: float) -> tuple[list, list[ErrorEvent]]:
-        """The decoded answers and error replies of a get. Answered only `busy` (this client has
+    def _replies(
+        self, selector: str, expect, payload: bytes | None, timeout: float | None = None, first: bool = False
+    ) -> tuple[list, list[ErrorEvent]]:
+        """The decoded answers and error replies of a get, within `timeout` (the client's query_timeout). first:
+        one answer is the whole answer (a tile, map info, a stream's trajectory or pose): taken as soon as it
+        comes, so a queryable that never answers delays nothing. Answered only `busy` (this client has
         max_queries_per_client queries in work, e.g. from other threads), it is asked again after a short wait."""
+        timeout = self.query_timeout if timeout is None else timeout
         deadline, wait = time.monotonic() + timeout, 0.01
         while True:
             out, errs = [], []
-            # the best match: one complete queryable (a map service replica) where there is one, else every match
-            target = zenoh.QueryTarget.BEST_MATCHING
-            tagged = encoding("map_tile_query") if payload is not None else None  # the one query with a payload
-            for reply in self.session.get(selector, payload=payload, encoding=tagged, timeout=timeout, target=target):
+            # the best match: one complete queryable (a map service replica) where there is one, else every match;
+            # the source info names this client's session: the workers' query budgets are per client
+            with self._cv:
+                self._sn += 1
+                info = zenoh.SourceInfo(self.session.id, self._sn)
+            replies = self.session.get(
+                selector,
+                payload=payload,
+                timeout=max(0.01, deadline - time.monotonic()),
+                target=zenoh.QueryTarget.BEST_MATCHING,
+                consolidation=zenoh.ConsolidationMode.NONE,  # replies as they come; one per key kept below
+                source_info=info,
+                encoding=encoding("map_tile_query") if payload is not None else None,  # the one query with a payload
+            )
+            for reply in replies:
                 if reply.ok is not None:
                     out.append(decode(reply.ok.payload.to_bytes(), expect, 1 << 30))
+                    if first:
+                        break
                 else:
                     try:
                         errs.append(decode(reply.err.payload.to_bytes(), ErrorEvent))
@@ -275,8 +312,8 @@ class OccVOClient:
             time.sleep(wait)
             wait = min(0.5, wait * 2)
 
-    def _get(self, selector: str, expect, payload: bytes | None = None, timeout: float = 10.0) -> list:
-        out, errs = self._replies(selector, expect, payload, timeout)
+    def _get(self, selector: str, expect, payload: bytes | None = None, first: bool = True) -> list:
+        out, errs = self._replies(selector, expect, payload, first=first)
         if not out and errs:
             raise ServiceError(f"{selector}: {errs[0].code}: {errs[0].message}", errs[0])
         return out
@@ -293,7 +330,7 @@ class OccVOClient:
         tiles, page = [], 0
         while True:  # the map service answers a page of tiles at a time; a "truncated" error says more follow
             q = MapTileQuery(stream=self.stream, ix_min=ix_min, ix_max=ix_max, iy_min=iy_min, iy_max=iy_max, page=page)
-            out, errs = self._replies(keys.map_tile(self.stream, "*", "*"), MapTile, encode(q), 10.0)
+            out, errs = self._replies(keys.map_tile(self.stream, "*", "*"), MapTile, encode(q))
             tiles += out
             if not any(e.code == "truncated" for e in errs):
                 if not tiles and errs:
@@ -329,7 +366,7 @@ class OccVOClient:
         return found[0]
 
     def stats(self, worker: str = "*") -> list[WorkerHealth]:
-        return self._get(keys.stats(worker), WorkerHealth)
+        return self._get(keys.stats(worker), WorkerHealth, first=False)
 
     def workers(self) -> list[str]:
         """Keys of the live workers' liveliness tokens: those the client has seen come and not go, and those a

@@ -74,17 +74,27 @@ def judge_seq(seq: int, last: int | None, max_jump: int | None, older: str = "")
 
 
 class SeqTracker:
-    """Per-stream sequence check of a worker that keeps no trajectory (judge_seq against the last accepted seq)."""
+    """Per-stream sequence check of a worker that keeps no trajectory (judge_seq against the last accepted seq). A
+    jump (a gap) is passed on but not adopted until the frame after it comes: a stray seq within max_jump must not
+    make the stream's real next frames steps back (the registration worker holds the jump until then)."""
 
     def __init__(self, max_jump: int | None = None):
         self.expected: int | None = None
+        self.held: int | None = None  # the last jump passed on and not yet confirmed
         self.max_jump = max_jump
 
     def check(self, seq: int) -> tuple[bool, str | None, str | None]:
-        """(accept, error code, message); an accepted seq is the one the next is judged against."""
+        """(accept, error code, message); an accepted seq (a jump once confirmed) is the one the next is judged
+        against."""
+        if self.held is not None and seq == self.held + 1 and self.expected is not None and seq > self.expected:
+            self.held, self.expected = None, seq + 1  # the jump confirmed
+            return True, None, None
         verdict = judge_seq(seq, None if self.expected is None else self.expected - 1, self.max_jump)
         if verdict[0]:
-            self.expected = seq + 1
+            if verdict[1] == "missing_seq":
+                self.held = seq
+            else:
+                self.held, self.expected = None, seq + 1
         return verdict
 
 
@@ -100,6 +110,7 @@ class StreamLane:
         self.worker, self.stream, self.handler = worker, stream, handler
         self.busy = False
         self.evicting = False  # EVICT is on its way to this lane
+        self.evict_why = "memory"  # or "reclaimed": its place goes to a new stream
         self.last_active = time.monotonic()  # the end of its last frame (the stream idle longest is evicted first)
         self.pending = 0  # frames handed to this lane and not yet in its queue (Worker.enqueue); guarded by _lanes_lock
         self.after = after  # the stream's retired lane, still giving back its state: this one starts when it is done
@@ -108,6 +119,7 @@ class StreamLane:
         self.thread.start()
 
     def _dropped(self, item) -> None:
+        self._done(item)
         self.worker.stats.inc("drops")
         log_event(self.worker.log, "dropped oldest frame", logging.DEBUG, stream=self.stream)
 
@@ -125,8 +137,9 @@ class StreamLane:
                 continue
             if item is EVICT:
                 self.evicting = False
-                if self.worker.retire_lane(self, "memory"):
+                if self.worker.retire_lane(self, self.evict_why):
                     return
+                self.worker.admission.stays(self.stream)  # a frame came meanwhile: it keeps its place
                 continue
             if item is None:
                 continue
@@ -143,5 +156,11 @@ class StreamLane:
                     self.worker.report_error(self.stream, "internal", f"{type(exc).__name__}: {exc}", seq=seq)
                 log_event(self.worker.log, "stage failed", logging.ERROR, stream=self.stream, error=repr(exc))
             finally:
+                self._done(item)
                 self.busy = False
                 self.last_active = time.monotonic()
+
+    def _done(self, item) -> None:
+        """A frame handled or dropped: its memory charge (Worker.enqueue) is given back."""
+        if isinstance(item, tuple) and len(item) > 5:
+            self.worker.memory.discharge(item[5])

@@ -90,7 +90,7 @@ class InferenceWorker(Worker):
 
     def _infer(self, stream: str, item) -> None:
         """One camera frame: its occupancy (recorded, or the network's), published for registration."""
-        msg, hop_ms, t_queued, decode_ms = item
+        msg, hop_ms, t_queued, decode_ms, source_info = item[:5]
         t0 = time.perf_counter()
         got = self._replayed(stream, msg) if self.config.source == "replay" else self._predicted(stream, msg, t0)
         if got is None:
@@ -115,7 +115,8 @@ class InferenceWorker(Worker):
         t_encode = time.perf_counter()
         data = encode(out, self.config.max_message_bytes)
         self.stats.observe("encode", (time.perf_counter() - t_encode) * 1000.0)
-        self.session.put(keys.occupancy(stream), data, **blocking("occupancy_frame"))
+        # the client's source info goes on: the registration worker knows the stream's client by it (limits.py)
+        self.session.put(keys.occupancy(stream), data, **blocking("occupancy_frame"), source_info=source_info)
         self.stats.inc("frames_out")
         self.stats.observe("inference", infer_ms)
         self.stats.observe("camera_hop", hop_ms)

@@ -103,6 +103,10 @@ class MemoryMapStore:
         with self.lock:
             return sorted(self.maps)
 
+    def delete_stream(self, stream: str) -> int:
+        with self.lock:
+            return len(self.maps.pop(stream, {"tiles": {}})["tiles"])
+
     def tiles(
         self, stream: str, ix: int | None = None, iy: int | None = None, bounds: Bounds = None, limit: int | None = None
     ) -> list[tuple[int, int, bytes]]:
@@ -185,7 +189,23 @@ class MapStore:
                     c.executemany("INSERT OR REPLACE INTO map_tiles VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)", kept)
                 c.execute("COMMIT")
             except BaseException:
-                c.execute("ROLLBACK")
+                if c.in_transaction:  # SQLite rolls back itself on SQLITE_FULL: the first error is the one
+                    c.execute("ROLLBACK")
+                raise
+
+    def delete_stream(self, stream: str) -> int:
+        """The stream's map gone (`occvo store delete`); the tiles deleted."""
+        with self._wlock:
+            c = self._w
+            c.execute("BEGIN IMMEDIATE")
+            try:
+                n = c.execute("DELETE FROM map_tiles WHERE stream = ?", (stream,)).rowcount
+                c.execute("DELETE FROM map_streams WHERE stream = ?", (stream,))
+                c.execute("COMMIT")
+                return n
+            except BaseException:
+                if c.in_transaction:
+                    c.execute("ROLLBACK")
                 raise
 
     def streams(self) -> list[str]:

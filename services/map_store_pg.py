@@ -64,6 +64,17 @@ class PgMapStore:
 
         self.pool.run(tx)
 
+    def delete_stream(self, stream: str) -> int:
+        """The stream's map gone (`occvo store delete`); the tiles deleted."""
+
+        def tx(conn):
+            with conn.transaction():
+                n = conn.execute("DELETE FROM map_tiles WHERE stream = %s", (stream,)).rowcount
+                conn.execute("DELETE FROM map_streams WHERE stream = %s", (stream,))
+                return n
+
+        return self.pool.run(tx)
+
     def streams(self) -> list[str]:
         return self.pool.run(
             lambda conn: [r[0] for r in conn.execute("SELECT stream FROM map_streams ORDER BY stream")]

@@ -38,6 +38,7 @@ class MemoryCap:
         self._lock = threading.Lock()
         self._read_at = -1.0
         self._rss = 0.0
+        self.charged = 0.0  # MB the frames queued and in work will cost, charged before they are queued
 
     def rss(self) -> float:
         now = time.monotonic()
@@ -60,3 +61,25 @@ class MemoryCap:
 
     def over_evict_mark(self) -> bool:
         return self.max_rss_mb is not None and self.rss() >= EVICT_SHARE * self.max_rss_mb
+
+    def charge(self, stream: str, seq: int, mb: float) -> str | None:
+        """Charge a frame's cost (MB) before it is queued; why it is refused (naming the cap), or None. A refused
+        frame would take the resident set with the frames already charged past max_rss_mb."""
+        if self.max_rss_mb is None or mb <= 0:
+            return None
+        rss = self.rss()
+        with self._lock:
+            if rss + self.charged + mb <= self.max_rss_mb:
+                self.charged += mb
+                return None
+            charged = self.charged
+        return (
+            f"seq {seq} of stream {stream!r} refused: it would cost about {mb:.0f} MB, and this worker's "
+            f"{rss:.0f} MB with {charged:.0f} MB of frames in work would pass max_rss_mb={self.max_rss_mb}"
+        )
+
+    def discharge(self, mb: float) -> None:
+        """A charged frame is done (or dropped)."""
+        if mb > 0:
+            with self._lock:
+                self.charged = max(0.0, self.charged - mb)

@@ -8,7 +8,8 @@ the query against its client and hands it to a small pool of threads that answer
 Each queryable has its own gate and pool (a get on `occvo/**` is a query to each of them); a pool has one thread more
 than one client may hold, so one client alone never takes every thread.
 
-As for streams (services/limits.py), a client is the stream id's prefix before its first '.'; every query whose
+A client is the querying Zenoh session named by the query's source info (so querying a victim's stream name does not
+use up the victim's budget), else the stream id's prefix before its first '.'; every query whose
 stream chunk has a wildcard (`occvo/**`, `occvo/cam*/map/info`) counts as one client, `*`, allowed
 `max_wildcard_queries` in work: such queries cost the most (a page of tiles of every stream), and a querier could
 otherwise name a new prefix for each. With one wildcard query in work instead of two, a tile query's p50 / p99 beside
@@ -28,9 +29,14 @@ from occvo_services.limits import client_of
 MAX_QUEUED = 64  # queries in work or waiting for a thread, all clients together; beyond, busy
 
 
-def query_client(key: str) -> str:
+def query_client(key: str, query: zenoh.Query | None = None) -> str:
+    """Whose budget a query takes: `*` for a wildcard stream chunk, else the querying session named by the query's
+    source info (OccVOClient sets it; self-declared, as for frames), else the stream id's prefix."""
     stream = keys.stream_of(key)
-    return "*" if stream == "*" or "*" in stream or "$" in stream else client_of(stream)
+    if stream == "*" or "*" in stream or "$" in stream:
+        return "*"
+    info = None if query is None else query.source_info
+    return client_of(stream) if info is None else str(info.source_id.zid)
 
 
 class QueryGate:
@@ -55,7 +61,7 @@ class QueryGate:
 
         def callback(query: zenoh.Query) -> None:
             key = str(query.key_expr)
-            client = query_client(key)
+            client = query_client(key, query)
             limit = self.wildcard if client == "*" else self.per_client
             with self._lock:
                 held = self.in_work.get(client, 0)

@@ -20,7 +20,7 @@ from occvo_schemas import keys
 from occvo_schemas.codec import CodecError, decode, encode
 from occvo_schemas.models import ErrorEvent, WorkerHealth
 from occvo_services.flow import EVICT, SeqTracker, StageQueue, StreamLane
-from occvo_services.limits import MAX_KEY_CHARS, MAX_MESSAGE_CHARS, Admission, ErrorBudget, clip
+from occvo_services.limits import MAX_KEY_CHARS, MAX_MESSAGE_CHARS, Admission, ErrorBudget, clip, identity_of
 from occvo_services.memory import CHECK_EVERY_S, EVICT_IDLE_S, MemoryCap
 from occvo_services.os_tuning import few_malloc_arenas, large_blocks_from_mmap, trim_heap
 from occvo_services.query_gate import QueryGate
@@ -158,7 +158,10 @@ class Worker:
                     del self._retired[lane.stream]
                 if lane.stream not in self.lanes:
                     self.admission.release(lane.stream)
-        if why == "memory":
+        if why == "reclaimed":
+            self.stats.inc("streams_reclaimed")
+            log_event(self.log, "idle stream's place reclaimed for a new stream", stream=lane.stream)
+        elif why == "memory":
             self.stats.inc("streams_evicted_memory")
             log_event(
                 self.log,
@@ -183,33 +186,73 @@ class Worker:
         committed) and queue it on its stream's lane with its hop latency; bad messages are reported by decode_input
         and check_seq, never raised."""
         t_recv, t_decode = time.time(), time.perf_counter()
-        msg = self.decode_input(sample, expect)
+        msg = self.decode_input(
+            sample, expect, identity_of(sample, keys.stream_of(str(sample.key_expr)), self.config.client_identity)
+        )
         if msg is None or self.stopping.is_set():
             return
         decode_ms = (time.perf_counter() - t_decode) * 1000.0
         self.stats.observe("decode", decode_ms)
         self._relieve_memory()
-        refused = None if msg.stream in self.admission.streams else self.memory.refuse(msg.stream)
-        if refused is not None:
+        client = identity_of(sample, msg.stream, self.config.client_identity)
+        refused = None
+        if msg.stream not in self.admission.streams and (why := self.memory.refuse(msg.stream)) is not None:
             self.stats.inc("streams_refused_memory")
-        refused = refused or self.admission.admit(msg.stream)
+            refused = ("stream_limit", why)
+        refused = refused or self.admission.admit(msg.stream, client, self._reclaim)
         if refused is not None:
-            self.stats.inc("streams_refused")
-            self.report_error(msg.stream, "stream_limit", refused, str(sample.key_expr), msg.seq)
+            code, why = refused
+            self.stats.inc("streams_refused" if code == "stream_limit" else "frames_not_owner")
+            # another client's frame: no seq in the event, the owner's client would take it for its own frame's answer
+            self.report_error(msg.stream, code, why, str(sample.key_expr), msg.seq if code == "stream_limit" else None)
             return
         if judge_seq and not self.check_seq(msg.stream, msg.seq, str(sample.key_expr)):
             with self._lanes_lock:
                 if msg.stream not in self.lanes:  # admitted for nothing: its place goes back
                     self.admission.release(msg.stream)
             return
+        cost = self.frame_cost_mb(msg)
+        if (why := self.memory.charge(msg.stream, msg.seq, cost)) is not None:
+            self.stats.inc("frames_refused_memory")
+            self.report_error(msg.stream, "oversize", why, str(sample.key_expr), msg.seq)
+            return
         # a sent_at a day off (e.g. 1e308) would give an infinite hop: no hop latency then, not a failed stage
         hop_ms = (t_recv - msg.sent_at) * 1000.0 if 0 < msg.sent_at and abs(t_recv - msg.sent_at) < 86400 else 0.0
         lane = self.lane(msg.stream, handler)
         try:
-            lane.queue.put((msg, hop_ms, time.perf_counter(), decode_ms))
+            if not lane.queue.put((msg, hop_ms, time.perf_counter(), decode_ms, sample.source_info, cost)):
+                self.memory.discharge(cost)  # stopping
         finally:
             with self._lanes_lock:
                 lane.pending -= 1
+
+    def frame_cost_mb(self, msg) -> float:
+        """What handling `msg` will cost this worker's memory (MB), charged against max_rss_mb before it is queued
+        (roles override; services/memory.py)."""
+        return 0.0
+
+    def _reclaim(self, candidates: list[tuple[str, int]], idle_only: bool) -> str | None:
+        """Of the (stream, rank) candidates, the lowest rank's lane without a frame for longest (idle_only: for
+        EVICT_IDLE_S at least) and none in work or waiting: told to leave, its stream returned (a new stream takes
+        its place), else None. Reads the lanes without their lock (the admission's is held); retire_lane checks
+        again under it."""
+        now, lanes, ready = time.monotonic(), self.lanes, []
+        for stream, rank in candidates:
+            lane = lanes.get(stream)
+            if lane is None or lane.busy or lane.pending or lane.evicting or lane.queue.qsize():
+                continue
+            if idle_only and now - lane.last_active < EVICT_IDLE_S:
+                continue
+            ready.append((rank, lane.last_active, stream))
+        for _, _, stream in sorted(ready):
+            lane = lanes[stream]
+            try:
+                lane.queue.q.put_nowait(EVICT)
+            except queue.Full:
+                continue
+            lane.evicting, lane.evict_why = True, "reclaimed"
+            return stream
+        return None
 
     def _relieve_memory(self) -> None:
         """Over the eviction mark of max_rss_mb: the lane idle longest ends (one at a time, and the resident set is
@@ -235,17 +278,17 @@ class Worker:
                 lane.queue.q.put_nowait(EVICT)
             except queue.Full:
                 return
-            lane.evicting, self._evicted_at = True, now
+            lane.evicting, lane.evict_why, self._evicted_at = True, "memory", now
 
-    def decode_input(self, sample: zenoh.Sample, expect):
-        """Decode and check a sample; on any problem report it and return None."""
+    def decode_input(self, sample: zenoh.Sample, expect, client: str | None = None):
+        """Decode and check a sample; on any problem report it (against `client`'s error budget) and return None."""
         key = str(sample.key_expr)
         stream = keys.stream_of(key)
         self.stats.inc("frames_in")
         try:
             msg = decode(sample.payload.to_bytes(), expect, self.config.max_message_bytes)
         except CodecError as exc:
-            self.report_error(stream, exc.code, exc.message, key)
+            self.report_error(stream, exc.code, exc.message, key, client=client)
             return None
         if getattr(msg, "stream", stream) != stream:
             self.report_error(
@@ -254,6 +297,7 @@ class Worker:
                 f"message says stream {msg.stream!r} but came on {key}",
                 key,
                 getattr(msg, "seq", None),
+                client=client,
             )
             return None
         return msg
@@ -265,15 +309,19 @@ class Worker:
             self.report_error(stream, code, message, key, seq)
         return ok
 
-    def report_error(self, stream: str, code: str, message: str, key: str = "", seq: int | None = None) -> ErrorEvent:
-        """Log and publish an error event, keys and messages clipped, at most error_events_per_s a stream (the
+    def report_error(
+        self, stream: str, code: str, message: str, key: str = "", seq: int | None = None, client: str | None = None
+    ) -> ErrorEvent:
+        """Log and publish an error event, keys and messages clipped, at most error_events_per_s a client (the
+        client given, else the stream's owner, else the stream: one client's flood of keys shares one budget; the
         rest counted as errors_suppressed and named in the next event)."""
         self.stats.inc("errors")
         stream = stream if keys.STREAM_RE.match(stream) else "*"
-        suppressed = self.error_budget.take(stream)
+        client = client or self.admission.owner(stream) or stream
+        suppressed = self.error_budget.take(client)
         message = clip(message, MAX_MESSAGE_CHARS)
         if suppressed:
-            message += f" (+{suppressed} error events of this stream suppressed before this one)"
+            message += f" (+{suppressed} error events of this client suppressed before this one)"
         event = ErrorEvent(
             stream=stream,
             worker=self.worker_id,
@@ -286,7 +334,8 @@ class Worker:
         if suppressed is None:
             self.stats.inc("errors_suppressed")
             return event
-        log_event(self.log, "error", logging.WARNING, **event.model_dump(exclude={"kind", "schema_version"}))
+        fields = event.model_dump(exclude={"kind", "schema_version"})
+        log_event(self.log, "error", logging.WARNING, client=clip(client, MAX_KEY_CHARS), **fields)
         if self.session is not None and not self.session.is_closed():
             try:
                 self.session.put(
@@ -360,6 +409,9 @@ def worker_main(
     p.add_argument("--max-message-bytes", type=int)
     p.add_argument("--log-level")
     p.add_argument("--max-rss-mb", type=int, help="memory cap: idle streams evicted near it, new streams refused")
+    p.add_argument(
+        "--client-identity", choices=["session", "user"], help="who a client is: its Zenoh session, or the ACL user"
+    )
     p.add_argument("--store-url", help="the store: a SQLite file (path or sqlite:///path) or postgresql://...")
     if extra_args:
         extra_args(p)

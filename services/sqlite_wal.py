@@ -59,10 +59,16 @@ def transaction(db: sqlite3.Connection, fn, phases: dict | None = None):
     try:
         out = fn(db)
     except BaseException:
-        db.execute("ROLLBACK")
+        if db.in_transaction:  # SQLite rolls back itself on some errors (SQLITE_FULL): the first error is the one
+            db.execute("ROLLBACK")
         raise
     t2 = time.perf_counter()
-    db.execute("COMMIT")
+    try:
+        db.execute("COMMIT")
+    except BaseException:
+        if db.in_transaction:
+            db.execute("ROLLBACK")
+        raise
     if phases is not None:
         phases["begin"], phases["commit"] = (t1 - t0) * 1000.0, (time.perf_counter() - t2) * 1000.0
     return out

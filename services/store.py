@@ -351,6 +351,21 @@ class TrajectoryStore(SqliteLeases, SnapshotFile):
             raise KeyError(f"stream {stream}: no cold tile {ix},{iy} evicted at seq {evicted_seq}")
         return rows[0][0]
 
+    def delete_stream(self, stream: str) -> int:
+        """Everything of a stream gone: trajectory, journal, cold tiles, lease, snapshot (`occvo store delete`); the
+        poses deleted. Its workers must not serve it meanwhile (their in-memory state would write it back)."""
+
+        def tx(db):
+            n = db.execute("DELETE FROM poses WHERE stream=?", (stream,)).rowcount
+            for table in ("journal", "cold_tiles", "leases", "streams"):
+                db.execute(f"DELETE FROM {table} WHERE stream=?", (stream,))
+            return n
+
+        n = self._write(tx)
+        with self.snap_lock:
+            transaction(self.snap_db, lambda db: db.execute("DELETE FROM snapshots WHERE stream=?", (stream,)))
+        return n
+
     def sizes(self, stream: str) -> dict[str, int]:
         """Rows and blob bytes per table of one stream (for stats and tests)."""
         out = {}

@@ -351,6 +351,18 @@ class PgTrajectoryStore(PgLeases):
         return rows[0][0]
 
     # -- housekeeping
+    def delete_stream(self, stream: str) -> int:
+        """Everything of a stream gone (TrajectoryStore.delete_stream); the poses deleted."""
+
+        def tx(conn):
+            with conn.transaction():
+                n = conn.execute("DELETE FROM poses WHERE stream = %s", (stream,)).rowcount
+                for table in ("journal", "cold_tiles", "snapshots", "leases", "streams"):
+                    conn.execute(f"DELETE FROM {table} WHERE stream = %s", (stream,))
+                return n
+
+        return self.pool.run(tx)
+
     def sizes(self, stream: str) -> dict[str, int]:
         """Rows and blob bytes per table of one stream (for stats and tests)."""
         out = {}

@@ -7,9 +7,11 @@ from typing import Literal
 
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
+from occvo_core.errors import ConfigError
 from occvo_schemas.codec import DEFAULT_MAX_BYTES
 
 DEFAULT_ENDPOINT = "tcp/127.0.0.1:7447"
+MIN_SERVED_RSS_MB = 512  # a served worker's smallest memory cap (WorkerConfig.check_served)
 Policy = Literal["lossless", "latest"]
 # placement "members": snapshots often enough that a moved stream's resume replays a short journal
 MEMBERS_SNAPSHOT_EVERY, MEMBERS_SNAPSHOT_SHARE = 5, 0.2
@@ -27,12 +29,15 @@ class WorkerConfig(BaseModel):
     log_level: str = "INFO"
     # what one client may cost (services/limits.py); the defaults fit a 2-core machine
     max_streams: int = Field(64, ge=1)  # streams a worker serves at once; more get a stream_limit error event
-    max_streams_per_client: int = Field(16, ge=1)  # of them, per client (the stream id's prefix before its first '.')
+    max_streams_per_client: int = Field(16, ge=1)  # of them, per client (client_identity)
+    # who a client is (services/limits.py): "session": the publishing Zenoh session (self-declared without the ACL);
+    # "user": the stream id's prefix before its first '.', which the shipped ACL ties to the authenticated user
+    client_identity: Literal["session", "user"] = "session"
     idle_stream_s: float = Field(30.0, gt=0)  # a stream without frames this long gives back its lane (and its memory)
     # resident set this worker keeps under (services/memory.py): near it idle streams are evicted and new streams
     # refused (stream_limit). None: no cap. 4 GiB leaves a 24 GiB machine room for the router, the other workers
     # and a model source; the registration worker's admitted streams stay well under it (docs/results.md, Hostile clients)
-    max_rss_mb: int | None = Field(4096, ge=64)
+    max_rss_mb: int | None = Field(4096, ge=64)  # `occvo serve` and `occvo up` ask for MIN_SERVED_RSS_MB at least
     max_seq_jump: int = Field(100_000, ge=1)  # a seq this far beyond the next expected is reported, not adopted
     error_events_per_s: float = Field(20.0, gt=0)  # error events a stream may cause a second (bursts of error_burst)
     error_burst: int = Field(100, ge=1)
@@ -47,7 +52,7 @@ class WorkerConfig(BaseModel):
     device: Literal["auto", "cpu", "cuda"] = "auto"
     model_weights: str | None = None  # TinyOccNet state_dict (occvo_services.occupancy_model)
     checkpoint: str | None = None  # TPV-Former checkpoint of the model source (occvo train-occ)
-    torch_threads: int = Field(1, ge=1)
+    torch_threads: int = Field(1, ge=1, le=256)
     # model source: voxels the network is less sure of than this are reported free (OccupancyPredictor)
     min_confidence: float = Field(0.0, ge=0, le=1)
     min_ground_confidence: float = Field(0.0, ge=0, le=1)
@@ -62,7 +67,9 @@ class WorkerConfig(BaseModel):
     # PostgreSQL store); a lost worker's streams move to the others. lease_s: how long a silent owner keeps them
     placement: Literal["shards", "members"] = "shards"
     lease_s: float = Field(10.0, gt=0)
-    tile_m: float = Field(20.0, gt=0)
+    # 5..1000 m: a frame's reach (80 m) then spans at most 16 x 16 tiles; 1 m tiles made a map update of over 65,536
+    # entries (refused by the map service's decoder) and 0.001 m none at all
+    tile_m: float = Field(20.0, ge=5.0, le=1000.0)
     # registration: with frames of a stream waiting, their map tiles go out together, in one update at most this long
     # after the last (every update re-sends whole tiles); a stream caught up gets one a frame. 0: one a frame always
     map_coalesce_s: float = Field(0.5, ge=0)
@@ -72,7 +79,7 @@ class WorkerConfig(BaseModel):
     occvo_config: str | None = None
     # registration: cores each stream's kernels may use; 0 = this shard's share of the cores (cores / shards), shared
     # by its streams registering at that moment (one stream alone uses them all). Poses are the same for any value
-    kernel_threads: int = Field(0, ge=0)
+    kernel_threads: int = Field(0, ge=0, le=256)
     # registration: niceness added to the threads doing the work after a pose (loop closure, map update, eviction,
     # restores) and writing snapshots, so that the cores go to other streams' poses first. 0: the lanes' priority
     after_pose_nice: int = Field(10, ge=0, le=19)
@@ -121,6 +128,16 @@ class WorkerConfig(BaseModel):
     def _shard_in_range(self) -> WorkerConfig:
         if self.shard >= self.shards:
             raise ValueError(f"shard {self.shard} is not one of shards 0..{self.shards - 1}")
+        return self
+
+    def check_served(self, name: str = "worker config") -> WorkerConfig:
+        """The ranges a served worker needs beyond the field checks (`occvo serve`, `occvo up`): a cap a worker at
+        rest is already over would refuse every stream."""
+        if self.max_rss_mb is not None and self.max_rss_mb < MIN_SERVED_RSS_MB:
+            raise ConfigError(
+                f"{name}: max_rss_mb={self.max_rss_mb} is below {MIN_SERVED_RSS_MB}: a registration worker at rest "
+                "uses ~300 MB and new streams are refused over 85% of the cap"
+            )
         return self
 
     @classmethod

@@ -75,6 +75,8 @@ def occupancies(draw, max_n: int = 64, grid=None) -> SparseOccupancy:
     idx = rng.integers(0, shape, size=(n, 3))
     idx = np.minimum(idx, np.array(g.shape) - 1)
     labels = rng.integers(0, NUM_CLASSES, n).astype(np.uint8)
+    idx, first = np.unique(idx, axis=0, return_index=True)  # a frame is a set of voxels
+    idx, labels, n = idx[np.argsort(first)], labels[np.sort(first)], len(idx)
     if draw(st.booleans()):  # exact coordinates: voxel centres, maybe jittered inside their voxel
         pts = g.centres_of(idx) + rng.uniform(-0.49, 0.49, (n, 3)) * g.voxel_size * draw(st.sampled_from([0.0, 1.0]))
         inside = np.all((pts >= np.array(g.lower)) & (pts < np.array(g.upper)), axis=1)

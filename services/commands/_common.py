@@ -34,6 +34,9 @@ def add_connection(p, stream: bool = True) -> None:
     p.add_argument("--router-config", default=None, help="router json5 config (default: the built-in one)")
     if stream:
         p.add_argument("--stream", type=stream_id, default="default", help="stream id (default: default)")
+    p.add_argument(
+        "--query-timeout", type=float, default=2.0, help="seconds a query waits for its answers (default: 2)"
+    )
 
 
 def add_json(p, what: str = "the result", lines: bool = False) -> None:
@@ -53,7 +56,10 @@ def client(args, **kw):
     """An OccVOClient on the command's router (no router answering: open_session's NoRouterError, one line)."""
     from occvo_services.client import OccVOClient
 
-    return OccVOClient(endpoint(args), stream=getattr(args, "stream", "default"), **kw)
+    timeout = getattr(args, "query_timeout", 2.0)
+    if timeout <= 0:
+        raise ConfigError(f"--query-timeout must be more than 0, got {timeout}")
+    return OccVOClient(endpoint(args), stream=getattr(args, "stream", "default"), query_timeout=timeout, **kw)
 
 
 def emit(args, record: dict, text: str) -> None:
@@ -142,14 +148,28 @@ def is_loopback(ep: str) -> bool:
     return host in LOOPBACK_HOSTS or host.startswith("127.")
 
 
+def listen_endpoints(router_config: str | Path) -> list[str]:
+    """Every listen endpoint of a router config (all of them are checked, not only the one clients dial)."""
+    import json5
+
+    try:
+        with open(router_config) as f:
+            eps = json5.load(f).get("listen", {}).get("endpoints", [])
+    except (OSError, ValueError) as exc:
+        raise ConfigError(f"router config {router_config}: {exc}") from None
+    if isinstance(eps, dict):  # per mode: {router: [...], peer: [...]}
+        eps = [ep for group in eps.values() for ep in (group if isinstance(group, list) else [group])]
+    return [eps] if isinstance(eps, str) else list(eps)
+
+
 def check_listen_secure(router_config: str | Path, listen: list[str], insecure: bool) -> None:
-    """A router listening beyond loopback must authenticate (user/password or mutual TLS, deploy/acl, deploy/tls):
-    without it anyone on the network may replace a stored map or reset a stream. --insecure says it is meant."""
+    """A router listening beyond loopback must authenticate (user/password or mutual TLS, deploy/acl, deploy/tls)
+    and control access: without authentication anyone on the network may replace a stored map or reset a stream,
+    and authentication without access control lets any user (any certificate holder) do the same. --insecure says
+    it is meant."""
     import json
 
     import zenoh
-
-    from occvo_core.errors import ConfigError
 
     open_eps = [ep for ep in listen if not is_loopback(ep)]
     if not open_eps or insecure:
@@ -162,6 +182,12 @@ def check_listen_secure(router_config: str | Path, listen: list[str], insecure: 
             f"the router would listen on {', '.join(open_eps)} without authentication ({router_config} "
             "has neither transport/auth/usrpwd nor mutual TLS): use deploy/acl/router.json5 or "
             "deploy/tls/router.json5, listen on loopback, or pass --insecure"
+        )
+    if not json.loads(c.get_json("access_control/enabled")):
+        raise ConfigError(
+            f"the router would listen on {', '.join(open_eps)} with authentication but no access control "
+            f"({router_config}: access_control is not enabled, so every user may do anything): use "
+            "deploy/acl/router.json5 or deploy/tls/router.json5, listen on loopback, or pass --insecure"
         )
 
 

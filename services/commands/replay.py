@@ -7,7 +7,7 @@ import time
 
 import numpy as np
 
-from occvo_services.client import OccVOClient, ServiceError
+from occvo_services.client import PENDING_CODES, OccVOClient, ServiceError
 from occvo_services.commands._common import add_connection, add_json, client, emit
 
 
@@ -76,9 +76,10 @@ def replay(
 
 
 def _settled(client: OccVOClient) -> int:
-    """Frames answered: a pose, or an error that is the frame's end (a missing seq is not)."""
+    """Frames answered: a pose, or an error that is the frame's end (a missing seq, a held jump, a write the store
+    refused are not: the client sends the frame again)."""
     failed = {
-        e.seq for e in client.errors if e.seq is not None and e.seq not in client.poses and e.code != "missing_seq"
+        e.seq for e in client.errors if e.seq is not None and e.seq not in client.poses and e.code not in PENDING_CODES
     }
     return len(client.poses) + len(failed)
 

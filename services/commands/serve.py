@@ -17,6 +17,7 @@ from occvo_services.commands._common import (
     check_listen_secure,
     emit,
     endpoint,
+    listen_endpoints,
     progress,
 )
 
@@ -75,12 +76,38 @@ def add_parser(subparsers) -> None:
 
 
 def _worker_config(args, name: str) -> str:
+    """The worker config's path, checked here (one line and exit 2 for a bad one, not a worker crash-looping)."""
+    from occvo_services.worker_config import WorkerConfig
+
     if not args.config_dir:
-        return str(defaults.path(name))
-    path = f"{args.config_dir}/{name}"
-    if not Path(path).is_file():
-        raise ConfigError(f"--config-dir {args.config_dir} has no {name}")
+        path = str(defaults.path(name))
+    else:
+        path = str(Path(args.config_dir).resolve() / name)  # the workers run in another folder
+        if not Path(path).is_file():
+            raise ConfigError(f"--config-dir {args.config_dir} has no {name}")
+    WorkerConfig.load(path, policy=args.policy, queue_size=args.queue_size, store_url=args.store).check_served(path)
     return path
+
+
+def _absolute(path: str | None) -> str | None:
+    """A path given relative to the current folder, absolute (the workers run in another folder); URLs kept."""
+    if path is None or "://" in path:
+        return path
+    return str(Path(path).resolve())
+
+
+def _check_store(url: str | None) -> None:
+    """A SQLite store's folder must be writable: else every write fails and the workers crash-loop."""
+    import os
+
+    if url is None or "://" in url and not url.startswith("sqlite:"):
+        return
+    path = Path(url.split("sqlite:///", 1)[-1] if url.startswith("sqlite:") else url)
+    folder = path.parent if not path.is_dir() else path
+    if not folder.is_dir():
+        raise ConfigError(f"--store {url}: folder {folder} does not exist")
+    if not os.access(folder, os.W_OK) or (path.exists() and not os.access(path, os.W_OK)):
+        raise ConfigError(f"--store {url}: {path if path.exists() else folder} is not writable")
 
 
 def _wait_alive(sup, timeout: float) -> None:
@@ -153,12 +180,21 @@ def run(args) -> int:
         raise ConfigError(f"--registration-workers must be at least 1, not {args.registration_workers}")
     if args.queue_size < 1:
         raise ConfigError(f"--queue-size must be at least 1, not {args.queue_size}")
-    router_config = args.router_config or str(defaults.path("router.json5"))
+    args.store, args.checkpoint, args.log_dir = (
+        _absolute(args.store),
+        _absolute(args.checkpoint),
+        _absolute(args.log_dir),
+    )
+    router_config = _absolute(args.router_config) or str(defaults.path("router.json5"))
+    args.router_config = router_config
+    if not Path(router_config).is_file():
+        raise ConfigError(f"router config {router_config} not found")
+    _check_store(args.store)
+    ep = args.listen or endpoint(args)
+    check_listen_secure(router_config, [args.listen] if args.listen else listen_endpoints(router_config), args.insecure)
+    config = _up_config(args, router_config)  # the worker configs validated
     if args.log_dir:
         Path(args.log_dir).mkdir(parents=True, exist_ok=True)
-    ep = args.listen or endpoint(args)
-    check_listen_secure(router_config, [ep], args.insecure)
-    config = _up_config(args, router_config)
     sup = Supervisor(
         config, structured_logger("occvo.serve", "WARNING") if args.quiet else None, role_names=True, quiet=args.quiet
     )
@@ -183,10 +219,12 @@ def _supervise(args, sup, ep: str) -> int:
     watch = ReadinessWatch(ep, ready).start()
     try:
         sup.start()
+        up = False
         try:
             _wait_alive(sup, args.start_timeout)
-        finally:
-            watch.stop(all_ready=not sup.stopping.is_set())
+            up = True
+        finally:  # "ready" only for workers seen alive: not for one that never came up
+            watch.stop(all_ready=up and not sup.stopping.is_set())
         if not sup.stopping.is_set():
             workers = {c.name: c.proc.pid for c in sup.workers}
             emit(

@@ -3,7 +3,15 @@
 from __future__ import annotations
 
 from occvo_services import defaults
-from occvo_services.commands._common import WARM_UP_NOTE, ReadinessWatch, add_json, check_listen_secure, emit, progress
+from occvo_services.commands._common import (
+    WARM_UP_NOTE,
+    ReadinessWatch,
+    add_json,
+    check_listen_secure,
+    emit,
+    listen_endpoints,
+    progress,
+)
 
 
 def add_parser(subparsers) -> None:
@@ -28,18 +36,19 @@ def add_parser(subparsers) -> None:
 def run(args) -> int:
     from occvo_services.runtime import structured_logger
     from occvo_services.supervisor import Supervisor, UpConfig
+    from occvo_services.worker_config import WorkerConfig
 
     config = UpConfig.load(args.config or defaults.path("occvo.json5"))
+    for w in config.workers:  # one line and exit 2 for a bad worker config, not a worker crash-looping
+        if w.config:
+            WorkerConfig.load(w.config).check_served(w.config)
     if args.listen:
         config.router.listen, config.router.connect = args.listen, None
     if args.log_dir:
         config.log_dir = args.log_dir
     if config.router.enabled:
-        import json5
-
         router_file = config.router.config or str(defaults.path("router.json5"))
-        with open(router_file) as f:
-            listen = [config.router.listen] if config.router.listen else json5.load(f)["listen"]["endpoints"]
+        listen = [config.router.listen] if config.router.listen else listen_endpoints(router_file)
         check_listen_secure(router_file, listen, args.insecure)
     sup = Supervisor(config, structured_logger("occvo.up", "WARNING") if args.quiet else None)
     roles = tuple(dict.fromkeys(w.role for w in config.workers))

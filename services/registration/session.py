@@ -33,7 +33,13 @@ from occvo_services.store_api import FencedError
 from occvo_services.store_blobs import frame_digest, legacy_frame_digest, pack_frame
 from occvo_services.telemetry import log_event
 
-_STATUS = {"ok": "ok", "lost": "lost", "initialised": "reinitialised", "reinitialised": "reinitialised"}
+_STATUS = {
+    "ok": "ok",
+    "lost": "lost",
+    "initialised": "reinitialised",
+    "reinitialised": "reinitialised",
+    "degenerate": "degenerate",
+}
 
 
 @dataclass
@@ -91,6 +97,8 @@ class StreamSession:
         self.map = MapOutput(stream, c, ctx.stats, ctx.log, ctx.put, ctx.report_error)
         self.threads = StreamThreads(stream, ctx.scheduler)
         self.snapshot = SnapshotSchedule()
+        self.held: FrameJob | None = None  # a jump waiting for the frame after it (_sequence)
+        self.refused_seq: int | None = None  # a frame the store refused: the ones after it wait for it
         self.entered = 0  # frames that entered the lane: the work after a pose sees whether another came
         self.epoch: int | None = None  # placement "members": the fencing epoch of this worker's lease on the stream
         self.complete_ms = self.restore_ms = self.evict_ms = 0.0
@@ -118,7 +126,7 @@ class StreamSession:
                 self.threads.submit_after(self.flush_map)
 
     def _frame(self, item, entered: int) -> None:
-        msg, hop_ms, t_queued, decode_ms = item
+        msg, hop_ms, t_queued, decode_ms = item[:4]
         t0, waited0 = time.perf_counter(), run_delay_ms()
         job = self._validate(msg, entered)  # needs nothing of the state: beside the last frame's after-pose work
         if job is None:
@@ -133,9 +141,13 @@ class StreamSession:
             validate=(t_wait - t0) * 1000.0,
             after_pose_wait=(job.t_valid - t_wait) * 1000.0,  # the last frame's work after its pose, still running
         )
-        if not self._own(job) or self._answer_resend(job) or not self._sequence(job):
+        if not self._own(job) or self._answer_resend(job) or self._waits_for_refused(job):
             return
-        if self._register_commit_publish(job, waited0):
+        held = self._confirmed(job)
+        if held is not None and self._sequence(held, confirmed=True):
+            if self._register_commit_publish(held, waited0):
+                self._observe_frame(held)
+        if self._sequence(job) and self._register_commit_publish(job, waited0):
             self._observe_frame(job)
 
     def _validate(self, msg, entered: int) -> FrameJob | None:
@@ -191,12 +203,43 @@ class StreamSession:
         self.ctx.put(keys.pose(self.stream), encode(pose_message(self.stream, known)))
         return True
 
-    def _sequence(self, job: FrameJob) -> bool:
+    def _waits_for_refused(self, job: FrameJob) -> bool:
+        """After the store refused seq k (e.g. disk full), the frames after k wait for k, which the client sends again
+        with them in order: registered without it they would leave its pose missing for good."""
+        k, seq = self.refused_seq, job.msg.seq
+        if k is None or seq == 0 or seq <= k:
+            self.refused_seq = None if seq == 0 or seq == k else k
+            return False
+        self._report("not_stored", f"seq {seq} waits for seq {k}, which the store refused: send both again", seq)
+        return True
+
+    def _confirmed(self, job: FrameJob) -> FrameJob | None:
+        """The held jump this frame confirms (it is the held frame's next seq), else None."""
+        held, t = self.held, self.trajectory
+        if held is None or job.msg.seq != held.msg.seq + 1 or not t.started or held.msg.seq <= t.last_seq + 1:
+            return None
+        self.held = None
+        return held
+
+    def _sequence(self, job: FrameJob, confirmed: bool = False) -> bool:
         """The frame's place after the committed trajectory (services/flow.judge_seq); then the OccVO it registers
-        on: a new one at seq 0, else the stream's, resumed from the store if this process has none."""
+        on: a new one at seq 0, else the stream's, resumed from the store if this process has none. A jump (a seq
+        more than one ahead, within max_seq_jump) is held, not adopted, until the frame after it confirms it: one
+        stray seq must not make the stream's real next frames steps back (lossless policy; under "latest" frames
+        are dropped on purpose and a jump is taken at once)."""
         seq, t = job.msg.seq, self.trajectory
         job.restart = seq == 0 or not t.started
         if not job.restart:
+            jump = seq - t.last_seq
+            # under the "latest" policy frames are dropped on purpose: a gap there is the normal case, not held
+            hold = not confirmed and self.ctx.config.policy == "lossless"
+            if hold and 1 < jump <= self.ctx.config.max_seq_jump:
+                self.held = job  # a later jump replaces it; the stream's real next frame drops it
+                self.ctx.stats.inc("seq_held")
+                self._report("seq_held", f"seq {seq} is {jump} after seq {t.last_seq}: held until seq {seq + 1}", seq)
+                return False
+            if jump == 1:
+                self.held = None
             known = t.stored(seq) is not None
             older = " and differs from the registered frame" if known else " and is older than the trajectory"
             ok, code, message = judge_seq(seq, t.last_seq, self.ctx.config.max_seq_jump, older)
@@ -208,6 +251,7 @@ class StreamSession:
             if self.vo is None:
                 self.reopen()
         else:
+            self.held = None
             self._new_trajectory()
         if self.ctx.config.kernel_threads == 0:
             self.vo.threads = self.ctx.scheduler.fair_threads(self.ctx.busy_lanes())
@@ -239,6 +283,9 @@ class StreamSession:
                 self._submit_after_pose(job)
                 job.after.result()  # its OccVO.complete: then the state goes, rebuilt from the store
                 self.store_failed(job.msg.seq, failed, "not stored, pose not published")
+                if not isinstance(failed, FencedError):
+                    k = job.msg.seq
+                    self.refused_seq = k if self.refused_seq is None else min(self.refused_seq, k)
                 return False
             if job.restart:
                 log_event(self.ctx.log, "trajectory started", stream=self.stream, seq=job.msg.seq)
@@ -370,7 +417,7 @@ class StreamSession:
             )
             return
         message = f"seq {seq} {what} ({type(exc).__name__}: {exc}); the stream resumes from the store at its next frame"
-        self._report("internal", message, seq)
+        self._report("not_stored", message, seq)  # the client sends it again (OccVOClient's resends)
 
     def flush_map(self) -> None:
         """The tiles held back for a frame that did not come (refused, or none followed)."""

@@ -26,6 +26,8 @@ from occvo_services.store_api import redact
 from occvo_services.telemetry import log_event
 from occvo_services.wire import blocking_at
 
+FRAME_MB_PER_VOXEL = 256 / 2**20  # a frame's cost to the resident set while it is registered, about twice measured
+
 
 class RegistrationWorker(Worker):
     """Occupancy frames -> OccVO poses and map tiles, one session a stream."""
@@ -113,6 +115,11 @@ class RegistrationWorker(Worker):
         if self.owns(keys.stream_of(str(sample.key_expr))):  # another shard's stream: not ours to count or judge
             # the session judges the seq against its committed trajectory: a step back may be a resend
             self.enqueue(sample, OccupancyFrameMsg, self._route, judge_seq=False)
+
+    def frame_cost_mb(self, msg) -> float:
+        """A frame's registration: its preprocessing, covariances, local map window and GICP pairs grow with its
+        voxels (FRAME_MB_PER_VOXEL, measured with benchmarks/hostile_clients.py --steps heavy)."""
+        return FRAME_MB_PER_VOXEL * msg.occupancy.labels.shape[0]
 
     def _route(self, stream: str, item) -> None:
         self.session_of(stream).handle(item)

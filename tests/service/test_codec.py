@@ -23,7 +23,8 @@ from occvo_schemas.models import (
 def occupancy_msg(n=300, exact=True, seq=0, as_points=False):
     """as_points: the coordinates as float64 points (what a frame off the grid's pattern travels as)."""
     rng = np.random.default_rng(seq)
-    idx = rng.integers(0, OCC3D_GRID.shape, size=(n, 3))
+    cells = rng.permutation(np.prod(OCC3D_GRID.shape))[:n]  # a frame is a set of voxels: each once
+    idx = np.stack(np.unravel_index(cells, OCC3D_GRID.shape), axis=1)
     pts, labels = OCC3D_GRID.centres_of(idx), rng.integers(0, 17, n).astype(np.uint8)
     if as_points:
         occ = SparseOccupancy(points=Array.from_numpy(pts), labels=Array.from_numpy(labels))

@@ -81,6 +81,8 @@ def test_seq_tracker():
     assert t.check(1)[0]
     ok, code, msg = t.check(4)
     assert ok and code == "missing_seq" and "2..3" in msg
+    assert t.check(2) == (True, None, None)  # the jump to 4 not adopted: the real next frame goes on
+    assert t.check(9)[1] == "missing_seq" and t.check(10) == (True, None, None)  # a jump confirmed by its next seq
     ok, code, _ = t.check(3)
     assert not ok and code == "out_of_order"
     assert t.check(0) == (True, None, None)  # a new trajectory
@@ -263,14 +265,16 @@ def test_sequence_gaps_and_steps_back_are_reported(service):
 
         send(0, 0)
         send(1, 1)
-        send(3, 3)  # seq 2 missing
+        send(3, 3)  # seq 2 missing: a jump, held until seq 4 confirms it
+        send(4, 4)
+        assert client.wait_pose(4).seq == 4
         send(2, 2)  # arrives late: out of order, dropped
-        assert client.wait_pose(3).seq == 3
-        events = errors.wait(2)
+        events = errors.wait(4)
         codes = {e.code: e for e in events}
         assert "missing seq 2..2" in codes["missing_seq"].message and codes["out_of_order"].seq == 2
+        assert "held until seq 4" in codes["seq_held"].message
         time.sleep(0.3)
-        assert sorted(client.poses) == [0, 1, 3]
+        assert sorted(client.poses) == [0, 1, 3, 4]
     session.close()
 
 
@@ -529,7 +533,7 @@ def test_frames_waiting_share_one_map_update_and_the_last_frames_tiles_are_never
         with _held_after_pose(worker, "batch", seq=5) as (gate, held_at):
             c.publish(scene[5])
             assert held_at.wait(60)
-            c.session.put(keys.camera("batch"), encode(camera_frame_of(scene[2], "batch", 2)))
+            c.put_encoded(encode(camera_frame_of(scene[2], "batch", 2)))
             _wait_for(lambda: worker.sessions["batch"].entered == 7)
             gate.set()
         _wait_for(lambda: 5 in updates, timeout=10.0)  # not at the stream's retirement (idle_stream_s 30)

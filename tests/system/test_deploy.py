@@ -174,7 +174,9 @@ def make_certs(d: Path) -> None:
     )
     for name, san, usage in (
         ("router", "DNS:localhost,IP:127.0.0.1", "serverAuth,clientAuth"),
-        ("client", "DNS:occvo-client", "clientAuth"),
+        ("registration", "DNS:occvo-registration", "clientAuth"),  # roles by common name (the router's ACL)
+        ("viewer", "DNS:occvo-viewer", "clientAuth"),
+        ("client", "DNS:occvo-client", "clientAuth"),  # a certificate of no role
     ):
         _openssl(
             "req",
@@ -219,19 +221,27 @@ def test_tls_router_and_client_files_work(tmp_path):
     rc.insert_json5("transport/link/tls/root_ca_certificate", json.dumps(str(tmp_path / "ca.pem")))
     rc.insert_json5("transport/link/tls/listen_certificate", json.dumps(str(tmp_path / "router.pem")))
     rc.insert_json5("transport/link/tls/listen_private_key", json.dumps(str(tmp_path / "router.key")))
-    tls_paths = {
-        "transport__link__tls__root_ca_certificate": str(tmp_path / "ca.pem"),
-        "transport__link__tls__connect_certificate": str(tmp_path / "client.pem"),
-        "transport__link__tls__connect_private_key": str(tmp_path / "client.key"),
-    }
+
+    def tls_paths(name):
+        return {
+            "transport__link__tls__root_ca_certificate": str(tmp_path / "ca.pem"),
+            "transport__link__tls__connect_certificate": str(tmp_path / f"{name}.pem"),
+            "transport__link__tls__connect_private_key": str(tmp_path / f"{name}.key"),
+        }
+
     with zenoh.open(rc):
-        a = _client(ep, DEPLOY / "tls/client.json5", **tls_paths)
-        b = _client(ep, DEPLOY / "tls/client.json5", **tls_paths)
+        # the access control shipped with the TLS config: the registration role's pose reaches a viewer; a
+        # certificate of no role publishes nothing
+        a = _client(ep, DEPLOY / "tls/client.json5", **tls_paths("registration"))
+        b = _client(ep, DEPLOY / "tls/client.json5", **tls_paths("viewer"))
+        c = _client(ep, DEPLOY / "tls/client.json5", **tls_paths("client"))
         try:
             assert _delivered(a, b, "occvo/tls/pose")
+            assert not _delivered(c, b, "occvo/tls2/pose")
         finally:
             a.close()
             b.close()
+            c.close()
         # mutual TLS: without a client certificate, or over plain tcp, the router refuses the session
         no_cert = {
             "transport__link__tls__root_ca_certificate": str(tmp_path / "ca.pem"),

@@ -1,0 +1,98 @@
+"""occvo store: the streams a store holds, one stream's trajectory exported, a stream deleted (SQLite or PostgreSQL,
+the trajectory store and the map store alike). Delete a stream while no worker serves it (stopped, or the stream idle
+past idle_stream_s): a worker holding it in memory would write it back."""
+
+from __future__ import annotations
+
+import datetime
+from pathlib import Path
+
+from occvo_core.errors import ConfigError
+from occvo_services.commands._common import add_json, emit, stream_id
+
+
+def add_parser(subparsers) -> None:
+    p = subparsers.add_parser("store", help="list, export and delete the streams of a store")
+    sub = p.add_subparsers(dest="action", required=True, metavar="ACTION")
+    for name, what in (
+        ("list", "every stream: last seq, poses, bytes, map tiles, last write"),
+        ("export", "a stream's stored trajectory as a TUM or KITTI file"),
+        ("delete", "a stream's trajectory, journal, snapshots and map"),
+    ):
+        a = sub.add_parser(name, help=what)
+        a.add_argument(
+            "--store", required=True, metavar="URL", help="a SQLite file (path or sqlite:///path) or postgresql://..."
+        )
+        if name != "list":
+            a.add_argument("stream", type=stream_id)
+        if name == "export":
+            a.add_argument("--out", required=True, help="the file written (.kitti: KITTI rows, else TUM)")
+        add_json(a)
+        a.set_defaults(func=run)
+
+
+def _open(url: str):
+    from occvo_services.map_store import open_map_store
+    from occvo_services.store_api import is_postgres_url, open_store, sqlite_path
+
+    if not is_postgres_url(url) and not Path(sqlite_path(url)).is_file():
+        raise ConfigError(f"--store {url}: no such store file")
+    return open_store(url), open_map_store(url)
+
+
+def run(args) -> int:
+    from occvo_core.trajectory import write_kitti, write_tum
+
+    store, maps = _open(args.store)
+    try:
+        if args.action == "list":
+            rows = []
+            for stream in sorted(set(store.streams()) | set(maps.streams())):
+                rec, sizes, info = store.record(stream), store.sizes(stream), maps.info(stream)
+                rows.append(
+                    {
+                        "stream": stream,
+                        "last_seq": None if rec is None else rec.last_seq,
+                        "poses": sizes["poses_rows"],
+                        "bytes": sum(v for k, v in sizes.items() if k.endswith("_bytes")),
+                        "map_tiles": 0 if info is None else len(info.tiles),
+                        "created": None if rec is None else rec.created,
+                    }
+                )
+            text = "\n".join(
+                f"{r['stream']}: last seq {r['last_seq']}, {r['poses']} poses, {r['bytes']} bytes, {r['map_tiles']} "
+                f"map tiles, started {_when(r['created'])}"
+                for r in rows
+            )
+            emit(args, {"streams": rows}, text or "no streams")
+        elif args.action == "export":
+            import numpy as np
+
+            poses = store.poses(args.stream)
+            if not poses:
+                raise ConfigError(f"stream {args.stream!r} has no stored poses in {args.store}")
+            matrices, stamps = np.array([p.pose for p in poses]), np.array([p.stamp for p in poses])
+            if args.out.endswith(".kitti"):
+                write_kitti(args.out, matrices)
+            else:
+                write_tum(args.out, matrices, stamps)
+            emit(
+                args, {"stream": args.stream, "poses": len(poses), "out": args.out}, f"{len(poses)} poses -> {args.out}"
+            )
+        else:
+            if store.record(args.stream) is None and maps.info(args.stream) is None:
+                raise ConfigError(f"stream {args.stream!r} is not in {args.store}")
+            n, tiles = store.delete_stream(args.stream), maps.delete_stream(args.stream)
+            emit(
+                args,
+                {"stream": args.stream, "poses_deleted": n, "map_tiles_deleted": tiles},
+                f"stream {args.stream} deleted: {n} poses, {tiles} map tiles",
+            )
+    finally:
+        store.close()
+        maps.close()
+    return 0
+
+
+def _when(t: float | None) -> str:
+    return "-" if t is None else datetime.datetime.fromtimestamp(t, datetime.UTC).strftime("%Y-%m-%d %H:%M:%S UTC")

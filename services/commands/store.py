@@ -13,7 +13,7 @@ from occvo_services.commands._common import add_json, emit, stream_id
 
 def add_parser(subparsers) -> None:
     p = subparsers.add_parser("store", help="list, export and delete the streams of a store")
-    sub = p.add_subparsers(dest="action", required=True, metavar="ACTION")
+    sub = p.add_subparsers(dest="action", required=True, metavar="ACTION", help="list, export or delete")
     for name, what in (
         ("list", "every stream: last seq, poses, bytes, map tiles, last write"),
         ("export", "a stream's stored trajectory as a TUM or KITTI file"),
@@ -24,7 +24,7 @@ def add_parser(subparsers) -> None:
             "--store", required=True, metavar="URL", help="a SQLite file (path or sqlite:///path) or postgresql://..."
         )
         if name != "list":
-            a.add_argument("stream", type=stream_id)
+            a.add_argument("stream", type=stream_id, help="the stream id")
         if name == "export":
             a.add_argument("--out", required=True, help="the file written (.kitti: KITTI rows, else TUM)")
         add_json(a)

@@ -147,6 +147,8 @@ class StreamSession:
         if held is not None and self._sequence(held, confirmed=True):
             if self._register_commit_publish(held, waited0):
                 self._observe_frame(held)
+            self.threads.head_start.set()  # this frame follows at once: the held one's work after its pose first
+            self.threads.wait_after_pose()
         if self._sequence(job) and self._register_commit_publish(job, waited0):
             self._observe_frame(job)
 

@@ -16,6 +16,8 @@ kept once. A frame that closed a loop has its pose published twice: the odometry
 
 from __future__ import annotations
 
+__all__ = ["OccVOClient", "ServiceError", "camera_frame_of"]
+
 import threading
 import time
 
@@ -23,7 +25,6 @@ import numpy as np
 import zenoh
 
 from occvo_core.frame import OccupancyFrame
-from occvo_core.grid import OCC3D_GRID, GridSpec
 from occvo_schemas import keys
 from occvo_schemas.codec import CodecError, decode, encode
 from occvo_schemas.models import (
@@ -33,10 +34,10 @@ from occvo_schemas.models import (
     MapTile,
     MapTileQuery,
     PoseEstimate,
-    SparseOccupancy,
     Trajectory,
     WorkerHealth,
 )
+from occvo_services.camera_frames import camera_frame_of
 from occvo_services.runtime import DEFAULT_ENDPOINT
 from occvo_services.sessions import open_session
 from occvo_services.wire import encoding
@@ -50,20 +51,6 @@ class ServiceError(RuntimeError):
     def __init__(self, message: str, event: ErrorEvent | None = None):
         self.event = event
         super().__init__(message)
-
-
-def camera_frame_of(
-    frame: OccupancyFrame, stream: str, seq: int, grid: GridSpec = OCC3D_GRID, exact: bool = True
-) -> CameraFrame:
-    """A recorded occupancy frame as a camera-frame message for the replay source (no images, its occupancy);
-    exact keeps the recorded coordinates bit for bit, else they are snapped to compact voxel indices."""
-    return CameraFrame(
-        stream=stream,
-        seq=seq,
-        stamp=float(frame.stamp),
-        gt_occupancy=SparseOccupancy.from_points(frame.points, frame.labels, grid, exact),
-        sent_at=time.time(),
-    )
 
 
 class OccVOClient:

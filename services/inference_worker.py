@@ -24,8 +24,9 @@ from occvo_core.errors import ConfigError
 from occvo_schemas import keys
 from occvo_schemas.codec import encode
 from occvo_schemas.models import CameraFrame, OccupancyFrameMsg, SparseOccupancy
-from occvo_services.runtime import Worker, WorkerConfig, log_event, worker_main
+from occvo_services.runtime import Worker, WorkerConfig, log_event
 from occvo_services.wire import blocking
+from occvo_services.worker_cli import worker_main
 
 
 class InferenceWorker(Worker):

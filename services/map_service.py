@@ -17,9 +17,10 @@ from occvo_schemas import keys
 from occvo_schemas.codec import CodecError, decode, encode
 from occvo_schemas.models import ErrorEvent, MapTileQuery, MapUpdate
 from occvo_services.map_store import open_map_store
-from occvo_services.runtime import Worker, WorkerConfig, log_event, worker_main
+from occvo_services.runtime import Worker, WorkerConfig, log_event
 from occvo_services.store_api import redact
 from occvo_services.wire import encoding
+from occvo_services.worker_cli import worker_main
 
 
 class MapService(Worker):

@@ -3,12 +3,15 @@ mode, connections and write transactions."""
 
 from __future__ import annotations
 
+import logging
 import random
 import sqlite3
 import time
 from pathlib import Path
 
 from occvo_core.errors import ConfigError
+
+_LOG = logging.getLogger("occvo.registration.store")  # the worker's logger prints it
 
 
 def enable_wal(db: sqlite3.Connection, busy_timeout_s: float) -> None:
@@ -72,3 +75,30 @@ def transaction(db: sqlite3.Connection, fn, phases: dict | None = None):
     if phases is not None:
         phases["begin"], phases["commit"] = (t1 - t0) * 1000.0, (time.perf_counter() - t2) * 1000.0
     return out
+
+
+def checkpoint_loop(store, busy_timeout_s: float) -> None:
+    """A store's checkpoint thread: PASSIVE checkpoints (they copy what no reader needs and never wait for a writer)
+    every store.CHECKPOINT_EVERY_S, on their own connection; a WAL of store.WAL_BLOCK_PAGES after a pass is
+    checkpointed whole (writers waiting); the next commit after a complete one starts the WAL over."""
+    from occvo_services.os_tuning import lower_priority, name_os_thread
+    from occvo_services.telemetry import log_event
+
+    db = connect(store.path, store.synchronous, busy_timeout_s, "")
+    name_os_thread("store-checkpoint")
+    lower_priority(10)  # below the threads that commit poses (best effort)
+    failing = False
+    try:
+        while not store._stop.wait(store.CHECKPOINT_EVERY_S):
+            try:
+                _, log_pages, _ = db.execute("PRAGMA wal_checkpoint(PASSIVE)").fetchone()
+                if log_pages >= store.WAL_BLOCK_PAGES:
+                    db.execute("PRAGMA wal_checkpoint(RESTART)")
+                failing = False
+            except sqlite3.Error as exc:  # busy or an I/O error: the next pass tries again; said once a run of them
+                if not failing:
+                    message = "WAL checkpoint failed; retrying every pass (the WAL grows meanwhile)"
+                    log_event(_LOG, message, logging.WARNING, path=store.path, error=repr(exc))
+                failing = True
+    finally:
+        db.close()

@@ -27,7 +27,6 @@ from __future__ import annotations
 import contextlib
 import logging
 import os
-import sqlite3
 import threading
 import time
 from collections.abc import Iterable
@@ -39,12 +38,11 @@ import numpy as np
 
 from occvo_core.frame import OccupancyFrame
 from occvo_services.array_pack import pack_arrays, unpack_arrays
-from occvo_services.os_tuning import hold_priority, lower_priority, name_os_thread, release_priority
+from occvo_services.os_tuning import hold_priority, release_priority
 from occvo_services.snapshot_file import SNAPSHOT_SCHEMA, SnapshotFile, snapshot_path
 from occvo_services.sqlite_leases import LEASES_SCHEMA, SqliteLeases, fence
-from occvo_services.sqlite_wal import connect, transaction
+from occvo_services.sqlite_wal import checkpoint_loop, connect, transaction
 from occvo_services.store_blobs import frame_digest, pack_frame, unpack_frame
-from occvo_services.telemetry import log_event
 
 __all__ = [  # importers of these names from here predate the split
     "frame_digest",
@@ -155,30 +153,7 @@ class TrajectoryStore(SqliteLeases, SnapshotFile):
     WAL_BLOCK_PAGES = 65536  # a WAL this long (256 MB of 4 kB pages) after a pass: checkpoint it whole, writers waiting
 
     def _checkpoint_loop(self, busy_timeout_s: float) -> None:
-        """PASSIVE checkpoints (they copy what no reader needs and never wait for a writer) every second, on their own
-        connection; the next commit after a complete one starts the WAL over."""
-        db = connect(self.path, self.synchronous, busy_timeout_s, "")
-        _background_thread("store-checkpoint")
-        failing = False
-        try:
-            while not self._stop.wait(self.CHECKPOINT_EVERY_S):
-                try:
-                    _, log_pages, _ = db.execute("PRAGMA wal_checkpoint(PASSIVE)").fetchone()
-                    if log_pages >= self.WAL_BLOCK_PAGES:
-                        db.execute("PRAGMA wal_checkpoint(RESTART)")
-                    failing = False
-                except sqlite3.Error as exc:  # busy or an I/O error: the next pass tries again; said once a run of them
-                    if not failing:
-                        log_event(
-                            _LOG,
-                            "WAL checkpoint failed; retrying every pass (the WAL grows meanwhile)",
-                            logging.WARNING,
-                            path=self.path,
-                            error=repr(exc),
-                        )
-                    failing = True
-        finally:
-            db.close()
+        checkpoint_loop(self, busy_timeout_s)
 
     # -- transactions
     @contextlib.contextmanager
@@ -400,12 +375,6 @@ class TrajectoryStore(SqliteLeases, SnapshotFile):
         }
         # an in-memory store has neither file, a checkpointed WAL may be gone: only what exists is reported
         return {name: round(path.stat().st_size / 2**20, 1) for name, path in paths.items() if path.is_file()}
-
-
-def _background_thread(name: str, nice: int = 10) -> None:
-    """Name the calling OS thread and run it below the threads that commit poses (best effort)."""
-    name_os_thread(name)
-    lower_priority(nice)
 
 
 def _pose(row) -> StoredPose:

@@ -14,7 +14,8 @@ from occvo_core.frame import OccupancyFrame
 from occvo_services.telemetry import log_event
 
 if TYPE_CHECKING:
-    from occvo_services.registration.session import FrameJob, StreamSession
+    from occvo_services.registration.frame_job import FrameJob
+    from occvo_services.registration.session import StreamSession
 
 
 def after_pose(s: StreamSession, job: FrameJob) -> None:

@@ -9,8 +9,6 @@ from __future__ import annotations
 
 import logging
 import time
-from concurrent.futures import Future
-from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -22,7 +20,7 @@ from occvo_schemas.codec import encode
 from occvo_schemas.models import PoseEstimate
 from occvo_services.flow import judge_seq
 from occvo_services.os_tuning import run_delay_ms
-from occvo_services.registration.after_pose import after_pose
+from occvo_services.registration.frame_job import STATUS, FrameJob, SessionContext
 from occvo_services.registration.map_output import MapOutput
 from occvo_services.registration.paging import Pager
 from occvo_services.registration.resume import resume
@@ -32,57 +30,6 @@ from occvo_services.registration.trajectory import StreamTrajectory, pose_messag
 from occvo_services.store_api import FencedError
 from occvo_services.store_blobs import frame_digest, legacy_frame_digest, pack_frame
 from occvo_services.telemetry import log_event
-
-_STATUS = {
-    "ok": "ok",
-    "lost": "lost",
-    "initialised": "reinitialised",
-    "reinitialised": "reinitialised",
-    "degenerate": "degenerate",
-}
-
-
-@dataclass
-class SessionContext:
-    """What the worker lends its sessions: configuration, the store, the kernel team, the snapshot writer and the
-    outputs (put: a Zenoh put of the worker's session; report_error: an error event)."""
-
-    config: object
-    occvo_config: object
-    occvo: type
-    store: object
-    stats: object
-    log: logging.Logger
-    scheduler: object
-    snapshots: object
-    put: object
-    report_error: object
-    frames_queued: object  # stream -> whether frames of it wait in its lane
-    busy_lanes: object  # () -> lanes registering now
-    after_pose: object = after_pose  # (session, job): the work after a pose (services/registration/after_pose.py)
-    leases: object = None  # placement "members": the worker's stream leases (membership.Leases)
-
-
-@dataclass
-class FrameJob:
-    """One frame's way through the phases: what each phase hands the next."""
-
-    msg: object
-    frame: OccupancyFrame
-    tables: tuple
-    digest: bytes
-    timings: dict
-    t_valid: float
-    entered: int
-    restart: bool = False
-    t_reg: float = 0.0
-    reg: object = None  # OccVO.register's result, once registered
-    pose_m: np.ndarray | None = None
-    status: str = "ok"
-    reg_ms: float = 0.0
-    reg_timings: dict = field(default_factory=dict)
-    pose_out: Future = field(default_factory=Future)  # True once the pose is committed and published
-    after: Future | None = None  # its work after the pose, once handed to the after-pose thread
 
 
 class StreamSession:
@@ -313,7 +260,7 @@ class StreamSession:
         reg = self.vo.register(job.frame)
         job.reg_timings = dict(reg.timings_ms)  # complete() adds its stages to the same stopwatch later
         job.reg_ms = (time.perf_counter() - job.t_reg) * 1000.0 - job.reg_timings.get("preprocess", 0.0)
-        job.reg, job.pose_m, job.status = reg, np.asarray(reg.pose, float), _STATUS.get(reg.status, "ok")
+        job.reg, job.pose_m, job.status = reg, np.asarray(reg.pose, float), STATUS.get(reg.status, "ok")
         self.threads.work_due()
 
     def _commit_and_publish(self, job: FrameJob, wait_ms: float) -> Exception | None:

@@ -14,17 +14,19 @@ from occvo_core.errors import ConfigError
 from occvo_schemas import keys
 from occvo_schemas.models import OccupancyFrameMsg
 from occvo_services.os_tuning import trim_heap
+from occvo_services.registration.frame_job import SessionContext
 from occvo_services.registration.membership import Leases, Placement
 from occvo_services.registration.paging import MIN_SAFE_RADIUS_M
 from occvo_services.registration.queries import Queries
 from occvo_services.registration.scheduling import Scheduler
-from occvo_services.registration.session import SessionContext, StreamSession
+from occvo_services.registration.session import StreamSession
 from occvo_services.registration.snapshots import SnapshotWriter
-from occvo_services.runtime import Worker, WorkerConfig, worker_main
+from occvo_services.runtime import Worker, WorkerConfig
 from occvo_services.store import TrajectoryStore
 from occvo_services.store_api import redact
 from occvo_services.telemetry import log_event
 from occvo_services.wire import blocking_at
+from occvo_services.worker_cli import worker_main
 
 FRAME_MB_PER_VOXEL = 256 / 2**20  # a frame's cost to the resident set while it is registered, about twice measured
 

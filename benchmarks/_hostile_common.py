@@ -1,0 +1,106 @@
+"""What the hostile-client steps share (benchmarks/hostile_clients.py): workers' status, counters, a grabber, a replay, the JSON lines."""
+
+from __future__ import annotations
+
+import json
+import os
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+import zenoh
+from _common import SAMPLE
+
+from occvo_schemas import keys
+from occvo_schemas.codec import decode, encode
+from occvo_schemas.models import ErrorEvent, WorkerHealth
+from occvo_services.client import OccVOClient, camera_frame_of
+from occvo_services.commands.replay import replay
+from occvo_services.sessions import open_session
+
+DATA = SAMPLE / "occupancy" / "scene-0101"
+BLOCK = zenoh.CongestionControl.BLOCK
+
+
+def proc_status(pid: int) -> dict:
+    out = {}
+    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+        k, _, v = line.partition(":")
+        if k in ("VmRSS", "Threads"):
+            out[k] = int(v.split()[0])
+    return {"rss_mb": round(out["VmRSS"] / 1024, 1), "threads": out["Threads"]}
+
+
+def cpu_s(pid: int) -> float:
+    f = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    return (int(f[11]) + int(f[12])) / os.sysconf("SC_CLK_TCK")
+
+
+def workers(svc) -> dict:
+    return {r: proc_status(p.pid) for r, p in svc.procs.items()}
+
+
+def counters(session, svc, role: str, names: tuple[str, ...]) -> dict:
+    """Some of a worker's counters, from its stats queryable (LocalService names it <role>-<our pid>)."""
+    for r in session.get(keys.stats(f"{role}-{os.getpid()}"), timeout=10.0):
+        if r.ok is not None:
+            got = decode(r.ok.payload.to_bytes(), WorkerHealth).counters
+            return {n: got.get(n, 0) for n in names}
+    return {}
+
+
+def wildcard_gets(endpoint: str, threads: int, stop, counts) -> None:
+    """A client looping `occvo/**` gets on `threads` threads until `stop`; counts[0] ok replies, counts[1] busy."""
+    session = open_session(endpoint)
+
+    def loop():
+        while not stop.is_set():
+            for r in session.get("occvo/**", timeout=10.0):
+                busy = r.err is not None and decode(r.err.payload.to_bytes(), ErrorEvent).code == "busy"
+                with counts.get_lock():
+                    counts[int(busy)] += 1
+
+    ts = [threading.Thread(target=loop) for _ in range(threads)]
+    for t in ts:
+        t.start()
+    for t in ts:
+        t.join()
+    session.close()
+
+
+def emit(step: str, **fields) -> None:
+    print(json.dumps({"step": step, **fields}), flush=True)
+
+
+GOALS: list[bool] = []  # every goal line so far: the script exits 1 if one is not met
+
+
+def goal(text: str, met: bool, **figure) -> None:
+    GOALS.append(bool(met))
+    print(json.dumps({"goal": text, "met": bool(met), **figure}), flush=True)
+
+
+def grab(endpoint: str, streams: list[str], frame, stop: threading.Event, period_s: float = 2.0) -> None:
+    """A slot grabber: one session putting a seq-0 frame on each of `streams` every period_s until stop."""
+    session = open_session(endpoint)
+    payloads = [(keys.camera(s), encode(camera_frame_of(frame, s, 0))) for s in streams]
+    sn = 0
+    while not stop.is_set():
+        t0 = time.monotonic()
+        for key, payload in payloads:
+            sn += 1
+            session.put(key, payload, congestion_control=BLOCK, source_info=zenoh.SourceInfo(session.id, sn))
+        stop.wait(max(0.0, period_s - (time.monotonic() - t0)))
+    session.close()
+
+
+def run_replay(endpoint: str, stream: str, frames) -> tuple[float, np.ndarray]:
+    with OccVOClient(endpoint, stream, timeout=300) as c:
+        t0 = time.perf_counter()
+        out = replay(c, frames, window=4, timeout=600)
+        took = time.perf_counter() - t0
+        poses = np.array([c.poses[i].matrix() for i in sorted(c.poses)]) if c.poses else np.zeros((0, 4, 4))
+        codes = sorted({(e.worker.split("-")[0], e.code, e.message[:120]) for e in c.errors})
+    assert out["poses"] == len(frames), (out["poses"], out["errors"], codes)
+    return took, poses

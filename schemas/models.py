@@ -84,9 +84,11 @@ def _col_extremes(a: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 def _duplicates(v: np.ndarray, shape: tuple[int, int, int] | None) -> int:
     """Rows of v (N,3) repeating an earlier row: voxel indices (`shape`: the grid's) or coordinates (None)."""
-    if shape is not None and math.prod(shape) <= 1 << 24:  # a count per grid cell: one pass, no sort
+    if shape is not None and math.prod(shape) <= 1 << 24:  # a flag per grid cell: one pass, no sort, no counts
         lin = (v[:, 0].astype(np.int64) * shape[1] + v[:, 1]) * shape[2] + v[:, 2]
-        return int(len(v) - np.count_nonzero(np.bincount(lin, minlength=math.prod(shape))))
+        seen = np.zeros(math.prod(shape), np.bool_)
+        seen[lin] = True
+        return int(len(v) - np.count_nonzero(seen))
     rows = np.ascontiguousarray(v).view(np.dtype((np.void, v.dtype.itemsize * 3))).ravel()
     return int(len(v) - len(np.unique(rows)))
 

@@ -21,6 +21,10 @@ def missing() -> str | None:
         return f"PostgreSQL 15 server binaries not found in {BIN} (apt-get install postgresql)"
     if os.geteuid() == 0 and shutil.which("runuser") is None:
         return "running as root needs runuser to start PostgreSQL as the postgres user"
+    try:
+        import psycopg  # noqa: F401
+    except ModuleNotFoundError:
+        return "the PostgreSQL driver is not installed (pip install -e '.[postgres]')"
     return None
 
 

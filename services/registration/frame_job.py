@@ -40,6 +40,7 @@ class SessionContext:
     busy_lanes: object  # () -> lanes registering now
     after_pose: object = after_pose  # (session, job): the work after a pose (services/registration/after_pose.py)
     leases: object = None  # placement "members": the worker's stream leases (membership.Leases)
+    catch_up: object = None  # scheduling.CatchUp: reopened sessions register first
 
 
 @dataclass

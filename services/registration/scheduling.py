@@ -104,6 +104,33 @@ class Scheduler:
         self._team.shutdown(wait=False)  # idle unless a lane's frame did not finish in time
 
 
+class CatchUp:
+    """Sessions catching up (reopened from the store: moved from a lost worker, or back from idle) register before
+    the other lanes' next frames: their clients waited longest, and on a saturated worker a fair share would stretch
+    a failover over every other lane's frames. A lane waits at most max_wait_s, so a long replay stalls no one."""
+
+    def __init__(self, max_wait_s: float = 2.0):
+        self.max_wait_s = max_wait_s
+        self._cond = threading.Condition()
+        self._active: set[str] = set()
+
+    def begin(self, stream: str) -> None:
+        with self._cond:
+            self._active.add(stream)
+
+    def end(self, stream: str) -> None:
+        with self._cond:
+            self._active.discard(stream)
+            if not self._active:
+                self._cond.notify_all()
+
+    def wait_turn(self, stream: str) -> None:
+        """Before a frame's registration: wait while other sessions catch up."""
+        with self._cond:
+            if self._active and stream not in self._active:
+                self._cond.wait_for(lambda: not self._active, self.max_wait_s)
+
+
 class StreamThreads:
     """A session's after-pose thread and map thread, started by its lane (a thread starts at the niceness of the
     thread that made it), and the after-pose thread's priority inheritance."""

@@ -68,6 +68,7 @@ class StreamSession:
         try:
             self._frame(item, self.entered)
         finally:
+            self.ctx.catch_up.end(self.stream)  # reopened: caught up with its first frame after it
             if self.threads.tail is tail and self.threads.after is not None and not self._queued():
                 # no work after a pose followed (refused, a resend) and no frame waits: the tiles held back go now
                 self.threads.submit_after(self.flush_map)
@@ -210,6 +211,7 @@ class StreamSession:
         """Register, commit, publish. Caught up, the three are one call in the kernel team's thread (a lane woken
         between them waited behind the team's spinning OpenMP threads) and the work after the pose waits until it
         is out; with frames waiting, that work starts as soon as the frame is registered. True: the pose is out."""
+        self.ctx.catch_up.wait_turn(self.stream)
         job.t_reg = time.perf_counter()
         backlog = self._queued()
         self.threads.start()
@@ -377,6 +379,7 @@ class StreamSession:
     # -- open and close ----------------------------------------------------------------------------------------------
     def reopen(self) -> None:
         """Rebuild the OccVO from the stream's snapshot and journal, as it was after the last committed frame."""
+        self.ctx.catch_up.begin(self.stream)
         resume(self)
 
     def close(self) -> None:

@@ -18,7 +18,7 @@ from occvo_services.registration.frame_job import SessionContext
 from occvo_services.registration.membership import Leases, Placement
 from occvo_services.registration.paging import MIN_SAFE_RADIUS_M
 from occvo_services.registration.queries import Queries
-from occvo_services.registration.scheduling import Scheduler
+from occvo_services.registration.scheduling import CatchUp, Scheduler
 from occvo_services.registration.session import StreamSession
 from occvo_services.registration.snapshots import SnapshotWriter
 from occvo_services.runtime import Worker, WorkerConfig
@@ -70,6 +70,7 @@ class RegistrationWorker(Worker):
         self.ctx = SessionContext(
             config, occvo_config, OccVO, self.store, self.stats, self.log, self.scheduler, snapshots,
             self._put, self.report_error, self._frames_queued, self._busy_lanes, leases=self.leases,
+            catch_up=CatchUp(),
         )  # fmt: skip
         self.queries = Queries(self)
         if self.store is not None and self.placement is None:

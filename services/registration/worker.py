@@ -207,11 +207,12 @@ class RegistrationWorker(Worker):
         self.ctx.snapshots.close()
         self._shutdown_step("queued snapshots written", t0)
         for stream, s in self.sessions_now():
-            if stream in in_hand or s.vo is None or not s.snapshot.unsaved:
+            vo = s.vo  # an idle session retiring now drops its OccVO (after its own snapshot)
+            if stream in in_hand or vo is None or not s.snapshot.unsaved:
                 continue  # a frame in hand that did not finish in time: its OccVO is not touched from here
             t0 = time.perf_counter()
-            self.ctx.snapshots.write_now(stream, s.snapshot, s.trajectory.last_seq, s.vo, s.fence())  # in place
-            self._shutdown_step("snapshot at shutdown", t0, stream=stream, map_voxels=len(s.vo.map))
+            self.ctx.snapshots.write_now(stream, s.snapshot, s.trajectory.last_seq, vo, s.fence())  # in place
+            self._shutdown_step("snapshot at shutdown", t0, stream=stream, map_voxels=len(vo.map))
         if self.leases is not None:  # the next owners take the streams at once
             self.leases.stop()
             for stream, s in self.sessions_now():

@@ -59,7 +59,7 @@ class RetentionReads:
     def measure(self, stream: str) -> int:
         """The stream's stored bytes counted again (after a snapshot, which replaces the journal it covers)."""
         n = sum(v for k, v in self.sizes(stream).items() if k.endswith("_bytes"))
-        if self._has_map_tiles():
+        if self.has_map_tiles():
             n += int(
                 self._read(
                     self._sql("SELECT COALESCE(SUM(LENGTH(data)), 0) FROM map_tiles WHERE stream = ?"), (stream,)
@@ -84,7 +84,7 @@ class SqliteRetention(RetentionReads):
                             raise
             self.db.execute("CREATE INDEX IF NOT EXISTS streams_client ON streams (client)")
 
-    def _has_map_tiles(self) -> bool:
+    def has_map_tiles(self) -> bool:
         return bool(self._read("SELECT 1 FROM sqlite_master WHERE type = 'table' AND name = 'map_tiles'"))
 
     def _set_bytes(self, stream: str, n: int) -> None:
@@ -96,7 +96,7 @@ class PgRetention(RetentionReads):
 
     PARAM = "%s"
 
-    def _has_map_tiles(self) -> bool:
+    def has_map_tiles(self) -> bool:
         return self._read("SELECT to_regclass('map_tiles') IS NOT NULL")[0][0]
 
     def _set_bytes(self, stream: str, n: int) -> None:

@@ -82,6 +82,7 @@ class SnapshotWriter:
         try:
             if self.store.write_snapshot(stream, seq, state, created, **fence):
                 self.stats.inc("snapshots")
+                self.store.measure(stream)  # its stored bytes, the journal covered gone (a client's store quota)
             took = time.perf_counter() - t0
             schedule.since_t = time.monotonic()
             self._s_per_byte = took / max(1, state_bytes(state))

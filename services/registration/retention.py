@@ -1,0 +1,134 @@
+"""What a client may keep in the store, and for how long (the registration worker, with a store).
+
+Quotas per client (client_identity, services/limits.py): at most max_stored_streams_per_client streams and
+max_store_mb_per_client MB. A client's bytes are what the store records of its streams (services/store_retention.py)
+plus, for its streams live on this worker, their working map not yet snapshotted (a stream's snapshot is most of what
+it stores, written when it goes idle). Over a quota, the client's frames that would grow the store are refused with
+one error event, code store_quota, naming the quota; what is stored stays. With a stream TTL the client's streams idle
+past it are deleted first, then the quota is checked again.
+
+Stream TTL (stream_ttl_s): a stored stream without a frame for that long is deleted, as `occvo store delete` does
+(trajectory, journal, snapshot, cold tiles, lease, and its map tiles where the map service shares the store). Only
+by the worker that would serve it, and never while it has a live session there (a lane, or one being retired)."""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+
+from occvo_services.limits import ANONYMOUS
+from occvo_services.registration.snapshots import state_bytes
+from occvo_services.telemetry import log_event
+
+
+class Retention:
+    def __init__(self, worker):
+        self.w, c = worker, worker.config
+        self.quota_bytes = None if c.max_store_mb_per_client is None else c.max_store_mb_per_client << 20
+        self.quota_streams = c.max_stored_streams_per_client
+        self.ttl_s = c.stream_ttl_s
+        self._maps = None  # the map store, where the map service's tables are in this store (at the first deletion)
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+
+    def start(self) -> None:
+        if self.ttl_s is not None:
+            self._thread = threading.Thread(target=self._sweep_loop, name="stream-ttl", daemon=True)
+            self._thread.start()
+
+    def stop(self) -> None:
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join()
+        if self._maps is not None:
+            self._maps.close()
+
+    # -- quotas
+    def refuse(self, stream: str, client: str | None, seq: int) -> str | None:
+        """Why frame `seq` of `stream` is refused for its client's quota, or None. A frame the stream has committed
+        already (a resend, answered with its stored pose) grows nothing."""
+        if self.quota_bytes is None and self.quota_streams is None:
+            return None
+        session = self.w.sessions.get(stream)
+        if session is not None and seq in session.trajectory.position:
+            return None
+        client = client or ANONYMOUS
+        why = self._over(stream, client, seq)
+        if why is not None and self.ttl_s is not None and self.expire(client):
+            why = self._over(stream, client, seq)
+        return why
+
+    def _over(self, stream: str, client: str, seq: int) -> str | None:
+        store = self.w.store
+        streams, used = store.usage(client)
+        held = store.stream_usage(stream)
+        if (held is None or held[0] != client) and self.quota_streams is not None and streams >= self.quota_streams:
+            return (
+                f"stream {stream!r} not stored: client {client!r} has {streams} streams in the store, "
+                f"max_stored_streams_per_client={self.quota_streams} (store_quota; `occvo store delete` frees them)"
+            )
+        if self.quota_bytes is not None and used + self._unsaved(client) >= self.quota_bytes:
+            return (
+                f"seq {seq} of stream {stream!r} not stored: client {client!r} has "
+                f"{(used + self._unsaved(client)) / 2**20:.0f} MB in the store, max_store_mb_per_client="
+                f"{self.quota_bytes >> 20} (store_quota; `occvo store delete` frees it)"
+            )
+        return None
+
+    def _unsaved(self, client: str) -> int:
+        """The working maps of the client's live streams on this worker not snapshotted yet: what their snapshots
+        will add when they go idle."""
+        total = 0
+        for stream, s in self.w.sessions_now():
+            vo = s.vo
+            if vo is not None and s.snapshot.unsaved and self.w.admission.owner(stream) == client:
+                try:
+                    total += state_bytes(vo.state_dict(copy=False))  # views: nothing copied
+                except RuntimeError:  # its work after a pose changed the state meanwhile: the map, most of it
+                    total += state_bytes(vo.map.state(copy=False))
+        return total
+
+    # -- the stream TTL
+    def _sweep_loop(self) -> None:
+        every = min(60.0, max(0.5, self.ttl_s / 4))
+        while not self._stop.wait(every):
+            try:
+                self.expire()
+            except Exception as exc:  # noqa: BLE001 - the store away: the next pass tries again
+                log_event(self.w.log, "stream TTL pass failed", logging.WARNING, error=repr(exc))
+
+    def expire(self, client: str | None = None) -> int:
+        """Delete the streams (of `client`, or all) idle past the TTL that this worker may delete; how many went."""
+        before = time.time() - self.ttl_s
+        return sum(self._delete_idle(stream) for stream in self.w.store.idle_streams(before, client))
+
+    def _delete_idle(self, stream: str) -> bool:
+        w = self.w
+        if not w.owns(stream):  # another shard's or member's: its worker decides
+            return False
+        if w.leases is not None and w.store.owner_of(stream) not in (None, w.worker_id):
+            return False
+        with w._lanes_lock:  # no lane of the stream opens while it is deleted
+            if stream in w.lanes or stream in w._retired:  # a live session: never deleted
+                return False
+            usage = w.store.stream_usage(stream)
+            if usage is None or usage[2] >= time.time() - self.ttl_s:  # written meanwhile
+                return False
+            poses = w.store.delete_stream(stream)
+            tiles = self._map_store().delete_stream(stream) if w.store.has_map_tiles() else 0
+            with w._sessions_lock:
+                w.sessions.pop(stream, None)
+        w.stats.inc("streams_expired")
+        idle_s = round(time.time() - usage[2])
+        log_event(
+            w.log, "idle stream deleted (stream_ttl_s)", stream=stream, idle_s=idle_s, poses=poses, map_tiles=tiles
+        )
+        return True
+
+    def _map_store(self):
+        if self._maps is None:
+            from occvo_services.map_store import open_map_store
+
+            self._maps = open_map_store(self.w.config.store_url)
+        return self._maps

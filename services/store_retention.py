@@ -103,8 +103,15 @@ class PgRetention(RetentionReads):
         self.pool.run(lambda conn: conn.execute("UPDATE streams SET bytes = %s WHERE stream = %s", (n, stream)))
 
 
+# only when a column is missing: an ALTER or CREATE INDEX on `streams` locks it, and opening a store beside running
+# writers then deadlocked with them (the schema's earlier statements hold the journal's lock)
 PG_RETENTION_SCHEMA = """
-ALTER TABLE streams ADD COLUMN IF NOT EXISTS client TEXT, ADD COLUMN IF NOT EXISTS bytes BIGINT NOT NULL DEFAULT 0,
-    ADD COLUMN IF NOT EXISTS last_write DOUBLE PRECISION;
-CREATE INDEX IF NOT EXISTS streams_client ON streams (client);
+DO $$ BEGIN
+    IF NOT EXISTS (SELECT 1 FROM information_schema.columns WHERE table_schema = current_schema()
+                   AND table_name = 'streams' AND column_name = 'last_write') THEN
+        ALTER TABLE streams ADD COLUMN IF NOT EXISTS client TEXT,
+            ADD COLUMN IF NOT EXISTS bytes BIGINT NOT NULL DEFAULT 0, ADD COLUMN IF NOT EXISTS last_write DOUBLE PRECISION;
+        CREATE INDEX IF NOT EXISTS streams_client ON streams (client);
+    END IF;
+END $$;
 """

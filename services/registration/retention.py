@@ -2,8 +2,8 @@
 
 Quotas per client (client_identity, services/limits.py): at most max_stored_streams_per_client streams and
 max_store_mb_per_client MB. A client's bytes are what the store records of its streams (services/store_retention.py)
-plus, for its streams live on this worker, their working map not yet snapshotted (a stream's snapshot is most of what
-it stores, written when it goes idle). Over a quota, the client's frames that would grow the store are refused with
+plus, for its streams live on this worker, their state beyond their last snapshot (a stream's snapshot is most of
+what it stores, written when it goes idle). Over a quota, the client's frames that would grow the store are refused with
 one error event, code store_quota, naming the quota; what is stored stays. With a stream TTL the client's streams idle
 past it are deleted first, then the quota is checked again.
 
@@ -16,6 +16,7 @@ from __future__ import annotations
 import logging
 import threading
 import time
+from concurrent.futures import wait
 
 from occvo_services.limits import ANONYMOUS
 from occvo_services.registration.snapshots import state_bytes
@@ -54,39 +55,52 @@ class Retention:
         if session is not None and seq in session.trajectory.position:
             return None
         client = client or ANONYMOUS
-        why = self._over(stream, client, seq)
-        if why is not None and self.ttl_s is not None and self.expire(client):
+        try:
             why = self._over(stream, client, seq)
+            if why is not None and self.ttl_s is not None and self.expire(client):
+                why = self._over(stream, client, seq)
+        except Exception as exc:  # noqa: BLE001 - the store away: its commit fails and names it (not_stored)
+            log_event(self.w.log, "store quota not checked", logging.WARNING, stream=stream, error=repr(exc))
+            return None
         return why
 
     def _over(self, stream: str, client: str, seq: int) -> str | None:
         store = self.w.store
         streams, used = store.usage(client)
         held = store.stream_usage(stream)
-        if (held is None or held[0] != client) and self.quota_streams is not None and streams >= self.quota_streams:
+        new = held is None or held[0] != client
+        if new and self.quota_streams is not None and streams >= self.quota_streams:
             return (
                 f"stream {stream!r} not stored: client {client!r} has {streams} streams in the store, "
                 f"max_stored_streams_per_client={self.quota_streams} (store_quota; `occvo store delete` frees them)"
             )
-        if self.quota_bytes is not None and used + self._unsaved(client) >= self.quota_bytes:
-            return (
-                f"seq {seq} of stream {stream!r} not stored: client {client!r} has "
-                f"{(used + self._unsaved(client)) / 2**20:.0f} MB in the store, max_store_mb_per_client="
-                f"{self.quota_bytes >> 20} (store_quota; `occvo store delete` frees it)"
-            )
+        if self.quota_bytes is not None:
+            used += self._unsaved(client, stream if new else None)
+            if used >= self.quota_bytes:
+                return (
+                    f"seq {seq} of stream {stream!r} not stored: client {client!r} has {used / 2**20:.0f} MB in the "
+                    f"store, max_store_mb_per_client={self.quota_bytes >> 20} (store_quota; `occvo store delete` "
+                    "frees it)"
+                )
         return None
 
-    def _unsaved(self, client: str) -> int:
-        """The working maps of the client's live streams on this worker not snapshotted yet: what their snapshots
-        will add when they go idle."""
+    def _unsaved(self, client: str, settle_for: str | None = None) -> int:
+        """What the snapshots of the client's live streams on this worker will add: their state beyond the one last
+        written (a stream's snapshot is most of what it stores, written when it goes idle). settle_for: a new stream
+        of the client; the work after the other streams' poses (which fills their maps) is waited for first, so a
+        client opening stream after stream is counted in full (its own streams wait, no other client's)."""
         total = 0
         for stream, s in self.w.sessions_now():
             vo = s.vo
-            if vo is not None and s.snapshot.unsaved and self.w.admission.owner(stream) == client:
-                try:
-                    total += state_bytes(vo.state_dict(copy=False))  # views: nothing copied
-                except RuntimeError:  # its work after a pose changed the state meanwhile: the map, most of it
-                    total += state_bytes(vo.map.state(copy=False))
+            if vo is None or self.w.admission.owner(stream) != client:
+                continue
+            if settle_for is not None and stream != settle_for:
+                wait([f for f in (s.threads.tail, s.threads.map_tail) if f is not None])
+            try:
+                live = state_bytes(vo.state_dict(copy=False))  # views: nothing copied
+            except RuntimeError:  # its work after a pose changed the state meanwhile: the map, most of it
+                live = state_bytes(vo.map.state(copy=False))
+            total += max(0, live - s.snapshot.written_bytes)
         return total
 
     # -- the stream TTL

@@ -48,9 +48,8 @@ import threading
 import time
 from pathlib import Path
 
-import msgpack
 import numpy as np
-from _hostile_abuse import degenerate_frames, grabber, log_flood, sequence_abuse, silent_queryable
+from _hostile_abuse import degenerate_frames, grabber, log_flood, msgpack_delay, sequence_abuse, silent_queryable
 from _hostile_common import (
     BLOCK,
     DATA,
@@ -191,35 +190,7 @@ def main() -> int:
             )
 
         if "msgpack" in steps:
-            hostile = msgpack.packb(
-                {
-                    "kind": "camera_frame",
-                    "schema_version": 1,
-                    "stream": "legit2h0",
-                    "x": [[{"a": 1, "b": 2} for _ in range(60000)] for _ in range(35)],
-                }
-            )
-
-            def second_frame_ms(stream: str, hostile_between: bool) -> float:
-                with OccVOClient(ep, stream, timeout=120) as c:
-                    c.reset()
-                    c.step(frames[0])
-                    if hostile_between:
-                        session.put(keys.camera(stream), hostile, congestion_control=BLOCK)
-                    t = time.perf_counter()
-                    c.step(frames[1])
-                    return (time.perf_counter() - t) * 1000
-
-            plain_ms = float(np.median([second_frame_ms(f"legit2p{i}", False) for i in range(3)]))
-            after_ms = float(np.median([second_frame_ms(f"legit2h{i}", True) for i in range(3)]))
-            emit(
-                "msgpack",
-                payload_mb=round(len(hostile) / 1e6, 1),
-                frame_ms_alone=round(plain_ms, 1),
-                frame_ms_after_hostile=round(after_ms, 1),
-                delay_ms=round(after_ms - plain_ms, 1),
-            )
-
+            msgpack_delay(ep, session, frames)
         if "oversize" in steps:
             me = os.getpid()
             before = {**workers(svc), "router": proc_status(me)}

@@ -4,7 +4,6 @@
 from __future__ import annotations
 
 import tempfile
-import threading
 import time
 from pathlib import Path
 
@@ -26,12 +25,36 @@ def _files_bytes(folder: Path) -> dict[str, int]:
     return {p.name: p.stat().st_size for p in sorted(folder.iterdir()) if p.is_file()}
 
 
+def _flood(session, frame, seconds: float, period_s: float) -> int:
+    """A seq-0 frame on a fresh stream id every period_s for `seconds`, as one client; how many streams."""
+    n, t0 = 0, time.perf_counter()
+    while time.perf_counter() - t0 < seconds:
+        stream = f"sflood{n}"
+        data = encode(camera_frame_of(frame, stream, 0, exact=False))  # ~11 ms: well within a period
+        session.put(
+            keys.camera(stream), data, congestion_control=BLOCK, source_info=zenoh.SourceInfo(session.id, n + 1)
+        )
+        n += 1
+        time.sleep(max(0.0, t0 + n * period_s - time.perf_counter()))
+    return n
+
+
+def _stored(url: str, prefix: str) -> tuple[list[str], dict]:
+    """The streams stored under `prefix` and {client: (streams, bytes)} of their clients, as the store records."""
+    s = open_store(url)
+    try:
+        stored = [x for x in s.streams() if x.startswith(prefix)]
+        return stored, {c: s.usage(c) for c in {s.stream_usage(x)[0] for x in stored}}
+    finally:
+        s.close()
+
+
 def store_flood(args, frames) -> None:
     """One session putting a seq-0 frame on a fresh stream id every --store-flood-period-s for --store-flood-s
     (the default 180 s: the issue's 3 minutes) against `occvo serve`'s worker configs with a SQLite store shared by the
     registration worker and the map service. Once every stream is idle (idle_stream_s) and snapshotted: the store's
-    growth (its files, WALs included) against the client's quota, the workers' log bytes against 10 MB, streams
-    stored and refused."""
+    growth (its files once the workers stopped, their WALs checkpointed into them) against the client's quota, the
+    workers' log bytes against 10 MB, streams stored and refused."""
     reg_config = f"{DEFAULTS}/registration_worker.json5"
     config = WorkerConfig.load(reg_config)
     quota_mb, idle_s = config.max_store_mb_per_client, config.idle_stream_s
@@ -48,23 +71,7 @@ def store_flood(args, frames) -> None:
     try:
         files0, logs0 = _files_bytes(folder), sum(_files_bytes(logs).values())
         session = open_session(svc.endpoint)
-        sent = [0]
-
-        def flood():
-            n, t0 = 0, time.perf_counter()
-            while time.perf_counter() - t0 < args.store_flood_s:
-                stream = f"sflood{n}"
-                data = encode(camera_frame_of(frames[0], stream, 0, exact=False))  # ~11 ms: well within a period
-                session.put(
-                    keys.camera(stream), data, congestion_control=BLOCK, source_info=zenoh.SourceInfo(session.id, n + 1)
-                )
-                n += 1
-                time.sleep(max(0.0, t0 + n * args.store_flood_period_s - time.perf_counter()))
-            sent[0] = n
-
-        t = threading.Thread(target=flood)
-        t.start()
-        t.join()
+        opened = _flood(session, frames[0], args.store_flood_s, args.store_flood_period_s)
         time.sleep(idle_s + 30.0)  # every flood stream idle: retired, snapshotted, measured
         names = ("frames_refused_quota", "streams_refused", "streams_refused_memory", "snapshots", "streams_retired")
         reg = counters(session, svc, "registration", names)
@@ -73,17 +80,11 @@ def store_flood(args, frames) -> None:
         svc.stop()
     files1, logs1 = _files_bytes(folder), sum(_files_bytes(logs).values())
     growth = sum(files1.values()) - sum(files0.values())
-    s = open_store(store[1])
-    try:
-        stored = [x for x in s.streams() if x.startswith("sflood")]
-        clients = {s.stream_usage(x)[0] for x in stored}
-        usage = {c: s.usage(c) for c in clients}
-    finally:
-        s.close()
+    stored, usage = _stored(store[1], "sflood")
     emit(
         "store_flood",
         flood_s=args.store_flood_s,
-        streams_opened=sent[0],
+        streams_opened=opened,
         streams_stored=len(stored),
         client_usage_mb={c[:8]: round(b / 2**20, 1) for c, (_, b) in usage.items()},
         store_growth_mb=round(growth / 2**20, 1),

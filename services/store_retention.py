@@ -2,8 +2,8 @@
 time of its last frame (columns of `streams`), and the reads the registration worker's quotas and stream TTL make
 (services/registration/retention.py).
 
-`bytes` is the stream's stored size: measured (its poses, journal, snapshot, cold tiles and, where the map service
-shares the store, its map tiles) after each snapshot, plus what each frame's commit and eviction wrote since. A store
+`bytes` is the stream's stored size: measured (its poses, journal, snapshot with the rest of its last page, cold
+tiles and, where the map service shares the store, its map tiles) after each snapshot, plus what each frame's commit and eviction wrote since. A store
 written before these columns gets them when it is opened; its streams belong to no client until they are written
 again, and their TTL runs from their `created`."""
 
@@ -36,10 +36,13 @@ class RetentionReads:
 
     def usage(self, client: str) -> tuple[int, int]:
         """(streams, bytes) the store holds of a client."""
-        n, b = self._read(
-            self._sql("SELECT COUNT(*), COALESCE(SUM(bytes), 0) FROM streams WHERE client = ?"), (client,)
-        )[0]
-        return int(n), int(b)
+        return self.usage_of(client)[:2]
+
+    def usage_of(self, client: str) -> tuple[int, int, int]:
+        """(streams, bytes, its largest stream's bytes) the store holds of a client."""
+        sql = "SELECT COUNT(*), COALESCE(SUM(bytes), 0), COALESCE(MAX(bytes), 0) FROM streams WHERE client = ?"
+        n, b, biggest = self._read(self._sql(sql), (client,))[0]
+        return int(n), int(b), int(biggest)
 
     def stream_usage(self, stream: str) -> tuple[str | None, int, float] | None:
         """(client, bytes, last write or creation time) of a stored stream; None if it is not stored."""
@@ -58,7 +61,7 @@ class RetentionReads:
 
     def measure(self, stream: str) -> int:
         """The stream's stored bytes counted again (after a snapshot, which replaces the journal it covers)."""
-        n = sum(v for k, v in self.sizes(stream).items() if k.endswith("_bytes"))
+        n = sum(v for k, v in self.sizes(stream).items() if k.endswith("_bytes")) + self._slack(stream)
         if self.has_map_tiles():
             n += int(
                 self._read(
@@ -87,6 +90,13 @@ class SqliteRetention(RetentionReads):
     def has_map_tiles(self) -> bool:
         return bool(self._read("SELECT 1 FROM sqlite_master WHERE type = 'table' AND name = 'map_tiles'"))
 
+    def _slack(self, stream: str) -> int:
+        """The snapshot's last page's unused part: a snapshot takes whole pages of its file (64 kB ones)."""
+        with self.snap_lock:
+            (page,) = self.snap_db.execute("PRAGMA page_size").fetchone()
+            row = self.snap_db.execute("SELECT LENGTH(state) FROM snapshots WHERE stream = ?", (stream,)).fetchone()
+        return 0 if row is None else -int(row[0]) % page
+
     def _set_bytes(self, stream: str, n: int) -> None:
         self._write_unsynced(lambda db: db.execute("UPDATE streams SET bytes = ? WHERE stream = ?", (n, stream)))
 
@@ -98,6 +108,9 @@ class PgRetention(RetentionReads):
 
     def has_map_tiles(self) -> bool:
         return self._read("SELECT to_regclass('map_tiles') IS NOT NULL")[0][0]
+
+    def _slack(self, stream: str) -> int:
+        return 0  # TOAST stores a blob in ~2 kB chunks: no page of its own to round up to
 
     def _set_bytes(self, stream: str, n: int) -> None:
         self.pool.run(lambda conn: conn.execute("UPDATE streams SET bytes = %s WHERE stream = %s", (n, stream)))

@@ -3,7 +3,8 @@
 Quotas per client (client_identity, services/limits.py): at most max_stored_streams_per_client streams and
 max_store_mb_per_client MB. A client's bytes are what the store records of its streams (services/store_retention.py)
 plus, for its streams live on this worker, their state beyond their last snapshot (a stream's snapshot is most of
-what it stores, written when it goes idle). Over a quota, the client's frames that would grow the store are refused with
+what it stores, written when it goes idle). A new stream needs room for one as big as the client's biggest stored
+stream, so the quota holds after it too. Over a quota, the client's frames that would grow the store are refused with
 one error event, code store_quota, naming the quota; what is stored stays. With a stream TTL the client's streams idle
 past it are deleted first, then the quota is checked again.
 
@@ -65,37 +66,47 @@ class Retention:
         return why
 
     def _over(self, stream: str, client: str, seq: int) -> str | None:
+        """A new stream of the client needs room for one as big as its biggest stored; a frame of a stream it has
+        needs the quota not reached."""
         store = self.w.store
-        streams, used = store.usage(client)
         held = store.stream_usage(stream)
         new = held is None or held[0] != client
+        if new and self.quota_bytes is not None:
+            self._settle(client, stream)
+        streams, used, biggest = store.usage_of(client)
         if new and self.quota_streams is not None and streams >= self.quota_streams:
             return (
                 f"stream {stream!r} not stored: client {client!r} has {streams} streams in the store, "
                 f"max_stored_streams_per_client={self.quota_streams} (store_quota; `occvo store delete` frees them)"
             )
         if self.quota_bytes is not None:
-            used += self._unsaved(client, stream if new else None)
-            if used >= self.quota_bytes:
+            used += self._unsaved(client)
+            if used + (biggest if new else 0) >= self.quota_bytes:
                 return (
                     f"seq {seq} of stream {stream!r} not stored: client {client!r} has {used / 2**20:.0f} MB in the "
-                    f"store, max_store_mb_per_client={self.quota_bytes >> 20} (store_quota; `occvo store delete` "
-                    "frees it)"
+                    f"store, max_store_mb_per_client={self.quota_bytes >> 20}"
+                    + (f" and its streams take up to {biggest / 2**20:.1f} MB" if new else "")
+                    + " (store_quota; `occvo store delete` frees it)"
                 )
         return None
 
-    def _unsaved(self, client: str, settle_for: str | None = None) -> int:
+    def _settle(self, client: str, new: str) -> None:
+        """Before a new stream of the client is judged: the work after its other live streams' poses (which fills
+        their maps and sends their tiles) done and their bytes measured, so a client opening stream after stream is
+        counted in full (only its own streams wait)."""
+        for stream, s in self.w.sessions_now():
+            if stream != new and s.vo is not None and self.w.admission.owner(stream) == client:
+                wait([f for f in (s.threads.tail, s.threads.map_tail) if f is not None])
+                self.w.store.measure(stream)
+
+    def _unsaved(self, client: str) -> int:
         """What the snapshots of the client's live streams on this worker will add: their state beyond the one last
-        written (a stream's snapshot is most of what it stores, written when it goes idle). settle_for: a new stream
-        of the client; the work after the other streams' poses (which fills their maps) is waited for first, so a
-        client opening stream after stream is counted in full (its own streams wait, no other client's)."""
+        written (a stream's snapshot is most of what it stores, written when it goes idle)."""
         total = 0
         for stream, s in self.w.sessions_now():
             vo = s.vo
             if vo is None or self.w.admission.owner(stream) != client:
                 continue
-            if settle_for is not None and stream != settle_for:
-                wait([f for f in (s.threads.tail, s.threads.map_tail) if f is not None])
             try:
                 live = state_bytes(vo.state_dict(copy=False))  # views: nothing copied
             except RuntimeError:  # its work after a pose changed the state meanwhile: the map, most of it

@@ -3,8 +3,8 @@
 Quotas per client (client_identity, services/limits.py): at most max_stored_streams_per_client streams and
 max_store_mb_per_client MB. A client's bytes are what the store records of its streams (services/store_retention.py)
 plus, for its streams live on this worker, their state beyond their last snapshot (a stream's snapshot is most of
-what it stores, written when it goes idle). A new stream needs room for one as big as the client's biggest stored
-stream, so the quota holds after it too. Over a quota, the client's frames that would grow the store are refused with
+what it stores, written when it goes idle). A new stream needs room for one as big as the client's biggest (stored,
+or live here), so the quota holds after it too. Over a quota, the client's frames that would grow the store are refused with
 one error event, code store_quota, naming the quota; what is stored stays. With a stream TTL the client's streams idle
 past it are deleted first, then the quota is checked again.
 
@@ -80,7 +80,8 @@ class Retention:
                 f"max_stored_streams_per_client={self.quota_streams} (store_quota; `occvo store delete` frees them)"
             )
         if self.quota_bytes is not None:
-            used += self._unsaved(client)
+            unsaved, live_biggest = self._unsaved(client)
+            used, biggest = used + unsaved, max(biggest, live_biggest)
             if used + (biggest if new else 0) >= self.quota_bytes:
                 return (
                     f"seq {seq} of stream {stream!r} not stored: client {client!r} has {used / 2**20:.0f} MB in the "
@@ -99,10 +100,10 @@ class Retention:
                 wait([f for f in (s.threads.tail, s.threads.map_tail) if f is not None])
                 self.w.store.measure(stream)
 
-    def _unsaved(self, client: str) -> int:
+    def _unsaved(self, client: str) -> tuple[int, int]:
         """What the snapshots of the client's live streams on this worker will add: their state beyond the one last
-        written (a stream's snapshot is most of what it stores, written when it goes idle)."""
-        total = 0
+        written (a stream's snapshot is most of what it stores, written when it goes idle); and the biggest state."""
+        total = biggest = 0
         for stream, s in self.w.sessions_now():
             vo = s.vo
             if vo is None or self.w.admission.owner(stream) != client:
@@ -111,8 +112,8 @@ class Retention:
                 live = state_bytes(vo.state_dict(copy=False))  # views: nothing copied
             except RuntimeError:  # its work after a pose changed the state meanwhile: the map, most of it
                 live = state_bytes(vo.map.state(copy=False))
-            total += max(0, live - s.snapshot.written_bytes)
-        return total
+            total, biggest = total + max(0, live - s.snapshot.written_bytes), max(biggest, live)
+        return total, biggest
 
     # -- the stream TTL
     def _sweep_loop(self) -> None:

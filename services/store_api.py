@@ -121,6 +121,7 @@ class Store(Protocol):
     # retention (services/store_retention.py)
     def usage(self, client: str) -> tuple[int, int]: ...  # (streams, bytes) of a client
     def usage_of(self, client: str) -> tuple[int, int, int]: ...  # and its biggest stream's bytes
+    def overhead(self) -> float: ...  # the store's pages in use over the streams' bytes (SQLite; PostgreSQL 1)
     def stream_usage(self, stream: str) -> tuple[str | None, int, float] | None: ...  # (client, bytes, last write)
     def idle_streams(self, before: float, client: str | None = None) -> list[str]: ...
     def measure(self, stream: str) -> int: ...

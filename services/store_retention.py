@@ -90,6 +90,19 @@ class SqliteRetention(RetentionReads):
     def has_map_tiles(self) -> bool:
         return bool(self._read("SELECT 1 FROM sqlite_master WHERE type = 'table' AND name = 'map_tiles'"))
 
+    def overhead(self) -> float:
+        """The files' pages in use over the bytes the streams record (at least 1): SQLite's pages, B-trees and
+        indexes, charged to every stream in proportion. Free pages are left out: the next writes reuse them."""
+        used = 0
+        for db, lock in ((self.read_db, self.read_lock), (self.snap_db, self.snap_lock)):
+            with lock:
+                page, count, free = (
+                    db.execute(f"PRAGMA {p}").fetchone()[0] for p in ("page_size", "page_count", "freelist_count")
+                )
+            used += (count - free) * page
+        (total,) = self._read("SELECT COALESCE(SUM(bytes), 0) FROM streams")[0]
+        return max(1.0, used / total) if total else 1.0
+
     def _slack(self, stream: str) -> int:
         """The snapshot's last page's unused part: a snapshot takes whole pages of its file (64 kB ones)."""
         with self.snap_lock:
@@ -108,6 +121,9 @@ class PgRetention(RetentionReads):
 
     def has_map_tiles(self) -> bool:
         return self._read("SELECT to_regclass('map_tiles') IS NOT NULL")[0][0]
+
+    def overhead(self) -> float:
+        return 1.0  # the rows' bytes: the server's own files are the operator's
 
     def _slack(self, stream: str) -> int:
         return 0  # TOAST stores a blob in ~2 kB chunks: no page of its own to round up to

@@ -2,11 +2,11 @@
 
 Quotas per client (client_identity, services/limits.py): at most max_stored_streams_per_client streams and
 max_store_mb_per_client MB. A client's bytes are what the store records of its streams (services/store_retention.py)
-plus, for its streams live on this worker, their state beyond their last snapshot (a stream's snapshot is most of
-what it stores, written when it goes idle). A new stream needs room for one as big as the client's biggest (stored,
-or live here), so the quota holds after it too. Over a quota, the client's frames that would grow the store are refused with
-one error event, code store_quota, naming the quota; what is stored stays. With a stream TTL the client's streams idle
-past it are deleted first, then the quota is checked again.
+with their share of the store's own pages, plus, for its streams live on this worker, their state beyond their last
+snapshot (a stream's snapshot is most of what it stores, written when it goes idle). A new stream needs room for one
+as big as the client's biggest (stored, or live here), so the quota holds after it too. Over a quota, the client's
+frames that would grow the store are refused with one error event, code store_quota, naming the quota; what is
+stored stays. With a stream TTL the client's streams idle past it are deleted first, then the quota is checked again.
 
 Stream TTL (stream_ttl_s): a stored stream without a frame for that long is deleted, as `occvo store delete` does
 (trajectory, journal, snapshot, cold tiles, lease, and its map tiles where the map service shares the store). Only
@@ -74,6 +74,8 @@ class Retention:
         if new and self.quota_bytes is not None:
             self._settle(client, stream)
         streams, used, biggest = store.usage_of(client)
+        share = store.overhead()  # the store's own pages, in proportion
+        used, biggest = int(used * share), int(biggest * share)
         if new and self.quota_streams is not None and streams >= self.quota_streams:
             return (
                 f"stream {stream!r} not stored: client {client!r} has {streams} streams in the store, "

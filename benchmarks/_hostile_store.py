@@ -51,7 +51,7 @@ def _stored(url: str, prefix: str) -> tuple[list[str], dict]:
 
 def store_flood(args, frames) -> None:
     """One session putting a seq-0 frame on a fresh stream id every --store-flood-period-s for --store-flood-s
-    (the default 180 s: the issue's 3 minutes) against `occvo serve`'s worker configs with a SQLite store shared by the
+    (default 180 s) against `occvo serve`'s worker configs with a SQLite store shared by the
     registration worker and the map service. Once every stream is idle (idle_stream_s) and snapshotted: the store's
     growth (its files once the workers stopped, their WALs checkpointed into them) against the client's quota, the
     workers' log bytes against 10 MB, streams stored and refused."""

@@ -5,6 +5,7 @@ from __future__ import annotations
 import threading
 import time
 
+import msgpack
 import numpy as np
 import zenoh
 from _hostile_common import (
@@ -242,4 +243,36 @@ def log_flood(ep: str, svc, seconds: float = 10.0) -> None:
         lines <= bound + 5 and lines * 700 < 10e6,
         lines=lines,
         bound=bound,
+    )
+
+
+def msgpack_delay(ep: str, session, frames) -> None:
+    """A 13.7 MB payload of small maps between a stream's two frames: the second frame's round trip vs without it."""
+    hostile = msgpack.packb(
+        {
+            "kind": "camera_frame",
+            "schema_version": 1,
+            "stream": "legit2h0",
+            "x": [[{"a": 1, "b": 2} for _ in range(60000)] for _ in range(35)],
+        }
+    )
+
+    def second_frame_ms(stream: str, hostile_between: bool) -> float:
+        with OccVOClient(ep, stream, timeout=120) as c:
+            c.reset()
+            c.step(frames[0])
+            if hostile_between:
+                session.put(keys.camera(stream), hostile, congestion_control=BLOCK)
+            t = time.perf_counter()
+            c.step(frames[1])
+            return (time.perf_counter() - t) * 1000
+
+    plain_ms = float(np.median([second_frame_ms(f"legit2p{i}", False) for i in range(3)]))
+    after_ms = float(np.median([second_frame_ms(f"legit2h{i}", True) for i in range(3)]))
+    emit(
+        "msgpack",
+        payload_mb=round(len(hostile) / 1e6, 1),
+        frame_ms_alone=round(plain_ms, 1),
+        frame_ms_after_hostile=round(after_ms, 1),
+        delay_ms=round(after_ms - plain_ms, 1),
     )

@@ -1,7 +1,7 @@
 """A hostile client beside a legitimate replay, on loopback: the figures of issue 33's "done when".
 
     python benchmarks/hostile_clients.py [--streams 2000 --flood-s 10 --settle-s 60 --big-mb 512]
-        [--steps flood,msgpack,oversize,queries] [--registration-max-rss-mb MB]
+        [--steps flood,msgpack,oversize,queries] [--registration-max-rss-mb MB] [--store-flood-s 180]
 
 Router in this process, workers as processes (occvo_services.local.LocalService, the deploy configs' limits). Steps:
   alone      scene-0101 replayed alone: time, poses; each worker's RSS and threads once its stream has retired
@@ -32,6 +32,8 @@ Router in this process, workers as processes (occvo_services.local.LocalService,
   heavy      a service whose registration worker is capped at --heavy-max-rss-mb: 4 clients each put a frame of
              3.5 M copies of one voxel then --heavy-frames full-grid frames (640,000 voxels) beside a replay: the
              registration worker's RSS peak against its cap, frames refused, the replay's time vs its solo time
+  store_flood one session opening a fresh stream every --store-flood-period-s for --store-flood-s (default 180)
+             against `occvo serve`'s worker configs: store growth against the client's quota, log bytes
 `alone` always runs (the baseline and the map the queries ask for); --steps picks the others. Prints one JSON line
 per step and one per goal ({"goal": ..., "met": ...}); exits 1 if a goal is not met."""
 
@@ -46,9 +48,8 @@ import threading
 import time
 from pathlib import Path
 
-import msgpack
 import numpy as np
-from _hostile_abuse import degenerate_frames, grabber, log_flood, sequence_abuse, silent_queryable
+from _hostile_abuse import degenerate_frames, grabber, log_flood, msgpack_delay, sequence_abuse, silent_queryable
 from _hostile_common import (
     BLOCK,
     DATA,
@@ -63,6 +64,7 @@ from _hostile_common import (
     workers,
 )
 from _hostile_limits import bad_configs, disk_full, heavy
+from _hostile_store import store_flood
 
 from occvo_core.datasets import OccVOReleaseScene
 from occvo_schemas import keys
@@ -82,7 +84,8 @@ def main() -> int:
     p.add_argument("--frames", type=int, default=40)
     p.add_argument(
         "--steps",
-        default="flood,msgpack,oversize,queries,sequence,grabber,heavy,silent,degenerate,config,log_flood,disk_full",
+        default="flood,msgpack,oversize,queries,sequence,grabber,heavy,silent,degenerate,config,log_flood,disk_full,"
+        "store_flood",
         help="steps after `alone`, comma separated",
     )
     p.add_argument("--disk-full-dir", help="step disk_full: a small filesystem for the store (e.g. a 64 MB tmpfs)")
@@ -90,6 +93,8 @@ def main() -> int:
     p.add_argument("--heavy-max-rss-mb", type=int, default=1024, help="the registration worker's cap in step heavy")
     p.add_argument("--heavy-frames", type=int, default=5, help="full-grid frames on each of the 4 heavy streams")
     p.add_argument("--registration-max-rss-mb", type=int, help="the registration worker's cap instead of its config's")
+    p.add_argument("--store-flood-s", type=float, default=180.0, help="step store_flood: how long fresh streams open")
+    p.add_argument("--store-flood-period-s", type=float, default=0.5, help="step store_flood: a new stream this often")
     args = p.parse_args()
     steps = set(args.steps.split(","))
     reg_config = "deploy/registration_worker.json5"
@@ -185,35 +190,7 @@ def main() -> int:
             )
 
         if "msgpack" in steps:
-            hostile = msgpack.packb(
-                {
-                    "kind": "camera_frame",
-                    "schema_version": 1,
-                    "stream": "legit2h0",
-                    "x": [[{"a": 1, "b": 2} for _ in range(60000)] for _ in range(35)],
-                }
-            )
-
-            def second_frame_ms(stream: str, hostile_between: bool) -> float:
-                with OccVOClient(ep, stream, timeout=120) as c:
-                    c.reset()
-                    c.step(frames[0])
-                    if hostile_between:
-                        session.put(keys.camera(stream), hostile, congestion_control=BLOCK)
-                    t = time.perf_counter()
-                    c.step(frames[1])
-                    return (time.perf_counter() - t) * 1000
-
-            plain_ms = float(np.median([second_frame_ms(f"legit2p{i}", False) for i in range(3)]))
-            after_ms = float(np.median([second_frame_ms(f"legit2h{i}", True) for i in range(3)]))
-            emit(
-                "msgpack",
-                payload_mb=round(len(hostile) / 1e6, 1),
-                frame_ms_alone=round(plain_ms, 1),
-                frame_ms_after_hostile=round(after_ms, 1),
-                delay_ms=round(after_ms - plain_ms, 1),
-            )
-
+            msgpack_delay(ep, session, frames)
         if "oversize" in steps:
             me = os.getpid()
             before = {**workers(svc), "router": proc_status(me)}
@@ -275,6 +252,8 @@ def main() -> int:
         heavy(args, frames, store, reg_config)
     if "config" in steps:
         bad_configs()
+    if "store_flood" in steps:
+        store_flood(args, frames)
     if "disk_full" in steps and args.disk_full_dir:
         full_info = disk_full(args, frames, alone, reg_config)
         emit(

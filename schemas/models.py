@@ -396,6 +396,7 @@ ErrorCode = Literal[
     "not_owner",  # a frame from another client than the one its stream is bound to (no seq: not its owner's answer)
     "seq_held",  # a jump held until the frame after it confirms it: not an answer yet (the client waits, resends)
     "not_stored",  # the store refused the write (e.g. disk full): not an answer yet (the client resends it)
+    "store_quota",  # the client's streams or bytes in the store are at its quota: the frame is not registered
 ]
 
 

@@ -1,7 +1,7 @@
 """Durable state of the registration worker: an embedded SQLite file per deployment, one row set per stream.
 
 Tables (they may share a file with the map service's map_streams/map_tiles, services/map_store.py):
-  streams     stream, created, last_seq (last committed frame), snapshot_seq
+  streams     stream, created, last_seq (last committed frame), snapshot_seq, client, bytes, last_write
   poses       (stream, seq): stamp, digest of the frame, status, pose (4x4 float64 bytes); every published pose
   snapshots   (in a second file, <name>.snapshots.sqlite) stream: the trajectory's `created`, seq, the OccVO
               state_dict after that frame (working map only); the latest one per stream
@@ -43,6 +43,7 @@ from occvo_services.snapshot_file import SNAPSHOT_SCHEMA, SnapshotFile, snapshot
 from occvo_services.sqlite_leases import LEASES_SCHEMA, SqliteLeases, fence
 from occvo_services.sqlite_wal import checkpoint_loop, connect, transaction
 from occvo_services.store_blobs import frame_digest, pack_frame, unpack_frame
+from occvo_services.store_retention import COMMIT_USAGE, GROW, SqliteRetention, frame_bytes
 
 __all__ = [  # importers of these names from here predate the split
     "frame_digest",
@@ -62,7 +63,10 @@ CREATE TABLE IF NOT EXISTS streams (
     stream       TEXT PRIMARY KEY,
     created      REAL NOT NULL,
     last_seq     INTEGER,
-    snapshot_seq INTEGER
+    snapshot_seq INTEGER,
+    client       TEXT,  -- retention (services/store_retention.py): who wrote it last, its bytes, its last frame
+    bytes        INTEGER NOT NULL DEFAULT 0,
+    last_write   REAL
 );
 CREATE TABLE IF NOT EXISTS poses (
     stream TEXT NOT NULL,
@@ -111,7 +115,7 @@ class StreamRecord:
     snapshot_seq: int | None
 
 
-class TrajectoryStore(SqliteLeases, SnapshotFile):
+class TrajectoryStore(SqliteLeases, SnapshotFile, SqliteRetention):
     """Two SQLite connections shared by the worker's stream lanes, each behind its lock: the frames' file and the
     snapshots' file (services/README.md). SQLite has one writer per file anyway."""
 
@@ -126,6 +130,7 @@ class TrajectoryStore(SqliteLeases, SnapshotFile):
         self._writer_nice = os.getpriority(os.PRIO_PROCESS, 0)  # the opening thread's: _write_lock holds writers at it
         self._move_old_snapshots()
         self._add_snapshot_epochs()
+        self._add_retention_columns()
         # reads on a connection of their own (WAL: a reader never waits for the writer): a restore reading megabytes
         # of cold tiles held every stream's commit behind the one connection's lock
         self.read_db = self.db if self.path == ":memory:" else connect(self.path, synchronous, busy_timeout_s, "")
@@ -224,11 +229,12 @@ class TrajectoryStore(SqliteLeases, SnapshotFile):
         new_trajectory: bool = False,
         *,
         epoch: int | None = None,
+        client: str | None = None,
     ) -> dict[str, float]:
         """One frame, atomically, before its pose is published: the pose and the journal entry. new_trajectory first
         drops everything of the stream. What the frame does to the map after that is finish_frame's. Returns where
         the time went, in ms: "lock" (this store's other writers), "begin" (other processes'), "commit". Given
-        `epoch`, FencedError and nothing written if the stream's lease has moved on."""
+        `epoch`, FencedError and nothing written if the stream's lease has moved on. `client`: whose the stream is now."""
         pose_bytes = np.ascontiguousarray(pose, np.float64).reshape(4, 4).tobytes()
 
         def tx(db):
@@ -236,15 +242,18 @@ class TrajectoryStore(SqliteLeases, SnapshotFile):
             if new_trajectory:
                 for table in _PER_STREAM:
                     db.execute(f"DELETE FROM {table} WHERE stream=?", (stream,))
-                db.execute("INSERT OR REPLACE INTO streams VALUES (?, ?, NULL, NULL)", (stream, time.time()))
+                db.execute("INSERT OR REPLACE INTO streams (stream, created) VALUES (?, ?)", (stream, time.time()))
             elif db.execute("SELECT 1 FROM streams WHERE stream=?", (stream,)).fetchone() is None:
-                db.execute("INSERT INTO streams VALUES (?, ?, NULL, NULL)", (stream, time.time()))
+                db.execute("INSERT INTO streams (stream, created) VALUES (?, ?)", (stream, time.time()))
             db.execute(
                 "INSERT OR REPLACE INTO poses VALUES (?, ?, ?, ?, ?, ?)",
                 (stream, seq, float(stamp), digest, status, pose_bytes),
             )
             db.execute("INSERT OR REPLACE INTO journal VALUES (?, ?, ?)", (stream, seq, frame_blob))
             db.execute("UPDATE streams SET last_seq=? WHERE stream=?", (seq, stream))
+            db.execute(COMMIT_USAGE, (time.time(), grown, new_trajectory, client, stream))
+
+        grown = frame_bytes(digest, frame_blob)
 
         phases: dict[str, float] = {}
         self._write(tx, phases)
@@ -282,6 +291,8 @@ class TrajectoryStore(SqliteLeases, SnapshotFile):
                 "INSERT OR REPLACE INTO cold_tiles VALUES (?, ?, ?, ?, NULL, ?)",
                 [(stream, ix, iy, seq, blob) for (ix, iy), blob in blobs.items()],
             )
+            if blobs:
+                db.execute(GROW, (sum(map(len, blobs.values())), stream))
 
         blobs = {k: pack_arrays(b) for k, b in (evicted or {}).items()}  # before the lock
         self._write_unsynced(tx)

@@ -85,8 +85,10 @@ class Store(Protocol):
         new_trajectory: bool = False,
         *,
         epoch: int | None = None,
+        client: str | None = None,
     ) -> dict[str, float]:
-        """The frame's pose and journal entry, durable when it returns; where the time went, ms."""
+        """The frame's pose and journal entry, durable when it returns; where the time went, ms. `client`: the
+        stream's client now (retention), its bytes and last write updated in the same transaction."""
         ...
 
     def finish_frame(
@@ -115,6 +117,14 @@ class Store(Protocol):
     def release(self, stream: str, owner: str) -> bool: ...
     def owner_of(self, stream: str) -> str | None: ...
     def leases(self) -> list[Lease]: ...
+
+    # retention (services/store_retention.py)
+    def usage(self, client: str) -> tuple[int, int]: ...  # (streams, bytes) of a client
+    def usage_of(self, client: str) -> tuple[int, int, int]: ...  # and its biggest stream's bytes
+    def overhead(self) -> float: ...  # the store's pages in use over the streams' bytes (SQLite; PostgreSQL 1)
+    def stream_usage(self, stream: str) -> tuple[str | None, int, float] | None: ...  # (client, bytes, last write)
+    def idle_streams(self, before: float, client: str | None = None) -> list[str]: ...
+    def measure(self, stream: str) -> int: ...
 
     # housekeeping
     def sizes(self, stream: str) -> dict[str, int]: ...

@@ -23,6 +23,7 @@ from occvo_services.pg_pool import PgPool
 from occvo_services.store import StoredPose, StreamRecord, _pose
 from occvo_services.store_api import FencedError, StoreUnavailable
 from occvo_services.store_blobs import unpack_frame
+from occvo_services.store_retention import COMMIT_USAGE, GROW, PG_RETENTION_SCHEMA, PgRetention, frame_bytes
 
 # blobs are stored as they are (STORAGE EXTERNAL): compressing a frame or a snapshot costs CPU in the commit's path
 SCHEMA = """
@@ -73,6 +74,7 @@ CREATE TABLE IF NOT EXISTS leases (
     expires_at TIMESTAMPTZ NOT NULL
 );
 """
+SCHEMA += PG_RETENTION_SCHEMA  # a database made before retention gets its columns
 _PER_STREAM = ("poses", "journal", "cold_tiles")
 _COPY_HEAD = b"PGCOPY\n\xff\r\n\x00" + struct.pack("!ii", 0, 0)
 
@@ -81,7 +83,7 @@ def _field(data: bytes) -> bytes:
     return struct.pack("!i", len(data)) + data
 
 
-class PgTrajectoryStore(PgLeases):
+class PgTrajectoryStore(PgLeases, PgRetention):
     """TrajectoryStore's methods (services/store_api.Store) on a PostgreSQL database, by URL."""
 
     def __init__(self, url: str, synchronous: str = "FULL", pool_size: int = 4):
@@ -129,12 +131,14 @@ class PgTrajectoryStore(PgLeases):
         new_trajectory: bool = False,
         *,
         epoch: int | None = None,
+        client: str | None = None,
     ) -> dict[str, float]:
         """One frame, atomically and durably, before its pose is published (TrajectoryStore.commit_frame). Returns
         where the time went, ms: "lock" (waiting for a connection), "begin" (the lease, or a takeover holding it),
         "commit"."""
         pose_bytes = np.ascontiguousarray(pose, np.float64).reshape(4, 4).tobytes()
         phases: dict[str, float] = {}
+        grown = frame_bytes(digest, frame_blob)
 
         def tx(conn):
             t0 = time.perf_counter()
@@ -167,6 +171,7 @@ class PgTrajectoryStore(PgLeases):
                     "ON CONFLICT (stream, seq) DO UPDATE SET frame = excluded.frame",
                     (stream, seq, frame_blob),
                 )
+                conn.execute(self._sql(COMMIT_USAGE), (time.time(), grown, new_trajectory, client, stream))
                 t2 = time.perf_counter()
             phases["begin"], phases["commit"] = (t1 - t0) * 1000.0, (time.perf_counter() - t2) * 1000.0
 
@@ -210,6 +215,7 @@ class PgTrajectoryStore(PgLeases):
                         "excluded.block",
                         [(stream, ix, iy, seq, blob) for (ix, iy), blob in blobs.items()],
                     )
+                    cur.execute(self._sql(GROW), (sum(map(len, blobs.values())), stream))
 
         self.pool.run(tx)
 

@@ -101,6 +101,13 @@ class WorkerConfig(BaseModel):
     # None: every snapshot_every frames whatever they cost
     snapshot_max_share: float | None = Field(0.02, gt=0, le=1)
     working_radius_m: float | None = Field(None, gt=0)  # registration: map farther from the ego goes to the store
+    # registration with a store (services/registration/retention.py): what one client (client_identity) may keep in
+    # it; over either, its frames that would grow the store are refused (store_quota). None: no limit
+    max_store_mb_per_client: int | None = Field(1024, ge=1)
+    max_stored_streams_per_client: int | None = Field(1000, ge=1)
+    # registration: a stored stream without a frame this long is deleted (trajectory, journal, snapshot, cold tiles
+    # and, in the same store, its map); None: kept until `occvo store delete` (docs/service.md says why by default)
+    stream_ttl_s: float | None = Field(None, gt=0)
     store_sync: Literal["full", "normal"] = (
         "full"  # registration: SQLite synchronous; normal survives kill -9, not power loss
     )

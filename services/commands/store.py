@@ -15,7 +15,7 @@ def add_parser(subparsers) -> None:
     p = subparsers.add_parser("store", help="list, export and delete the streams of a store")
     sub = p.add_subparsers(dest="action", required=True, metavar="ACTION", help="list, export or delete")
     for name, what in (
-        ("list", "every stream: last seq, poses, bytes, map tiles, last write"),
+        ("list", "every stream: client, last seq, poses, bytes, map tiles, start"),
         ("export", "a stream's stored trajectory as a TUM or KITTI file"),
         ("delete", "a stream's trajectory, journal, snapshots and map"),
     ):
@@ -49,9 +49,11 @@ def run(args) -> int:
             rows = []
             for stream in sorted(set(store.streams()) | set(maps.streams())):
                 rec, sizes, info = store.record(stream), store.sizes(stream), maps.info(stream)
+                usage = store.stream_usage(stream)
                 rows.append(
                     {
                         "stream": stream,
+                        "client": None if usage is None else usage[0],
                         "last_seq": None if rec is None else rec.last_seq,
                         "poses": sizes["poses_rows"],
                         "bytes": sum(v for k, v in sizes.items() if k.endswith("_bytes")),
@@ -60,7 +62,7 @@ def run(args) -> int:
                     }
                 )
             text = "\n".join(
-                f"{r['stream']}: last seq {r['last_seq']}, {r['poses']} poses, {r['bytes']} bytes, {r['map_tiles']} "
+                f"{r['stream']}: client {r['client'] or '-'}, last seq {r['last_seq']}, {r['poses']} poses, {r['bytes']} bytes, {r['map_tiles']} "
                 f"map tiles, started {_when(r['created'])}"
                 for r in rows
             )

@@ -48,6 +48,7 @@ class StreamSession:
         self.refused_seq: int | None = None  # a frame the store refused: the ones after it wait for it
         self.entered = 0  # frames that entered the lane: the work after a pose sees whether another came
         self.epoch: int | None = None  # placement "members": the fencing epoch of this worker's lease on the stream
+        self.client: str | None = None  # whose frames these are (the worker's admission): the store records it
         self.complete_ms = self.restore_ms = self.evict_ms = 0.0
 
     def load_trajectory(self) -> None:
@@ -281,6 +282,7 @@ class StreamSession:
                     job.pose_m,
                     pack_frame(job.frame, job.tables),
                     new_trajectory=job.restart,
+                    client=self.client,
                     **self.fence(),
                 )
             except Exception as exc:  # noqa: BLE001 - e.g. disk full: publish nothing the store lacks

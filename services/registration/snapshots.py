@@ -29,6 +29,7 @@ class SnapshotSchedule:
         self.idle = threading.Event()  # no snapshot of this stream queued or being written
         self.idle.set()
         self.retry = False  # the last snapshot failed: take one at the next frame
+        self.written_bytes = 0  # the state the last snapshot wrote (services/registration/retention.py)
 
     def restart(self, frames: int = 0) -> None:
         self.since, self.since_t = frames, time.monotonic()
@@ -82,6 +83,8 @@ class SnapshotWriter:
         try:
             if self.store.write_snapshot(stream, seq, state, created, **fence):
                 self.stats.inc("snapshots")
+                schedule.written_bytes = state_bytes(state)
+                self.store.measure(stream)  # its stored bytes, the journal covered gone (a client's store quota)
             took = time.perf_counter() - t0
             schedule.since_t = time.monotonic()
             self._s_per_byte = took / max(1, state_bytes(state))

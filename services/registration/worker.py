@@ -18,6 +18,7 @@ from occvo_services.registration.frame_job import SessionContext
 from occvo_services.registration.membership import Leases, Placement
 from occvo_services.registration.paging import MIN_SAFE_RADIUS_M
 from occvo_services.registration.queries import Queries
+from occvo_services.registration.retention import Retention
 from occvo_services.registration.scheduling import CatchUp, Scheduler
 from occvo_services.registration.session import StreamSession
 from occvo_services.registration.snapshots import SnapshotWriter
@@ -73,6 +74,7 @@ class RegistrationWorker(Worker):
             catch_up=CatchUp(),
         )  # fmt: skip
         self.queries = Queries(self)
+        self.retention = Retention(self) if self.store is not None else None
         if self.store is not None and self.placement is None:
             for stream in filter(self.owns, self.store.streams()):  # queries answer at once; resumed at the next frame
                 self.session_of(stream).load_trajectory()
@@ -125,7 +127,15 @@ class RegistrationWorker(Worker):
         return FRAME_MB_PER_VOXEL * msg.occupancy.labels.shape[0]
 
     def _route(self, stream: str, item) -> None:
-        self.session_of(stream).handle(item)
+        """A frame to its session, unless its client is at its store quota (services/registration/retention.py)."""
+        client, seq = self.admission.owner(stream), item[0].seq
+        if self.retention is not None and (why := self.retention.refuse(stream, client, seq)) is not None:
+            self.stats.inc("frames_refused_quota")
+            self.report_error(stream, "store_quota", why, keys.occupancy(stream), seq)
+            return
+        session = self.session_of(stream)
+        session.client = client
+        session.handle(item)
 
     def retire_stream(self, stream: str) -> None:
         session = self.sessions.get(stream)
@@ -163,6 +173,7 @@ class RegistrationWorker(Worker):
         if self.evict_off:
             log_event(self.log, "working_radius_m ignored: eviction needs store_path (the evicted map goes there)")
         if self.store is not None:
+            self.retention.start()
             log_event(
                 self.log,
                 "trajectory store",
@@ -170,6 +181,9 @@ class RegistrationWorker(Worker):
                 streams=sorted(self.sessions),
                 working_radius_m=c.working_radius_m,
                 snapshot_every=c.snapshot_every,
+                max_store_mb_per_client=c.max_store_mb_per_client,
+                max_stored_streams_per_client=c.max_stored_streams_per_client,
+                stream_ttl_s=c.stream_ttl_s,
             )
             if c.working_radius_m is not None and c.working_radius_m < MIN_SAFE_RADIUS_M:
                 log_event(
@@ -203,6 +217,7 @@ class RegistrationWorker(Worker):
                 s.threads.close()
         if self.store is None:
             return
+        self.retention.stop()
         t0 = time.perf_counter()
         self.ctx.snapshots.close()
         self._shutdown_step("queued snapshots written", t0)
@@ -253,6 +268,9 @@ def _args(p) -> None:
         help="members: the live registration workers share the streams, each under a lease in the shared store",
     )
     p.add_argument("--lease-s", type=float, help="placement members: how long a silent owner keeps its streams")
+    p.add_argument("--max-store-mb-per-client", type=int, help="store bytes one client may keep (MB)")
+    p.add_argument("--max-stored-streams-per-client", type=int, help="stored streams one client may keep")
+    p.add_argument("--stream-ttl-s", type=float, help="a stored stream idle this long is deleted (default: kept)")
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -45,6 +45,7 @@ def test_store_lists_exports_and_deletes_streams(store_url, scene, tmp_path, cap
     assert all(
         r["last_seq"] == 2 and r["poses"] == 3 and r["map_tiles"] > 0 and r["bytes"] > 0 for r in listed.values()
     )
+    assert listed["keep"]["client"] and listed["keep"]["client"] != listed["drop"]["client"]  # one session each
 
     out = tmp_path / "keep.tum"
     assert _run(capsys, "export", "keep", "--store", store_url, "--out", str(out))["poses"] == 3

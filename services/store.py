@@ -135,6 +135,7 @@ class TrajectoryStore(SqliteLeases, SnapshotFile, SqliteRetention):
         # of cold tiles held every stream's commit behind the one connection's lock
         self.read_db = self.db if self.path == ":memory:" else connect(self.path, synchronous, busy_timeout_s, "")
         self.read_lock = self.lock if self.read_db is self.db else threading.Lock()
+        self.measure_overhead()
         self._checkpointer = None
         if self.path != ":memory:":
             # the frames' WAL is copied into the file by a thread of its own, not by the commit that crosses SQLite's

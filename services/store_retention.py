@@ -69,11 +69,14 @@ class RetentionReads:
                 )[0][0]
             )
         self._set_bytes(stream, n)
+        self.measure_overhead()
         return n
 
 
 class SqliteRetention(RetentionReads):
     """The SQLite side: the columns added to an older file, the index, the writes."""
+
+    _overhead: float | None = None
 
     def _add_retention_columns(self) -> None:
         with self._write_lock():
@@ -92,7 +95,14 @@ class SqliteRetention(RetentionReads):
 
     def overhead(self) -> float:
         """The files' pages in use over the bytes the streams record (at least 1): SQLite's pages, B-trees and
-        indexes, charged to every stream in proportion. Free pages are left out: the next writes reuse them."""
+        indexes, charged to every stream in proportion. As of the store's opening or last measure: a frame's path
+        reads it, and the snapshot file's lock can be held by a snapshot waiting out another writer."""
+        if self._overhead is None:
+            self.measure_overhead()
+        return self._overhead
+
+    def measure_overhead(self) -> None:
+        """Free pages are left out: the next writes reuse them."""
         used = 0
         for db, lock in ((self.read_db, self.read_lock), (self.snap_db, self.snap_lock)):
             with lock:
@@ -101,7 +111,7 @@ class SqliteRetention(RetentionReads):
                 )
             used += (count - free) * page
         (total,) = self._read("SELECT COALESCE(SUM(bytes), 0) FROM streams")[0]
-        return max(1.0, used / total) if total else 1.0
+        self._overhead = max(1.0, used / total) if total else 1.0
 
     def _slack(self, stream: str) -> int:
         """The snapshot's last page's unused part: a snapshot takes whole pages of its file (64 kB ones)."""
@@ -124,6 +134,9 @@ class PgRetention(RetentionReads):
 
     def overhead(self) -> float:
         return 1.0  # the rows' bytes: the server's own files are the operator's
+
+    def measure_overhead(self) -> None:
+        pass
 
     def _slack(self, stream: str) -> int:
         return 0  # TOAST stores a blob in ~2 kB chunks: no page of its own to round up to

@@ -33,15 +33,15 @@ def _null_vector(a00, a01, a02, a11, a12, a22, lam):
 
 @njit(cache=CACHE, nogil=True, inline="always")
 def _smallest_eigenvector(a00, a01, a02, a11, a12, a22):
-    """Unit eigenvector of the smallest eigenvalue of a symmetric 3x3 matrix (closed form, no allocation). Where
-    that eigenvalue is double (a line of voxels: any normal across it fits), the one nearest z: the choice must
-    not depend on which way the x and y axes point, and z is the one axis a turn about z keeps."""
+    """(unit eigenvector of the smallest eigenvalue of a symmetric 3x3 matrix, whether it is one) (closed form, no
+    allocation). Where that eigenvalue is double (a line of voxels, a pole) no normal across the line is the plane's:
+    any pick would turn with the axes (and z, the one a turn keeps, lies along a pole), so there is none."""
     p1 = a01 * a01 + a02 * a02 + a12 * a12
     q = (a00 + a11 + a22) / 3.0
     p2 = (a00 - q) ** 2 + (a11 - q) ** 2 + (a22 - q) ** 2 + 2.0 * p1
     p = np.sqrt(p2 / 6.0)
     if p < 1e-12 * max(abs(q), 1e-300) or p == 0.0:
-        return 0.0, 0.0, 1.0  # isotropic: no preferred normal
+        return 0.0, 0.0, 1.0, True  # isotropic: no preferred normal
     b00, b11, b22 = (a00 - q) / p, (a11 - q) / p, (a22 - q) / p
     b01, b02, b12 = a01 / p, a02 / p, a12 / p
     r = (b00 * (b11 * b22 - b12 * b12) - b01 * (b01 * b22 - b12 * b02) + b02 * (b01 * b12 - b11 * b02)) / 2.0
@@ -52,15 +52,8 @@ def _smallest_eigenvector(a00, a01, a02, a11, a12, a22):
     if mid - lam > 1e-6 * p:
         nx, ny, nz = _null_vector(a00, a01, a02, a11, a12, a22, lam)
         if nx != 0.0 or ny != 0.0 or nz != 0.0:
-            return nx, ny, nz
-    # a double smallest root: the normal is any unit vector across the line of the largest root's eigenvector v
-    vx, vy, vz = _null_vector(a00, a01, a02, a11, a12, a22, q + 2.0 * p * np.cos(phi))
-    nx, ny, nz = -vz * vx, -vz * vy, 1.0 - vz * vz  # z less its part along v
-    n2 = nx * nx + ny * ny + nz * nz
-    if n2 < 1e-12:
-        return 0.0, 0.0, 1.0  # a vertical line: no normal across it is nearer z than another
-    s = 1.0 / np.sqrt(n2)
-    return nx * s, ny * s, nz * s
+            return nx, ny, nz, True
+    return 0.0, 0.0, 0.0, False  # a double smallest root: a line
 
 
 @njit(cache=CACHE, nogil=True, parallel=True)
@@ -97,20 +90,21 @@ def plane_covariances(ijk, grid, shape, radius, epsilon):
                     syy += dj * dj
                     syz += dj * dk
                     szz += dk * dk
-        if cnt < 3:  # too few neighbours for a surface: isotropic
+        nx, ny, nz, plane = 0.0, 0.0, 1.0, False
+        if cnt >= 3:  # cnt^2 times the scatter matrix, in whole numbers
+            nx, ny, nz, plane = _smallest_eigenvector(
+                float(cnt * sxx - sx * sx),
+                float(cnt * sxy - sx * sy),
+                float(cnt * sxz - sx * sz),
+                float(cnt * syy - sy * sy),
+                float(cnt * syz - sy * sz),
+                float(cnt * szz - sz * sz),
+            )
+        if not plane:  # too few neighbours, or a line: isotropic
             for a in range(3):
                 for b in range(3):
                     covs[n, a, b] = 1.0 if a == b else 0.0
             continue
-        # cnt^2 times the scatter matrix, in whole numbers
-        nx, ny, nz = _smallest_eigenvector(
-            float(cnt * sxx - sx * sx),
-            float(cnt * sxy - sx * sy),
-            float(cnt * sxz - sx * sz),
-            float(cnt * syy - sy * sy),
-            float(cnt * syz - sy * sz),
-            float(cnt * szz - sz * sz),
-        )
         s = 1.0 - epsilon
         covs[n, 0, 0] = 1.0 - s * nx * nx
         covs[n, 1, 1] = 1.0 - s * ny * ny

@@ -33,9 +33,10 @@ def _null_vector(a00, a01, a02, a11, a12, a22, lam):
 
 @njit(cache=CACHE, nogil=True, inline="always")
 def _smallest_eigenvector(a00, a01, a02, a11, a12, a22):
-    """(unit eigenvector of the smallest eigenvalue of a symmetric 3x3 matrix, whether it is one) (closed form, no
-    allocation). Where that eigenvalue is double (a line of voxels, a pole) no normal across the line is the plane's:
-    any pick would turn with the axes (and z, the one a turn keeps, lies along a pole), so there is none."""
+    """(unit eigenvector of the smallest eigenvalue of a symmetric 3x3 matrix, True) (closed form, no allocation);
+    where that eigenvalue is double (a line of voxels, a pole), (unit eigenvector of the largest, along the line,
+    False): no normal across a line is the plane's, and any pick would turn with the axes (z, the one a turn keeps,
+    lies along a pole)."""
     p1 = a01 * a01 + a02 * a02 + a12 * a12
     q = (a00 + a11 + a22) / 3.0
     p2 = (a00 - q) ** 2 + (a11 - q) ** 2 + (a22 - q) ** 2 + 2.0 * p1
@@ -53,7 +54,8 @@ def _smallest_eigenvector(a00, a01, a02, a11, a12, a22):
         nx, ny, nz = _null_vector(a00, a01, a02, a11, a12, a22, lam)
         if nx != 0.0 or ny != 0.0 or nz != 0.0:
             return nx, ny, nz, True
-    return 0.0, 0.0, 0.0, False  # a double smallest root: a line
+    vx, vy, vz = _null_vector(a00, a01, a02, a11, a12, a22, q + 2.0 * p * np.cos(phi))  # a double smallest root
+    return vx, vy, vz, False
 
 
 @njit(cache=CACHE, nogil=True, parallel=True)
@@ -90,7 +92,7 @@ def plane_covariances(ijk, grid, shape, radius, epsilon):
                     syy += dj * dj
                     syz += dj * dk
                     szz += dk * dk
-        nx, ny, nz, plane = 0.0, 0.0, 1.0, False
+        nx, ny, nz, plane = 0.0, 0.0, 0.0, False
         if cnt >= 3:  # cnt^2 times the scatter matrix, in whole numbers
             nx, ny, nz, plane = _smallest_eigenvector(
                 float(cnt * sxx - sx * sx),
@@ -100,18 +102,17 @@ def plane_covariances(ijk, grid, shape, radius, epsilon):
                 float(cnt * syz - sy * sz),
                 float(cnt * szz - sz * sz),
             )
-        if not plane:  # too few neighbours, or a line: isotropic
-            for a in range(3):
-                for b in range(3):
-                    covs[n, a, b] = 1.0 if a == b else 0.0
-            continue
-        s = 1.0 - epsilon
-        covs[n, 0, 0] = 1.0 - s * nx * nx
-        covs[n, 1, 1] = 1.0 - s * ny * ny
-        covs[n, 2, 2] = 1.0 - s * nz * nz
-        covs[n, 0, 1] = covs[n, 1, 0] = -s * nx * ny
-        covs[n, 0, 2] = covs[n, 2, 0] = -s * nx * nz
-        covs[n, 1, 2] = covs[n, 2, 1] = -s * ny * nz
+        # d I + c u u^T: a plane (u its normal) eps along u and 1 across it; a line (u along it) 1 along u and eps
+        # across it every way; too few neighbours (u zero): isotropic
+        d, c = (1.0, epsilon - 1.0) if plane else (epsilon, 1.0 - epsilon)
+        if not plane and nx == 0.0 and ny == 0.0 and nz == 0.0:
+            d = 1.0
+        covs[n, 0, 0] = d + c * nx * nx
+        covs[n, 1, 1] = d + c * ny * ny
+        covs[n, 2, 2] = d + c * nz * nz
+        covs[n, 0, 1] = covs[n, 1, 0] = c * nx * ny
+        covs[n, 0, 2] = covs[n, 2, 0] = c * nx * nz
+        covs[n, 1, 2] = covs[n, 2, 1] = c * ny * nz
     return covs
 
 

@@ -1,12 +1,19 @@
 """Accuracy on protocols that cannot overfit: real scenes four ways, synthetic seeds to choose and others to confirm.
 
-    python benchmarks/accuracy.py [--sets real choose confirm] [--config A.json5 ...] [--output FILE] [--jobs 2]
+    python benchmarks/accuracy.py [--sets dihedral real choose confirm] [--config A.json5 ...] [--output FILE]
+                                  [--jobs 2]
 
 real     every scene in ../shared/data/occvo-sample run four ways (benchmarks/time_offset.py's variants: forward,
          reversed, turned 180 degrees, both). From the four best time shifts of a scene: its data offset d and the
          lean e fixed in the ego frame (which a source selection that prefers a direction in the ego frame gives).
 choose   synthetic seeds 0-19 (default noise): where settings are compared.
 confirm  synthetic seeds 100-119: only to confirm a choice, never to make one.
+dihedral every real scene and every confirming seed run eight ways: every frame turned about z by 0, 90, 180 and
+         270 degrees (exact on the 0.4 m lattice), each forward and reversed in time; the ground truth turned with
+         them (R G R^-1) and reversed (order and stamps). An odometry with no preferred direction turns its
+         trajectory and changes nothing else: per scene (or seed) and time direction, the spread (max - min) of each
+         figure over the four turns; per seed, the APE spread over all eight. Each variant's ground truth and
+         estimate are written to a temporary directory as TUM files and scored by `occvo eval --fit-time-offset`.
 Per run: plain APE (the paper's metric), time-fitted APE (occvo_core.time_fit), path-length ratio (estimate over
 truth), best time shift; synthetic runs also map precision and completion. Per set: mean, worst, success ratio.
 Several --config files (JSON5 OccVOConfig overrides; "default" for the built-in one) are run side by side.
@@ -18,8 +25,12 @@ the figures are the same on every x86-64 machine with AVX2.
 from __future__ import annotations
 
 import argparse
+import contextlib
+import io
 import json
+import os
 import sys
+import tempfile
 from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
@@ -34,6 +45,8 @@ from occvo_core.time_fit import fit_time_offset
 from occvo_core.trajectory_stats import path_length
 
 SETS = {"choose": range(0, 20), "confirm": range(100, 120)}
+TURNS = (0, 90, 180, 270)  # degrees about z
+DIRECTIONS = ("forward", "reversed")
 
 
 def load_config(spec: str) -> OccVOConfig:
@@ -51,8 +64,9 @@ def synthetic(seed: int, cache: Path) -> tuple[list, np.ndarray, tuple]:
         points, labels = scene.static_map()
         sizes = np.array([len(f.labels) for f in frames])
         cache.mkdir(parents=True, exist_ok=True)
+        tmp = path.with_suffix(f".{os.getpid()}.tmp.npz")  # two processes may render one seed at once
         np.savez(
-            path.with_suffix(".tmp.npz"),
+            tmp,
             sizes=sizes,
             points=np.concatenate([f.points for f in frames]),
             labels=np.concatenate([f.labels for f in frames]),
@@ -60,7 +74,7 @@ def synthetic(seed: int, cache: Path) -> tuple[list, np.ndarray, tuple]:
             map_points=points,
             map_labels=labels,
         )
-        path.with_suffix(".tmp.npz").rename(path)
+        os.replace(tmp, path)
     z = np.load(path)
     cut = np.cumsum(z["sizes"])[:-1]
     frames = [
@@ -68,6 +82,71 @@ def synthetic(seed: int, cache: Path) -> tuple[list, np.ndarray, tuple]:
         for i, (p, lab) in enumerate(zip(np.split(z["points"], cut), np.split(z["labels"], cut)))
     ]
     return frames, z["gt"], (z["map_points"], z["map_labels"])
+
+
+def turn_matrix(degrees: int) -> np.ndarray:
+    """4x4 turn about z by a multiple of 90 degrees, exact (entries 0 and +-1)."""
+    c, s = {0: (1, 0), 90: (0, 1), 180: (-1, 0), 270: (0, -1)}[degrees]
+    out = np.eye(4)
+    out[:2, :2] = [[c, -s], [s, c]]
+    return out
+
+
+def variant(frames: list, gt: np.ndarray, degrees: int, direction: str) -> tuple[list, np.ndarray]:
+    """The drive with every frame turned about z (its ego turned the other way: poses R G R^-1) and, reversed,
+    run backwards in time (frames and poses in reverse order, stamps counted from the new first frame)."""
+    turn = turn_matrix(degrees)
+    frames = [
+        OccupancyFrame(np.ascontiguousarray(f.points @ turn[:3, :3].T), f.labels, f.index, f.stamp) for f in frames
+    ]
+    gt = turn @ np.asarray(gt) @ turn.T
+    if direction == "reversed":
+        frames, gt = frames[::-1], gt[::-1]
+    return [OccupancyFrame(f.points, f.labels, i, i / 2.0) for i, f in enumerate(frames)], gt
+
+
+def real_scene(name: str) -> tuple[list, np.ndarray]:
+    from occvo_core.datasets import OccVOReleaseScene
+
+    source = OccVOReleaseScene(SAMPLE / "occupancy" / name)
+    return [source[i] for i in range(len(source))], np.asarray(source.gt_poses)
+
+
+def occvo_eval(gt: np.ndarray, est: np.ndarray, tmp: Path) -> dict:
+    """`occvo eval --fit-time-offset --json` on the trajectories, written as TUM files at 2 Hz stamps."""
+    from occvo_cli.cli import main as occvo_main
+    from occvo_core.trajectory import write_tum
+
+    stamps = np.arange(len(gt)) / 2.0
+    write_tum(tmp / "gt.tum", np.linalg.inv(gt[0]) @ gt, stamps)
+    write_tum(tmp / "est.tum", est, stamps)
+    out = io.StringIO()
+    with contextlib.redirect_stdout(out):
+        code = occvo_main(
+            ["eval", "--gt", str(tmp / "gt.tum"), "--est", str(tmp / "est.tum"), "--fit-time-offset", "--json"]
+        )
+    if code != 0:
+        raise RuntimeError(f"occvo eval failed ({code}): {out.getvalue()}")
+    return json.loads(out.getvalue())
+
+
+def score_variant(frames: list, gt: np.ndarray, config: OccVOConfig) -> dict:
+    vo = OccVO(config, threads=1)
+    for frame in frames:
+        vo.step(frame)
+    est = vo.poses
+    with tempfile.TemporaryDirectory(prefix="occvo-dihedral-") as tmp:
+        e = occvo_eval(gt, est, Path(tmp))
+    return {
+        "ape_m": e["rmse"],
+        "ape_time_fitted_m": e["ape_rmse_time_fitted_m"],
+        "time_offset_ms": e["time_offset_ms"],
+        "path_ratio": path_length(est) / path_length(np.linalg.inv(gt[0]) @ gt),
+    }
+
+
+def render(seed: int, cache: str) -> None:
+    synthetic(seed, Path(cache))
 
 
 def score(frames: list, gt: np.ndarray, config: OccVOConfig, truth_map=None) -> dict:
@@ -95,6 +174,10 @@ def score(frames: list, gt: np.ndarray, config: OccVOConfig, truth_map=None) -> 
 def job(args: tuple) -> tuple:
     spec, kind, key, cache = args
     config = load_config(spec)
+    if kind == "dihedral":
+        scene, degrees, direction = key
+        frames, gt = real_scene(scene) if isinstance(scene, str) else synthetic(scene, Path(cache))[:2]
+        return spec, kind, key, score_variant(*variant(frames, gt, degrees, direction), config)
     if kind == "real":
         name, way = key
         frames, gt = four_ways(SAMPLE, name)[way]
@@ -119,6 +202,39 @@ def summarise(rows: dict) -> dict:
     return out
 
 
+def dihedral_summary(rows: dict) -> dict:
+    """Per scene (or seed) and time direction, the spread (max - min) over the four turns; per seed, the APE spread
+    over all eight; over the real scenes and over the seeds, mean and worst."""
+    out: dict = {"scenes": {}}
+    figures = ("ape_m", "ape_time_fitted_m", "time_offset_ms")
+    for scene in sorted({k[0] for k in rows}, key=str):
+        entry = {}
+        for direction in DIRECTIONS:
+            runs = [rows[(scene, d, direction)] for d in TURNS]
+            entry[direction] = {f"{f}_spread": float(np.ptp([r[f] for r in runs])) for f in figures}
+        entry["ape_m_spread_all"] = float(np.ptp([r["ape_m"] for k, r in rows.items() if k[0] == scene]))
+        out["scenes"][str(scene)] = entry
+    for group, real in (("real", True), ("synthetic", False)):
+        scenes = [k for k in {k[0] for k in rows} if isinstance(k, str) == real]
+        if not scenes:
+            continue
+        sel = [r for k, r in rows.items() if k[0] in scenes]
+        spreads = [out["scenes"][str(k)] for k in scenes]
+        out[group] = {
+            "mean_ape_m": float(np.mean([r["ape_m"] for r in sel])),
+            "worst_ape_m": float(np.max([r["ape_m"] for r in sel])),
+            "mean_ape_time_fitted_m": float(np.mean([r["ape_time_fitted_m"] for r in sel])),
+            "worst_ape_time_fitted_m": float(np.max([r["ape_time_fitted_m"] for r in sel])),
+            "worst_turn_spread_ape_m": max(e[d]["ape_m_spread"] for e in spreads for d in DIRECTIONS),
+            "worst_turn_spread_ape_time_fitted_m": max(
+                e[d]["ape_time_fitted_m_spread"] for e in spreads for d in DIRECTIONS
+            ),
+            "worst_turn_spread_time_offset_ms": max(e[d]["time_offset_ms_spread"] for e in spreads for d in DIRECTIONS),
+            "worst_spread_all_ape_m": max(e["ape_m_spread_all"] for e in spreads),
+        }
+    return out
+
+
 def leans(real: dict) -> dict:
     """Per scene: data offset d and ego-frame lean e from its four runs' best shifts (time_offset.py's algebra)."""
     out = {}
@@ -131,7 +247,9 @@ def leans(real: dict) -> dict:
 
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--sets", nargs="+", default=["real", "choose", "confirm"], choices=["real", "choose", "confirm"])
+    p.add_argument(
+        "--sets", nargs="+", default=["real", "choose", "confirm"], choices=["dihedral", "real", "choose", "confirm"]
+    )
     p.add_argument("--config", nargs="+", default=["default"], help="OccVOConfig JSON5 files, or 'default'")
     p.add_argument("--seeds", type=int, default=20, help="seeds of each synthetic set (the first N)")
     p.add_argument("--cache", default="/tmp/occvo-accuracy-cache")
@@ -142,9 +260,13 @@ def main(argv=None) -> int:
     args.cache = str(Path(args.cache) / fp)
     print(f"floating point: {fp}")
     scenes = sorted(d.name for d in (SAMPLE / "occupancy").iterdir()) if (SAMPLE / "occupancy").is_dir() else []
-    if "real" in args.sets and not scenes:
+    if ("real" in args.sets or "dihedral" in args.sets) and not scenes:
         print(f"no real scenes at {SAMPLE}", file=sys.stderr)
-    jobs = [(c, "real", (s, w), args.cache) for c in args.config if "real" in args.sets for s in scenes for w in RUNS]
+    keys = scenes + list(SETS["confirm"])[: args.seeds] if "dihedral" in args.sets else []
+    jobs = [
+        (c, "dihedral", (k, d, w), args.cache) for c in args.config for k in keys for w in DIRECTIONS for d in TURNS
+    ]
+    jobs += [(c, "real", (s, w), args.cache) for c in args.config if "real" in args.sets for s in scenes for w in RUNS]
     jobs += [
         (c, k, seed, args.cache)
         for c in args.config
@@ -154,6 +276,11 @@ def main(argv=None) -> int:
     ]
     results: dict = {c: {} for c in args.config}
     with ProcessPoolExecutor(args.jobs) as pool:
+        seeds = sorted(
+            {key for _, kind, key, _ in jobs if kind in SETS}
+            | {key[0] for _, kind, key, _ in jobs if kind == "dihedral" and not isinstance(key[0], str)}
+        )
+        list(pool.map(render, seeds, [args.cache] * len(seeds)))  # each seed once, before the runs that share it
         for spec, kind, key, row in pool.map(job, jobs):
             results[spec].setdefault(kind, {})[key] = row
     report = {}
@@ -162,7 +289,7 @@ def main(argv=None) -> int:
         for kind, rows in kinds.items():
             entry = {
                 "runs": {"/".join(map(str, k)) if isinstance(k, tuple) else str(k): r for k, r in rows.items()},
-                "summary": summarise(rows),
+                "summary": dihedral_summary(rows) if kind == "dihedral" else summarise(rows),
             }
             if kind == "real":
                 entry["leans"] = leans(rows)
@@ -177,6 +304,9 @@ def print_report(report: dict) -> None:
     for spec, kinds in report.items():
         print(f"== {spec}")
         for kind, entry in kinds.items():
+            if kind == "dihedral":
+                print_dihedral(entry)
+                continue
             s = entry["summary"]
             line = (
                 f"  {kind:<8} APE mean {s['mean_ape_m']:.3f} worst {s['worst_ape_m']:.3f} | time-fitted mean "
@@ -196,6 +326,32 @@ def print_report(report: dict) -> None:
                     print(
                         f"    {name}: data offset {lean['data_offset_ms']:+.0f} ms, ego lean {lean['ego_lean_ms']:+.0f} ms"
                     )
+
+
+def print_dihedral(entry: dict) -> None:
+    runs, summary = entry["runs"], entry["summary"]
+    print("  dihedral: per variant APE / time-fitted APE (m) / best shift (ms); spread = max - min over the turns")
+    for scene, spread in summary["scenes"].items():
+        for direction in DIRECTIONS:
+            cells = []
+            for d in TURNS:
+                r = runs[f"{scene}/{d}/{direction}"]
+                cells.append(f"{r['ape_m']:.3f}/{r['ape_time_fitted_m']:.3f}/{r['time_offset_ms']:+4.0f}")
+            sp = spread[direction]
+            print(
+                f"    {scene:<10} {direction:<8} " + "  ".join(cells) + f" | spread {sp['ape_m_spread']:.4f}/"
+                f"{sp['ape_time_fitted_m_spread']:.4f}/{sp['time_offset_ms_spread']:.0f}"
+            )
+    for group in ("real", "synthetic"):
+        if group in summary:
+            g = summary[group]
+            print(
+                f"  dihedral {group:<9} APE mean {g['mean_ape_m']:.4f} worst {g['worst_ape_m']:.4f} | time-fitted mean "
+                f"{g['mean_ape_time_fitted_m']:.4f} worst {g['worst_ape_time_fitted_m']:.4f} | worst spread over "
+                f"turns: APE {g['worst_turn_spread_ape_m']:.4f} m, fitted {g['worst_turn_spread_ape_time_fitted_m']:.4f} m, shift "
+                f"{g['worst_turn_spread_time_offset_ms']:.0f} ms | worst APE spread over all eight "
+                f"{g['worst_spread_all_ape_m']:.4f}"
+            )
 
 
 if __name__ == "__main__":

@@ -99,6 +99,31 @@ class LocalMap:
         )
 
 
+def _ego_box(lower: np.ndarray, upper: np.ndarray, voxel: float) -> tuple[np.ndarray, np.ndarray]:
+    """(origin, dims) in cells of voxel of the box lower..upper of the ego frame. Where the box is symmetric about
+    the ego in x or y, so are its cells (the ego's axis on a cell edge), whatever the quotients round to: a turned
+    frame then finds the same map around it."""
+    origin = np.floor(lower / voxel).astype(np.int64)
+    top = np.floor(upper / voxel).astype(np.int64)
+    for a in (0, 1):
+        if lower[a] == -upper[a]:
+            top[a] = -origin[a] - 1
+    return origin, top - origin + 1
+
+
+def _coarser_box(origin: np.ndarray, dims: np.ndarray, voxel: float, coarse: float) -> tuple[np.ndarray, np.ndarray]:
+    """(origin, dims) in cells of `coarse` of the cells of `voxel` origin..origin + dims: the coarse cells they
+    touch, counted in whole cells where the grids nest (products of the sizes, rounded, would add a cell on one
+    side of a box symmetric about the ego)."""
+    ratio = coarse / voxel
+    n = int(round(ratio))
+    if n >= 1 and abs(ratio - n) < 1e-9:
+        lo = origin // n
+        return lo, -(-(origin + dims) // n) - lo
+    lo = np.floor(origin * voxel / coarse).astype(np.int64)
+    return lo, np.floor((origin + dims) * voxel / coarse).astype(np.int64) - lo + 1
+
+
 @dataclass
 class EgoMap:
     """Usable map voxels moved into the frame of a predicted ego pose, on a grid aligned with that frame.
@@ -138,8 +163,7 @@ class EgoMap:
         subset: np.ndarray | None = None,
     ) -> EgoMap:
         idx = np.flatnonzero(local.usable if subset is None else subset)
-        origin = np.floor(np.asarray(lower) / voxel).astype(np.int64)
-        dims = np.floor(np.asarray(upper) / voxel).astype(np.int64) - origin + 1
+        origin, dims = _ego_box(np.asarray(lower, np.float64), np.asarray(upper, np.float64), voxel)
         pos, cov, grid = ego_points(
             idx,
             local.rows,
@@ -162,8 +186,7 @@ class EgoMap:
     def pooled(self, voxel: float) -> EgoMap:
         """The same map averaged on a coarser grid (coarse GICP searches farther at the same cost). Pooling a pooled
         map again equals pooling this one directly on the coarser grid, when the grids nest (sizes multiples)."""
-        origin = np.floor(self.origin * self.voxel / voxel).astype(np.int64)
-        dims = np.floor((self.origin + self.dims) * self.voxel / voxel).astype(np.int64) - origin + 1
+        origin, dims = _coarser_box(self.origin, self.dims, self.voxel, voxel)
         empty_w, empty_v = np.zeros(0), np.zeros((0, NUM_CLASSES), np.int32)
         pos, cov, labels, grid, weight, votes = pool_voxels(
             self.pos,

@@ -66,7 +66,7 @@ def preprocess(frame: OccupancyFrame, config: OccVOConfig) -> Prepared:
     if len(surface) < len(points):
         points, labels, ijk = points[surface], labels[surface], ijk[surface]
     g = config.gicp
-    covs = plane_covariances(points, ijk, grid, shape, g.k_neighbours_radius_voxels, g.covariance_epsilon)
+    covs = plane_covariances(ijk, grid, shape, g.k_neighbours_radius_voxels, g.covariance_epsilon)
     wide, coarse, fine = thin_sources(
         ijk,
         np.isin(labels, GROUND_CLASSES),

@@ -254,7 +254,7 @@ def test_moving_map_voxels_drops_ghosts_of_older_voxels_and_cell_clashes():
 def test_moving_map_voxels_in_place_matches_the_rule_written_out():
     """VoxelPFilterMap.move (kernels.move_rows, claim_cells, a ghost search only near the old map) against its rule
     in plain numpy, on random maps and random per-group motions: R p + t and R C R^T; a moved voxel whose cell holds
-    a voxel that did not move, or an earlier moved row, goes; one moved farther than a voxel whose nearest reliable
+    a voxel that did not move, or a moved one before it in turn_before's order, goes; one moved farther than a voxel whose nearest reliable
     old voxel (born before born_before) lies within the ghost radius with its label goes."""
     from scipy.spatial.transform import Rotation
 
@@ -281,10 +281,17 @@ def test_moving_map_voxels_in_place_matches_the_rule_written_out():
         assert np.array_equal(m.keys[rows], keys)
         still = np.setdiff1d(np.flatnonzero(before["alive"]), rows)
         held = {tuple(k) for k in before["keys"][still]}
-        keep, claimed = np.zeros(len(rows), bool), set()
+
+        def turn_order(p):  # kernels.turns.turn_before: the least of the point's four turns about z, then z
+            x, y = p[0], p[1]
+            return (*min([(x, y), (-y, x), (-x, -y), (y, -x)]), p[2])
+
+        first = {}
         for a, k in enumerate(map(tuple, keys)):
-            keep[a] = k not in held and k not in claimed
-            claimed.add(k)
+            if k not in held and (k not in first or turn_order(m.pos[rows[a]]) < turn_order(m.pos[rows[first[k]]])):
+                first[k] = a
+        keep = np.zeros(len(rows), bool)
+        keep[list(first.values())] = True
         f, last, t0 = before["f"][still], before["last"][still], before["t0"][still]
         old = still[(f / np.maximum(last - t0 + 1, 1) > m.p_index_threshold) & (before["born"][still] < 6)]
         far = np.linalg.norm(m.pos[rows] - before["pos"][rows], axis=1) > m.voxel

@@ -24,7 +24,7 @@ def _prepared(points):
     ijk = OCC3D_GRID.indices_of(points)
     shape = np.array(OCC3D_GRID.shape, np.int64)
     grid = dense_index(ijk, shape)
-    return plane_covariances(points, ijk, grid, shape, 1, 1e-3)
+    return plane_covariances(ijk, grid, shape, 1, 1e-3)
 
 
 def _map_at(pose, points, labels, covs):
@@ -75,9 +75,12 @@ def test_smallest_eigenvector_matches_numpy():
     for _ in range(200):
         a = rng.normal(size=(3, 3))
         a = a @ a.T
-        n = np.array(_smallest_eigenvector(a[0, 0], a[0, 1], a[0, 2], a[1, 1], a[1, 2], a[2, 2]))
+        *n, plane = _smallest_eigenvector(a[0, 0], a[0, 1], a[0, 2], a[1, 1], a[1, 2], a[2, 2])
         w, v = np.linalg.eigh(a)
-        assert abs(abs(n @ v[:, 0]) - 1) < 1e-6
+        assert plane and abs(abs(np.array(n) @ v[:, 0]) - 1) < 1e-6
+    # two equal smallest eigenvalues (a line of voxels along (1, 1, 0)): no plane
+    line = np.array([[2.0, 1.0, 0.0], [1.0, 2.0, 0.0], [0.0, 0.0, 1.0]])
+    assert not _smallest_eigenvector(*line[0], *line[1, 1:], line[2, 2])[3]
 
 
 def test_nearest_in_window_is_the_true_nearest_within_radius():

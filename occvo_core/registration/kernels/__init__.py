@@ -36,7 +36,18 @@ def _cache_dir() -> str:
 os.environ["NUMBA_CACHE_DIR"] = numba.config.CACHE_DIR = _cache_dir()  # the variable survives config reloads
 CACHE = True  # compiled kernels are kept on disk: a worker's start does not wait for numba
 CHUNKS = 16  # fixed slices of parallel loops (see above)
-MODULES = ("grid", "sources", "covariance", "nearest", "gicp", "clusters", "voxel_pfilter", "map_window", "map_rows")
+MODULES = (
+    "turns",
+    "grid",
+    "sources",
+    "covariance",
+    "nearest",
+    "gicp",
+    "clusters",
+    "voxel_pfilter",
+    "map_window",
+    "map_rows",
+)
 
 
 _team_thread: list[threading.Thread | None] = [None]  # the one thread of this process whose kernels run on several

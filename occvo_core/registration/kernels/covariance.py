@@ -9,20 +9,9 @@ from occvo_core.registration.kernels import CACHE
 
 
 @njit(cache=CACHE, nogil=True, inline="always")
-def _smallest_eigenvector(a00, a01, a02, a11, a12, a22):
-    """Unit eigenvector of the smallest eigenvalue of a symmetric 3x3 matrix (closed form, no allocation)."""
-    p1 = a01 * a01 + a02 * a02 + a12 * a12
-    q = (a00 + a11 + a22) / 3.0
-    p2 = (a00 - q) ** 2 + (a11 - q) ** 2 + (a22 - q) ** 2 + 2.0 * p1
-    p = np.sqrt(p2 / 6.0)
-    if p < 1e-12:
-        return 0.0, 0.0, 1.0  # isotropic: no preferred normal
-    b00, b11, b22 = (a00 - q) / p, (a11 - q) / p, (a22 - q) / p
-    b01, b02, b12 = a01 / p, a02 / p, a12 / p
-    r = (b00 * (b11 * b22 - b12 * b12) - b01 * (b01 * b22 - b12 * b02) + b02 * (b01 * b12 - b11 * b02)) / 2.0
-    r = min(1.0, max(-1.0, r))
-    lam = q + 2.0 * p * np.cos(np.arccos(r) / 3.0 + 2.0 * np.pi / 3.0)  # the smallest root
-    # rows of (A - lam I); their cross products are parallel to the eigenvector
+def _null_vector(a00, a01, a02, a11, a12, a22, lam):
+    """A unit vector along the cross product of two rows of (A - lam I), the largest of the three (all are parallel
+    to the eigenvector of lam when it is a single root); (0, 0, 0) when all vanish."""
     r0x, r0y, r0z = a00 - lam, a01, a02
     r1x, r1y, r1z = a01, a11 - lam, a12
     r2x, r2y, r2z = a02, a12, a22 - lam
@@ -30,25 +19,54 @@ def _smallest_eigenvector(a00, a01, a02, a11, a12, a22):
     c1x, c1y, c1z = r0y * r2z - r0z * r2y, r0z * r2x - r0x * r2z, r0x * r2y - r0y * r2x
     c2x, c2y, c2z = r1y * r2z - r1z * r2y, r1z * r2x - r1x * r2z, r1x * r2y - r1y * r2x
     n0, n1, n2 = c0x * c0x + c0y * c0y + c0z * c0z, c1x * c1x + c1y * c1y + c1z * c1z, c2x * c2x + c2y * c2y + c2z * c2z
-    if n0 >= n1 and n0 >= n2 and n0 > 1e-24:
+    if n0 >= n1 and n0 >= n2 and n0 > 0.0:
         s = 1.0 / np.sqrt(n0)
         return c0x * s, c0y * s, c0z * s
-    if n1 >= n2 and n1 > 1e-24:
+    if n1 >= n2 and n1 > 0.0:
         s = 1.0 / np.sqrt(n1)
         return c1x * s, c1y * s, c1z * s
-    if n2 > 1e-24:
+    if n2 > 0.0:
         s = 1.0 / np.sqrt(n2)
         return c2x * s, c2y * s, c2z * s
-    return 0.0, 0.0, 1.0  # two smallest eigenvalues equal (a line): any normal across it will do
+    return 0.0, 0.0, 0.0
+
+
+@njit(cache=CACHE, nogil=True, inline="always")
+def _smallest_eigenvector(a00, a01, a02, a11, a12, a22):
+    """(unit eigenvector of the smallest eigenvalue of a symmetric 3x3 matrix, True) (closed form, no allocation);
+    where that eigenvalue is double (a line of voxels, a pole), (unit eigenvector of the largest, along the line,
+    False): no normal across a line is the plane's, and any pick would turn with the axes (z, the one a turn keeps,
+    lies along a pole)."""
+    p1 = a01 * a01 + a02 * a02 + a12 * a12
+    q = (a00 + a11 + a22) / 3.0
+    p2 = (a00 - q) ** 2 + (a11 - q) ** 2 + (a22 - q) ** 2 + 2.0 * p1
+    p = np.sqrt(p2 / 6.0)
+    if p < 1e-12 * max(abs(q), 1e-300) or p == 0.0:
+        return 0.0, 0.0, 1.0, True  # isotropic: no preferred normal
+    b00, b11, b22 = (a00 - q) / p, (a11 - q) / p, (a22 - q) / p
+    b01, b02, b12 = a01 / p, a02 / p, a12 / p
+    r = (b00 * (b11 * b22 - b12 * b12) - b01 * (b01 * b22 - b12 * b02) + b02 * (b01 * b12 - b11 * b02)) / 2.0
+    r = min(1.0, max(-1.0, r))
+    phi = np.arccos(r) / 3.0
+    lam = q + 2.0 * p * np.cos(phi + 2.0 * np.pi / 3.0)  # the smallest root
+    mid = 3.0 * q - lam - (q + 2.0 * p * np.cos(phi))
+    if mid - lam > 1e-6 * p:
+        nx, ny, nz = _null_vector(a00, a01, a02, a11, a12, a22, lam)
+        if nx != 0.0 or ny != 0.0 or nz != 0.0:
+            return nx, ny, nz, True
+    vx, vy, vz = _null_vector(a00, a01, a02, a11, a12, a22, q + 2.0 * p * np.cos(phi))  # a double smallest root
+    return vx, vy, vz, False
 
 
 @njit(cache=CACHE, nogil=True, parallel=True)
-def plane_covariances(points, ijk, grid, shape, radius, epsilon):
-    """GICP covariances (Segal et al.): the neighbourhood's plane, as eps along its normal and 1 across it."""
-    n_pts = points.shape[0]
+def plane_covariances(ijk, grid, shape, radius, epsilon):
+    """GICP covariances (Segal et al.): the neighbourhood's plane, as eps along its normal and 1 across it. The plane
+    is fitted to the neighbours' grid offsets (whole numbers): its moments are exact, so a frame turned about z by a
+    multiple of 90 degrees gets the same planes turned, whatever order its neighbours are met in."""
+    n_pts = ijk.shape[0]
     covs = np.empty((n_pts, 3, 3))
     for n in prange(n_pts):
-        sx = sy = sz = sxx = sxy = sxz = syy = syz = szz = 0.0
+        sx = sy = sz = sxx = sxy = sxz = syy = syz = szz = 0
         cnt = 0
         for di in range(-radius, radius + 1):
             i = ijk[n, 0] + di
@@ -62,41 +80,39 @@ def plane_covariances(points, ijk, grid, shape, radius, epsilon):
                     k = ijk[n, 2] + dk
                     if k < 0 or k >= shape[2]:
                         continue
-                    m = grid[(i * shape[1] + j) * shape[2] + k]
-                    if m < 0:
+                    if grid[(i * shape[1] + j) * shape[2] + k] < 0:
                         continue
-                    x, y, z = points[m, 0], points[m, 1], points[m, 2]
                     cnt += 1
-                    sx += x
-                    sy += y
-                    sz += z
-                    sxx += x * x
-                    sxy += x * y
-                    sxz += x * z
-                    syy += y * y
-                    syz += y * z
-                    szz += z * z
-        if cnt < 3:  # too few neighbours for a surface: isotropic
-            for a in range(3):
-                for b in range(3):
-                    covs[n, a, b] = 1.0 if a == b else 0.0
-            continue
-        mx, my, mz = sx / cnt, sy / cnt, sz / cnt
-        nx, ny, nz = _smallest_eigenvector(
-            sxx / cnt - mx * mx,
-            sxy / cnt - mx * my,
-            sxz / cnt - mx * mz,
-            syy / cnt - my * my,
-            syz / cnt - my * mz,
-            szz / cnt - mz * mz,
-        )
-        s = 1.0 - epsilon
-        covs[n, 0, 0] = 1.0 - s * nx * nx
-        covs[n, 1, 1] = 1.0 - s * ny * ny
-        covs[n, 2, 2] = 1.0 - s * nz * nz
-        covs[n, 0, 1] = covs[n, 1, 0] = -s * nx * ny
-        covs[n, 0, 2] = covs[n, 2, 0] = -s * nx * nz
-        covs[n, 1, 2] = covs[n, 2, 1] = -s * ny * nz
+                    sx += di
+                    sy += dj
+                    sz += dk
+                    sxx += di * di
+                    sxy += di * dj
+                    sxz += di * dk
+                    syy += dj * dj
+                    syz += dj * dk
+                    szz += dk * dk
+        nx, ny, nz, plane = 0.0, 0.0, 0.0, False
+        if cnt >= 3:  # cnt^2 times the scatter matrix, in whole numbers
+            nx, ny, nz, plane = _smallest_eigenvector(
+                float(cnt * sxx - sx * sx),
+                float(cnt * sxy - sx * sy),
+                float(cnt * sxz - sx * sz),
+                float(cnt * syy - sy * sy),
+                float(cnt * syz - sy * sz),
+                float(cnt * szz - sz * sz),
+            )
+        # d I + c u u^T: a plane (u its normal) eps along u and 1 across it; a line (u along it) 1 along u and eps
+        # across it every way; too few neighbours (u zero): isotropic
+        d, c = (1.0, epsilon - 1.0) if plane else (epsilon, 1.0 - epsilon)
+        if not plane and nx == 0.0 and ny == 0.0 and nz == 0.0:
+            d = 1.0
+        covs[n, 0, 0] = d + c * nx * nx
+        covs[n, 1, 1] = d + c * ny * ny
+        covs[n, 2, 2] = d + c * nz * nz
+        covs[n, 0, 1] = covs[n, 1, 0] = c * nx * ny
+        covs[n, 0, 2] = covs[n, 2, 0] = c * nx * nz
+        covs[n, 1, 2] = covs[n, 2, 1] = c * ny * nz
     return covs
 
 

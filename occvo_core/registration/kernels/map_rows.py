@@ -8,6 +8,7 @@ from numba import njit
 
 from occvo_core.registration.kernels import CACHE
 from occvo_core.registration.kernels.covariance import rigid_motion
+from occvo_core.registration.kernels.turns import turn_before
 
 
 @njit(cache=CACHE, nogil=True)
@@ -54,15 +55,28 @@ def move_rows(pos, cov, keys, rows, rot, trans, group, voxel, box):
 
 
 @njit(cache=CACHE, nogil=True)
-def claim_cells(keys, rows, grid, origin, dims):
-    """Which moved rows may stay: those whose cell holds no voxel of the window grid and no earlier moved row (in
-    row order: the first stands). Claimed cells are marked -2 in grid (an empty cell to nearest_in_window)."""
-    keep = np.empty(rows.shape[0], np.bool_)
+def claim_cells(keys, pos, rows, grid, origin, dims):
+    """Which moved rows may stay: those whose cell holds no voxel of the window grid and, of the moved rows in one
+    cell, the first in turn_before's order (row order follows the order frames were turned in). Claimed cells are
+    marked -2 in grid (an empty cell to nearest_in_window)."""
+    keep = np.zeros(rows.shape[0], np.bool_)
+    cells = np.empty(rows.shape[0], np.int64)
     for n in range(rows.shape[0]):
         r = rows[n]
         cell = ((keys[r, 0] - origin[0]) * dims[1] + keys[r, 1] - origin[1]) * dims[2] + keys[r, 2] - origin[2]
-        keep[n] = grid[cell] == -1
-        grid[cell] = -2 if keep[n] else grid[cell]
+        cells[n] = cell
+        held = grid[cell]
+        if held == -1:
+            grid[cell] = -3 - n  # claimed by moved row n, for now
+        elif held <= -3:
+            o = rows[-3 - held]
+            if turn_before(pos[r, 0], pos[r, 1], pos[r, 2], pos[o, 0], pos[o, 1], pos[o, 2]):
+                grid[cell] = -3 - n
+    for n in range(rows.shape[0]):
+        keep[n] = grid[cells[n]] == -3 - n
+    for n in range(rows.shape[0]):
+        if grid[cells[n]] <= -3:
+            grid[cells[n]] = -2
     return keep
 
 

@@ -6,6 +6,7 @@ import numpy as np
 from numba import njit, prange
 
 from occvo_core.registration.kernels import CACHE, CHUNKS
+from occvo_core.registration.kernels.turns import canonical_xy, turn_before
 from occvo_core.registration.voxel_pfilter import p_index as voxel_p_index
 
 
@@ -87,8 +88,8 @@ def window_voxels(keys, alive, f, t0, pos, label, n, lower, upper, t):
 @njit(cache=CACHE, nogil=True, parallel=True)
 def ego_points(idx, rows, map_pos, map_cov, rot, trans, origin, dims, voxel, pad):
     """Map voxels rows[idx] moved into the frame of the pose (rot, trans): positions R^T (p - t), covariances
-    R^T C R, and the dense grid of their cells in the box origin..origin + dims (a later voxel in the same cell
-    wins), with pad empty cells on every side."""
+    R^T C R, and the dense grid of their cells in the box origin..origin + dims (of two voxels in one cell, the
+    first in turn_before's order), with pad empty cells on every side."""
     n = idx.shape[0]
     pos = np.empty((n, 3))
     cov = np.empty((n, 3, 3))
@@ -112,9 +113,12 @@ def ego_points(idx, rows, map_pos, map_cov, rot, trans, origin, dims, voxel, pad
         k = int(np.floor(pos[a, 2] / voxel)) - origin[2]
         inside = 0 <= i < dims[0] and 0 <= j < dims[1] and 0 <= k < dims[2]
         cell_of[a] = _padded_cell(i, j, k, dims, pad) if inside else -1
-    for a in range(n):  # in order: a later voxel in the same cell wins
-        if cell_of[a] >= 0:
-            grid[cell_of[a]] = a
+    for a in range(n):  # two voxels in one cell: turn_before's first wins (row order turns with the frames)
+        c = cell_of[a]
+        if c >= 0:
+            b = grid[c]
+            if b < 0 or turn_before(pos[a, 0], pos[a, 1], pos[a, 2], pos[b, 0], pos[b, 1], pos[b, 2]):
+                grid[c] = a
     return pos, cov, grid
 
 
@@ -162,8 +166,29 @@ def pool_voxels(pos, cov, labels, usable, weight, votes_in, voxel, origin, dims,
     out_lab = np.empty(n_out, np.uint8)
     weighted = weight.shape[0] > 0
     pooled_votes = votes_in.shape[0] > 0
-    # a cell sums its points in point order: the same sums on any number of threads
+    # a cell sums its points in turn_before's order: the same sums on any number of threads, and in a turned frame
+    # the same numbers in the same order (in point order, rounding would part two exactly equal distances)
+    key = np.empty((n_pts, 2))
+    for n in prange(n_pts):
+        if slot[n] >= 0:
+            key[n, 0], key[n, 1] = canonical_xy(pos[n, 0], pos[n, 1])
     for s in prange(n_out):
+        for q in range(start[s] + 1, start[s + 1]):  # insertion sort: a cell holds a few points
+            n = order[q]
+            r = q - 1
+            while r >= start[s]:
+                m = order[r]
+                if not (
+                    key[n, 0] < key[m, 0]
+                    or (
+                        key[n, 0] == key[m, 0]
+                        and (key[n, 1] < key[m, 1] or (key[n, 1] == key[m, 1] and pos[n, 2] < pos[m, 2]))
+                    )
+                ):
+                    break
+                order[r + 1] = m
+                r -= 1
+            order[r + 1] = n
         for q in range(start[s], start[s + 1]):
             n = order[q]
             w = weight[n] if weighted else 1.0

@@ -6,29 +6,37 @@ import numpy as np
 from numba import njit
 
 from occvo_core.registration.kernels import CACHE
+from occvo_core.registration.kernels.turns import turn_before
 
 
 @njit(cache=CACHE, nogil=True, inline="always")
 def _nearer(q, map_pos, m, usable, best, best_d2):
-    """(best, squared distance) after looking at grid entry m: m when it is a usable point strictly nearer (on a tie
-    the one seen first stays)."""
+    """(best, squared distance) after looking at grid entry m: m when it is a usable point nearer; on a tie the one
+    first in turn_before's order, not the one seen first (the order cells are read in turns with the frame)."""
     if m >= 0 and usable[m]:
         d0 = map_pos[m, 0] - q[0]
         d1 = map_pos[m, 1] - q[1]
         d2 = map_pos[m, 2] - q[2]
         d = d0 * d0 + d1 * d1 + d2 * d2
-        if d < best_d2:
+        if d < best_d2 or (
+            d == best_d2
+            and best >= 0
+            and turn_before(
+                map_pos[m, 0], map_pos[m, 1], map_pos[m, 2], map_pos[best, 0], map_pos[best, 1], map_pos[best, 2]
+            )
+        ):
             return m, d
     return best, best_d2
 
 
 @njit(cache=CACHE, nogil=True, inline="always")
 def _beyond_best(q, ci, cj, ck, origin, r, voxel, best_d2):
-    """Whether every point outside the cube of rings 0..r around cell (ci, cj, ck) lies farther than the best."""
+    """Whether every point outside the cube of rings 0..r around cell (ci, cj, ck) lies farther than the best (strictly:
+    one as near would be a tie, which turn_before decides)."""
     gap = np.inf
     for a, c in ((0, ci), (1, cj), (2, ck)):
         gap = min(gap, q[a] - (c + origin[a] - r) * voxel, (c + origin[a] + r + 1) * voxel - q[a])
-    return best_d2 <= gap * gap
+    return best_d2 < gap * gap
 
 
 @njit(cache=CACHE, nogil=True)

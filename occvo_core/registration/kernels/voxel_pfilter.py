@@ -22,7 +22,8 @@ def _grow_box(box, x, y):
 def assign_voxels(points, keys, map_pos, grid, origin, dims, voxel, merge_radius, map_rows, alive, n_map):
     """Map row of each frame point: the live map voxel holding it; else the nearest live map point within
     merge_radius (so a surface straddling a voxel boundary stays one voxel across frames and its p-index measures
-    persistence, not aliasing); else a new row, numbered from n_map on, for its voxel.
+    persistence, not aliasing), unless another point in its cell has none near; else a new row, numbered from n_map
+    on, for its voxel.
     Returns (rows, first point of each new row). The grid is used up: new rows are written into it."""
     n_pts = keys.shape[0]
     out = np.empty(n_pts, np.int64)
@@ -41,22 +42,20 @@ def assign_voxels(points, keys, map_pos, grid, origin, dims, voxel, merge_radius
             m, d2 = nearest_in_window(points[n], map_pos, grid, origin, dims, voxel, 1, alive)
             if m >= 0 and d2 <= r2:
                 near[n] = map_rows[m]
-    # ... then, in point order, a voxel this frame created before the nearest map point, else a new row
+    # ... then a new row for each empty cell holding a point with no map point near; every point of such a cell
+    # joins it (whatever the points' order, which turns with the frame), the others their nearest map point
     first_key = np.empty(n_pts, np.int64)
     n_new = 0
+    for n in range(n_pts):
+        if out[n] < 0 and near[n] < 0 and grid[cells[n]] > -3:
+            first_key[n_new] = n
+            grid[cells[n]] = -3 - n_new
+            n_new += 1
     for n in range(n_pts):
         if out[n] >= 0:
             continue
         local = grid[cells[n]]
-        if local <= -3:
-            out[n] = n_map + (-3 - local)
-        elif near[n] >= 0:
-            out[n] = near[n]
-        else:
-            out[n] = n_map + n_new
-            first_key[n_new] = n
-            grid[cells[n]] = -3 - n_new  # later points in this voxel join the same new row
-            n_new += 1
+        out[n] = n_map + (-3 - local) if local <= -3 else near[n]
     return out, first_key[:n_new]
 
 

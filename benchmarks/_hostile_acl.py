@@ -7,6 +7,7 @@ import copy
 import json
 import os
 import tempfile
+import time
 from pathlib import Path
 
 import json5
@@ -86,21 +87,29 @@ def grabber_acl(frames, worker_args, reg_config: str) -> None:
         worker_args=worker_args(["--store-path", str(folder / "occvo.sqlite")]),
         worker_env=env,
     ).start()
-    per = WorkerConfig.load(reg_config).max_streams_per_client
+    config = WorkerConfig.load(reg_config)
 
-    def served() -> dict:  # asked through the router's own session (the logins may not read stats)
-        for r in svc.router.get(keys.stats(f"registration-{os.getpid()}"), timeout=10.0):
-            if r.ok is not None:
-                health = decode(r.ok.payload.to_bytes(), WorkerHealth)
-                held = {u: sum(s.split(".")[0] == u for s in health.streams) for u in [*HOSTILE, LEGIT]}
-                return {"served_by_login": held, "streams_refused": health.counters.get("streams_refused", 0)}
-        return {}
+    def health(role: str) -> WorkerHealth:  # asked through the router's own session (the logins may not read stats)
+        replies = [r.ok for r in svc.router.get(keys.stats(f"{role}-{os.getpid()}"), timeout=10.0) if r.ok]
+        return decode(replies[0].payload.to_bytes(), WorkerHealth)
+
+    def served() -> dict:
+        out = {}
+        for role in ("inference", "registration"):
+            h = health(role)
+            held = {u: sum(s.split(".")[0] == u for s in h.streams) for u in [*HOSTILE, LEGIT]}
+            out[role] = {"streams_by_login": held, "streams_refused": h.counters.get("streams_refused", 0)}
+        return out
 
     try:
         solo_s, _ = run_replay(svc.endpoint, f"{LEGIT}.solo", frames, sessions[LEGIT])
-        groups = [[f"{u}.s{i}" for i in range(per)] for u in HOSTILE]
+        deadline = time.monotonic() + config.idle_stream_s + 60  # the solo stream retired: the logins fill max_streams
+        while any(f"{LEGIT}.solo" in health(r).streams for r in ("inference", "registration")):
+            assert time.monotonic() < deadline, "the solo replay's stream was not retired"
+            time.sleep(1.0)
+        groups = [[f"{u}.s{i}" for i in range(config.max_streams_per_client)] for u in HOSTILE]
         logins = ([sessions[u] for u in HOSTILE], sessions[LEGIT], served)
-        label = f"ACL, 4 logins x {per} streams, the replay a fifth login"
-        grabber(svc.endpoint, frames, solo_s, groups, f"{LEGIT}.car", label, logins)
+        label = f"ACL, 4 logins x {config.max_streams_per_client} streams (max_streams {config.max_streams})"
+        grabber(svc.endpoint, frames, solo_s, groups, f"{LEGIT}.car", f"{label}, the replay a fifth login", logins)
     finally:
         svc.stop()

@@ -2,7 +2,8 @@
 pipeline's workers run as their users, a camera user drives a stream, and a camera or viewer session then tries a fake
 map update, occupancy frame, pose, error event, queryable, liveliness token, and a frame on another camera user's
 stream. Each is refused: nothing reaches the workers or the clients, the stream's map and trajectory are unchanged.
-Each check has a positive control (the legitimate message on the same key arrives), so it cannot pass by accident."""
+Each check has a positive control (the legitimate message on the same key arrives), so it cannot pass by accident.
+Last, slot grabbers as logins: four camera users at their stream limit, a fifth user's stream gets every pose."""
 
 from __future__ import annotations
 

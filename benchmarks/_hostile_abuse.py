@@ -97,15 +97,19 @@ def sequence_abuse(ep: str, frames, alone: np.ndarray, alone_s: float) -> None:
     )
 
 
-def grabber(ep: str, frames, alone_s: float, groups: list[list[str]], stream: str, label: str) -> dict:
-    """A replay of `stream` beside grabbers (one session each, holding `groups` of stream ids)."""
+def grabber(ep: str, frames, alone_s: float, groups: list[list[str]], stream: str, label: str, logins=None) -> dict:
+    """A replay of `stream` beside grabbers (one session each, holding `groups` of stream ids). `logins`: the zenoh
+    config of each grabber's session, then the replay's (ACL users), and a function of the service's state before
+    the replay, whose fields are printed too."""
+    bases, base, state = logins or ([None] * len(groups), None, dict)
     stop = threading.Event()
-    ts = [threading.Thread(target=grab, args=(ep, ids, frames[0], stop)) for ids in groups]
+    ts = [threading.Thread(target=grab, args=(ep, ids, frames[0], stop, 2.0, b)) for ids, b in zip(groups, bases)]
     for t in ts:
         t.start()
     time.sleep(5.0)  # their streams admitted (the rest refused)
     try:
-        took, poses = run_replay(ep, stream, frames)
+        before = state()
+        took, poses = run_replay(ep, stream, frames, base)
     finally:
         stop.set()
         for t in ts:
@@ -115,6 +119,7 @@ def grabber(ep: str, frames, alone_s: float, groups: list[list[str]], stream: st
         "grabber",
         mode=label,
         grabbed_ids=sum(map(len, groups)),
+        **before,
         replay_s=round(took, 2),
         alone_s=round(alone_s, 2),
         ratio_to_alone=round(ratio, 2),

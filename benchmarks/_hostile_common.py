@@ -41,6 +41,15 @@ def workers(svc) -> dict:
     return {r: proc_status(p.pid) for r, p in svc.procs.items()}
 
 
+def worker_args(reg_config: str, reg_cap: list[str], store: list[str]) -> dict:
+    """LocalService's worker arguments: the deploy configs, the store (--store-path), the registration cap."""
+    return {
+        "registration": ["--config", reg_config, *store, *reg_cap],
+        "inference": ["--config", "deploy/inference_worker.json5"],
+        "map": ["--config", "deploy/map_service.json5", *store],
+    }
+
+
 def counters(session, svc, role: str, names: tuple[str, ...]) -> dict:
     """Some of a worker's counters, from its stats queryable (LocalService names it <role>-<our pid>)."""
     for r in session.get(keys.stats(f"{role}-{os.getpid()}"), timeout=10.0):
@@ -81,9 +90,10 @@ def goal(text: str, met: bool, **figure) -> None:
     print(json.dumps({"goal": text, "met": bool(met), **figure}), flush=True)
 
 
-def grab(endpoint: str, streams: list[str], frame, stop: threading.Event, period_s: float = 2.0) -> None:
-    """A slot grabber: one session putting a seq-0 frame on each of `streams` every period_s until stop."""
-    session = open_session(endpoint)
+def grab(endpoint: str, streams: list[str], frame, stop: threading.Event, period_s: float = 2.0, base=None) -> None:
+    """A slot grabber: one session (its zenoh config `base`) putting a seq-0 frame on each of `streams` every
+    period_s until stop."""
+    session = open_session(endpoint, base)
     payloads = [(keys.camera(s), encode(camera_frame_of(frame, s, 0))) for s in streams]
     sn = 0
     while not stop.is_set():
@@ -95,8 +105,10 @@ def grab(endpoint: str, streams: list[str], frame, stop: threading.Event, period
     session.close()
 
 
-def run_replay(endpoint: str, stream: str, frames) -> tuple[float, np.ndarray]:
-    with OccVOClient(endpoint, stream, timeout=300) as c:
+def run_replay(endpoint: str, stream: str, frames, base=None) -> tuple[float, np.ndarray]:
+    """The replay of `frames` on `stream` (its session's zenoh config `base`): its time and poses."""
+    session = open_session(endpoint, base)
+    with session, OccVOClient(endpoint, stream, timeout=300, session=session) as c:
         t0 = time.perf_counter()
         out = replay(c, frames, window=4, timeout=600)
         took = time.perf_counter() - t0

@@ -19,6 +19,8 @@ Router in this process, workers as processes (occvo_services.local.LocalService,
   grabber    one session holding 50 stream ids (a frame on each every 2 s) beside a replay: replay time vs alone, all
              poses; then a service with client_identity "user" (the ACL's rule) and 4 users holding 16 ids each
              (max_streams 64 full) beside a replay of a fifth: the same figures
+  grabber_acl behind the shipped ACL (more camera users as it says), each worker and client its own login: 4 logins
+             holding max_streams_per_client ids each beside a fifth login's replay: the same figures, streams served
   silent     a queryable on occvo/** that never answers: the longest of 20 tile, map info, trajectory, pose and
              stats queries, and of 3 trajectory queries of an unknown stream (only errors come: the query waits for
              the rogue until its timeout); another session looping tile queries named
@@ -40,6 +42,7 @@ per step and one per goal ({"goal": ..., "met": ...}); exits 1 if a goal is not 
 from __future__ import annotations
 
 import argparse
+import functools
 import multiprocessing
 import os
 import sys
@@ -50,6 +53,7 @@ from pathlib import Path
 
 import numpy as np
 from _hostile_abuse import degenerate_frames, grabber, log_flood, msgpack_delay, sequence_abuse, silent_queryable
+from _hostile_acl import grabber_acl, grabber_user
 from _hostile_common import (
     BLOCK,
     DATA,
@@ -61,6 +65,7 @@ from _hostile_common import (
     proc_status,
     run_replay,
     wildcard_gets,
+    worker_args,
     workers,
 )
 from _hostile_limits import bad_configs, disk_full, heavy
@@ -84,8 +89,8 @@ def main() -> int:
     p.add_argument("--frames", type=int, default=40)
     p.add_argument(
         "--steps",
-        default="flood,msgpack,oversize,queries,sequence,grabber,heavy,silent,degenerate,config,log_flood,disk_full,"
-        "store_flood",
+        default="flood,msgpack,oversize,queries,sequence,grabber,grabber_acl,heavy,silent,degenerate,config,log_flood,"
+        "disk_full,store_flood",
         help="steps after `alone`, comma separated",
     )
     p.add_argument("--disk-full-dir", help="step disk_full: a small filesystem for the store (e.g. a 64 MB tmpfs)")
@@ -103,14 +108,8 @@ def main() -> int:
     scene = OccVOReleaseScene(DATA)
     frames = [scene[i] for i in range(min(args.frames, len(scene)))]
     store = ["--store-path", str(Path(tempfile.mkdtemp()) / "occvo.sqlite")]  # idle streams' state goes there
-    svc = LocalService(
-        quiet=True,
-        worker_args={
-            "registration": ["--config", reg_config, *store, *reg_cap],
-            "inference": ["--config", "deploy/inference_worker.json5"],
-            "map": ["--config", "deploy/map_service.json5", *store],
-        },
-    ).start()
+    args_of = functools.partial(worker_args, reg_config, reg_cap)  # the workers' arguments with a store
+    svc = LocalService(quiet=True, worker_args=args_of(store)).start()
     try:
         ep = svc.endpoint
         alone_s, alone = run_replay(ep, "legit0", frames)
@@ -265,22 +264,10 @@ def main() -> int:
             "the map after the spell is the map of the run alone",
             full_info.tiles == alone_info.tiles and full_info.voxel_count == alone_info.voxel_count,
         )
-    if "grabber" in steps:  # the ACL's identity rule: a client is the stream id's prefix (its user)
-        svc = LocalService(
-            quiet=True,
-            common_args=["--client-identity", "user"],
-            worker_args={
-                "registration": ["--config", reg_config, *store, *reg_cap],
-                "inference": ["--config", "deploy/inference_worker.json5"],
-                "map": ["--config", "deploy/map_service.json5", *store],
-            },
-        ).start()
-        try:
-            solo_s, _ = run_replay(svc.endpoint, "viewer.solo", frames)
-            users = [[f"camera{u}.s{i}" for i in range(16)] for u in range(1, 5)]
-            grabber(svc.endpoint, frames, solo_s, users, "viewer.car", "client_identity user, 4 users x 16 streams")
-        finally:
-            svc.stop()
+    if "grabber" in steps:
+        grabber_user(frames, args_of(store))
+    if "grabber_acl" in steps:
+        grabber_acl(frames, args_of, reg_config)
     return 0 if all(GOALS) else 1
 
 

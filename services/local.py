@@ -51,6 +51,7 @@ class LocalService:
         registration_shards: int = 1,
         placement: str = "shards",
         pin: dict[str, str] | None = None,
+        worker_env: dict[str, dict[str, str]] | None = None,
     ):
         self.endpoint = endpoint or f"tcp/127.0.0.1:{free_port()}"
         self.router_config = router_config
@@ -61,6 +62,7 @@ class LocalService:
         self.registration_shards = registration_shards  # registration workers sharing the streams
         self.placement = placement  # "members": they share them by rendezvous hashing under store leases
         self.pin = pin or {}  # worker name -> the cores it may run on (taskset -c)
+        self.worker_env = worker_env or {}  # role -> extra environment (OCCVO_ZENOH_CONFIG: its ACL login)
         self.procs: dict[str, subprocess.Popen] = {}  # by role, or registration-<shard> when sharded
         self.router = None
 
@@ -96,8 +98,10 @@ class LocalService:
                     if self.log_dir
                     else (subprocess.DEVNULL if self.quiet else None)
                 )
-                self.procs[name] = subprocess.Popen(cmd, cwd=REPO, env=env, stderr=err, stdout=err)
-            probe = open_session(self.endpoint)
+                role_env = {**env, **self.worker_env.get(role, {})}
+                self.procs[name] = subprocess.Popen(cmd, cwd=REPO, env=role_env, stderr=err, stdout=err)
+            # the shipped ACL gives its clients no liveliness replies (zenoh 1.10): then the router itself is asked
+            probe = self.router if self.router_config else open_session(self.endpoint)
             try:
                 deadline = time.monotonic() + timeout
                 while True:
@@ -114,7 +118,8 @@ class LocalService:
                         if time.monotonic() > deadline:
                             raise
             finally:
-                probe.close()
+                if probe is not self.router:
+                    probe.close()
         except BaseException:
             self.stop()
             raise

@@ -2,13 +2,15 @@
 pipeline's workers run as their users, a camera user drives a stream, and a camera or viewer session then tries a fake
 map update, occupancy frame, pose, error event, queryable, liveliness token, and a frame on another camera user's
 stream. Each is refused: nothing reaches the workers or the clients, the stream's map and trajectory are unchanged.
-Each check has a positive control (the legitimate message on the same key arrives), so it cannot pass by accident."""
+Each check has a positive control (the legitimate message on the same key arrives), so it cannot pass by accident.
+Last, slot grabbers as logins: four camera users at their stream limit, a fifth user's stream gets every pose."""
 
 from __future__ import annotations
 
 import json
 import os
 import time
+from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
@@ -31,65 +33,98 @@ from occvo_services.runtime import WorkerConfig
 from occvo_services.sessions import ZENOH_CONFIG_ENV, free_port, zenoh_config
 
 DEPLOY = Path(__file__).resolve().parents[2] / "deploy"
-USERS = ["inference", "registration", "map", "camera", "camera2", "viewer"]
 STREAM = "camera.car"  # user camera's prefix
 SETTLE_S = 1.5  # how long a refused message is waited for
 
 
 def _session_file(tmp: Path, user: str) -> Path:
-    text = (DEPLOY / f"acl/session-{user}.json5").read_text().replace("CHANGE-ME", f"pw-{user}")
+    """The user's session config: the shipped one, or camera's with the user's name (camera users beyond the file's)."""
+    shipped = DEPLOY / f"acl/session-{user}.json5"
+    text = (shipped if shipped.exists() else DEPLOY / "acl/session-camera.json5").read_text()
     path = tmp / f"session-{user}.json5"
-    path.write_text(text)
+    path.write_text(text.replace('user: "camera"', f'user: "{user}"').replace("CHANGE-ME", f"pw-{user}"))
     return path
 
 
-@pytest.fixture(scope="module")
-def acl(tmp_path_factory, scene):
+def _add_cameras(rc: zenoh.Config, cameras) -> None:
+    """A subject and rules for each camera user the shipped file lacks: copies of user camera's with the user's prefix,
+    as router.json5 says to write them."""
+    ac = json.loads(rc.get_json("access_control"))
+    rules = {r["id"]: r for r in ac["rules"]}
+    known = {s["id"] for s in ac["subjects"]}
+    shared = [r for r in next(p for p in ac["policies"] if p["subjects"] == ["camera"])["rules"] if "camera_" not in r]
+    for user in [c for c in cameras if c not in known]:
+        for suffix in ("frames", "follow"):
+            rule = {**rules[f"camera_{suffix}"], "id": f"{user}_{suffix}"}
+            rule["key_exprs"] = [k.replace("occvo/camera.$*", f"occvo/{user}.$*") for k in rule["key_exprs"]]
+            ac["rules"].append(rule)
+        ac["subjects"].append({"id": user, "usernames": [user]})
+        ac["policies"].append({"rules": [f"{user}_frames", f"{user}_follow", *shared], "subjects": [user]})
+        next(p for p in ac["policies"] if "see_declarations" in p["rules"])["subjects"].append(user)
+    rc.insert_json5("access_control", json.dumps(ac))
+
+
+@contextmanager
+def _acl_service(tmp: Path, cameras=("camera", "camera2"), **config):
+    """The pipeline's workers (threads, `config` on each) behind the shipped ACL on loopback, each as its user: the
+    endpoint, the router session, each user's session config file and the workers by role."""
     from occvo_services.inference_worker import InferenceWorker
     from occvo_services.map_service import MapService
     from occvo_services.registration_worker import RegistrationWorker
 
-    tmp = tmp_path_factory.mktemp("acl")
-    (tmp / "users.txt").write_text("".join(f"{u}:pw-{u}\n" for u in USERS))
+    users = ["inference", "registration", "map", *cameras, "viewer"]
+    (tmp / "users.txt").write_text("".join(f"{u}:pw-{u}\n" for u in users))
     ep = f"tcp/127.0.0.1:{free_port()}"
     rc = router_config(DEPLOY / "acl/router.json5", listen=[ep])
     rc.insert_json5("transport/auth/usrpwd/dictionary_file", json.dumps(str(tmp / "users.txt")))
+    _add_cameras(rc, cameras)
     router = zenoh.open(rc)
-    files = {u: _session_file(tmp, u) for u in USERS}
-    workers, sessions = [], {}
+    files = {u: _session_file(tmp, u) for u in users}
+    workers = []
     saved = os.environ.get(ZENOH_CONFIG_ENV)
     try:
-        for cls in (MapService, RegistrationWorker, InferenceWorker):  # each worker's session as its user
-            os.environ[ZENOH_CONFIG_ENV] = str(files[cls.role])
-            workers.append(
-                cls(WorkerConfig(connect=ep, worker_id=f"{cls.role}-acl", warm_up=False, log_level="ERROR")).start()
-            )
-        if saved is None:
-            os.environ.pop(ZENOH_CONFIG_ENV)
-        else:
-            os.environ[ZENOH_CONFIG_ENV] = saved
-        sessions = {
-            u: zenoh.open(zenoh_config("client", connect=ep, base=files[u])) for u in ("camera", "camera2", "viewer")
-        }
+        try:
+            for cls in (MapService, RegistrationWorker, InferenceWorker):  # each worker's session as its user
+                os.environ[ZENOH_CONFIG_ENV] = str(files[cls.role])
+                cfg = WorkerConfig(connect=ep, worker_id=f"{cls.role}-acl", warm_up=False, log_level="ERROR", **config)
+                workers.append(cls(cfg).start())
+        finally:
+            if saved is None:
+                os.environ.pop(ZENOH_CONFIG_ENV, None)
+            else:
+                os.environ[ZENOH_CONFIG_ENV] = saved
         deadline = time.monotonic() + 30  # clients of this ACL get no liveliness replies (zenoh 1.10): ask the router
         while len(_alive(router, "occvo/@alive/**")) < 3 and time.monotonic() < deadline:
             time.sleep(0.1)
-        with OccVOClient(ep, STREAM, timeout=60, session=sessions["camera"]) as c:
-            c.reset()
-            poses = [c.step(f).matrix() for f in scene[:3]]
-        workers[1].drain()  # the last frame's map update is out
-        mapper = workers[0]
-        deadline = time.monotonic() + 10
-        while mapper.store.info(STREAM) is None or mapper.store.info(STREAM).last_seq != 2:
-            assert time.monotonic() < deadline, "the map service did not get the last frame's update"
-            time.sleep(0.05)
-        yield {"endpoint": ep, "router": router, "s": sessions, "workers": {w.role: w for w in workers}, "poses": poses}
+        yield {"endpoint": ep, "router": router, "files": files, "workers": {w.role: w for w in workers}}
     finally:
-        for s in sessions.values():
-            s.close()
         for w in reversed(workers):
             w.stop()
         router.close()
+
+
+@pytest.fixture(scope="module")
+def acl(tmp_path_factory, scene):
+    with _acl_service(tmp_path_factory.mktemp("acl")) as svc:
+        ep = svc["endpoint"]
+        sessions = {
+            u: zenoh.open(zenoh_config("client", connect=ep, base=svc["files"][u]))
+            for u in ("camera", "camera2", "viewer")
+        }
+        try:
+            with OccVOClient(ep, STREAM, timeout=60, session=sessions["camera"]) as c:
+                c.reset()
+                poses = [c.step(f).matrix() for f in scene[:3]]
+            svc["workers"]["registration"].drain()  # the last frame's map update is out
+            mapper = svc["workers"]["map"]
+            deadline = time.monotonic() + 10
+            while mapper.store.info(STREAM) is None or mapper.store.info(STREAM).last_seq != 2:
+                assert time.monotonic() < deadline, "the map service did not get the last frame's update"
+                time.sleep(0.05)
+            yield {**svc, "s": sessions, "poses": poses}
+        finally:
+            for s in sessions.values():
+                s.close()
 
 
 def _alive(session, selector):
@@ -269,3 +304,39 @@ def test_camera_cannot_reset_another_users_stream(acl, scene):
     with OccVOClient(acl["endpoint"], "camera2.bus", timeout=60, session=acl["s"]["camera2"]) as c:
         c.reset()
         assert c.step(scene[0]).seq == 0
+
+
+def test_four_logins_at_their_stream_limit_leave_a_fifth_login_every_pose(tmp_path, scene, uninterrupted):
+    """Slot grabbers under the ACL: 4 camera logins hold max_streams_per_client streams each (max_streams full);
+    a fifth login's stream takes a place of theirs and gets every pose, equal to the offline run."""
+    per, grabbers, legit = 2, ["camera", "camera2", "camera3", "camera4"], "camera5"
+    limits = {"client_identity": "user", "max_streams": per * len(grabbers), "max_streams_per_client": per}
+    with _acl_service(tmp_path, (*grabbers, legit), **limits) as svc:
+        ep, roles = svc["endpoint"], (svc["workers"]["inference"], svc["workers"]["registration"])
+        sessions = {u: zenoh.open(zenoh_config("client", connect=ep, base=svc["files"][u])) for u in (*grabbers, legit)}
+        try:
+            held = sorted((f"{u}.s{i}", u) for u in grabbers for i in range(per))
+            for stream, user in held:
+                frame = encode(camera_frame_of(scene[0], stream, 0))
+                sessions[user].put(keys.camera(stream), frame, congestion_control=zenoh.CongestionControl.BLOCK)
+            deadline = time.monotonic() + 30
+            while roles[1].stats.snapshot()[0].get("frames_out", 0) < len(held):  # every grabbed stream registered
+                assert time.monotonic() < deadline, roles[1].stats.snapshot()[0]
+                time.sleep(0.05)
+            for w in roles:  # both workers full, each stream bound to its login (the ACL's user), not to a session
+                assert sorted(w.admission.owners.items()) == held, w.role
+            with OccVOClient(ep, f"{legit}.car", timeout=60, session=sessions[legit]) as c:
+                c.reset()
+                got = [c.step(f).matrix() for f in scene[:6]]
+            assert not c.errors, c.errors
+            assert np.allclose(np.array(got), np.array(uninterrupted[:6]), atol=1e-9)
+            deadline = time.monotonic() + 30
+            for w in roles:  # its place was one grabber's stream (retired by its lane's thread)
+                assert w.admission.owners[f"{legit}.car"] == legit, w.role
+                while w.stats.snapshot()[0].get("streams_reclaimed", 0) < 1 and time.monotonic() < deadline:
+                    time.sleep(0.05)
+                assert w.stats.snapshot()[0].get("streams_reclaimed") == 1, w.role
+                assert len(w.admission.owners) == len(held), w.role
+        finally:
+            for s in sessions.values():
+                s.close()

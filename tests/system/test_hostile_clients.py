@@ -507,6 +507,10 @@ def test_a_frame_is_charged_against_the_memory_cap_before_it_is_queued(service, 
         steps(c, scene[2:3], 2)  # the refused seq again, a frame that fits
         assert c.poses[2].status == "ok"
         assert c.trajectory().seqs.to_numpy().tolist() == [0, 1, 2]
+    # given back once each frame's handling ends, which is after its pose went out
+    deadline = time.monotonic() + 60
+    while reg.memory.charged and time.monotonic() < deadline:
+        time.sleep(0.05)
     assert reg.memory.charged == 0.0
 
 
@@ -586,7 +590,12 @@ def test_after_a_disk_full_spell_every_pose_is_there_and_the_map_complete(servic
     with OccVOClient(service.endpoint, "h14.full", timeout=120, session=session, resend_after=0.5) as c:
         c.reset()
         got = steps(c, scene[:3], 0)
+        assert reg.snapshots_written(60)  # no snapshot frees journal pages during the spell
         with reg.store.lock:
+            # the file's free pages taken first (a commit would reuse them), then the file capped: full, made so
+            free, size = (db.execute(f"PRAGMA {p}").fetchone()[0] for p in ("freelist_count", "page_size"))
+            db.execute("CREATE TABLE spell_filler (b BLOB)")
+            db.execute("INSERT INTO spell_filler VALUES (zeroblob(?))", (free * size,))
             pages = db.execute("PRAGMA page_count").fetchone()[0]
             db.execute(f"PRAGMA max_page_count={pages}")  # full: no page more
         try:
@@ -598,6 +607,7 @@ def test_after_a_disk_full_spell_every_pose_is_there_and_the_map_complete(servic
         finally:
             with reg.store.lock:
                 db.execute("PRAGMA max_page_count=1073741823")  # room again
+                db.execute("DROP TABLE spell_filler")
         got += [c.wait_pose(seq).matrix() for seq in range(3, 6)]
         got += steps(c, scene[6:8], 6)
         traj = c.trajectory()

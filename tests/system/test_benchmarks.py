@@ -65,9 +65,9 @@ def test_coarse_lean_scores_every_stage_of_scene_0101s_frames(sample_root):
     ]
     assert [row["frame"] for row in report["frames"]] == list(range(9, 40))
     assert report["moving_frames"] == 29 and report["slow_frames"] == 4
-    # the slow start: coarse GICP leans ahead of where fine GICP from the guess lands (docs/results.md, Accuracy)
+    # the slow start: coarse GICP leans ahead of where fine GICP from the guess lands, several times as far
     slow = report["mean_slow_cm"]
-    assert slow["coarse"] > slow["fine_only"] + 5
+    assert slow["coarse"] > 2 * abs(slow["fine_only"])
 
 
 def test_time_offset_reads_the_same_data_offset_from_four_runs_of_scene_0101(sample_root):

@@ -11,8 +11,7 @@ pairs' ratios. The failover run drives the streams at the rate that saturates on
 first run, shared by the streams), so the survivor can carry them all. Keys: scaling (frames/s with 2 workers over 1), failover_s_p50 / failover_s_max (the kill to the
 first pose of each moved stream), poses_lost (frames without a pose, every run), poses_bit_identical (every pose of
 every run equal to offline OccVO's), store. Without --store-url a throwaway PostgreSQL cluster is started
-(occvo_services.pg_local, Debian's postgresql-15), each run on a new database, the one before dropped and the cluster
-checkpointed first."""
+(occvo_services.pg_local, Debian's postgresql-15)."""
 
 from __future__ import annotations
 
@@ -65,19 +64,6 @@ def service(workers: int, store_url: str) -> LocalService:
     return LocalService(
         quiet=True, registration_shards=workers, placement="members", pin=pin, worker_args={"registration": args}
     )
-
-
-def fresh_database(cluster, last: list) -> str:
-    """A new database for the next run, the one before dropped and the cluster checkpointed first: no run pays for
-    flushing the one before's writes."""
-    import psycopg
-
-    with psycopg.connect(cluster.url(), autocommit=True) as conn:
-        for url in last:
-            conn.execute(f'DROP DATABASE IF EXISTS "{url.rsplit("/", 1)[1]}" WITH (FORCE)')
-        conn.execute("CHECKPOINT")
-    last[:] = [cluster.new_database()]
-    return last[0]
 
 
 def saturated_fps(t0: float, runs: dict) -> float:
@@ -169,8 +155,7 @@ def main() -> int:
             raise SystemExit(missing())
         cluster = PgCluster()
     try:
-        used: list = []
-        url = (lambda: args.store_url) if args.store_url else (lambda: fresh_database(cluster, used))
+        url = (lambda: args.store_url) if args.store_url else cluster.new_database
         fps, whole, lost, same = {1: [], 2: []}, {1: [], 2: []}, 0, True
         for _ in range(args.repeats):
             for workers in (1, 2):

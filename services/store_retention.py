@@ -76,7 +76,7 @@ class RetentionReads:
 class SqliteRetention(RetentionReads):
     """The SQLite side: the columns added to an older file, the index, the writes."""
 
-    _overhead: float | None = None
+    _overhead = 1.0  # measured when the store opens (TrajectoryStore) and after each measure
 
     def _add_retention_columns(self) -> None:
         with self._write_lock():
@@ -97,8 +97,6 @@ class SqliteRetention(RetentionReads):
         """The files' pages in use over the bytes the streams record (at least 1): SQLite's pages, B-trees and
         indexes, charged to every stream in proportion. As of the store's opening or last measure: a frame's path
         reads it, and the snapshot file's lock can be held by a snapshot waiting out another writer."""
-        if self._overhead is None:
-            self.measure_overhead()
         return self._overhead
 
     def measure_overhead(self) -> None:
@@ -136,7 +134,7 @@ class PgRetention(RetentionReads):
         return 1.0  # the rows' bytes: the server's own files are the operator's
 
     def measure_overhead(self) -> None:
-        pass
+        """Nothing to measure: the overhead is the rows' bytes (overhead() is 1)."""
 
     def _slack(self, stream: str) -> int:
         return 0  # TOAST stores a blob in ~2 kB chunks: no page of its own to round up to

@@ -62,11 +62,11 @@ def preprocess(frame: OccupancyFrame, config: OccVOConfig) -> Prepared:
     if max_range is not None:  # camera occupancy is least sure of what is far
         near = points[:, 0] ** 2 + points[:, 1] ** 2 <= max_range**2
         points, labels, ijk = points[near], labels[near], ijk[near]
-    surface, grid = surface_voxels(ijk, shape)
+    surface = surface_voxels(ijk, shape)
     if len(surface) < len(points):
         points, labels, ijk = points[surface], labels[surface], ijk[surface]
     g = config.gicp
-    covs = plane_covariances(ijk, grid, shape, g.k_neighbours_radius_voxels, g.covariance_epsilon)
+    covs = plane_covariances(ijk, shape, g.k_neighbours_radius_voxels, g.covariance_epsilon)
     wide, coarse, fine = thin_sources(
         ijk,
         np.isin(labels, GROUND_CLASSES),

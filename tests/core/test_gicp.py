@@ -23,8 +23,7 @@ def _surface_town():
 def _prepared(points):
     ijk = OCC3D_GRID.indices_of(points)
     shape = np.array(OCC3D_GRID.shape, np.int64)
-    grid = dense_index(ijk, shape)
-    return plane_covariances(ijk, grid, shape, 1, 1e-3)
+    return plane_covariances(ijk, shape, 1, 1e-3)
 
 
 def _map_at(pose, points, labels, covs):

@@ -58,16 +58,50 @@ def _smallest_eigenvector(a00, a01, a02, a11, a12, a22):
     return vx, vy, vz, False
 
 
+@njit(cache=CACHE, nogil=True)
+def _window_moments(width):
+    """For each occupancy pattern of a column window `width` voxels high (bit b: offset b - width // 2): its count,
+    sum of offsets and sum of squared offsets."""
+    half = width // 2
+    table = np.zeros((1 << width, 3), np.int64)
+    for bits in range(1 << width):
+        for b in range(width):
+            if bits >> b & 1:
+                d = b - half
+                table[bits, 0] += 1
+                table[bits, 1] += d
+                table[bits, 2] += d * d
+    return table
+
+
+@njit(cache=CACHE, nogil=True)
+def _column_masks(ijk, shape):
+    """One bit a z level for each (i, j) column of the grid: the neighbourhood is read a column at a time."""
+    if shape[2] > 62:
+        raise ValueError("grids over 62 voxels high are not supported")
+    masks = np.zeros(shape[0] * shape[1], np.int64)
+    for n in range(ijk.shape[0]):
+        masks[ijk[n, 0] * shape[1] + ijk[n, 1]] |= np.int64(1) << ijk[n, 2]
+    return masks
+
+
 @njit(cache=CACHE, nogil=True, parallel=True)
-def plane_covariances(ijk, grid, shape, radius, epsilon):
+def plane_covariances(ijk, shape, radius, epsilon):
     """GICP covariances (Segal et al.): the neighbourhood's plane, as eps along its normal and 1 across it. The plane
     is fitted to the neighbours' grid offsets (whole numbers): its moments are exact, so a frame turned about z by a
-    multiple of 90 degrees gets the same planes turned, whatever order its neighbours are met in."""
+    multiple of 90 degrees gets the same planes turned, whatever order its neighbours are met in. The voxels of
+    `ijk` are each other's neighbours; each column of the neighbourhood is one look-up of its occupancy
+    bits in a table of their moments, so a wider radius costs (2r+1)^2 look-ups, not (2r+1)^3."""
     n_pts = ijk.shape[0]
     covs = np.empty((n_pts, 3, 3))
+    width = 2 * radius + 1
+    table = _window_moments(width)
+    masks = _column_masks(ijk, shape)
+    full = (np.int64(1) << width) - 1
     for n in prange(n_pts):
         sx = sy = sz = sxx = sxy = sxz = syy = syz = szz = 0
         cnt = 0
+        low = ijk[n, 2] - radius
         for di in range(-radius, radius + 1):
             i = ijk[n, 0] + di
             if i < 0 or i >= shape[0]:
@@ -76,22 +110,21 @@ def plane_covariances(ijk, grid, shape, radius, epsilon):
                 j = ijk[n, 1] + dj
                 if j < 0 or j >= shape[1]:
                     continue
-                for dk in range(-radius, radius + 1):
-                    k = ijk[n, 2] + dk
-                    if k < 0 or k >= shape[2]:
-                        continue
-                    if grid[(i * shape[1] + j) * shape[2] + k] < 0:
-                        continue
-                    cnt += 1
-                    sx += di
-                    sy += dj
-                    sz += dk
-                    sxx += di * di
-                    sxy += di * dj
-                    sxz += di * dk
-                    syy += dj * dj
-                    syz += dj * dk
-                    szz += dk * dk
+                column = masks[i * shape[1] + j]
+                bits = (column >> low if low >= 0 else column << -low) & full
+                if bits == 0:
+                    continue
+                c, s, q = table[bits, 0], table[bits, 1], table[bits, 2]
+                cnt += c
+                sx += di * c
+                sy += dj * c
+                sz += s
+                sxx += di * di * c
+                sxy += di * dj * c
+                sxz += di * s
+                syy += dj * dj * c
+                syz += dj * s
+                szz += q
         nx, ny, nz, plane = 0.0, 0.0, 0.0, False
         if cnt >= 3:  # cnt^2 times the scatter matrix, in whole numbers
             nx, ny, nz, plane = _smallest_eigenvector(

@@ -60,13 +60,5 @@ def grid_indices(points, lower, voxel, shape):
 
 @njit(cache=CACHE, nogil=True)
 def surface_voxels(ijk, shape):
-    """Indices of the points that are surface voxels (surface_mask) and the dense grid holding, for each, its rank
-    among them: dense_index of the surface points, without a second grid."""
-    grid = dense_index(ijk, shape)
-    keep = np.flatnonzero(surface_mask(ijk, grid, shape))
-    for n in range(ijk.shape[0]):
-        grid[(ijk[n, 0] * shape[1] + ijk[n, 1]) * shape[2] + ijk[n, 2]] = -1
-    for a in range(keep.shape[0]):
-        n = keep[a]
-        grid[(ijk[n, 0] * shape[1] + ijk[n, 1]) * shape[2] + ijk[n, 2]] = a
-    return keep, grid
+    """Indices of the points that are surface voxels (surface_mask)."""
+    return np.flatnonzero(surface_mask(ijk, dense_index(ijk, shape), shape))

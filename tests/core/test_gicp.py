@@ -69,6 +69,27 @@ def test_plane_covariance_is_flat_along_the_surface_normal():
         assert abs(abs(v[2, 0]) - 1) < 1e-6  # the flat direction is z, the ground's normal
 
 
+@pytest.mark.parametrize("radius", [1, 2, 3])
+def test_plane_covariances_read_every_neighbour_of_the_cube(radius):
+    """The neighbourhood is read a column at a time from occupancy bits: each covariance must be the plane of the
+    voxels within `radius` of it every way, counted one by one, also at the grid's floor, top and sides."""
+    rng = np.random.default_rng(radius)
+    shape = np.array(OCC3D_GRID.shape, np.int64)
+    ijk = np.unique(rng.integers(0, [12, 12, shape[2]], size=(900, 3)), axis=0)
+    ijk[:, :2] += [0, shape[1] - 12]  # a corner of the grid: its sides cut neighbourhoods off
+    eps = 0.05
+    covs = plane_covariances(ijk, shape, radius, eps)
+    checked = 0
+    for n in range(len(ijk)):
+        near = ijk[np.abs(ijk - ijk[n]).max(axis=1) <= radius] - ijk[n]
+        w, v = np.linalg.eigh(np.cov(near.T.astype(float), bias=True))
+        if len(near) < 3 or w[1] - w[0] < 1e-6 * w[2]:
+            continue  # no single normal: lines and lone voxels are covered by test_orientation
+        assert np.allclose(covs[n], np.eye(3) + (eps - 1) * np.outer(v[:, 0], v[:, 0]), atol=1e-9)
+        checked += 1
+    assert checked > 0.9 * len(ijk)
+
+
 def test_smallest_eigenvector_matches_numpy():
     rng = np.random.default_rng(0)
     for _ in range(200):

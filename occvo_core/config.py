@@ -21,10 +21,14 @@ class GICPConfig(_Section):
         "constant-velocity guess can be 2 m off; 0 = no wide pass",
     )
     k_neighbours_radius_voxels: int = Field(
-        1, ge=1, le=3, description="covariance from the (2r+1)^3 voxel neighbourhood on the grid"
+        2,
+        ge=1,
+        le=3,
+        description="covariance from the (2r+1)^3 voxel neighbourhood on the grid: a plane fitted to 3 x 3 x 3 "
+        "voxel centres takes the lattice's steps for its slope",
     )
     covariance_epsilon: float = Field(
-        1e-2,
+        3e-2,
         gt=0,
         description="plane regularisation: eigenvalues (eps, 1, 1), Segal et al.; a normal fitted to voxel "
         "centres quantised on the ego grid is unsure, so less than Segal's 1e-3 weight rests on it",

@@ -61,9 +61,10 @@ def test_bad_frame_raises_typed_error_and_leaves_state_unchanged(running, case):
     after = _state(vo)
     for a, b in zip(before, after):
         assert np.array_equal(a, b)
-    r = vo.step(frame(pts, lab, 8))  # and the odometry goes on: the same place, within GICP's last step
-    step_m = vo.config.gicp.convergence_translation_m
-    assert r.status == "ok" and np.allclose(r.pose, np.eye(4), atol=step_m)
+    # and the odometry goes on at the same place: within a centimetre (a fortieth of a voxel), for the voxel
+    # pfilter's weighted merge of each standing frame moves map voxels, and the optimum with them, by millimetres
+    r = vo.step(frame(pts, lab, 8))
+    assert r.status == "ok" and np.allclose(r.pose, np.eye(4), atol=0.01)
 
 
 def test_release_array_with_wrong_width_or_fractional_labels():

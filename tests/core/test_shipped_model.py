@@ -119,7 +119,8 @@ def test_the_camera_chain_makes_odometry_on_a_held_out_seed(tmp_path):
     )
     assert proc.returncode == 0, proc.stderr
     summary = json.loads((tmp_path / "out" / "summary.json").read_text())
-    assert summary["ape_rmse_m"] < 2.0, summary["ape_rmse_m"]  # measured 0.85 pinned, 1.02 with AVX-512's maths
+    # under half the failure's APE: settings of the odometry move this seed by up to a metre either way
+    assert summary["ape_rmse_m"] < 3.0, summary["ape_rmse_m"]
 
 
 def _run_from_images(out, *extra) -> subprocess.CompletedProcess:

@@ -348,8 +348,8 @@ def print_dihedral(entry: dict) -> None:
             print(
                 f"  dihedral {group:<9} APE mean {g['mean_ape_m']:.4f} worst {g['worst_ape_m']:.4f} | time-fitted mean "
                 f"{g['mean_ape_time_fitted_m']:.4f} worst {g['worst_ape_time_fitted_m']:.4f} | worst spread over "
-                f"turns: APE {g['worst_turn_spread_ape_m']:.4f} m, fitted {g['worst_turn_spread_ape_time_fitted_m']:.4f} m, shift "
-                f"{g['worst_turn_spread_time_offset_ms']:.0f} ms | worst APE spread over all eight "
+                f"turns: APE {g['worst_turn_spread_ape_m']:.4f} m, fitted "
+                f"{g['worst_turn_spread_ape_time_fitted_m']:.4f} m, shift {g['worst_turn_spread_time_offset_ms']:.0f} ms | worst APE spread over all eight "
                 f"{g['worst_spread_all_ape_m']:.4f}"
             )
 

@@ -4,6 +4,7 @@ its Zenoh sessions come from services/sessions.py."""
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import os
 import queue
@@ -88,10 +89,8 @@ class Worker:
             return
         self.stopping.set()
         for lane in list(self.lanes.values()):
-            try:
-                lane.queue.q.put_nowait(None)  # wakes a lane waiting for a frame; a full queue's lane is busy anyway
-            except queue.Full:
-                pass
+            with contextlib.suppress(queue.Full):  # a full queue's lane is busy anyway
+                lane.queue.q.put_nowait(None)  # wakes a lane waiting for a frame
         for lane in list(self.lanes.values()):
             lane.thread.join(timeout=60)
             left = lane.queue.qsize()

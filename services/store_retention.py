@@ -3,9 +3,9 @@ time of its last frame (columns of `streams`), and the reads the registration wo
 (services/registration/retention.py).
 
 `bytes` is the stream's stored size: measured (its poses, journal, snapshot with the rest of its last page, cold
-tiles and, where the map service shares the store, its map tiles) after each snapshot, plus what each frame's commit and eviction wrote since. A store
-written before these columns gets them when it is opened; its streams belong to no client until they are written
-again, and their TTL runs from their `created`."""
+tiles and, where the map service shares the store, its map tiles) after each snapshot, plus what each frame's commit
+and eviction wrote since. A store written before these columns gets them when it is opened; its streams belong to no
+client until they are written again, and their TTL runs from their `created`."""
 
 from __future__ import annotations
 

@@ -41,8 +41,6 @@ def car(x, y, label=4):
 
 def shell(points):
     """The voxels of points with an empty face neighbour (what the odometry keeps of solid objects)."""
-    from occvo_core.registration.kernels.grid import dense_index, surface_mask
+    from occvo_core.registration.kernels.grid import surface_voxels
 
-    ijk = OCC3D_GRID.indices_of(points)
-    shape = np.array(OCC3D_GRID.shape)
-    return points[surface_mask(ijk, dense_index(ijk, shape), shape)]
+    return points[surface_voxels(OCC3D_GRID.indices_of(points), np.array(OCC3D_GRID.shape))]

@@ -237,8 +237,9 @@ class VoxelPFilterMap(VoxelRows):
         """Move live rows rigidly, each by its own rotation (k,3,3) and translation (k,3) (or by those of its
         `group`, (k,) indices into rot and trans), as a loop closure corrects the map made since a place was last
         seen. A moved voxel is dropped when its new cell already holds a live voxel (the map seen there first
-        stands, as in put()) or another moved voxel first in turn_before's order, or when it moved more than a voxel and a reliable voxel born before `born_before` with
-        its label lies within ghost_radius_m: it is that voxel seen again through drift. Returns the number dropped."""
+        stands, as in put()) or another moved voxel first in turn_before's order, or when it moved more than a voxel
+        and a reliable voxel born before `born_before` with its label lies within ghost_radius_m: it is that voxel
+        seen again through drift. Returns the number dropped."""
         rows = np.asarray(rows, np.int64)
         if len(rows) == 0:
             return 0

@@ -62,8 +62,8 @@ def run(args) -> int:
                     }
                 )
             text = "\n".join(
-                f"{r['stream']}: client {r['client'] or '-'}, last seq {r['last_seq']}, {r['poses']} poses, {r['bytes']} bytes, {r['map_tiles']} "
-                f"map tiles, started {_when(r['created'])}"
+                f"{r['stream']}: client {r['client'] or '-'}, last seq {r['last_seq']}, {r['poses']} poses, "
+                f"{r['bytes']} bytes, {r['map_tiles']} map tiles, started {_when(r['created'])}"
                 for r in rows
             )
             emit(args, {"streams": rows}, text or "no streams")

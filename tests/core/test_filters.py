@@ -254,8 +254,8 @@ def test_moving_map_voxels_drops_ghosts_of_older_voxels_and_cell_clashes():
 def test_moving_map_voxels_in_place_matches_the_rule_written_out():
     """VoxelPFilterMap.move (kernels.move_rows, claim_cells, a ghost search only near the old map) against its rule
     in plain numpy, on random maps and random per-group motions: R p + t and R C R^T; a moved voxel whose cell holds
-    a voxel that did not move, or a moved one before it in turn_before's order, goes; one moved farther than a voxel whose nearest reliable
-    old voxel (born before born_before) lies within the ghost radius with its label goes."""
+    a voxel that did not move, or a moved one before it in turn_before's order, goes; one moved farther than a voxel
+    whose nearest reliable old voxel (born before born_before) lies within the ghost radius with its label goes."""
     from scipy.spatial.transform import Rotation
 
     rng = np.random.default_rng(3)

@@ -7,7 +7,7 @@ from occvo_core.grid import OCC3D_GRID
 from occvo_core.registration.gicp import gicp
 from occvo_core.registration.kernels.covariance import _smallest_eigenvector, plane_covariances
 from occvo_core.registration.kernels.gicp import gicp_linearise, gicp_linearise_pairs
-from occvo_core.registration.kernels.grid import dense_index, surface_mask
+from occvo_core.registration.kernels.grid import surface_voxels
 from occvo_core.registration.kernels.nearest import nearest_within
 from occvo_core.registration.kernels.sources import thin_sources
 from occvo_core.registration.voxel_map import VoxelPFilterMap
@@ -16,7 +16,7 @@ from occvo_core.registration.voxel_map import VoxelPFilterMap
 def _surface_town():
     points, labels = town()
     ijk = OCC3D_GRID.indices_of(points)
-    keep = surface_mask(ijk, dense_index(ijk, np.array(OCC3D_GRID.shape)), np.array(OCC3D_GRID.shape))
+    keep = surface_voxels(ijk, np.array(OCC3D_GRID.shape))
     return points[keep], labels[keep]
 
 

@@ -137,9 +137,12 @@ def plane_covariances(ijk, shape, radius, epsilon):
             )
         # d I + c u u^T: a plane (u its normal) eps along u and 1 across it; a line (u along it) 1 along u and eps
         # across it every way; too few neighbours (u zero): isotropic
-        d, c = (1.0, epsilon - 1.0) if plane else (epsilon, 1.0 - epsilon)
-        if not plane and nx == 0.0 and ny == 0.0 and nz == 0.0:
-            d = 1.0
+        if plane:
+            d, c = 1.0, epsilon - 1.0
+        elif nx == 0.0 and ny == 0.0 and nz == 0.0:
+            d, c = 1.0, 0.0
+        else:
+            d, c = epsilon, 1.0 - epsilon
         covs[n, 0, 0] = d + c * nx * nx
         covs[n, 1, 1] = d + c * ny * ny
         covs[n, 2, 2] = d + c * nz * nz

@@ -6,7 +6,7 @@ import numpy as np
 from numba import njit, prange
 
 from occvo_core.registration.kernels import CACHE, CHUNKS
-from occvo_core.registration.kernels.turns import canonical_xy, turn_before
+from occvo_core.registration.kernels.turns import canonical_xy, key_before, turn_before
 from occvo_core.registration.voxel_pfilter import p_index as voxel_p_index
 
 
@@ -178,13 +178,7 @@ def pool_voxels(pos, cov, labels, usable, weight, votes_in, voxel, origin, dims,
             r = q - 1
             while r >= start[s]:
                 m = order[r]
-                if not (
-                    key[n, 0] < key[m, 0]
-                    or (
-                        key[n, 0] == key[m, 0]
-                        and (key[n, 1] < key[m, 1] or (key[n, 1] == key[m, 1] and pos[n, 2] < pos[m, 2]))
-                    )
-                ):
+                if not key_before(key[n, 0], key[n, 1], pos[n, 2], key[m, 0], key[m, 1], pos[m, 2]):
                     break
                 order[r + 1] = m
                 r -= 1

@@ -40,6 +40,13 @@ def turn_before(ax, ay, az, bx, by, bz):
     each other never tie)."""
     pax, pay = canonical_xy(ax, ay)
     pbx, pby = canonical_xy(bx, by)
+    return key_before(pax, pay, az, pbx, pby, bz)
+
+
+@njit(cache=CACHE, nogil=True, inline="always")
+def key_before(pax, pay, az, pbx, pby, bz):
+    """turn_before on points whose (x, y) are canonical_xy already (a kernel that compares one point often keeps its
+    canonical pair)."""
     if pax != pbx:
         return pax < pbx
     if pay != pby:

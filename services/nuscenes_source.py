@@ -6,7 +6,7 @@ from __future__ import annotations
 from PIL import Image
 
 from occvo_core.cameras import CAMERA_NAMES
-from occvo_core.datasets.nuscenes_cameras import NuScenesCameraScene
+from occvo_core.datasets.nuscenes_drive import NuScenesDrive
 from occvo_core.errors import DatasetError
 from occvo_schemas.models import CameraFrame, CameraImage
 
@@ -14,8 +14,8 @@ from occvo_schemas.models import CameraFrame, CameraImage
 class NuScenesCameraFrames:
     """A scene's samples as CameraFrame messages, stamped with the sample's timestamp (seconds)."""
 
-    def __init__(self, dataroot, version: str = "v1.0-mini", scene: str = "scene-0061"):
-        self.scene = NuScenesCameraScene(dataroot, version, scene)
+    def __init__(self, dataroot, version: str | None = None, scene: str | None = None):
+        self.scene = NuScenesDrive(dataroot, scene=scene, version=version)
         self.name, self.rate_hz = self.scene.name, self.scene.rate_hz
 
     def __len__(self) -> int:

@@ -104,13 +104,15 @@ def add_parser(subparsers) -> None:
         "--nuscenes",
         metavar="DATAROOT",
         help="publish a nuScenes scene's six keyframe camera images, with "
-        "their calibration and timestamps, for the model source (nuscenes-devkit; --version, --scene)",
+        "their calibration and timestamps, for the model source (--version, --scene)",
     )
-    p.add_argument("--version", default="v1.0-mini", help="--nuscenes: the tables' version (default v1.0-mini)")
+    p.add_argument(
+        "--version", help="--nuscenes: the tables' folder (default: the one folder of tables, e.g. v1.0-mini)"
+    )
     p.add_argument(
         "--scene",
         dest="scene_name",
-        help="the scene of an Occ3D-nuScenes root (annotations.json + gts/) or of --nuscenes (default scene-0061)",
+        help="the scene of an Occ3D-nuScenes root (annotations.json + gts/) or of --nuscenes (default: its only scene)",
     )
     p.add_argument("--mask", choices=("camera", "lidar", "none"), default="camera", help="Occ3D input: visibility mask")
     add_connection(p)
@@ -154,7 +156,7 @@ def run(args) -> int:
     if args.nuscenes:
         from occvo_services.nuscenes_source import NuScenesCameraFrames
 
-        scene = NuScenesCameraFrames(args.nuscenes, args.version, args.scene_name or "scene-0061")
+        scene = NuScenesCameraFrames(args.nuscenes, args.version, args.scene_name)
     elif args.scene is None:
         raise ConfigError("replay needs a scene (folder or synthetic:<seed>) or --nuscenes DATAROOT")
     else:

@@ -1,5 +1,5 @@
-"""nuScenes cameras through nuscenes-devkit: a tiny dataset in nuScenes' table format (written here, loaded by the
-devkit itself) replayed with `occvo replay --nuscenes` through the three workers with the model source: one pose a
+"""nuScenes cameras: a tiny camera-only dataset in nuScenes' table format (written here, read by occvo's reader)
+replayed with `occvo replay --nuscenes` through the three workers with the model source: one pose a
 sample, stamped with the samples' timestamps, and occupancy the network made with the dataset's calibration."""
 
 import argparse
@@ -12,10 +12,6 @@ import pytest
 import torch
 from PIL import Image
 from scipy.spatial.transform import Rotation
-
-pytest.importorskip(
-    "nuscenes.nuscenes", reason="nuscenes-devkit is not installed (pip install --no-deps nuscenes-devkit)"
-)
 
 from occvo_core.cameras import CAMERA_NAMES
 
@@ -156,13 +152,13 @@ def dataset(tmp_path_factory, checkpoint):
     return root, *write_tiny_nuscenes(root, OccupancyPredictor(checkpoint))
 
 
-def test_the_devkit_loads_the_tables_and_the_reader_gives_calibration_and_stamps(dataset):
-    from occvo_core.datasets.nuscenes_cameras import NuScenesCameraScene
+def test_the_reader_gives_calibration_and_stamps(dataset):
+    from occvo_core.datasets.nuscenes_drive import NuScenesDrive
     from occvo_core.errors import DatasetError
     from occvo_services.nuscenes_source import NuScenesCameraFrames
 
     root, stamps, k, e = dataset
-    scene = NuScenesCameraScene(root, "v1.0-mini", "scene-0061")
+    scene = NuScenesDrive(root, "scene-0061", "v1.0-mini")
     assert len(scene) == SAMPLES and np.array_equal(scene.stamps, stamps / 1e6)
     s = scene[1]
     assert np.allclose(s.intrinsics, k) and np.allclose(s.cam_to_ego, e, atol=1e-9)
@@ -170,10 +166,11 @@ def test_the_devkit_loads_the_tables_and_the_reader_gives_calibration_and_stamps
     frame = NuScenesCameraFrames(root, "v1.0-mini", "scene-0061")[2]
     assert frame.stamp == stamps[2] / 1e6 and [im.camera for im in frame.images] == list(CAMERA_NAMES)
     assert frame.images[3].stamp == (stamps[2] + CAMERA_LAG_US[3]) / 1e6 and frame.images[0].encoding == "jpeg"
+    assert s.lidar_file is None and np.allclose(scene.gt_poses[1], s.camera_ego_poses[0])  # camera-only: CAM_FRONT's
     with pytest.raises(DatasetError, match="no scene 'scene-0103'"):
-        NuScenesCameraScene(root, "v1.0-mini", "scene-0103")
+        NuScenesDrive(root, "scene-0103")
     with pytest.raises(DatasetError, match="v1.0-trainval"):
-        NuScenesCameraScene(root, "v1.0-trainval", "scene-0061")
+        NuScenesDrive(root, "scene-0061", "v1.0-trainval")
 
 
 def test_replay_nuscenes_through_the_three_workers_with_the_model_source(dataset, checkpoint, tmp_path, capsys):

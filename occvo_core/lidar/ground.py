@@ -1,0 +1,24 @@
+"""The ground of a sweep by height: per 2 m column, the lowest points' height, smoothed over the neighbours; a point
+within `thickness` of it is ground. Geometry cannot tell the ground's kinds apart here (road, sidewalk, terrain, other
+flat): every ground point is driveable surface (docs/datasets.md)."""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.ndimage import minimum_filter
+
+CELL_M = 2.0
+
+
+def ground_mask(points: np.ndarray, thickness: float = 0.3, reach_m: float = 60.0) -> np.ndarray:
+    """(N,) True where a point (ego frame, z up from the ground under the car) lies on the ground."""
+    n = int(np.ceil(2 * reach_m / CELL_M))
+    ij = np.floor((points[:, :2] + reach_m) / CELL_M).astype(np.int64)
+    inside = np.all((ij >= 0) & (ij < n), axis=1)
+    floor = np.full((n, n), np.inf)
+    np.minimum.at(floor, (ij[inside, 0], ij[inside, 1]), points[inside, 2])
+    # a column with only a wall's or a car's points has no ground of its own: take its neighbours' lowest
+    floor = np.minimum(floor, minimum_filter(floor, size=3, mode="nearest") + 0.3)
+    height = np.full(len(points), np.inf)
+    height[inside] = points[inside, 2] - floor[ij[inside, 0], ij[inside, 1]]
+    return (height <= thickness) & (points[:, 2] < 1.0)

@@ -16,7 +16,15 @@ def add_parser(sub) -> None:
     p.add_argument(
         "--input",
         type=Path,
-        help="scene folder: OCC-VO release occupancy/<scene>/, Occ3D scene folder, or a nuScenes drive (devkit layout)",
+        help="scene folder: OCC-VO release occupancy/<scene>/, Occ3D scene folder, a nuScenes drive (devkit layout), "
+        "or a ROS 2 recording of occupancy clouds (FILE.mcap or a bag folder)",
+    )
+    p.add_argument(
+        "--occupancy-topic", help="a recording's occupancy clouds (sensor_msgs/PointCloud2; default /occvo/occupancy)"
+    )
+    p.add_argument(
+        "--groundtruth-topic",
+        help="a recording's ground truth (PoseStamped or Odometry at each cloud's stamp; default /occvo/groundtruth)",
     )
     p.add_argument("--scene", help="with an Occ3D-nuScenes root or a nuScenes drive as --input: the scene to run")
     p.add_argument(
@@ -128,7 +136,10 @@ def run(args) -> int:
 
         source = truth = SyntheticScene(seed=args.seed, frames=args.frames, rate_hz=args.rate, noise=args.noise)
     else:
-        source = open_scene(args.input, gt=args.gt, scene=args.scene, mask=args.mask, occupancy=args.occupancy)
+        topics = {"topic": args.occupancy_topic, "gt_topic": args.groundtruth_topic}
+        source = open_scene(
+            args.input, gt=args.gt, scene=args.scene, mask=args.mask, occupancy=args.occupancy, topics=topics
+        )
     config = config_from_args(args, source)
     extra = {"compile_s": _warm_up(config, args)}
     view = open_outputs(args)

@@ -19,14 +19,20 @@ def open_scene(
     scene: str | None = None,
     mask: str = "camera",
     occupancy: str | None = None,
+    topics: dict[str, str] | None = None,
 ) -> SceneSource:
     """An OCC-VO release folder (<i>.npy frames), an Occ3D-nuScenes root (annotations.json + gts/) with `scene`, one
     of its gts/<scene> folders, an Occ3D scene folder (<frame>/labels.npz), or a nuScenes drive (devkit layout) with
-    `occupancy="lidar"`, told apart by content. `mask` is Occ3D's visibility mask ("camera", "lidar" or "none"); `gt`
-    overrides the poses of the annotations."""
+    `occupancy="lidar"`, or a ROS 2 recording (FILE.mcap or a bag folder) of occupancy clouds, told apart by content.
+    `mask` is Occ3D's visibility mask ("camera", "lidar" or "none"); `gt` overrides the poses of the annotations;
+    `topics` renames a recording's topics (occupancy, groundtruth, source)."""
     path = Path(path)
     if not path.exists():
-        raise DatasetError(path, "no such scene folder")
+        raise DatasetError(path, "no such scene folder or recording")
+    from occvo_core.datasets.ros2_recording import is_recording
+
+    if is_recording(path):
+        return _recorded_scene(path, scene, gt, occupancy, topics or {})
     if not path.is_dir():
         raise DatasetError(path, "a scene is a folder of frames")
     if is_nuscenes_root(path):
@@ -77,3 +83,18 @@ def _nuscenes_scene(path: Path, scene: str | None, gt, occupancy: str | None) ->
     from occvo_core.lidar.source import LidarOccupancyScene
 
     return LidarOccupancyScene(NuScenesDrive(path, scene=scene))
+
+
+def _recorded_scene(path: Path, scene: str | None, gt, occupancy: str | None, topics: dict) -> SceneSource:
+    if occupancy is not None:
+        raise ConfigError(
+            f"--occupancy {occupancy} makes occupancy from a nuScenes drive's sensors; {path} is a "
+            "recording of occupancy clouds, read as they are"
+        )
+    if scene is not None or gt is not None:
+        raise ConfigError(
+            f"{path} is a ROS 2 recording: one drive, its ground truth on its own topic (no --scene, --gt)"
+        )
+    from occvo_core.datasets.ros2_occupancy import RecordedOccupancyScene
+
+    return RecordedOccupancyScene(path, **{k: v for k, v in topics.items() if v})

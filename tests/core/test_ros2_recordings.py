@@ -1,0 +1,123 @@
+"""A nuScenes drive converted to a ROS 2 recording (occvo convert-drive: one MCAP file, a Humble bag, a Jazzy bag) and
+read back by occvo run --input: the same occupancy frames bit for bit, the same poses as the drive's own LiDAR run,
+its camera topics equal to the JPEGs and calibration; bad recordings are one line, exit 2."""
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+DRIVE = Path(__file__).resolve().parents[3] / "shared" / "data" / "nuscenes-mini"
+
+
+@pytest.fixture(scope="module")
+def converted(tmp_path_factory):
+    if not (DRIVE / "v1.0-mini" / "scene.json").is_file():
+        pytest.skip(f"the real nuScenes drive is not at {DRIVE} (it sits beside the checkout in CI)")
+    from occvo_core.datasets.nuscenes_drive import NuScenesDrive
+    from occvo_core.lidar.source import LidarOccupancyScene
+    from occvo_core.recording.convert_drive import convert_drive
+
+    class Cached(LidarOccupancyScene):  # each frame made once for the three recordings and the comparisons
+        frames: dict = {}
+
+        def __getitem__(self, index):
+            if index not in self.frames:
+                self.frames[index] = super().__getitem__(index)
+            return self.frames[index]
+
+    source = Cached(NuScenesDrive(DRIVE, scene="scene-0916"))
+    root = tmp_path_factory.mktemp("recordings")
+    paths = {"mcap": root / "drive.mcap", "humble": root / "humble_bag", "jazzy": root / "jazzy_bag"}
+    convert_drive(source, paths["mcap"], distro="jazzy")
+    convert_drive(source, paths["humble"], distro="humble", storage="sqlite3", images=False)
+    convert_drive(source, paths["jazzy"], distro="jazzy", storage="mcap", images=False)
+    return source, paths
+
+
+@pytest.mark.parametrize("form", ["mcap", "humble", "jazzy"])
+def test_the_recording_gives_the_drives_frames_bit_for_bit(converted, form):
+    from occvo_core.datasets import open_scene
+
+    source, paths = converted
+    recorded = open_scene(paths[form])
+    assert len(recorded) == len(source) == 41 and recorded.name == source.name
+    for i in range(len(source)):
+        a, b = source[i], recorded[i]
+        assert a.points.dtype == b.points.dtype == np.float64 and np.array_equal(a.points, b.points)
+        assert np.array_equal(a.labels, b.labels) and a.stamp == b.stamp
+    assert recorded.config_defaults == source.config_defaults and recorded.gt_on_map_plane
+    np.testing.assert_allclose(recorded.gt_poses, source.gt_poses, rtol=0, atol=1e-9)
+
+
+def test_occvo_run_on_the_mcap_and_the_bag_gives_the_drives_poses(converted, tmp_path, capsys):
+    from occvo_cli.cli import build_parser, main
+    from occvo_cli.commands.run import config_from_args
+    from occvo_core.datasets import open_scene
+    from occvo_core.pipeline import OdometryPipeline
+    from occvo_core.trajectory import read_kitti
+
+    source, paths = converted
+
+    def poses(src):  # as occvo run configures a run: the source's own defaults
+        config = config_from_args(build_parser().parse_args(["run"]), src)
+        return OdometryPipeline(src, config, threads=1, progress=False).run().odometry.poses
+
+    direct = poses(source)
+    for form in ("mcap", "humble"):
+        assert np.array_equal(poses(open_scene(paths[form])), direct), form  # bit for bit, so within 1e-9 m
+    out = tmp_path / "out"
+    assert main(["run", "--input", str(paths["mcap"]), "--threads", "1", "--out", str(out), "--quiet"]) == 0
+    assert np.abs(read_kitti(out / "trajectory.kitti") - direct).max() <= 1e-6  # the text file's digits
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["frames"] == 41 and summary["ape_on_map_plane"] and summary["ape_rmse_m"] <= 0.10
+    run = json.loads((out / "run.json").read_text())
+    assert run["config"]["voxel_pfilter"]["p_index_threshold"] == 0.9  # the LiDAR source's own defaults
+    capsys.readouterr()
+
+
+def test_the_camera_topics_are_the_jpegs_and_calibration(converted):
+    from occvo_core.datasets.ros2_cameras import RecordedCameras
+
+    source, paths = converted
+    drive = source.drive
+    cams = RecordedCameras(paths["mcap"])
+    assert len(cams) == len(drive)
+    for i in (0, 20, 40):
+        k = drive[i]
+        assert cams.jpegs(i) == [Path(f).read_bytes() for f in k.files]
+        K, size = cams.intrinsics(i)
+        assert np.array_equal(K, k.intrinsics) and size == (1600, 900)
+        assert np.array_equal(cams.camera_stamps(i), k.camera_stamps)
+    np.testing.assert_allclose(cams.cam_to_ego, drive[0].cam_to_ego, rtol=0, atol=1e-12)
+
+
+def test_bag_versions_and_latched_topics(converted):
+    from rosbags.interfaces import QosDurability
+    from rosbags.rosbag2 import Reader
+    from ruamel.yaml import YAML
+
+    _, paths = converted
+    for form, version in (("humble", 5), ("jazzy", 8)):
+        meta = YAML(typ="safe").load((paths[form] / "metadata.yaml").read_text())["rosbag2_bagfile_information"]
+        assert meta["version"] == version
+        with Reader(paths[form]) as reader:
+            assert reader.message_count == 1 + 2 * 41
+            qos = {c.topic: c.ext.offered_qos_profiles[0].durability for c in reader.connections}
+        assert qos["/occvo/source"] == QosDurability.TRANSIENT_LOCAL
+        assert qos["/occvo/occupancy"] == QosDurability.VOLATILE
+
+
+def test_bad_recordings_are_one_line(converted, tmp_path, capsys):
+    from occvo_cli.cli import main
+
+    _, paths = converted
+    broken = tmp_path / "broken.mcap"
+    broken.write_bytes(paths["mcap"].read_bytes()[:5000])
+    assert main(["run", "--input", str(broken), "--quiet"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "broken.mcap" in err[0] and "recording" in err[0], err
+    assert main(["run", "--input", str(paths["jazzy"]), "--occupancy-topic", "/points", "--quiet"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "no topic /points" in err[0] and "/occvo/occupancy" in err[0], err

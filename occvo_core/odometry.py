@@ -25,6 +25,7 @@ from occvo_core.registration.initial_guess import initial_guess
 from occvo_core.registration.kernels import use_threads
 from occvo_core.registration.kernels.covariance import rotate_covariances
 from occvo_core.registration.local_map import EgoMap, LocalMap, frame_window, transform, window_margin
+from occvo_core.registration.pose_covariance import pose_covariance
 from occvo_core.registration.preprocess import Prepared, preprocess
 from occvo_core.registration.voxel_map import VoxelPFilterMap
 
@@ -47,6 +48,9 @@ class StepResult:
     timings_ms: dict[str, float] = field(default_factory=dict)
     pairs: dict[str, int] = field(default_factory=dict)
     loop_correction: np.ndarray | None = None  # 4x4 world -> world when this frame closed a loop (see LoopClosure)
+    # 6x6 (rotation, translation) in base_link, from fine GICP's information (registration/pose_covariance.py); zeros
+    # for the first frame (it defines the world), None where registration did not fix the pose
+    covariance: np.ndarray | None = None
 
 
 @dataclass
@@ -72,6 +76,7 @@ class Registration:
     pose: np.ndarray  # 4x4 ego -> world, as registered against the map (a loop closed in complete() may move it)
     status: str
     pairs: dict[str, int] = field(default_factory=dict)
+    covariance: np.ndarray | None = None  # as StepResult.covariance
     _pending: _Pending | None = field(default=None, repr=False)
 
     @property
@@ -223,7 +228,8 @@ class OccVO:
             **dynamic,
         }
         pending = _Pending(frame, t, watch, self._version, local, old, map_moved, entered)
-        return Registration(frame.index, pose, "ok", pairs, _pending=pending)
+        covariance = pose_covariance(fine.information, fine.pose)
+        return Registration(frame.index, pose, "ok", pairs, covariance, _pending=pending)
 
     def complete(self, reg: Registration) -> StepResult:
         """The second half of step(): loop closure, then the voxel pfilter's map update. The pose is reg.pose, or the
@@ -245,7 +251,15 @@ class OccVO:
         if p.t == 0:
             self._commit(p.frame, np.eye(4), np.zeros(0, np.int64))
             p.watch.lap("voxel_pfilter")
-            return StepResult(p.frame.index, np.eye(4), "initialised", p.watch.ms, {"map_voxels": len(self.map)})
+            return StepResult(
+                p.frame.index,
+                np.eye(4),
+                "initialised",
+                p.watch.ms,
+                {"map_voxels": len(self.map)},
+                None,
+                np.zeros((6, 6)),
+            )
         correction, loop = self.loop_closure.search(p.frame, reg.pose, p.t, p.local, p.old)
         p.watch.lap("loop_closure")
         pose = reg.pose if correction is None else correction @ reg.pose
@@ -262,7 +276,13 @@ class OccVO:
         p.watch.lap("voxel_pfilter")
         pairs = {**reg.pairs, "reliable_voxels": int(p.local.usable.sum()), "map_voxels": len(self.map), **loop}
         return StepResult(
-            p.frame.index, pose, "ok", p.watch.ms, pairs, None if correction is None else correction.copy()
+            p.frame.index,
+            pose,
+            "ok",
+            p.watch.ms,
+            pairs,
+            None if correction is None else correction.copy(),
+            reg.covariance,
         )
 
     def _initial_guess(self, frame: Prepared) -> np.ndarray:

@@ -3,7 +3,7 @@ against the map around it; the semantic label filter acts on its pairs (semantic
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 from scipy.spatial.transform import Rotation
@@ -21,6 +21,9 @@ class GICPResult:
     pairs_found: int  # nearest neighbours within the correspondence distance
     pairs_kept: int  # after the semantic label filter
     cost: float  # Mahalanobis cost per kept pair, last iteration
+    # J^T W J of the last Gauss-Newton step (6x6, rotation vector then translation, perturbing the pose on the left,
+    # in the map's coordinates): the information of the answer; zeros when no step was taken
+    information: np.ndarray = field(default_factory=lambda: np.zeros((6, 6)))
 
 
 def se3_exp_left(delta: np.ndarray, pose: np.ndarray) -> np.ndarray:
@@ -72,6 +75,7 @@ def gicp(
     map_labels = local_map.labels.astype(np.int64)
     origin, dims = local_map.padded_box()
     verify = False
+    information = np.zeros((6, 6))
     for it in range(1, iterations + 1):  # noqa: B007 - the last `it` is the result's count
         rot, trans = pose[:3, :3].copy(), pose[:3, 3].copy()
         search = (
@@ -106,6 +110,7 @@ def gicp(
         if kept < 6:
             break
         cost = total / kept
+        information = np.array(h)
         delta = np.linalg.solve(h + 1e-9 * np.eye(6), -g)
         pose = se3_exp_left(delta, pose)
         if (
@@ -117,7 +122,7 @@ def gicp(
             verify = True  # converged on kept pairs: search once more, so the answer's pairs are its own nearest
         else:
             verify = False
-    return GICPResult(pose, it, found, kept, cost)
+    return GICPResult(pose, it, found, kept, cost, information)
 
 
 def register_sources(

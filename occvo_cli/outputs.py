@@ -28,6 +28,16 @@ def add_output_flags(p) -> None:
         "not exist (pip install 'occvo[ros]')",
     )
     p.add_argument(
+        "--ros-distro",
+        choices=("humble", "jazzy"),
+        default="jazzy",
+        help="--ros2-bag: the distribution that plays it (bag version 5 for humble, 8 for jazzy)",
+    )
+    for name, default in (("map", "map"), ("odom", "odom"), ("base", "base_link")):
+        p.add_argument(
+            f"--{name}-frame", default=default, help=f"--ros2-bag/--mcap: the {name} frame's id (default {default})"
+        )
+    p.add_argument(
         "--map-every", type=int, default=5, help="--view/--rerun/--mcap/--ros2-bag: log the global map every N frames"
     )
 
@@ -36,6 +46,12 @@ def _needs(extra: str, flags: str, exc: ModuleNotFoundError, modules: tuple[str,
     if (exc.name or "").split(".")[0] not in modules:
         raise exc
     raise ConfigError(f"{flags} needs the {extra} extra: pip install 'occvo[{extra}]'") from None
+
+
+def _frames(args):
+    from occvo_core.viz.odom_frames import FrameNames
+
+    return FrameNames(args.map_frame, args.odom_frame, args.base_frame)
 
 
 def open_outputs(args):
@@ -52,13 +68,13 @@ def open_outputs(args):
             from occvo_core.viz.foxglove_log import FoxgloveView
         except ModuleNotFoundError as exc:
             _needs("foxglove", "--mcap", exc, ("foxglove", "mcap"))
-        outputs.append(FoxgloveView(mcap=args.mcap, map_every=args.map_every))
+        outputs.append(FoxgloveView(mcap=args.mcap, map_every=args.map_every, frames=_frames(args)))
     if args.ros2_bag:
         try:
             from occvo_core.viz.ros2_bag import Ros2Bag
         except ModuleNotFoundError as exc:
             _needs("ros", "--ros2-bag", exc, ("rosbags",))
-        outputs.append(Ros2Bag(args.ros2_bag, map_every=args.map_every))
+        outputs.append(Ros2Bag(args.ros2_bag, map_every=args.map_every, distro=args.ros_distro, frames=_frames(args)))
     from occvo_core.viz.views import Views
 
     return Views(outputs) if outputs else None

@@ -1,12 +1,15 @@
 """A run or a followed stream in Foxglove's well-known schemas (foxglove-sdk, the optional `foxglove` extra): written to
 an MCAP file, served live over Foxglove's WebSocket protocol, or both. Imported only when one is asked for.
 
-Topics (frame ids as ROS: `map` the odometry's world frame, the first frame's ego; `base_link` the ego):
-  /tf           foxglove.FrameTransform  map -> base_link, the current pose
-  /trajectory   foxglove.PosesInFrame    the estimated path so far, in map
-  /occupancy    foxglove.PointCloud      the frame's occupancy in base_link
-  /map          foxglove.PointCloud      the global map in map (every `map_every` frames and at the end; a followed
-                                         stream's map after each map update)
+Topics named as the live node and the ROS 2 bag name them; frames as REP 105 (`map` the odometry's world frame, the
+first frame's ego; `odom` continuous, loop closures move map -> odom; `base_link` the ego; names configurable):
+  /tf               foxglove.FrameTransform  map -> odom and odom -> base_link, the current pose
+  /occvo/odom       foxglove.PoseInFrame     the pose in odom
+  /occvo/path       foxglove.PosesInFrame    the last PATH_WINDOW poses, in map (the whole path once at the end)
+  /occvo/occupancy  foxglove.PointCloud      the frame's occupancy in base_link
+  /occvo/map        foxglove.PointCloud      the map in map: within 40 m of the ego every `map_every` frames of a
+                                             run (viz/near_map.py) and the whole map at the end; a followed
+                                             stream's map after each map update
 Point clouds: x, y, z float32, red, green, blue, alpha uint8 (the class colour), class uint8 (Occ3D id).
 Every message is stamped, and logged at, the data's stamp.
 """
@@ -17,13 +20,14 @@ from pathlib import Path
 
 import foxglove
 import numpy as np
-from foxglove.channels import FrameTransformChannel, PointCloudChannel, PosesInFrameChannel
+from foxglove.channels import FrameTransformChannel, PointCloudChannel, PoseInFrameChannel, PosesInFrameChannel
 from foxglove.messages import (
     FrameTransform,
     PackedElementField,
     PackedElementFieldNumericType,
     PointCloud,
     Pose,
+    PoseInFrame,
     PosesInFrame,
     Quaternion,
     Timestamp,
@@ -33,7 +37,7 @@ from scipy.spatial.transform import Rotation
 
 from occvo_core.grid import CLASS_COLORS
 
-MAP_FRAME, EGO_FRAME = "map", "base_link"
+PATH_WINDOW = 100
 POINT = np.dtype(
     [("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("red", "u1"), ("green", "u1"), ("blue", "u1"), ("alpha", "u1")]
     + [("class", "u1")]
@@ -87,7 +91,11 @@ class FoxgloveView:
     """Logs a run's steps to Foxglove channels of its own context (an MCAP file, a WebSocket server, or both).
     The same calls as RerunView, so a run and StreamFollower log to either."""
 
-    def __init__(self, mcap: str | Path | None = None, port: int | None = None, map_every: int = 5):
+    def __init__(self, mcap: str | Path | None = None, port: int | None = None, map_every: int = 5, frames=None):
+        from occvo_core.viz.odom_frames import FrameNames, OdomFrames
+
+        self.frames = frames or FrameNames()
+        self.odom = OdomFrames()
         self.context = foxglove.Context()
         self.map_every = max(1, int(map_every))
         self.writer = self.server = None
@@ -97,9 +105,10 @@ class FoxgloveView:
         if port is not None:
             self.server = foxglove.start_server(name="occvo", host="127.0.0.1", port=int(port), context=self.context)
         self.tf = FrameTransformChannel("/tf", context=self.context)
-        self.trajectory = PosesInFrameChannel("/trajectory", context=self.context)
-        self.occupancy_channel = PointCloudChannel("/occupancy", context=self.context)
-        self.map_channel = PointCloudChannel("/map", context=self.context)
+        self.odom_channel = PoseInFrameChannel("/occvo/odom", context=self.context)
+        self.trajectory = PosesInFrameChannel("/occvo/path", context=self.context)
+        self.occupancy_channel = PointCloudChannel("/occvo/occupancy", context=self.context)
+        self.map_channel = PointCloudChannel("/occvo/map", context=self.context)
         self.path: list[Pose] = []
         self.tiles: dict[tuple[int, int], tuple[np.ndarray, np.ndarray]] = {}
         self.ns = 0  # the stamp of what is logged now
@@ -112,24 +121,28 @@ class FoxgloveView:
     def time(self, index: int, stamp: float) -> None:
         self.ns = stamp_ns(stamp)
 
-    def pose(self, index: int, stamp: float, pose: np.ndarray) -> None:
-        """The ego pose (map -> base_link) and the path so far."""
+    def pose(self, index: int, stamp: float, pose: np.ndarray, loop_correction=None) -> None:
+        """The ego pose (map -> odom -> base_link) and the recent path."""
         self.time(index, stamp)
         T = np.asarray(pose, np.float64)
+        odom = self.odom.update(T, self.ns, None, loop_correction)[0]
         self.path.append(_pose(T))
-        ts = _timestamp(self.ns)
-        translation, rotation = _parts(T)
-        self.tf.log(
-            FrameTransform(
-                timestamp=ts,
-                parent_frame_id=MAP_FRAME,
-                child_frame_id=EGO_FRAME,
-                translation=translation,
-                rotation=rotation,
-            ),
-            log_time=self.ns,
-        )
-        self.trajectory.log(PosesInFrame(timestamp=ts, frame_id=MAP_FRAME, poses=list(self.path)), log_time=self.ns)
+        ts, f = _timestamp(self.ns), self.frames
+        for parent, child, M in ((f.map, f.odom, self.odom.map_to_odom), (f.odom, f.base, odom)):
+            translation, rotation = _parts(M)
+            self.tf.log(
+                FrameTransform(
+                    timestamp=ts,
+                    parent_frame_id=parent,
+                    child_frame_id=child,
+                    translation=translation,
+                    rotation=rotation,
+                ),
+                log_time=self.ns,
+            )
+        self.odom_channel.log(PoseInFrame(timestamp=ts, frame_id=f.odom, pose=_pose(odom)), log_time=self.ns)
+        window = self.path[-PATH_WINDOW:]
+        self.trajectory.log(PosesInFrame(timestamp=ts, frame_id=f.map, poses=window), log_time=self.ns)
 
     def _cloud(self, channel, frame_id: str, points: np.ndarray, labels: np.ndarray) -> None:
         channel.log(
@@ -145,10 +158,10 @@ class FoxgloveView:
         )
 
     def occupancy(self, points: np.ndarray, labels: np.ndarray) -> None:
-        self._cloud(self.occupancy_channel, EGO_FRAME, points, labels)
+        self._cloud(self.occupancy_channel, self.frames.base, points, labels)
 
     def map(self, points: np.ndarray, labels: np.ndarray) -> None:
-        self._cloud(self.map_channel, MAP_FRAME, points, labels)
+        self._cloud(self.map_channel, self.frames.map, points, labels)
 
     def clear_map(self) -> None:
         self.tiles.clear()
@@ -170,14 +183,20 @@ class FoxgloveView:
         """Counters stay in summary.json and the rerun view; Foxglove's schemas have no scalar."""
 
     def step(self, frame, result, odometry) -> None:
-        self.pose(frame.index, frame.stamp, result.pose)
+        self.pose(frame.index, frame.stamp, result.pose, getattr(result, "loop_correction", None))
         self.occupancy(frame.points, frame.labels)
         if self._frames % self.map_every == 0:
-            self.map(*odometry.map_points())
+            from occvo_core.viz.near_map import map_near
+
+            self.map(*map_near(odometry, result.pose))
         self._frames += 1
 
     def finish(self, odometry) -> None:
         self.map(*odometry.map_points())
+        if len(self.path) > PATH_WINDOW:  # the whole path, once
+            self.trajectory.log(
+                PosesInFrame(timestamp=_timestamp(self.ns), frame_id=self.frames.map, poses=self.path), log_time=self.ns
+            )
         self.close()
 
     def close(self) -> None:

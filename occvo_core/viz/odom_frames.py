@@ -73,4 +73,3 @@ def twist_covariance(previous_cov: np.ndarray, cov: np.ndarray, rel: np.ndarray)
     before[:3, 3:], before[3:, :3] = -R.T, -R.T
     twist = now @ cov @ now.T + before @ previous_cov @ before.T
     return (twist + twist.T) / 2
-

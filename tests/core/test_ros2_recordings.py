@@ -121,3 +121,7 @@ def test_bad_recordings_are_one_line(converted, tmp_path, capsys):
     assert main(["run", "--input", str(paths["jazzy"]), "--occupancy-topic", "/points", "--quiet"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "no topic /points" in err[0] and "/occvo/occupancy" in err[0], err
+    assert main(["convert-drive", "--input", str(tmp_path), "--out", str(tmp_path / "x.mcap")]) == 2
+    assert "not a nuScenes drive" in capsys.readouterr().err
+    assert main(["convert-drive", "--input", str(DRIVE), "--out", str(paths["mcap"])]) == 2
+    assert "already exists" in capsys.readouterr().err

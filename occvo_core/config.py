@@ -207,11 +207,12 @@ class OccVOConfig(_Section):
     loop_closure: LoopClosureConfig = LoopClosureConfig()
 
     @classmethod
-    def load(cls, path: str | Path) -> OccVOConfig:
-        """From a JSON or YAML-free JSON5 file; unknown keys are an error."""
+    def load(cls, path: str | Path, defaults: dict | None = None) -> OccVOConfig:
+        """From a JSON or YAML-free JSON5 file; unknown keys are an error. `defaults` (a scene source's own) stand
+        where the file says nothing."""
         from occvo_core import config_file
 
-        return config_file.validate(cls, config_file.read(path), path)
+        return config_file.validate(cls, _deep_merge(defaults or {}, config_file.read(path)), path)
 
     def with_filters(self, semantic: bool = True, dynamic: bool = True, pfilter: bool = True) -> OccVOConfig:
         return self.model_copy(
@@ -226,3 +227,10 @@ class OccVOConfig(_Section):
         return self.model_copy(
             update={"initialisation": self.initialisation.model_copy(update={"motion_search": enabled})}
         )
+
+
+def _deep_merge(base: dict, over: dict) -> dict:
+    out = dict(base)
+    for key, value in over.items():
+        out[key] = _deep_merge(out[key], value) if isinstance(value, dict) and isinstance(out.get(key), dict) else value
+    return out

@@ -37,6 +37,15 @@ def ape_rmse(gt_poses: np.ndarray, est_poses: np.ndarray, align: bool = True) ->
     return float(np.sqrt(np.mean(err**2)))
 
 
+def project_to_plane(poses: np.ndarray) -> np.ndarray:
+    """Poses with their height dropped (z = 0), as `evo_ape --project_to_plane xy`: for ground truth that lies on a
+    map's plane whatever the road's slope (nuScenes' ego poses: z = 0 up a ramp), against which a 3D estimate's true
+    climb would count as error."""
+    out = np.array(poses, np.float64, copy=True)
+    out[:, 2, 3] = 0.0
+    return out
+
+
 def success(rmse: float) -> bool:
     return bool(np.isfinite(rmse) and rmse < SUCCESS_RMSE_M)
 

@@ -14,7 +14,7 @@ from tqdm import tqdm
 
 from occvo_core.config import OccVOConfig
 from occvo_core.errors import InvalidFrameError
-from occvo_core.eval import ape_rmse, success
+from occvo_core.eval import ape_rmse, project_to_plane, rpe_errors, success
 from occvo_core.io import plot_trajectory, write_ply
 from occvo_core.odometry import OccVO
 from occvo_core.time_fit import fit_time_offset
@@ -81,10 +81,16 @@ class OdometryPipeline:
         gt = self.gt_of_registered()
         out: dict = {"scene": self.source.name, "frames": int(len(poses)), "skipped_frames": self.skipped}
         if gt is not None:
-            rmse = ape_rmse(gt, poses)
+            scored = poses
+            if getattr(self.source, "gt_on_map_plane", False):  # scored as the ground truth is given: on the plane
+                out.update(ape_rmse_3d_m=ape_rmse(gt, poses), ape_on_map_plane=True)
+                scored = project_to_plane(poses)
+            rmse = ape_rmse(gt, scored)
             out.update(ape_rmse_m=rmse, success=success(rmse))
+            if len(poses) >= 2:
+                out["rpe_rmse_m"] = float(np.sqrt(np.mean(rpe_errors(gt, scored) ** 2)))
             if len(poses) >= 3:  # how much of the APE is timing between the frames and their poses
-                fit = fit_time_offset(gt, poses, self.stamps())
+                fit = fit_time_offset(gt, scored, self.stamps())
                 out.update(
                     ape_rmse_time_fitted_m=fit.ape_rmse_m,
                     time_offset_ms=fit.offset_ms,

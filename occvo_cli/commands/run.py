@@ -13,8 +13,17 @@ from occvo_core import OccVOConfig
 
 def add_parser(sub) -> None:
     p = sub.add_parser("run", help="run OCC-VO over a scene (a synthetic one when no --input is given)")
-    p.add_argument("--input", type=Path, help="scene folder: OCC-VO release occupancy/<scene>/ or Occ3D scene folder")
-    p.add_argument("--scene", help="with an Occ3D-nuScenes root as --input (annotations.json + gts/): the scene to run")
+    p.add_argument(
+        "--input",
+        type=Path,
+        help="scene folder: OCC-VO release occupancy/<scene>/, Occ3D scene folder, or a nuScenes drive (devkit layout)",
+    )
+    p.add_argument("--scene", help="with an Occ3D-nuScenes root or a nuScenes drive as --input: the scene to run")
+    p.add_argument(
+        "--occupancy",
+        choices=("lidar",),
+        help="a nuScenes drive's occupancy made from each keyframe's own LiDAR sweep (or --from-images: the cameras)",
+    )
     p.add_argument(
         "--list-scenes", action="store_true", help="list the scenes of the Occ3D-nuScenes root --input and exit"
     )
@@ -49,7 +58,8 @@ def add_parser(sub) -> None:
     p.add_argument(
         "--from-images",
         action="store_true",
-        help="render the synthetic scene's six cameras and predict occupancy with --checkpoint",
+        help="occupancy predicted by --checkpoint from the six cameras: a nuScenes drive's real images, or the "
+        "synthetic scene's rendered ones",
     )
     p.add_argument(
         "--checkpoint",
@@ -81,8 +91,9 @@ def add_parser(sub) -> None:
     p.set_defaults(func=run)
 
 
-def config_from_args(args) -> OccVOConfig:
-    cfg = OccVOConfig.load(args.config) if args.config else OccVOConfig()
+def config_from_args(args, source=None) -> OccVOConfig:
+    defaults = getattr(source, "config_defaults", None)  # a source's own (LiDAR occupancy), under --config
+    cfg = OccVOConfig.load(args.config, defaults) if args.config else OccVOConfig.model_validate(defaults or {})
     search = getattr(args, "motion_search", None)
     if search is None and getattr(args, "from_images", False):
         search = True  # camera occupancy needs it to follow turns; it costs time every frame
@@ -104,38 +115,21 @@ def run(args) -> int:
 
     if args.list_scenes:
         return _list_scenes(args.input)
-    if args.input is not None and (args.synthetic or args.from_images):
-        raise ConfigError(
-            "--input reads a recorded scene; --synthetic and --from-images make one: give one or the other"
-        )
-    if args.input is None:
+    if args.input is not None and args.synthetic:
+        raise ConfigError("--input reads a recorded scene; --synthetic makes one: give one or the other")
+    if args.from_images and args.occupancy:
+        raise ConfigError("--from-images and --occupancy lidar are two ways to make occupancy: choose one")
+    truth = None
+    if args.from_images:
+        source = _image_source(args)
+        truth = source.scene if args.input is None else None  # the synthetic town's true occupancy scores the map
+    elif args.input is None:
         from occvo_core.sim import SyntheticScene
 
         source = truth = SyntheticScene(seed=args.seed, frames=args.frames, rate_hz=args.rate, noise=args.noise)
-        if args.from_images:
-            from occvo_core.models.image_source import ImageOccupancySource
-            from occvo_core.models.tpvformer.checkpoint import SHIPPED_THRESHOLDS, shipped_checkpoint
-            from occvo_core.models.tpvformer.predictor import OccupancyPredictor
-
-            given = (args.min_confidence, args.min_ground_confidence)
-            served = (0.0, 0.0) if args.checkpoint else SHIPPED_THRESHOLDS
-            min_conf, min_ground = (s if g is None else g for g, s in zip(given, served))
-            if args.mask == "lidar":
-                raise ConfigError("--mask lidar: a camera model's prediction has no lidar; give camera or none")
-            predictor = OccupancyPredictor(
-                args.checkpoint or shipped_checkpoint(),
-                min_confidence=min_conf,
-                min_ground_confidence=min_ground,
-                camera_mask=args.mask == "camera",
-            )
-            import torch
-
-            if args.threads:  # torch's sums split by thread count: one count, the same voxels on any machine
-                torch.set_num_threads(args.threads)
-            source = ImageOccupancySource(source, predictor)
     else:
-        source = open_scene(args.input, gt=args.gt, scene=args.scene, mask=args.mask)
-    config = config_from_args(args)
+        source = open_scene(args.input, gt=args.gt, scene=args.scene, mask=args.mask, occupancy=args.occupancy)
+    config = config_from_args(args, source)
     extra = {"compile_s": _warm_up(config, args)}
     view = open_outputs(args)
     try:
@@ -148,10 +142,12 @@ def run(args) -> int:
         if view:
             view.abandon()  # no half-written recording
         raise
-    if args.input is None:
+    if truth is not None:
         extra["map_metrics"] = _synthetic_map_metrics(truth, pipeline)
     if args.from_images:
-        extra["torch_threads"], extra["camera_mask"] = torch.get_num_threads(), predictor.camera_mask
+        import torch
+
+        extra["torch_threads"], extra["camera_mask"] = torch.get_num_threads(), source.predictor.camera_mask
     summary = pipeline.write(args.out, extra)
     write_run_record(args.out, args, config)
     shown = {k: summary[k] for k in summary if k not in ("skipped_frames",)}
@@ -167,6 +163,42 @@ def run(args) -> int:
         )
         return 1
     return 0
+
+
+def _image_source(args):
+    """The six cameras through TPV-Former: a nuScenes drive's real images, or the synthetic scene rendered."""
+    from occvo_core.errors import ConfigError
+    from occvo_core.models.tpvformer.checkpoint import SHIPPED_THRESHOLDS, shipped_checkpoint
+    from occvo_core.models.tpvformer.predictor import OccupancyPredictor
+
+    if args.mask == "lidar":
+        raise ConfigError("--mask lidar: a camera model's prediction has no lidar; give camera or none")
+    given = (args.min_confidence, args.min_ground_confidence)
+    served = (0.0, 0.0) if args.checkpoint else SHIPPED_THRESHOLDS
+    min_conf, min_ground = (s if g is None else g for g, s in zip(given, served))
+    predictor = OccupancyPredictor(
+        args.checkpoint or shipped_checkpoint(),
+        min_confidence=min_conf,
+        min_ground_confidence=min_ground,
+        camera_mask=args.mask == "camera",
+    )
+    import torch
+
+    if args.threads:  # torch's sums split by thread count: one count, the same voxels on any machine
+        torch.set_num_threads(args.threads)
+    if args.input is not None:
+        from occvo_core.datasets.nuscenes_drive import NuScenesDrive
+        from occvo_core.datasets.nuscenes_tables import is_nuscenes_root
+        from occvo_core.models.image_source import NuScenesImageSource
+
+        if not is_nuscenes_root(args.input):
+            raise ConfigError(f"--from-images reads a nuScenes drive's cameras; {args.input} is not one")
+        return NuScenesImageSource(NuScenesDrive(args.input, scene=args.scene), predictor)
+    from occvo_core.models.image_source import ImageOccupancySource
+    from occvo_core.sim import SyntheticScene
+
+    scene = SyntheticScene(seed=args.seed, frames=args.frames, rate_hz=args.rate, noise=args.noise)
+    return ImageOccupancySource(scene, predictor)
 
 
 def _list_scenes(root) -> int:

@@ -24,6 +24,11 @@ def pose_matrix(record: dict) -> np.ndarray:
     return out
 
 
+def is_nuscenes_root(path: Path) -> bool:
+    """A folder in nuScenes' layout: a folder of tables (v1.0-*/scene.json) beside samples/."""
+    return (path / "samples").is_dir() and any(path.glob("*/scene.json"))
+
+
 def find_version(root: Path, version: str | None) -> Path:
     """The tables' folder: `version` when given, else the one folder under root that holds scene.json."""
     if version is not None:

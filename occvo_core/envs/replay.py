@@ -46,8 +46,10 @@ def open_source(spec, scene: str | None = None) -> Any:
         _, _, seed = spec.partition(":")
         return SyntheticScene(seed=int(seed or 0))
     from occvo_core.datasets import open_scene
+    from occvo_core.datasets.nuscenes_tables import is_nuscenes_root
 
-    return open_scene(spec, scene=scene)
+    drive = is_nuscenes_root(Path(spec))  # a drive's occupancy here is its LiDAR's: the env runs no camera model
+    return open_scene(spec, scene=scene, occupancy="lidar" if drive else None)
 
 
 def _copy(obs: dict) -> dict:

@@ -1,5 +1,7 @@
 """One sweep's labelled points and voxels: box points take the box's class, ground points driveable surface, the
-rest manmade; the car's own body is left out. Majority vote of the points in each voxel, as Occ3D labels voxels."""
+rest manmade; the car's own body is left out. Majority vote of the points in each voxel, as Occ3D labels voxels; for
+odometry a voxel stands at the mean of its points (a sweep's rings cut a voxel anywhere: its centre would misplace
+the surface by up to 0.2 m, the same way in every frame of a ring)."""
 
 from __future__ import annotations
 
@@ -39,3 +41,13 @@ def voxel_labels(points: np.ndarray, labels: np.ndarray, grid: GridSpec = OCC3D_
     votes = votes.reshape(-1, NUM_CLASSES)
     out = np.where(votes.any(axis=1), votes.argmax(axis=1), FREE).astype(np.uint8)
     return out.reshape(grid.shape)
+
+
+def voxel_means(points: np.ndarray, grid: GridSpec = OCC3D_GRID) -> tuple[np.ndarray, np.ndarray]:
+    """Flat indices (M,) of the voxels points fall in, in increasing order, and the mean point of each (M, 3)."""
+    idx = grid.indices_of(points)
+    keep = grid.inside(idx)
+    flat = np.ravel_multi_index(tuple(idx[keep].T), grid.shape)
+    occupied, inverse, count = np.unique(flat, return_inverse=True, return_counts=True)
+    sums = np.stack([np.bincount(inverse, points[keep, a], minlength=len(occupied)) for a in range(3)], axis=1)
+    return occupied, sums / count[:, None]

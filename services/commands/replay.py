@@ -11,8 +11,11 @@ from occvo_services.client import PENDING_CODES, OccVOClient, ServiceError
 from occvo_services.commands._common import add_connection, add_json, client, emit
 
 
-def load_scene(spec: str, frames: int | None = None, scene: str | None = None, mask: str = "camera"):
-    """A scene folder (OCC-VO release or Occ3D layout), an Occ3D-nuScenes root with `scene`, or `synthetic:<seed>`."""
+def load_scene(
+    spec: str, frames: int | None = None, scene: str | None = None, mask: str = "camera", occupancy: str | None = None
+):
+    """A scene folder (OCC-VO release or Occ3D layout), an Occ3D-nuScenes root with `scene`, a nuScenes drive with
+    occupancy "lidar", or `synthetic:<seed>`."""
     if spec.startswith("synthetic:"):
         from occvo_core.errors import ConfigError
         from occvo_core.sim import SyntheticScene
@@ -24,7 +27,7 @@ def load_scene(spec: str, frames: int | None = None, scene: str | None = None, m
         return SyntheticScene(seed=seed, frames=frames or 40)
     from occvo_core.datasets import open_scene
 
-    return open_scene(spec, scene=scene, mask=mask)
+    return open_scene(spec, scene=scene, mask=mask, occupancy=occupancy)
 
 
 def replay(
@@ -115,6 +118,9 @@ def add_parser(subparsers) -> None:
         help="the scene of an Occ3D-nuScenes root (annotations.json + gts/) or of --nuscenes (default: its only scene)",
     )
     p.add_argument("--mask", choices=("camera", "lidar", "none"), default="camera", help="Occ3D input: visibility mask")
+    p.add_argument(
+        "--occupancy", choices=("lidar",), help="a nuScenes drive as SCENE: occupancy from each keyframe's LiDAR sweep"
+    )
     add_connection(p)
     p.add_argument("--rate", type=float, default=0.0, help="frames per second; 0 = as fast as the pipeline takes")
     p.add_argument("--window", type=int, default=4, help="frames in flight at most (lossless replay)")
@@ -160,7 +166,7 @@ def run(args) -> int:
     elif args.scene is None:
         raise ConfigError("replay needs a scene (folder or synthetic:<seed>) or --nuscenes DATAROOT")
     else:
-        scene = load_scene(args.scene, args.frames, args.scene_name, args.mask)
+        scene = load_scene(args.scene, args.frames, args.scene_name, args.mask, args.occupancy)
     with client(args, resend_after=args.resend_after or None) as c:
         c.wait_for_workers(timeout=args.timeout)
         n = len(scene) if args.frames is None else min(args.frames, len(scene))

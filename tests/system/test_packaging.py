@@ -49,6 +49,7 @@ def venv(tmp_path_factory) -> Path:
     (wheel,) = wheels.glob("occvo-*.whl")
     env_dir = root / "venv"
     subprocess.run([sys.executable, "-m", "venv", "--system-site-packages", str(env_dir)], check=True, timeout=300)
+    _see_this_interpreters_packages(env_dir)
     subprocess.run(
         [str(env_dir / "bin" / "python"), "-m", "pip", "install", "-q", "--no-deps", str(wheel)],
         check=True,
@@ -57,6 +58,22 @@ def venv(tmp_path_factory) -> Path:
         timeout=600,
     )
     return env_dir / "bin"
+
+
+def _see_this_interpreters_packages(env_dir: Path) -> None:
+    """A venv made from a venv is based on the base interpreter: --system-site-packages shows it the base's
+    site-packages, not this one's (where torch, zenoh and numba may live). A .pth adds this interpreter's site folders
+    after the new venv's own, as plain paths: their .pth files (this checkout's editable install) stay unread."""
+    import site
+    import sysconfig
+
+    mine = [*site.getsitepackages(), sysconfig.get_path("purelib"), sysconfig.get_path("platlib")]
+    if site.ENABLE_USER_SITE:
+        mine.append(site.getusersitepackages())
+    probe = "import sysconfig; print(sysconfig.get_path('purelib'))"
+    own = subprocess.run([str(env_dir / "bin" / "python"), "-c", probe], capture_output=True, text=True, check=True)
+    folders = list(dict.fromkeys(p for p in mine if Path(p).is_dir()))
+    (Path(own.stdout.strip()) / "_occvo_test_parent_site.pth").write_text("\n".join(folders) + "\n")
 
 
 def _clean_env() -> dict:

@@ -37,7 +37,7 @@ def add_parser(sub) -> None:
     p.set_defaults(func=run)
 
 
-def _within(name: str, span: tuple[int, int] | None, n: int) -> list[int]:
+def keyframe_list(name: str, span: tuple[int, int] | None, n: int) -> list[int]:
     from occvo_core.errors import ConfigError
 
     if span is None:
@@ -54,8 +54,8 @@ def run(args) -> int:
     from occvo_core.lidar.occ3d_labels import keyframe_labels, load_sweeps
 
     drive = NuScenesDrive(args.input, scene=args.scene, version=args.version)
-    keyframes = _within("keyframes", args.keyframes, len(drive))
-    sweeps = load_sweeps(drive, _within("sweeps-from", args.sweeps_from, len(drive)))
+    keyframes = keyframe_list("keyframes", args.keyframes, len(drive))
+    sweeps = load_sweeps(drive, keyframe_list("sweeps-from", args.sweeps_from, len(drive)))
     stats = LabelStats()
     for n, i in enumerate(keyframes):
         labels = keyframe_labels(drive, sweeps, i)

@@ -21,8 +21,12 @@ def add_parser(subparsers) -> None:
     ):
         a = sub.add_parser(name, help=what)
         a.add_argument(
-            "--store", required=True, metavar="URL", help="a SQLite file (path or sqlite:///path) or postgresql://..."
+            "--store",
+            metavar="URL",
+            help="a SQLite file (path or sqlite:///path) or postgresql://user@host/db, no password here (default: "
+            "$OCCVO_STORE_URL)",
         )
+        a.add_argument("--store-url-file", metavar="FILE", help="a file readable by its owner only holding the URL")
         if name != "list":
             a.add_argument("stream", type=stream_id, help="the stream id")
         if name == "export":
@@ -42,8 +46,13 @@ def _open(url: str):
 
 def run(args) -> int:
     from occvo_core.trajectory import write_kitti, write_tum
+    from occvo_services.store_url import SECRET_WAYS, redact, resolve
 
+    args.store = resolve(args.store, args.store_url_file)
+    if not args.store:
+        raise ConfigError(f"no store given: --store URL, or {SECRET_WAYS}")
     store, maps = _open(args.store)
+    args.store = redact(args.store)  # as the messages below name it
     try:
         if args.action == "list":
             rows = []

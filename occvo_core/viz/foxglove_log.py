@@ -32,6 +32,7 @@ from foxglove.messages import (
 from scipy.spatial.transform import Rotation
 
 from occvo_core.grid import CLASS_COLORS
+from occvo_core.overwrite import MCAP_METADATA
 
 MAP_FRAME, EGO_FRAME = "map", "base_link"
 POINT = np.dtype(
@@ -94,6 +95,8 @@ class FoxgloveView:
         if mcap is not None:
             Path(mcap).parent.mkdir(parents=True, exist_ok=True)
             self.writer = foxglove.open_mcap(str(mcap), allow_overwrite=True, context=self.context)
+            # the first record after the header: how occvo tells its own file before replacing it (occvo_core.overwrite)
+            self.writer.write_metadata(MCAP_METADATA, {"writer": "occvo"})
         if port is not None:
             self.server = foxglove.start_server(name="occvo", host="127.0.0.1", port=int(port), context=self.context)
         self.tf = FrameTransformChannel("/tf", context=self.context)

@@ -31,6 +31,11 @@ def add_parser(subparsers) -> None:
             a.add_argument("stream", type=stream_id, help="the stream id")
         if name == "export":
             a.add_argument("--out", required=True, help="the file written (.kitti: KITTI rows, else TUM)")
+            a.add_argument(
+                "--force",
+                action="store_true",
+                help="replace an existing --out file that occvo did not write (default: refused; docs/cli.md)",
+            )
         add_json(a)
         a.set_defaults(func=run)
 
@@ -48,6 +53,10 @@ def run(args) -> int:
     from occvo_core.trajectory import write_kitti, write_tum
     from occvo_services.store_url import SECRET_WAYS, redact, resolve
 
+    if args.action == "export":
+        from occvo_core.overwrite import check_replaceable
+
+        check_replaceable(args.out, "trajectory", "--out", args.force)
     args.store = resolve(args.store, args.store_url_file)
     if not args.store:
         raise ConfigError(f"no store given: --store URL, or {SECRET_WAYS}")

@@ -36,16 +36,24 @@ def add_parser(subparsers) -> None:
         metavar="PORT",
         help="serve what arrives live to Foxglove over its WebSocket protocol on 127.0.0.1:PORT (default 8765)",
     )
+    p.add_argument(
+        "--force",
+        action="store_true",
+        help="replace an existing --rerun or --mcap file that occvo did not write (default: refused; docs/cli.md)",
+    )
     p.add_argument("--seconds", type=float, default=0.0, help="stop after this long (0: until Ctrl-C)")
     p.set_defaults(func=run)
 
 
 def run(args) -> int:
+    from occvo_core.overwrite import check_replaceable
     from occvo_core.viz.views import Views
     from occvo_services.follow import StreamFollower
     from occvo_services.sessions import open_session
 
     foxglove = args.mcap is not None or args.foxglove is not None
+    check_replaceable(args.rerun, "rrd", "--rerun", args.force)
+    check_replaceable(args.mcap, "mcap", "--mcap", args.force)
     session = open_session(endpoint(args))  # first: no router, no viewer and no recording
     views = []
     try:

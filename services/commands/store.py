@@ -8,6 +8,7 @@ import datetime
 from pathlib import Path
 
 from occvo_core.errors import ConfigError
+from occvo_core.overwrite import check_replaceable
 from occvo_services.commands._common import add_json, emit, stream_id
 
 
@@ -40,6 +41,16 @@ def add_parser(subparsers) -> None:
         a.set_defaults(func=run)
 
 
+def _store_url(args) -> str:
+    """The store as `occvo serve` takes it: --store (no password there), --store-url-file, OCCVO_STORE_URL."""
+    from occvo_services.store_url import SECRET_WAYS, resolve
+
+    url = resolve(args.store, args.store_url_file)
+    if not url:
+        raise ConfigError(f"no store given: --store URL, or {SECRET_WAYS}")
+    return url
+
+
 def _open(url: str):
     from occvo_services.map_store import open_map_store
     from occvo_services.store_api import is_postgres_url, open_store, sqlite_path
@@ -51,17 +62,13 @@ def _open(url: str):
 
 def run(args) -> int:
     from occvo_core.trajectory import write_kitti, write_tum
-    from occvo_services.store_url import SECRET_WAYS, redact, resolve
+    from occvo_services.store_url import redact
 
     if args.action == "export":
-        from occvo_core.overwrite import check_replaceable
-
         check_replaceable(args.out, "trajectory", "--out", args.force)
-    args.store = resolve(args.store, args.store_url_file)
-    if not args.store:
-        raise ConfigError(f"no store given: --store URL, or {SECRET_WAYS}")
-    store, maps = _open(args.store)
-    args.store = redact(args.store)  # as the messages below name it
+    url = _store_url(args)
+    store, maps = _open(url)
+    args.store = redact(url)  # as the messages below name it
     try:
         if args.action == "list":
             rows = []

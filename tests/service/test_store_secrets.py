@@ -139,17 +139,25 @@ def test_a_worker_refuses_a_password_on_its_command_line():
         assert f"{flag} postgresql://occvo:***@" in lines[0] and STORE_URL_ENV in lines[0]
 
 
-def test_a_worker_takes_its_store_from_the_environment_and_names_it_without_the_password(pg_cluster):
-    """The map service given the store only in OCCVO_STORE_URL (the way `occvo serve` hands it over) opens it with
-    the password (the role needs it) and logs it without; with the database away its traceback holds no password."""
+@pytest.mark.parametrize("way", ["environment", "url file"])
+def test_a_worker_takes_its_store_without_argv_and_names_it_without_the_password(pg_cluster, tmp_path, way):
+    """The map service given the store in OCCVO_STORE_URL (the way `occvo serve` hands it over) or in
+    --store-url-file opens it with the password (the role needs it) and logs it without; with the database away its
+    traceback holds no password."""
     from occvo_services.sessions import open_router
 
-    pg_cluster.add_password_user("occvo_env", PASSWORD)
-    url = f"postgresql://occvo_env:{SECRET}@127.0.0.1:{pg_cluster.port}/postgres"
+    user = f"occvo_{way.split()[0]}"
+    pg_cluster.add_password_user(user, PASSWORD)
+    url = f"postgresql://{user}:{SECRET}@127.0.0.1:{pg_cluster.port}/postgres"
     endpoint = f"tcp/127.0.0.1:{free_port()}"
+    url_file = tmp_path / "store.url"
+    url_file.write_text(url + "\n")
+    url_file.chmod(0o600)
     cmd = [sys.executable, "-m", "occvo_services.map_service", "--connect", endpoint]
+    cmd += ["--store-url-file", str(url_file)] if way == "url file" else []
+    env = {**os.environ, STORE_URL_ENV: url} if way == "environment" else dict(os.environ)
     router = open_router(endpoint)
-    proc = subprocess.Popen(cmd, env={**os.environ, STORE_URL_ENV: url}, stderr=subprocess.PIPE, text=True)
+    proc = subprocess.Popen(cmd, env=env, stderr=subprocess.PIPE, text=True)
     try:
         lines = []
         while not any('"map store"' in line for line in lines):
@@ -157,17 +165,48 @@ def test_a_worker_takes_its_store_from_the_environment_and_names_it_without_the_
             assert line, "".join(lines)  # the worker ended before it named its store
             lines.append(line)
         assert SECRET not in open(f"/proc/{proc.pid}/cmdline").read()
-        assert SECRET in open(f"/proc/{proc.pid}/environ").read()  # where the password travels
     finally:
         proc.terminate()
         rest = proc.communicate(timeout=60)[1]
         router.close()
     logged = "".join(lines) + rest
-    assert SECRET not in logged and PASSWORD not in logged and "postgresql://occvo_env:***@127.0.0.1" in logged
-    away = {**os.environ, STORE_URL_ENV: url.replace(str(pg_cluster.port), str(free_port()))}
-    out = subprocess.run(cmd, env=away, capture_output=True, text=True, timeout=60)
-    assert out.returncode != 0 and "unreachable" in out.stderr and "occvo_env:***@" in out.stderr, out.stderr
+    assert SECRET not in logged and PASSWORD not in logged and f"postgresql://{user}:***@127.0.0.1" in logged
+    url_file.write_text(url.replace(str(pg_cluster.port), str(free_port())) + "\n")
+    env[STORE_URL_ENV] = url.replace(str(pg_cluster.port), str(free_port()))
+    out = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=60)
+    assert out.returncode != 0 and "unreachable" in out.stderr and f"{user}:***@" in out.stderr, out.stderr
     assert SECRET not in out.stderr and PASSWORD not in out.stderr
+
+
+def test_libpq_reads_the_password_from_pgpassfile(pg_cluster, tmp_path, monkeypatch):
+    """The third way: the URL without a password, the password where libpq looks for it itself."""
+    pg_cluster.add_password_user("occvo_passfile", PASSWORD)
+    url = f"postgresql://occvo_passfile@127.0.0.1:{pg_cluster.port}/postgres"
+    with pytest.raises(StoreUnavailable, match="no password supplied"):
+        check_reachable(url)
+    passfile = tmp_path / "pgpass"
+    passfile.write_text(f"127.0.0.1:{pg_cluster.port}:*:occvo_passfile:{PASSWORD}\n")
+    passfile.chmod(0o600)
+    monkeypatch.setenv("PGPASSFILE", str(passfile))
+    check_reachable(url)
+    assert not has_password(url)  # so --store takes it
+
+
+def test_an_error_line_and_a_run_record_never_hold_the_password(tmp_path):
+    import argparse
+
+    from occvo_cli.cli import error_line
+    from occvo_cli.run_record import write_run_record
+    from occvo_core.config import OccVOConfig
+
+    url = f"postgresql://occvo:{SECRET}@db.lan/occvo"
+    assert error_line(RuntimeError(f'invalid dsn: "{url}"')) == (
+        'invalid dsn: "postgresql://occvo:***@db.lan/occvo" (RuntimeError; --debug shows the traceback)'
+    )
+    args = argparse.Namespace(argv=["run", "--note", url], note=url, func=None)
+    record = json.loads(write_run_record(tmp_path, args, OccVOConfig()).read_text())
+    assert SECRET not in json.dumps(record) and record["options"]["note"] == "postgresql://occvo:***@db.lan/occvo"
+    assert record["command"] == "occvo run --note postgresql://occvo:***@db.lan/occvo"
 
 
 def test_an_unreachable_store_is_named_without_its_password_and_why(pg_cluster, pg_url):

@@ -246,3 +246,19 @@ def test_a_store_opened_with_the_query_form_names_itself_without_the_password(pg
     with pytest.raises(StoreUnavailable) as exc:
         open_store(url.replace(str(pg_cluster.port), str(free_port())))
     assert SECRET not in str(exc.value) and "?password=***" in str(exc.value)
+
+
+def test_a_silent_server_is_given_up_on_within_10_s():
+    """A peer that takes the connection and never answers (a hung server, a half-dead host): the start check's
+    connect timeout ends it, one line, well before 10 s."""
+    import socket
+
+    with socket.socket() as silent:
+        silent.bind(("127.0.0.1", 0))
+        silent.listen(8)  # the kernel completes the handshake; nothing ever answers
+        url = f"postgresql://occvo:{SECRET}@127.0.0.1:{silent.getsockname()[1]}/occvo"
+        t0 = time.monotonic()
+        with pytest.raises(StoreUnavailable) as exc:
+            check_reachable(url)
+        took = time.monotonic() - t0
+    assert 2 <= took < 10 and "timeout" in str(exc.value) and SECRET not in str(exc.value), (took, str(exc.value))

@@ -14,9 +14,9 @@ from occvo_cli import __version__
 
 
 def write_run_record(out: str | Path, args, config) -> Path:
-    options = {k: v for k, v in vars(args).items() if k not in ("func", "debug", "argv")}
     from occvo_services.store_url import redact  # no password in a record, whatever option carried one
 
+    options = {k: v for k, v in vars(args).items() if k not in ("func", "debug", "argv")}
     record = {
         "occvo_version": __version__,
         "command": redact(shlex.join(["occvo", *getattr(args, "argv", sys.argv[1:])])),

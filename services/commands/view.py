@@ -34,7 +34,8 @@ def add_parser(subparsers) -> None:
         nargs="?",
         const=8765,
         metavar="PORT",
-        help="serve what arrives live to Foxglove over its WebSocket protocol on 127.0.0.1:PORT (default 8765)",
+        help="serve what arrives live to Foxglove over its WebSocket protocol on --bind's address, port PORT "
+        "(default 8765)",
     )
     p.add_argument(
         "--force",

@@ -55,11 +55,14 @@ def keyframe_list(name: str, span: tuple[int, int] | None, n: int) -> list[int]:
 
 def run(args) -> int:
     from occvo_core.datasets.nuscenes_drive import NuScenesDrive
+    from occvo_core.datasets.occ3d_nuscenes import ANNOTATIONS, read_annotations
     from occvo_core.datasets.occ3d_write import label_path, write_annotations, write_labels
     from occvo_core.lidar.label_stats import LabelStats
     from occvo_core.lidar.occ3d_labels import keyframe_labels, load_sweeps
 
     drive = NuScenesDrive(args.input, scene=args.scene, version=args.version)
+    if (args.out / ANNOTATIONS).is_file():
+        read_annotations(args.out)  # an annotations.json to merge into is checked before minutes of work, not after
     keyframes = keyframe_list("keyframes", args.keyframes, len(drive))
     sweeps = load_sweeps(drive, keyframe_list("sweeps-from", args.sweeps_from, len(drive)))
     stats = LabelStats()

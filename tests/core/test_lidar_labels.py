@@ -147,3 +147,12 @@ def test_make_occupancy_says_in_one_line_when_a_range_is_past_the_drive(drive, t
     assert main(["make-occupancy", "--input", str(DRIVE), "--keyframes", "40-41", "--out", str(tmp_path)]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert err == ["occvo make-occupancy: error: --keyframes 40-41: the scene has keyframes 0-40"]
+
+
+def test_make_occupancy_refuses_an_annotations_json_that_is_not_occ3ds_before_making_labels(drive, tmp_path, capsys):
+    from occvo_cli.cli import main
+
+    (tmp_path / "annotations.json").write_text('{"not": "occ3d"}')
+    assert main(["make-occupancy", "--input", str(DRIVE), "--out", str(tmp_path), "--quiet"]) == 2
+    assert "scene_infos" in capsys.readouterr().err
+    assert not (tmp_path / "gts").exists()

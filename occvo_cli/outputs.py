@@ -28,6 +28,11 @@ def add_output_flags(p) -> None:
         "not exist (pip install 'occvo[ros]')",
     )
     p.add_argument(
+        "--force",
+        action="store_true",
+        help="replace an existing --rerun or --mcap file that occvo did not write (default: refused; docs/cli.md)",
+    )
+    p.add_argument(
         "--ros-distro",
         choices=("humble", "jazzy"),
         default="jazzy",
@@ -52,6 +57,14 @@ def _frames(args):
     from occvo_core.viz.odom_frames import FrameNames
 
     return FrameNames(args.map_frame, args.odom_frame, args.base_frame)
+
+
+def check_outputs(args) -> None:
+    """Before the run: an existing --rerun or --mcap file that occvo did not write is refused unless --force."""
+    from occvo_core.overwrite import check_replaceable
+
+    check_replaceable(args.rerun, "rrd", "--rerun", args.force)
+    check_replaceable(args.mcap, "mcap", "--mcap", args.force)
 
 
 def open_outputs(args):

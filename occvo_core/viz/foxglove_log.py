@@ -36,6 +36,7 @@ from foxglove.messages import (
 from scipy.spatial.transform import Rotation
 
 from occvo_core.grid import CLASS_COLORS
+from occvo_core.overwrite import MCAP_METADATA
 
 PATH_WINDOW = 100
 POINT = np.dtype(
@@ -91,7 +92,14 @@ class FoxgloveView:
     """Logs a run's steps to Foxglove channels of its own context (an MCAP file, a WebSocket server, or both).
     The same calls as RerunView, so a run and StreamFollower log to either."""
 
-    def __init__(self, mcap: str | Path | None = None, port: int | None = None, map_every: int = 5, frames=None):
+    def __init__(
+        self,
+        mcap: str | Path | None = None,
+        port: int | None = None,
+        map_every: int = 5,
+        host: str = "127.0.0.1",
+        frames=None,
+    ):
         from occvo_core.viz.odom_frames import FrameNames, OdomFrames
 
         self.frames = frames or FrameNames()
@@ -102,8 +110,10 @@ class FoxgloveView:
         if mcap is not None:
             Path(mcap).parent.mkdir(parents=True, exist_ok=True)
             self.writer = foxglove.open_mcap(str(mcap), allow_overwrite=True, context=self.context)
+            # the first record after the header: how occvo tells its own file before replacing it (occvo_core.overwrite)
+            self.writer.write_metadata(MCAP_METADATA, {"writer": "occvo"})
         if port is not None:
-            self.server = foxglove.start_server(name="occvo", host="127.0.0.1", port=int(port), context=self.context)
+            self.server = foxglove.start_server(name="occvo", host=host, port=int(port), context=self.context)
         self.tf = FrameTransformChannel("/tf", context=self.context)
         self.odom_channel = PoseInFrameChannel("/occvo/odom", context=self.context)
         self.trajectory = PosesInFrameChannel("/occvo/path", context=self.context)

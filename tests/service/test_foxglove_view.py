@@ -1,6 +1,6 @@
 """`occvo view --foxglove PORT --mcap FILE` follows a running service (router and workers on loopback): a Foxglove
 WebSocket client is advertised the channels in Foxglove's schemas and gets the poses it subscribes to as a replay
-runs; the MCAP written beside it holds one transform a frame."""
+runs; the MCAP written beside it holds a frame's two transforms (map -> odom, odom -> base_link)."""
 
 from __future__ import annotations
 
@@ -18,9 +18,10 @@ mcap_reader = pytest.importorskip("mcap.reader", reason="mcap is in the foxglove
 
 CHANNELS = {
     "/tf": "foxglove.FrameTransform",
-    "/trajectory": "foxglove.PosesInFrame",
-    "/occupancy": "foxglove.PointCloud",
-    "/map": "foxglove.PointCloud",
+    "/occvo/odom": "foxglove.PoseInFrame",
+    "/occvo/path": "foxglove.PosesInFrame",
+    "/occvo/occupancy": "foxglove.PointCloud",
+    "/occvo/map": "foxglove.PointCloud",
 }
 MESSAGE_DATA = 1  # the protocol's binary opcode of a subscribed message
 
@@ -77,5 +78,6 @@ def test_occvo_view_serves_the_stream_to_a_foxglove_client_and_writes_the_mcap(t
     with open(mcap, "rb") as f:
         summary = mcap_reader.make_reader(f).get_summary()
     counts = {summary.channels[c].topic: k for c, k in summary.statistics.channel_message_counts.items()}
-    assert counts["/tf"] == n and counts["/occupancy"] == n and counts["/map"] >= 1
+    # /tf: map -> odom and odom -> base_link a frame
+    assert counts["/tf"] == 2 * n and counts["/occvo/occupancy"] == n and counts["/occvo/map"] >= 1
     assert {s.name for s in summary.schemas.values()} == set(CHANNELS.values())

@@ -23,6 +23,14 @@ def add_parser(sub) -> None:
         "--occupancy-topic", help="a recording's occupancy clouds (sensor_msgs/PointCloud2; default /occvo/occupancy)"
     )
     p.add_argument(
+        "--image-topic",
+        help="--from-images on a recording: the cameras' CompressedImage topics, {camera} for CAM_FRONT etc. "
+        "(default /{camera}/image_rect_compressed)",
+    )
+    p.add_argument(
+        "--camera-info-topic", help="--from-images on a recording: their CameraInfo (default /{camera}/camera_info)"
+    )
+    p.add_argument(
         "--groundtruth-topic",
         help="a recording's ground truth (PoseStamped or Odometry at each cloud's stamp; default /occvo/groundtruth)",
     )
@@ -201,10 +209,18 @@ def _image_source(args):
     if args.input is not None:
         from occvo_core.datasets.nuscenes_drive import NuScenesDrive
         from occvo_core.datasets.nuscenes_tables import is_nuscenes_root
+        from occvo_core.datasets.ros2_recording import is_recording
         from occvo_core.models.image_source import NuScenesImageSource
 
+        if is_recording(args.input):  # six cameras as nuscenes2mcap records them, in place of a drive's files
+            from occvo_core.datasets.ros2_cameras import IMAGE_TOPIC, INFO_TOPIC, RecordedCameras
+
+            cameras = RecordedCameras(args.input, args.image_topic or IMAGE_TOPIC, args.camera_info_topic or INFO_TOPIC)
+            return NuScenesImageSource(cameras, predictor)
         if not is_nuscenes_root(args.input):
-            raise ConfigError(f"--from-images reads a nuScenes drive's cameras; {args.input} is not one")
+            raise ConfigError(
+                f"--from-images reads a nuScenes drive's cameras or a ROS 2 recording's; {args.input} is neither"
+            )
         return NuScenesImageSource(NuScenesDrive(args.input, scene=args.scene), predictor)
     from occvo_core.models.image_source import ImageOccupancySource
     from occvo_core.sim import SyntheticScene

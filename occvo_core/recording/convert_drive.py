@@ -52,6 +52,7 @@ def _write(w: RecordingWriter, source, drive, images: bool) -> int:
     first_ns = ns_of_seconds(drive[0].lidar_stamp)
     info = {
         "name": source.name,
+        "drive": drive.name,
         "rate_hz": source.rate_hz,
         "gt_on_map_plane": bool(getattr(source, "gt_on_map_plane", False)),
         "config_defaults": getattr(source, "config_defaults", None),

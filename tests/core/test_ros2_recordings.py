@@ -93,6 +93,30 @@ def test_the_camera_topics_are_the_jpegs_and_calibration(converted):
     np.testing.assert_allclose(cams.cam_to_ego, drive[0].cam_to_ego, rtol=0, atol=1e-12)
 
 
+def test_the_camera_model_sees_the_recordings_cameras_as_the_drives(converted):
+    """--from-images on a recording: the network's input and output as from the drive's own files."""
+    from occvo_core.datasets.ros2_cameras import RecordedCameras
+    from occvo_core.models.image_source import NuScenesImageSource
+    from occvo_core.models.tpvformer.checkpoint import SHIPPED_THRESHOLDS, shipped_checkpoint
+    from occvo_core.models.tpvformer.predictor import OccupancyPredictor
+
+    source, paths = converted
+    predictor = OccupancyPredictor(shipped_checkpoint(), min_confidence=SHIPPED_THRESHOLDS[0],
+                                   min_ground_confidence=SHIPPED_THRESHOLDS[1], camera_mask=True)  # fmt: skip
+    drive = NuScenesImageSource(source.drive, predictor)
+    recorded = NuScenesImageSource(RecordedCameras(paths["mcap"]), predictor)
+    assert recorded.name == drive.name and len(recorded) == len(drive)
+    np.testing.assert_array_equal(recorded.stamps, drive.stamps)
+    np.testing.assert_allclose(recorded.gt_poses, drive.gt_poses, rtol=0, atol=1e-9)
+    images, k, cam_to_ego = recorded.camera_frame(20)
+    want = drive.camera_frame(20)
+    assert np.array_equal(images, want[0]) and np.array_equal(k, want[1])
+    np.testing.assert_allclose(cam_to_ego, want[2], rtol=0, atol=1e-12)  # /tf_static's quaternions
+    a, b = recorded[20], drive[20]
+    assert a.stamp == b.stamp and len(a.points) == len(b.points) and np.array_equal(a.labels, b.labels)
+    assert np.array_equal(a.points, b.points)
+
+
 def test_bag_versions_and_latched_topics(converted):
     from rosbags.interfaces import QosDurability
     from rosbags.rosbag2 import Reader

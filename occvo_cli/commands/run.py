@@ -8,6 +8,7 @@ import sys
 from pathlib import Path
 
 from occvo_cli.outputs import add_output_flags
+from occvo_cli.paths import out_dir
 from occvo_core import OccVOConfig
 
 
@@ -35,7 +36,7 @@ def add_parser(sub) -> None:
         "of the network's prediction (camera or none)",
     )
     p.add_argument("--gt", type=Path, help="ground-truth trajectory (KITTI or TUM) for APE")
-    p.add_argument("--out", type=Path, default=Path("occvo-out"), help="output folder (default: occvo-out)")
+    p.add_argument("--out", type=out_dir, default="occvo-out", help="output folder (default: occvo-out)")
     p.add_argument("--config", type=Path, help="OccVOConfig as JSON/JSON5")
     p.add_argument("--no-semantic-filter", action="store_true", help="switch the semantic label filter off")
     p.add_argument("--no-dynamic-filter", action="store_true", help="switch the dynamic object filter off")
@@ -51,7 +52,11 @@ def add_parser(sub) -> None:
         "--skip-bad-frames", action="store_true", help="skip frames that fail validation instead of stopping"
     )
     p.add_argument("--seed", type=int, default=0, help="synthetic scene seed (no --input)")
-    p.add_argument("--frames", type=int, default=40, help="synthetic scene length (no --input)")
+    p.add_argument(
+        "--frames",
+        type=int,
+        help="frames to run: the first N of --input (default: all), or the synthetic scene's length (default: 40)",
+    )
     p.add_argument("--rate", type=float, default=2.0, help="synthetic frame rate in Hz (no --input)")
     p.add_argument("--noise", default="default", help="synthetic prediction noise preset: none, default, heavy")
     p.add_argument("--synthetic", action="store_true", help="a synthetic scene (the default when no --input is given)")
@@ -120,6 +125,8 @@ def run(args) -> int:
         raise ConfigError("--input reads a recorded scene; --synthetic makes one: give one or the other")
     if args.from_images and args.occupancy:
         raise ConfigError("--from-images and --occupancy lidar are two ways to make occupancy: choose one")
+    if args.input is None and args.gt is not None:
+        raise ConfigError("--gt is the ground truth of an --input scene; a synthetic scene brings its own")
     truth = None
     if args.from_images:
         source = _image_source(args)
@@ -127,9 +134,11 @@ def run(args) -> int:
     elif args.input is None:
         from occvo_core.sim import SyntheticScene
 
-        source = truth = SyntheticScene(seed=args.seed, frames=args.frames, rate_hz=args.rate, noise=args.noise)
+        source = truth = SyntheticScene(seed=args.seed, frames=_length(args), rate_hz=args.rate, noise=args.noise)
     else:
         source = open_scene(args.input, gt=args.gt, scene=args.scene, mask=args.mask, occupancy=args.occupancy)
+    if args.input is not None:
+        source = _first_frames(source, args.frames)
     config = config_from_args(args, source)
     extra = {"compile_s": _warm_up(config, args)}
     view = open_outputs(args)
@@ -198,8 +207,24 @@ def _image_source(args):
     from occvo_core.models.image_source import ImageOccupancySource
     from occvo_core.sim import SyntheticScene
 
-    scene = SyntheticScene(seed=args.seed, frames=args.frames, rate_hz=args.rate, noise=args.noise)
+    scene = SyntheticScene(seed=args.seed, frames=_length(args), rate_hz=args.rate, noise=args.noise)
     return ImageOccupancySource(scene, predictor)
+
+
+def _first_frames(source, frames: int | None):
+    from occvo_core.datasets.base import FirstFrames
+    from occvo_core.errors import ConfigError
+
+    if frames is None:
+        return source
+    if frames < 1:
+        raise ConfigError(f"--frames must be a positive integer, got {frames}")
+    return FirstFrames(source, frames)
+
+
+def _length(args) -> int:
+    """A synthetic scene's frames: --frames, 40 by default (with --input, --frames takes the first N)."""
+    return 40 if args.frames is None else args.frames
 
 
 def _list_scenes(root) -> int:

@@ -159,7 +159,7 @@ def run(args) -> int:
 
         extra["torch_threads"], extra["camera_mask"] = torch.get_num_threads(), source.predictor.camera_mask
     summary = pipeline.write(args.out, extra)
-    write_run_record(args.out, args, config)
+    write_run_record(args.out, args, config, source)
     shown = {k: summary[k] for k in summary if k not in ("skipped_frames",)}
     if args.json:
         print(json.dumps({**shown, "out": str(args.out)}, indent=2, default=float))

@@ -36,6 +36,13 @@ def add_parser(sub) -> None:
         "of the network's prediction (camera or none)",
     )
     p.add_argument("--gt", type=Path, help="ground-truth trajectory (KITTI or TUM) for APE")
+    p.add_argument(
+        "--start-time",
+        type=float,
+        metavar="UNIX_SECONDS",
+        help="stamp the frames of an --input scene whose data has no stamps (the OCC-VO release) from this time on, "
+        "at the frame rate (default: from 0, 1970-01-01, with a warning)",
+    )
     p.add_argument("--out", type=out_dir, default="occvo-out", help="output folder (default: occvo-out)")
     p.add_argument("--config", type=Path, help="OccVOConfig as JSON/JSON5")
     p.add_argument("--no-semantic-filter", action="store_true", help="switch the semantic label filter off")
@@ -127,6 +134,8 @@ def run(args) -> int:
         raise ConfigError("--from-images and --occupancy lidar are two ways to make occupancy: choose one")
     if args.input is None and args.gt is not None:
         raise ConfigError("--gt is the ground truth of an --input scene; a synthetic scene brings its own")
+    if args.input is None and args.start_time is not None:
+        raise ConfigError("--start-time stamps an --input scene without stamps; a synthetic scene has its own clock")
     truth = None
     if args.from_images:
         source = _image_source(args)
@@ -138,6 +147,7 @@ def run(args) -> int:
     else:
         source = open_scene(args.input, gt=args.gt, scene=args.scene, mask=args.mask, occupancy=args.occupancy)
     if args.input is not None:
+        _stamp(source, args)
         source = _first_frames(source, args.frames)
     config = config_from_args(args, source)
     extra = {"compile_s": _warm_up(config, args)}
@@ -225,6 +235,32 @@ def _first_frames(source, frames: int | None):
 def _length(args) -> int:
     """A synthetic scene's frames: --frames, 40 by default (with --input, --frames takes the first N)."""
     return 40 if args.frames is None else args.frames
+
+
+def _stamp(source, args) -> None:
+    """Frames whose data has no stamps (the OCC-VO release) are index / rate seconds: from --start-time on, else
+    from 1970, said once on stderr."""
+    import math
+
+    import numpy as np
+
+    from occvo_core.errors import ConfigError
+
+    if not hasattr(source, "stamps") or source.stamps is not None:  # the data's own stamps
+        if args.start_time is not None:
+            raise ConfigError(f"--start-time: {source.name} has its own stamps (the data's); leave --start-time out")
+        return
+    if args.start_time is None:
+        if not args.quiet:
+            print(
+                f"occvo run: warning: {source.name} has no stamps: its frames are stamped from 0 (1970-01-01) at "
+                f"{source.rate_hz:g} Hz; --start-time UNIX_SECONDS stamps them from then",
+                file=sys.stderr,
+            )
+        return
+    if not math.isfinite(args.start_time):
+        raise ConfigError(f"--start-time must be a finite number of seconds, got {args.start_time}")
+    source.stamps = args.start_time + np.arange(len(source)) / source.rate_hz
 
 
 def _list_scenes(root) -> int:

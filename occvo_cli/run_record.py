@@ -64,8 +64,10 @@ def _git(root: Path, *argv: str) -> str | None:
 def input_digest(args, source) -> dict:
     """sha256 over the input frames' files in frame order (content only: a moved or renamed scene keeps its digest),
     or over the synthetic scene's parameters."""
-    files = getattr(source, "files", None)
-    if args.input is not None and files is not None:
+    if args.input is not None:
+        files = getattr(source, "files", None)
+        if files is None:  # a reader that keeps no frame files: no digest rather than a wrong one
+            return {"sha256": None, "over": "no frame files", "frames": len(source)}
         digest = hashlib.sha256()
         for path in files[: len(source)]:  # --frames N: the frames run
             digest.update(hashlib.sha256(Path(path).read_bytes()).digest())

@@ -39,17 +39,11 @@ def degenerate(points: np.ndarray) -> bool:
     return bool(spread[1] <= 1e-9 * max(spread[2], 1e-300))
 
 
-# a trajectory's first frame: the word a published pose has carried since schema v1 (a new word would be refused by
-# the clients and stores already out there), offline the same
-FIRST_STATUS = "reinitialised"
-
-
 @dataclass
 class StepResult:
     index: int
     pose: np.ndarray  # 4x4 ego -> world; the first frame defines the world
-    # FIRST_STATUS for a trajectory's first frame, then "ok" ("degenerate": a constant-velocity guess)
-    status: str
+    status: str  # "initialised" for the first frame, then "ok" ("degenerate": a constant-velocity guess)
     timings_ms: dict[str, float] = field(default_factory=dict)
     pairs: dict[str, int] = field(default_factory=dict)
     loop_correction: np.ndarray | None = None  # 4x4 world -> world when this frame closed a loop (see LoopClosure)
@@ -193,7 +187,7 @@ class OccVO:
         t = len(self._poses)
         if t == 0:
             return Registration(
-                frame.index, np.eye(4), FIRST_STATUS, _pending=_Pending(prepared, t, watch, self._version)
+                frame.index, np.eye(4), "initialised", _pending=_Pending(prepared, t, watch, self._version)
             )
         return self.register_frame(prepared, t, watch)
 
@@ -251,7 +245,7 @@ class OccVO:
         if p.t == 0:
             self._commit(p.frame, np.eye(4), np.zeros(0, np.int64))
             p.watch.lap("voxel_pfilter")
-            return StepResult(p.frame.index, np.eye(4), FIRST_STATUS, p.watch.ms, {"map_voxels": len(self.map)})
+            return StepResult(p.frame.index, np.eye(4), "initialised", p.watch.ms, {"map_voxels": len(self.map)})
         correction, loop = self.loop_closure.search(p.frame, reg.pose, p.t, p.local, p.old)
         p.watch.lap("loop_closure")
         pose = reg.pose if correction is None else correction @ reg.pose

@@ -15,6 +15,7 @@ from occvo_services.registration.after_pose import after_pose
 STATUS = {  # OccVO statuses as a published pose names them
     "ok": "ok",
     "lost": "lost",
+    "initialised": "reinitialised",
     "reinitialised": "reinitialised",
     "degenerate": "degenerate",
 }

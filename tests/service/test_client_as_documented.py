@@ -1,6 +1,6 @@
 """The client as a newcomer meets it, on real Zenoh sessions (router and workers as threads of this process): the
-README's Python snippets run as written against a running service, a stream's first pose has the status offline
-OccVO gives that frame, and a pose's stage timings add up (a stage includes its own stages)."""
+README's Python snippets run as written against a running service, and a pose's stage timings add up (a stage
+includes its own stages)."""
 
 from __future__ import annotations
 
@@ -53,16 +53,10 @@ def _children(timings: dict) -> dict[str, float]:
     return summed
 
 
-def test_a_first_pose_says_what_offline_says_and_its_stages_add_up(service, scene):
-    from occvo_core import OccVO
-
-    vo = OccVO()
-    vo.reset()
-    offline = [vo.step(f).status for f in scene[:3]]
+def test_each_stage_of_a_pose_includes_its_own_stages(service, scene):
     with OccVOClient(service.endpoint, stream="newcomer") as env:
         env.reset()
-        poses = [env.step(f) for f in scene[:3]]
-    assert [p.status for p in poses] == offline and offline[0] == "reinitialised" and offline[1] == "ok"
+        poses = [env.step(f) for f in scene[:3]]  # the first frame (preprocess alone) and two registered ones
     for pose in poses:
         children = _children(pose.timings_ms)
         assert "registration" in children and "registration.preprocess" in pose.timings_ms

@@ -48,6 +48,8 @@ BAD_PATHS = [
     (["tile", "0", "0", "--out", "{d}/folder"], "--out"),
     (["view", "--mcap", "{d}/folder"], "--mcap"),
     (["store", "export", "car0", "--store", "{d}/s.db", "--out", "{d}/folder"], "--out"),
+    (["make-occupancy", "--input", "{d}/folder", "--out", "{d}/file"], "--out"),
+    (["make-occupancy", "--input", "{d}/folder", "--out", "{d}/o", "--pictures", "{d}/file/p"], "--pictures"),
 ]
 
 

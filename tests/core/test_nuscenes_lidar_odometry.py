@@ -36,6 +36,7 @@ def test_occvo_run_on_the_drives_lidar_occupancy(drive_root, tmp_path, capsys):
     run = json.loads((out / "run.json").read_text())
     assert run["config"]["gicp"]["robust_kernel_scale"] == 0.5  # the LiDAR source's own defaults
     assert run["config"]["voxel_pfilter"]["p_index_threshold"] == 0.9
+    assert run["input_digest"]["over"] == "frame files" and len(run["input_digest"]["sha256"]) == 64
     capsys.readouterr()
 
 

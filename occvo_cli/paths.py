@@ -48,3 +48,12 @@ def out_file(make_parents: bool = False, kind: type = Path):
 
     check.__name__ = "out_file"  # argparse names the type in its messages
     return check
+
+
+def new_path(text: str) -> Path:
+    """A file or folder the command creates whole (a ROS 2 bag folder, a recording): it must not exist yet."""
+    path = Path(text)
+    if path.exists():
+        raise argparse.ArgumentTypeError(f"{text} already exists: remove it or name another")
+    _writable_folder(path, text)
+    return path

@@ -7,6 +7,8 @@ import json
 import sys
 from pathlib import Path
 
+from occvo_cli.paths import new_path
+
 
 def add_parser(sub) -> None:
     p = sub.add_parser(
@@ -16,7 +18,7 @@ def add_parser(sub) -> None:
     p.add_argument("--scene", help="the scene to convert (may be left out when the tables hold one)")
     p.add_argument(
         "--out",
-        type=Path,
+        type=new_path,
         required=True,
         help="FILE.mcap (one MCAP file) or a folder (a ROS 2 bag: metadata.yaml + storage); must not exist",
     )

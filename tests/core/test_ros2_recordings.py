@@ -147,5 +147,6 @@ def test_bad_recordings_are_one_line(converted, tmp_path, capsys):
     assert len(err) == 1 and "no topic /points" in err[0] and "/occvo/occupancy" in err[0], err
     assert main(["convert-drive", "--input", str(tmp_path), "--out", str(tmp_path / "x.mcap")]) == 2
     assert "not a nuScenes drive" in capsys.readouterr().err
-    assert main(["convert-drive", "--input", str(DRIVE), "--out", str(paths["mcap"])]) == 2
-    assert "already exists" in capsys.readouterr().err
+    with pytest.raises(SystemExit) as exit_:  # a usage error: argparse's, before any work
+        main(["convert-drive", "--input", str(DRIVE), "--out", str(paths["mcap"])])
+    assert exit_.value.code == 2 and "already exists" in capsys.readouterr().err

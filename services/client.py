@@ -42,7 +42,8 @@ from occvo_services.runtime import DEFAULT_ENDPOINT
 from occvo_services.sessions import open_session
 from occvo_services.wire import encoding
 
-PENDING_CODES = ("missing_seq", "seq_held", "not_stored")  # error events that leave a frame waiting for its pose
+# error events that leave a frame waiting for its pose: it is sent again every resend_after until the pose comes
+PENDING_CODES = ("missing_seq", "seq_held", "not_stored", "store_unavailable")
 
 
 class ServiceError(RuntimeError):

@@ -68,7 +68,14 @@ def add_parser(subparsers) -> None:
         "--registration-workers",
         type=int,
         default=1,
-        help="registration workers sharing the streams (shards by stream id, one core each)",
+        help="registration workers sharing the streams (one core each), as --placement says",
+    )
+    p.add_argument(
+        "--placement",
+        choices=["shards", "members"],
+        default="shards",
+        help="shards: by stream id; members: the live workers share the streams under leases in the store (needs "
+        "--store; PostgreSQL for workers on many hosts)",
     )
     p.add_argument("--log-dir", help="write each worker's JSON log lines to <dir>/<role>.log (default: stderr)")
     p.add_argument(
@@ -172,7 +179,7 @@ def _up_config(args, router_config: str):
             WorkerSpec(
                 role="registration",
                 config=_worker_config(args, "registration_worker.json5"),
-                args=common,
+                args=[*common, "--placement", args.placement],
                 count=args.registration_workers,
                 env=store,
             ),
@@ -194,6 +201,8 @@ def run(args) -> int:
         _absolute(args.checkpoint),
         _absolute(args.log_dir),
     )
+    if args.placement == "members" and not args.store:
+        raise ConfigError("--placement members needs a store (--store): the workers hand streams over through it")
     router_config = _absolute(args.router_config) or str(defaults.path("router.json5"))
     args.router_config = router_config
     if not Path(router_config).is_file():

@@ -71,8 +71,8 @@ def _stored_equal(url: str, streams: list[str], alone: np.ndarray) -> bool:
         store.close()
 
 
-def db_outage(args, frames, alone: np.ndarray) -> None:
-    """`occvo serve`'s worker configs on PostgreSQL, two replays; the database stopped for --outage-s once both have
+def db_outage(outage_s: float, frames, alone: np.ndarray) -> None:
+    """`occvo serve`'s worker configs on PostgreSQL, two replays; the database stopped for `outage_s` once both have
     pose 10: each replay's poses and the stored ones vs alone, the codes its client got, its resends and time."""
     cluster = PgCluster()
     url = cluster.new_database()
@@ -82,7 +82,7 @@ def db_outage(args, frames, alone: np.ndarray) -> None:
     def outage() -> None:
         t0 = time.monotonic()
         cluster.stop()
-        time.sleep(args.outage_s)
+        time.sleep(outage_s)
         cluster.start()
         down.append(time.monotonic() - t0)
 
@@ -97,7 +97,7 @@ def db_outage(args, frames, alone: np.ndarray) -> None:
     figures = {s: {k: (round(v, 1) if k == "s" else v) for k, v in g.items() if k != "poses"} for s, g in got.items()}
     emit("db_outage", outage_s=round(down[0], 1), poses={s: len(g["poses"]) for s, g in got.items()}, **figures)
     goal(
-        f"the database stopped {args.outage_s:.0f} s mid-drive: every stream all its poses, equal to alone's, stored",
+        f"the database stopped {outage_s:.0f} s mid-drive: every stream all its poses, equal to alone's, stored",
         equal and stored,
         stored_equal=stored,
     )

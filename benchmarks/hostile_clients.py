@@ -37,7 +37,7 @@ Router in this process, workers as processes (occvo_services.local.LocalService,
   store_flood one session opening a fresh stream every --store-flood-period-s for --store-flood-s (default 180)
              against `occvo serve`'s worker configs: store growth against the client's quota, log bytes
   db_outage  `occvo serve`'s worker configs on a PostgreSQL store of the step's own, two replays; the database
-             stopped for --outage-s (default 8; the issue's other figure: 60) once both have pose 10: every pose
+             stopped for each of --outage-s (default 8; e.g. 8,60) once both have pose 10: every pose
              and the stored ones vs alone, the codes the clients got, resends, time
   members_acl two registration workers in placement members behind the shipped ACL, four replays as a camera
              login, the owner of the first stream killed (-9) at its pose 10: every pose vs alone, owners before
@@ -108,7 +108,9 @@ def main() -> int:
     p.add_argument("--registration-max-rss-mb", type=int, help="the registration worker's cap instead of its config's")
     p.add_argument("--store-flood-s", type=float, default=180.0, help="step store_flood: how long fresh streams open")
     p.add_argument("--store-flood-period-s", type=float, default=0.5, help="step store_flood: a new stream this often")
-    p.add_argument("--outage-s", type=float, default=8.0, help="step db_outage: how long the database is stopped")
+    p.add_argument(
+        "--outage-s", default="8", help="step db_outage: how long the database is stopped, seconds (a comma list: each)"
+    )
     p.add_argument("--lease-flood", type=int, default=20000, help="step lease_flood: one-byte puts on new keys")
     args = p.parse_args()
     steps = set(args.steps.split(","))
@@ -278,8 +280,8 @@ def main() -> int:
         grabber_user(frames, args_of(store))
     if "grabber_acl" in steps:
         grabber_acl(frames, args_of, reg_config)
-    if "db_outage" in steps:
-        db_outage(args, frames, alone)
+    for outage_s in [float(x) for x in args.outage_s.split(",")] if "db_outage" in steps else []:
+        db_outage(outage_s, frames, alone)
     if "members_acl" in steps:
         members_acl(frames, alone)
     if "lease_flood" in steps:

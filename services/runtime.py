@@ -219,6 +219,8 @@ class Worker:
             # the store away: the frames held for it fill the cap; this one is sent again once they are stored
             code, why = ("store_unavailable", f"{why}: frames held while {away}") if away else ("oversize", why)
             self.report_error(msg.stream, code, why, str(sample.key_expr), msg.seq)
+            if away:
+                self.not_held(msg.stream, msg.seq)
             return
         # a sent_at a day off (e.g. 1e308) would give an infinite hop: no hop latency then, not a failed stage
         hop_ms = (t_recv - msg.sent_at) * 1000.0 if 0 < msg.sent_at and abs(t_recv - msg.sent_at) < 86400 else 0.0
@@ -231,6 +233,7 @@ class Worker:
                     f"seq {msg.seq} not held: {self.config.queue_size} frames of the stream wait for the store ({away})"
                 )
                 self.report_error(msg.stream, "store_unavailable", why, str(sample.key_expr), msg.seq)
+                self.not_held(msg.stream, msg.seq)
                 return
             if not lane.queue.put((msg, hop_ms, time.perf_counter(), decode_ms, sample.source_info, cost)):
                 self.memory.discharge(cost)  # stopping
@@ -246,6 +249,10 @@ class Worker:
     def store_away(self) -> str | None:
         """Why the role's store cannot be reached now, or None (roles with a store override)."""
         return None
+
+    def not_held(self, stream: str, seq: int) -> None:
+        """A frame answered store_unavailable before its lane (roles with a store override: the stream's later
+        frames wait for it)."""
 
     def frame_cost_mb(self, msg) -> float:
         """What handling `msg` will cost this worker's memory (MB), charged against max_rss_mb before it is queued

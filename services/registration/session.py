@@ -7,6 +7,7 @@ The pose is published only after its commit; the work after it runs in the sessi
 
 from __future__ import annotations
 
+import threading
 import time
 
 import numpy as np
@@ -45,7 +46,8 @@ class StreamSession:
         self.threads = StreamThreads(stream, ctx.scheduler)
         self.snapshot = SnapshotSchedule()
         self.held: FrameJob | None = None  # a jump waiting for the frame after it (_sequence)
-        self.refused_seq: int | None = None  # a frame the store refused: the ones after it wait for it
+        self.unstored: set[int] = set()  # frames refused or turned away (store_faults): the ones after the first wait
+        self.refusal_lock = threading.Lock()
         self.entered = 0  # frames that entered the lane: the work after a pose sees whether another came
         self.epoch: int | None = None  # placement "members": the fencing epoch of this worker's lease on the stream
         self.client: str | None = None  # whose frames these are (the worker's admission): the store records it

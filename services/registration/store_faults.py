@@ -22,6 +22,7 @@ if TYPE_CHECKING:
     from occvo_services.registration.session import StreamSession
 
 PROBE_EVERY_S = 0.5  # between two tries to reach the store while it is away
+MAX_UNSTORED = 1024  # frames a stream remembers as refused or turned away
 
 
 class StoreOutage:
@@ -98,16 +99,33 @@ def store_failed(s: StreamSession, seq: int, exc: Exception, what: str) -> None:
 
 
 def refused(s: StreamSession, k: int) -> None:
-    """Frame k was not stored: the frames after it wait for it (waits_for_refused)."""
-    s.refused_seq = k if s.refused_seq is None else min(s.refused_seq, k)
+    """Frame k was not stored (or not held while the store was away): the frames after it wait for it
+    (waits_for_refused). Registered without it, its pose would be missing for good: the frame after a gap confirms a
+    held jump."""
+    with s.refusal_lock:  # the lane's thread and the worker's frame callback both mark refusals
+        _mark(s, k)
+
+
+def _mark(s: StreamSession, seq: int) -> None:
+    s.unstored.add(seq)
+    if len(s.unstored) > MAX_UNSTORED:  # stray seqs far ahead: the first ones are what the stream waits for
+        s.unstored.discard(max(s.unstored))
 
 
 def waits_for_refused(s: StreamSession, job: FrameJob) -> bool:
     """After the store refused seq k (disk full, the database away), the frames after k wait for k, which the client
-    sends again with them in order: registered without it they would leave its pose missing for good."""
-    k, seq = s.refused_seq, job.msg.seq
-    if k is None or seq == 0 or seq <= k:
-        s.refused_seq = None if seq == 0 or seq == k else k
-        return False
+    sends again with them in order. A frame turned away so waits in turn: once k is registered, the first of them is
+    the next to come (before, k+2 coming before the turned-away k+1 was held as a jump, which k+3 confirmed, and k+1's
+    pose was missing for good)."""
+    seq = job.msg.seq
+    with s.refusal_lock:
+        if seq == 0:
+            s.unstored.clear()
+            return False
+        k = min(s.unstored, default=None)
+        if k is None or seq <= k:
+            s.unstored.discard(seq)
+            return False
+        _mark(s, seq)
     s._report("not_stored", f"seq {seq} waits for seq {k}, which the store refused: send both again", seq)
     return True

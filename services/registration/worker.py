@@ -22,7 +22,7 @@ from occvo_services.registration.retention import Retention
 from occvo_services.registration.scheduling import CatchUp, Scheduler
 from occvo_services.registration.session import StreamSession
 from occvo_services.registration.snapshots import SnapshotWriter
-from occvo_services.registration.store_faults import StoreOutage
+from occvo_services.registration.store_faults import StoreOutage, refused
 from occvo_services.runtime import Worker, WorkerConfig
 from occvo_services.store import TrajectoryStore
 from occvo_services.store_api import redact
@@ -164,6 +164,14 @@ class RegistrationWorker(Worker):
         if session is None:
             return
         session.close()
+
+    def not_held(self, stream: str, seq: int) -> None:
+        """A frame not held while the store is away: the stream's later frames wait for it (as for a refused write)."""
+        with self._sessions_lock:
+            session = self.sessions.get(stream)
+        seqs = None if session is None else session.trajectory.seqs
+        if seqs is not None and (not seqs or seq > seqs[-1]):  # a resend of a registered frame is answered anyway
+            refused(session, seq)
 
     def _serving(self) -> set[str]:
         """The streams this worker has a lane or a lease-holding session of (their lease rows are kept)."""

@@ -54,11 +54,12 @@ class PgLeases:
         return sorted(r[0] for r in rows)
 
     def drop_unused_leases(self, owner: str, keep: list[str]) -> int:
-        """The leases of `owner` on streams that never stored a frame deleted, but those in `keep`; how many."""
+        """The lease rows of streams that never stored a frame deleted: `owner`'s but those in `keep`, and expired or
+        released ones of any owner (a worker gone for good leaves its rows); how many."""
         return self.pool.run(
             lambda conn: (
                 conn.execute(
-                    "DELETE FROM leases l WHERE l.owner = %s AND NOT (l.stream = ANY(%s)) "
+                    "DELETE FROM leases l WHERE ((l.owner = %s AND NOT (l.stream = ANY(%s))) OR l.expires_at <= now()) "
                     "AND NOT EXISTS (SELECT 1 FROM streams s WHERE s.stream = l.stream)",
                     (owner, list(keep)),
                 ).rowcount

@@ -69,12 +69,14 @@ class SqliteLeases:
         return self._write(tx)
 
     def drop_unused_leases(self, owner: str, keep: list[str]) -> int:
-        """The leases of `owner` on streams that never stored a frame deleted, but those in `keep`; how many."""
+        """The lease rows of streams that never stored a frame deleted: `owner`'s but those in `keep`, and expired or
+        released ones of any owner (a worker gone for good leaves its rows); how many."""
 
         def tx(db):
-            sql = "SELECT stream FROM leases WHERE owner=? AND stream NOT IN (SELECT stream FROM streams)"
-            gone = [(r[0], owner) for r in db.execute(sql, (owner,)).fetchall() if r[0] not in set(keep)]
-            db.executemany("DELETE FROM leases WHERE stream=? AND owner=?", gone)
+            sql = "SELECT stream, owner, expires_at FROM leases WHERE stream NOT IN (SELECT stream FROM streams)"
+            now, rows = time.time(), db.execute(sql).fetchall()
+            gone = [(s,) for s, o, x in rows if x <= now or (o == owner and s not in set(keep))]
+            db.executemany("DELETE FROM leases WHERE stream=?", gone)
             return len(gone)
 
         return self._write(tx)

@@ -41,13 +41,20 @@ def test_a_members_store_refuses_every_unfenced_write(pg_url, scene):
         store.close()
 
 
-def test_leases_of_streams_that_stored_nothing_are_deleted(pg_url, scene):
-    store = open_store(pg_url)
+@pytest.mark.parametrize("backend", ["sqlite", "postgresql"])
+def test_leases_of_streams_that_stored_nothing_are_deleted(backend, tmp_path, request, scene):
+    """w1's rows of streams without a frame go but those it serves; another owner's expired or released ones go
+    too (a worker gone for good); a live owner's stay, and so does every stored stream's."""
+    store = open_store(str(tmp_path / "s.sqlite") if backend == "sqlite" else request.getfixturevalue("pg_url"))
     try:
         for stream in ("stored", "empty", "serving", "others"):
             store.acquire(stream, "w2" if stream == "others" else "w1", 30.0)
+        store.acquire("gone", "w3", 0.001)
+        store.acquire("released", "w2", 30.0)
+        store.release("released", "w2")
         _commit(store, "stored", scene[0])
-        assert store.drop_unused_leases("w1", ["serving"]) == 1
+        time.sleep(0.05)
+        assert store.drop_unused_leases("w1", ["serving"]) == 3
         assert sorted(lease.stream for lease in store.leases()) == ["others", "serving", "stored"]
     finally:
         store.close()

@@ -12,7 +12,7 @@ RESTART_NOTE = "a running `occvo serve` / `occvo up` takes it within a second (i
 
 def add_parser(subparsers) -> None:
     p = subparsers.add_parser("logins", help="add, remove or list the client logins of the service's router")
-    verbs = p.add_subparsers(dest="verb", required=True)
+    verbs = p.add_subparsers(dest="verb", required=True, help="add, remove or list")
     a = verbs.add_parser("add", help="a new client login with a random password; its streams are NAME.<stream>")
     a.add_argument("name", help="the login: letters, digits, '_' or '-' (the prefix of its stream ids)")
     a.add_argument(
@@ -22,7 +22,7 @@ def add_parser(subparsers) -> None:
         "writing it next to the others; there: OCCVO_ZENOH_CONFIG=<file> occvo replay --connect tcp/<host>:7447 ...",
     )
     r = verbs.add_parser("remove", help="remove a client login (its streams' stored data stays)")
-    r.add_argument("name")
+    r.add_argument("name", help="the login to remove")
     ls = verbs.add_parser("list", help="the logins and their config files")
     add_json(ls, "the logins")
     for v in (a, r, ls):

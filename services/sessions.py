@@ -112,14 +112,14 @@ def open_login(
     try:
         return _open(connect, base), login_of(base)
     except NoRouterError:
-        if not picked:
+        if not picked or _answers(connect) is False:
             raise
     try:
         return _open(connect, None), None
     except NoRouterError:
         raise NoRouterError(
-            f"no router at {connect} (or it refused the login of {base} and a session without one: is this the "
-            "router of the `occvo serve` that wrote it?): start `occvo serve` or pass --connect"
+            f"the router at {connect} refused the login of {base} and a session without one (is it the router of "
+            "the `occvo serve` that wrote it?)"
         ) from None
 
 
@@ -131,24 +131,29 @@ def _open(connect: str, base: str | None) -> zenoh.Session:
     try:
         return zenoh.open(config)
     except zenoh.ZError:
-        if base:
-            refused = f" (or it refused the session of {base}: check its certificates or credentials)"
-        elif _answers(connect):
-            raise NoRouterError(
-                f"the router at {connect} refused a session without a login: `occvo serve` makes one for the user "
-                "who started it; another user or host gets one from `occvo logins add NAME` (OCCVO_ZENOH_CONFIG)"
-            ) from None
-        else:
-            refused = ""
-        raise NoRouterError(f"no router at {connect}{refused}: start `occvo serve` or pass --connect") from None
+        raise NoRouterError(_why_not(connect, base)) from None
 
 
-def _answers(connect: str) -> bool:
-    """Whether something accepts TCP connections at a tcp/ or tls/ endpoint (a router that refused the session)."""
+def _why_not(connect: str, base: str | None) -> str:
+    """Why no session opened, for the user: nothing listens, or a router there refused this session."""
+    answers = _answers(connect)
+    if answers and base:
+        return f"the router at {connect} refused the session of {base}: check its certificates or credentials"
+    if answers:
+        return (
+            f"the router at {connect} refused a session without a login: `occvo serve` makes one for the user who "
+            "started it; another user or host gets one from `occvo logins add NAME` (OCCVO_ZENOH_CONFIG)"
+        )
+    maybe = f" (or it refused the session of {base}: check its certificates or credentials)" if base else ""
+    return f"no router at {connect}{maybe if answers is None else ''}: start `occvo serve` or pass --connect"
+
+
+def _answers(connect: str) -> bool | None:
+    """Whether something accepts TCP connections at a tcp/ or tls/ endpoint (None: another kind of endpoint)."""
     proto, _, addr = connect.partition("/")
     host, _, port = addr.split("#")[0].rpartition(":")
     if proto not in ("tcp", "tls") or not port.isdigit():
-        return False
+        return None
     try:
         with socket.create_connection((host.strip("[]"), int(port)), timeout=0.5):
             return True

@@ -211,3 +211,38 @@ def test_anonymous_serve_behaves_as_before(tmp_path, scene, uninterrupted):
                 assert (pose.matrix() == uninterrupted[seq]).all()
     finally:
         _stop(proc, err)
+
+
+@pytest.mark.parametrize("anonymous", [False, True])
+def test_occvo_up_has_the_same_default_and_its_anonymous_key(tmp_path, scene, anonymous):
+    ep = f"tcp/127.0.0.1:{free_port()}"
+    workers = [{"role": r, "config": f"{r}.json5"} for r in ("inference", "registration", "map")]
+    for w in workers:  # the built-in worker configs, beside the file
+        name = "map_service.json5" if w["role"] == "map" else f"{w['role']}_worker.json5"
+        (tmp_path / w["config"]).write_text((REPO / "services/defaults" / name).read_text())
+    (tmp_path / "up.json5").write_text(
+        json.dumps({"router": {"listen": ep}, "workers": workers, "anonymous": anonymous})
+    )
+    err = open(tmp_path / "up.err", "w")  # noqa: SIM115 - closed with the process
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "occvo_cli", "up", "--json", "--config", str(tmp_path / "up.json5")],
+        cwd=REPO, env=_env(), stdout=subprocess.PIPE, stderr=err, text=True,
+    )  # fmt: skip
+    try:
+        line = {"event": None}
+        while line["event"] != "ready":
+            text = proc.stdout.readline()
+            assert text, (tmp_path / "up.err").read_text()[-2000:]
+            line = json.loads(text)
+        try:
+            zenoh.open(zenoh_config("client", connect=ep, base=None)).close()
+            opened = True
+        except zenoh.ZError:
+            opened = False
+        assert opened == anonymous  # a session without a login: refused unless anonymous
+        with OccVOClient(ep, "car0", timeout=60) as c:
+            assert c.stream == ("car0" if anonymous else f"{logins.default_login()}.car0")
+            c.wait_for_workers(timeout=30)
+            assert replay(c, scene[:4], window=4, timeout=120)["poses"] == 4
+    finally:
+        _stop(proc, err)

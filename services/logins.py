@@ -129,13 +129,23 @@ def ensure(folder: Path | None = None) -> dict[str, str]:
     first = not users
     for login in WORKER_LOGINS:
         if login not in users or not session_file(login, folder).is_file():
-            users[login] = users.get(login) or secrets.token_urlsafe(24)
+            # a worker running with its file's password keeps it (users.txt edited by hand): never a new one then
+            users[login] = users.get(login) or _password_of(session_file(login, folder)) or secrets.token_urlsafe(24)
             _write_users(users, folder)
             _write_private(session_file(login, folder), session_text(login, users[login]))
     if first:
         add(default_login(), folder)
         users = read_users(folder)
     return users
+
+
+def _password_of(path: Path) -> str | None:
+    import json5
+
+    try:
+        return json5.loads(path.read_text())["transport"]["auth"]["usrpwd"]["password"]
+    except (OSError, ValueError, KeyError, TypeError):
+        return None
 
 
 def own_client_config() -> Path | None:

@@ -28,6 +28,9 @@ def test_first_start_makes_worker_logins_and_one_for_the_user(tmp_path):
     cfg = json5.loads(logins.session_file("registration", folder).read_text())
     assert cfg["transport"]["auth"]["usrpwd"] == {"user": "registration", "password": users["registration"]}
     assert logins.ensure(folder) == users  # a second start keeps them
+    (folder / logins.USERS_FILE).write_text("")  # the dictionary emptied by hand: the workers keep their passwords
+    again = logins.ensure(folder)
+    assert all(again[w] == users[w] for w in logins.WORKER_LOGINS)
 
 
 def test_add_remove_and_bad_names(tmp_path):

@@ -123,6 +123,27 @@ def test_the_users_client_logs_in_by_itself_and_replays_car0(served, scene, unin
     assert json.loads(got.stdout.splitlines()[0])["stream"] == f"{logins.default_login()}.car0"
 
 
+def test_occvo_view_follows_the_users_stream_under_its_login(served, scene):
+    """The view's subscriptions (poses, occupancy, map updates) are the login's own streams' (the client rules)."""
+    rrd = served["tmp"] / "view.rrd"
+    view = subprocess.Popen(
+        [sys.executable, "-m", "occvo_cli", "view", "--connect", served["endpoint"], "--stream", "viewed",
+         "--rerun", str(rrd), "--seconds", "20"],
+        cwd=REPO, env=_env(), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+    )  # fmt: skip
+    try:
+        time.sleep(5)  # its subscriptions up
+        with OccVOClient(served["endpoint"], "viewed", timeout=60) as c:
+            assert replay(c, scene[:4], window=4, timeout=120)["poses"] == 4
+        out, err = view.communicate(timeout=60)
+    finally:
+        if view.poll() is None:
+            view.kill()
+    counts = json.loads(out.strip().splitlines()[-1])
+    assert counts["stream"] == f"{logins.default_login()}.viewed", err
+    assert counts["poses"] == 4 and counts["occupancy"] == 4 and counts["map_updates"] >= 1, (counts, err[-2000:])
+
+
 def _added(served, name: str) -> Path:
     """`occvo logins add NAME`, then the documented step: nothing (serve restarts its router within a second);
     returns the login's config once the router takes it."""

@@ -50,7 +50,7 @@ def write_router_config(folder: Path | None = None) -> Path:
     auth["usrpwd"] = {"dictionary_file": str((folder / logins.USERS_FILE).resolve())}
     config["access_control"] = access_control(logins.client_logins(folder))
     path = folder / ROUTER_FILE
-    logins._write_private(path, json.dumps(config, indent=1) + "\n")
+    logins.write_private(path, json.dumps(config, indent=1) + "\n")
     return path.resolve()
 
 

@@ -49,7 +49,7 @@ def session_file(login: str, folder: Path | None = None) -> Path:
     return (folder or logins_dir()) / f"session-{login}.json5"
 
 
-def _write_private(path: Path, text: str) -> None:
+def write_private(path: Path, text: str) -> None:
     """Write `text` to a file only its owner may read, replacing it whole (never a half-written password file)."""
     path.parent.mkdir(parents=True, exist_ok=True, mode=0o700)
     tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
@@ -73,7 +73,7 @@ def read_users(folder: Path | None = None) -> dict[str, str]:
 
 
 def _write_users(users: dict[str, str], folder: Path) -> None:
-    _write_private(folder / USERS_FILE, "".join(f"{u}:{p}\n" for u, p in users.items()))
+    write_private(folder / USERS_FILE, "".join(f"{u}:{p}\n" for u, p in users.items()))
 
 
 def session_text(login: str, password: str) -> str:
@@ -101,7 +101,7 @@ def add(name: str, folder: Path | None = None, write: bool = True) -> str:
     _write_users(users, folder)
     text = session_text(name, users[name])
     if write:
-        _write_private(session_file(name, folder), text)
+        write_private(session_file(name, folder), text)
     return text
 
 
@@ -132,7 +132,7 @@ def ensure(folder: Path | None = None) -> dict[str, str]:
             # a worker running with its file's password keeps it (users.txt edited by hand): never a new one then
             users[login] = users.get(login) or _password_of(session_file(login, folder)) or secrets.token_urlsafe(24)
             _write_users(users, folder)
-            _write_private(session_file(login, folder), session_text(login, users[login]))
+            write_private(session_file(login, folder), session_text(login, users[login]))
     if first:
         add(default_login(), folder)
         users = read_users(folder)

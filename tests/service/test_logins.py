@@ -11,7 +11,7 @@ import json5
 import pytest
 
 from occvo_core.errors import ConfigError
-from occvo_services import acl, logins
+from occvo_services import acl, defaults, logins
 from occvo_services.sessions import client_login
 
 DEPLOY = Path(__file__).resolve().parents[2] / "deploy"
@@ -91,5 +91,5 @@ def test_worker_rules_are_the_shipped_acls():
     """services/defaults/acl_router.json5 copies deploy/acl/router.json5's worker rules: a change to one is made to
     both."""
     shipped = {r["id"]: r for r in json5.loads((DEPLOY / "acl/router.json5").read_text())["access_control"]["rules"]}
-    ours = {r["id"]: r for r in json5.loads(Path(acl.defaults.path("acl_router.json5")).read_text())["rules"]}
+    ours = {r["id"]: r for r in json5.loads(defaults.path("acl_router.json5").read_text())["rules"]}
     assert ours == {k: shipped[k] for k in ours}

@@ -197,7 +197,7 @@ def add_identity_flags(p) -> None:
     p.add_argument(
         "--anonymous",
         action="store_true",
-        help="run the router without logins, as before: any local process may connect, and a client is who it says "
+        help="run the router without logins, as before: any process reaching it may connect, and a client is who it says "
         "it is (the workers' per-client guards are advisory then; docs/service.md). Default: logins and access "
         "control, the clients of this user logged in by themselves (occvo logins)",
     )

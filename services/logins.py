@@ -83,6 +83,7 @@ def session_text(login: str, password: str) -> str:
         f"// The zenoh client config of occvo login {login} (OCCVO_ZENOH_CONFIG=<this file>): it holds the "
         "password, keep it to its owner.\n"
         f'{{\n  mode: "client",\n  scouting: {{ multicast: {{ enabled: false }} }},\n'
+        f"  metadata: {{ occvo_login: {json.dumps(login)} }},  // its clients prefix their stream ids with it\n"
         f"  transport: {{ auth: {{ usrpwd: {auth} }} }},\n}}\n"
     )
 
@@ -155,13 +156,15 @@ def own_client_config() -> Path | None:
 
 
 def login_of(config_path: str | Path | None) -> str | None:
-    """The usrpwd login a zenoh session config logs in as (None: none, or not readable)."""
+    """The occvo login a zenoh session config logs in as: its `metadata.occvo_login`, which the files written here
+    carry (None: none, or not readable). A hand-written config (deploy/acl/: a viewer reads every stream) has none,
+    and its clients' stream ids are taken as given."""
     if not config_path:
         return None
     import json5
 
     try:
-        user = json5.loads(Path(config_path).read_text())["transport"]["auth"]["usrpwd"]["user"]
+        user = json5.loads(Path(config_path).read_text())["metadata"]["occvo_login"]
     except (OSError, ValueError, KeyError, TypeError):
         return None
     return user if isinstance(user, str) and LOGIN_RE.match(user) else None

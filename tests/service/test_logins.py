@@ -49,6 +49,15 @@ def test_add_remove_and_bad_names(tmp_path):
         logins.remove("robot-1", tmp_path)
 
 
+def test_only_occvos_own_login_files_prefix_stream_ids():
+    """The files occvo writes name their login in `metadata.occvo_login`; deploy/acl's hand-written ones do not (its
+    viewer reads every stream, its cameras give their prefix themselves)."""
+    assert logins.login_of(DEPLOY / "acl/session-viewer.json5") is None
+    assert logins.login_of(DEPLOY / "acl/session-camera.json5") is None
+    path = DEPLOY.parent / "no-such-file.json5"
+    assert logins.login_of(path) is None
+
+
 def test_stream_ids_get_the_logins_prefix_once():
     assert logins.own_stream("car0", "alice") == "alice.car0"
     assert logins.own_stream("alice.car0", "alice") == "alice.car0"

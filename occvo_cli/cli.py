@@ -9,6 +9,7 @@ run time, no traceback unless --debug.
 from __future__ import annotations
 
 import argparse
+import difflib
 import importlib
 import os
 import signal
@@ -28,6 +29,27 @@ class Parser(argparse.ArgumentParser):
 
     def error(self, message: str):
         self.exit(BAD_INPUT, f"{self.prog}: error: {message.splitlines()[0]} (see {self.prog} --help)\n")
+
+    def parse_args(self, args=None, namespace=None):
+        """argparse reports a subcommand's unknown flags from the top parser, naming neither the subcommand nor the
+        flag meant: they are reported by the subcommand's parser, with the closest flags it has."""
+        parsed, unknown = self.parse_known_args(args, namespace)
+        if unknown:
+            sub = getattr(self, "commands", {}).get(getattr(parsed, "command", None), self)
+            sub.error(unknown_message(sub, unknown))
+        return parsed
+
+
+def unknown_message(parser: argparse.ArgumentParser, unknown: list[str]) -> str:
+    flags = [a.split("=", 1)[0] for a in unknown if a.startswith("-")]
+    if not flags:
+        return f"unrecognized arguments: {' '.join(unknown)}"
+    known = [s for a in parser._actions for s in a.option_strings if s.startswith("--")]
+    named = []
+    for flag in flags:
+        meant = difflib.get_close_matches(flag, known, n=1)
+        named.append(f"{flag} (did you mean {meant[0]}?)" if meant else flag)
+    return f"unrecognized argument{'s' if len(named) > 1 else ''} {', '.join(named)}"
 
 
 def _command_modules():
@@ -50,6 +72,7 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND", parser_class=Parser)
     for module in _command_modules():
         module.add_parser(sub)
+    parser.commands = sub.choices
     for p in sub.choices.values():  # --debug also after the command
         p.add_argument("--debug", action="store_true", default=argparse.SUPPRESS, help="show the traceback of an error")
     return parser

@@ -3,8 +3,7 @@ Each is an optional extra, imported only when asked for; each gets every registe
 
 from __future__ import annotations
 
-from pathlib import Path
-
+from occvo_cli.paths import out_dir, out_file
 from occvo_core.errors import ConfigError
 
 
@@ -12,17 +11,19 @@ def add_output_flags(p) -> None:
     p.add_argument(
         "--view", action="store_true", help="show the run live in a rerun viewer (pip install 'occvo[view]')"
     )
-    p.add_argument("--rerun", type=Path, metavar="FILE.rrd", help="save the live view as a rerun recording")
+    p.add_argument(
+        "--rerun", type=out_file(make_parents=True), metavar="FILE.rrd", help="save the live view as a rerun recording"
+    )
     p.add_argument(
         "--mcap",
-        type=Path,
+        type=out_file(make_parents=True),
         metavar="FILE.mcap",
         help="write the run for Foxglove: poses, path, occupancy and map in Foxglove's schemas "
         "(pip install 'occvo[foxglove]')",
     )
     p.add_argument(
         "--ros2-bag",
-        type=Path,
+        type=out_dir,
         metavar="DIR",
         help="write the run as a ROS 2 bag (Odometry, /tf, Path, PointCloud2) for ros2 bag play and RViz; DIR must "
         "not exist (pip install 'occvo[ros]')",

@@ -4,6 +4,7 @@ The paper's map metrics (Table IV) are in occvo_core.map_metrics."""
 from __future__ import annotations
 
 import numpy as np
+from scipy.spatial.transform import Rotation
 
 SUCCESS_RMSE_M = 5.0  # the paper's rule
 
@@ -20,16 +21,32 @@ def umeyama_se3(source: np.ndarray, target: np.ndarray) -> tuple[np.ndarray, np.
     return rot, mu_t - rot @ mu_s
 
 
-def ape_errors(gt_poses: np.ndarray, est_poses: np.ndarray, align: bool = True) -> np.ndarray:
-    """Per-frame translation error (m) of est against gt, after aligning est to gt."""
+def _paired(gt_poses: np.ndarray, est_poses: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     gt, est = np.asarray(gt_poses), np.asarray(est_poses)
     if gt.shape != est.shape or gt.ndim != 3 or gt.shape[1:] != (4, 4):
         raise ValueError(f"trajectories must be (N,4,4) of equal length, got {gt.shape} and {est.shape}")
+    return gt, est
+
+
+def ape_errors(gt_poses: np.ndarray, est_poses: np.ndarray, align: bool = True) -> np.ndarray:
+    """Per-frame translation error (m) of est against gt, after aligning est to gt."""
+    gt, est = _paired(gt_poses, est_poses)
     p_gt, p_est = gt[:, :3, 3], est[:, :3, 3]
     if align:
         rot, trans = umeyama_se3(p_est, p_gt)
         p_est = p_est @ rot.T + trans
     return np.linalg.norm(p_gt - p_est, axis=1)
+
+
+def ape_rotation_errors_deg(gt_poses: np.ndarray, est_poses: np.ndarray, align: bool = True) -> np.ndarray:
+    """Per-frame rotation error (degrees) of est against gt after the alignment of ape_errors: evo_ape -r angle_deg."""
+    gt, est = _paired(gt_poses, est_poses)
+    rot = umeyama_se3(est[:, :3, 3], gt[:, :3, 3])[0] if align else np.eye(3)
+    return _angles_deg(np.swapaxes(gt[:, :3, :3], 1, 2) @ rot @ est[:, :3, :3])
+
+
+def _angles_deg(rotations: np.ndarray) -> np.ndarray:
+    return np.degrees(Rotation.from_matrix(rotations).magnitude())
 
 
 def ape_rmse(gt_poses: np.ndarray, est_poses: np.ndarray, align: bool = True) -> float:
@@ -83,10 +100,21 @@ def rpe_pairs(poses: np.ndarray, delta: float = 1, unit: str = "f") -> list[tupl
 def rpe_errors(gt_poses: np.ndarray, est_poses: np.ndarray, delta: float = 1, unit: str = "f") -> np.ndarray:
     """Per pair (i, j) the translation of (gt_i^-1 gt_j)^-1 (est_i^-1 est_j): evo_rpe's translation part. Relative
     motions do not change under a rigid alignment, so no alignment is needed."""
-    gt, est = np.asarray(gt_poses), np.asarray(est_poses)
-    if gt.shape != est.shape or gt.ndim != 3 or gt.shape[1:] != (4, 4):
-        raise ValueError(f"trajectories must be (N,4,4) of equal length, got {gt.shape} and {est.shape}")
+    gt, est = _paired(gt_poses, est_poses)
+    return np.linalg.norm(_relative_errors(gt, est, delta, unit)[:, :3, 3], axis=1)
+
+
+def rpe_rotation_errors_deg(
+    gt_poses: np.ndarray, est_poses: np.ndarray, delta: float = 1, unit: str = "f"
+) -> np.ndarray:
+    """The rotation angle (degrees) of the same relative errors: evo_rpe -r angle_deg."""
+    gt, est = _paired(gt_poses, est_poses)
+    return _angles_deg(_relative_errors(gt, est, delta, unit)[:, :3, :3])
+
+
+def _relative_errors(gt: np.ndarray, est: np.ndarray, delta: float, unit: str) -> np.ndarray:
+    """(gt_i^-1 gt_j)^-1 (est_i^-1 est_j) for each pair of rpe_pairs."""
     i, j = np.array(rpe_pairs(est, delta, unit)).T
     rel_gt = np.linalg.inv(gt[i]) @ gt[j]
     rel_est = np.linalg.inv(est[i]) @ est[j]
-    return np.linalg.norm((np.linalg.inv(rel_gt) @ rel_est)[:, :3, 3], axis=1)
+    return np.linalg.inv(rel_gt) @ rel_est

@@ -5,6 +5,8 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+from occvo_cli.paths import out_file
+
 
 def add_parser(sub) -> None:
     p = sub.add_parser(
@@ -20,7 +22,7 @@ def add_parser(sub) -> None:
         "--out",
         "--output",
         dest="out",
-        type=Path,
+        type=out_file(),
         help="also write the rows as JSON to this file (--output: the old name)",
     )
     p.add_argument("--quiet", action="store_true", help="no progress bar")

@@ -7,6 +7,7 @@ import json
 from pathlib import Path
 
 from occvo_cli.commands.make_occupancy import index_range, keyframe_list
+from occvo_cli.paths import out_file
 
 
 def add_parser(sub) -> None:
@@ -28,7 +29,7 @@ def add_parser(sub) -> None:
         "--out",
         "--output",
         dest="out",
-        type=Path,
+        type=out_file(),
         help="also write the metrics as JSON to this file (--output: the old name)",
     )
     p.add_argument("--quiet", action="store_true", help="no progress bar")

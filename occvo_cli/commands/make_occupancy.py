@@ -9,6 +9,8 @@ import json
 import sys
 from pathlib import Path
 
+from occvo_cli.paths import out_dir
+
 
 def index_range(text: str) -> tuple[int, int]:
     """'A-B' (inclusive) or 'A' -> (A, B)."""
@@ -31,10 +33,10 @@ def add_parser(sub) -> None:
     p.add_argument(
         "--sweeps-from", type=index_range, help="keyframe sweeps aggregated, A-B (default: all of the scene's)"
     )
-    p.add_argument("--out", type=Path, required=True, help="Occ3D root to write (gts/<scene>/ and annotations.json)")
+    p.add_argument("--out", type=out_dir, required=True, help="Occ3D root to write (gts/<scene>/ and annotations.json)")
     p.add_argument(
         "--pictures",
-        type=Path,
+        type=out_dir,
         help="also write PNGs here: each camera with the keyframe's LiDAR points by class, and from above the labels "
         "beside the shipped camera model's prediction",
     )

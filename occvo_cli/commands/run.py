@@ -8,6 +8,7 @@ import sys
 from pathlib import Path
 
 from occvo_cli.outputs import add_output_flags
+from occvo_cli.paths import out_dir
 from occvo_core import OccVOConfig
 
 
@@ -35,7 +36,14 @@ def add_parser(sub) -> None:
         "of the network's prediction (camera or none)",
     )
     p.add_argument("--gt", type=Path, help="ground-truth trajectory (KITTI or TUM) for APE")
-    p.add_argument("--out", type=Path, default=Path("occvo-out"), help="output folder (default: occvo-out)")
+    p.add_argument(
+        "--start-time",
+        type=float,
+        metavar="UNIX_SECONDS",
+        help="stamp the frames of an --input scene whose data has no stamps (the OCC-VO release) from this time on, "
+        "at the frame rate (default: from 0, 1970-01-01, with a warning)",
+    )
+    p.add_argument("--out", type=out_dir, default="occvo-out", help="output folder (default: occvo-out)")
     p.add_argument("--config", type=Path, help="OccVOConfig as JSON/JSON5")
     p.add_argument("--no-semantic-filter", action="store_true", help="switch the semantic label filter off")
     p.add_argument("--no-dynamic-filter", action="store_true", help="switch the dynamic object filter off")
@@ -51,7 +59,11 @@ def add_parser(sub) -> None:
         "--skip-bad-frames", action="store_true", help="skip frames that fail validation instead of stopping"
     )
     p.add_argument("--seed", type=int, default=0, help="synthetic scene seed (no --input)")
-    p.add_argument("--frames", type=int, default=40, help="synthetic scene length (no --input)")
+    p.add_argument(
+        "--frames",
+        type=int,
+        help="frames to run: the first N of --input (default: all), or the synthetic scene's length (default: 40)",
+    )
     p.add_argument("--rate", type=float, default=2.0, help="synthetic frame rate in Hz (no --input)")
     p.add_argument("--noise", default="default", help="synthetic prediction noise preset: none, default, heavy")
     p.add_argument("--synthetic", action="store_true", help="a synthetic scene (the default when no --input is given)")
@@ -120,6 +132,10 @@ def run(args) -> int:
         raise ConfigError("--input reads a recorded scene; --synthetic makes one: give one or the other")
     if args.from_images and args.occupancy:
         raise ConfigError("--from-images and --occupancy lidar are two ways to make occupancy: choose one")
+    if args.input is None and args.gt is not None:
+        raise ConfigError("--gt is the ground truth of an --input scene; a synthetic scene brings its own")
+    if args.input is None and args.start_time is not None:
+        raise ConfigError("--start-time stamps an --input scene without stamps; a synthetic scene has its own clock")
     truth = None
     if args.from_images:
         source = _image_source(args)
@@ -127,9 +143,12 @@ def run(args) -> int:
     elif args.input is None:
         from occvo_core.sim import SyntheticScene
 
-        source = truth = SyntheticScene(seed=args.seed, frames=args.frames, rate_hz=args.rate, noise=args.noise)
+        source = truth = SyntheticScene(seed=args.seed, frames=_length(args), rate_hz=args.rate, noise=args.noise)
     else:
         source = open_scene(args.input, gt=args.gt, scene=args.scene, mask=args.mask, occupancy=args.occupancy)
+    if args.input is not None:
+        _stamp(source, args)
+        source = _first_frames(source, args.frames)
     config = config_from_args(args, source)
     extra = {"compile_s": _warm_up(config, args)}
     view = open_outputs(args)
@@ -150,7 +169,7 @@ def run(args) -> int:
 
         extra["torch_threads"], extra["camera_mask"] = torch.get_num_threads(), source.predictor.camera_mask
     summary = pipeline.write(args.out, extra)
-    write_run_record(args.out, args, config)
+    write_run_record(args.out, args, config, source)
     shown = {k: summary[k] for k in summary if k not in ("skipped_frames",)}
     if args.json:
         print(json.dumps({**shown, "out": str(args.out)}, indent=2, default=float))
@@ -198,8 +217,50 @@ def _image_source(args):
     from occvo_core.models.image_source import ImageOccupancySource
     from occvo_core.sim import SyntheticScene
 
-    scene = SyntheticScene(seed=args.seed, frames=args.frames, rate_hz=args.rate, noise=args.noise)
+    scene = SyntheticScene(seed=args.seed, frames=_length(args), rate_hz=args.rate, noise=args.noise)
     return ImageOccupancySource(scene, predictor)
+
+
+def _first_frames(source, frames: int | None):
+    from occvo_core.datasets.base import FirstFrames
+    from occvo_core.errors import ConfigError
+
+    if frames is None:
+        return source
+    if frames < 1:
+        raise ConfigError(f"--frames must be a positive integer, got {frames}")
+    return FirstFrames(source, frames)
+
+
+def _length(args) -> int:
+    """A synthetic scene's frames: --frames, 40 by default (with --input, --frames takes the first N)."""
+    return 40 if args.frames is None else args.frames
+
+
+def _stamp(source, args) -> None:
+    """Frames whose data has no stamps (the OCC-VO release) are index / rate seconds: from --start-time on, else
+    from 1970, said once on stderr."""
+    import math
+
+    import numpy as np
+
+    from occvo_core.errors import ConfigError
+
+    if not hasattr(source, "stamps") or source.stamps is not None:  # the data's own stamps
+        if args.start_time is not None:
+            raise ConfigError(f"--start-time: {source.name} has its own stamps (the data's); leave --start-time out")
+        return
+    if args.start_time is None:
+        if not args.quiet:
+            print(
+                f"occvo run: warning: {source.name} has no stamps: its frames are stamped from 0 (1970-01-01) at "
+                f"{source.rate_hz:g} Hz; --start-time UNIX_SECONDS stamps them from then",
+                file=sys.stderr,
+            )
+        return
+    if not math.isfinite(args.start_time):
+        raise ConfigError(f"--start-time must be a finite number of seconds, got {args.start_time}")
+    source.stamps = args.start_time + np.arange(len(source)) / source.rate_hz
 
 
 def _list_scenes(root) -> int:

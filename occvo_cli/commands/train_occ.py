@@ -6,20 +6,24 @@ import json
 import sys
 from pathlib import Path
 
+from occvo_cli.paths import out_dir
+
 
 def add_parser(sub) -> None:
     p = sub.add_parser("train-occ", help="train the TPV-Former occupancy network on synthetic scenes")
     p.add_argument("--preset", default="tiny", help="network preset: tiny or paper")
     p.add_argument("--minutes", type=float, required=True, help="wall-clock training budget")
     p.add_argument(
-        "--out", type=Path, required=True, help="output folder: checkpoint.pt, loss_curve.png, train_log.json"
+        "--out", type=out_dir, required=True, help="output folder: checkpoint.pt, loss_curve.png, train_log.json"
     )
     p.add_argument("--seeds", type=int, nargs="+", default=list(range(20)), help="synthetic training scene seeds")
     p.add_argument("--frames", type=int, default=20, help="frames per scene")
     p.add_argument("--stride", type=int, default=2, help="use every n-th frame")
     p.add_argument("--lr", type=float, default=2e-3, help="AdamW learning rate (default 2e-3)")
     p.add_argument("--max-steps", type=int, help="stop after this many steps even within the budget")
-    p.add_argument("--cache", type=Path, help="keep rendered training frames here (.npz) and reuse them in later runs")
+    p.add_argument(
+        "--cache", type=out_dir, help="keep rendered training frames here (.npz) and reuse them in later runs"
+    )
     p.add_argument("--threads", type=int, default=1, help="torch CPU threads (the machine is shared)")
     p.add_argument(
         "--prerender",

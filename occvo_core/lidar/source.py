@@ -37,6 +37,11 @@ class LidarOccupancyScene:
         return self.drive.gt_poses
 
     @property
+    def files(self) -> list:
+        """The sweep each frame is made from (run.json's input digest)."""
+        return [k.lidar_file for k in self.drive.samples]
+
+    @property
     def stamps(self) -> np.ndarray:
         return np.array([k.lidar_stamp for k in self.drive.samples])
 

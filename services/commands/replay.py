@@ -7,6 +7,7 @@ import time
 
 import numpy as np
 
+from occvo_cli.paths import out_file
 from occvo_services.client import PENDING_CODES, OccVOClient, ServiceError
 from occvo_services.commands._common import add_connection, add_json, client, emit
 
@@ -139,11 +140,14 @@ def add_parser(subparsers) -> None:
         "--out",
         "--output",
         dest="out",
+        type=out_file(kind=str),
         help="write the received trajectory here: TUM (stamped with the frames' stamps) when the name ends in .tum "
         "or with --format tum, else KITTI (--output: the old name)",
     )
     p.add_argument("--format", choices=("kitti", "tum"), help="--out's format (default: by its name)")
-    p.add_argument("--tum", metavar="FILE", help="the same as --out FILE --format tum (the old spelling)")
+    p.add_argument(
+        "--tum", type=out_file(kind=str), metavar="FILE", help="the same as --out FILE --format tum (the old spelling)"
+    )
     p.add_argument(
         "--force",
         action="store_true",

@@ -7,6 +7,7 @@ from __future__ import annotations
 import datetime
 from pathlib import Path
 
+from occvo_cli.paths import out_file
 from occvo_core.errors import ConfigError
 from occvo_core.overwrite import check_replaceable
 from occvo_services.commands._common import add_json, emit, stream_id
@@ -31,7 +32,9 @@ def add_parser(subparsers) -> None:
         if name != "list":
             a.add_argument("stream", type=stream_id, help="the stream id")
         if name == "export":
-            a.add_argument("--out", required=True, help="the file written (.kitti: KITTI rows, else TUM)")
+            a.add_argument(
+                "--out", type=out_file(kind=str), required=True, help="the file written (.kitti: KITTI rows, else TUM)"
+            )
             a.add_argument(
                 "--force",
                 action="store_true",

@@ -6,6 +6,7 @@ import math
 
 import numpy as np
 
+from occvo_cli.paths import out_file
 from occvo_core.errors import ConfigError
 from occvo_core.grid import CLASS_NAMES
 from occvo_core.overwrite import check_replaceable
@@ -19,7 +20,11 @@ def add_parser(subparsers) -> None:
     add_connection(p)
     p.add_argument("--metres", action="store_true", help="X Y are world coordinates, not tile indices")
     p.add_argument(
-        "--out", "--output", dest="out", help="save the tile as an (M,4) x,y,z,label .npy (--output: the old name)"
+        "--out",
+        "--output",
+        dest="out",
+        type=out_file(kind=str),
+        help="save the tile as an (M,4) x,y,z,label .npy (--output: the old name)",
     )
     p.add_argument(
         "--force",

@@ -7,8 +7,8 @@ import json
 import signal
 import threading
 import time
-from pathlib import Path
 
+from occvo_cli.paths import out_file
 from occvo_services.commands._common import add_connection, endpoint
 
 
@@ -19,14 +19,19 @@ def add_parser(subparsers) -> None:
         "(--mcap, --foxglove; pip install 'occvo[foxglove]')",
     )
     add_connection(p)
-    p.add_argument("--rerun", type=Path, metavar="FILE.rrd", help="save what arrives as a rerun recording")
+    p.add_argument(
+        "--rerun", type=out_file(make_parents=True), metavar="FILE.rrd", help="save what arrives as a rerun recording"
+    )
     p.add_argument(
         "--web-port",
         type=int,
         help="serve the web viewer on this port (the data on the next one) instead of spawning the native viewer",
     )
     p.add_argument(
-        "--mcap", type=Path, metavar="FILE.mcap", help="write what arrives to an MCAP file in Foxglove's schemas"
+        "--mcap",
+        type=out_file(make_parents=True),
+        metavar="FILE.mcap",
+        help="write what arrives to an MCAP file in Foxglove's schemas",
     )
     p.add_argument(
         "--foxglove",

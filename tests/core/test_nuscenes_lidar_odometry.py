@@ -36,6 +36,7 @@ def test_occvo_run_on_the_drives_lidar_occupancy(drive_root, tmp_path, capsys):
     run = json.loads((out / "run.json").read_text())
     assert run["config"]["gicp"]["robust_kernel_scale"] == 0.5  # the LiDAR source's own defaults
     assert run["config"]["voxel_pfilter"]["p_index_threshold"] == 0.9
+    assert run["input_digest"]["over"] == "frame files" and len(run["input_digest"]["sha256"]) == 64
     capsys.readouterr()
 
 
@@ -70,3 +71,35 @@ def test_every_keyframe_registers_ok_from_frames_in_the_ego_frame(drive_root):
     vo.reset()
     statuses = [vo.step(source[i]).status for i in range(len(source))]
     assert statuses == ["initialised"] + ["ok"] * 40
+
+
+def test_the_drive_replays_through_the_service_as_offline(drive_root, tmp_path, capsys):
+    """occvo replay DRIVE --occupancy lidar through the three workers, the registration worker on the LiDAR settings
+    (deploy/odometry-lidar.json5): the poses offline OccVO gives the same frames, stamped with the sweeps' time."""
+    import argparse
+
+    from occvo_core import OccVO, OccVOConfig
+    from occvo_core.datasets.nuscenes_drive import NuScenesDrive
+    from occvo_core.lidar.source import LidarOccupancyScene
+    from occvo_services.client import OccVOClient
+    from occvo_services.commands import replay
+    from occvo_services.local import InProcessService
+
+    config = Path(__file__).resolve().parents[2] / "deploy" / "odometry-lidar.json5"
+    source = LidarOccupancyScene(NuScenesDrive(drive_root))
+    assert OccVOConfig.load(config) == OccVOConfig.model_validate(source.config_defaults)  # the file is the source's
+    vo = OccVO(OccVOConfig.load(config), threads=1)
+    vo.reset()
+    for i in range(6):
+        vo.step(source[i])
+    parser = argparse.ArgumentParser()
+    replay.add_parser(parser.add_subparsers())
+    with InProcessService(occvo_config=str(config)) as svc:
+        argv = [str(drive_root), "--occupancy", "lidar", "--frames", "6", "--connect", svc.endpoint, "--stream", "nus"]
+        args = parser.parse_args(["replay", *argv, "--timeout", "300"])
+        assert args.func(args) == 0, capsys.readouterr().err
+        with OccVOClient(svc.endpoint, stream="nus") as client:
+            traj = client.trajectory()
+    assert np.allclose(traj.stamps.to_numpy(), source.stamps[:6], rtol=0, atol=1e-6)
+    got = np.array(traj.poses.to_numpy()).reshape(-1, 4, 4)
+    assert np.allclose(got, np.array(vo.poses), rtol=0, atol=1e-9)

@@ -392,6 +392,45 @@ def test_compose_and_dockerfile_refer_to_real_files():
         assert (REPO / src).exists(), src
 
 
+def _dockerfile_copies() -> list[tuple[list[str], str]]:
+    """The Dockerfile's COPY instructions from the build context (the repository root): (sources, destination)."""
+    docker = (DEPLOY / "Dockerfile").read_text()
+    copies = []
+    for line in re.findall(r"^COPY (.+)$", docker, re.M):
+        words = line.split()
+        if any(w.startswith("--from") for w in words):
+            continue  # from another build stage, not from the checkout
+        *sources, dest = [w for w in words if not w.startswith("--")]
+        copies.append((sources, dest))
+    return copies
+
+
+@pytest.mark.packaging
+@pytest.mark.slow
+def test_the_dockerfile_installs_from_exactly_the_files_it_copies(tmp_path):
+    """What `docker build` does, without docker: the files the Dockerfile copies, laid out as it lays them out in its
+    WORKDIR, and nothing else, build and install (pip, no dependencies: those are the image's earlier layers), and
+    the installed `occvo --version` runs."""
+    from test_packaging import _clean_env, install_in_fresh_venv
+
+    workdir = tmp_path / "workdir"
+    workdir.mkdir()
+    for sources, dest in _dockerfile_copies():
+        for name in sources:
+            # COPY of a folder copies its contents; several sources (or a destination ending in /) go into the folder
+            target = workdir / dest / name if len(sources) > 1 or dest.endswith("/") else workdir / dest
+            if (REPO / name).is_dir():
+                shutil.copytree(REPO / name, target, dirs_exist_ok=True)
+            else:
+                target.parent.mkdir(parents=True, exist_ok=True)
+                shutil.copy2(REPO / name, target)
+    bin_dir = install_in_fresh_venv(workdir, tmp_path)
+    proc = subprocess.run(
+        [str(bin_dir / "occvo"), "--version"], capture_output=True, text=True, env=_clean_env(), cwd=tmp_path
+    )
+    assert proc.returncode == 0 and proc.stdout.startswith("occvo "), proc.stderr[-2000:]
+
+
 def test_every_flag_in_units_and_compose_is_accepted(capsys, monkeypatch):
     """Each --flag the units and compose.yaml pass exists in that module's argument parser (its --help, run in-process)."""
     import runpy

@@ -39,6 +39,12 @@ def venv(tmp_path_factory) -> Path:
             shutil.copytree(REPO / name, src / name, ignore=shutil.ignore_patterns("__pycache__", "*.pyc"))
         else:
             shutil.copy2(REPO / name, src / name)
+    return install_in_fresh_venv(src, root)
+
+
+def install_in_fresh_venv(src: Path, root: Path) -> Path:
+    """The wheel built from the sources in src (pip, no dependencies, no build isolation), installed into a fresh
+    virtual environment under root; returns its bin folder."""
     wheels = root / "wheels"
     subprocess.run(
         [sys.executable, "-m", "pip", "wheel", "-q", "--no-deps", "--no-build-isolation", "-w", str(wheels), str(src)],

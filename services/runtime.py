@@ -69,7 +69,7 @@ class Worker:
 
     # -- lifecycle
     def start(self) -> Worker:
-        self.session = open_session(self.config.connect)
+        self.session = open_session(self.config.connect, pick_up=False)  # its role's login, never the user's
         self._declared.append(self.session.declare_queryable(keys.stats(self.worker_id), self._on_stats))
         self.declare()
         self.token = self.session.liveliness().declare_token(keys.alive(self.role, self.worker_id))

@@ -134,10 +134,12 @@ def test_serve_with_placement_members_shares_the_streams(tmp_path, pg_url, drive
     every pose bit-identical to offline OccVO's; without a store it is one line, exit 2."""
     proc, endpoint = serve(tmp_path, pg_url, "--placement", "members", "--registration-workers", "2")
     got: dict = {}
+    wire: dict = {}  # the stream ids as stored: with the login's prefix serve's clients pick up
     try:
 
         def drive(stream: str, frames: list) -> None:
             with OccVOClient(endpoint, stream, timeout=120) as c:
+                wire[stream] = c.stream
                 c.reset()
                 got[stream] = np.array([c.step(f).matrix() for f in frames])
 
@@ -146,7 +148,7 @@ def test_serve_with_placement_members_shares_the_streams(tmp_path, pg_url, drive
             t.start()
         for t in threads:
             t.join(300)
-        owners = {_owner(pg_url, s) for s in drives}
+        owners = {_owner(pg_url, wire[s]) for s in drives}
     finally:
         proc.send_signal(signal.SIGINT)
         proc.communicate(timeout=120)

@@ -59,7 +59,7 @@ def drive_through_outage(endpoint: str, scene: list, outage, down_at: int, timeo
                 if i == down_at + 1:
                     reached.wait()  # the outage starts now: the next frames are sent into it
                 poses.append(c.step(frame).matrix())
-            out[stream] = (poses, list(c.errors), c.resends)
+            out[stream] = (poses, list(c.errors), c.resends, c.stream)  # c.stream: with its login's prefix
 
     threads = [threading.Thread(target=drive, args=(s,)) for s in STREAMS]
     for t in threads:
@@ -90,12 +90,12 @@ def test_a_database_outage_past_resend_after_loses_no_pose(tmp_path, pg_cluster,
     store = open_store(pg_url)
     try:
         for stream in STREAMS:
-            poses, errors, resends = got[stream]
+            poses, errors, resends, wire_id = got[stream]
             assert np.array_equal(np.array(poses), np.array(uninterrupted)), stream
             codes = {e.code for e in errors}
             assert "store_unavailable" in codes and codes <= {"store_unavailable", "not_stored", "seq_held"}, codes
             assert resends > 0
-            stored = store.poses(stream)
+            stored = store.poses(wire_id)
             assert [p.seq for p in stored] == list(range(len(scene)))
             assert np.array_equal(np.array([p.pose for p in stored]), np.array(uninterrupted)), stream
     finally:

@@ -36,6 +36,13 @@ Router in this process, workers as processes (occvo_services.local.LocalService,
              registration worker's RSS peak against its cap, frames refused, the replay's time vs its solo time
   store_flood one session opening a fresh stream every --store-flood-period-s for --store-flood-s (default 180)
              against `occvo serve`'s worker configs: store growth against the client's quota, log bytes
+  db_outage  `occvo serve`'s worker configs on a PostgreSQL store of the step's own, two replays; the database
+             stopped for each of --outage-s (default 8; e.g. 8,60) once both have pose 10: every pose
+             and the stored ones vs alone, the codes the clients got, resends, time
+  members_acl two registration workers in placement members behind the shipped ACL, four replays as a camera
+             login, the owner of the first stream killed (-9) at its pose 10: every pose vs alone, owners before
+  lease_flood placement members on PostgreSQL: --lease-flood one-byte puts on new keys beside a replay: its poses
+             vs alone, its time vs solo, the lease rows left
 `alone` always runs (the baseline and the map the queries ask for); --steps picks the others. Prints one JSON line
 per step and one per goal ({"goal": ..., "met": ...}); exits 1 if a goal is not met."""
 
@@ -69,6 +76,7 @@ from _hostile_common import (
     workers,
 )
 from _hostile_limits import bad_configs, disk_full, heavy
+from _hostile_outage import db_outage, lease_flood, members_acl
 from _hostile_store import store_flood
 
 from occvo_core.datasets import OccVOReleaseScene
@@ -90,7 +98,7 @@ def main() -> int:
     p.add_argument(
         "--steps",
         default="flood,msgpack,oversize,queries,sequence,grabber,grabber_acl,heavy,silent,degenerate,config,log_flood,"
-        "disk_full,store_flood",
+        "disk_full,store_flood,db_outage,members_acl,lease_flood",
         help="steps after `alone`, comma separated",
     )
     p.add_argument("--disk-full-dir", help="step disk_full: a small filesystem for the store (e.g. a 64 MB tmpfs)")
@@ -100,6 +108,10 @@ def main() -> int:
     p.add_argument("--registration-max-rss-mb", type=int, help="the registration worker's cap instead of its config's")
     p.add_argument("--store-flood-s", type=float, default=180.0, help="step store_flood: how long fresh streams open")
     p.add_argument("--store-flood-period-s", type=float, default=0.5, help="step store_flood: a new stream this often")
+    p.add_argument(
+        "--outage-s", default="8", help="step db_outage: how long the database is stopped, seconds (a comma list: each)"
+    )
+    p.add_argument("--lease-flood", type=int, default=20000, help="step lease_flood: one-byte puts on new keys")
     args = p.parse_args()
     steps = set(args.steps.split(","))
     reg_config = "deploy/registration_worker.json5"
@@ -268,6 +280,12 @@ def main() -> int:
         grabber_user(frames, args_of(store))
     if "grabber_acl" in steps:
         grabber_acl(frames, args_of, reg_config)
+    for outage_s in [float(x) for x in args.outage_s.split(",")] if "db_outage" in steps else []:
+        db_outage(outage_s, frames, alone)
+    if "members_acl" in steps:
+        members_acl(frames, alone)
+    if "lease_flood" in steps:
+        lease_flood(args, frames, alone_s, alone)
     return 0 if all(GOALS) else 1
 
 

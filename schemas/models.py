@@ -397,6 +397,7 @@ ErrorCode = Literal[
     "seq_held",  # a jump held until the frame after it confirms it: not an answer yet (the client waits, resends)
     "not_stored",  # the store refused the write (e.g. disk full): not an answer yet (the client resends it)
     "store_quota",  # the client's streams or bytes in the store are at its quota: the frame is not registered
+    "store_unavailable",  # the store cannot be reached and the worker cannot hold the frame: not an answer (resent)
 ]
 
 

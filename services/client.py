@@ -38,11 +38,13 @@ from occvo_schemas.models import (
     WorkerHealth,
 )
 from occvo_services.camera_frames import camera_frame_of
+from occvo_services.logins import own_stream
 from occvo_services.runtime import DEFAULT_ENDPOINT
-from occvo_services.sessions import open_session
+from occvo_services.sessions import open_login
 from occvo_services.wire import encoding
 
-PENDING_CODES = ("missing_seq", "seq_held", "not_stored")  # error events that leave a frame waiting for its pose
+# error events that leave a frame waiting for its pose: it is sent again every resend_after until the pose comes
+PENDING_CODES = ("missing_seq", "seq_held", "not_stored", "store_unavailable")
 
 
 class ServiceError(RuntimeError):
@@ -63,15 +65,20 @@ class OccVOClient:
         exact: bool = True,
         resend_after: float | None = 5.0,
         query_timeout: float = 2.0,
+        login: str | None = None,
     ):
+        """Logged in (the login `occvo serve` made for this user, picked up by itself; or `login`, that of a given
+        `session`), the stream id on the wire carries the login's prefix: "car0" is `<login>.car0` (self.stream)."""
         self.exact = exact
         # a query waits at most this long for its answers: a queryable that never answers costs no more
         self.query_timeout = query_timeout
         self.resend_after = resend_after
-        self.stream = keys.check_stream(stream)
         self.timeout = timeout
         self._own = session is None
-        self.session = session or open_session(connect)
+        keys.check_stream(stream)
+        session, login = (session, login) if session is not None else open_login(connect)
+        self.session, self.login = session, login
+        self.stream = stream = keys.check_stream(own_stream(stream, login))  # at most 64 characters with the prefix
         self._cv = threading.Condition()
         self.poses: dict[int, PoseEstimate] = {}
         self.arrived: dict[int, float] = {}  # seq -> time.perf_counter() its first pose arrived (latency figures)
@@ -286,14 +293,8 @@ class OccVOClient:
                     try:
                         errs.append(decode(reply.err.payload.to_bytes(), ErrorEvent))
                     except CodecError:
-                        errs.append(
-                            ErrorEvent(
-                                stream=self.stream,
-                                worker="?",
-                                code="internal",
-                                message=reply.err.payload.to_bytes().decode(errors="replace"),
-                            )
-                        )
+                        text = reply.err.payload.to_bytes().decode(errors="replace")
+                        errs.append(ErrorEvent(stream=self.stream, worker="?", code="internal", message=text))
             if out or not errs or any(e.code != "busy" for e in errs) or time.monotonic() + wait > deadline:
                 return out, errs
             time.sleep(wait)

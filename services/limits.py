@@ -1,11 +1,11 @@
 """What one client may cost a worker: streams admitted (per worker and per client), error events per client per
 second, the length of keys and messages in logs and events. A refused stream gets one error event naming the limit.
 
-A client is the Zenoh session that published the frame (`client_identity: "session"`, the default): the zid of the
-sample's source info, which OccVOClient sets and the inference worker passes on with the occupancy frame. Without the
-ACL a publisher declares its source info itself, so the identity is self-declared (a sample without one is client
-"anonymous"). Under the shipped ACL (deploy/acl/) set `client_identity: "user"`: a client is then a stream id's prefix
-before its first '.', which the ACL ties to the authenticated user allowed to publish under it."""
+Under `occvo serve` / `occvo up`'s logins (services/acl.py) and the shipped ACL (deploy/acl/), `client_identity:
+"user"`: a client is a stream id's prefix before its first '.', which the access control ties to the login allowed to
+publish under it. Otherwise (a worker's own default, the anonymous mode) `"session"`: the zid of the sample's source
+info, which OccVOClient sets and the inference worker passes on with the occupancy frame; the publisher declares it
+itself, so the identity is self-declared and the guards keyed on it advisory (a sample without one is "anonymous")."""
 
 from __future__ import annotations
 

@@ -18,7 +18,7 @@ from occvo_schemas.codec import CodecError, decode, encode
 from occvo_schemas.models import ErrorEvent, MapTileQuery, MapUpdate
 from occvo_services.map_store import open_map_store
 from occvo_services.runtime import Worker, WorkerConfig, log_event
-from occvo_services.store_api import redact
+from occvo_services.store_api import StoreUnavailable, redact
 from occvo_services.wire import encoding
 from occvo_services.worker_cli import worker_main
 
@@ -56,9 +56,10 @@ class MapService(Worker):
         try:
             self.store.apply(msg, encoded)
         except Exception as exc:  # noqa: BLE001 - e.g. the disk is full: report it, keep serving what is stored
+            # the store away: the stream's registration worker sends every tile again when it resumes the stream
             self.report_error(
                 msg.stream,
-                "internal",
+                "store_unavailable" if isinstance(exc, StoreUnavailable) else "internal",
                 f"map update seq {msg.seq} not stored: {type(exc).__name__}: {exc}",
                 str(sample.key_expr),
                 msg.seq,

@@ -6,10 +6,12 @@ from __future__ import annotations
 from occvo_services.store_api import FencedError, Lease
 
 
-def fence(conn, stream: str, epoch: int | None) -> None:
-    """Inside a write's transaction: FencedError unless the stream's lease is still at `epoch` (None: unfenced); the
-    lease row stays locked against a takeover until the write commits."""
+def fence(conn, stream: str, epoch: int | None, required: bool = False) -> None:
+    """Inside a write's transaction: FencedError unless the stream's lease is still at `epoch` (None: unfenced, unless
+    `required`); the lease row stays locked against a takeover until the write commits."""
     if epoch is None:
+        if required:
+            raise FencedError(stream, None, None)
         return
     row = conn.execute("SELECT epoch, owner FROM leases WHERE stream = %s FOR SHARE", (stream,)).fetchone()
     if row is None or int(row[0]) != epoch:
@@ -19,7 +21,11 @@ def fence(conn, stream: str, epoch: int | None) -> None:
 class PgLeases:
     """PgTrajectoryStore's lease methods (self.pool runs a call on a connection, self._read a query)."""
 
-    _fence = staticmethod(fence)  # what a fenced write calls in its transaction
+    fenced_only = False  # placement "members" sets it: every write fenced, one without an epoch refused
+
+    def _fence(self, conn, stream: str, epoch: int | None) -> None:
+        """What a fenced write calls in its transaction."""
+        fence(conn, stream, epoch, self.fenced_only)
 
     def acquire(self, stream: str, owner: str, ttl_s: float, take_from: str | None = None) -> int | None:
         """The stream's lease for `owner` for ttl_s: its epoch, or None while another owner holds it. Taking it
@@ -46,6 +52,19 @@ class PgLeases:
             ).fetchall()
         )
         return sorted(r[0] for r in rows)
+
+    def drop_unused_leases(self, owner: str, keep: list[str]) -> int:
+        """The lease rows of streams that never stored a frame deleted: `owner`'s but those in `keep`, and expired or
+        released ones of any owner (a worker gone for good leaves its rows); how many."""
+        return self.pool.run(
+            lambda conn: (
+                conn.execute(
+                    "DELETE FROM leases l WHERE ((l.owner = %s AND NOT (l.stream = ANY(%s))) OR l.expires_at <= now()) "
+                    "AND NOT EXISTS (SELECT 1 FROM streams s WHERE s.stream = l.stream)",
+                    (owner, list(keep)),
+                ).rowcount
+            )
+        )
 
     def release(self, stream: str, owner: str) -> bool:
         """Gives the stream's lease up (the next owner moves the epoch on); False if `owner` did not hold it."""

@@ -5,6 +5,7 @@ its Zenoh sessions come from services/sessions.py."""
 from __future__ import annotations
 
 import contextlib
+import functools
 import logging
 import os
 import queue
@@ -20,9 +21,10 @@ import zenoh
 from occvo_schemas import keys
 from occvo_schemas.codec import CodecError, decode, encode
 from occvo_schemas.models import ErrorEvent, WorkerHealth
-from occvo_services.flow import EVICT, SeqTracker, StageQueue, StreamLane
+from occvo_services.flow import SeqTracker, StageQueue, StreamLane
+from occvo_services.lane_eviction import reclaim, relieve_memory
 from occvo_services.limits import MAX_KEY_CHARS, MAX_MESSAGE_CHARS, Admission, ErrorBudget, clip, identity_of
-from occvo_services.memory import CHECK_EVERY_S, EVICT_IDLE_S, MemoryCap
+from occvo_services.memory import MemoryCap
 from occvo_services.os_tuning import trim_heap
 from occvo_services.query_gate import QueryGate
 from occvo_services.sessions import open_session
@@ -67,7 +69,7 @@ class Worker:
 
     # -- lifecycle
     def start(self) -> Worker:
-        self.session = open_session(self.config.connect)
+        self.session = open_session(self.config.connect, pick_up=False)  # its role's login, never the user's
         self._declared.append(self.session.declare_queryable(keys.stats(self.worker_id), self._on_stats))
         self.declare()
         self.token = self.session.liveliness().declare_token(keys.alive(self.role, self.worker_id))
@@ -180,26 +182,26 @@ class Worker:
         """Give back an idle stream's per-stream state (roles override); its lane is gone already."""
 
     def enqueue(
-        self, sample: zenoh.Sample, expect, handler: Callable[[str, object], None], judge_seq: bool = True
+        self, sample: zenoh.Sample, expect, handler: Callable[[str, object], None], judge_seq: bool = True, place=None
     ) -> None:
         """Decode a stream message, check its sequence number (judge_seq False: the handler does, against what it
         committed) and queue it on its stream's lane with its hop latency; bad messages are reported by decode_input
-        and check_seq, never raised."""
+        and check_seq, never raised. place(msg) -> False: a decoded message another worker takes (nothing more)."""
         t_recv, t_decode = time.time(), time.perf_counter()
         msg = self.decode_input(
             sample, expect, identity_of(sample, keys.stream_of(str(sample.key_expr)), self.config.client_identity)
         )
-        if msg is None or self.stopping.is_set():
+        if msg is None or self.stopping.is_set() or (place is not None and not place(msg)):
             return
         decode_ms = (time.perf_counter() - t_decode) * 1000.0
         self.stats.observe("decode", decode_ms)
-        self._relieve_memory()
+        relieve_memory(self)
         client = identity_of(sample, msg.stream, self.config.client_identity)
         refused = None
         if msg.stream not in self.admission.streams and (why := self.memory.refuse(msg.stream)) is not None:
             self.stats.inc("streams_refused_memory")
             refused = ("stream_limit", why)
-        refused = refused or self.admission.admit(msg.stream, client, self._reclaim)
+        refused = refused or self.admission.admit(msg.stream, client, functools.partial(reclaim, self))
         if refused is not None:
             code, why = refused
             self.stats.inc("streams_refused" if code == "stream_limit" else "frames_not_owner")
@@ -211,74 +213,51 @@ class Worker:
                 if msg.stream not in self.lanes:  # admitted for nothing: its place goes back
                     self.admission.release(msg.stream)
             return
-        cost = self.frame_cost_mb(msg)
+        cost, away = self.frame_cost_mb(msg), self.store_away()
         if (why := self.memory.charge(msg.stream, msg.seq, cost)) is not None:
             self.stats.inc("frames_refused_memory")
-            self.report_error(msg.stream, "oversize", why, str(sample.key_expr), msg.seq)
+            # the store away: the frames held for it fill the cap; this one is sent again once they are stored
+            code, why = ("store_unavailable", f"{why}: frames held while {away}") if away else ("oversize", why)
+            self.report_error(msg.stream, code, why, str(sample.key_expr), msg.seq)
+            if away:
+                self.not_held(msg.stream, msg.seq)
             return
         # a sent_at a day off (e.g. 1e308) would give an infinite hop: no hop latency then, not a failed stage
         hop_ms = (t_recv - msg.sent_at) * 1000.0 if 0 < msg.sent_at and abs(t_recv - msg.sent_at) < 86400 else 0.0
         lane = self.lane(msg.stream, handler)
         try:
+            if away and lane.queue.qsize() >= self.config.queue_size:  # held frames fill it: refused, not blocked
+                self.memory.discharge(cost)
+                self.stats.inc("frames_refused_store_away")
+                why = (
+                    f"seq {msg.seq} not held: {self.config.queue_size} frames of the stream wait for the store ({away})"
+                )
+                self.report_error(msg.stream, "store_unavailable", why, str(sample.key_expr), msg.seq)
+                self.not_held(msg.stream, msg.seq)
+                return
             if not lane.queue.put((msg, hop_ms, time.perf_counter(), decode_ms, sample.source_info, cost)):
                 self.memory.discharge(cost)  # stopping
         finally:
             with self._lanes_lock:
                 lane.pending -= 1
 
+    def reports_input(self, stream: str) -> bool:
+        """Whether this worker reports a stream's message that did not decode (roles where every worker receives
+        every stream's messages override: one of them reports)."""
+        return True
+
+    def store_away(self) -> str | None:
+        """Why the role's store cannot be reached now, or None (roles with a store override)."""
+        return None
+
+    def not_held(self, stream: str, seq: int) -> None:
+        """A frame answered store_unavailable before its lane (roles with a store override: the stream's later
+        frames wait for it)."""
+
     def frame_cost_mb(self, msg) -> float:
         """What handling `msg` will cost this worker's memory (MB), charged against max_rss_mb before it is queued
         (roles override; services/memory.py)."""
         return 0.0
-
-    def _reclaim(self, candidates: list[tuple[str, int]], idle_only: bool) -> str | None:
-        """Of the (stream, rank) candidates, the lowest rank's lane without a frame for longest (idle_only: for
-        EVICT_IDLE_S at least) and none in work or waiting: told to leave, its stream returned (a new stream takes
-        its place), else None. Reads the lanes without their lock (the admission's is held); retire_lane checks
-        again under it."""
-        now, lanes, ready = time.monotonic(), self.lanes, []
-        for stream, rank in candidates:
-            lane = lanes.get(stream)
-            if lane is None or lane.busy or lane.pending or lane.evicting or lane.queue.qsize():
-                continue
-            if idle_only and now - lane.last_active < EVICT_IDLE_S:
-                continue
-            ready.append((rank, lane.last_active, stream))
-        for _, _, stream in sorted(ready):
-            lane = lanes[stream]
-            try:
-                lane.queue.q.put_nowait(EVICT)
-            except queue.Full:
-                continue
-            lane.evicting, lane.evict_why = True, "reclaimed"
-            return stream
-        return None
-
-    def _relieve_memory(self) -> None:
-        """Over the eviction mark of max_rss_mb: the lane idle longest ends (one at a time, and the resident set is
-        read again before the next is chosen)."""
-        now = time.monotonic()
-        if now - self._evicted_at < CHECK_EVERY_S or not self.memory.over_evict_mark():
-            return
-        with self._lanes_lock:
-            if any(lane.evicting for lane in self.lanes.values()):
-                return
-            idle = [
-                lane
-                for lane in self.lanes.values()
-                if not lane.busy
-                and not lane.pending
-                and not lane.queue.qsize()
-                and now - lane.last_active >= EVICT_IDLE_S
-            ]
-            if not idle:
-                return
-            lane = min(idle, key=lambda lane: lane.last_active)
-            try:
-                lane.queue.q.put_nowait(EVICT)
-            except queue.Full:
-                return
-            lane.evicting, lane.evict_why, self._evicted_at = True, "memory", now
 
     def decode_input(self, sample: zenoh.Sample, expect, client: str | None = None):
         """Decode and check a sample; on any problem report it (against `client`'s error budget) and return None."""
@@ -288,7 +267,8 @@ class Worker:
         try:
             msg = decode(sample.payload.to_bytes(), expect, self.config.max_message_bytes)
         except CodecError as exc:
-            self.report_error(stream, exc.code, exc.message, key, client=client)
+            if self.reports_input(stream):
+                self.report_error(stream, exc.code, exc.message, key, client=client)
             return None
         if getattr(msg, "stream", stream) != stream:
             self.report_error(

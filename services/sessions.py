@@ -80,9 +80,50 @@ def zenoh_reason(exc: BaseException) -> str:
     return re.sub(r"\s*at /\S+\.rs:\d+\.?", "", text).strip(" .")
 
 
-def open_session(connect: str = DEFAULT_ENDPOINT, base: str | Path | None = None) -> zenoh.Session:
+def open_session(
+    connect: str = DEFAULT_ENDPOINT, base: str | Path | None = None, pick_up: bool = True
+) -> zenoh.Session:
     """A client session on the router at connect; a malformed endpoint is a ConfigError and no router answering a
-    NoRouterError, each one line."""
+    NoRouterError, each one line. The config: `base`, else $OCCVO_ZENOH_CONFIG, else (pick_up) the client login
+    `occvo serve` made for this user (client_login)."""
+    return open_login(connect, base, pick_up)[0]
+
+
+def client_login(base: str | Path | None = None, pick_up: bool = True) -> tuple[str | None, bool]:
+    """The client config a session starts from and whether it was picked up by itself: `base`, $OCCVO_ZENOH_CONFIG,
+    or this user's login file (services/logins.py) when there is one."""
+    from occvo_services import logins
+
+    given = base or os.environ.get(ZENOH_CONFIG_ENV)
+    if given or not pick_up:
+        return (str(given) if given else None), False
+    own = logins.own_client_config()
+    return (str(own) if own else None), own is not None
+
+
+def open_login(
+    connect: str = DEFAULT_ENDPOINT, base: str | Path | None = None, pick_up: bool = True
+) -> tuple[zenoh.Session, str | None]:
+    """open_session and the login it logged in as (None: no login). A login picked up by itself that the router
+    refuses (a router without authentication, `occvo serve --anonymous`) is dropped: the session opens without."""
+    from occvo_services.logins import login_of
+
+    base, picked = client_login(base, pick_up)
+    try:
+        return _open(connect, base), login_of(base)
+    except NoRouterError:
+        if not picked or _answers(connect) is False:
+            raise
+    try:
+        return _open(connect, None), None
+    except NoRouterError:
+        raise NoRouterError(
+            f"the router at {connect} refused the login of {base} and a session without one (is it the router of "
+            "the `occvo serve` that wrote it?)"
+        ) from None
+
+
+def _open(connect: str, base: str | None) -> zenoh.Session:
     try:
         config = zenoh_config("client", connect=connect, base=base)
     except zenoh.ZError as exc:
@@ -90,9 +131,34 @@ def open_session(connect: str = DEFAULT_ENDPOINT, base: str | Path | None = None
     try:
         return zenoh.open(config)
     except zenoh.ZError:
-        base = base or os.environ.get(ZENOH_CONFIG_ENV)
-        refused = f" (or it refused the session of {base}: check its certificates or credentials)" if base else ""
-        raise NoRouterError(f"no router at {connect}{refused}: start `occvo serve` or pass --connect") from None
+        raise NoRouterError(_why_not(connect, base)) from None
+
+
+def _why_not(connect: str, base: str | None) -> str:
+    """Why no session opened, for the user: nothing listens, or a router there refused this session."""
+    answers = _answers(connect)
+    if answers and base:
+        return f"the router at {connect} refused the session of {base}: check its certificates or credentials"
+    if answers:
+        return (
+            f"the router at {connect} refused a session without a login: `occvo serve` makes one for the user who "
+            "started it; another user or host gets one from `occvo logins add NAME` (OCCVO_ZENOH_CONFIG)"
+        )
+    maybe = f" (or it refused the session of {base}: check its certificates or credentials)" if base else ""
+    return f"no router at {connect}{maybe if answers is None else ''}: start `occvo serve` or pass --connect"
+
+
+def _answers(connect: str) -> bool | None:
+    """Whether something accepts TCP connections at a tcp/ or tls/ endpoint (None: another kind of endpoint)."""
+    proto, _, addr = connect.partition("/")
+    host, _, port = addr.split("#")[0].rpartition(":")
+    if proto not in ("tcp", "tls") or not port.isdigit():
+        return None
+    try:
+        with socket.create_connection((host.strip("[]"), int(port)), timeout=0.5):
+            return True
+    except OSError:
+        return False
 
 
 def open_router(listen: str | None = None, config_path: str | Path | None = None) -> zenoh.Session:

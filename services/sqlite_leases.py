@@ -18,9 +18,12 @@ CREATE TABLE IF NOT EXISTS leases (
 """
 
 
-def fence(db, stream: str, epoch: int | None) -> None:
-    """Inside a write transaction: FencedError unless the stream's lease is still at `epoch` (None: unfenced)."""
+def fence(db, stream: str, epoch: int | None, required: bool = False) -> None:
+    """Inside a write transaction: FencedError unless the stream's lease is still at `epoch` (None: unfenced, unless
+    `required`)."""
     if epoch is None:
+        if required:
+            raise FencedError(stream, None, None)
         return
     row = db.execute("SELECT epoch, owner FROM leases WHERE stream=?", (stream,)).fetchone()
     if row is None or int(row[0]) != epoch:
@@ -29,6 +32,8 @@ def fence(db, stream: str, epoch: int | None) -> None:
 
 class SqliteLeases:
     """TrajectoryStore's lease methods (self._write runs a write transaction, self._read a read)."""
+
+    fenced_only = False  # placement "members" sets it: every write fenced, one without an epoch refused
 
     def acquire(self, stream: str, owner: str, ttl_s: float, take_from: str | None = None) -> int | None:
         """The stream's lease for `owner` for ttl_s: its epoch, or None while another owner holds it. Taking it
@@ -60,6 +65,19 @@ class SqliteLeases:
             ]
             db.execute("UPDATE leases SET expires_at=? WHERE owner=? AND expires_at>?", (now + ttl_s, owner, now))
             return sorted(held)
+
+        return self._write(tx)
+
+    def drop_unused_leases(self, owner: str, keep: list[str]) -> int:
+        """The lease rows of streams that never stored a frame deleted: `owner`'s but those in `keep`, and expired or
+        released ones of any owner (a worker gone for good leaves its rows); how many."""
+
+        def tx(db):
+            sql = "SELECT stream, owner, expires_at FROM leases WHERE stream NOT IN (SELECT stream FROM streams)"
+            now, rows = time.time(), db.execute(sql).fetchall()
+            gone = [(s,) for s, o, x in rows if x <= now or (o == owner and s not in set(keep))]
+            db.executemany("DELETE FROM leases WHERE stream=?", gone)
+            return len(gone)
 
         return self._write(tx)
 

@@ -198,6 +198,9 @@ class TrajectoryStore(SqliteLeases, SnapshotFile, SqliteRetention):
         with self.read_lock:
             return self.read_db.execute(sql, args).fetchall()
 
+    def ping(self) -> None:
+        self._read("SELECT 1")
+
     # -- streams and poses
     def streams(self) -> list[str]:
         return [r[0] for r in self._read("SELECT stream FROM streams ORDER BY stream")]
@@ -239,7 +242,7 @@ class TrajectoryStore(SqliteLeases, SnapshotFile, SqliteRetention):
         pose_bytes = np.ascontiguousarray(pose, np.float64).reshape(4, 4).tobytes()
 
         def tx(db):
-            fence(db, stream, epoch)
+            fence(db, stream, epoch, self.fenced_only)
             if new_trajectory:
                 for table in _PER_STREAM:
                     db.execute(f"DELETE FROM {table} WHERE stream=?", (stream,))
@@ -278,7 +281,7 @@ class TrajectoryStore(SqliteLeases, SnapshotFile, SqliteRetention):
         synced commit carries it), one fsync a frame, not two."""
 
         def tx(db):
-            fence(db, stream, epoch)
+            fence(db, stream, epoch, self.fenced_only)
             if pose is not None:
                 db.execute(
                     "UPDATE poses SET status='relocalised', pose=? WHERE stream=? AND seq=?",
@@ -338,11 +341,12 @@ class TrajectoryStore(SqliteLeases, SnapshotFile, SqliteRetention):
             raise KeyError(f"stream {stream}: no cold tile {ix},{iy} evicted at seq {evicted_seq}")
         return rows[0][0]
 
-    def delete_stream(self, stream: str) -> int:
-        """Everything of a stream gone: trajectory, journal, cold tiles, lease, snapshot (`occvo store delete`); the
-        poses deleted. Its workers must not serve it meanwhile (their in-memory state would write it back)."""
+    def delete_stream(self, stream: str, *, epoch: int | None = None) -> int:
+        """Everything of a stream gone: trajectory, journal, cold tiles, lease, snapshot (`occvo store delete`; a
+        worker's, fenced); the poses deleted. Its workers must not serve it meanwhile (their state would write it back)."""
 
         def tx(db):
+            fence(db, stream, epoch, self.fenced_only)
             n = db.execute("DELETE FROM poses WHERE stream=?", (stream,)).rowcount
             for table in ("journal", "cold_tiles", "leases", "streams"):
                 db.execute(f"DELETE FROM {table} WHERE stream=?", (stream,))

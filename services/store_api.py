@@ -4,7 +4,8 @@ errors they raise, and the one factory that picks a backend from a URL or a path
 
 Leases: each stream has at most one owning worker at a time, recorded with a fencing epoch. A write given `epoch`
 checks it against the stream's lease inside its own transaction and raises FencedError, writing nothing, when
-another owner has taken the stream since (its epoch is higher). epoch=None writes unfenced (one embedded worker)."""
+another owner has taken the stream since (its epoch is higher). epoch=None writes unfenced (one embedded worker, the
+`occvo store` command), unless the store is `fenced_only` (placement "members": FencedError, nothing written)."""
 
 from __future__ import annotations
 
@@ -28,10 +29,13 @@ class StoreUnavailable(RuntimeError):
 class FencedError(RuntimeError):
     """A write under an epoch the stream's lease no longer has: another worker owns the stream now."""
 
-    def __init__(self, stream: str, epoch: int, current: int | None, owner: str | None = None):
+    def __init__(self, stream: str, epoch: int | None, current: int | None, owner: str | None = None):
         self.stream, self.epoch, self.current, self.owner = stream, epoch, current, owner
         now = "no lease" if current is None else f"epoch {current}" + (f" (owner {owner})" if owner else "")
-        super().__init__(f"stream {stream}: write under lease epoch {epoch} refused, the lease is at {now}")
+        under = (
+            "without a lease (every write of this store is fenced)" if epoch is None else f"under lease epoch {epoch}"
+        )
+        super().__init__(f"stream {stream}: write {under} refused, the lease is at {now}")
 
 
 @dataclass(frozen=True)
@@ -55,6 +59,8 @@ def sqlite_path(url_or_path: str | Path) -> str:
 @runtime_checkable
 class Store(Protocol):
     """What the registration worker calls. Every write taking `epoch` is fenced by the stream's lease (see above)."""
+
+    def ping(self) -> None: ...  # StoreUnavailable while the database cannot be reached
 
     # streams and poses
     def streams(self) -> list[str]: ...
@@ -104,6 +110,7 @@ class Store(Protocol):
 
     # leases
     def acquire(self, stream: str, owner: str, ttl_s: float, take_from: str | None = None) -> int | None: ...
+    def drop_unused_leases(self, owner: str, keep: list[str]) -> int: ...
     def renew(self, owner: str, ttl_s: float) -> list[str]: ...
     def release(self, stream: str, owner: str) -> bool: ...
     def owner_of(self, stream: str) -> str | None: ...

@@ -97,6 +97,9 @@ class PgTrajectoryStore(PgLeases, PgRetention):
     def _read(self, sql: str, args=(), binary: bool = False) -> list:
         return self.pool.run(lambda conn: conn.execute(sql, args, binary=binary).fetchall())
 
+    def ping(self) -> None:
+        self._read("SELECT 1")  # StoreUnavailable while the server is away
+
     # -- streams and poses
     def streams(self) -> list[str]:
         return [r[0] for r in self._read("SELECT stream FROM streams ORDER BY stream")]
@@ -242,6 +245,8 @@ class PgTrajectoryStore(PgLeases, PgRetention):
         arrays' own memory, never packed whole. Two transactions, as in SQLite, so that the long first one holds no
         row a frame commit needs: it writes the snapshot unless one of a later epoch is there; the second, fenced,
         deletes what the snapshot covers if the trajectory is still the one snapshotted (False otherwise)."""
+        if epoch is None and self.fenced_only:
+            raise FencedError(stream, None, None)
         created = self.created(stream) if created is None else created
         if created is None:
             return False
@@ -357,11 +362,12 @@ class PgTrajectoryStore(PgLeases, PgRetention):
         return rows[0][0]
 
     # -- housekeeping
-    def delete_stream(self, stream: str) -> int:
-        """Everything of a stream gone (TrajectoryStore.delete_stream); the poses deleted."""
+    def delete_stream(self, stream: str, *, epoch: int | None = None) -> int:
+        """Everything of a stream gone (TrajectoryStore.delete_stream), fenced as a write; the poses deleted."""
 
         def tx(conn):
             with conn.transaction():
+                self._fence(conn, stream, epoch)
                 n = conn.execute("DELETE FROM poses WHERE stream = %s", (stream,)).rowcount
                 for table in ("journal", "cold_tiles", "snapshots", "leases", "streams"):
                     conn.execute(f"DELETE FROM {table} WHERE stream = %s", (stream,))

@@ -72,6 +72,9 @@ class UpConfig(BaseModel):
     restart: RestartSpec = RestartSpec()
     stop_timeout_s: float = Field(60.0, gt=0)
     log_dir: str | None = None  # each child's stderr to <log_dir>/<name>.log (default: this stderr)
+    # true: the built-in router without logins, clients who they say they are (`occvo up --anonymous`); false: with
+    # no router config of its own, the router has logins and access control (services/acl.py)
+    anonymous: bool = False
 
     @classmethod
     def load(cls, path: str | Path) -> UpConfig:
@@ -146,6 +149,7 @@ class Supervisor:
         self.log = log or structured_logger("occvo.up")
         self.endpoint = config.endpoint()
         self.stopping = threading.Event()
+        self.reload = None  # a callable: true when the router's config changed (services/acl.py's LoginsWatch)
         env = dict(
             os.environ, PYTHONPATH=os.pathsep.join([str(REPO), os.environ.get("PYTHONPATH", "")]).rstrip(os.pathsep)
         )
@@ -233,8 +237,19 @@ class Supervisor:
             for c in ([self.router] if self.router else []) + self.workers
         }
 
+    def restart_router(self) -> None:
+        """Stop the router and start it again at once, on its rewritten config; workers and clients reconnect."""
+        if self.router is None or self.router.proc is None or self.stopping.is_set():
+            return
+        self._stop_group([self.router])
+        self.router.restarts += 1
+        self._spawn(self.router)
+        log_event(self.log, "router restarted", reason="its config changed", pid=self.router.proc.pid)
+
     def poll(self) -> None:
         """Notice exited children and restart them when their backoff has passed."""
+        if self.reload is not None and self.reload():
+            self.restart_router()
         now = time.monotonic()
         for child in ([self.router] if self.router else []) + self.workers:
             if child.restart_at is not None:

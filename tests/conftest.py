@@ -1,3 +1,6 @@
+import os
+import shutil
+import tempfile
 from pathlib import Path
 
 import numpy as np
@@ -5,12 +8,24 @@ import pytest
 
 from occvo_core.reproducible import restart_pinned
 
+LOGINS_DIR_ENV = "OCCVO_LOGINS_DIR"  # services/logins.py (tests/core runs without the services' zenoh)
+_LOGINS: list[str] = []
+
 
 def pytest_configure(config):
     """The suite checks exact poses, digests and model scores: it runs in one floating-point environment on every
     x86-64 machine (an AVX-512 CPU rounds numpy's sin and cos differently). The pins act when numpy loads, so pytest
     starts again with them (here, where its output capture is not yet on)."""
     restart_pinned()
+    # the logins `occvo serve` makes on a first start (services/logins.py) go to a folder of this run's, not to the
+    # user's ~/.config/occvo: set before any test module is imported (some copy os.environ for their processes)
+    _LOGINS.append(tempfile.mkdtemp(prefix="occvo-test-logins-"))
+    os.environ[LOGINS_DIR_ENV] = _LOGINS[0]
+
+
+def pytest_unconfigure(config):
+    for folder in _LOGINS:
+        shutil.rmtree(folder, ignore_errors=True)
 
 
 SAMPLE = Path(__file__).resolve().parents[2] / "shared" / "data" / "occvo-sample"

@@ -3,4 +3,4 @@
 occvo_cli.cli adds occvo_services.commands.<name> for every name in COMMANDS.
 """
 
-COMMANDS = ["serve", "up", "replay", "poses", "tile", "map_info", "view", "store"]
+COMMANDS = ["serve", "up", "logins", "replay", "poses", "tile", "map_info", "view", "store"]

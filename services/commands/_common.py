@@ -77,8 +77,9 @@ class ReadinessWatch:
     """Reports each worker role as its liveliness token appears (the registration worker announces itself after its
     kernels' warm-up), from a thread with its own session, until stop()."""
 
-    def __init__(self, ep: str, report, roles=ROLES):
-        self.ep, self.report, self.roles = ep, report, roles
+    def __init__(self, ep: str, report, roles=ROLES, login=None):
+        """login: the client config to watch with (the command's own; None: as any client)."""
+        self.ep, self.report, self.roles, self.login = ep, report, roles, login
         self.t0 = time.monotonic()
         self.seen: set[str] = set()
         self._lock = threading.Lock()
@@ -110,7 +111,7 @@ class ReadinessWatch:
         session = None
         while session is None and not self._stop.wait(0.2):
             try:
-                session = open_session(self.ep)
+                session = open_session(self.ep, base=self.login, pick_up=self.login is None)
             except Exception:  # noqa: BLE001 - the router is not up yet
                 session = None
         if session is None:
@@ -189,6 +190,48 @@ def check_listen_secure(router_config: str | Path, listen: list[str], insecure: 
             f"({router_config}: access_control is not enabled, so every user may do anything): use "
             "deploy/acl/router.json5 or deploy/tls/router.json5, listen on loopback, or pass --insecure"
         )
+
+
+def add_identity_flags(p) -> None:
+    """--anonymous and --insecure: two different things, said apart."""
+    p.add_argument(
+        "--anonymous",
+        action="store_true",
+        help="run the router without logins, as before: any process reaching it may connect, and a client is who it says "
+        "it is (the workers' per-client guards are advisory then; docs/service.md). Default: logins and access "
+        "control, the clients of this user logged in by themselves (occvo logins)",
+    )
+    p.add_argument(
+        "--insecure",
+        action="store_true",
+        help="allow a listen endpoint beyond loopback on a router without authentication (with --anonymous or a "
+        "--router-config of your own); nothing to do with logins on this machine",
+    )
+
+
+def secure_default(args, config, given_router: bool):
+    """The authenticated default on an `occvo up` deployment (services/acl.py), unless --anonymous, a router
+    config of the user's own, or no router here; returns the client config the command watches the workers with
+    (None: any session). Says where the logins are, never a password."""
+    from occvo_services import acl, logins
+
+    args.logins_watch = None
+    if getattr(args, "anonymous", False) or given_router or not config.router.enabled:
+        return None
+    folder = logins.logins_dir()
+    try:
+        probe = acl.authenticate(config, folder)
+    except OSError as exc:
+        raise ConfigError(f"logins folder {folder}: {exc.strerror or exc} (set ${logins.LOGINS_DIR_ENV})") from None
+    args.logins_watch = acl.LoginsWatch(folder)  # `occvo logins add/remove` while it runs: the router restarts
+    own = logins.default_login()
+    who = own if logins.session_file(own, folder).is_file() else logins.login_of(probe)
+    progress(
+        args,
+        f"clients log in as {who} by themselves ({logins.session_file(who, folder)}); streams are {who}.<name>; "
+        f"`occvo logins add NAME` makes a login for another user or host",
+    )
+    return str(probe)
 
 
 def check_store_reachable(url: str | None) -> None:

@@ -74,8 +74,8 @@ def run(args) -> int:
             if args.count is not None and n[0] >= args.count:
                 done.set()
 
-        sub = c.session.declare_subscriber(keys.pose(args.stream), on_pose)
-        progress(args, f"following {keys.pose(args.stream)}; Ctrl-C stops")
+        sub = c.session.declare_subscriber(keys.pose(c.stream), on_pose)
+        progress(args, f"following {keys.pose(c.stream)}; Ctrl-C stops")
         for sig in (signal.SIGINT, signal.SIGTERM):
             signal.signal(sig, lambda *_: done.set())
         done.wait()

@@ -13,6 +13,7 @@ from occvo_services.client import ServiceError
 from occvo_services.commands._common import (
     WARM_UP_NOTE,
     ReadinessWatch,
+    add_identity_flags,
     add_json,
     check_listen_secure,
     check_store_reachable,
@@ -20,6 +21,7 @@ from occvo_services.commands._common import (
     endpoint,
     listen_endpoints,
     progress,
+    secure_default,
 )
 
 
@@ -32,9 +34,7 @@ def add_parser(subparsers) -> None:
         help="a folder with inference_worker.json5, registration_worker.json5 and "
         "map_service.json5 overriding the built-in worker configs (e.g. deploy)",
     )
-    p.add_argument(
-        "--insecure", action="store_true", help="allow a non-loopback listen endpoint without authentication"
-    )
+    add_identity_flags(p)
     p.add_argument("--source", choices=["replay", "model"], default="replay", help="inference source")
     p.add_argument(
         "--device",
@@ -43,6 +43,28 @@ def add_parser(subparsers) -> None:
         help="where --source model runs the network (auto: cuda when there is one)",
     )
     p.add_argument("--checkpoint", help="TPV-Former checkpoint for --source model (occvo train-occ)")
+    _store_flags(p)
+    p.add_argument(
+        "--policy",
+        choices=["lossless", "latest"],
+        default="lossless",
+        help="a full queue: lossless blocks the sender, latest drops the oldest frame (default lossless)",
+    )
+    p.add_argument("--queue-size", type=int, default=4, help="frames each worker holds a stream before its policy acts")
+    _registration_flags(p)
+    p.add_argument("--log-dir", help="write each worker's JSON log lines to <dir>/<role>.log (default: stderr)")
+    p.add_argument(
+        "--start-timeout",
+        type=float,
+        default=300.0,
+        help="seconds the workers may take to come up (a first start compiles the kernels)",
+    )
+    add_json(p, "the endpoint and events (listening, worker ready, ready, stopped)", lines=True)
+    p.add_argument("--quiet", action="store_true", help="no progress lines and no worker logs on stderr")
+    p.set_defaults(func=run)
+
+
+def _store_flags(p) -> None:
     p.add_argument(
         "--store",
         "--store-path",
@@ -57,29 +79,22 @@ def add_parser(subparsers) -> None:
         metavar="FILE",
         help="a file readable by its owner only holding the store URL, password and all (instead of --store)",
     )
-    p.add_argument(
-        "--policy",
-        choices=["lossless", "latest"],
-        default="lossless",
-        help="a full queue: lossless blocks the sender, latest drops the oldest frame (default lossless)",
-    )
-    p.add_argument("--queue-size", type=int, default=4, help="frames each worker holds a stream before its policy acts")
+
+
+def _registration_flags(p) -> None:
     p.add_argument(
         "--registration-workers",
         type=int,
         default=1,
-        help="registration workers sharing the streams (shards by stream id, one core each)",
+        help="registration workers sharing the streams (one core each), as --placement says",
     )
-    p.add_argument("--log-dir", help="write each worker's JSON log lines to <dir>/<role>.log (default: stderr)")
     p.add_argument(
-        "--start-timeout",
-        type=float,
-        default=300.0,
-        help="seconds the workers may take to come up (a first start compiles the kernels)",
+        "--placement",
+        choices=["shards", "members"],
+        default="shards",
+        help="shards: by stream id; members: the live workers share the streams under leases in the store (needs "
+        "--store; PostgreSQL for workers on many hosts)",
     )
-    add_json(p, "the endpoint and events (listening, worker ready, ready, stopped)", lines=True)
-    p.add_argument("--quiet", action="store_true", help="no progress lines and no worker logs on stderr")
-    p.set_defaults(func=run)
 
 
 def _worker_config(args, name: str) -> str:
@@ -117,14 +132,14 @@ def _check_store(url: str | None) -> None:
         raise ConfigError(f"--store {url}: {path if path.exists() else folder} is not writable")
 
 
-def _wait_alive(sup, timeout: float) -> None:
+def _wait_alive(sup, timeout: float, login=None) -> None:
     """Until every worker's liveliness token is up (a fresh install compiles kernels first), restarting crashes."""
     from occvo_schemas import keys
     from occvo_services.sessions import NoRouterError, open_session
 
     roles = {"inference", "registration", "map"}
     try:
-        probe = open_session(sup.endpoint)
+        probe = open_session(sup.endpoint, base=login, pick_up=False)
     except NoRouterError:
         router = sup.router.proc if sup.router is not None else None
         if router is None or router.poll() is None:
@@ -172,7 +187,7 @@ def _up_config(args, router_config: str):
             WorkerSpec(
                 role="registration",
                 config=_worker_config(args, "registration_worker.json5"),
-                args=common,
+                args=[*common, "--placement", args.placement],
                 count=args.registration_workers,
                 env=store,
             ),
@@ -194,6 +209,11 @@ def run(args) -> int:
         _absolute(args.checkpoint),
         _absolute(args.log_dir),
     )
+    if args.placement == "members" and not args.store:
+        raise ConfigError("--placement members needs a store (--store): the workers hand streams over through it")
+    if args.anonymous and args.router_config:
+        raise ConfigError("--anonymous runs the built-in router without logins: give it or --router-config, not both")
+    given_router = args.router_config is not None
     router_config = _absolute(args.router_config) or str(defaults.path("router.json5"))
     args.router_config = router_config
     if not Path(router_config).is_file():
@@ -201,13 +221,17 @@ def run(args) -> int:
     _check_store(args.store)
     check_store_reachable(args.store)  # once, before any worker: one line and exit 2, not workers crash-looping
     ep = args.listen or endpoint(args)
-    check_listen_secure(router_config, [args.listen] if args.listen else listen_endpoints(router_config), args.insecure)
     config = _up_config(args, router_config)  # the worker configs validated
+    # the default: the router with logins and access control, the workers as their logins (services/acl.py)
+    args.probe_login = secure_default(args, config, given_router)
+    router_config = config.router.config
+    check_listen_secure(router_config, [args.listen] if args.listen else listen_endpoints(router_config), args.insecure)
     if args.log_dir:
         Path(args.log_dir).mkdir(parents=True, exist_ok=True)
     sup = Supervisor(
         config, structured_logger("occvo.serve", "WARNING") if args.quiet else None, role_names=True, quiet=args.quiet
     )
+    sup.reload = args.logins_watch
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: sup.stopping.set())
     emit(args, {"event": "listening", "endpoint": ep}, f"listening on {ep}")
@@ -226,12 +250,12 @@ def _supervise(args, sup, ep: str) -> int:
             emit(args, {"event": "worker ready", "role": role, "seconds": seconds}, "")
         progress(args, f"{role} worker ready after {seconds} s")
 
-    watch = ReadinessWatch(ep, ready).start()
+    watch = ReadinessWatch(ep, ready, login=args.probe_login).start()
     try:
         sup.start()
         up = False
         try:
-            _wait_alive(sup, args.start_timeout)
+            _wait_alive(sup, args.start_timeout, args.probe_login)
             up = True
         finally:  # "ready" only for workers seen alive: not for one that never came up
             watch.stop(all_ready=up and not sup.stopping.is_set())

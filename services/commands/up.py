@@ -6,12 +6,14 @@ from occvo_services import defaults
 from occvo_services.commands._common import (
     WARM_UP_NOTE,
     ReadinessWatch,
+    add_identity_flags,
     add_json,
     check_listen_secure,
     check_store_reachable,
     emit,
     listen_endpoints,
     progress,
+    secure_default,
 )
 
 
@@ -28,9 +30,7 @@ def add_parser(subparsers) -> None:
     p.add_argument(
         "--quiet", action="store_true", help="no progress lines and only warnings of the supervisor's log on stderr"
     )
-    p.add_argument(
-        "--insecure", action="store_true", help="allow a non-loopback listen endpoint without authentication"
-    )
+    add_identity_flags(p)
     p.set_defaults(func=run)
 
 
@@ -49,11 +49,14 @@ def run(args) -> int:
         config.router.listen, config.router.connect = args.listen, None
     if args.log_dir:
         config.log_dir = args.log_dir
+    args.anonymous = args.anonymous or config.anonymous
+    login = secure_default(args, config, given_router=config.router.config is not None)
     if config.router.enabled:
         router_file = config.router.config or str(defaults.path("router.json5"))
         listen = [config.router.listen] if config.router.listen else listen_endpoints(router_file)
         check_listen_secure(router_file, listen, args.insecure)
     sup = Supervisor(config, structured_logger("occvo.up", "WARNING") if args.quiet else None)
+    sup.reload = args.logins_watch
     roles = tuple(dict.fromkeys(w.role for w in config.workers))
     watch, ready = None, set()
 
@@ -78,7 +81,7 @@ def run(args) -> int:
         emit(args, {"event": "listening", "endpoint": s.endpoint}, f"listening on {s.endpoint}")
         if "registration" in roles:
             progress(args, f"workers started: {', '.join(roles)}; the registration worker {WARM_UP_NOTE}")
-        watch = ReadinessWatch(s.endpoint, worker_ready, roles).start()
+        watch = ReadinessWatch(s.endpoint, worker_ready, roles, login=login).start()
 
     try:
         code = sup.run(started)

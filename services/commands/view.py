@@ -62,12 +62,14 @@ def run(args) -> int:
     from occvo_core.overwrite import check_replaceable
     from occvo_core.viz.views import Views
     from occvo_services.follow import StreamFollower
-    from occvo_services.sessions import open_session
+    from occvo_services.logins import own_stream
+    from occvo_services.sessions import open_login
 
     foxglove = args.mcap is not None or args.foxglove is not None
     check_replaceable(args.rerun, "rrd", "--rerun", args.force)
     check_replaceable(args.mcap, "mcap", "--mcap", args.force)
-    session = open_session(endpoint(args))  # first: no router, no viewer and no recording
+    session, login = open_login(endpoint(args))  # first: no router, no viewer and no recording
+    args.stream = own_stream(args.stream, login)  # a login follows its own streams, under its prefix
     views = []
     try:
         if args.rerun or args.web_port or not foxglove:

@@ -7,7 +7,14 @@ from __future__ import annotations
 from importlib.resources import files
 from pathlib import Path
 
-NAMES = ("router.json5", "inference_worker.json5", "registration_worker.json5", "map_service.json5", "occvo.json5")
+NAMES = (
+    "router.json5",
+    "acl_router.json5",
+    "inference_worker.json5",
+    "registration_worker.json5",
+    "map_service.json5",
+    "occvo.json5",
+)
 
 
 def path(name: str) -> Path:

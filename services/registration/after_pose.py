@@ -11,6 +11,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from occvo_core.frame import OccupancyFrame
+from occvo_services.store_api import StoreUnavailable
 from occvo_services.telemetry import log_event
 
 if TYPE_CHECKING:
@@ -22,6 +23,8 @@ def after_pose(s: StreamSession, job: FrameJob) -> None:
     """The phases after a pose; a failure is reported as a lane reports one (a worker never dies of one frame)."""
     try:
         _after_pose_steps(s, job)
+    except StoreUnavailable as exc:  # e.g. cold tiles not read back: the state is rebuilt from the store
+        s.store_failed(job.msg.seq, exc, "registered, its work after the pose not done")
     except Exception as exc:  # noqa: BLE001
         s.ctx.report_error(s.stream, "internal", f"{type(exc).__name__}: {exc}", seq=job.msg.seq)
         log_event(s.ctx.log, "stage failed", logging.ERROR, stream=s.stream, error=repr(exc))
@@ -142,7 +145,7 @@ def _observe(s: StreamSession, job: FrameJob, result, marks: tuple, relocalised:
 def _schedule_snapshot(s: StreamSession) -> None:
     """With a store: a snapshot once snapshot_every frames were committed since the last and its cost is within
     snapshot_max_share of the stream's time (or the last one failed)."""
-    if s.ctx.store is None:
+    if s.ctx.store is None or not s.may_write:
         return
     sched, config = s.snapshot, s.ctx.config
     sched.since += 1

@@ -41,6 +41,7 @@ class SessionContext:
     after_pose: object = after_pose  # (session, job): the work after a pose (services/registration/after_pose.py)
     leases: object = None  # placement "members": the worker's stream leases (membership.Leases)
     catch_up: object = None  # scheduling.CatchUp: reopened sessions register first
+    outage: object = None  # with a store: store_faults.StoreOutage, the store away until a probe reaches it
 
 
 @dataclass

@@ -87,8 +87,9 @@ class Leases:
     """This worker's stream leases: taken before its first write of a stream (at once from an owner that is gone),
     renewed while the worker lives, given back when it stops."""
 
-    def __init__(self, store, me: str, lease_s: float, placement: Placement, log):
+    def __init__(self, store, me: str, lease_s: float, placement: Placement, log, serving=frozenset):
         self.store, self.me, self.lease_s, self.placement, self.log = store, me, lease_s, placement, log
+        self.serving = serving  # () -> the streams this worker serves now: their lease rows stay
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._renew, name="lease-renewal", daemon=True)
 
@@ -112,6 +113,10 @@ class Leases:
         while not self._stop.wait(self.lease_s / 3):
             try:
                 self.store.renew(self.me, self.lease_s)
+                # placed, then refused (admission, memory) or never valid: a row a stream that stored nothing leaves
+                dropped = self.store.drop_unused_leases(self.me, sorted(self.serving()))
+                if dropped:
+                    log_event(self.log, "leases of streams that stored nothing deleted", leases=dropped)
             except Exception as exc:  # noqa: BLE001 - the store is away: commits fail and say so; retried
                 log_event(self.log, "renewing leases failed", logging.WARNING, error=repr(exc))
 

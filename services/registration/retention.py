@@ -135,15 +135,18 @@ class Retention:
         w = self.w
         if not w.owns(stream):  # another shard's or member's: its worker decides
             return False
-        if w.leases is not None and w.store.owner_of(stream) not in (None, w.worker_id):
-            return False
+        epoch = None
+        if w.leases is not None:  # placement members: deleted under the stream's lease, as every write is
+            epoch, _ = w.leases.acquire(stream)
+            if epoch is None:
+                return False
         with w._lanes_lock:  # no lane of the stream opens while it is deleted
             if stream in w.lanes or stream in w._retired:  # a live session: never deleted
                 return False
             usage = w.store.stream_usage(stream)
             if usage is None or usage[2] >= time.time() - self.ttl_s:  # written meanwhile
                 return False
-            poses = w.store.delete_stream(stream)
+            poses = w.store.delete_stream(stream, epoch=epoch)
             tiles = self._map_store().delete_stream(stream) if w.store.has_map_tiles() else 0
             with w._sessions_lock:
                 w.sessions.pop(stream, None)

@@ -7,7 +7,7 @@ The pose is published only after its commit; the work after it runs in the sessi
 
 from __future__ import annotations
 
-import logging
+import threading
 import time
 
 import numpy as np
@@ -26,8 +26,9 @@ from occvo_services.registration.paging import Pager
 from occvo_services.registration.resume import resume
 from occvo_services.registration.scheduling import StreamThreads
 from occvo_services.registration.snapshots import SnapshotSchedule
+from occvo_services.registration.store_faults import refused, store_back, store_failed, waits_for_refused
 from occvo_services.registration.trajectory import StreamTrajectory, pose_message
-from occvo_services.store_api import FencedError
+from occvo_services.store_api import FencedError, StoreUnavailable
 from occvo_services.store_blobs import frame_digest, legacy_frame_digest, pack_frame
 from occvo_services.telemetry import log_event
 
@@ -45,19 +46,23 @@ class StreamSession:
         self.threads = StreamThreads(stream, ctx.scheduler)
         self.snapshot = SnapshotSchedule()
         self.held: FrameJob | None = None  # a jump waiting for the frame after it (_sequence)
-        self.refused_seq: int | None = None  # a frame the store refused: the ones after it wait for it
+        self.unstored: set[int] = set()  # frames refused or turned away (store_faults): the ones after the first wait
+        self.refusal_lock = threading.Lock()
         self.entered = 0  # frames that entered the lane: the work after a pose sees whether another came
         self.epoch: int | None = None  # placement "members": the fencing epoch of this worker's lease on the stream
         self.client: str | None = None  # whose frames these are (the worker's admission): the store records it
         self.complete_ms = self.restore_ms = self.evict_ms = 0.0
 
     def load_trajectory(self) -> None:
-        """The stored trajectory, for queries and resends (the OccVO is resumed at the stream's next frame)."""
+        """The stored trajectory, for queries and resends (the OccVO is resumed at the stream's next frame); the one
+        in memory stays if the store cannot be read."""
+        t = StreamTrajectory()
         for p in self.ctx.store.poses(self.stream):
-            self.trajectory.append(p.seq, p.stamp, p.pose, p.status, p.digest)
-        self.trajectory.started = bool(self.trajectory.seqs)
-        if self.trajectory.started:
-            self.trajectory.latest = pose_message(self.stream, self.trajectory.stored(self.trajectory.last_seq))
+            t.append(p.seq, p.stamp, p.pose, p.status, p.digest)
+        t.started = bool(t.seqs)
+        if t.started:
+            t.latest = pose_message(self.stream, t.stored(t.last_seq))
+        self.trajectory = t
 
     # -- a frame, phase by phase ------------------------------------------------------------------------------------
     def handle(self, item) -> None:
@@ -78,7 +83,7 @@ class StreamSession:
         msg, hop_ms, t_queued, decode_ms = item[:4]
         t0, waited0 = time.perf_counter(), run_delay_ms()
         job = self._validate(msg, entered)  # needs nothing of the state: beside the last frame's after-pose work
-        if job is None:
+        if job is None or not store_back(self, job.msg.seq):
             return
         t_wait = time.perf_counter()
         self.threads.wait_after_pose()  # the odometry is that work's until it ends
@@ -90,16 +95,24 @@ class StreamSession:
             validate=(t_wait - t0) * 1000.0,
             after_pose_wait=(job.t_valid - t_wait) * 1000.0,  # the last frame's work after its pose, still running
         )
-        if not self._own(job) or self._answer_resend(job) or self._waits_for_refused(job):
-            return
-        held = self._confirmed(job)
-        if held is not None and self._sequence(held, confirmed=True):
-            if self._register_commit_publish(held, waited0):
-                self._observe_frame(held)
-            self.threads.head_start.set()  # this frame follows at once: the held one's work after its pose first
-            self.threads.wait_after_pose()
-        if self._sequence(job) and self._register_commit_publish(job, waited0):
-            self._observe_frame(job)
+        first = job.msg.seq  # the first frame of this call left unregistered if the store fails under it
+        try:
+            if not self._own(job) or self._answer_resend(job) or waits_for_refused(self, job):
+                return
+            held = self._confirmed(job)
+            if held is not None:
+                first = held.msg.seq
+                if self._sequence(held, confirmed=True):
+                    if self._register_commit_publish(held, waited0):
+                        self._observe_frame(held)
+                    self.threads.head_start.set()  # this frame follows at once: the held one's work after its pose
+                    self.threads.wait_after_pose()
+                first = job.msg.seq
+            if self._sequence(job) and self._register_commit_publish(job, waited0):
+                self._observe_frame(job)
+        except StoreUnavailable as exc:  # reading the stream back (its lease, trajectory, resume) failed
+            store_failed(self, first, exc, "not registered")
+            refused(self, first)
 
     def _validate(self, msg, entered: int) -> FrameJob | None:
         """The frame built and checked before any reset (a bad first frame leaves the old trajectory intact), and
@@ -132,14 +145,24 @@ class StreamSession:
             log_event(self.ctx.log, "stream taken by another worker", stream=self.stream, owner=owner)
             return False
         self.threads.drain()
-        self.epoch, self.vo = epoch, None
-        self.trajectory = StreamTrajectory()
-        self.load_trajectory()
+        self.vo = None
+        self.load_trajectory()  # before the epoch: a read that failed takes the lease again at the next frame
+        self.epoch = epoch
         return True
 
+    @property
+    def may_write(self) -> bool:
+        """Placement "members": only while this worker holds the stream's lease (its epoch)."""
+        return self.ctx.leases is None or self.epoch is not None
+
     def fence(self) -> dict:
-        """The keyword a store write of this stream carries: its lease's epoch, checked in the write's transaction."""
-        return {} if self.epoch is None else {"epoch": self.epoch}
+        """The keyword a store write of this stream carries: its lease's epoch, checked in the write's transaction.
+        Placement "members" without the lease: FencedError, nothing written (every write there is fenced)."""
+        if self.ctx.leases is None:
+            return {}
+        if self.epoch is None:
+            raise FencedError(self.stream, None, None)
+        return {"epoch": self.epoch}
 
     def _answer_resend(self, job: FrameJob) -> bool:
         """A frame registered already (a resend, also of a store from before the compact digest): its stored pose
@@ -152,16 +175,6 @@ class StreamSession:
             return False
         self.ctx.stats.inc("republished")
         self.ctx.put(keys.pose(self.stream), encode(pose_message(self.stream, known)))
-        return True
-
-    def _waits_for_refused(self, job: FrameJob) -> bool:
-        """After the store refused seq k (e.g. disk full), the frames after k wait for k, which the client sends again
-        with them in order: registered without it they would leave its pose missing for good."""
-        k, seq = self.refused_seq, job.msg.seq
-        if k is None or seq == 0 or seq <= k:
-            self.refused_seq = None if seq == 0 or seq == k else k
-            return False
-        self._report("not_stored", f"seq {seq} waits for seq {k}, which the store refused: send both again", seq)
         return True
 
     def _confirmed(self, job: FrameJob) -> FrameJob | None:
@@ -234,10 +247,9 @@ class StreamSession:
                 job.pose_out.set_result(False)
                 self._submit_after_pose(job)
                 job.after.result()  # its OccVO.complete: then the state goes, rebuilt from the store
-                self.store_failed(job.msg.seq, failed, "not stored, pose not published")
+                store_failed(self, job.msg.seq, failed, "not stored, pose not published")
                 if not isinstance(failed, FencedError):
-                    k = job.msg.seq
-                    self.refused_seq = k if self.refused_seq is None else min(self.refused_seq, k)
+                    refused(self, job.msg.seq)
                 return False
             if job.restart:
                 log_event(self.ctx.log, "trajectory started", stream=self.stream, seq=job.msg.seq)
@@ -352,25 +364,7 @@ class StreamSession:
         self.snapshot.restart()
 
     def store_failed(self, seq: int, exc: Exception, what: str) -> None:
-        """A write failed (e.g. disk full, the database away, or fenced: another worker owns the stream now): drop
-        the in-memory state; the stream resumes from the store at its next frame (replaying the journal redoes what
-        was not stored), after taking the lease again if it was fenced."""
-        self.vo = None  # the tiles too are started again by the resume
-        if isinstance(exc, FencedError):  # the new owner has this frame too: not this worker's to answer
-            self.epoch = None
-            self.ctx.leases.placement.forget(self.stream)
-            self.ctx.stats.inc("fenced")
-            log_event(
-                self.ctx.log,
-                "fenced: the stream has another owner",
-                logging.WARNING,
-                stream=self.stream,
-                seq=seq,
-                error=str(exc),
-            )
-            return
-        message = f"seq {seq} {what} ({type(exc).__name__}: {exc}); the stream resumes from the store at its next frame"
-        self._report("not_stored", message, seq)  # the client sends it again (OccVOClient's resends)
+        store_failed(self, seq, exc, what)
 
     def flush_map(self) -> None:
         """The tiles held back for a frame that did not come (refused, or none followed)."""
@@ -393,7 +387,7 @@ class StreamSession:
         if self.ctx.store is None or self.vo is None:
             return
         self.snapshot.idle.wait()
-        if self.snapshot.unsaved:
+        if self.snapshot.unsaved and self.may_write:
             self.ctx.snapshots.write_now(self.stream, self.snapshot, self.trajectory.last_seq, self.vo, self.fence())
         self.vo = None  # heap trimmed by the worker
         self.pager.reset()

@@ -22,6 +22,7 @@ from occvo_services.registration.retention import Retention
 from occvo_services.registration.scheduling import CatchUp, Scheduler
 from occvo_services.registration.session import StreamSession
 from occvo_services.registration.snapshots import SnapshotWriter
+from occvo_services.registration.store_faults import StoreOutage, refused
 from occvo_services.runtime import Worker, WorkerConfig
 from occvo_services.store import TrajectoryStore
 from occvo_services.store_api import redact
@@ -55,8 +56,9 @@ class RegistrationWorker(Worker):
         if config.placement == "members":
             if self.store is None:
                 raise ConfigError('placement "members" needs a store: the workers hand streams over through it')
+            self.store.fenced_only = True  # every write under the stream's lease: none unfenced
             self.placement = Placement(self.worker_id, self.store, config.lease_s, self.log)
-            self.leases = Leases(self.store, self.worker_id, config.lease_s, self.placement, self.log)
+            self.leases = Leases(self.store, self.worker_id, config.lease_s, self.placement, self.log, self._serving)
         self.sessions: dict[str, StreamSession] = {}
         self._sessions_lock = threading.Lock()
         occvo_config = OccVOConfig.load(config.occvo_config) if config.occvo_config else OccVOConfig()
@@ -68,10 +70,11 @@ class RegistrationWorker(Worker):
             snapshots = SnapshotWriter(
                 self.store, self.stats, self.log, self.report_error, self.scheduler.background_thread
             )
+        self.outage = StoreOutage(self.store, self.stopping, self.stats, self.log) if self.store is not None else None
         self.ctx = SessionContext(
             config, occvo_config, OccVO, self.store, self.stats, self.log, self.scheduler, snapshots,
             self._put, self.report_error, self._frames_queued, self._busy_lanes, leases=self.leases,
-            catch_up=CatchUp(),
+            catch_up=CatchUp(), outage=self.outage,
         )  # fmt: skip
         self.queries = Queries(self)
         self.retention = Retention(self) if self.store is not None else None
@@ -117,9 +120,28 @@ class RegistrationWorker(Worker):
         return self.placement is None or self.owns(stream)
 
     def _on_occupancy(self, sample: zenoh.Sample) -> None:
-        if self.owns(keys.stream_of(str(sample.key_expr))):  # another shard's stream: not ours to count or judge
-            # the session judges the seq against its committed trajectory: a step back may be a resend
+        # the session judges the seq against its committed trajectory: a step back may be a resend
+        if self.placement is not None:  # the owner decided only for a frame that decoded: no store call before
+            self.enqueue(sample, OccupancyFrameMsg, self._route, judge_seq=False, place=self._placed)
+        elif self.owns(keys.stream_of(str(sample.key_expr))):  # another shard's stream: not ours to count or judge
             self.enqueue(sample, OccupancyFrameMsg, self._route, judge_seq=False)
+
+    def _placed(self, msg) -> bool:
+        """Placement members: whether this worker owns the decoded frame's stream (the store away: not decided, the
+        frame answered store_unavailable by one worker; the client sends it again)."""
+        try:
+            return self.owns(msg.stream)
+        except Exception as exc:  # noqa: BLE001 - a worker never dies of one frame
+            if not self.outage.saw(exc):
+                raise
+            if self.reports_input(msg.stream):
+                why = f"seq {msg.seq} not placed: {self.outage.why}; send it again"
+                self.report_error(msg.stream, "store_unavailable", why, keys.occupancy(msg.stream), msg.seq)
+            return False
+
+    def reports_input(self, stream: str) -> bool:
+        """Placement members: every worker decodes every frame; the first live worker reports one that did not."""
+        return self.placement is None or min(self.placement.live) == self.worker_id
 
     def frame_cost_mb(self, msg) -> float:
         """A frame's registration: its preprocessing, covariances, local map window and GICP pairs grow with its
@@ -142,6 +164,24 @@ class RegistrationWorker(Worker):
         if session is None:
             return
         session.close()
+
+    def not_held(self, stream: str, seq: int) -> None:
+        """A frame not held while the store is away: the stream's later frames wait for it (as for a refused write)."""
+        with self._sessions_lock:
+            session = self.sessions.get(stream)
+        seqs = None if session is None else session.trajectory.seqs
+        if seqs is not None and (not seqs or seq > seqs[-1]):  # a resend of a registered frame is answered anyway
+            refused(session, seq)
+
+    def _serving(self) -> set[str]:
+        """The streams this worker has a lane or a lease-holding session of (their lease rows are kept)."""
+        with self._lanes_lock:
+            streams = set(self.lanes) | set(self._retired)
+        return streams | {stream for stream, s in self.sessions_now() if s.epoch is not None}
+
+    def store_away(self) -> str | None:
+        """Why the store cannot be reached now (frames that cannot be held are answered store_unavailable), or None."""
+        return self.outage.why if self.outage is not None and self.outage.down else None
 
     def _frames_queued(self, stream: str) -> bool:
         lane = self.lanes.get(stream)
@@ -223,7 +263,7 @@ class RegistrationWorker(Worker):
         self._shutdown_step("queued snapshots written", t0)
         for stream, s in self.sessions_now():
             vo = s.vo  # an idle session retiring now drops its OccVO (after its own snapshot)
-            if stream in in_hand or vo is None or not s.snapshot.unsaved:
+            if stream in in_hand or vo is None or not s.snapshot.unsaved or not s.may_write:
                 continue  # a frame in hand that did not finish in time: its OccVO is not touched from here
             t0 = time.perf_counter()
             self.ctx.snapshots.write_now(stream, s.snapshot, s.trajectory.last_seq, vo, s.fence())  # in place

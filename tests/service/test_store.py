@@ -942,8 +942,8 @@ def test_frame_commits_leave_the_wal_checkpoint_to_the_stores_own_thread(tmp_pat
 
 
 def test_the_database_down_refuses_frames_by_name_and_the_stream_goes_on_when_it_is_back(pg_cluster, pg_url, scene):
-    """PostgreSQL stopped mid-drive: the frame in hand is refused with one line naming the store (`not_stored`, its
-    pose not published); once the server is back the client's resend is registered and the stream goes on: every
+    """PostgreSQL stopped mid-drive: the frame in hand is refused with one line naming the store
+    (`store_unavailable`, its pose not published); once the server is back the client's resend is registered and the stream goes on: every
     pose is there and stored, an offline run's."""
     from occvo_services.client import OccVOClient
 
@@ -964,7 +964,8 @@ def test_the_database_down_refuses_frames_by_name_and_the_stream_goes_on_when_it
             got.append(client.wait_pose(fail_at, timeout=120).matrix())
             got += [client.step(f).matrix() for f in scene[fail_at + 1 :]]
             [error] = [e for e in client.errors if e.seq == fail_at][:1]
-        assert error.code == "not_stored" and "store postgresql://" in error.message and "unreachable" in error.message
+        assert error.code == "store_unavailable" and "store postgresql://" in error.message
+        assert "unreachable" in error.message
         vo = OccVO()
         want = [vo.step(f).pose for f in scene]
         assert np.array_equal(np.array(got), np.array(want)) and worker.stats.snapshot()[0]["resumes"] >= 1

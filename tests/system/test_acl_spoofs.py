@@ -340,3 +340,20 @@ def test_four_logins_at_their_stream_limit_leave_a_fifth_login_every_pose(tmp_pa
         finally:
             for s in sessions.values():
                 s.close()
+
+
+def test_replay_starts_and_drives_as_a_camera_login(acl, tmp_path):
+    """`occvo replay` as the camera login (its session config in OCCVO_ZENOH_CONFIG): it sees the workers' tokens
+    (before, the ACL gave it none and it could not start) and gets every pose."""
+    import subprocess
+    import sys
+
+    repo = DEPLOY.parent
+    env = {**os.environ, ZENOH_CONFIG_ENV: str(acl["files"]["camera"]), "PYTHONPATH": str(repo)}
+    out = subprocess.run(
+        [sys.executable, "-m", "occvo_cli", "replay", "synthetic:5", "--frames", "3", "--stream", "camera.replay",
+         "--connect", acl["endpoint"], "--out", str(tmp_path / "poses.txt"), "--quiet"],
+        cwd=repo, env=env, capture_output=True, text=True, timeout=180,
+    )  # fmt: skip
+    assert out.returncode == 0, out.stderr[-2000:]
+    assert len((tmp_path / "poses.txt").read_text().splitlines()) == 3

@@ -8,6 +8,7 @@ with --no-deps. `pytest -m packaging` selects it; it takes minutes (the fresh in
 
 from __future__ import annotations
 
+import getpass
 import json
 import os
 import shutil
@@ -123,6 +124,9 @@ def test_installed_wheel_serves_from_any_directory(venv, tmp_path):
     assert (cwd / "occvo-out" / "summary.json").is_file()
 
     ep = f"tcp/127.0.0.1:{_free_port()}"
+    # the default identity: serve makes the logins in the user's config folder, the commands log in by themselves
+    env = {k: v for k, v in env.items() if k not in ("OCCVO_LOGINS_DIR", "OCCVO_ZENOH_CONFIG")}
+    env["XDG_CONFIG_HOME"] = str(tmp_path / "config")
     serve = subprocess.Popen(
         [str(venv / "occvo"), "serve", "--listen", ep, "--json", "--log-dir", str(tmp_path / "logs")],
         stdout=subprocess.PIPE,
@@ -154,6 +158,10 @@ def test_installed_wheel_serves_from_any_directory(venv, tmp_path):
         connect = ["--connect", ep]
         replay = json.loads(occvo("replay", "synthetic:0", "--frames", "10", "--json", "--quiet", *connect).stdout)
         assert replay["poses"] == replay["frames"] == 10
+        login = getpass.getuser()
+        assert replay["stream"] == f"{login}.default"  # the login's prefix, added by the client
+        own = tmp_path / "config" / "occvo" / "logins" / f"session-{login}.json5"
+        assert own.stat().st_mode & 0o777 == 0o600
         poses = [json.loads(line) for line in occvo("poses", *connect).stdout.splitlines()]
         assert [p["seq"] for p in poses] == list(range(10))
         info = json.loads(occvo("map-info", "--json", *connect).stdout)

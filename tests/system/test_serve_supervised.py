@@ -1,7 +1,7 @@
 """`occvo serve` keeps its workers running: any worker (inference, registration, map service) killed with SIGKILL in
 the middle of a replay is started again (new pid, the `crashed` event in the log) and the replay completes with every
 pose, equal to the offline run; a restarted map service answers from its store. A listen endpoint beyond loopback
-without authentication is refused unless --insecure."""
+without authentication (--anonymous) is refused unless --insecure."""
 
 from __future__ import annotations
 
@@ -37,7 +37,8 @@ def test_non_loopback_listen_needs_authentication_or_insecure():
     check_listen_secure(DEPLOY / "tls/router.json5", ["tls/0.0.0.0:7447"], insecure=False)  # mutual TLS
     env = dict(os.environ, PYTHONPATH=os.pathsep.join(filter(None, [str(REPO), os.environ.get("PYTHONPATH")])))
     rc = subprocess.run(
-        [sys.executable, "-m", "occvo_cli", "serve", "--listen", f"tcp/0.0.0.0:{free_port()}"],
+        # the anonymous mode: the default's router has logins and access control (tests/system/test_serve_logins.py)
+        [sys.executable, "-m", "occvo_cli", "serve", "--anonymous", "--listen", f"tcp/0.0.0.0:{free_port()}"],
         check=False,
         cwd=REPO,
         env=env,

@@ -1,6 +1,6 @@
 """`occvo serve` on a PostgreSQL store whose role needs a password, given in OCCVO_STORE_URL: the password is in no
 `ps` line of serve or of any process it starts, in no log file, in no error event sent to a client (the database
-stopped mid-drive: `not_stored`); written on the command line it is refused (one line, exit 2); a store that cannot be
+stopped mid-drive: `store_unavailable`); written on the command line it is refused (one line, exit 2); a store that cannot be
 reached at start is one line and exit 2 within 10 s, no worker started (`occvo serve` and `occvo up`)."""
 
 from __future__ import annotations
@@ -96,18 +96,18 @@ def test_serve_keeps_the_store_password_out_of_ps_logs_and_events(tmp_path, pg_c
             try:
                 client.publish(scene[3])
                 with client._cv:
-                    assert client._cv.wait_for(lambda: any(e.code == "not_stored" for e in client.errors), 60)
+                    assert client._cv.wait_for(lambda: any(e.code == "store_unavailable" for e in client.errors), 60)
             finally:
                 pg_cluster.start()
             client.wait_pose(3, timeout=120)
-            refused = [e.message for e in client.errors if e.code == "not_stored"]
+            refused = [e.message for e in client.errors if e.code == "store_unavailable"]
     finally:
         proc.send_signal(signal.SIGINT)
         rest, _ = proc.communicate(timeout=120)
         err.close()
     assert proc.returncode == 0
     for message in refused:
-        _clean(message, "a not_stored event")
+        _clean(message, "a store_unavailable event")
     assert any(f"occvo_serve@127.0.0.1:{pg_cluster.port}/{db}?password=***" in m for m in refused), refused
     files = [*logs.glob("*.log"), tmp_path / "serve.err"]
     assert {f.name for f in files} >= {"registration.log", "map.log", "inference.log", "router.log"}

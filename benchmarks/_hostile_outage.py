@@ -1,0 +1,180 @@
+"""Hostile-client steps on a PostgreSQL store of their own (services/pg_local.py; benchmarks/hostile_clients.py):
+db_outage (the database stopped mid-drive), members_acl (placement members under the shipped ACL, an owner killed),
+lease_flood (one-byte puts on new keys against placement members)."""
+
+from __future__ import annotations
+
+import tempfile
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+from _hostile_acl import acl_logins
+from _hostile_common import BLOCK, emit, goal
+
+from occvo_services.client import OccVOClient
+from occvo_services.commands.replay import replay
+from occvo_services.local import LocalService
+from occvo_services.pg_local import PgCluster
+from occvo_services.sessions import ZENOH_CONFIG_ENV, open_session
+from occvo_services.store_api import open_store
+
+DEFAULTS = "services/defaults"  # what `occvo serve` runs
+
+
+def _serve_args(url: str) -> dict:
+    store = ["--store-url", url]
+    return {
+        "registration": ["--config", f"{DEFAULTS}/registration_worker.json5", *store],
+        "inference": ["--config", f"{DEFAULTS}/inference_worker.json5"],
+        "map": ["--config", f"{DEFAULTS}/map_service.json5", *store],
+    }
+
+
+def _replays(endpoint: str, streams: list[str], frames, at: int, event, base=None) -> dict:
+    """The replays of `frames` on `streams` side by side (window 4); event() runs once each has pose `at`. Per
+    stream: its poses, seconds, resends and error codes."""
+    session = open_session(endpoint, base)
+    clients = {s: OccVOClient(endpoint, s, timeout=600, session=session) for s in streams}
+    out: dict = {}
+
+    def run(stream: str) -> None:
+        c = clients[stream]
+        c.reset()
+        t0 = time.perf_counter()
+        got = replay(c, frames, window=4, timeout=900)
+        poses = np.array([c.poses[i].matrix() for i in sorted(c.poses)]) if c.poses else np.zeros((0, 4, 4))
+        codes = sorted({e.code for e in c.errors})
+        out[stream] = {"poses": poses, "s": time.perf_counter() - t0, "resends": got["resends"], "codes": codes}
+
+    threads = [threading.Thread(target=run, args=(s,)) for s in streams]
+    for t in threads:
+        t.start()
+    deadline = time.monotonic() + 600
+    while any(at not in c.poses for c in clients.values()) and time.monotonic() < deadline:
+        time.sleep(0.05)
+    event()
+    for t in threads:
+        t.join()
+    for c in clients.values():
+        c.close()
+    session.close()
+    return out
+
+
+def _stored_equal(url: str, streams: list[str], alone: np.ndarray) -> bool:
+    store = open_store(url)
+    try:
+        return all(np.array_equal(np.array([p.pose for p in store.poses(s)]), alone) for s in streams)
+    finally:
+        store.close()
+
+
+def db_outage(outage_s: float, frames, alone: np.ndarray) -> None:
+    """`occvo serve`'s worker configs on PostgreSQL, two replays; the database stopped for `outage_s` once both have
+    pose 10: each replay's poses and the stored ones vs alone, the codes its client got, its resends and time."""
+    cluster = PgCluster()
+    url = cluster.new_database()
+    svc = LocalService(quiet=True, worker_args=_serve_args(url)).start()
+    down: list[float] = []
+
+    def outage() -> None:
+        t0 = time.monotonic()
+        cluster.stop()
+        time.sleep(outage_s)
+        cluster.start()
+        down.append(time.monotonic() - t0)
+
+    try:
+        streams = ["outage0", "outage1"]
+        got = _replays(svc.endpoint, streams, frames, 10, outage)
+        stored = _stored_equal(url, streams, alone)
+    finally:
+        svc.stop()
+        cluster.close()
+    equal = all(len(g["poses"]) == len(frames) and np.array_equal(g["poses"], alone) for g in got.values())
+    figures = {s: {k: (round(v, 1) if k == "s" else v) for k, v in g.items() if k != "poses"} for s, g in got.items()}
+    emit("db_outage", outage_s=round(down[0], 1), poses={s: len(g["poses"]) for s, g in got.items()}, **figures)
+    goal(
+        f"the database stopped {outage_s:.0f} s mid-drive: every stream all its poses, equal to alone's, stored",
+        equal and stored,
+        stored_equal=stored,
+    )
+
+
+def members_acl(frames, alone: np.ndarray) -> None:
+    """Two registration workers in placement members behind the shipped ACL, each the `registration` login; four
+    replays as the `camera` login; the owner of the first stream killed (-9) at its pose 10: every pose vs alone, the
+    survivor's fences."""
+    cluster, folder = PgCluster(), Path(tempfile.mkdtemp())
+    url = cluster.new_database()
+    router, sessions = acl_logins(folder, ["camera"])
+    env = {role: {ZENOH_CONFIG_ENV: str(sessions[role])} for role in ("inference", "registration", "map")}
+    svc = LocalService(
+        quiet=True,
+        router_config=str(router),
+        registration_shards=2,
+        placement="members",
+        worker_args=_serve_args(url),
+        worker_env=env,
+    ).start()
+    streams, killed = [f"camera.m{i}" for i in range(4)], []
+
+    def kill_owner() -> None:
+        store = open_store(url)
+        owners = {store.owner_of(s) for s in streams}
+        victim = store.owner_of(streams[0])
+        store.close()
+        name = victim.rsplit("-", 1)[0]
+        svc.procs[name].kill()
+        killed.append((victim, sorted(owners)))
+
+    try:
+        got = _replays(svc.endpoint, streams, frames, 10, kill_owner, sessions["camera"])
+        stored = _stored_equal(url, streams, alone)
+    finally:
+        svc.stop()
+        cluster.close()
+    victim, owners = killed[0]
+    equal = all(len(g["poses"]) == len(frames) and np.array_equal(g["poses"], alone) for g in got.values())
+    emit("members_acl", owners_before=owners, killed=victim, **{s: g["codes"] for s, g in got.items()})
+    goal("members under the shipped ACL: both took streams before the kill", len(owners) == 2, owners=owners)
+    goal(
+        "members under the shipped ACL, an owner killed (-9): every stream all its poses, equal to alone's, stored",
+        equal and stored,
+    )
+
+
+def lease_flood(args, frames, alone_s: float, alone: np.ndarray) -> None:
+    """Placement members (one worker) on PostgreSQL: one session puts --lease-flood one-byte payloads on new keys
+    while a replay runs: its poses vs alone and its time vs solo, the lease rows left once the flood is over."""
+    cluster = PgCluster()
+    url = cluster.new_database()
+    svc = LocalService(quiet=True, placement="members", worker_args=_serve_args(url)).start()
+    stop, sent = threading.Event(), [0]
+
+    def flood() -> None:
+        session = open_session(svc.endpoint)
+        while not stop.is_set() and sent[0] < args.lease_flood:
+            session.put(f"occvo/lease{sent[0]}/occupancy", b"x", congestion_control=BLOCK)
+            sent[0] += 1
+        session.close()
+
+    try:
+        flooder = threading.Thread(target=flood)
+        got = _replays(svc.endpoint, ["leaselegit"], frames, 0, flooder.start)["leaselegit"]
+        stop.set()
+        flooder.join()
+        time.sleep(5.0)  # one lease renewal pass at least (lease_s / 3)
+        store = open_store(url)
+        rows = sorted(lease.stream for lease in store.leases())
+        store.close()
+    finally:
+        svc.stop()
+        cluster.close()
+    equal = len(got["poses"]) == len(frames) and np.array_equal(got["poses"], alone)
+    emit("lease_flood", puts=sent[0], replay_s=round(got["s"], 1), alone_s=round(alone_s, 1), lease_rows=rows)
+    goal("lease flood: the replay gets every pose, equal to alone's", equal)
+    goal("lease flood: the replay within 3x its solo time", got["s"] <= 3 * alone_s, ratio=round(got["s"] / alone_s, 2))
+    goal("lease flood: no lease row but the replay's", rows == ["leaselegit"], lease_rows=len(rows))

@@ -17,19 +17,12 @@ from pathlib import Path
 
 import numpy as np
 from rosbags.rosbag2 import Writer
-from rosbags.typesys import Stores, get_typestore
-from scipy.spatial.transform import Rotation
 
 from occvo_core.errors import ConfigError
-from occvo_core.grid import CLASS_COLORS
+from occvo_core.viz import ros_messages as rm
 from occvo_core.viz.foxglove_log import EGO_FRAME, MAP_FRAME, stamp_ns
+from occvo_core.viz.ros_messages import STORE, T, point_cloud
 
-STORE = get_typestore(Stores.ROS2_JAZZY)
-T = STORE.types
-POINT = np.dtype(
-    {"names": ["x", "y", "z", "rgb", "class"], "formats": ["<f4", "<f4", "<f4", "<u4", "u1"], "itemsize": 20}
-)
-FIELD_TYPES = {"x": "FLOAT32", "y": "FLOAT32", "z": "FLOAT32", "rgb": "FLOAT32", "class": "UINT8"}
 TOPICS = {
     "/odom": "nav_msgs/msg/Odometry",
     "/tf": "tf2_msgs/msg/TFMessage",
@@ -37,44 +30,6 @@ TOPICS = {
     "/occupancy": "sensor_msgs/msg/PointCloud2",
     "/map": "sensor_msgs/msg/PointCloud2",
 }
-
-
-def _header(ns: int, frame_id: str):
-    return T["std_msgs/msg/Header"](
-        stamp=T["builtin_interfaces/msg/Time"](sec=ns // 1_000_000_000, nanosec=ns % 1_000_000_000), frame_id=frame_id
-    )
-
-
-def _pose(M: np.ndarray):
-    x, y, z, w = Rotation.from_matrix(M[:3, :3]).as_quat()
-    return T["geometry_msgs/msg/Pose"](
-        position=T["geometry_msgs/msg/Point"](x=M[0, 3], y=M[1, 3], z=M[2, 3]),
-        orientation=T["geometry_msgs/msg/Quaternion"](x=x, y=y, z=z, w=w),
-    )
-
-
-def point_cloud(ns: int, frame_id: str, points: np.ndarray, labels: np.ndarray):
-    rec = np.zeros(len(points), POINT)
-    for i, axis in enumerate("xyz"):
-        rec[axis] = points[:, i]
-    c = CLASS_COLORS[np.asarray(labels, np.int64)].astype(np.uint32)
-    rec["rgb"] = (c[:, 0] << 16) | (c[:, 1] << 8) | c[:, 2]  # read as float32 bits, as RViz does
-    rec["class"] = labels
-    field = T["sensor_msgs/msg/PointField"]
-    fields = [
-        field(name=n, offset=POINT.fields[n][1], datatype=getattr(field, FIELD_TYPES[n]), count=1) for n in POINT.names
-    ]
-    return T["sensor_msgs/msg/PointCloud2"](
-        header=_header(ns, frame_id),
-        height=1,
-        width=len(rec),
-        fields=fields,
-        is_bigendian=False,
-        point_step=POINT.itemsize,
-        row_step=POINT.itemsize * len(rec),
-        data=np.frombuffer(rec.tobytes(), np.uint8),
-        is_dense=True,
-    )
 
 
 class Ros2Bag:
@@ -97,38 +52,10 @@ class Ros2Bag:
 
     def pose(self, ns: int, pose: np.ndarray) -> None:
         M = np.asarray(pose, np.float64)
-        p = _pose(M)
-        zero6 = np.zeros(36)  # no covariance estimate: zeros, as an unknown covariance is commonly sent
-        twist = T["geometry_msgs/msg/Twist"](
-            linear=T["geometry_msgs/msg/Vector3"](x=0.0, y=0.0, z=0.0),
-            angular=T["geometry_msgs/msg/Vector3"](x=0.0, y=0.0, z=0.0),
-        )
-        self._write(
-            "/odom",
-            ns,
-            T["nav_msgs/msg/Odometry"](
-                header=_header(ns, MAP_FRAME),
-                child_frame_id=EGO_FRAME,
-                pose=T["geometry_msgs/msg/PoseWithCovariance"](pose=p, covariance=zero6),
-                twist=T["geometry_msgs/msg/TwistWithCovariance"](twist=twist, covariance=zero6.copy()),
-            ),
-        )
-        transform = T["geometry_msgs/msg/Transform"](
-            translation=T["geometry_msgs/msg/Vector3"](x=M[0, 3], y=M[1, 3], z=M[2, 3]), rotation=p.orientation
-        )
-        self._write(
-            "/tf",
-            ns,
-            T["tf2_msgs/msg/TFMessage"](
-                transforms=[
-                    T["geometry_msgs/msg/TransformStamped"](
-                        header=_header(ns, MAP_FRAME), child_frame_id=EGO_FRAME, transform=transform
-                    )
-                ]
-            ),
-        )
-        self.path.append(T["geometry_msgs/msg/PoseStamped"](header=_header(ns, MAP_FRAME), pose=p))
-        self._write("/path", ns, T["nav_msgs/msg/Path"](header=_header(ns, MAP_FRAME), poses=list(self.path)))
+        self._write("/odom", ns, rm.odometry(ns, M, MAP_FRAME, EGO_FRAME))
+        self._write("/tf", ns, rm.transform(ns, M, MAP_FRAME, EGO_FRAME))
+        self.path.append(rm.pose_stamped(ns, M, MAP_FRAME))
+        self._write("/path", ns, T["nav_msgs/msg/Path"](header=self.path[-1].header, poses=list(self.path)))
 
     def step(self, frame, result, odometry) -> None:
         ns = stamp_ns(frame.stamp)

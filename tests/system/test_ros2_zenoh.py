@@ -60,6 +60,16 @@ def _msg_text(name: str) -> str:
     return "\n".join(lines) + "\n"
 
 
+@pytest.fixture(scope="module", autouse=True)
+def sdk_closed():
+    """The SDK's one session closed after the module: its threads would keep pytest from exiting."""
+    yield
+    from zenoh_ros2_sdk import ZenohSession
+
+    if ZenohSession._instance is not None:
+        ZenohSession._instance.close()
+
+
 @pytest.fixture(scope="module")
 def messages(tmp_path_factory):
     """Local message definitions for the SDK, every type it may need: no git, no network."""

@@ -421,3 +421,29 @@ def test_serve_ros2_supervises_the_node_and_checks_its_settings(tmp_path):
     bad.write_text("{domain_id: 300}")
     with pytest.raises(ConfigError, match="domain_id"):
         up("--ros2-config", str(bad))
+
+
+def test_attachment_and_bad_clouds():
+    """The attachment reads back with the SDK's parser (sequence number, source timestamp, 16-byte gid); a cloud
+    without the class field, or with classes in a float field, is refused with the reason."""
+    from zenoh_ros2_sdk.attachment import Attachment as SdkAttachment
+
+    from occvo_core.viz import ros_messages as rm
+    from occvo_services.ros2.attachment import Attachment
+    from occvo_services.ros2.inputs import cloud_frame
+    from occvo_services.ros2.names import gid
+
+    g = gid("@ros2_lv/0/zid/0/1/MP/%/%/occvo/%occvo%odom/nav_msgs::msg::dds_::Odometry_/RIHS01_x/::,10:,:,:,,")
+    data = Attachment(7, 1_700_000_000_123_456_789, g).encode()
+    theirs = SdkAttachment.from_bytes(data)
+    assert (len(data), theirs.sequence_id, theirs.timestamp_ns, theirs.gid) == (33, 7, 1_700_000_000_123_456_789, g)
+    assert Attachment.decode(data) == Attachment(7, 1_700_000_000_123_456_789, g)
+
+    points, labels = np.array([[1.0, 2.0, 3.0], [-4.0, 5.5, 0.2]]), np.array([4, 11], np.uint8)
+    msg = rm.point_cloud(123, "base_link", points, labels)
+    frame = cloud_frame(msg)
+    assert np.array_equal(frame.points, points.astype(np.float32)) and np.array_equal(frame.labels, labels)
+    with pytest.raises(ValueError, match="without field"):
+        cloud_frame(msg, class_field="label")
+    with pytest.raises(ValueError, match="integer"):
+        cloud_frame(msg, class_field="rgb")  # rgb is a float32 field

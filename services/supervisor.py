@@ -36,6 +36,7 @@ MODULES = {
     "inference": "occvo_services.inference_worker",
     "registration": "occvo_services.registration_worker",
     "map": "occvo_services.map_service",
+    "ros2": "occvo_services.ros2",  # occvo's ROS 2 node (docs/ros2.md)
 }
 
 
@@ -49,7 +50,7 @@ class RouterSpec(BaseModel):
 
 class WorkerSpec(BaseModel):
     model_config = ConfigDict(extra="forbid")
-    role: Literal["inference", "registration", "map"]
+    role: Literal["inference", "registration", "map", "ros2"]
     config: str | None = None
     args: list[str] = []
     count: int = Field(

@@ -52,6 +52,10 @@ def add_parser(subparsers) -> None:
     )
     p.add_argument("--queue-size", type=int, default=4, help="frames each worker holds a stream before its policy acts")
     _registration_flags(p)
+    p.add_argument(
+        "--ros2", action="store_true", help="also join a ROS 2 graph as a node, rmw_zenoh's way (docs/ros2.md)"
+    )
+    p.add_argument("--ros2-config", metavar="FILE", help="the ROS 2 node's json5: domain, namespace, input, topics")
     p.add_argument("--log-dir", help="write each worker's JSON log lines to <dir>/<role>.log (default: stderr)")
     p.add_argument(
         "--start-timeout",
@@ -192,8 +196,20 @@ def _up_config(args, router_config: str):
                 env=store,
             ),
             WorkerSpec(role="map", config=_worker_config(args, "map_service.json5"), args=common, env=store),
+            *([WorkerSpec(role="ros2", config=_ros2_config(args))] if args.ros2 or args.ros2_config else []),
         ],
     )
+
+
+def _ros2_config(args) -> str | None:
+    """The ROS 2 node's settings, checked here (one line and exit 2, not a node crash-looping)."""
+    if args.ros2_config is None:
+        return None
+    from occvo_services.ros2.config import Ros2NodeConfig
+
+    path = _absolute(args.ros2_config)
+    Ros2NodeConfig.load(path)
+    return path
 
 
 def run(args) -> int:

@@ -1,0 +1,131 @@
+"""occvo's ROS 2 node: the ROS input (occupancy clouds or six cameras) fed as one stream of the running service
+through OccVOClient, and each pose published as it comes: nav_msgs/Odometry and /tf (odom -> base_link),
+nav_msgs/Path, and the service's map as a latched PointCloud2 every `map_every` poses."""
+
+from __future__ import annotations
+
+import logging
+import threading
+
+import numpy as np
+import zenoh
+
+from occvo_core.viz import ros_messages as rm
+from occvo_schemas import keys
+from occvo_schemas.codec import CodecError, decode
+from occvo_schemas.models import ErrorEvent, PoseEstimate
+from occvo_services.client import OccVOClient
+from occvo_services.ros2.config import Ros2NodeConfig
+from occvo_services.ros2.graph import Ros2Graph
+from occvo_services.ros2.inputs import CameraSet, cloud_frame, stamp_ns
+from occvo_services.ros2.names import LATCHED_QOS, SENSOR_QOS
+from occvo_services.telemetry import log_event
+
+PATH_T = "nav_msgs/msg/Path"
+
+
+class OccVONode:
+    def __init__(self, session: zenoh.Session, config: Ros2NodeConfig, log: logging.Logger):
+        self.config, self.log = config, log
+        self.graph = Ros2Graph(session, config.domain_id, config.node_name, config.namespace, log)
+        self.client = OccVOClient(session=session, stream=config.stream_name)
+        self.client.reset()  # this node's first frame starts a new trajectory and map
+        self._seq = 0  # the next frame's seq: this node is its stream's one sender
+        self._stamps: dict[int, int] = {}  # seq -> the input's header stamp (ns), for the outputs' headers
+        self._path: list = []
+        self._lock = threading.Lock()
+        self._map_busy = threading.Lock()
+        t = config.topics
+        self.odom = self.graph.publisher(t.odom, "nav_msgs/msg/Odometry", SENSOR_QOS)
+        self.tf = self.graph.publisher(t.tf, "tf2_msgs/msg/TFMessage", SENSOR_QOS)
+        self.path = self.graph.publisher(t.path, PATH_T, SENSOR_QOS)
+        self.map = self.graph.publisher(t.map, "sensor_msgs/msg/PointCloud2", LATCHED_QOS)
+        self._subs = [
+            session.declare_subscriber(keys.pose(config.stream_name), self._on_pose),
+            session.declare_subscriber(keys.errors(config.stream_name), self._on_error),
+        ]
+        if config.input == "occupancy":
+            self.graph.subscribe(t.occupancy, "sensor_msgs/msg/PointCloud2", self._on_cloud, SENSOR_QOS)
+        else:
+            self._subscribe_cameras()
+
+    def _subscribe_cameras(self) -> None:
+        c, t = self.config, self.config.topics
+        self.cameras = CameraSet(c.cameras, c.base_frame, raw=c.images == "raw")
+        image_type = "sensor_msgs/msg/Image" if c.images == "raw" else "sensor_msgs/msg/CompressedImage"
+        self.graph.subscribe(
+            t.tf_static, "tf2_msgs/msg/TFMessage", self._locked(self.cameras.on_tf_static), LATCHED_QOS
+        )
+        for cam in c.cameras:
+            on_info = self._locked(lambda m, cam=cam: self.cameras.on_info(cam, m))
+            self.graph.subscribe(t.camera_info.format(camera=cam), "sensor_msgs/msg/CameraInfo", on_info, SENSOR_QOS)
+            on_image = self._locked(lambda m, cam=cam: self._on_image(cam, m))
+            self.graph.subscribe(t.camera_image.format(camera=cam), image_type, on_image, SENSOR_QOS)
+
+    def _on_image(self, camera: str, msg) -> None:
+        frame = self.cameras.on_image(camera, msg)
+        if frame is not None:
+            self._send(frame, self.cameras.stamp_ns)
+
+    def _locked(self, fn):
+        def call(msg):
+            with self._lock:
+                fn(msg)
+
+        return call
+
+    # -- in
+    def _on_cloud(self, msg) -> None:
+        with self._lock:
+            self._send(cloud_frame(msg, self.config.class_field, index=self._seq), stamp_ns(msg.header))
+
+    def _send(self, frame, ns: int) -> None:
+        """Under _lock: frames leave in the order they came; ns, the input's stamp, goes on the outputs."""
+        self._stamps[self._seq] = ns  # before the frame leaves: its pose may come back before publish() returns
+        self.client.publish(frame)
+        log_event(self.log, "frame sent", logging.DEBUG, seq=self._seq, stamp_ns=ns)
+        self._seq += 1
+
+    # -- out
+    def _on_pose(self, sample: zenoh.Sample) -> None:
+        try:
+            pose = decode(sample.payload.to_bytes(), PoseEstimate)
+        except CodecError:
+            return
+        if pose.status == "relocalised":  # a loop closure moves the map, never odom -> base_link (REP 105)
+            return
+        ns = self._stamps.pop(pose.seq, None)
+        ns = round(pose.stamp * 1e9) if ns is None else ns
+        M = np.asarray(pose.pose, np.float64)
+        c = self.config
+        self.odom.publish(rm.odometry(ns, M, c.odom_frame, c.base_frame))
+        self.tf.publish(rm.transform(ns, M, c.odom_frame, c.base_frame))
+        self._path.append(rm.pose_stamped(ns, M, c.odom_frame))
+        self.path.publish(rm.T[PATH_T](header=rm.header(ns, c.odom_frame), poses=self._path))
+        self.client.poses.pop(pose.seq, None)  # the node runs for hours: the client keeps nothing it has sent on
+        self.client.arrived.pop(pose.seq, None)
+        if len(self._path) % c.map_every == 0 and self._map_busy.acquire(blocking=False):
+            threading.Thread(target=self._publish_map, args=(ns,), name="occvo-ros2-map", daemon=True).start()
+
+    def _publish_map(self, ns: int) -> None:
+        try:
+            points, labels = self.client.map_points()
+            self.map.publish(rm.point_cloud(ns, self.config.odom_frame, points, labels))
+        except Exception as exc:  # noqa: BLE001 - the map service away: the next map goes out later
+            log_event(self.log, "map not published", logging.WARNING, error=str(exc)[:200])
+        finally:
+            self._map_busy.release()
+
+    def _on_error(self, sample: zenoh.Sample) -> None:
+        try:
+            e = decode(sample.payload.to_bytes(), ErrorEvent)
+        except CodecError:
+            return
+        log_event(self.log, "frame refused", logging.WARNING, seq=e.seq, code=e.code, message=e.message[:300])
+        del self.client.errors[:-100]
+
+    def close(self) -> None:
+        for s in self._subs:
+            s.undeclare()
+        self.graph.close()
+        self.client.close()

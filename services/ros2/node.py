@@ -11,6 +11,8 @@ import numpy as np
 import zenoh
 
 from occvo_core.viz import ros_messages as rm
+from occvo_core.viz.odom_frames import OdomFrames
+from occvo_core.viz.ros2_bag import PATH_WINDOW
 from occvo_schemas import keys
 from occvo_schemas.codec import CodecError, decode
 from occvo_schemas.models import ErrorEvent, PoseEstimate
@@ -21,8 +23,6 @@ from occvo_services.ros2.inputs import CameraSet, cloud_frame, stamp_ns
 from occvo_services.ros2.names import LATCHED_QOS, SENSOR_QOS
 from occvo_services.telemetry import log_event
 
-PATH_T = "nav_msgs/msg/Path"
-
 
 class OccVONode:
     def __init__(self, session: zenoh.Session, config: Ros2NodeConfig, log: logging.Logger):
@@ -32,13 +32,15 @@ class OccVONode:
         self.client.reset()  # this node's first frame starts a new trajectory and map
         self._seq = 0  # the next frame's seq: this node is its stream's one sender
         self._stamps: dict[int, int] = {}  # seq -> the input's header stamp (ns), for the outputs' headers
-        self._path: list = []
+        self._path: list = []  # (ns, pose) of the last PATH_WINDOW poses
+        self._published = 0
+        self._frames = OdomFrames()  # twist from consecutive poses
         self._lock = threading.Lock()
         self._map_busy = threading.Lock()
         t = config.topics
         self.odom = self.graph.publisher(t.odom, "nav_msgs/msg/Odometry", SENSOR_QOS)
         self.tf = self.graph.publisher(t.tf, "tf2_msgs/msg/TFMessage", SENSOR_QOS)
-        self.path = self.graph.publisher(t.path, PATH_T, SENSOR_QOS)
+        self.path = self.graph.publisher(t.path, "nav_msgs/msg/Path", SENSOR_QOS)
         self.map = self.graph.publisher(t.map, "sensor_msgs/msg/PointCloud2", LATCHED_QOS)
         self._subs = [
             session.declare_subscriber(keys.pose(config.stream_name), self._on_pose),
@@ -98,13 +100,14 @@ class OccVONode:
         ns = round(pose.stamp * 1e9) if ns is None else ns
         M = np.asarray(pose.pose, np.float64)
         c = self.config
-        self.odom.publish(rm.odometry(ns, M, c.odom_frame, c.base_frame))
+        self.odom.publish(rm.odometry(self._frames, ns, M, c.odom_frame, c.base_frame))
         self.tf.publish(rm.transform(ns, M, c.odom_frame, c.base_frame))
-        self._path.append(rm.pose_stamped(ns, M, c.odom_frame))
-        self.path.publish(rm.T[PATH_T](header=rm.header(ns, c.odom_frame), poses=self._path))
+        self._published += 1
+        self._path = [*self._path[-(PATH_WINDOW - 1) :], (ns, M)]  # the window /occvo/path sends, no more
+        self.path.publish(rm.path(ns, self._path, c.odom_frame))
         self.client.poses.pop(pose.seq, None)  # the node runs for hours: the client keeps nothing it has sent on
         self.client.arrived.pop(pose.seq, None)
-        if len(self._path) % c.map_every == 0 and self._map_busy.acquire(blocking=False):
+        if self._published % c.map_every == 0 and self._map_busy.acquire(blocking=False):
             threading.Thread(target=self._publish_map, args=(ns,), name="occvo-ros2-map", daemon=True).start()
 
     def _publish_map(self, ns: int) -> None:

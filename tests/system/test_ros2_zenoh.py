@@ -290,6 +290,11 @@ def test_occupancy_clouds_in_odometry_out(messages, service, tmp_path):
         assert np.abs(est[:, :3, :3] - want[:, :3, :3]).max() <= 1e-9
         assert {(m.header.frame_id, m.child_frame_id) for m in got} == {("odom", "base_link")}
         assert [m.header.stamp.sec * 10**9 + m.header.stamp.nanosec for m in got] == stamps
+        # no "certainly standing still": the pose's covariance is unknown, not zero; the twist is the motion
+        assert all(min(np.asarray(m.pose.covariance)[[0, 7, 14]]) > 0 for m in got)
+        speed = np.array([m.twist.twist.linear.x for m in got[1:]])
+        step = np.linalg.norm(np.diff(est[:, :3, 3], axis=0), axis=1) / 0.5
+        assert np.allclose(np.abs(speed), step, rtol=0.05, atol=0.05)
 
         # a late subscriber of the latched map gets the last map the node published
         maps = []

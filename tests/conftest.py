@@ -42,6 +42,21 @@ def sample_root() -> Path:
 
 
 @pytest.fixture(scope="session")
+def drive_root() -> Path:
+    """The shared real nuScenes drive's folder (skips where it is absent)."""
+    from nuscenes_sample import drive_root
+
+    return drive_root()
+
+
+@pytest.fixture(scope="session")
+def drive(drive_root):
+    from occvo_core.datasets.nuscenes_drive import NuScenesDrive
+
+    return NuScenesDrive(drive_root, "scene-0916")
+
+
+@pytest.fixture(scope="session")
 def scene_0101(sample_root):
     from occvo_core.datasets import OccVOReleaseScene
 

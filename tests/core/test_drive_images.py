@@ -2,23 +2,11 @@
 the shipped model's frames, and `occvo eval-occ --input DRIVE --labels DIR` scoring them against make-occupancy's
 labels inside their camera mask."""
 
-from pathlib import Path
-
 import numpy as np
 import pytest
+from nuscenes_sample import DRIVE
 
 from occvo_core.grid import FREE
-
-DRIVE = Path(__file__).resolve().parents[3] / "shared" / "data" / "nuscenes-mini"
-
-
-@pytest.fixture(scope="module")
-def drive():
-    if not (DRIVE / "v1.0-mini" / "scene.json").is_file():
-        pytest.skip(f"the real nuScenes drive is not at {DRIVE} (it sits beside the checkout in CI)")
-    from occvo_core.datasets.nuscenes_drive import NuScenesDrive
-
-    return NuScenesDrive(DRIVE, "scene-0916")
 
 
 @pytest.fixture(scope="module")

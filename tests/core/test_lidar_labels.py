@@ -2,11 +2,10 @@
 voxels, nothing behind a wall is in the camera mask, and `occvo make-occupancy` on the shared drive writes what
 open_scene reads."""
 
-from pathlib import Path
 from types import SimpleNamespace
 
 import numpy as np
-import pytest
+from nuscenes_sample import DRIVE
 
 from occvo_core.cameras import nuscenes_rig
 from occvo_core.datasets.nuscenes_drive import Boxes
@@ -16,7 +15,6 @@ from occvo_core.lidar.boxes import points_in_boxes
 from occvo_core.lidar.raycast import camera_mask, lidar_mask
 from occvo_core.lidar.sweep import DRIVEABLE_SURFACE, label_points
 
-DRIVE = Path(__file__).resolve().parents[3] / "shared" / "data" / "nuscenes-mini"
 CAR, PEDESTRIAN = 4, 7
 
 
@@ -93,15 +91,6 @@ def test_a_voxel_behind_a_wall_around_the_car_is_outside_the_camera_mask_and_one
     assert not visible[behind].any()
     assert visible[tuple(OCC3D_GRID.indices_of([[6.0, 0.2, 1.0]])[0])]  # in front of the wall, before CAM_FRONT
     assert visible[(reach > 12.0) & (reach < 12.4)].mean() > 0.5  # the wall itself is seen
-
-
-@pytest.fixture(scope="module")
-def drive():
-    if not (DRIVE / "v1.0-mini" / "scene.json").is_file():
-        pytest.skip(f"the real nuScenes drive is not at {DRIVE} (it sits beside the checkout in CI)")
-    from occvo_core.datasets.nuscenes_drive import NuScenesDrive
-
-    return NuScenesDrive(DRIVE, "scene-0916")
 
 
 def test_on_the_real_drive_the_points_of_each_box_get_its_class_also_when_carried_from_other_sweeps(drive):

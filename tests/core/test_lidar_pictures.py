@@ -1,15 +1,12 @@
 """The pictures of make-occupancy --pictures: the view from above keeps the ego's axes (x up, y left), and on the
 shared drive the LiDAR points of the cars land on the cameras' images in the car colour."""
 
-from pathlib import Path
-
 import numpy as np
-import pytest
+from nuscenes_sample import DRIVE, drive_root
 
 from occvo_core.grid import CLASS_COLORS, FREE, OCC3D_GRID
 from occvo_core.viz.lidar_pictures import top_view
 
-DRIVE = Path(__file__).resolve().parents[3] / "shared" / "data" / "nuscenes-mini"
 CAR, MANMADE = 4, 15
 
 
@@ -28,8 +25,7 @@ def test_from_above_ahead_is_up_left_is_left_and_a_column_shows_its_highest_voxe
 
 
 def test_make_occupancy_pictures_put_the_cars_points_on_the_cars(tmp_path):
-    if not (DRIVE / "v1.0-mini" / "scene.json").is_file():
-        pytest.skip(f"the real nuScenes drive is not at {DRIVE} (it sits beside the checkout in CI)")
+    drive_root()
     from PIL import Image
 
     from occvo_cli.cli import main

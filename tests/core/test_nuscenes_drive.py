@@ -2,23 +2,12 @@
 projection of LiDAR points into each camera by occvo's camera model against nuscenes-devkit's own chain."""
 
 import json
-from pathlib import Path
 
 import numpy as np
 import pytest
+from nuscenes_sample import DRIVE
 
 from occvo_core.cameras import CAMERA_NAMES
-
-DRIVE = Path(__file__).resolve().parents[3] / "shared" / "data" / "nuscenes-mini"
-
-
-@pytest.fixture(scope="module")
-def drive():
-    if not (DRIVE / "v1.0-mini" / "scene.json").is_file():
-        pytest.skip(f"the real nuScenes drive is not at {DRIVE} (it sits beside the checkout in CI)")
-    from occvo_core.datasets.nuscenes_drive import NuScenesDrive
-
-    return NuScenesDrive(DRIVE, "scene-0916")
 
 
 def _table(name):

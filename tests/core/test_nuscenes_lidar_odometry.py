@@ -6,16 +6,6 @@ import json
 from pathlib import Path
 
 import numpy as np
-import pytest
-
-DRIVE = Path(__file__).resolve().parents[3] / "shared" / "data" / "nuscenes-mini"
-
-
-@pytest.fixture(scope="module")
-def drive_root():
-    if not (DRIVE / "v1.0-mini" / "scene.json").is_file():
-        pytest.skip(f"the real nuScenes drive is not at {DRIVE} (it sits beside the checkout in CI)")
-    return DRIVE
 
 
 def test_occvo_run_on_the_drives_lidar_occupancy(drive_root, tmp_path, capsys):

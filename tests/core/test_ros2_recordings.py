@@ -7,14 +7,12 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-
-DRIVE = Path(__file__).resolve().parents[3] / "shared" / "data" / "nuscenes-mini"
+from nuscenes_sample import DRIVE, drive_root
 
 
 @pytest.fixture(scope="module")
 def converted(tmp_path_factory):
-    if not (DRIVE / "v1.0-mini" / "scene.json").is_file():
-        pytest.skip(f"the real nuScenes drive is not at {DRIVE} (it sits beside the checkout in CI)")
+    drive_root()
     from occvo_core.datasets.nuscenes_drive import NuScenesDrive
     from occvo_core.lidar.source import LidarOccupancyScene
     from occvo_core.recording.convert_drive import convert_drive

@@ -71,7 +71,9 @@ def _worded() -> tuple[type, ...]:
 
 
 def error_line(exc: BaseException) -> str:
-    text = (str(exc).strip().splitlines() or [""])[0]
+    from occvo_services.store_url import redact  # a store's password is never printed (a driver may quote the URL)
+
+    text = (redact(str(exc)).strip().splitlines() or [""])[0]
     if isinstance(exc, _worded()):
         return text
     if type(exc).__module__.split(".")[0] == "zenoh":  # its messages end in a Rust source path

@@ -28,6 +28,11 @@ def add_output_flags(p) -> None:
         "not exist (pip install 'occvo[ros]')",
     )
     p.add_argument(
+        "--force",
+        action="store_true",
+        help="replace an existing --rerun or --mcap file that occvo did not write (default: refused; docs/cli.md)",
+    )
+    p.add_argument(
         "--map-every", type=int, default=5, help="--view/--rerun/--mcap/--ros2-bag: log the global map every N frames"
     )
 
@@ -36,6 +41,14 @@ def _needs(extra: str, flags: str, exc: ModuleNotFoundError, modules: tuple[str,
     if (exc.name or "").split(".")[0] not in modules:
         raise exc
     raise ConfigError(f"{flags} needs the {extra} extra: pip install 'occvo[{extra}]'") from None
+
+
+def check_outputs(args) -> None:
+    """Before the run: an existing --rerun or --mcap file that occvo did not write is refused unless --force."""
+    from occvo_core.overwrite import check_replaceable
+
+    check_replaceable(args.rerun, "rrd", "--rerun", args.force)
+    check_replaceable(args.mcap, "mcap", "--mcap", args.force)
 
 
 def open_outputs(args):

@@ -14,11 +14,13 @@ from occvo_cli import __version__
 
 
 def write_run_record(out: str | Path, args, config) -> Path:
+    from occvo_services.store_url import redact  # no password in a record, whatever option carried one
+
     options = {k: v for k, v in vars(args).items() if k not in ("func", "debug", "argv")}
     record = {
         "occvo_version": __version__,
-        "command": shlex.join(["occvo", *getattr(args, "argv", sys.argv[1:])]),
-        "options": json.loads(json.dumps(options, default=str)),
+        "command": redact(shlex.join(["occvo", *getattr(args, "argv", sys.argv[1:])])),
+        "options": json.loads(redact(json.dumps(options, default=str))),
         "config": config.model_dump(mode="json"),
         "python": platform.python_version(),
         "platform": platform.platform(),

@@ -9,6 +9,7 @@ import os
 import shutil
 import subprocess
 import tempfile
+import time
 import uuid
 from pathlib import Path
 
@@ -58,6 +59,25 @@ class PgCluster:
     def url(self, dbname: str = "postgres", password: str | None = None) -> str:
         user = "postgres" if password is None else f"postgres:{password}"
         return f"postgresql://{user}@127.0.0.1:{self.port}/{dbname}"
+
+    def add_password_user(self, user: str, password: str) -> None:
+        """A role that must give its password over TCP (scram-sha-256); every other role stays trusted."""
+        import psycopg
+        from psycopg import sql
+
+        with psycopg.connect(self.url(), autocommit=True) as conn:
+            conn.execute(sql.SQL("CREATE ROLE {} LOGIN SUPERUSER PASSWORD {}").format(sql.Identifier(user), password))
+        hba = self.data / "pg_hba.conf"
+        hba.write_text(f"host all {user} 127.0.0.1/32 scram-sha-256\n" + hba.read_text())  # first match wins
+        self._as_server([str(BIN / "pg_ctl"), "-D", str(self.data), "-w", "reload"])
+        deadline = time.monotonic() + 10.0
+        while time.monotonic() < deadline:  # the server rereads its rules after the signal, not at once
+            try:
+                psycopg.connect(f"postgresql://{user}@127.0.0.1:{self.port}/postgres", password="").close()
+            except psycopg.OperationalError:
+                return
+            time.sleep(0.05)
+        raise RuntimeError(f"{hba}: the password rule for {user} was not taken up")
 
     def new_database(self) -> str:
         """A fresh, empty database of the cluster: its URL (one a test, so tests never see each other's rows)."""

@@ -124,5 +124,5 @@ class PgPool:
 
 
 def _first_line(exc: Exception) -> str:
-    text = str(exc).strip()
+    text = redact(str(exc)).strip()  # libpq may quote the conninfo it could not parse; redacted before it is cut
     return (text.splitlines()[0] if text else type(exc).__name__)[:300]

@@ -26,6 +26,7 @@ from occvo_services.memory import CHECK_EVERY_S, EVICT_IDLE_S, MemoryCap
 from occvo_services.os_tuning import trim_heap
 from occvo_services.query_gate import QueryGate
 from occvo_services.sessions import open_session
+from occvo_services.store_url import redact
 from occvo_services.telemetry import Stats, log_event, structured_logger
 from occvo_services.wire import blocking, encoding
 from occvo_services.worker_config import DEFAULT_ENDPOINT, Policy, WorkerConfig
@@ -318,7 +319,7 @@ class Worker:
         stream = stream if keys.STREAM_RE.match(stream) else "*"
         client = client or self.admission.owner(stream) or stream
         suppressed = self.error_budget.take(client)
-        message = clip(message, MAX_MESSAGE_CHARS)
+        message = clip(redact(message), MAX_MESSAGE_CHARS)  # a store error's text names the store: no password
         if suppressed:
             message += f" (+{suppressed} error events of this client suppressed before this one)"
         event = ErrorEvent(

@@ -12,11 +12,13 @@ from collections.abc import Iterable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Protocol, runtime_checkable
-from urllib.parse import urlsplit, urlunsplit
 
 import numpy as np
 
+from occvo_services.store_url import redact  # noqa: F401 - the one redaction, named here as before
+
 PG_SCHEMES = ("postgresql://", "postgres://")
+START_CHECK_TIMEOUT_S = 4  # libpq's connect_timeout a host address: the start check answers within 10 s
 
 
 class StoreUnavailable(RuntimeError):
@@ -48,17 +50,6 @@ def sqlite_path(url_or_path: str | Path) -> str:
     """The file of a path or of a sqlite:/// URL (SQLAlchemy's form: sqlite:///relative, sqlite:////absolute)."""
     s = str(url_or_path)
     return s[len("sqlite:///") :] if s.startswith("sqlite:///") else s
-
-
-def redact(url: str) -> str:
-    """The URL without its password, for errors and logs."""
-    parts = urlsplit(url)
-    if parts.password is None:
-        return url
-    host = parts.hostname or ""
-    if parts.port is not None:
-        host = f"{host}:{parts.port}"
-    return urlunsplit(parts._replace(netloc=f"{parts.username or ''}:***@{host}"))
 
 
 @runtime_checkable
@@ -142,3 +133,19 @@ def open_store(url_or_path: str | Path, synchronous: str = "FULL", busy_timeout_
     from occvo_services.store import TrajectoryStore
 
     return TrajectoryStore(sqlite_path(url_or_path), synchronous, busy_timeout_s)
+
+
+def check_reachable(url_or_path: str | Path | None) -> None:
+    """Once, before any worker starts: a PostgreSQL store that cannot be reached (server down, wrong host, wrong
+    password, no such database) raises StoreUnavailable, one line naming the store without its password and the
+    reason, instead of workers crash-looping on it. A SQLite file is embedded: nothing to reach."""
+    if not is_postgres_url(url_or_path):
+        return
+    from occvo_services.pg_pool import _first_line, _psycopg
+
+    pg = _psycopg()
+    try:
+        with pg.connect(str(url_or_path), connect_timeout=START_CHECK_TIMEOUT_S) as conn:
+            conn.execute("SELECT 1")
+    except pg.Error as exc:
+        raise StoreUnavailable(f"store {redact(str(url_or_path))} unreachable: {_first_line(exc)}") from None

@@ -11,6 +11,7 @@ from collections import defaultdict, deque
 import numpy as np
 
 from occvo_schemas.models import StageStats
+from occvo_services.store_url import redact
 
 # ---------------------------------------------------------------- logs
 
@@ -21,10 +22,11 @@ class _JsonFormatter(logging.Formatter):
             "ts": round(record.created, 6),
             "level": record.levelname.lower(),
             "logger": record.name,
-            "event": record.getMessage(),
+            "event": redact(record.getMessage()),
         }
-        out.update(getattr(record, "fields", {}))
-        return json.dumps(out, default=str)
+        # a store URL's password reaches no log line, whichever field or error text carries it
+        out.update({k: redact(v) if isinstance(v, str) else v for k, v in getattr(record, "fields", {}).items()})
+        return json.dumps(out, default=lambda v: redact(str(v)))
 
 
 def structured_logger(name: str, level: str = "INFO") -> logging.Logger:

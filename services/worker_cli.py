@@ -2,10 +2,15 @@
 
 from __future__ import annotations
 
+import sys
+import threading
+import traceback
 from collections.abc import Callable
 
+from occvo_core.errors import ConfigError
 from occvo_services.os_tuning import few_malloc_arenas, large_blocks_from_mmap
 from occvo_services.runtime import Worker
+from occvo_services.store_url import SECRET_WAYS, redact, refuse_password, resolve
 from occvo_services.worker_config import DEFAULT_ENDPOINT, WorkerConfig
 
 
@@ -27,11 +32,47 @@ def worker_main(
     p.add_argument(
         "--client-identity", choices=["session", "user"], help="who a client is: its Zenoh session, or the ACL user"
     )
-    p.add_argument("--store-url", help="the store: a SQLite file (path or sqlite:///path) or postgresql://...")
+    p.add_argument(
+        "--store-url",
+        help="the store: a SQLite file (path or sqlite:///path) or postgresql://user@host/db, without a password ("
+        + SECRET_WAYS
+        + ")",
+    )
+    p.add_argument("--store-url-file", help="a file readable by its owner only holding the store URL")
     if extra_args:
         extra_args(p)
     args = vars(p.parse_args(argv))
+    _redacted_tracebacks()
+    try:
+        _store_url(args)
+    except ConfigError as exc:  # one line and exit 2, before anything connects
+        print(f"{p.prog}: {exc}", file=sys.stderr)
+        return 2
     config = WorkerConfig.load(args.pop("config"), **args)
     large_blocks_from_mmap()
     few_malloc_arenas()
     return worker_cls(config).run_forever()
+
+
+def _store_url(args: dict) -> None:
+    """The store: --store-url / --store-path (a password there is refused: ps shows it), else --store-url-file,
+    else OCCVO_STORE_URL in the environment (how `occvo serve` hands it over), else the config file's store_url."""
+    url_file = args.pop("store_url_file")
+    given = [refuse_password(args.get(k), "--" + k.replace("_", "-")) for k in ("store_url", "store_path")]
+    if any(given):
+        if url_file:
+            raise ConfigError("give --store-url or --store-url-file, not both")
+        return
+    url = resolve(None, url_file)
+    if url:  # both names: a config file giving store_path then names the same store, not a second one
+        args["store_url"] = args["store_path"] = url
+
+
+def _redacted_tracebacks() -> None:
+    """An uncaught error's traceback (a driver may quote the store URL it was given) without the password."""
+
+    def show(exc_type, exc, tb) -> None:
+        sys.stderr.write(redact("".join(traceback.format_exception(exc_type, exc, tb))))
+
+    sys.excepthook = show
+    threading.excepthook = lambda a: show(a.exc_type, a.exc_value, a.exc_traceback)

@@ -32,6 +32,12 @@ def add_parser(sub) -> None:
         "--sweeps-from", type=index_range, help="keyframe sweeps aggregated, A-B (default: all of the scene's)"
     )
     p.add_argument("--out", type=Path, required=True, help="Occ3D root to write (gts/<scene>/ and annotations.json)")
+    p.add_argument(
+        "--pictures",
+        type=Path,
+        help="also write PNGs here: each camera with the keyframe's LiDAR points by class, and from above the labels "
+        "beside the shipped camera model's prediction",
+    )
     p.add_argument("--json", action="store_true", help="the summary as JSON on stdout instead of the table")
     p.add_argument("--quiet", action="store_true", help="no progress")
     p.set_defaults(func=run)
@@ -49,18 +55,24 @@ def keyframe_list(name: str, span: tuple[int, int] | None, n: int) -> list[int]:
 
 def run(args) -> int:
     from occvo_core.datasets.nuscenes_drive import NuScenesDrive
+    from occvo_core.datasets.occ3d_nuscenes import ANNOTATIONS, read_annotations
     from occvo_core.datasets.occ3d_write import label_path, write_annotations, write_labels
     from occvo_core.lidar.label_stats import LabelStats
     from occvo_core.lidar.occ3d_labels import keyframe_labels, load_sweeps
 
     drive = NuScenesDrive(args.input, scene=args.scene, version=args.version)
+    if (args.out / ANNOTATIONS).is_file():
+        read_annotations(args.out)  # an annotations.json to merge into is checked before minutes of work, not after
     keyframes = keyframe_list("keyframes", args.keyframes, len(drive))
     sweeps = load_sweeps(drive, keyframe_list("sweeps-from", args.sweeps_from, len(drive)))
     stats = LabelStats()
+    pictures = _Pictures(drive, args.pictures) if args.pictures is not None else None
     for n, i in enumerate(keyframes):
         labels = keyframe_labels(drive, sweeps, i)
         write_labels(label_path(args.out, drive.name, drive[i].token), labels.arrays())
         stats.add(labels)
+        if pictures is not None:
+            pictures.draw(i, labels)
         if not args.quiet:
             print(f"\rkeyframe {i} ({n + 1} of {len(keyframes)})", end="", file=sys.stderr, flush=True)
     if not args.quiet:
@@ -70,3 +82,28 @@ def run(args) -> int:
     summary["sweeps"] = sorted(sweeps)[:: max(len(sweeps) - 1, 1)]
     print(json.dumps(summary, indent=1) if args.json else stats.table(drive.name, args.out))
     return 0
+
+
+class _Pictures:
+    """Per keyframe: a PNG a camera with its LiDAR points, and one from above of labels and the shipped model."""
+
+    def __init__(self, drive, out: Path):
+        from occvo_core.models.image_source import NuScenesImageSource
+        from occvo_core.models.tpvformer.checkpoint import shipped_checkpoint
+        from occvo_core.models.tpvformer.predictor import OccupancyPredictor
+
+        self.out = out / drive.name
+        self.out.mkdir(parents=True, exist_ok=True)
+        self.drive, self.source = drive, NuScenesImageSource(drive, OccupancyPredictor(shipped_checkpoint()))
+
+    def draw(self, index: int, labels) -> None:
+        from occvo_core.viz.lidar_pictures import camera_pictures, top_pictures, top_view
+
+        camera_pictures(self.drive, index, self.out)
+        predicted = self.source.grid(index)
+        panels = {
+            "LiDAR labels": top_view(labels.semantics),
+            "LiDAR labels, camera mask": top_view(labels.semantics, labels.mask_camera),
+            "tiny's prediction, camera mask": top_view(predicted, labels.mask_camera),
+        }
+        top_pictures(panels, self.out / f"{index:03d}_above.png")

@@ -107,7 +107,7 @@ def config_from_args(args, source=None) -> OccVOConfig:
 
 
 def run(args) -> int:
-    from occvo_cli.outputs import open_outputs
+    from occvo_cli.outputs import check_outputs, open_outputs
     from occvo_cli.run_record import write_run_record
     from occvo_core.datasets import open_scene
     from occvo_core.errors import ConfigError
@@ -115,6 +115,7 @@ def run(args) -> int:
 
     if args.list_scenes:
         return _list_scenes(args.input)
+    check_outputs(args)
     if args.input is not None and args.synthetic:
         raise ConfigError("--input reads a recorded scene; --synthetic makes one: give one or the other")
     if args.from_images and args.occupancy:

@@ -1,6 +1,7 @@
 """Labels written in Occ3D-nuScenes' released layout, which open_scene reads back (occ3d_nuscenes):
 <root>/gts/<scene>/<sample_token>/labels.npz and <root>/annotations.json with scene_infos[scene][token] =
-{timestamp, ego_pose, prev, next, gt_path, camera_sensor}; other scenes already in annotations.json are kept."""
+{timestamp, ego_pose, prev, next, gt_path, camera_sensor}; other scenes and keys already in annotations.json are
+kept."""
 
 from __future__ import annotations
 
@@ -66,10 +67,12 @@ def write_annotations(root: Path, drive: NuScenesDrive, indices: list[int]) -> P
     """annotations.json for the keyframes `indices` (in time order) of the drive's scene, chained prev/next."""
     path = root / ANNOTATIONS
     infos = read_annotations(root) if path.is_file() else {}
+    # Occ3D's other keys (train_split, val_split) stay as they were
+    whole = json.loads(path.read_text()) if path.is_file() else {}
     tokens = [drive[i].token for i in indices]
     infos[drive.name] = {
         t: sample_info(drive, i, tokens[n - 1] if n else END, tokens[n + 1] if n + 1 < len(tokens) else END)
         for n, (i, t) in enumerate(zip(indices, tokens))
     }
-    write_text_atomic(path, json.dumps({"scene_infos": infos}, indent=1))
+    write_text_atomic(path, json.dumps({**whole, "scene_infos": infos}, indent=1))
     return path

@@ -32,6 +32,7 @@ from foxglove.messages import (
 from scipy.spatial.transform import Rotation
 
 from occvo_core.grid import CLASS_COLORS
+from occvo_core.overwrite import MCAP_METADATA
 
 MAP_FRAME, EGO_FRAME = "map", "base_link"
 POINT = np.dtype(
@@ -87,15 +88,19 @@ class FoxgloveView:
     """Logs a run's steps to Foxglove channels of its own context (an MCAP file, a WebSocket server, or both).
     The same calls as RerunView, so a run and StreamFollower log to either."""
 
-    def __init__(self, mcap: str | Path | None = None, port: int | None = None, map_every: int = 5):
+    def __init__(
+        self, mcap: str | Path | None = None, port: int | None = None, map_every: int = 5, host: str = "127.0.0.1"
+    ):
         self.context = foxglove.Context()
         self.map_every = max(1, int(map_every))
         self.writer = self.server = None
         if mcap is not None:
             Path(mcap).parent.mkdir(parents=True, exist_ok=True)
             self.writer = foxglove.open_mcap(str(mcap), allow_overwrite=True, context=self.context)
+            # the first record after the header: how occvo tells its own file before replacing it (occvo_core.overwrite)
+            self.writer.write_metadata(MCAP_METADATA, {"writer": "occvo"})
         if port is not None:
-            self.server = foxglove.start_server(name="occvo", host="127.0.0.1", port=int(port), context=self.context)
+            self.server = foxglove.start_server(name="occvo", host=host, port=int(port), context=self.context)
         self.tf = FrameTransformChannel("/tf", context=self.context)
         self.trajectory = PosesInFrameChannel("/trajectory", context=self.context)
         self.occupancy_channel = PointCloudChannel("/occupancy", context=self.context)

@@ -14,6 +14,10 @@ Timelines: `frame` (sequence) and `stamp` (the data's clock: a timestamp when it
 
 from __future__ import annotations
 
+import shutil
+import socket
+import subprocess
+import time
 from pathlib import Path
 
 import numpy as np
@@ -21,6 +25,9 @@ import rerun as rr
 
 from occvo_core.grid import CLASS_COLORS, MOVABLE_CLASSES, OCC3D_GRID
 
+VIEWER_PORT = 9876  # rerun's native viewer, as rr.spawn starts it
+LOOPBACK = "127.0.0.1"  # where the viewers listen unless told (rerun's own default is every interface)
+START_TIMEOUT_S = 10.0
 REAL_CLOCK_S = 1e8  # stamps past 1973 are wall-clock times; smaller ones are seconds since the scene began
 VOXEL_RADIUS = OCC3D_GRID.voxel_size / 2
 
@@ -39,6 +46,7 @@ class RerunView:
     def __init__(self, recording: rr.RecordingStream, map_every: int = 5, save: Path | None = None):
         self.rec = recording
         self.save = save  # the recording goes to save + ".partial" and is renamed to save by close()
+        self.server: subprocess.Popen | None = None  # the web viewer's process, stopped with the view
         self.map_every = max(1, int(map_every))
         self.path: list[np.ndarray] = []
         self._movable: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None  # keys, points, labels
@@ -53,25 +61,31 @@ class RerunView:
         save: str | Path | None = None,
         map_every: int = 5,
         web_port: int | None = None,
+        bind: str = LOOPBACK,
     ) -> RerunView:
         """spawn: start a native viewer and stream to it; save: write an .rrd recording; web_port: serve the web
-        viewer there (and the data over gRPC on web_port + 1) for a browser (any may be combined)."""
+        viewer there (and the data over gRPC on web_port + 1) for a browser (any may be combined). The viewers
+        listen on `bind` (loopback unless told, e.g. 0.0.0.0 for every interface)."""
         rec = rr.RecordingStream(app)
-        sinks = []
+        sinks, server = [], None
         if save is not None:
             save = Path(save)
             save.parent.mkdir(parents=True, exist_ok=True)
             sinks.append(rr.FileSink(str(_partial(save))))
-        if spawn:
-            rec.spawn(connect=False)
-            sinks.append(rr.GrpcSink())
-        if web_port:  # one set_sinks call: replacing the sinks later would shut this server down
-            server = rr.GrpcServerSink("127.0.0.1", int(web_port) + 1)
-            sinks.append(server)
-            rr.serve_web_viewer(web_port=int(web_port), open_browser=False, connect_to=server.uri)
-        if sinks:
+        if spawn:  # a viewer already on the port is used as it is (as rr.spawn does); a new one outlives the run
+            if not _accepting(LOOPBACK, VIEWER_PORT):
+                _start_viewer(["--port", str(VIEWER_PORT), "--bind", bind, "--expect-data-soon"], detach=True)
+            sinks.append(rr.GrpcSink(f"rerun+http://{_dial(bind)}:{VIEWER_PORT}/proxy"))
+        if web_port:  # rerun's web viewer and its data server, a process that ends with this view
+            ports = [str(int(web_port) + 1), str(int(web_port))]
+            server = _start_viewer(["--serve-web", "--bind", bind, "--port", ports[0], "--web-viewer-port", ports[1]])
+            _wait_listening(server, _dial(bind), [int(p) for p in ports])
+            sinks.append(rr.GrpcSink(f"rerun+http://{_dial(bind)}:{ports[0]}/proxy"))
+        if sinks:  # one set_sinks call
             rec.set_sinks(*sinks)
-        return cls(rec, map_every, save)
+        view = cls(rec, map_every, save)
+        view.server = server
+        return view
 
     def time(self, index: int, stamp: float) -> None:
         self.rec.set_time("frame", sequence=int(index))
@@ -149,14 +163,68 @@ class RerunView:
         """Flush and end the recording; a saved one gets its name only now, complete."""
         self.rec.flush()
         self.rec.disconnect()
+        self._stop_server()
         if self.save is not None:
             _partial(self.save).replace(self.save)
 
     def abandon(self) -> None:
         """End the recording after an error or Ctrl-C: a saved one's partial file is removed."""
         self.rec.disconnect()
+        self._stop_server()
         if self.save is not None:
             _partial(self.save).unlink(missing_ok=True)
+
+    def _stop_server(self) -> None:
+        if self.server is not None and self.server.poll() is None:
+            self.server.terminate()
+            self.server.wait(10)
+
+
+def _rerun_binary() -> str:
+    """The viewer binary rerun-sdk ships (rerun_cli), else `rerun` on PATH."""
+    try:
+        import rerun_cli
+
+        exe = Path(rerun_cli.__file__).parent / "rerun"
+        if exe.is_file():
+            return str(exe)
+    except ImportError:
+        pass
+    return shutil.which("rerun") or "rerun"
+
+
+def _start_viewer(args: list[str], detach: bool = False) -> subprocess.Popen:
+    """The rerun binary with `args` (rr.spawn and rr.serve_web_viewer cannot choose the address they listen on)."""
+    return subprocess.Popen(
+        [_rerun_binary(), *args],
+        stdin=subprocess.DEVNULL,
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+        start_new_session=detach,
+    )
+
+
+def _dial(bind: str) -> str:
+    """Where this process reaches a server listening on `bind`."""
+    return LOOPBACK if bind in ("0.0.0.0", "::", "[::]", "") else bind
+
+
+def _accepting(host: str, port: int) -> bool:
+    try:
+        with socket.create_connection((host.strip("[]"), port), timeout=0.2):
+            return True
+    except OSError:
+        return False
+
+
+def _wait_listening(proc: subprocess.Popen, host: str, ports: list[int]) -> None:
+    deadline = time.monotonic() + START_TIMEOUT_S
+    while not all(_accepting(host, p) for p in ports):
+        if proc.poll() is not None or time.monotonic() > deadline:
+            proc.kill()
+            proc.wait()
+            raise RuntimeError(f"the rerun web viewer did not start on {host} ports {ports} (are they taken?)")
+        time.sleep(0.05)
 
 
 def _partial(path: Path) -> Path:

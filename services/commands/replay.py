@@ -144,6 +144,11 @@ def add_parser(subparsers) -> None:
     )
     p.add_argument("--format", choices=("kitti", "tum"), help="--out's format (default: by its name)")
     p.add_argument("--tum", metavar="FILE", help="the same as --out FILE --format tum (the old spelling)")
+    p.add_argument(
+        "--force",
+        action="store_true",
+        help="replace an existing --out file that occvo did not write (default: refused; docs/cli.md)",
+    )
     add_json(p, "the summary")
     p.add_argument("--quiet", action="store_true", help="no progress bar and no error events on stderr")
     p.set_defaults(func=run)
@@ -159,6 +164,10 @@ def run(args) -> int:
             raise ConfigError(f"{name} must be at least {low}, not {value}")
     if args.rate < 0 or args.timeout <= 0:
         raise ConfigError("--rate must be 0 or more and --timeout more than 0")
+    from occvo_core.overwrite import check_replaceable
+
+    check_replaceable(args.out, "trajectory", "--out", args.force)  # before the drive, not after it
+    check_replaceable(args.tum, "trajectory", "--tum", args.force)
     if args.nuscenes:
         from occvo_services.nuscenes_source import NuScenesCameraFrames
 

@@ -8,13 +8,14 @@ import time
 from pathlib import Path
 
 from occvo_core.errors import ConfigError
-from occvo_services import defaults
+from occvo_services import defaults, store_url
 from occvo_services.client import ServiceError
 from occvo_services.commands._common import (
     WARM_UP_NOTE,
     ReadinessWatch,
     add_json,
     check_listen_secure,
+    check_store_reachable,
     emit,
     endpoint,
     listen_endpoints,
@@ -48,7 +49,13 @@ def add_parser(subparsers) -> None:
         dest="store",
         metavar="URL",
         help="the trajectories' and the map's store, a restart resumes from it: a SQLite file (path or sqlite:///path) "
-        "or postgresql://user@host/db shared by the workers of many hosts",
+        "or postgresql://user@host/db shared by the workers of many hosts; a password is refused here (default: "
+        "$OCCVO_STORE_URL)",
+    )
+    p.add_argument(
+        "--store-url-file",
+        metavar="FILE",
+        help="a file readable by its owner only holding the store URL, password and all (instead of --store)",
     )
     p.add_argument(
         "--policy",
@@ -145,9 +152,10 @@ def _wait_alive(sup, timeout: float) -> None:
 
 def _up_config(args, router_config: str):
     """The router and the three workers `occvo serve` supervises, from its flags."""
+    from occvo_services.store_url import STORE_URL_ENV
     from occvo_services.supervisor import RouterSpec, UpConfig, WorkerSpec
 
-    store = ["--store-url", args.store] if args.store else []
+    store = {STORE_URL_ENV: args.store} if args.store else {}  # the environment: argv is anyone's to read (ps)
     common = ["--policy", args.policy, "--queue-size", str(args.queue_size)]
     model = [
         "--source",
@@ -164,10 +172,11 @@ def _up_config(args, router_config: str):
             WorkerSpec(
                 role="registration",
                 config=_worker_config(args, "registration_worker.json5"),
-                args=[*common, *store],
+                args=common,
                 count=args.registration_workers,
+                env=store,
             ),
-            WorkerSpec(role="map", config=_worker_config(args, "map_service.json5"), args=[*common, *store]),
+            WorkerSpec(role="map", config=_worker_config(args, "map_service.json5"), args=common, env=store),
         ],
     )
 
@@ -181,7 +190,7 @@ def run(args) -> int:
     if args.queue_size < 1:
         raise ConfigError(f"--queue-size must be at least 1, not {args.queue_size}")
     args.store, args.checkpoint, args.log_dir = (
-        _absolute(args.store),
+        _absolute(store_url.resolve(args.store, args.store_url_file)),
         _absolute(args.checkpoint),
         _absolute(args.log_dir),
     )
@@ -190,6 +199,7 @@ def run(args) -> int:
     if not Path(router_config).is_file():
         raise ConfigError(f"router config {router_config} not found")
     _check_store(args.store)
+    check_store_reachable(args.store)  # once, before any worker: one line and exit 2, not workers crash-looping
     ep = args.listen or endpoint(args)
     check_listen_secure(router_config, [args.listen] if args.listen else listen_endpoints(router_config), args.insecure)
     config = _up_config(args, router_config)  # the worker configs validated

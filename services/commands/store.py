@@ -8,6 +8,7 @@ import datetime
 from pathlib import Path
 
 from occvo_core.errors import ConfigError
+from occvo_core.overwrite import check_replaceable
 from occvo_services.commands._common import add_json, emit, stream_id
 
 
@@ -21,14 +22,33 @@ def add_parser(subparsers) -> None:
     ):
         a = sub.add_parser(name, help=what)
         a.add_argument(
-            "--store", required=True, metavar="URL", help="a SQLite file (path or sqlite:///path) or postgresql://..."
+            "--store",
+            metavar="URL",
+            help="a SQLite file (path or sqlite:///path) or postgresql://user@host/db, no password here (default: "
+            "$OCCVO_STORE_URL)",
         )
+        a.add_argument("--store-url-file", metavar="FILE", help="a file readable by its owner only holding the URL")
         if name != "list":
             a.add_argument("stream", type=stream_id, help="the stream id")
         if name == "export":
             a.add_argument("--out", required=True, help="the file written (.kitti: KITTI rows, else TUM)")
+            a.add_argument(
+                "--force",
+                action="store_true",
+                help="replace an existing --out file that occvo did not write (default: refused; docs/cli.md)",
+            )
         add_json(a)
         a.set_defaults(func=run)
+
+
+def _store_url(args) -> str:
+    """The store as `occvo serve` takes it: --store (no password there), --store-url-file, OCCVO_STORE_URL."""
+    from occvo_services.store_url import SECRET_WAYS, resolve
+
+    url = resolve(args.store, args.store_url_file)
+    if not url:
+        raise ConfigError(f"no store given: --store URL, or {SECRET_WAYS}")
+    return url
 
 
 def _open(url: str):
@@ -42,8 +62,13 @@ def _open(url: str):
 
 def run(args) -> int:
     from occvo_core.trajectory import write_kitti, write_tum
+    from occvo_services.store_url import redact
 
-    store, maps = _open(args.store)
+    if args.action == "export":
+        check_replaceable(args.out, "trajectory", "--out", args.force)
+    url = _store_url(args)
+    store, maps = _open(url)
+    args.store = redact(url)  # as the messages below name it
     try:
         if args.action == "list":
             rows = []

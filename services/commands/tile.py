@@ -8,6 +8,7 @@ import numpy as np
 
 from occvo_core.errors import ConfigError
 from occvo_core.grid import CLASS_NAMES
+from occvo_core.overwrite import check_replaceable
 from occvo_services.commands._common import add_connection, add_json, client, emit
 
 
@@ -20,6 +21,11 @@ def add_parser(subparsers) -> None:
     p.add_argument(
         "--out", "--output", dest="out", help="save the tile as an (M,4) x,y,z,label .npy (--output: the old name)"
     )
+    p.add_argument(
+        "--force",
+        action="store_true",
+        help="replace an existing --out file that occvo did not write (default: refused; docs/cli.md)",
+    )
     add_json(p)
     p.set_defaults(func=run)
 
@@ -27,6 +33,9 @@ def add_parser(subparsers) -> None:
 def run(args) -> int:
     if not args.metres and not (args.x.is_integer() and args.y.is_integer()):
         raise ConfigError(f"tile indices are integers, got {args.x:g} {args.y:g}: pass --metres for world coordinates")
+    if args.out and not args.out.endswith(".npy"):
+        args.out += ".npy"  # where np.save writes it
+    check_replaceable(args.out, "npy", "--out", args.force)
     with client(args) as c:
         if args.metres:
             tile_m = c.map_info().tile_m

@@ -8,6 +8,7 @@ from occvo_services.commands._common import (
     ReadinessWatch,
     add_json,
     check_listen_secure,
+    check_store_reachable,
     emit,
     listen_endpoints,
     progress,
@@ -42,6 +43,8 @@ def run(args) -> int:
     for w in config.workers:  # one line and exit 2 for a bad worker config, not a worker crash-looping
         if w.config:
             WorkerConfig.load(w.config).check_served(w.config)
+    for url in sorted({u for w in config.workers if w.role != "inference" and (u := _worker_store(w))}):
+        check_store_reachable(url)  # once, before any worker starts
     if args.listen:
         config.router.listen, config.router.connect = args.listen, None
     if args.log_dir:
@@ -84,3 +87,22 @@ def run(args) -> int:
             watch.stop()
     emit(args, {"event": "stopped", "code": code}, f"stopped (exit code {code})")
     return code
+
+
+def _worker_store(w) -> str | None:
+    """The store a worker will open, found as it finds it (services/worker_cli.py: its flags, then its environment,
+    then its config file); a password in its args is refused, as on any command line."""
+    import argparse
+    import os
+
+    from occvo_services.store_url import refuse_password, resolve
+    from occvo_services.worker_config import WorkerConfig
+
+    p = argparse.ArgumentParser(add_help=False)
+    for flag in ("--store-url", "--store-path", "--store-url-file"):
+        p.add_argument(flag)
+    known, _ = p.parse_known_args(w.args)
+    for flag, url in (("--store-url", known.store_url), ("--store-path", known.store_path)):
+        refuse_password(url, f"{w.role} worker args: {flag}")
+    url = known.store_url or known.store_path or resolve(None, known.store_url_file, env={**os.environ, **w.env})
+    return WorkerConfig.load(w.config, store_url=url, store_path=url).store_url

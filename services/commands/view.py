@@ -34,18 +34,34 @@ def add_parser(subparsers) -> None:
         nargs="?",
         const=8765,
         metavar="PORT",
-        help="serve what arrives live to Foxglove over its WebSocket protocol on 127.0.0.1:PORT (default 8765)",
+        help="serve what arrives live to Foxglove over its WebSocket protocol on --bind's address, port PORT "
+        "(default 8765)",
+    )
+    p.add_argument(
+        "--force",
+        action="store_true",
+        help="replace an existing --rerun or --mcap file that occvo did not write (default: refused; docs/cli.md)",
+    )
+    p.add_argument(
+        "--bind",
+        default="127.0.0.1",
+        metavar="HOST",
+        help="the address the viewers this command serves listen on (--web-port and its data, --foxglove): "
+        "127.0.0.1 (default, this machine only), 0.0.0.0 for every interface",
     )
     p.add_argument("--seconds", type=float, default=0.0, help="stop after this long (0: until Ctrl-C)")
     p.set_defaults(func=run)
 
 
 def run(args) -> int:
+    from occvo_core.overwrite import check_replaceable
     from occvo_core.viz.views import Views
     from occvo_services.follow import StreamFollower
     from occvo_services.sessions import open_session
 
     foxglove = args.mcap is not None or args.foxglove is not None
+    check_replaceable(args.rerun, "rrd", "--rerun", args.force)
+    check_replaceable(args.mcap, "mcap", "--mcap", args.force)
     session = open_session(endpoint(args))  # first: no router, no viewer and no recording
     views = []
     try:
@@ -63,14 +79,15 @@ def run(args) -> int:
     signal.signal(signal.SIGTERM, lambda *_: stop.set())
     ended = False
     try:
+        host = "127.0.0.1" if args.bind in ("0.0.0.0", "::") else args.bind
         if args.web_port:
             print(
-                f"web viewer: http://127.0.0.1:{args.web_port}/?url=rerun%2Bhttp%3A%2F%2F127.0.0.1%3A"
+                f"web viewer: http://{host}:{args.web_port}/?url=rerun%2Bhttp%3A%2F%2F{host}%3A"
                 f"{args.web_port + 1}%2Fproxy",
                 flush=True,
             )
         if args.foxglove is not None:  # Foxglove: Open connection, Foxglove WebSocket, this URL
-            print(f"foxglove: ws://127.0.0.1:{views[-1].port}", flush=True)
+            print(f"foxglove: ws://{host}:{views[-1].port}", flush=True)
         deadline = time.monotonic() + args.seconds if args.seconds > 0 else None
         while not stop.wait(0.2):
             if deadline is not None and time.monotonic() > deadline:
@@ -95,9 +112,16 @@ def _rerun_view(args):
         if exc.name != "rerun":
             raise
         raise ConfigError("occvo view needs rerun-sdk: pip install 'occvo[view]'") from None
-    return RerunView.open(
-        f"occvo-{args.stream}", spawn=not (args.rerun or args.web_port), save=args.rerun, web_port=args.web_port
-    )
+    try:
+        return RerunView.open(
+            f"occvo-{args.stream}",
+            spawn=not (args.rerun or args.web_port),
+            save=args.rerun,
+            web_port=args.web_port,
+            bind=args.bind,
+        )
+    except RuntimeError as exc:  # e.g. the ports are taken
+        raise ConfigError(f"--web-port {args.web_port}: {exc}") from None
 
 
 def _foxglove_view(args):
@@ -110,6 +134,6 @@ def _foxglove_view(args):
             raise
         raise ConfigError("--mcap and --foxglove need foxglove-sdk: pip install 'occvo[foxglove]'") from None
     try:
-        return FoxgloveView(mcap=args.mcap, port=args.foxglove)
+        return FoxgloveView(mcap=args.mcap, port=args.foxglove, host=args.bind)
     except RuntimeError as exc:  # e.g. the port is taken
         raise ConfigError(f"--foxglove {args.foxglove}: {exc}") from None

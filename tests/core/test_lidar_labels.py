@@ -147,3 +147,27 @@ def test_make_occupancy_says_in_one_line_when_a_range_is_past_the_drive(drive, t
     assert main(["make-occupancy", "--input", str(DRIVE), "--keyframes", "40-41", "--out", str(tmp_path)]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert err == ["occvo make-occupancy: error: --keyframes 40-41: the scene has keyframes 0-40"]
+
+
+def test_make_occupancy_refuses_an_annotations_json_that_is_not_occ3ds_before_making_labels(drive, tmp_path, capsys):
+    from occvo_cli.cli import main
+
+    (tmp_path / "annotations.json").write_text('{"not": "occ3d"}')
+    assert main(["make-occupancy", "--input", str(DRIVE), "--out", str(tmp_path), "--quiet"]) == 2
+    assert "scene_infos" in capsys.readouterr().err
+    assert not (tmp_path / "gts").exists()
+
+
+def test_labels_written_into_an_occ3d_root_keep_its_other_scenes_and_splits(drive, tmp_path):
+    import json
+
+    from occvo_cli.cli import main
+    from occvo_core.datasets.occ3d_nuscenes import list_scenes
+
+    other = {"scene-0001": {"t0": {"timestamp": 1, "prev": "EOF", "next": "EOF"}}}
+    (tmp_path / "annotations.json").write_text(json.dumps({"train_split": ["scene-0001"], "scene_infos": other}))
+    args = ["make-occupancy", "--input", str(DRIVE), "--keyframes", "6-7", "--sweeps-from", "6-7", "--quiet"]
+    assert main([*args, "--out", str(tmp_path)]) == 0
+    written = json.loads((tmp_path / "annotations.json").read_text())
+    assert written["train_split"] == ["scene-0001"] and written["scene_infos"]["scene-0001"] == other["scene-0001"]
+    assert [(s["scene"], s["samples"]) for s in list_scenes(tmp_path)] == [("scene-0001", 1), ("scene-0916", 2)]

@@ -5,7 +5,7 @@
 #
 # Where ../shared is (no GPU needed), once:
 #   benchmarks/gpu_check.sh --prepare            # writes benchmarks/gpu-cache/ (git-ignored, about 35 MB)
-#   benchmarks/gpu_check.sh --wheels             # writes .whl/: the packages the GPU image lacks (pydantic, json5)
+#   benchmarks/gpu_check.sh --wheels             # writes .whl/: the packages the GPU image lacks (pydantic, json5, zenoh)
 # On the GPU machine (the device tool: carry benchmarks/gpu-cache and .whl):
 #   benchmarks/gpu_check.sh [--minutes 3] [--out DIR]
 # --device cpu runs the same steps on the CPU (a smoke test of the plumbing: --presets tiny --minutes 0.2).
@@ -68,10 +68,12 @@ EOF
   exit 0
 fi
 if [ "$MODE" = wheels ]; then
-  grep -qx '/.whl/' .git/info/exclude 2>/dev/null || echo '/.whl/' >> .git/info/exclude
+  exclude=$(git rev-parse --git-path info/exclude)  # a worktree's too
+  grep -qx '/.whl/' "$exclude" 2>/dev/null || echo '/.whl/' >> "$exclude"
   "$PYTHON" -m pip download -q --no-deps --only-binary=:all: --python-version 3.12 --implementation cp \
     --platform manylinux_2_28_x86_64 --platform manylinux_2_17_x86_64 --platform manylinux2014_x86_64 -d .whl \
-    pydantic==2.13.4 pydantic-core==2.46.4 annotated-types==0.7.0 typing-inspection==0.4.2 json5==0.17.3
+    pydantic==2.13.4 pydantic-core==2.46.4 annotated-types==0.7.0 typing-inspection==0.4.2 json5==0.17.3 \
+    eclipse-zenoh==1.10.2
   ls .whl
   exit 0
 fi

@@ -134,3 +134,36 @@ def test_a_mixed_run_of_real_and_synthetic_frames_resumes_where_it_stopped(tmp_p
     model = load_checkpoint(second.checkpoint)
     assert model.meta["steps"] == 3 and model.meta["train_drive"]["scene"] == "made-up"
     assert "free_logit_bias" in model.meta["calibration"]  # calibrated on the real frames
+
+
+def test_the_real_rig_model_is_the_default_for_a_drive_and_tiny_for_the_synthetic_town():
+    from occvo_core.models.tpvformer import load_checkpoint
+    from occvo_core.models.tpvformer.checkpoint import REAL_RIG_MODEL, SERVED_THRESHOLDS, served_model
+
+    real, real_thresholds = served_model(real_rig=True)
+    town, town_thresholds = served_model(real_rig=False)
+    assert real.name == f"{REAL_RIG_MODEL}.pt" and town.name == "tiny.pt"
+    assert real_thresholds == SERVED_THRESHOLDS[REAL_RIG_MODEL] and town_thresholds == (0.9, 1.0)
+    assert real.stat().st_size <= 5_000_000
+    payload = torch.load(real, map_location="cpu", weights_only=True)
+    assert {v.dtype for v in payload["state_dict"].values() if v.is_floating_point()} == {torch.float16}
+    model = load_checkpoint(real)
+    assert model.meta["train_drive"] == {"scene": "scene-0916", "keyframes": [0, 24]}  # 25-40 never trained on
+    assert model.cfg.free_logit_bias == model.meta["free_logit_bias_chosen"]  # the offset chosen on 17-24
+    assert "train_drive" not in load_checkpoint(town).meta
+
+
+def test_occvo_run_from_images_takes_the_real_rig_model_on_a_drive_and_tiny_on_the_town():
+    if not (DRIVE / "v1.0-mini" / "scene.json").is_file():
+        pytest.skip(f"the real nuScenes drive is not at {DRIVE} (it sits beside the checkout in CI)")
+    from occvo_cli.cli import build_parser
+    from occvo_cli.commands.run import _image_source
+    from occvo_core.models.tpvformer.checkpoint import REAL_RIG_MODEL, SERVED_THRESHOLDS
+
+    parser = build_parser()
+    drive = _image_source(parser.parse_args(["run", "--input", str(DRIVE), "--from-images", "--threads", "1"]))
+    town = _image_source(parser.parse_args(["run", "--from-images", "--threads", "1"]))
+    assert drive.predictor.model.meta["train_drive"]["scene"] == "scene-0916"
+    assert (drive.predictor.min_confidence, drive.predictor.min_ground_confidence) == SERVED_THRESHOLDS[REAL_RIG_MODEL]
+    assert "train_drive" not in town.predictor.model.meta
+    assert (town.predictor.min_confidence, town.predictor.min_ground_confidence) == (0.9, 1.0)

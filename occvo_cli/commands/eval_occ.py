@@ -12,7 +12,11 @@ from occvo_cli.paths import out_file
 
 def add_parser(sub) -> None:
     p = sub.add_parser("eval-occ", help="mIoU and geometry IoU of a TPV-Former checkpoint inside the camera mask")
-    p.add_argument("--checkpoint", type=Path, help="default: the trained tiny checkpoint that ships with occvo")
+    p.add_argument(
+        "--checkpoint",
+        type=Path,
+        help="default: the shipped checkpoint (with --input the one trained on real images, else tiny)",
+    )
     p.add_argument(
         "--seeds", type=int, nargs="+", default=[1000, 1001, 1002, 1003, 1004], help="held-out synthetic seeds"
     )
@@ -41,10 +45,11 @@ def run(args) -> int:
 
     from occvo_core.errors import DatasetError
     from occvo_core.io import write_text_atomic
-    from occvo_core.models.tpvformer import load_checkpoint, select_device, shipped_checkpoint
+    from occvo_core.models.tpvformer import load_checkpoint, select_device
+    from occvo_core.models.tpvformer.checkpoint import served_model
     from occvo_core.models.train import evaluate
 
-    args.checkpoint = args.checkpoint or shipped_checkpoint()
+    args.checkpoint = args.checkpoint or served_model(real_rig=args.input is not None)[0]
     if not args.checkpoint.is_file():
         raise DatasetError(args.checkpoint, "no such checkpoint: give a file `occvo train-occ` wrote")
     torch.set_num_threads(args.threads)

@@ -7,6 +7,7 @@ import json
 import sys
 from pathlib import Path
 
+from occvo_cli.commands.make_occupancy import index_range
 from occvo_cli.outputs import add_output_flags
 from occvo_cli.paths import out_dir
 from occvo_core import OccVOConfig
@@ -40,6 +41,12 @@ def add_parser(sub) -> None:
         "--occupancy",
         choices=("lidar",),
         help="a nuScenes drive's occupancy made from each keyframe's own LiDAR sweep (or --from-images: the cameras)",
+    )
+    p.add_argument(
+        "--keyframes",
+        type=index_range,
+        metavar="A-B",
+        help="a nuScenes drive's keyframes A-B only: the run starts at keyframe A as its frame 0",
     )
     p.add_argument(
         "--list-scenes", action="store_true", help="list the scenes of the Occ3D-nuScenes root --input and exit"
@@ -92,19 +99,20 @@ def add_parser(sub) -> None:
     p.add_argument(
         "--checkpoint",
         type=Path,
-        help="TPV-Former checkpoint for --from-images (default: the trained tiny one that ships)",
+        help="TPV-Former checkpoint for --from-images (default: the shipped one, for a nuScenes drive the one "
+        "trained on real images, for the synthetic town tiny)",
     )
     p.add_argument(
         "--min-confidence",
         type=float,
         help="--from-images: voxels the network is less sure of than this (softmax of its class) are free "
-        "(default: 0.9 with the shipped model, 0 with --checkpoint)",
+        "(default: the shipped model's own, 0 with --checkpoint)",
     )
     p.add_argument(
         "--min-ground-confidence",
         type=float,
         help="--from-images: the same for the ground classes, 1: no ground voxel at all "
-        "(default: 1 with the shipped model, 0 with --checkpoint)",
+        "(default: the shipped model's own, 0 with --checkpoint)",
     )
     p.add_argument(
         "--motion-search",
@@ -165,6 +173,13 @@ def run(args) -> int:
         source = open_scene(
             args.input, gt=args.gt, scene=args.scene, mask=args.mask, occupancy=args.occupancy, topics=topics
         )
+    if args.keyframes is not None:
+        from occvo_core.datasets.frame_range import FrameRange
+        from occvo_core.datasets.nuscenes_tables import is_nuscenes_root
+
+        if args.input is None or not is_nuscenes_root(args.input):
+            raise ConfigError("--keyframes picks keyframes of a nuScenes drive: give --input DRIVE")
+        source = FrameRange(source, *args.keyframes)
     if args.input is not None:
         _stamp(source, args)
         source = _first_frames(source, args.frames)
@@ -207,16 +222,19 @@ def run(args) -> int:
 def _image_source(args):
     """The six cameras through TPV-Former: a nuScenes drive's real images, or the synthetic scene rendered."""
     from occvo_core.errors import ConfigError
-    from occvo_core.models.tpvformer.checkpoint import SHIPPED_THRESHOLDS, shipped_checkpoint
+    from occvo_core.models.tpvformer.checkpoint import served_model
     from occvo_core.models.tpvformer.predictor import OccupancyPredictor
 
     if args.mask == "lidar":
         raise ConfigError("--mask lidar: a camera model's prediction has no lidar; give camera or none")
     given = (args.min_confidence, args.min_ground_confidence)
-    served = (0.0, 0.0) if args.checkpoint else SHIPPED_THRESHOLDS
+    if args.checkpoint:
+        checkpoint, served = args.checkpoint, (0.0, 0.0)
+    else:  # a real drive: the model that saw real images
+        checkpoint, served = served_model(real_rig=args.input is not None)
     min_conf, min_ground = (s if g is None else g for g, s in zip(given, served))
     predictor = OccupancyPredictor(
-        args.checkpoint or shipped_checkpoint(),
+        checkpoint,
         min_confidence=min_conf,
         min_ground_confidence=min_ground,
         camera_mask=args.mask == "camera",

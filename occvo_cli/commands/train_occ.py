@@ -1,4 +1,5 @@
-"""occvo train-occ: train TPV-Former on synthetic scenes (images rendered from the true occupancy) for a time budget."""
+"""occvo train-occ: train TPV-Former for a time budget on synthetic scenes (images rendered from the true occupancy),
+mixed with a real nuScenes drive's keyframes (--drive: LiDAR labels as voxel targets, projected LiDAR as depth)."""
 
 from __future__ import annotations
 
@@ -6,6 +7,7 @@ import json
 import sys
 from pathlib import Path
 
+from occvo_cli.commands.make_occupancy import index_range
 from occvo_cli.paths import out_dir
 
 
@@ -16,7 +18,13 @@ def add_parser(sub) -> None:
     p.add_argument(
         "--out", type=out_dir, required=True, help="output folder: checkpoint.pt, loss_curve.png, train_log.json"
     )
-    p.add_argument("--seeds", type=int, nargs="+", default=list(range(20)), help="synthetic training scene seeds")
+    p.add_argument(
+        "--seeds",
+        type=int,
+        nargs="*",
+        default=list(range(20)),
+        help="synthetic training scene seeds (none: the drive's keyframes alone)",
+    )
     p.add_argument("--frames", type=int, default=20, help="frames per scene")
     p.add_argument("--stride", type=int, default=2, help="use every n-th frame")
     p.add_argument("--lr", type=float, default=2e-3, help="AdamW learning rate (default 2e-3)")
@@ -32,6 +40,21 @@ def add_parser(sub) -> None:
         help="first render every training frame into --cache in JOBS "
         "processes, before the training clock starts (rendering is data making, not training)",
     )
+    p.add_argument("--drive", type=Path, help="a nuScenes drive (devkit layout) whose keyframes are trained on too")
+    p.add_argument("--drive-scene", help="the drive's scene (default: its only one)")
+    p.add_argument("--drive-keyframes", type=index_range, help="the drive's keyframes to train on, A-B (default: all)")
+    p.add_argument(
+        "--drive-labels", type=Path, help="Occ3D-style labels of those keyframes (occvo make-occupancy --out)"
+    )
+    p.add_argument(
+        "--drive-cache",
+        type=Path,
+        metavar="FILE",
+        help="the drive's training frames as one .npz: read when it exists (no --drive needed), else made from "
+        "--drive and written here",
+    )
+    p.add_argument("--real-fraction", type=float, default=0.5, help="share of steps on a real keyframe (default 0.5)")
+    p.add_argument("--device", default="cpu", help="cpu or cuda (bf16 mixed precision on cuda)")
     p.add_argument(
         "--json", action="store_true", help="steps, seconds, losses and the checkpoint path as JSON on stdout"
     )
@@ -57,6 +80,11 @@ def run(args) -> int:
         raise ConfigError(f"--minutes must be positive, got {args.minutes}")
     torch.set_num_threads(args.threads)
     cfg = preset(args.preset)
+    real, meta = _drive_frames(args, cfg.input_size)
+    if real is None and not args.seeds:
+        raise ConfigError("nothing to train on: give --seeds, or a drive (--drive or --drive-cache)")
+    if not 0.0 <= args.real_fraction <= 1.0:
+        raise ConfigError(f"--real-fraction must be in [0, 1], got {args.real_fraction}")
     if args.prerender:
         if args.cache is None:
             raise ConfigError("--prerender needs --cache DIR (the frames are rendered there)")
@@ -79,6 +107,10 @@ def run(args) -> int:
         cache_dir=args.cache,
         progress=not args.quiet,
         resume=args.resume,
+        real=real,
+        real_fraction=args.real_fraction,
+        device=args.device,
+        meta=meta,
     )
     tail = sum(result.losses[-20:]) / max(1, len(result.losses[-20:]))
     if args.json:
@@ -101,3 +133,34 @@ def run(args) -> int:
     print(f"checkpoint: {result.checkpoint}")
     print(f"loss curve: {Path(args.out) / 'loss_curve.png'}")
     return 0
+
+
+def _drive_frames(args, input_size):
+    """DriveFrames from --drive-cache or --drive (with its labels), and what the checkpoint records of them."""
+    from occvo_core.errors import ConfigError
+    from occvo_core.models.drive_training import DriveFrames
+
+    if args.drive is None and args.drive_cache is None:
+        for flag in ("drive_scene", "drive_keyframes", "drive_labels"):
+            if getattr(args, flag) is not None:
+                raise ConfigError(f"--{flag.replace('_', '-')} needs --drive")
+        return None, None
+    if args.drive_cache is not None and args.drive_cache.is_file():
+        frames = DriveFrames.load(args.drive_cache, input_size)
+        scene = str(frames.arrays["scene"])
+    else:
+        from occvo_cli.commands.make_occupancy import keyframe_list
+        from occvo_core.datasets.nuscenes_drive import NuScenesDrive
+
+        if args.drive is None:
+            raise ConfigError(f"--drive-cache {args.drive_cache} does not exist: give --drive to make it")
+        if args.drive_labels is None:
+            raise ConfigError("--drive needs --drive-labels DIR (occvo make-occupancy --out) for its voxel targets")
+        drive = NuScenesDrive(args.drive, scene=args.drive_scene)
+        keyframes = keyframe_list("drive-keyframes", args.drive_keyframes, len(drive))
+        frames = DriveFrames.from_drive(drive, args.drive_labels, keyframes, input_size)
+        scene = drive.name
+        if args.drive_cache is not None:
+            frames.save(args.drive_cache)
+    span = [frames.keyframes[0], frames.keyframes[-1]]
+    return frames, {"train_drive": {"scene": scene, "keyframes": span}, "real_fraction": args.real_fraction}

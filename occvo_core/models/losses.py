@@ -59,12 +59,12 @@ def occupancy_loss(
     # Voxels outside the mask enter with probability `outside_weight` instead of at that weight: the same loss in
     # expectation, at a third of the cost of a log-softmax over every voxel.
     kept = visible | (torch.rand(visible.shape, generator=generator, device=visible.device) < outside_weight)
-    ce = F.cross_entropy(voxels[kept], semantics.reshape(-1)[kept], weight=weights, reduction="sum") / kept.sum().clamp(
-        min=1
-    )
+    ce = F.cross_entropy(
+        voxels[kept].float(), semantics.reshape(-1)[kept], weight=weights, reduction="sum"
+    ) / kept.sum().clamp(min=1)
     idx = visible.nonzero().squeeze(1)
     if len(idx) > lovasz_voxels:
-        idx = idx[torch.randperm(len(idx), generator=generator)[:lovasz_voxels]]
+        idx = idx[torch.randperm(len(idx), generator=generator, device=idx.device)[:lovasz_voxels]]
     flat, labels = voxels[idx], semantics.reshape(-1)[idx]
     lovasz = lovasz_softmax(flat.float().softmax(-1), labels)
     return ce + lovasz, {"ce": float(ce.detach()), "lovasz": float(lovasz.detach())}
@@ -83,12 +83,15 @@ class ImageAuxHead(nn.Module):
             nn.Conv2d(channels, channels, 3, padding=1), nn.ReLU(inplace=True), nn.Conv2d(channels, NUM_CLASSES, 1)
         )
 
-    def loss(self, feature: torch.Tensor, labels: np.ndarray) -> torch.Tensor:
-        """feature (Ncam, C, h, w) of one sample; labels (Ncam, H, W) at image resolution, 255 = no hit."""
+    def loss(self, feature: torch.Tensor, labels: np.ndarray, sparse: bool = False) -> torch.Tensor:
+        """feature (Ncam, C, h, w) of one sample; labels (Ncam, H, W) at image resolution, 255 = no hit; `sparse`
+        (a real camera's LiDAR returns): 255 = unknown, left out."""
         out = F.interpolate(self.net(feature), size=labels.shape[-2:], mode="bilinear", align_corners=False)
-        lab = torch.from_numpy(labels.astype(np.int64))
+        lab = torch.from_numpy(labels.astype(np.int64)).to(out.device)
+        if sparse:
+            return F.cross_entropy(out.float(), lab, ignore_index=255)
         lab[lab == 255] = NUM_CLASSES - 1  # no hit: the free class
-        return F.cross_entropy(out, lab)
+        return F.cross_entropy(out.float(), lab)
 
 
 def depth_loss(
@@ -98,10 +101,15 @@ def depth_loss(
     (ray length, turned into depth along the optical axis as the anchors use it); rays without a hit are ignored."""
     ncam, bins = depth_logits.shape[:2]
     h, w = ray_length.shape[-2:]
-    out = F.interpolate(depth_logits, size=(h, w), mode="bilinear", align_corners=False)
-    r = torch.from_numpy(np.asarray(ray_length, np.float32))
-    v, u = torch.meshgrid(torch.arange(h, dtype=torch.float32), torch.arange(w, dtype=torch.float32), indexing="ij")
-    fx, fy, cx, cy = (intrinsics[:, i, j].view(-1, 1, 1) for i, j in ((0, 0), (1, 1), (0, 2), (1, 2)))
+    out = F.interpolate(depth_logits.float(), size=(h, w), mode="bilinear", align_corners=False)
+    dev = out.device
+    r = torch.from_numpy(np.asarray(ray_length, np.float32)).to(dev)
+    v, u = torch.meshgrid(
+        torch.arange(h, dtype=torch.float32, device=dev),
+        torch.arange(w, dtype=torch.float32, device=dev),
+        indexing="ij",
+    )
+    fx, fy, cx, cy = (intrinsics[:, i, j].to(dev).view(-1, 1, 1) for i, j in ((0, 0), (1, 1), (0, 2), (1, 2)))
     z = r / torch.sqrt(((u - cx) / fx) ** 2 + ((v - cy) / fy) ** 2 + 1)
     near, far = depth_range
     target = (torch.log(z.clamp(near, far) / near) / math.log(far / near) * bins).long().clamp(0, bins - 1)

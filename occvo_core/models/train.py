@@ -1,4 +1,5 @@
-"""Training and evaluation of TPV-Former on synthetic scenes: images rendered from each frame's true occupancy."""
+"""Training and evaluation of TPV-Former: synthetic scenes (images rendered from each frame's true occupancy) mixed
+with a real drive's keyframes (DriveFrames: LiDAR labels and projected LiDAR depth)."""
 
 from __future__ import annotations
 
@@ -46,13 +47,23 @@ def train(
     cache_dir: str | Path | None = None,
     aux_weight: float = 0.5,
     resume: str | Path | None = None,
+    real=None,
+    real_fraction: float = 0.5,
+    device: str | torch.device = "cpu",
+    meta: dict | None = None,
 ) -> TrainResult:
     """Time-budgeted AdamW with warm-up and cosine decay over the budget; writes checkpoint.pt, loss_curve.png, train_log.json
     and checkpoint.state.pt (optimizer, step, losses: what `resume` continues from).
 
     `resume`: a checkpoint of the same config to continue from. With its .state.pt beside it the optimizer, the aux head,
     the step count and the loss history carry on; the learning rate restarts its cosine over the new budget (SGDR).
+    `real`: a drive's DriveFrames; a step takes one of its keyframes (augmented) with probability `real_fraction`
+    (1 without seeds), its voxel loss inside mask_camera only, its image losses at LiDAR returns only; the free-class
+    offset is then calibrated on its keyframes as recorded. `device`: cuda trains in bf16 autocast.
     """
+    device = torch.device(device)
+    if real is not None and not seeds:
+        real_fraction = 1.0
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     state = _resume_state(resume)
@@ -61,23 +72,31 @@ def train(
     rng = np.random.default_rng([seed, start_step])  # a resumed run does not replay the first run's frame order
     rig = nuscenes_rig(*cfg.input_size)
     data = (
-        dataset if dataset is not None else SyntheticOccDataset(seeds, frames, rig, stride=stride, cache_dir=cache_dir)
+        dataset
+        if dataset is not None or not seeds
+        else SyntheticOccDataset(seeds, frames, rig, stride=stride, cache_dir=cache_dir)
     )
     model = TPVFormer(cfg).train()
     if resume is not None:  # shapes checked against cfg; the calibrated free-logit offset is re-fitted at the end
         model.load_state_dict(load_checkpoint(resume, config=cfg).state_dict())
         model.cfg = cfg.model_copy(update={"free_logit_bias": 0.0})
         model.train()
-    # Class frequencies inside the camera mask from a few frames.
+    model.to(device)
+    # Class frequencies inside the camera mask from a few frames of each source.
     counts = np.zeros(NUM_CLASSES)
-    for k in rng.choice(len(data), size=min(8, len(data)), replace=False):
-        s = data[int(k)]
-        counts += np.bincount(s.semantics[s.camera_mask], minlength=NUM_CLASSES)
-    weights = class_weights(counts + 1)
+    firsts = []
+    for src in (data, real):
+        if src is None:
+            continue
+        for k in rng.choice(len(src), size=min(8, len(src)), replace=False):
+            s = src[int(k)] if src is data else src.sample(int(k))
+            counts += np.bincount(s.semantics[s.camera_mask], minlength=NUM_CLASSES)
+            firsts.append(s)
+    weights = class_weights(counts + 1).to(device)
     params = list(model.parameters())
     aux_head, captured, hooks = None, {}, []
-    if aux_weight > 0 and getattr(data[0], "depth", None) is not None:  # image supervision from the renderer
-        aux_head = ImageAuxHead(cfg.backbone.fpn_channels).train()
+    if aux_weight > 0 and getattr(firsts[0], "depth", None) is not None:  # image supervision: renderer or LiDAR
+        aux_head = ImageAuxHead(cfg.backbone.fpn_channels).to(device).train()
         params += list(aux_head.parameters())
         hooks.append(model.backbone.register_forward_hook(lambda _m, _i, out: captured.__setitem__("levels", out)))
         if model.depth_head is not None:
@@ -98,7 +117,8 @@ def train(
         desc="train-occ",
         bar_format="{l_bar}{bar}| {n_fmt}/{total_fmt}s [{postfix}]",
     )
-    order = rng.permutation(len(data))
+    order = rng.permutation(len(data)) if data is not None else np.zeros(1, np.int64)
+    taken = 0  # synthetic frames taken: the order's position
     last_save = start
     ckpt = out / "checkpoint.pt"
     while True:
@@ -110,19 +130,28 @@ def train(
             g["lr"] = (
                 lr * min(1.0, (step - start_step + 1) / warmup) * (0.05 + 0.95 * 0.5 * (1 + math.cos(math.pi * frac)))
             )
-        s = data[int(order[(step - start_step) % len(order)])]
-        if (step - start_step) % len(order) == len(order) - 1:
-            order = rng.permutation(len(data))
-        logits = model(s.images[None], s.intrinsics[None], s.cam_to_ego[None])
-        loss, parts = occupancy_loss(
-            logits, torch.from_numpy(s.semantics[None]).long(), torch.from_numpy(s.camera_mask[None]), weights
-        )
-        if aux_head is not None:
-            aux = aux_head.loss(captured.pop("levels")[0], s.pixel_labels)
-            if "depth" in captured:
-                aux = aux + depth_loss(captured.pop("depth"), s.depth, s.intrinsics, cfg.depth_range)
-            loss = loss + aux_weight * aux
-            parts["aux"] = float(aux.detach())
+        if real is not None and (data is None or rng.random() < real_fraction):
+            s = real.sample(int(rng.integers(len(real))), rng)
+        else:
+            s = data[int(order[taken % len(order)])]
+            taken += 1
+            if taken % len(order) == 0:
+                order = rng.permutation(len(data))
+        with autocast(device):
+            logits = model(s.images[None].to(device), s.intrinsics[None].to(device), s.cam_to_ego[None].to(device))
+            loss, parts = occupancy_loss(
+                logits,
+                torch.from_numpy(s.semantics[None]).long().to(device),
+                torch.from_numpy(s.camera_mask[None]).to(device),
+                weights,
+                outside_weight=0.0 if s.sparse else 0.1,  # a real frame knows nothing outside mask_camera
+            )
+            if aux_head is not None:
+                aux = aux_head.loss(captured.pop("levels")[0], s.pixel_labels, sparse=s.sparse)
+                if "depth" in captured:
+                    aux = aux + depth_loss(captured.pop("depth"), s.depth, s.intrinsics, cfg.depth_range)
+                loss = loss + aux_weight * aux
+                parts["aux"] = float(aux.detach())
         opt.zero_grad(set_to_none=True)
         loss.backward()
         torch.nn.utils.clip_grad_norm_(params, 5.0)
@@ -137,20 +166,31 @@ def train(
         bar.refresh()
         if time.monotonic() - last_save > 120:
             _save(
-                ckpt, model, losses, step, seconds_before + time.monotonic() - start, seeds, preset_name, opt, aux_head
+                ckpt,
+                model,
+                losses,
+                step,
+                seconds_before + time.monotonic() - start,
+                seeds,
+                preset_name,
+                opt,
+                aux_head,
+                meta,
             )
             last_save = time.monotonic()
     bar.close()
     seconds = seconds_before + time.monotonic() - start
     for hook in hooks:
         hook.remove()
-    if dataset is None and stride > 1 and frames > 1:  # frames of the training scenes that training did not use
+    if real is not None:  # served on real cameras: the offset that fits them
+        calibration = calibrate_free_bias(model, (real.sample(k) for k in range(len(real))), device=device)
+    elif dataset is None and stride > 1 and frames > 1:  # frames of the training scenes that training did not use
         held = SyntheticOccDataset(seeds[:12], frames, rig, stride=frames, cache_dir=cache_dir, first=1)
-        calibration = calibrate_free_bias(model, (held[k] for k in range(len(held))))
+        calibration = calibrate_free_bias(model, (held[k] for k in range(len(held))), device=device)
     else:
-        calibration = calibrate_free_bias(model, [data[int(k)] for k in order[:6]])
+        calibration = calibrate_free_bias(model, [data[int(k)] for k in order[:6]], device=device)
     model.meta_calibration = calibration
-    _save(ckpt, model, losses, step, seconds, seeds, preset_name, opt, aux_head)
+    _save(ckpt, model, losses, step, seconds, seeds, preset_name, opt, aux_head, meta)
     plot_losses(losses, out / "loss_curve.png")
     (out / "train_log.json").write_text(
         json.dumps(
@@ -161,6 +201,7 @@ def train(
                 "seeds": list(seeds),
                 "preset": preset_name,
                 "config": cfg.model_dump(mode="json"),
+                **(meta or {}),
             },
             indent=1,
         )
@@ -169,15 +210,19 @@ def train(
 
 
 @torch.no_grad()
-def calibrate_free_bias(model: TPVFormer, samples, candidates=tuple(np.arange(0.0, 5.01, 0.25))) -> dict:
+def calibrate_free_bias(
+    model: TPVFormer, samples, candidates=tuple(np.arange(-3.0, 5.01, 0.25)), device: torch.device = torch.device("cpu")
+) -> dict:
     """Pick the free-class logit offset maximising mIoU + geometry IoU on `samples` (not evaluation seeds); sets it
-    on the model."""
+    on the model. Negative offsets too: a model fine-tuned on sparse real labels can come out short of occupied."""
     model.eval()
     cfg = model.cfg.model_copy(update={"free_logit_bias": 0.0})
     model.cfg = cfg
     metrics = {float(b): OccMetrics() for b in candidates}
     for s in samples:  # one frame's logits at a time: 18 x 640k floats each
-        lg = model(s.images[None], s.intrinsics[None], s.cam_to_ego[None])[0].permute(1, 2, 3, 0)
+        with autocast(device):
+            lg = model(s.images[None].to(device), s.intrinsics[None].to(device), s.cam_to_ego[None].to(device))
+        lg = lg[0].permute(1, 2, 3, 0).float().cpu()
         mask = s.camera_mask
         other, cls = lg[..., :-1].max(-1)  # the best occupied class: the offset only decides it against free
         margin, cls = (lg[..., -1] - other).numpy()[mask], cls.numpy()[mask]
@@ -201,7 +246,7 @@ def _resume_state(resume: str | Path | None) -> dict:
     return {"step": int(meta.get("steps") or 0), "seconds": float(meta.get("seconds") or 0.0)}  # weights only
 
 
-def _save(path, model, losses, step, seconds, seeds, preset_name, opt=None, aux_head=None):
+def _save(path, model, losses, step, seconds, seeds, preset_name, opt=None, aux_head=None, meta=None):
     model.eval()
     if opt is not None:  # beside the checkpoint, so that the checkpoint itself stays small enough to ship
         state = {"optimizer": opt.state_dict(), "step": step, "seconds": seconds, "losses": list(losses)}
@@ -220,6 +265,7 @@ def _save(path, model, losses, step, seconds, seeds, preset_name, opt=None, aux_
             "train_seeds": list(seeds),
             "preset": preset_name,
             "calibration": getattr(model, "meta_calibration", None),
+            **(meta or {}),
         },
     )
     model.train()

@@ -23,6 +23,7 @@ class Sample:
     camera_mask: np.ndarray  # (200, 200, 16) bool
     depth: np.ndarray | None = None  # (6, H, W) float32 ray length to the first occupied voxel, inf where none
     pixel_labels: np.ndarray | None = None  # (6, H, W) uint8 class of that voxel, 255 where none
+    sparse: bool = False  # a real camera's targets: labels known only inside mask_camera, depth only at LiDAR returns
 
 
 def _sample(images_uint8, rig: CameraRig, semantics, camera_mask, depth=None, pixel_labels=None) -> Sample:

@@ -89,9 +89,13 @@ def load_checkpoint(
     return model.to(device).eval()
 
 
-def save_half(src: str | Path, dst: str | Path) -> Path:
-    """src's checkpoint with its floating-point weights in fp16 (half the bytes; load_checkpoint gives fp32 back)."""
+def save_half(src: str | Path, dst: str | Path, free_logit_bias: float | None = None) -> Path:
+    """src's checkpoint with its floating-point weights in fp16 (half the bytes; load_checkpoint gives fp32 back);
+    `free_logit_bias` replaces the offset its training calibrated (one chosen on held-out frames)."""
     payload = read_checkpoint(src)
+    if free_logit_bias is not None:
+        payload["config"] = {**payload["config"], "free_logit_bias": float(free_logit_bias)}
+        payload["meta"] = {**payload.get("meta", {}), "free_logit_bias_chosen": float(free_logit_bias)}
     payload["state_dict"] = {k: v.half() if v.is_floating_point() else v for k, v in payload["state_dict"].items()}
     dst = Path(dst)
     dst.parent.mkdir(parents=True, exist_ok=True)
@@ -104,6 +108,17 @@ def save_half(src: str | Path, dst: str | Path) -> Path:
 # The confidences the shipped model is served with (min_confidence, min_ground_confidence), chosen on seeds
 # 2000-2004: its predicted ground agrees with less motion than the truth, so none of it is used (docs/model.md).
 SHIPPED_THRESHOLDS = (0.9, 1.0)
+
+# The shipped model for real camera rigs (a nuScenes drive): `tiny` fine-tuned on scene-0916's keyframes with their
+# LiDAR labels (docs/model.md); `tiny` stays the synthetic town's.
+REAL_RIG_MODEL = "tiny_nuscenes0916"
+SERVED_THRESHOLDS = {"tiny": SHIPPED_THRESHOLDS, REAL_RIG_MODEL: (0.0, 0.0)}
+
+
+def served_model(real_rig: bool) -> tuple[Path, tuple[float, float]]:
+    """The shipped checkpoint and its thresholds for a real camera rig (a recorded drive) or the synthetic town."""
+    name = REAL_RIG_MODEL if real_rig else "tiny"
+    return shipped_checkpoint(name), SERVED_THRESHOLDS[name]
 
 
 def shipped_checkpoint(name: str = "tiny") -> Path:

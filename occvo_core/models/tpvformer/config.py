@@ -153,6 +153,40 @@ PRESETS: dict[str, TPVFormerConfig] = {
         plane_upsampling="deconv",
         decoder_chunk=100,
     ),
+    # Between the two, for a GPU (benchmarks/gpu_check.sh trains it): quarter-resolution images, a ResNet-18-deep
+    # backbone, planes at half the grid (learned upsampling to it), three layers; tiny's departures kept.
+    "small": TPVFormerConfig(
+        input_size=(400, 224),
+        backbone=BackboneConfig(
+            block="basic",
+            layers=(2, 2, 2, 2),
+            stem_channels=32,
+            widths=(32, 64, 96, 128),
+            out_stages=(1, 2, 3),
+            fpn_channels=96,
+            num_levels=3,
+        ),
+        tpv_h=100,
+        tpv_w=100,
+        tpv_z=8,
+        embed_dims=96,
+        num_heads=4,
+        ffn_dims=192,
+        num_layers=3,
+        dropout=0.0,
+        points_in_pillar=(4, 8, 8),
+        sampling_points=(8, 16, 16),
+        visible_anchors_only=True,
+        depth_bins=48,
+        hybrid_anchors=2,
+        hybrid_points=4,
+        decoder_hidden=48,
+        decoder_out=48,
+        decoder_activation="relu",
+        decode_shape=(200, 200, 16),
+        plane_upsampling="deconv",
+        decoder_chunk=50,
+    ),
 }
 
 

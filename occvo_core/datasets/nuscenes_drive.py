@@ -165,6 +165,22 @@ class NuScenesDrive:
         return np.linalg.inv(k.camera_ego_poses[camera]) @ k.ego_pose
 
 
+class DriveSource:
+    """What a scene source made from a drive's keyframes shares: one frame a keyframe, the drive's ground truth and
+    rate, a name saying how its occupancy is made."""
+
+    def __init__(self, drive: NuScenesDrive, made_by: str):
+        self.drive = drive
+        self.name, self.rate_hz = f"{drive.name}-{made_by}", drive.rate_hz
+
+    def __len__(self) -> int:
+        return len(self.drive)
+
+    @property
+    def gt_poses(self) -> np.ndarray:
+        return self.drive.gt_poses
+
+
 def _image_size(path: Path) -> tuple[int, int]:
     from PIL import Image
 

@@ -7,13 +7,13 @@ from __future__ import annotations
 
 import numpy as np
 
-from occvo_core.datasets.nuscenes_drive import NuScenesDrive
+from occvo_core.datasets.nuscenes_drive import DriveSource, NuScenesDrive
 from occvo_core.frame import OccupancyFrame
 from occvo_core.lidar.boxes import boxes_in_frame
 from occvo_core.lidar.sweep import label_points, off_the_car, voxel_labels, voxel_means
 
 
-class LidarOccupancyScene:
+class LidarOccupancyScene(DriveSource):
     """SceneSource: frame i = the voxels of keyframe i's sweep, ego frame, stamped with the sweep's time."""
 
     gt_on_map_plane = True  # nuScenes' ego poses keep z = 0 up and down ramps: APE is scored on the plane
@@ -26,15 +26,7 @@ class LidarOccupancyScene:
     }
 
     def __init__(self, drive: NuScenesDrive):
-        self.drive = drive
-        self.name, self.rate_hz = f"{drive.name}-lidar", drive.rate_hz
-
-    def __len__(self) -> int:
-        return len(self.drive)
-
-    @property
-    def gt_poses(self) -> np.ndarray:
-        return self.drive.gt_poses
+        super().__init__(drive, "lidar")
 
     @property
     def files(self) -> list:

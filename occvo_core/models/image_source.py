@@ -12,7 +12,7 @@ from __future__ import annotations
 import numpy as np
 
 from occvo_core.cameras import RenderStyle, nuscenes_rig, render
-from occvo_core.datasets.nuscenes_drive import NuScenesDrive
+from occvo_core.datasets.nuscenes_drive import DriveSource, NuScenesDrive
 from occvo_core.errors import DatasetError
 from occvo_core.frame import OccupancyFrame
 from occvo_core.grid import grid_to_points
@@ -48,20 +48,13 @@ class ImageOccupancySource:
         return OccupancyFrame(points, labels, index, stamp, {"scene": self.name, "source": "tpvformer"})
 
 
-class NuScenesImageSource:
+class NuScenesImageSource(DriveSource):
     """SceneSource: frame i = the network's occupancy from keyframe i's six real JPEGs, resized to the network's input
     size with the intrinsics scaled to match, the recorded cam_to_ego; stamped with the sample's stamp."""
 
     def __init__(self, drive: NuScenesDrive, predictor: OccupancyPredictor):
-        self.drive, self.predictor = drive, predictor
-        self.name, self.rate_hz = f"{drive.name}-from-images", drive.rate_hz
-
-    def __len__(self) -> int:
-        return len(self.drive)
-
-    @property
-    def gt_poses(self) -> np.ndarray:
-        return self.drive.gt_poses
+        super().__init__(drive, "from-images")
+        self.predictor = predictor
 
     @property
     def stamps(self) -> np.ndarray:

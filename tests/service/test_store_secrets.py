@@ -253,6 +253,8 @@ def test_a_silent_server_is_given_up_on_within_10_s():
     connect timeout ends it, one line, well before 10 s."""
     import socket
 
+    pytest.importorskip("psycopg", reason="the PostgreSQL driver is not installed (pip install -e '.[postgres]')")
+
     with socket.socket() as silent:
         silent.bind(("127.0.0.1", 0))
         silent.listen(8)  # the kernel completes the handshake; nothing ever answers

@@ -135,6 +135,7 @@ def test_a_password_on_the_command_line_is_refused(tmp_path, capfd):
 def test_an_unreachable_store_at_start_is_one_line_and_exit_2(tmp_path):
     """serve (the URL in the environment, or in a URL file) and up (the URL in a worker's environment): the store
     named without its password and why, within 10 s; no worker ever started (no log file)."""
+    pytest.importorskip("psycopg", reason="the PostgreSQL driver is not installed (pip install -e '.[postgres]')")
     url = f"postgresql://occvo:{SECRET}@127.0.0.1:{free_port()}/occvo"
     logs = tmp_path / "logs"
     serve = [sys.executable, "-m", "occvo_cli", "serve", "--listen", f"tcp/127.0.0.1:{free_port()}"]

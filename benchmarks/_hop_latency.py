@@ -24,7 +24,9 @@ def hop_latency(n: int = 300, voxels: int = 30000, encoding: str = "axes") -> tu
     router = open_router(ep)
     pub_s, sub_s = open_session(ep), open_session(ep)
     rng = np.random.default_rng(0)
-    idx = rng.integers(0, OCC3D_GRID.shape, (voxels, 3))
+    # distinct voxels: a frame is a set of voxels, each once (the codec refuses duplicates)
+    flat = rng.choice(int(np.prod(OCC3D_GRID.shape)), voxels, replace=False)
+    idx = np.stack(np.unravel_index(flat, OCC3D_GRID.shape), axis=1)
     wobble = rng.integers(-3, 4, (3, max(OCC3D_GRID.shape))) * 2.0**-48  # the release's last bits, one value an index
     points = OCC3D_GRID.centres_of(idx) + np.stack([wobble[a, idx[:, a]] for a in range(3)], axis=1)
     labels = rng.integers(0, 17, voxels)

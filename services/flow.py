@@ -1,5 +1,5 @@
 """Flow of frames through a worker: bounded stage queues, per-stream sequence checks and the stream lane (one queue
-and one thread a stream, in arrival order)."""
+a stream and its strand on the worker's lane pool, in arrival order)."""
 
 from __future__ import annotations
 
@@ -11,7 +11,7 @@ from collections.abc import Callable
 from typing import TYPE_CHECKING
 
 from occvo_schemas.codec import CodecError
-from occvo_services.os_tuning import name_os_thread
+from occvo_services.strand import Strand
 from occvo_services.telemetry import log_event
 from occvo_services.worker_config import Policy
 
@@ -99,10 +99,12 @@ class SeqTracker:
 
 
 EVICT = object()  # put on an idle lane's queue: the lane ends and its stream's state is given back (services/memory.py)
+LANE_THREADS = 8  # a worker's lane pool: frames of this many streams handled at once, whatever the streams
 
 
 class StreamLane:
-    """One stream's bounded queue and the thread that runs the stage on it, in arrival (= sequence) order."""
+    """One stream's bounded queue and its strand on the worker's lane pool (services/strand.py): the stage runs on
+    the stream's frames one at a time, in arrival (= sequence) order, with no thread of the stream's own."""
 
     def __init__(
         self, worker: Worker, stream: str, handler: Callable[[str, object], None], after: StreamLane | None = None
@@ -111,54 +113,87 @@ class StreamLane:
         self.busy = False
         self.evicting = False  # EVICT is on its way to this lane
         self.evict_why = "memory"  # or "reclaimed": its place goes to a new stream
+        self.retiring = False  # idle_stream_s without a frame: its retirement is queued on its strand
         self.last_active = time.monotonic()  # the end of its last frame (the stream idle longest is evicted first)
         self.pending = 0  # frames handed to this lane and not yet in its queue (Worker.enqueue); guarded by _lanes_lock
-        self.after = after  # the stream's retired lane, still giving back its state: this one starts when it is done
+        self.ended = threading.Event()  # retired: its stream's state given back
         self.queue = StageQueue(worker.config.queue_size, worker.config.policy, self._dropped, worker.stopping)
-        self.thread = threading.Thread(target=self._run, name=f"{worker.role}-{stream}", daemon=True)
-        self.thread.start()
+        self.strand = Strand(worker.lane_pool)
+        if after is not None:  # the stream's retired lane, still giving back its state: this one starts when it is done
+            self.strand.submit(after.ended.wait)
+
+    def put(self, item) -> bool:
+        """A frame queued (lossless: waits for room) and its turn taken on the strand; False when stopping."""
+        if not self.queue.put(item):
+            return False
+        self.strand.submit(self._take)
+        return True
+
+    def post(self, item) -> bool:
+        """An item queued without waiting (EVICT); False if the queue is full."""
+        try:
+            self.queue.q.put_nowait(item)
+        except queue.Full:
+            return False
+        self.strand.submit(self._take)
+        return True
+
+    def idle_for(self, now: float) -> float:
+        """Seconds since its last frame ended, 0 while a frame is queued, on its way or in work."""
+        if self.busy or self.pending or self.queue.qsize() or not self.strand.idle:
+            return 0.0
+        return now - self.last_active
+
+    def retire_when_idle(self) -> None:
+        """idle_stream_s without a frame: the lane leaves, unless one comes before its turn."""
+        if not self.retiring:
+            self.retiring = True
+            self.strand.submit(self._retire, "idle")
+
+    def _retire(self, why: str) -> bool:
+        self.retiring = False
+        if self.worker.retire_lane(self, why):
+            self.ended.set()
+            return True
+        return False
 
     def _dropped(self, item) -> None:
         self._done(item)
         self.worker.stats.inc("drops")
         log_event(self.worker.log, "dropped oldest frame", logging.DEBUG, stream=self.stream)
 
-    def _run(self) -> None:
-        name_os_thread(f"lane-{self.stream}")
-        if self.after is not None:
-            self.after.thread.join()
-            self.after = None
-        while not self.worker.stopping.is_set():
-            try:  # blocks: a stop puts None, an idle stream's lane ends (no polling: idle lanes would cost a core's share)
-                item = self.queue.get(timeout=self.worker.config.idle_stream_s)
-            except queue.Empty:
-                if self.worker.retire_lane(self):
-                    return
-                continue
-            if item is EVICT:
-                self.evicting = False
-                if self.worker.retire_lane(self, self.evict_why):
-                    return
+    def _take(self) -> None:
+        """The next item of the queue, on a thread of the lane pool (the frame in hand is finished, even when
+        stopping; after a stop nothing more is taken)."""
+        if self.worker.stopping.is_set() or self.ended.is_set():
+            return
+        try:
+            item = self.queue.q.get_nowait()
+        except queue.Empty:  # the latest policy dropped it
+            return
+        if item is EVICT:
+            self.evicting = False
+            if not self._retire(self.evict_why):
                 self.worker.admission.stays(self.stream)  # a frame came meanwhile: it keeps its place
-                continue
-            if item is None:
-                continue
-            self.busy = True
-            try:
-                self.handler(self.stream, item)  # the frame in hand is always finished, even when stopping
-            except Exception as exc:  # noqa: BLE001 - a worker never dies of one frame
-                seq = getattr(item[0], "seq", None) if isinstance(item, tuple) and item else None
-                if isinstance(exc, CodecError):  # e.g. an output over the size limit: the frame's problem, named so
-                    self.worker.report_error(
-                        self.stream, exc.code, f"seq {seq}: output not sent: {exc.message}", seq=seq
-                    )
-                else:
-                    self.worker.report_error(self.stream, "internal", f"{type(exc).__name__}: {exc}", seq=seq)
-                log_event(self.worker.log, "stage failed", logging.ERROR, stream=self.stream, error=repr(exc))
-            finally:
-                self._done(item)
-                self.busy = False
-                self.last_active = time.monotonic()
+            return
+        if item is not None:
+            self._handle(item)
+
+    def _handle(self, item) -> None:
+        self.busy = True
+        try:
+            self.handler(self.stream, item)
+        except Exception as exc:  # noqa: BLE001 - a worker never dies of one frame
+            seq = getattr(item[0], "seq", None) if isinstance(item, tuple) and item else None
+            if isinstance(exc, CodecError):  # e.g. an output over the size limit: the frame's problem, named so
+                self.worker.report_error(self.stream, exc.code, f"seq {seq}: output not sent: {exc.message}", seq=seq)
+            else:
+                self.worker.report_error(self.stream, "internal", f"{type(exc).__name__}: {exc}", seq=seq)
+            log_event(self.worker.log, "stage failed", logging.ERROR, stream=self.stream, error=repr(exc))
+        finally:
+            self._done(item)
+            self.busy = False
+            self.last_active = time.monotonic()
 
     def _done(self, item) -> None:
         """A frame handled or dropped: its memory charge (Worker.enqueue) is given back."""

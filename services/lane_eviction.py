@@ -4,7 +4,6 @@ place (the admission's reclaim), and the lane idle longest evicted as the reside
 
 from __future__ import annotations
 
-import queue
 import time
 from typing import TYPE_CHECKING
 
@@ -30,9 +29,7 @@ def reclaim(w: Worker, candidates: list[tuple[str, int]], idle_only: bool) -> st
         ready.append((rank, lane.last_active, stream))
     for _, _, stream in sorted(ready):
         lane = lanes[stream]
-        try:
-            lane.queue.q.put_nowait(EVICT)
-        except queue.Full:
+        if not lane.post(EVICT):
             continue
         lane.evicting, lane.evict_why = True, "reclaimed"
         return stream
@@ -56,8 +53,6 @@ def relieve_memory(w: Worker) -> None:
         if not idle:
             return
         lane = min(idle, key=lambda lane: lane.last_active)
-        try:
-            lane.queue.q.put_nowait(EVICT)
-        except queue.Full:
+        if not lane.post(EVICT):
             return
         lane.evicting, lane.evict_why, w._evicted_at = True, "memory", now

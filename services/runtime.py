@@ -4,11 +4,9 @@ its Zenoh sessions come from services/sessions.py."""
 
 from __future__ import annotations
 
-import contextlib
 import functools
 import logging
 import os
-import queue
 import signal
 import threading
 import time
@@ -21,14 +19,15 @@ import zenoh
 from occvo_schemas import keys
 from occvo_schemas.codec import CodecError, decode, encode
 from occvo_schemas.models import ErrorEvent, WorkerHealth
-from occvo_services.flow import SeqTracker, StageQueue, StreamLane
+from occvo_services.flow import LANE_THREADS, SeqTracker, StageQueue, StreamLane
 from occvo_services.lane_eviction import reclaim, relieve_memory
 from occvo_services.limits import MAX_KEY_CHARS, MAX_MESSAGE_CHARS, Admission, ErrorBudget, clip, identity_of
 from occvo_services.memory import MemoryCap
-from occvo_services.os_tuning import trim_heap
+from occvo_services.os_tuning import name_os_thread, trim_heap
 from occvo_services.query_gate import QueryGate
 from occvo_services.sessions import open_session
 from occvo_services.store_url import redact
+from occvo_services.strand import pool
 from occvo_services.telemetry import Stats, log_event, structured_logger
 from occvo_services.wire import blocking, encoding
 from occvo_services.worker_config import DEFAULT_ENDPOINT, Policy, WorkerConfig
@@ -65,6 +64,9 @@ class Worker:
         self._evicted_at = 0.0
         self._declared: list = []
         self._retired: dict[str, StreamLane] = {}
+        # the streams' lanes take turns on these threads (services/strand.py): as many whatever the streams
+        self.lane_pool = pool(LANE_THREADS, f"{self.role}-lane", initializer=name_os_thread)
+        self._sweeper = threading.Thread(target=self._sweep_idle, name=f"{self.role}-idle", daemon=True)
         self.session: zenoh.Session | None = None
 
     # -- lifecycle
@@ -73,6 +75,7 @@ class Worker:
         self._declared.append(self.session.declare_queryable(keys.stats(self.worker_id), self._on_stats))
         self.declare()
         self.token = self.session.liveliness().declare_token(keys.alive(self.role, self.worker_id))
+        self._sweeper.start()
         log_event(
             self.log,
             "started",
@@ -92,14 +95,12 @@ class Worker:
             return
         self.stopping.set()
         for lane in list(self.lanes.values()):
-            with contextlib.suppress(queue.Full):  # a full queue's lane is busy anyway
-                lane.queue.q.put_nowait(None)  # wakes a lane waiting for a frame
-        for lane in list(self.lanes.values()):
-            lane.thread.join(timeout=60)
+            lane.strand.wait_idle(timeout=60)  # its frame in hand finished; nothing more is taken
             left = lane.queue.qsize()
             if left:
                 self.stats.inc("abandoned_at_shutdown", left)
         self.drain()
+        self.lane_pool.shutdown(wait=False)  # idle unless a lane's frame did not finish in time
         for entity in (self.token, *self._declared):
             try:
                 entity.undeclare()
@@ -130,6 +131,15 @@ class Worker:
         log_event(self.log, "shutdown requested", worker=self.worker_id)
         self.stop()
         return 0
+
+    def _sweep_idle(self) -> None:
+        """Lanes idle_stream_s without a frame leave (their stream's state is given back, their place freed)."""
+        idle_s = self.config.idle_stream_s
+        while not self.stopping.wait(min(1.0, idle_s / 4)):
+            now = time.monotonic()
+            for lane in list(self.lanes.values()):
+                if lane.idle_for(now) >= idle_s:
+                    lane.retire_when_idle()
 
     # -- helpers for roles
     def lane(self, stream: str, handler: Callable[[str, object], None]) -> StreamLane:
@@ -235,7 +245,7 @@ class Worker:
                 self.report_error(msg.stream, "store_unavailable", why, str(sample.key_expr), msg.seq)
                 self.not_held(msg.stream, msg.seq)
                 return
-            if not lane.queue.put((msg, hop_ms, time.perf_counter(), decode_ms, sample.source_info, cost)):
+            if not lane.put((msg, hop_ms, time.perf_counter(), decode_ms, sample.source_info, cost)):
                 self.memory.discharge(cost)  # stopping
         finally:
             with self._lanes_lock:

@@ -4,10 +4,12 @@
   (occvo_core.registration.kernels.own_team). A session hands it its frame's registration when its OccVO may use
   more than one thread; caught up, the frame's commit and pose publication follow in the same call. Once the kernels
   are done, the team's OpenMP threads (spinning after a kernel) are lowered (IdleTeam) and raised before the next.
-- A session's after-pose thread (`StreamThreads.after`): its frames' work after their poses (loop closure, the map
-  update, the second store write), after_pose_nice below the lanes. When a lane waits for that work it is raised to
-  the lane's priority until it ends (priority inheritance: `StreamThreads.wait_after_pose`).
-- A session's map thread (`StreamThreads.map`): tiles cut and sent, at the lane's priority (it holds the GIL).
+- The after-pose pool (AFTER_POSE_THREADS, after_pose_nice below the lanes), where a session's strand
+  (`StreamThreads.after`, services/strand.py) runs its frames' work after their poses in order (loop closure, the map
+  update, the second store write). When a lane waits for that work, the thread running it is raised to the lane's
+  priority until it ends (priority inheritance: `StreamThreads.wait_after_pose`).
+- The map pool (MAP_THREADS), where a session's strand (`StreamThreads.map`) cuts and sends its tiles in frame order,
+  at the lanes' priority (it holds the GIL).
 - Kernel threads of a frame (`Scheduler.fair_threads`): the cores other processes leave free, shared among the
   lanes registering now."""
 
@@ -16,7 +18,7 @@ from __future__ import annotations
 import logging
 import os
 import threading
-from concurrent.futures import Future, ThreadPoolExecutor
+from concurrent.futures import Future
 
 from occvo_core.free_cores import FREE_CORES
 from occvo_core.registration.kernels import own_team, use_threads
@@ -28,9 +30,12 @@ from occvo_services.os_tuning import (
     release_priority,
     run_delay_ms,
 )
+from occvo_services.strand import Strand, pool
 from occvo_services.telemetry import log_event
 
 CORES = len(FREE_CORES.cpus)  # the cores this process may run on
+AFTER_POSE_THREADS = 4  # the streams' work after their poses, this many at once
+MAP_THREADS = 2  # the streams' map updates (they hold the GIL: more would only wait for it)
 
 
 def _map_thread_start() -> None:
@@ -45,7 +50,9 @@ class Scheduler:
 
     def __init__(self, after_pose_nice: int, stats, log):
         self.after_pose_nice, self.stats, self.log = after_pose_nice, stats, log
-        self._team = ThreadPoolExecutor(1, "kernels", initializer=name_os_thread)
+        self._team = pool(1, "kernels", initializer=name_os_thread)
+        self.after_pool = pool(AFTER_POSE_THREADS, "after-pose", initializer=self.background_thread)
+        self.map_pool = pool(MAP_THREADS, "map", initializer=_map_thread_start)
         self._idle_team = IdleTeam()
         self._boost_refused = False
         if not self._team.submit(own_team).result():
@@ -103,6 +110,11 @@ class Scheduler:
     def shutdown(self) -> None:
         self._team.shutdown(wait=False)  # idle unless a lane's frame did not finish in time
 
+    def close_pools(self) -> None:
+        """After the sessions' last work: a strand's task left then runs in the thread that gives it."""
+        self.after_pool.shutdown(wait=False)
+        self.map_pool.shutdown(wait=False)
+
 
 class CatchUp:
     """Sessions catching up (reopened from the store: moved from a lost worker, or back from idle) register before
@@ -132,28 +144,29 @@ class CatchUp:
 
 
 class StreamThreads:
-    """A session's after-pose thread and map thread, started by its lane (a thread starts at the niceness of the
-    thread that made it), and the after-pose thread's priority inheritance."""
+    """A session's after-pose strand and map strand on the worker's pools, and priority inheritance for the thread
+    running its after-pose work."""
 
     def __init__(self, stream: str, scheduler: Scheduler):
         self.stream, self.scheduler = stream, scheduler
-        self.after: ThreadPoolExecutor | None = None
-        self.tail: Future | None = None  # the last job in the after-pose thread
-        self.map: ThreadPoolExecutor | None = None
+        self.after: Strand | None = None
+        self.tail: Future | None = None  # the last job in the after-pose strand
+        self.map: Strand | None = None
         self.map_tail: Future | None = None  # the last frame's tiles
         # set: the after-pose work may start (a frame came in, or the pose had its head start)
         self.head_start = threading.Event()
         self.head_start.set()
         self._lock = threading.Lock()  # orders a lane's boost against the end of the work it boosts
         self._running = False  # a frame's work after its pose is due or running
-        self._tid: int | None = None  # native id of the after-pose thread
+        self._tid: int | None = None  # native id of the thread running its after-pose work now
+        self._wanted: int | None = None  # the niceness of a lane waiting for that work
         self.boosted = False  # that thread runs at the lane's priority (the lane waits for it)
 
     def start(self) -> None:
         if self.after is None:
-            self.after = ThreadPoolExecutor(1, f"after-{self.stream}", initializer=self.scheduler.background_thread)
+            self.after = Strand(self.scheduler.after_pool)
         if self.map is None:
-            self.map = ThreadPoolExecutor(1, f"map-{self.stream}", initializer=_map_thread_start)
+            self.map = Strand(self.scheduler.map_pool)
             self.map_tail = self.map.submit(int)
 
     def work_due(self) -> None:
@@ -161,7 +174,7 @@ class StreamThreads:
         self._running = True
 
     def submit_after(self, fn, *args, head_start_s: float | None = None) -> Future:
-        """fn(*args) in the after-pose thread, after the jobs before it. head_start_s: it waits that long or until
+        """fn(*args) in the after-pose strand, after the jobs before it. head_start_s: it waits that long or until
         the stream's next frame comes."""
         if head_start_s is not None:
             self.head_start.clear()
@@ -171,15 +184,18 @@ class StreamThreads:
     def _run(self, fn, args, head_start_s: float | None) -> None:
         if head_start_s is not None:
             self.head_start.wait(head_start_s)
-        self._tid = threading.get_native_id()
+        with self._lock:  # a pool's thread: a lane that waited before the work began raises it now
+            self._tid = threading.get_native_id()
+            self._raise()
         try:
             fn(*args)
         finally:
             with self._lock:
                 self._running = False
-                if self.boosted:  # niced again for the next frame's work
+                if self.boosted:  # niced again for the next stream's work
                     release_priority(self._tid)
                     self.boosted = False
+                self._tid = self._wanted = None
 
     def wait_after_pose(self) -> None:
         """The lane waits for the last frame's work after its pose: that work now holds up a pose, so it runs at the
@@ -193,16 +209,23 @@ class StreamThreads:
 
     def _boost(self) -> None:
         with self._lock:
-            if not self._running or self._tid is None or self.boosted:
+            if not self._running or self.boosted:
                 return
-            if hold_priority(self._tid, os.getpriority(os.PRIO_PROCESS, threading.get_native_id())):
-                self.boosted = True
-                self.scheduler.stats.inc("after_pose_boosted")
-            else:
-                self.scheduler.boost_refused()
+            self._wanted = os.getpriority(os.PRIO_PROCESS, threading.get_native_id())
+            self._raise()
+
+    def _raise(self) -> None:
+        """Under _lock: the thread running the work to the waiting lane's niceness."""
+        if self._wanted is None or self._tid is None or self.boosted:
+            return
+        if hold_priority(self._tid, self._wanted):
+            self.boosted = True
+            self.scheduler.stats.inc("after_pose_boosted")
+        else:
+            self.scheduler.boost_refused()
 
     def submit_map(self, fn, *args) -> None:
-        """fn(*args) in the map thread once the last frame's tiles are out (one frame's tiles at most wait there)."""
+        """fn(*args) in the map strand once the last frame's tiles are out (one frame's tiles at most wait there)."""
         self.wait_map()
         self.map_tail = self.map.submit(fn, *args)
 
@@ -218,9 +241,6 @@ class StreamThreads:
         self.wait_map()
 
     def close(self) -> None:
-        """The threads end (after their jobs)."""
+        """The strands end (after their jobs)."""
         self.drain()
-        for pool in (self.after, self.map):
-            if pool is not None:
-                pool.shutdown(wait=True)
         self.after = self.tail = self.map = self.map_tail = None

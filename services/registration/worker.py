@@ -251,11 +251,12 @@ class RegistrationWorker(Worker):
         """Off the network (the frames in hand finished): end the sessions' threads, then snapshot every session
         with unsnapshotted frames."""
         self.scheduler.shutdown()
-        in_hand = {stream for stream, lane in list(self.lanes.items()) if lane.thread.is_alive()}
+        in_hand = {stream for stream, lane in list(self.lanes.items()) if not lane.strand.idle}
         for stream, s in self.sessions_now():
-            if stream not in in_hand:  # drained already: its threads end now, not at interpreter exit
+            if stream not in in_hand:  # drained already: its strands end now
                 s.threads.close()
         if self.store is None:
+            self.scheduler.close_pools()
             return
         self.retention.stop()
         t0 = time.perf_counter()
@@ -273,6 +274,7 @@ class RegistrationWorker(Worker):
             for stream, s in self.sessions_now():
                 if s.epoch is not None and stream not in in_hand:
                     self.leases.release(stream)
+        self.scheduler.close_pools()
         t0, sizes = time.perf_counter(), self.store.file_sizes_mb()  # the WAL is checkpointed into the file on close
         self.store.close()
         self._shutdown_step("store closed", t0, **sizes)

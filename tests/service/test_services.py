@@ -362,16 +362,13 @@ def test_replay_of_a_synthetic_scene(service):
         assert np.abs(out["trajectory"] - offline([scene[i] for i in range(3)]).poses).max() <= 1e-9
     with pytest.raises(Exception, match="synthetic:<seed>"):
         load_scene("synthetic:x")
-    # the work after each pose (loop closure, map update, eviction) ran in the stream's own thread, 10 nicer than
-    # the lane that registers its frames: other streams' poses go first on the cores
+    # the work after each pose (loop closure, map update, eviction) ran in a thread of the after-pose pool, 10 nicer
+    # than the lane's thread that registers its frames: other streams' poses go first on the cores
     worker = next(w for w in service.workers if w.role == "registration")
     worker.drain()
     st, lane = worker.sessions["synthetic"], worker.lanes["synthetic"]
-    (after_pose,) = st.threads.after._threads
-    assert (
-        os.getpriority(os.PRIO_PROCESS, after_pose.native_id)
-        == os.getpriority(os.PRIO_PROCESS, lane.thread.native_id) + 10
-    )
+    after_pose = st.threads.after.native_id  # the thread that ran the stream's last work after a pose
+    assert os.getpriority(os.PRIO_PROCESS, after_pose) == os.getpriority(os.PRIO_PROCESS, lane.strand.native_id) + 10
     assert st.threads.tail.done() and st.threads.tail.exception() is None
 
 
@@ -418,7 +415,7 @@ def test_a_lane_waiting_for_its_streams_after_pose_work_raises_it_to_the_lanes_p
         for i in range(3):
             c.publish(scene[i])
         st = worker.sessions["boost"]
-        lane_nice = os.getpriority(os.PRIO_PROCESS, worker.lanes["boost"].thread.native_id)
+        lane_nice = os.getpriority(os.PRIO_PROCESS, worker.lanes["boost"].strand.native_id)
         deadline = time.monotonic() + 30
         # frame 2 waits in the lane for frame 1's work (frame 0's, boosted by frame 1's lane, is over once it holds)
         while not (held_at.is_set() and st.threads.boosted) and time.monotonic() < deadline:
@@ -427,8 +424,8 @@ def test_a_lane_waiting_for_its_streams_after_pose_work_raises_it_to_the_lanes_p
         c.wait_pose(2, timeout=60)
     worker.drain()
     assert seen == [lane_nice]  # frame 1's work finished at the lane's priority
-    (thread,) = st.threads.after._threads
-    assert os.getpriority(os.PRIO_PROCESS, thread.native_id) == lane_nice + 10  # and was niced again
+    thread = st.threads.after.native_id  # the pool's thread that ran it
+    assert os.getpriority(os.PRIO_PROCESS, thread) == lane_nice + 10  # and was niced again
     assert not st.threads.boosted and worker.stats.snapshot()[0]["after_pose_boosted"] >= 1
 
 
@@ -467,11 +464,11 @@ def test_a_pose_is_published_while_its_work_after_the_pose_is_held(service):
         "map_publish",
     }
     assert {"decode", "validate", "pose_encode"} | after <= set(stages) and "complete.fine_gicp" not in stages
-    # the tiles were cut and sent in the stream's map thread, at the lane's priority (it holds the GIL)
+    # the tiles were cut and sent in a thread of the map pool, at the lane's priority (it holds the GIL)
     st = worker.sessions["early"]
-    (map_thread,) = st.threads.map._threads
-    nice = os.getpriority(os.PRIO_PROCESS, worker.lanes["early"].thread.native_id)
-    assert os.getpriority(os.PRIO_PROCESS, map_thread.native_id) == nice and st.threads.map_tail.done()
+    map_thread = st.threads.map.native_id
+    nice = os.getpriority(os.PRIO_PROCESS, worker.lanes["early"].strand.native_id)
+    assert os.getpriority(os.PRIO_PROCESS, map_thread) == nice and st.threads.map_tail.done()
 
 
 def _wait_for(what, timeout: float = 60.0) -> None:

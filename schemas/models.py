@@ -398,6 +398,7 @@ ErrorCode = Literal[
     "not_stored",  # the store refused the write (e.g. disk full): not an answer yet (the client resends it)
     "store_quota",  # the client's streams or bytes in the store are at its quota: the frame is not registered
     "store_unavailable",  # the store cannot be reached and the worker cannot hold the frame: not an answer (resent)
+    "stream_full",  # lossless: the stream's queue is full (or a frame before it was turned away): not an answer (resent)
 ]
 
 

@@ -38,13 +38,15 @@ from occvo_schemas.models import (
     WorkerHealth,
 )
 from occvo_services.camera_frames import camera_frame_of
+from occvo_services.client_gets import replies
 from occvo_services.logins import own_stream
 from occvo_services.runtime import DEFAULT_ENDPOINT
 from occvo_services.sessions import open_login
 from occvo_services.wire import encoding
 
 # error events that leave a frame waiting for its pose: it is sent again every resend_after until the pose comes
-PENDING_CODES = ("missing_seq", "seq_held", "not_stored", "store_unavailable")
+PENDING_CODES = ("missing_seq", "seq_held", "not_stored", "store_unavailable", "stream_full")
+FULL_RETRY_S = 1.0  # a frame a full queue turned away is sent again at the stream's next pose, or after this
 
 
 class ServiceError(RuntimeError):
@@ -93,6 +95,8 @@ class OccVOClient:
         self._down = False  # a worker of the path left: hold new frames until it is back and the lost ones resent
         self._back_at: float | None = None
         self.resends = 0
+        self._full_from: int | None = None  # the first frame a full queue turned away (stream_full), until resent
+        self._full_at = 0.0
         self._alive: set[str] = set()  # worker tokens seen (workers())
         self._alive_sub = None
         self._subs = [
@@ -134,6 +138,9 @@ class OccVOClient:
             return
         with self._cv:
             self.errors.append(event)
+            if event.code == "stream_full" and event.seq is not None:  # sent again from there (_resend_loop)
+                self._full_from = min(event.seq, event.seq if self._full_from is None else self._full_from)
+                self._full_at = time.monotonic()
             # not answers: a gap before the frame, a jump held for its next frame, a write the store refused (the
             # frame stays unanswered and is sent again after resend_after, until its pose comes)
             if event.seq is not None and event.code not in PENDING_CODES:
@@ -171,6 +178,8 @@ class OccVOClient:
         while not self._closed.wait(0.1):
             if self.resend_after is None:
                 continue
+            if self._full_due():
+                continue
             with self._cv:
                 now = time.monotonic()
                 # back: its subscriptions have reached the router by now (they are declared before its token)
@@ -185,11 +194,22 @@ class OccVOClient:
                     self._down, self._back_at = False, None
                     self._cv.notify_all()
 
-    def resend(self) -> int:
-        """Send every unanswered frame again, in seq order; returns how many."""
+    def _full_due(self) -> bool:
+        """Frames a full queue turned away sent again, in order, once a pose freed room (or after FULL_RETRY_S)."""
+        with self._cv:
+            k = self._full_from
+            if k is None or (self._last_answer <= self._full_at and time.monotonic() - self._full_at < FULL_RETRY_S):
+                return False
+            self._full_from = None
+            self._cv.notify_all()
+        self.resend(k)
+        return True
+
+    def resend(self, first: int = 0) -> int:
+        """Send every unanswered frame (from seq `first` on) again, in seq order; returns how many."""
         with self._send_lock:
             with self._cv:
-                pending = sorted(self._unanswered.items())
+                pending = sorted((seq, p) for seq, p in self._unanswered.items() if seq >= first)
             for _, payload in pending:
                 self._put(payload)
             self.resends += len(pending)
@@ -217,7 +237,12 @@ class OccVOClient:
         self._seq += 1
         with self._cv:  # while a worker of the path is away, a new frame would overtake the lost ones
             deadline = time.monotonic() + self.timeout
-            while self._down and self.resend_after is not None and time.monotonic() < deadline:
+            # and while frames a full queue turned away wait to go again: the new one would be turned away too
+            while (
+                (self._down or self._full_from is not None)
+                and self.resend_after is not None
+                and time.monotonic() < deadline
+            ):
                 self._cv.wait(0.1)
         with self._send_lock:
             with self._cv:
@@ -262,43 +287,16 @@ class OccVOClient:
     def _replies(
         self, selector: str, expect, payload: bytes | None, timeout: float | None = None, first: bool = False
     ) -> tuple[list, list[ErrorEvent]]:
-        """The decoded answers and error replies of a get, within `timeout` (the client's query_timeout). first:
-        one answer is the whole answer (a tile, map info, a stream's trajectory or pose): taken as soon as it
-        comes, so a queryable that never answers delays nothing. Answered only `busy` (this client has
-        max_queries_per_client queries in work, e.g. from other threads), it is asked again after a short wait."""
+        """A get's decoded answers and error replies within `timeout` (the client's query_timeout), as this client
+        (services/client_gets.py)."""
         timeout = self.query_timeout if timeout is None else timeout
-        deadline, wait = time.monotonic() + timeout, 0.01
-        while True:
-            out, errs = [], []
-            # the best match: one complete queryable (a map service replica) where there is one, else every match;
-            # the source info names this client's session: the workers' query budgets are per client
-            with self._cv:
-                self._sn += 1
-                info = zenoh.SourceInfo(self.session.id, self._sn)
-            replies = self.session.get(
-                selector,
-                payload=payload,
-                timeout=max(0.01, deadline - time.monotonic()),
-                target=zenoh.QueryTarget.BEST_MATCHING,
-                consolidation=zenoh.ConsolidationMode.NONE,  # replies as they come; one per key kept below
-                source_info=info,
-                encoding=encoding("map_tile_query") if payload is not None else None,  # the one query with a payload
-            )
-            for reply in replies:
-                if reply.ok is not None:
-                    out.append(decode(reply.ok.payload.to_bytes(), expect, 1 << 30))
-                    if first:
-                        break
-                else:
-                    try:
-                        errs.append(decode(reply.err.payload.to_bytes(), ErrorEvent))
-                    except CodecError:
-                        text = reply.err.payload.to_bytes().decode(errors="replace")
-                        errs.append(ErrorEvent(stream=self.stream, worker="?", code="internal", message=text))
-            if out or not errs or any(e.code != "busy" for e in errs) or time.monotonic() + wait > deadline:
-                return out, errs
-            time.sleep(wait)
-            wait = min(0.5, wait * 2)
+        return replies(self.session, self._source_info, self.stream, selector, expect, payload, timeout, first)
+
+    def _source_info(self) -> zenoh.SourceInfo:
+        """Names this client's session: the workers' query budgets are per client."""
+        with self._cv:
+            self._sn += 1
+            return zenoh.SourceInfo(self.session.id, self._sn)
 
     def _get(self, selector: str, expect, payload: bytes | None = None, first: bool = True) -> list:
         out, errs = self._replies(selector, expect, payload, first=first)

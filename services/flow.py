@@ -20,7 +20,8 @@ if TYPE_CHECKING:
 
 
 class StageQueue:
-    """Bounded queue between two stages. lossless: put blocks (backpressure); latest: the oldest item is dropped."""
+    """Bounded queue between two stages; put never waits. lossless: a full queue refuses the item (its sender is
+    answered, and sends it again); latest: the oldest item is dropped."""
 
     def __init__(self, maxsize: int, policy: Policy, on_drop: Callable[[object], None], stop: threading.Event):
         self.q: queue.Queue = queue.Queue(maxsize=maxsize)
@@ -29,15 +30,15 @@ class StageQueue:
         self.stop = stop
 
     def put(self, item) -> bool:
-        """False when the item could not be queued because the worker is stopping."""
-        if self.policy == "lossless":
-            while not self.stop.is_set():
-                try:
-                    self.q.put(item, timeout=0.1)
-                    return True
-                except queue.Full:
-                    continue
+        """False when the item was not queued: the worker is stopping, or (lossless) the queue is full."""
+        if self.stop.is_set():
             return False
+        if self.policy == "lossless":
+            try:
+                self.q.put_nowait(item)
+                return True
+            except queue.Full:
+                return False
         while True:
             try:
                 self.q.put_nowait(item)
@@ -123,7 +124,7 @@ class StreamLane:
             self.strand.submit(after.ended.wait)
 
     def put(self, item) -> bool:
-        """A frame queued (lossless: waits for room) and its turn taken on the strand; False when stopping."""
+        """A frame queued and its turn taken on the strand; False if not queued (stopping, or lossless and full)."""
         if not self.queue.put(item):
             return False
         self.strand.submit(self._take)

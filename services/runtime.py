@@ -4,7 +4,6 @@ its Zenoh sessions come from services/sessions.py."""
 
 from __future__ import annotations
 
-import functools
 import logging
 import os
 import signal
@@ -20,8 +19,8 @@ from occvo_schemas import keys
 from occvo_schemas.codec import CodecError, decode, encode
 from occvo_schemas.models import ErrorEvent, WorkerHealth
 from occvo_services.flow import LANE_THREADS, SeqTracker, StageQueue, StreamLane
-from occvo_services.lane_eviction import reclaim, relieve_memory
-from occvo_services.limits import MAX_KEY_CHARS, MAX_MESSAGE_CHARS, Admission, ErrorBudget, clip, identity_of
+from occvo_services.ingress import TurnedAway, enqueue
+from occvo_services.limits import MAX_KEY_CHARS, MAX_MESSAGE_CHARS, Admission, ErrorBudget, clip
 from occvo_services.memory import MemoryCap
 from occvo_services.os_tuning import name_os_thread, trim_heap
 from occvo_services.query_gate import QueryGate
@@ -60,6 +59,7 @@ class Worker:
         self.admission = Admission(config.max_streams, config.max_streams_per_client)
         self.error_budget = ErrorBudget(config.error_events_per_s, config.error_burst)
         self.memory = MemoryCap(config.max_rss_mb)
+        self.turned_away = TurnedAway()  # lossless: frames a full queue turned away (services/ingress.py)
         self.query_gates: dict[str, QueryGate] = {}  # one a queryable (bounded()), by its handler's name
         self._evicted_at = 0.0
         self._declared: list = []
@@ -194,62 +194,19 @@ class Worker:
     def enqueue(
         self, sample: zenoh.Sample, expect, handler: Callable[[str, object], None], judge_seq: bool = True, place=None
     ) -> None:
-        """Decode a stream message, check its sequence number (judge_seq False: the handler does, against what it
-        committed) and queue it on its stream's lane with its hop latency; bad messages are reported by decode_input
-        and check_seq, never raised. place(msg) -> False: a decoded message another worker takes (nothing more)."""
-        t_recv, t_decode = time.time(), time.perf_counter()
-        msg = self.decode_input(
-            sample, expect, identity_of(sample, keys.stream_of(str(sample.key_expr)), self.config.client_identity)
-        )
-        if msg is None or self.stopping.is_set() or (place is not None and not place(msg)):
-            return
-        decode_ms = (time.perf_counter() - t_decode) * 1000.0
-        self.stats.observe("decode", decode_ms)
-        relieve_memory(self)
-        client = identity_of(sample, msg.stream, self.config.client_identity)
-        refused = None
-        if msg.stream not in self.admission.streams and (why := self.memory.refuse(msg.stream)) is not None:
-            self.stats.inc("streams_refused_memory")
-            refused = ("stream_limit", why)
-        refused = refused or self.admission.admit(msg.stream, client, functools.partial(reclaim, self))
-        if refused is not None:
-            code, why = refused
-            self.stats.inc("streams_refused" if code == "stream_limit" else "frames_not_owner")
-            # another client's frame: no seq in the event, the owner's client would take it for its own frame's answer
-            self.report_error(msg.stream, code, why, str(sample.key_expr), msg.seq if code == "stream_limit" else None)
-            return
-        if judge_seq and not self.check_seq(msg.stream, msg.seq, str(sample.key_expr)):
-            with self._lanes_lock:
-                if msg.stream not in self.lanes:  # admitted for nothing: its place goes back
-                    self.admission.release(msg.stream)
-            return
-        cost, away = self.frame_cost_mb(msg), self.store_away()
-        if (why := self.memory.charge(msg.stream, msg.seq, cost)) is not None:
-            self.stats.inc("frames_refused_memory")
-            # the store away: the frames held for it fill the cap; this one is sent again once they are stored
-            code, why = ("store_unavailable", f"{why}: frames held while {away}") if away else ("oversize", why)
-            self.report_error(msg.stream, code, why, str(sample.key_expr), msg.seq)
-            if away:
-                self.not_held(msg.stream, msg.seq)
-            return
-        # a sent_at a day off (e.g. 1e308) would give an infinite hop: no hop latency then, not a failed stage
-        hop_ms = (t_recv - msg.sent_at) * 1000.0 if 0 < msg.sent_at and abs(t_recv - msg.sent_at) < 86400 else 0.0
-        lane = self.lane(msg.stream, handler)
-        try:
-            if away and lane.queue.qsize() >= self.config.queue_size:  # held frames fill it: refused, not blocked
-                self.memory.discharge(cost)
-                self.stats.inc("frames_refused_store_away")
-                why = (
-                    f"seq {msg.seq} not held: {self.config.queue_size} frames of the stream wait for the store ({away})"
-                )
-                self.report_error(msg.stream, "store_unavailable", why, str(sample.key_expr), msg.seq)
-                self.not_held(msg.stream, msg.seq)
-                return
-            if not lane.put((msg, hop_ms, time.perf_counter(), decode_ms, sample.source_info, cost)):
-                self.memory.discharge(cost)  # stopping
-        finally:
-            with self._lanes_lock:
-                lane.pending -= 1
+        """A stream message in, queued on its lane or answered at once (services/ingress.py)."""
+        enqueue(self, sample, expect, handler, judge_seq, place)
+
+    def release_unserved(self, stream: str) -> None:
+        """An admitted stream's frame went nowhere: without a lane its place goes back."""
+        with self._lanes_lock:
+            if stream not in self.lanes:
+                self.admission.release(stream)
+
+    def lane_entered(self, lane: StreamLane) -> None:
+        """A frame handed to lane() is queued or answered (lane.pending counts those on their way)."""
+        with self._lanes_lock:
+            lane.pending -= 1
 
     def reports_input(self, stream: str) -> bool:
         """Whether this worker reports a stream's message that did not decode (roles where every worker receives

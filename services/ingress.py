@@ -1,0 +1,144 @@
+"""A worker's frames in, on Zenoh's callback: decoded once, admitted, charged to the memory cap and queued on their
+stream's lane, or answered at once with the reason; never waited on. A stream whose queue is full under the lossless
+policy gets `stream_full` for the frame (not an answer: the client sends it again), and its later frames get the same
+until that one is in, so the stream's frames still enter in order and none is lost (services/client.py resends)."""
+
+from __future__ import annotations
+
+import functools
+import threading
+import time
+from collections.abc import Callable
+from typing import TYPE_CHECKING
+
+import zenoh
+
+from occvo_schemas import keys
+from occvo_services.lane_eviction import reclaim, relieve_memory
+from occvo_services.limits import identity_of
+
+if TYPE_CHECKING:
+    from occvo_services.runtime import Worker
+
+MAX_TURNED_AWAY = 4096  # streams remembered with a frame turned away
+
+
+class TurnedAway:
+    """Per stream, the first frame a full queue turned away: the frames after it wait for it."""
+
+    def __init__(self):
+        self._lock = threading.Lock()
+        self._first: dict[str, int] = {}
+
+    def waits(self, stream: str, seq: int) -> int | None:
+        """The seq frame `seq` waits for, or None (seq 0 starts the stream again)."""
+        with self._lock:
+            k = self._first.get(stream)
+            if k is not None and seq == 0:
+                del self._first[stream]
+                return None
+            return None if k is None or seq <= k else k
+
+    def turned_away(self, stream: str, seq: int) -> None:
+        with self._lock:
+            self._first[stream] = min(seq, self._first.get(stream, seq))
+            if len(self._first) > MAX_TURNED_AWAY:
+                self._first.pop(next(iter(self._first)))
+
+    def entered(self, stream: str, seq: int) -> None:
+        with self._lock:
+            if self._first.get(stream) == seq:
+                del self._first[stream]
+
+
+def enqueue(
+    w: Worker, sample: zenoh.Sample, expect, handler: Callable[[str, object], None], judge_seq: bool, place
+) -> None:
+    """Decode a stream message, check its sequence number (judge_seq False: the handler does, against what it
+    committed) and queue it on its stream's lane with its hop latency; bad messages are reported by decode_input
+    and check_seq, never raised. place(msg) -> False: a decoded message another worker takes (nothing more)."""
+    t_recv, t_decode = time.time(), time.perf_counter()
+    client = identity_of(sample, keys.stream_of(str(sample.key_expr)), w.config.client_identity)
+    msg = w.decode_input(sample, expect, client)
+    if msg is None or w.stopping.is_set() or (place is not None and not place(msg)):
+        return
+    decode_ms = (time.perf_counter() - t_decode) * 1000.0
+    w.stats.observe("decode", decode_ms)
+    key = str(sample.key_expr)
+    if not _admitted(w, msg, identity_of(sample, msg.stream, w.config.client_identity), key):
+        return
+    if judge_seq and not w.check_seq(msg.stream, msg.seq, key):
+        w.release_unserved(msg.stream)  # admitted for nothing: its place goes back
+        return
+    if (waits_for := w.turned_away.waits(msg.stream, msg.seq)) is not None:
+        why = f"seq {msg.seq} waits for seq {waits_for}, which its full queue turned away: send both again"
+        return _full(w, msg, why, key)
+    cost = _charged(w, msg, key)
+    if cost is None:
+        return
+    # a sent_at a day off (e.g. 1e308) would give an infinite hop: no hop latency then, not a failed stage
+    hop_ms = (t_recv - msg.sent_at) * 1000.0 if 0 < msg.sent_at and abs(t_recv - msg.sent_at) < 86400 else 0.0
+    _queue(w, msg, (msg, hop_ms, time.perf_counter(), decode_ms, sample.source_info, cost), handler, key)
+
+
+def _admitted(w: Worker, msg, client: str, key: str) -> bool:
+    """The stream has (or gets) a place in the worker's admission and the frame comes from its client."""
+    relieve_memory(w)
+    refused = None
+    if msg.stream not in w.admission.streams and (why := w.memory.refuse(msg.stream)) is not None:
+        w.stats.inc("streams_refused_memory")
+        refused = ("stream_limit", why)
+    refused = refused or w.admission.admit(msg.stream, client, functools.partial(reclaim, w))
+    if refused is None:
+        return True
+    code, why = refused
+    w.stats.inc("streams_refused" if code == "stream_limit" else "frames_not_owner")
+    # another client's frame: no seq in the event, the owner's client would take it for its own frame's answer
+    w.report_error(msg.stream, code, why, key, msg.seq if code == "stream_limit" else None)
+    return False
+
+
+def _charged(w: Worker, msg, key: str) -> float | None:
+    """The frame's cost charged to the memory cap (MB), or None: refused, and answered so."""
+    cost, away = w.frame_cost_mb(msg), w.store_away()
+    why = w.memory.charge(msg.stream, msg.seq, cost)
+    if why is None:
+        return cost
+    w.stats.inc("frames_refused_memory")
+    # the store away: the frames held for it fill the cap; this one is sent again once they are stored
+    code, why = ("store_unavailable", f"{why}: frames held while {away}") if away else ("oversize", why)
+    w.report_error(msg.stream, code, why, key, msg.seq)
+    if away:
+        w.not_held(msg.stream, msg.seq)
+    return None
+
+
+def _queue(w: Worker, msg, item: tuple, handler, key: str) -> None:
+    """On the stream's lane, or answered: the store away and the queue full of held frames (store_unavailable), the
+    queue full (stream_full). Nothing here waits."""
+    cost, away = item[5], w.store_away()
+    lane = w.lane(msg.stream, handler)
+    try:
+        if away and lane.queue.qsize() >= w.config.queue_size:  # held frames fill it: refused, not blocked
+            w.memory.discharge(cost)
+            w.stats.inc("frames_refused_store_away")
+            why = f"seq {msg.seq} not held: {w.config.queue_size} frames of the stream wait for the store ({away})"
+            w.report_error(msg.stream, "store_unavailable", why, key, msg.seq)
+            w.not_held(msg.stream, msg.seq)
+            return
+        if lane.put(item):
+            w.turned_away.entered(msg.stream, msg.seq)
+            return
+        w.memory.discharge(cost)
+        if not w.stopping.is_set():
+            why = f"seq {msg.seq} not queued: {w.config.queue_size} frames of the stream wait; send it again"
+            _full(w, msg, why, key)
+    finally:
+        w.lane_entered(lane)
+
+
+def _full(w: Worker, msg, why: str, key: str) -> None:
+    """Lossless and the stream's queue full: the frame and those after it are turned away until it is in."""
+    w.turned_away.turned_away(msg.stream, msg.seq)
+    w.stats.inc("frames_refused_full")
+    w.report_error(msg.stream, "stream_full", why, key, msg.seq)

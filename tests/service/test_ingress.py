@@ -1,0 +1,64 @@
+"""Ingress that never waits: a stream whose frames overflow its queue is answered stream_full (lossless: the client
+sends the frames again, in order), and neither it nor a stream that stopped reading its poses holds up another
+stream's frames."""
+
+from __future__ import annotations
+
+import threading
+
+import numpy as np
+
+from occvo_schemas import keys
+from occvo_services.client import OccVOClient
+from occvo_services.local import InProcessService
+from occvo_services.sessions import open_session
+
+
+def offline(frames):
+    from occvo_core import OccVO
+
+    vo = OccVO()
+    vo.reset()
+    for f in frames:
+        vo.step(f)
+    return vo
+
+
+def test_a_stream_overflowing_its_queue_loses_nothing_and_holds_up_no_other_stream():
+    """Lossless with a queue of 2: a burst of 10 frames is partly turned away (stream_full, not an answer) and sent
+    again by the client in order; every pose comes, in seq order, equal to an offline run. Beside it a stream whose
+    client stopped reading its poses (its callback holds), and a stepping stream that ends complete and in order."""
+    from occvo_services.commands.replay import load_scene
+
+    burst, steady = load_scene("synthetic:6", frames=10), load_scene("synthetic:7", frames=6)
+    with (
+        InProcessService(queue_size=2, policy="lossless") as svc,
+        OccVOClient(svc.endpoint, "burst") as b,
+        OccVOClient(svc.endpoint, "steady") as s,
+        OccVOClient(svc.endpoint, "stalled") as stalled,
+    ):
+        held = threading.Event()
+        reader = open_session(svc.endpoint)  # a client that stops reading: its pose callback never returns
+        sub = reader.declare_subscriber(keys.pose(stalled.stream), lambda _: held.wait(120))
+        b.reset(), s.reset(), stalled.reset()
+        for i in range(3):
+            stalled.publish(steady[i])
+        for i in range(10):
+            b.publish(burst[i])  # waits by itself while turned-away frames go again
+        got = [s.step(steady[i]) for i in range(6)]
+        last = b.wait_pose(9, timeout=300)
+        held.set()
+        sub.undeclare(), reader.close()
+        assert [p.seq for p in got] == list(range(6)) and not s.errors
+        assert np.array_equal(np.array([p.matrix() for p in got]), offline([steady[i] for i in range(6)]).poses)
+        assert last.seq == 9 and sorted(b.arrived, key=b.arrived.get) == list(range(10))  # all, in seq order
+        assert np.array_equal(
+            np.array([b.poses[i].matrix() for i in range(10)]), offline([burst[i] for i in range(10)]).poses
+        )
+        codes = {e.code for e in b.errors}
+        assert "stream_full" in codes and codes <= {"stream_full", "missing_seq", "seq_held"}, codes
+        assert (
+            svc.worker("registration").stats.snapshot()[0].get("frames_refused_full", 0)
+            + svc.worker("inference").stats.snapshot()[0].get("frames_refused_full", 0)
+            >= 1
+        )

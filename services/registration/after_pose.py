@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import logging
 import time
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, NamedTuple
 
 import numpy as np
 
@@ -34,7 +34,8 @@ def _after_pose_steps(s: StreamSession, job: FrameJob) -> None:
     t_tail = time.perf_counter()
     seq = job.msg.seq
     publish = True if job.restart else None  # None: now or with a later frame's (MapOutput.due)
-    result, restored, evicted, cut = complete(s, job.reg, job.frame, seq, publish, job.entered)
+    done = complete(s, job.reg, job.frame, seq, publish, job.entered)
+    result, restored, evicted, cut = done[:4]
     if not job.pose_out.result():  # not committed: nothing of it is stored or published (the lane rebuilds the state)
         return
     t_finished = time.perf_counter()
@@ -55,14 +56,24 @@ def _after_pose_steps(s: StreamSession, job: FrameJob) -> None:
         s.threads.submit_map(s.map.send, seq, job.restart, cut, evicted, restored)
     else:
         s.ctx.stats.inc("map_updates_coalesced")
-    _observe(s, job, result, (t_tail, t_finished, t_map, time.perf_counter()), relocalised)
+    _observe(s, job, done, (t_tail, t_finished, t_map, time.perf_counter()), relocalised)
     _schedule_snapshot(s)
+
+
+class Completed(NamedTuple):
+    """What complete() hands on: OccVO.complete's result, tiles restored, blocks evicted, the map's cut (None: its
+    change waits for a later frame's) and the ms of its steps (complete, restore, evict)."""
+
+    result: object
+    restored: list
+    evicted: dict
+    cut: tuple | None
+    ms: dict
 
 
 def complete(s: StreamSession, reg, frame: OccupancyFrame, seq: int, publish: bool | None, entered: int = 0):
     """After the pose: loop closure and map update (OccVO.complete), keep every tile wholly resident or wholly
     cold, evict far map, and bring back the cold map near the new pose, which the next frame registers against.
-    Returns (result, tiles restored, evicted blocks, the changed part of the map before eviction if published).
     publish None: when MapOutput.due or tiles come back or leave now; else the change waits for a later frame's cut.
     A resume's replay of the journal goes the same way, so it reproduces the poses."""
     vo, pager = s.vo, s.pager
@@ -70,27 +81,23 @@ def complete(s: StreamSession, reg, frame: OccupancyFrame, seq: int, publish: bo
     result, _ = s.ctx.scheduler.kernels(vo, vo.complete, reg)  # the next frame's registration waits for it
     pose = np.asarray(result.pose, float)
     t0 = time.perf_counter()
-    s.complete_ms = (t0 - t_complete) * 1000.0
     restored = list(pager.restored_for_next)
     if pager.cold:  # a frame that reached into an evicted tile: bring the rest back, so the tile stays whole
         restored += pager.restore(vo, pager.reached(frame, pose))
     t_map = time.perf_counter()
-    cut = None
     if publish is None:
         publish = bool(restored) or s.map.due(s.frames_waiting(entered)) or pager.evicts(vo, pose)
-        s.map.pending = not publish
-    if publish:  # only the part of the map changed since the last cut is cut again
-        cut = s.map.cut(vo)  # copied: cut and sent beside the next registration
-    s.map.extract_ms = (time.perf_counter() - t_map) * 1000.0
+    cut = s.map.cut(vo) if publish else s.map.hold()  # only the part changed since the last cut is cut again
     t_evict = time.perf_counter()
     evicted = pager.evict_far(vo, seq, pose)
-    s.evict_ms = (time.perf_counter() - t_evict) * 1000.0
+    evict_ms = (time.perf_counter() - t_evict) * 1000.0
     pager.ego_xy = pose[:2, 3].copy()
     t_near = time.perf_counter()
     # published with the next frame's tiles (they are cut then); committed with this frame
     pager.restored_for_next = pager.restore(vo, pager.near())
-    s.restore_ms = (t_map - t0 + time.perf_counter() - t_near) * 1000.0
-    return result, restored, evicted, cut
+    restore_ms = (t_map - t0 + time.perf_counter() - t_near) * 1000.0
+    ms = {"complete": (t0 - t_complete) * 1000.0, "restore": restore_ms, "evict": evict_ms}
+    return Completed(result, restored, evicted, cut, ms)
 
 
 def _store_after_pose(s: StreamSession, seq: int, relocalised_pose, evicted: dict) -> bool:
@@ -107,20 +114,21 @@ def _store_after_pose(s: StreamSession, seq: int, relocalised_pose, evicted: dic
     return True
 
 
-def _observe(s: StreamSession, job: FrameJob, result, marks: tuple, relocalised: bool) -> None:
+def _observe(s: StreamSession, job: FrameJob, done: Completed, marks: tuple, relocalised: bool) -> None:
     """The after-pose stages in the worker's stats; a slow one logged (the stream's next frame waits for it)."""
     t_tail, t_finished, t_map, t_end = marks
+    result, ms = done.result, done.ms
     stats, config = s.ctx.stats, s.ctx.config
     for k, v in result.timings_ms.items():
         if k not in job.reg_timings:
             stats.observe(f"complete.{k}", float(v))
-    stats.observe("complete", s.complete_ms)
+    stats.observe("complete", ms["complete"])
     stats.observe("map_extract", s.map.extract_ms)
     stats.observe("map_wait", (t_end - t_map) * 1000.0)  # the last frame's tiles not sent yet
     stats.observe("after_pose_store", (t_map - t_finished) * 1000.0)
     if s.ctx.store is not None:
-        stats.observe("map_restore", s.restore_ms)
-        stats.observe("map_evict", s.evict_ms)
+        stats.observe("map_restore", ms["restore"])
+        stats.observe("map_evict", ms["evict"])
     stats.observe("frame_after_pose", (t_end - t_tail) * 1000.0)
     if t_end - t_tail > config.slow_after_pose_s:
         log_event(
@@ -133,8 +141,8 @@ def _observe(s: StreamSession, job: FrameJob, result, marks: tuple, relocalised:
             timings_ms={k: round(v, 1) for k, v in result.timings_ms.items()},
             finish_ms=round((t_finished - t_tail) * 1000.0),
             extract_ms=round(s.map.extract_ms, 1),
-            restore_ms=round(s.restore_ms, 1),
-            evict_ms=round(s.evict_ms, 1),
+            restore_ms=round(ms["restore"], 1),
+            evict_ms=round(ms["evict"], 1),
             store_ms=round((t_map - t_finished) * 1000.0),
             map_wait_ms=round((t_end - t_map) * 1000.0),
             relocalised=relocalised,

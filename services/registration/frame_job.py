@@ -1,16 +1,32 @@
 """What the registration worker lends a session (SessionContext) and what one frame hands from phase to phase
-(FrameJob)."""
+(FrameJob, built and validated by frame_job)."""
 
 from __future__ import annotations
 
 import logging
+from collections.abc import Callable
 from concurrent.futures import Future
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from occvo_core.frame import OccupancyFrame
+from occvo_core.grid import OCC3D_GRID
 from occvo_services.registration.after_pose import after_pose
+from occvo_services.store_blobs import frame_digest
+
+if TYPE_CHECKING:
+    from occvo_core import OccVOConfig
+    from occvo_core.odometry import Registration
+    from occvo_schemas.models import OccupancyFrameMsg
+    from occvo_services.registration.membership import Leases
+    from occvo_services.registration.scheduling import CatchUp, Scheduler
+    from occvo_services.registration.snapshots import SnapshotWriter
+    from occvo_services.registration.store_faults import StoreOutage
+    from occvo_services.store import TrajectoryStore
+    from occvo_services.telemetry import Stats
+    from occvo_services.worker_config import WorkerConfig
 
 STATUS = {  # OccVO statuses as a published pose names them
     "ok": "ok",
@@ -26,29 +42,29 @@ class SessionContext:
     """What the worker lends its sessions: configuration, the store, the kernel team, the snapshot writer and the
     outputs (put: a Zenoh put of the worker's session; report_error: an error event)."""
 
-    config: object
-    occvo_config: object
-    occvo: type
-    store: object
-    stats: object
+    config: WorkerConfig
+    occvo_config: OccVOConfig
+    occvo: type  # OccVO
+    store: TrajectoryStore | None
+    stats: Stats
     log: logging.Logger
-    scheduler: object
-    snapshots: object
-    put: object
-    report_error: object
-    frames_queued: object  # stream -> whether frames of it wait in its lane
-    busy_lanes: object  # () -> lanes registering now
-    after_pose: object = after_pose  # (session, job): the work after a pose (services/registration/after_pose.py)
-    leases: object = None  # placement "members": the worker's stream leases (membership.Leases)
-    catch_up: object = None  # scheduling.CatchUp: reopened sessions register first
-    outage: object = None  # with a store: store_faults.StoreOutage, the store away until a probe reaches it
+    scheduler: Scheduler
+    snapshots: SnapshotWriter | None  # with a store
+    put: Callable[[str, bytes], None]  # a Zenoh put of the worker's session
+    report_error: Callable[..., object]  # Worker.report_error: an error event
+    frames_queued: Callable[[str], bool]  # stream -> whether frames of it wait in its lane
+    busy_lanes: Callable[[], int]  # lanes registering now
+    after_pose: Callable = after_pose  # (session, job): the work after a pose (services/registration/after_pose.py)
+    leases: Leases | None = None  # placement "members": the worker's stream leases
+    catch_up: CatchUp | None = None  # reopened sessions register first
+    outage: StoreOutage | None = None  # with a store: the store away until a probe reaches it
 
 
 @dataclass
 class FrameJob:
     """One frame's way through the phases: what each phase hands the next."""
 
-    msg: object
+    msg: OccupancyFrameMsg
     frame: OccupancyFrame
     tables: tuple
     digest: bytes
@@ -57,10 +73,25 @@ class FrameJob:
     entered: int
     restart: bool = False
     t_reg: float = 0.0
-    reg: object = None  # OccVO.register's result, once registered
+    reg: Registration | None = None  # OccVO.register's result, once registered
     pose_m: np.ndarray | None = None
     status: str = "ok"
     reg_ms: float = 0.0
     reg_timings: dict = field(default_factory=dict)
     pose_out: Future = field(default_factory=Future)  # True once the pose is committed and published
     after: Future | None = None  # its work after the pose, once handed to the after-pose thread
+
+
+def frame_job(msg: OccupancyFrameMsg, stream: str, entered: int) -> FrameJob:
+    """A frame's job: the frame built and validated (InvalidFrameError), digested in the compact form it came in."""
+    frame = OccupancyFrame(
+        msg.occupancy.to_points(),
+        msg.occupancy.labels.to_numpy().copy(),
+        index=msg.seq,
+        stamp=msg.stamp,
+        meta={"stream": stream, "source": msg.source},
+    )
+    frame.validate()
+    tables = msg.occupancy.index_tables(OCC3D_GRID)
+    digest = frame_digest(frame.points, frame.labels, msg.stamp, tables)
+    return FrameJob(msg, frame, tables, digest, dict(msg.timings_ms), 0.0, entered)

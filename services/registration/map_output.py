@@ -73,8 +73,15 @@ class MapOutput:
 
     def cut(self, vo) -> tuple:
         """The map changed since the last cut, copied (occvo_core.working_map.changed_map)."""
+        t0 = time.perf_counter()
         self.cut_at, self.pending = time.monotonic(), False
-        return changed_map(vo, self.config.tile_m)
+        cut = changed_map(vo, self.config.tile_m)
+        self.extract_ms = (time.perf_counter() - t0) * 1000.0
+        return cut
+
+    def hold(self) -> None:
+        """The map's change waits for a later frame's cut (returns no cut)."""
+        self.pending, self.extract_ms = True, 0.0
 
     def send(self, seq: int, restart: bool, cut, evicted, restored) -> None:
         """In the session's map thread: one frame's tiles cut and sent, in frame order."""

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import numpy as np
 import zenoh
 
 from occvo_schemas import keys
@@ -37,8 +36,7 @@ class Queries:
         if not found:
             return self._miss(query, "poses")
         for stream, s in found:
-            with s.trajectory.lock:
-                latest = s.trajectory.latest
+            latest = s.trajectory.latest_pose()
             query.reply(keys.pose_latest(stream), encode(latest), encoding=encoding("pose_estimate"))
 
     def on_trajectory(self, query: zenoh.Query) -> None:
@@ -46,12 +44,11 @@ class Queries:
         if not found:
             return self._miss(query, "trajectory")
         for stream, s in found:
-            t = s.trajectory
-            with t.lock:
-                traj = Trajectory(
-                    stream=stream,
-                    seqs=Array.from_numpy(np.array(t.seqs, np.int64)),
-                    stamps=Array.from_numpy(np.array(t.stamps, np.float64)),
-                    poses=Array.from_numpy(np.array(t.poses, np.float64).reshape(-1, 4, 4)),
-                )
+            seqs, stamps, poses = s.trajectory.arrays()
+            traj = Trajectory(
+                stream=stream,
+                seqs=Array.from_numpy(seqs),
+                stamps=Array.from_numpy(stamps),
+                poses=Array.from_numpy(poses),
+            )
             query.reply(keys.trajectory(stream), encode(traj, 1 << 30), encoding=encoding("trajectory"))

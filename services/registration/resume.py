@@ -17,20 +17,24 @@ if TYPE_CHECKING:
     from occvo_services.registration.session import StreamSession
 
 
-def resume(s: StreamSession) -> None:
-    """Rebuild the session's OccVO as it was after the stream's last committed frame."""
-    t0 = time.perf_counter()
-    store, stream = s.ctx.store, s.stream
+def load_snapshot(s: StreamSession) -> tuple:
+    """(OccVO, seq) of the stream's last snapshot (a new OccVO and None without one); the session adopts the OccVO,
+    then replay() brings it to the stream's last committed frame."""
     s.threads.wait_map()  # the tiles of the frames before: the resume starts the stream's tiles again
     s.snapshot.idle.wait()  # a snapshot being written would delete journal rows between our two reads
     vo = s.ctx.occvo(s.ctx.occvo_config, threads=s.ctx.config.kernel_threads)
-    snap = store.snapshot(stream)
-    snap_seq = None
-    if snap is not None:
-        snap_seq, blob = snap
-        vo.load_state_dict(unpack_arrays(blob))
-    s.vo = vo
-    ego_xy = vo.poses[-1][:2, 3].copy() if snap is not None and len(vo.poses) else None
+    snap = s.ctx.store.snapshot(s.stream)
+    if snap is None:
+        return vo, None
+    vo.load_state_dict(unpack_arrays(snap[1]))
+    return vo, snap[0]
+
+
+def resume(s: StreamSession, snap_seq: int | None, t0: float) -> None:
+    """The session's OccVO (load_snapshot's) as it was after the stream's last committed frame: the journal after
+    the snapshot replayed. t0: when the resume began."""
+    store, stream, vo = s.ctx.store, s.stream, s.vo
+    ego_xy = vo.poses[-1][:2, 3].copy() if snap_seq is not None and len(vo.poses) else None
     s.pager.reset(store.cold_index(stream, as_of_seq=snap_seq if snap_seq is not None else -1), ego_xy)
     s.map.reset(send_all=True)  # the map service may lack the last frames' tiles
     journal = store.journal(stream, snap_seq)
@@ -66,7 +70,7 @@ def _replay(s: StreamSession, journal: list) -> float:
     worst = 0.0
     for i, (seq, frame) in enumerate(journal):
         last = i == len(journal) - 1
-        result, restored, evicted, cut = complete(s, s.vo.register(frame), frame, seq, publish=last)
+        result, restored, evicted, cut, _ = complete(s, s.vo.register(frame), frame, seq, publish=last)
         if last:  # it may have stopped before its map update was stored or published: do both again
             _finish_last(s, seq, result, evicted)
             s.map.publish(seq, False, cut, evicted, restored)

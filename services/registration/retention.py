@@ -140,16 +140,18 @@ class Retention:
             epoch, _ = w.leases.acquire(stream)
             if epoch is None:
                 return False
-        with w._lanes_lock:  # no lane of the stream opens while it is deleted
-            if stream in w.lanes or stream in w._retired:  # a live session: never deleted
-                return False
+
+        def delete():
             usage = w.store.stream_usage(stream)
             if usage is None or usage[2] >= time.time() - self.ttl_s:  # written meanwhile
-                return False
+                return None
             poses = w.store.delete_stream(stream, epoch=epoch)
-            tiles = self._map_store().delete_stream(stream) if w.store.has_map_tiles() else 0
-            with w._sessions_lock:
-                w.sessions.pop(stream, None)
+            return usage, poses, self._map_store().delete_stream(stream) if w.store.has_map_tiles() else 0
+
+        deleted = w.forget_idle(stream, delete)  # a live session is never deleted
+        if deleted is None:
+            return False
+        usage, poses, tiles = deleted
         w.stats.inc("streams_expired")
         idle_s = round(time.time() - usage[2])
         log_event(

@@ -13,23 +13,21 @@ import time
 import numpy as np
 
 from occvo_core.errors import InvalidFrameError
-from occvo_core.frame import OccupancyFrame
-from occvo_core.grid import OCC3D_GRID
 from occvo_schemas import keys
 from occvo_schemas.codec import encode
 from occvo_schemas.models import PoseEstimate
 from occvo_services.flow import judge_seq
 from occvo_services.os_tuning import run_delay_ms
-from occvo_services.registration.frame_job import STATUS, FrameJob, SessionContext
+from occvo_services.registration.frame_job import STATUS, FrameJob, SessionContext, frame_job
 from occvo_services.registration.map_output import MapOutput
 from occvo_services.registration.paging import Pager
-from occvo_services.registration.resume import resume
+from occvo_services.registration.resume import load_snapshot, resume
 from occvo_services.registration.scheduling import StreamThreads
 from occvo_services.registration.snapshots import SnapshotSchedule
 from occvo_services.registration.store_faults import refused, store_back, store_failed, waits_for_refused
 from occvo_services.registration.trajectory import StreamTrajectory, pose_message
 from occvo_services.store_api import FencedError, StoreUnavailable
-from occvo_services.store_blobs import frame_digest, legacy_frame_digest, pack_frame
+from occvo_services.store_blobs import legacy_frame_digest, pack_frame
 from occvo_services.telemetry import log_event
 
 
@@ -51,7 +49,6 @@ class StreamSession:
         self.entered = 0  # frames that entered the lane: the work after a pose sees whether another came
         self.epoch: int | None = None  # placement "members": the fencing epoch of this worker's lease on the stream
         self.client: str | None = None  # whose frames these are (the worker's admission): the store records it
-        self.complete_ms = self.restore_ms = self.evict_ms = 0.0
 
     def load_trajectory(self) -> None:
         """The stored trajectory, for queries and resends (the OccVO is resumed at the stream's next frame); the one
@@ -115,23 +112,12 @@ class StreamSession:
             refused(self, first)
 
     def _validate(self, msg, entered: int) -> FrameJob | None:
-        """The frame built and checked before any reset (a bad first frame leaves the old trajectory intact), and
-        digested in the compact form it came in."""
-        frame = OccupancyFrame(
-            msg.occupancy.to_points(),
-            msg.occupancy.labels.to_numpy().copy(),
-            index=msg.seq,
-            stamp=msg.stamp,
-            meta={"stream": self.stream, "source": msg.source},
-        )
+        """The frame built and checked before any reset (a bad first frame leaves the old trajectory intact)."""
         try:
-            frame.validate()
+            return frame_job(msg, self.stream, entered)
         except InvalidFrameError as exc:
             self._report("invalid_frame", f"seq {msg.seq}: {exc.reason}", msg.seq)
             return None
-        tables = msg.occupancy.index_tables(OCC3D_GRID)
-        digest = frame_digest(frame.points, frame.labels, msg.stamp, tables)
-        return FrameJob(msg, frame, tables, digest, dict(msg.timings_ms), 0.0, entered)
 
     def _own(self, job: FrameJob) -> bool:
         """Placement "members": the stream's lease held before anything is written here. Taken, the stream is
@@ -366,6 +352,13 @@ class StreamSession:
     def store_failed(self, seq: int, exc: Exception, what: str) -> None:
         store_failed(self, seq, exc, what)
 
+    def drop_state(self, fenced: bool) -> None:
+        """A write or read failed: the OccVO goes (the stream resumes from the store at its next frame); fenced:
+        the lease too (another worker owns the stream now)."""
+        self.vo = None
+        if fenced:
+            self.epoch = None
+
     def flush_map(self) -> None:
         """The tiles held back for a frame that did not come (refused, or none followed)."""
         if self.map.pending and self.vo is not None and self.trajectory.seqs and self.threads.map is not None:
@@ -376,7 +369,9 @@ class StreamSession:
     def reopen(self) -> None:
         """Rebuild the OccVO from the stream's snapshot and journal, as it was after the last committed frame."""
         self.ctx.catch_up.begin(self.stream)
-        resume(self)
+        t0 = time.perf_counter()
+        self.vo, snap_seq = load_snapshot(self)
+        resume(self, snap_seq, t0)
 
     def close(self) -> None:
         """An idle stream: its threads end; with a store its OccVO is snapshotted and dropped (the next frame reopens

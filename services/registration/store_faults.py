@@ -84,9 +84,9 @@ def store_failed(s: StreamSession, seq: int, exc: Exception, what: str) -> None:
     """A write or read failed (disk full, the database away, or fenced: another worker owns the stream now): drop
     the in-memory state; the stream resumes from the store at its next frame (replaying the journal redoes what was
     not stored), after taking the lease again if it was fenced."""
-    s.vo = None  # the tiles too are started again by the resume
-    if isinstance(exc, FencedError):  # the new owner has this frame too: not this worker's to answer
-        s.epoch = None
+    fenced = isinstance(exc, FencedError)
+    s.drop_state(fenced)  # the tiles too are started again by the resume
+    if fenced:  # the new owner has this frame too: not this worker's to answer
         s.ctx.leases.placement.forget(s.stream)
         s.ctx.stats.inc("fenced")
         log_event(

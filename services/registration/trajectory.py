@@ -13,11 +13,11 @@ from occvo_services.store import StoredPose
 
 
 class StreamTrajectory:
-    """Committed poses of one stream (in memory; the store has them too). `lock` guards the lists and `latest`: the
-    session writes them, queries read them from other threads."""
+    """Committed poses of one stream (in memory; the store has them too). Its lock guards the lists and `latest`: the
+    session writes them; queries from other threads read what latest_pose() and arrays() hand out."""
 
     def __init__(self):
-        self.lock = threading.Lock()
+        self._lock = threading.Lock()
         self.seqs: list[int] = []
         self.stamps: list[float] = []
         self.poses: list[np.ndarray] = []
@@ -37,7 +37,7 @@ class StreamTrajectory:
 
     def record(self, pose: PoseEstimate, pose_m: np.ndarray, digest: bytes, restart: bool) -> None:
         """A published pose: a new trajectory's first, the next one, or a relocalised pose replacing its seq's."""
-        with self.lock:
+        with self._lock:
             if restart:
                 self.seqs, self.stamps, self.poses, self.statuses, self.digests, self.position = [], [], [], [], [], {}
                 self.started = True
@@ -47,6 +47,20 @@ class StreamTrajectory:
             else:
                 self.append(pose.seq, pose.stamp, pose_m, pose.status, digest)
             self.latest = pose
+
+    def latest_pose(self) -> PoseEstimate | None:
+        """The last published pose (a query's answer)."""
+        with self._lock:
+            return self.latest
+
+    def arrays(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(seqs, stamps, 4x4 poses) as they are now, copied (a query's answer)."""
+        with self._lock:
+            return (
+                np.array(self.seqs, np.int64),
+                np.array(self.stamps, np.float64),
+                np.array(self.poses, np.float64).reshape(-1, 4, 4),
+            )
 
     @property
     def last_seq(self) -> int:

@@ -159,6 +159,18 @@ class RegistrationWorker(Worker):
         session.client = client
         session.handle(item)
 
+    def forget_idle(self, stream: str, delete):
+        """delete() while no lane of the stream is open or opens; its session goes if delete() returns something.
+        None: the stream is live (or delete() found nothing to do)."""
+        with self._lanes_lock:
+            if stream in self.lanes or stream in self._retired:
+                return None
+            done = delete()
+            if done is not None:
+                with self._sessions_lock:
+                    self.sessions.pop(stream, None)
+            return done
+
     def retire_stream(self, stream: str) -> None:
         session = self.sessions.get(stream)
         if session is None:

@@ -412,6 +412,7 @@ def test_a_lane_waiting_for_its_streams_after_pose_work_raises_it_to_the_lanes_p
         c.reset()
         for i in range(3):
             c.publish(scene[i])
+        _wait_for(lambda: "boost" in worker.sessions and worker.lanes["boost"].strand.native_id is not None)
         st = worker.sessions["boost"]
         lane_nice = os.getpriority(os.PRIO_PROCESS, worker.lanes["boost"].strand.native_id)
         deadline = time.monotonic() + 30

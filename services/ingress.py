@@ -56,15 +56,25 @@ def enqueue(
 ) -> None:
     """Decode a stream message, check its sequence number (judge_seq False: the handler does, against what it
     committed) and queue it on its stream's lane with its hop latency; bad messages are reported by decode_input
-    and check_seq, never raised. place(msg) -> False: a decoded message another worker takes (nothing more)."""
+    and check_seq, never raised. place (services/registration/placing.py): the frame's owner decided off the
+    callback, and the rest of its ingress after that; a frame another worker owns goes no further."""
     t_recv, t_decode = time.time(), time.perf_counter()
     client = identity_of(sample, keys.stream_of(str(sample.key_expr)), w.config.client_identity)
     msg = w.decode_input(sample, expect, client)
-    if msg is None or w.stopping.is_set() or (place is not None and not place(msg)):
+    if msg is None or w.stopping.is_set():
         return
     decode_ms = (time.perf_counter() - t_decode) * 1000.0
     w.stats.observe("decode", decode_ms)
-    key = str(sample.key_expr)
+    rest = functools.partial(_admit, w, sample, msg, handler, judge_seq, (t_recv, decode_ms))
+    if place is None:
+        return rest()
+    if not place.submit(msg.stream, lambda: place.decide(msg) and rest()):
+        _full(w, msg, f"seq {msg.seq} not placed: too many frames wait for their placement; send it again", "")
+
+
+def _admit(w: Worker, sample: zenoh.Sample, msg, handler, judge_seq: bool, times: tuple) -> None:
+    """After the decode (and the placement): admission, the sequence, the memory cap, the lane."""
+    (t_recv, decode_ms), key = times, str(sample.key_expr)
     if not _admitted(w, msg, identity_of(sample, msg.stream, w.config.client_identity), key):
         return
     if judge_seq and not w.check_seq(msg.stream, msg.seq, key):
@@ -141,4 +151,4 @@ def _full(w: Worker, msg, why: str, key: str) -> None:
     """Lossless and the stream's queue full: the frame and those after it are turned away until it is in."""
     w.turned_away.turned_away(msg.stream, msg.seq)
     w.stats.inc("frames_refused_full")
-    w.report_error(msg.stream, "stream_full", why, key, msg.seq)
+    w.report_error(msg.stream, "stream_full", why, key or keys.occupancy(msg.stream), msg.seq)

@@ -17,6 +17,7 @@ from occvo_services.os_tuning import trim_heap
 from occvo_services.registration.frame_job import SessionContext
 from occvo_services.registration.membership import Leases, Placement
 from occvo_services.registration.paging import MIN_SAFE_RADIUS_M
+from occvo_services.registration.placing import Placing
 from occvo_services.registration.queries import Queries
 from occvo_services.registration.retention import Retention
 from occvo_services.registration.scheduling import CatchUp, Scheduler
@@ -52,13 +53,14 @@ class RegistrationWorker(Worker):
                 "within working_radius_m - tile_m"
             )
         self.store = TrajectoryStore.open(config.store_url, config.store_sync.upper()) if config.store_url else None
-        self.placement = self.leases = None
+        self.placement = self.leases = self.placing = None
         if config.placement == "members":
             if self.store is None:
                 raise ConfigError('placement "members" needs a store: the workers hand streams over through it')
             self.store.fenced_only = True  # every write under the stream's lease: none unfenced
             self.placement = Placement(self.worker_id, self.store, config.lease_s, self.log)
             self.leases = Leases(self.store, self.worker_id, config.lease_s, self.placement, self.log, self._serving)
+            self.placing = Placing(self._placed)  # decided off Zenoh's callback: it may ask the store
         self.sessions: dict[str, StreamSession] = {}
         self._sessions_lock = threading.Lock()
         occvo_config = OccVOConfig.load(config.occvo_config) if config.occvo_config else OccVOConfig()
@@ -122,7 +124,7 @@ class RegistrationWorker(Worker):
     def _on_occupancy(self, sample: zenoh.Sample) -> None:
         # the session judges the seq against its committed trajectory: a step back may be a resend
         if self.placement is not None:  # the owner decided only for a frame that decoded: no store call before
-            self.enqueue(sample, OccupancyFrameMsg, self._route, judge_seq=False, place=self._placed)
+            self.enqueue(sample, OccupancyFrameMsg, self._route, judge_seq=False, place=self.placing)
         elif self.owns(keys.stream_of(str(sample.key_expr))):  # another shard's stream: not ours to count or judge
             self.enqueue(sample, OccupancyFrameMsg, self._route, judge_seq=False)
 
@@ -282,6 +284,7 @@ class RegistrationWorker(Worker):
             self.ctx.snapshots.write_now(stream, s.snapshot, s.trajectory.last_seq, vo, s.fence())  # in place
             self._shutdown_step("snapshot at shutdown", t0, stream=stream, map_voxels=len(vo.map))
         if self.leases is not None:  # the next owners take the streams at once
+            self.placing.close()
             self.leases.stop()
             for stream, s in self.sessions_now():
                 if s.epoch is not None and stream not in in_hand:

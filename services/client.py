@@ -32,13 +32,12 @@ from occvo_schemas.models import (
     ErrorEvent,
     MapInfo,
     MapTile,
-    MapTileQuery,
     PoseEstimate,
     Trajectory,
     WorkerHealth,
 )
 from occvo_services.camera_frames import camera_frame_of
-from occvo_services.client_gets import replies
+from occvo_services.client_gets import region_tiles, replies
 from occvo_services.logins import own_stream
 from occvo_services.runtime import DEFAULT_ENDPOINT
 from occvo_services.sessions import open_login
@@ -95,6 +94,7 @@ class OccVOClient:
         self._down = False  # a worker of the path left: hold new frames until it is back and the lost ones resent
         self._back_at: float | None = None
         self.resends = 0
+        self.turned_away = 0  # stream_full answers: frames a full queue turned away (sent again)
         self._full_from: int | None = None  # the first frame a full queue turned away (stream_full), until resent
         self._full_at = 0.0
         self._alive: set[str] = set()  # worker tokens seen (workers())
@@ -137,10 +137,13 @@ class OccVOClient:
         except CodecError:
             return
         with self._cv:
+            if event.code == "stream_full":  # flow control, not an error: sent again from there (_resend_loop)
+                self.turned_away += 1
+                if event.seq is not None:
+                    self._full_from = min(event.seq, event.seq if self._full_from is None else self._full_from)
+                    self._full_at = time.monotonic()
+                return
             self.errors.append(event)
-            if event.code == "stream_full" and event.seq is not None:  # sent again from there (_resend_loop)
-                self._full_from = min(event.seq, event.seq if self._full_from is None else self._full_from)
-                self._full_at = time.monotonic()
             # not answers: a gap before the frame, a jump held for its next frame, a write the store refused (the
             # frame stays unanswered and is sent again after resend_after, until its pose comes)
             if event.seq is not None and event.code not in PENDING_CODES:
@@ -313,16 +316,10 @@ class OccVOClient:
     def region(
         self, ix_min: int | None = None, ix_max: int | None = None, iy_min: int | None = None, iy_max: int | None = None
     ) -> list[MapTile]:
-        tiles, page = [], 0
-        while True:  # the map service answers a page of tiles at a time; a "truncated" error says more follow
-            q = MapTileQuery(stream=self.stream, ix_min=ix_min, ix_max=ix_max, iy_min=iy_min, iy_max=iy_max, page=page)
-            out, errs = self._replies(keys.map_tile(self.stream, "*", "*"), MapTile, encode(q))
-            tiles += out
-            if not any(e.code == "truncated" for e in errs):
-                if not tiles and errs:
-                    raise ServiceError(f"region of {self.stream}: {errs[0].code}: {errs[0].message}", errs[0])
-                return tiles
-            page += 1
+        tiles, errs = region_tiles(self._replies, self.stream, ix_min, ix_max, iy_min, iy_max)
+        if not tiles and errs:
+            raise ServiceError(f"region of {self.stream}: {errs[0].code}: {errs[0].message}", errs[0])
+        return tiles
 
     def map_points(self) -> tuple[np.ndarray, np.ndarray]:
         tiles = self.region()

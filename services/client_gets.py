@@ -1,4 +1,5 @@
-"""A client's gets: one query's decoded answers and error replies, asked again while it is answered only `busy`."""
+"""A client's gets: one query's decoded answers and error replies, asked again while it is answered only `busy`;
+a region's tiles page by page."""
 
 from __future__ import annotations
 
@@ -7,8 +8,9 @@ from collections.abc import Callable
 
 import zenoh
 
-from occvo_schemas.codec import CodecError, decode
-from occvo_schemas.models import ErrorEvent
+from occvo_schemas import keys
+from occvo_schemas.codec import CodecError, decode, encode
+from occvo_schemas.models import ErrorEvent, MapTile, MapTileQuery
 from occvo_services.wire import encoding
 
 
@@ -59,3 +61,16 @@ def _decoded(got, expect, stream: str, first: bool) -> tuple[list, list[ErrorEve
                 text = reply.err.payload.to_bytes().decode(errors="replace")
                 errs.append(ErrorEvent(stream=stream, worker="?", code="internal", message=text))
     return out, errs
+
+
+def region_tiles(ask, stream: str, ix_min, ix_max, iy_min, iy_max) -> tuple[list[MapTile], list[ErrorEvent]]:
+    """The tiles of a region, page by page (the map service answers a page at a time; a "truncated" error says more
+    follow), and the last page's errors. ask: the client's get (selector, expect, payload) -> (answers, errors)."""
+    tiles, page = [], 0
+    while True:
+        q = MapTileQuery(stream=stream, ix_min=ix_min, ix_max=ix_max, iy_min=iy_min, iy_max=iy_max, page=page)
+        out, errs = ask(keys.map_tile(stream, "*", "*"), MapTile, encode(q))
+        tiles += out
+        if not any(e.code == "truncated" for e in errs):
+            return tiles, errs
+        page += 1

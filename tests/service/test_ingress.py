@@ -55,8 +55,7 @@ def test_a_stream_overflowing_its_queue_loses_nothing_and_holds_up_no_other_stre
         assert np.array_equal(
             np.array([b.poses[i].matrix() for i in range(10)]), offline([burst[i] for i in range(10)]).poses
         )
-        codes = {e.code for e in b.errors}
-        assert "stream_full" in codes and codes <= {"stream_full", "missing_seq", "seq_held"}, codes
+        assert b.turned_away > 0 and not b.errors, b.errors  # flow control, no error
         assert (
             svc.worker("registration").stats.snapshot()[0].get("frames_refused_full", 0)
             + svc.worker("inference").stats.snapshot()[0].get("frames_refused_full", 0)

@@ -95,7 +95,16 @@ def test_worker_serves_the_checkpoint_equal_to_the_predictor(checkpoint):
     ep = f"tcp/127.0.0.1:{free_port()}"
     router = open_router(ep)
     worker = start_worker(
-        ep, "--checkpoint", str(checkpoint), "--worker-id", "inference-model-test", "--camera-mask"
+        # a raw publisher that does not send again: its whole burst fits the queue (lossless answers a full one
+        # stream_full, and OccVOClient sends such frames again)
+        ep,
+        "--checkpoint",
+        str(checkpoint),
+        "--worker-id",
+        "inference-model-test",
+        "--camera-mask",
+        "--queue-size",
+        "16",
     )  # starts meanwhile
     session = open_session(ep)
     try:

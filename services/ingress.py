@@ -24,11 +24,13 @@ MAX_TURNED_AWAY = 4096  # streams remembered with a frame turned away
 
 
 class TurnedAway:
-    """Per stream, the first frame a full queue turned away: the frames after it wait for it."""
+    """Per stream, the first frame a full queue turned away (the frames after it wait for it) and the last frame that
+    entered the lane (a copy of a frame already in, turned away, is not waited for: its pose comes anyway)."""
 
     def __init__(self):
         self._lock = threading.Lock()
         self._first: dict[str, int] = {}
+        self._last_in: dict[str, int] = {}
 
     def waits(self, stream: str, seq: int) -> int | None:
         """The seq frame `seq` waits for, or None (seq 0 starts the stream again)."""
@@ -41,14 +43,23 @@ class TurnedAway:
 
     def turned_away(self, stream: str, seq: int) -> None:
         with self._lock:
+            if seq != 0 and seq <= self._last_in.get(stream, -1):
+                return  # a resend of a frame in already (or registered): nothing waits for it
             self._first[stream] = min(seq, self._first.get(stream, seq))
-            if len(self._first) > MAX_TURNED_AWAY:
-                self._first.pop(next(iter(self._first)))
+            _bound(self._first)
 
     def entered(self, stream: str, seq: int) -> None:
         with self._lock:
-            if self._first.get(stream) == seq:
+            last = self._last_in.get(stream, -1)
+            self._last_in[stream] = seq if seq == 0 or seq > last else last
+            _bound(self._last_in)
+            if self._first.get(stream, seq + 1) <= seq:
                 del self._first[stream]
+
+
+def _bound(streams: dict) -> None:
+    if len(streams) > MAX_TURNED_AWAY:  # the stream seen longest ago goes
+        streams.pop(next(iter(streams)))
 
 
 def enqueue(

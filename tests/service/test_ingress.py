@@ -10,6 +10,7 @@ import numpy as np
 
 from occvo_schemas import keys
 from occvo_services.client import OccVOClient
+from occvo_services.ingress import TurnedAway
 from occvo_services.local import InProcessService
 from occvo_services.sessions import open_session
 
@@ -22,6 +23,27 @@ def offline(frames):
     for f in frames:
         vo.step(f)
     return vo
+
+
+def test_frames_after_one_a_full_queue_turned_away_wait_for_it_and_a_copy_of_one_in_is_not_waited_for():
+    t = TurnedAway()
+    for seq in range(3):
+        assert t.waits("s", seq) is None
+        t.entered("s", seq)
+    t.turned_away("s", 3)
+    assert t.waits("s", 4) == 3 and t.waits("s", 3) is None and t.waits("s", 2) is None
+    t.turned_away("s", 1)  # a resend of a frame that is in: its pose comes anyway, nothing waits for it
+    assert t.waits("s", 2) is None and t.waits("s", 4) == 3
+    t.entered("s", 3)
+    assert t.waits("s", 4) is None
+    t.turned_away("s", 3)  # a late copy of 3, turned away after 3 entered: the stream does not wait for it
+    assert t.waits("s", 4) is None
+    t.entered("s", 4)
+    t.turned_away("s", 5)
+    assert t.waits("s", 0) is None and t.waits("s", 6) is None  # seq 0: a new trajectory, nothing waited for
+    t.entered("s", 0)
+    t.turned_away("s", 1)
+    assert t.waits("s", 2) == 1 and t.waits("t", 2) is None  # one stream's wait is its own
 
 
 def test_a_stream_overflowing_its_queue_loses_nothing_and_holds_up_no_other_stream():

@@ -95,8 +95,7 @@ class OccVOClient:
         self._back_at: float | None = None
         self.resends = 0
         self.turned_away = 0  # stream_full answers: frames a full queue turned away (sent again)
-        self._full_from: int | None = None  # the first frame a full queue turned away (stream_full), until resent
-        self._full_at = 0.0
+        self._full: tuple[int, float] | None = None  # (first seq a full queue turned away, when), until resent
         self._alive: set[str] = set()  # worker tokens seen (workers())
         self._alive_sub = None
         self._subs = [
@@ -110,6 +109,7 @@ class OccVOClient:
         )
         self._sn = 0  # the source info's sequence number: the workers know this client by its session's zid
         self._closed = threading.Event()
+        self._credit = threading.Event()  # a pose came while frames a full queue turned away wait: send them now
         self._resender = threading.Thread(target=self._resend_loop, name=f"occvo-resend-{stream}", daemon=True)
         self._resender.start()
 
@@ -129,6 +129,8 @@ class OccVOClient:
             for seq in [s for s in self._unanswered if s <= pose.seq]:
                 del self._unanswered[seq]
             self._last_answer = time.monotonic()
+            if self._full is not None:
+                self._credit.set()
             self._cv.notify_all()
 
     def _on_error(self, sample: zenoh.Sample) -> None:
@@ -140,8 +142,7 @@ class OccVOClient:
             if event.code == "stream_full":  # flow control, not an error: sent again from there (_resend_loop)
                 self.turned_away += 1
                 if event.seq is not None:
-                    self._full_from = min(event.seq, event.seq if self._full_from is None else self._full_from)
-                    self._full_at = time.monotonic()
+                    self._full = (min(event.seq, self._full[0]) if self._full else event.seq, time.monotonic())
                 return
             self.errors.append(event)
             # not answers: a gap before the frame, a jump held for its next frame, a write the store refused (the
@@ -178,7 +179,9 @@ class OccVOClient:
 
     # -- resending what a restarted worker lost
     def _resend_loop(self, settle_s: float = 0.3) -> None:
-        while not self._closed.wait(0.1):
+        while not self._closed.is_set():
+            self._credit.wait(0.1)
+            self._credit.clear()
             if self.resend_after is None:
                 continue
             if self._full_due():
@@ -200,10 +203,12 @@ class OccVOClient:
     def _full_due(self) -> bool:
         """Frames a full queue turned away sent again, in order, once a pose freed room (or after FULL_RETRY_S)."""
         with self._cv:
-            k = self._full_from
-            if k is None or (self._last_answer <= self._full_at and time.monotonic() - self._full_at < FULL_RETRY_S):
+            if self._full is None:
                 return False
-            self._full_from = None
+            k, at = self._full
+            if self._last_answer <= at and time.monotonic() - at < FULL_RETRY_S:
+                return False
+            self._full = None
             self._cv.notify_all()
         self.resend(k)
         return True
@@ -242,9 +247,7 @@ class OccVOClient:
             deadline = time.monotonic() + self.timeout
             # and while frames a full queue turned away wait to go again: the new one would be turned away too
             while (
-                (self._down or self._full_from is not None)
-                and self.resend_after is not None
-                and time.monotonic() < deadline
+                (self._down or self._full is not None) and self.resend_after is not None and time.monotonic() < deadline
             ):
                 self._cv.wait(0.1)
         with self._send_lock:
@@ -381,6 +384,7 @@ class OccVOClient:
 
     def close(self) -> None:
         self._closed.set()
+        self._credit.set()
         self._resender.join(timeout=5)
         for s in self._subs + ([self._alive_sub] if self._alive_sub is not None else []):
             s.undeclare()

@@ -141,8 +141,8 @@ class OccVOClient:
         with self._cv:
             if event.code == "stream_full":  # flow control, not an error: sent again from there (_resend_loop)
                 self.turned_away += 1
-                if event.seq is not None:
-                    self._full = (min(event.seq, self._full[0]) if self._full else event.seq, time.monotonic())
+                if event.seq is not None:  # from the first unanswered on: the frame it waits for may be earlier
+                    self._full = (min(self._unanswered, default=event.seq), time.monotonic())
                 return
             self.errors.append(event)
             # not answers: a gap before the frame, a jump held for its next frame, a write the store refused (the

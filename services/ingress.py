@@ -8,6 +8,7 @@ from __future__ import annotations
 import functools
 import threading
 import time
+from collections import deque
 from collections.abc import Callable
 from typing import TYPE_CHECKING
 
@@ -21,39 +22,51 @@ if TYPE_CHECKING:
     from occvo_services.runtime import Worker
 
 MAX_TURNED_AWAY = 4096  # streams remembered with a frame turned away
+RECENT = 256  # frames a stream remembers as entered
+STALE_S = 3.0  # a turned-away frame not sent again this long is not waited for (OccVOClient resends within 1 s)
 
 
 class TurnedAway:
-    """Per stream, the first frame a full queue turned away (the frames after it wait for it) and the last frame that
-    entered the lane (a copy of a frame already in, turned away, is not waited for: its pose comes anyway)."""
+    """Per stream, the first frame a full queue turned away (the frames after it wait for it) and the frames that
+    entered the lane since its last seq 0 (RECENT of them): a frame among those, turned away (a resend overlapping
+    its original), is waited for by nothing, since its pose comes anyway. A wait no copy of its frame renewed for
+    STALE_S ends: the client has that frame's pose (a copy of it was turned away after a seq 0 copy came again)."""
 
     def __init__(self):
         self._lock = threading.Lock()
-        self._first: dict[str, int] = {}
-        self._last_in: dict[str, int] = {}
+        self._first: dict[str, list] = {}  # stream -> [seq, time.monotonic() it was last turned away]
+        self._in: dict[str, deque] = {}
 
     def waits(self, stream: str, seq: int) -> int | None:
         """The seq frame `seq` waits for, or None (seq 0 starts the stream again)."""
         with self._lock:
-            k = self._first.get(stream)
-            if k is not None and seq == 0:
-                del self._first[stream]
+            first = self._first.get(stream)
+            if first is None:
                 return None
-            return None if k is None or seq <= k else k
+            k, at = first
+            if seq == 0 or k in self._in.get(stream, ()) or time.monotonic() - at > STALE_S:
+                del self._first[stream]  # a new trajectory, k is in after all, or nobody sends k again
+                return None
+            return None if seq <= k else k
 
     def turned_away(self, stream: str, seq: int) -> None:
         with self._lock:
-            if seq != 0 and seq <= self._last_in.get(stream, -1):
-                return  # a resend of a frame in already (or registered): nothing waits for it
-            self._first[stream] = min(seq, self._first.get(stream, seq))
-            _bound(self._first)
+            if seq != 0 and seq in self._in.get(stream, ()):
+                return  # a copy of a frame in already: nothing waits for it
+            first = self._first.get(stream)
+            if first is None or seq <= first[0]:
+                self._first[stream] = [seq, time.monotonic()]
+                _bound(self._first)
 
     def entered(self, stream: str, seq: int) -> None:
         with self._lock:
-            last = self._last_in.get(stream, -1)
-            self._last_in[stream] = seq if seq == 0 or seq > last else last
-            _bound(self._last_in)
-            if self._first.get(stream, seq + 1) <= seq:
+            entered = self._in.get(stream)
+            if entered is None or seq == 0:
+                entered = self._in[stream] = deque(maxlen=RECENT)
+                _bound(self._in)
+            entered.append(seq)
+            first = self._first.get(stream)
+            if first is not None and first[0] <= seq:
                 del self._first[stream]
 
 

@@ -5,10 +5,12 @@ stream's frames."""
 from __future__ import annotations
 
 import threading
+import time
 
 import numpy as np
 
 from occvo_schemas import keys
+from occvo_services import ingress
 from occvo_services.client import OccVOClient
 from occvo_services.ingress import TurnedAway
 from occvo_services.local import InProcessService
@@ -44,6 +46,21 @@ def test_frames_after_one_a_full_queue_turned_away_wait_for_it_and_a_copy_of_one
     t.entered("s", 0)
     t.turned_away("s", 1)
     assert t.waits("s", 2) == 1 and t.waits("t", 2) is None  # one stream's wait is its own
+
+
+def test_a_wait_no_copy_of_its_frame_renews_ends(monkeypatch):
+    """A frame turned away and never sent again (its client has its pose: a copy came after a copy of seq 0 started
+    the entered frames again) holds up the stream for STALE_S at most; a copy turned away again renews the wait."""
+    monkeypatch.setattr(ingress, "STALE_S", 0.2)
+    t = TurnedAway()
+    t.entered("s", 0)
+    t.turned_away("s", 1)
+    time.sleep(0.15)
+    t.turned_away("s", 1)  # sent again, turned away again: still waited for
+    time.sleep(0.15)
+    assert t.waits("s", 2) == 1
+    time.sleep(0.25)
+    assert t.waits("s", 2) is None and t.waits("s", 3) is None
 
 
 def test_a_stream_overflowing_its_queue_loses_nothing_and_holds_up_no_other_stream():

@@ -191,9 +191,8 @@ class OccVO:
         watch.lap("preprocess")
         t = len(self._poses)
         if t == 0:
-            return Registration(
-                frame.index, np.eye(4), "initialised", _pending=_Pending(prepared, t, watch, self._version)
-            )
+            pending = _Pending(prepared, t, watch, self._version)  # the first frame defines the world: no error
+            return Registration(frame.index, np.eye(4), "initialised", covariance=np.zeros((6, 6)), _pending=pending)
         return self.register_frame(prepared, t, watch)
 
     def register_frame(self, frame: Prepared, t: int, watch: Stopwatch) -> Registration:

@@ -15,7 +15,7 @@ from occvo_services.registration.after_pose import after_pose
 STATUS = {  # OccVO statuses as a published pose names them
     "ok": "ok",
     "lost": "lost",
-    "initialised": "reinitialised",
+    "initialised": "initialised",  # version 1 of the wire calls it reinitialised (schemas/pose_v1.py)
     "reinitialised": "reinitialised",
     "degenerate": "degenerate",
 }

@@ -100,7 +100,8 @@ class OccVONode:
         ns = round(pose.stamp * 1e9) if ns is None else ns
         M = np.asarray(pose.pose, np.float64)
         c = self.config
-        self.odom.publish(rm.odometry(self._frames, ns, M, c.odom_frame, c.base_frame))
+        cov = None if pose.covariance is None else np.asarray(pose.covariance, np.float64)
+        self.odom.publish(rm.odometry(self._frames, ns, M, c.odom_frame, c.base_frame, cov))
         self.tf.publish(rm.transform(ns, M, c.odom_frame, c.base_frame))
         self._published += 1
         self._path = [*self._path[-(PATH_WINDOW - 1) :], (ns, M)]  # the window /occvo/path sends, no more

@@ -553,7 +553,7 @@ def test_clean_restart_continues_the_stream_and_answers_resends(store_url, scene
             assert np.array_equal(np.array([p.pose for p in probe.poses("car")]), uninterrupted)
             # seq 0 of another frame starts a new trajectory: the old one leaves the store in the same transaction
             client.reset()
-            assert client.step(scene[3]).status == "reinitialised"
+            assert client.step(scene[3]).status == "initialised"
             assert [p.seq for p in probe.poses("car")] == [0] and probe.record("car").snapshot_seq is None
             probe.close()
     finally:
@@ -569,7 +569,7 @@ def test_a_store_digested_before_the_compact_digest_still_knows_its_frames(tmp_p
     for i in range(4):
         r = vo.step(scene[i])
         digest = legacy_frame_digest(scene[i].points, scene[i].labels, scene[i].stamp)
-        status = "reinitialised" if r.status == "initialised" else r.status  # as the lane stores a first frame
+        status = "reinitialised" if r.status == "initialised" else r.status  # as the lane stored a first frame before pose v2
         store.commit_frame(
             "car", i, scene[i].stamp, digest, status, r.pose, pack_frame(scene[i]), new_trajectory=i == 0
         )

@@ -163,18 +163,34 @@ def test_the_hash_sees_a_changed_definition():
     )
 
 
-def offline_poses(frames) -> np.ndarray:
-    """The poses OccVO registers on the frames before loop closure (register's pose, as the service publishes it)."""
+def offline_poses(frames, stamps=None, bag=None) -> np.ndarray:
+    """The poses OccVO registers on the frames before loop closure (register's pose, as the service publishes it);
+    with `bag`, each pose also written there at its stamp as `occvo run --ros2-bag` writes it."""
     from occvo_core import OccVO, OccVOConfig
+    from occvo_core.viz.ros2_bag import Ros2Bag
 
     vo = OccVO(OccVOConfig())
     vo.reset()
-    out = []
-    for f in frames:
+    out, writer = [], None if bag is None else Ros2Bag(bag)
+    for i, f in enumerate(frames):
         reg = vo.register(f)
         out.append(reg.pose)
-        vo.complete(reg)
+        result = vo.complete(reg)
+        if writer is not None:
+            writer.pose(stamps[i], result.pose, result.covariance, result.loop_correction)
+    if writer is not None:
+        writer.close()
     return np.array(out)
+
+
+def bag_odometry(bag: Path) -> list:
+    from rosbags.rosbag2 import Reader
+
+    from occvo_core.viz.ros2_bag import STORE as BAG_STORE
+
+    with Reader(bag) as reader:
+        conns = [c for c in reader.connections if c.topic == "/occvo/odom"]
+        return [BAG_STORE.deserialize_cdr(raw, c.msgtype) for c, _, raw in reader.messages(connections=conns)]
 
 
 def cloud_kwargs(pc2, field_cls, frame, ns: int) -> dict:
@@ -239,7 +255,8 @@ def test_occupancy_clouds_in_odometry_out(messages, service, tmp_path):
     frames = [scene[i] for i in range(10)]
     for f in frames:  # the frames as the clouds carry them: float32 coordinates
         f.points = f.points.astype(np.float32).astype(np.float64)
-    want = offline_poses(frames)
+    stamps = [1_533_151_603_547_590_000 + 500_000_000 * i for i in range(len(frames))]
+    want = offline_poses(frames, stamps, tmp_path / "offline_bag")
     # the map renamed to one level: the SDK finds a latched topic's publishers by its name with only the leading
     # '/' mangled ('%occvo/map'), where rmw_zenoh mangles every '/' ('%occvo%map')
     node, log = start_node(service, tmp_path, 'topics: {map: "/occvo_map"}')
@@ -281,7 +298,6 @@ def test_occupancy_clouds_in_odometry_out(messages, service, tmp_path):
         # as a ROS 2 publisher waits for its subscription to match: a sample put before its route exists is dropped
         wait_for(lambda: pub.pub.matching_status.matching, 30, "occvo's subscription to match", node)
         field_cls = get_message_class("sensor_msgs/msg/PointField")
-        stamps = [1_533_151_603_547_590_000 + 500_000_000 * i for i in range(len(frames))]
         for f, ns in zip(frames, stamps):
             pub.publish(**cloud_kwargs(None, field_cls, f, ns))
         wait_for(lambda: len(got) >= len(frames), 300, f"{len(frames)} odometry messages ({len(got)} came)")
@@ -290,8 +306,15 @@ def test_occupancy_clouds_in_odometry_out(messages, service, tmp_path):
         assert np.abs(est[:, :3, :3] - want[:, :3, :3]).max() <= 1e-9
         assert {(m.header.frame_id, m.child_frame_id) for m in got} == {("odom", "base_link")}
         assert [m.header.stamp.sec * 10**9 + m.header.stamp.nanosec for m in got] == stamps
-        # no "certainly standing still": the pose's covariance is unknown, not zero; the twist is the motion
-        assert all(min(np.asarray(m.pose.covariance)[[0, 7, 14]]) > 0 for m in got)
+        # the covariances the offline bag holds for the same frames (fine GICP's information, the twist's from
+        # consecutive poses): zero for the first pose, which defines odom, and never "certainly standing still"
+        offline = bag_odometry(tmp_path / "offline_bag")
+        for m, o in zip(got[: len(frames)], offline, strict=True):
+            np.testing.assert_allclose(np.asarray(m.pose.covariance), o.pose.covariance, rtol=1e-9, atol=1e-300)
+            np.testing.assert_allclose(np.asarray(m.twist.covariance), o.twist.covariance, rtol=1e-9, atol=1e-300)
+        assert not np.any(got[0].pose.covariance) and min(np.asarray(got[0].twist.covariance)[[0, 7, 14]]) >= 1e6
+        assert all(min(np.asarray(m.pose.covariance)[[0, 7, 14]]) > 0 for m in got[1:])
+        assert all(max(np.asarray(m.pose.covariance)[[0, 7, 14]]) < 1 for m in got[1:])  # measured, not unknown
         speed = np.array([m.twist.twist.linear.x for m in got[1:]])
         step = np.linalg.norm(np.diff(est[:, :3, 3], axis=0), axis=1) / 0.5
         assert np.allclose(np.abs(speed), step, rtol=0.05, atol=0.05)

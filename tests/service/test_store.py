@@ -569,7 +569,9 @@ def test_a_store_digested_before_the_compact_digest_still_knows_its_frames(tmp_p
     for i in range(4):
         r = vo.step(scene[i])
         digest = legacy_frame_digest(scene[i].points, scene[i].labels, scene[i].stamp)
-        status = "reinitialised" if r.status == "initialised" else r.status  # as the lane stored a first frame before pose v2
+        status = (
+            "reinitialised" if r.status == "initialised" else r.status
+        )  # as the lane stored a first frame before pose v2
         store.commit_frame(
             "car", i, scene[i].stamp, digest, status, r.pose, pack_frame(scene[i]), new_trajectory=i == 0
         )

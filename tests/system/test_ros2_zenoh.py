@@ -475,3 +475,46 @@ def test_attachment_and_bad_clouds():
         cloud_frame(msg, class_field="label")
     with pytest.raises(ValueError, match="integer"):
         cloud_frame(msg, class_field="rgb")  # rgb is a float32 field
+
+
+def test_a_lost_camera_image_costs_one_frame_and_never_mixes_two_instants():
+    """Images lost on the way (a keep-last publisher drops samples when the node falls behind): the incomplete set
+    is refused naming the cameras it lacks, and the next instant's six images make a frame of their own."""
+    import io
+    from types import SimpleNamespace
+
+    from PIL import Image
+
+    from occvo_core.viz import ros_messages as rm
+    from occvo_services.ros2.inputs import CameraSet
+
+    T = rm.T
+    cams = ["A", "B", "C", "D", "E", "F"]
+    buf = io.BytesIO()
+    Image.new("RGB", (8, 4)).save(buf, "JPEG")
+    jpeg = np.frombuffer(buf.getvalue(), np.uint8)
+
+    def image(cam: str, ns: int):
+        return T["sensor_msgs/msg/CompressedImage"](header=rm.header(ns, cam), format="jpeg", data=jpeg)
+
+    rig = CameraSet(cams, "base_link")
+    ident = T["geometry_msgs/msg/Transform"](
+        translation=T["geometry_msgs/msg/Vector3"](0.0, 0.0, 0.0),
+        rotation=T["geometry_msgs/msg/Quaternion"](0.0, 0.0, 0.0, 1.0),
+    )
+    stamped = [T["geometry_msgs/msg/TransformStamped"](rm.header(0, "base_link"), c, ident) for c in cams]
+    rig.on_tf_static(T["tf2_msgs/msg/TFMessage"](transforms=stamped))
+    for c in cams:
+        rig.on_info(c, SimpleNamespace(k=np.array([2.0, 0, 4, 0, 2.0, 2, 0, 0, 1])))  # K is what it reads
+    t0, t1, t2 = 10**9, 2 * 10**9, 3 * 10**9
+    for c in cams[:5]:  # F's image of t0 lost
+        assert rig.on_image(c, image(c, t0)) is None
+    with pytest.raises(ValueError, match="no image of F before A's next"):
+        rig.on_image("A", image("A", t1))
+    for c in cams[1:5]:
+        assert rig.on_image(c, image(c, t1)) is None
+    frame = rig.on_image("F", image("F", t1))
+    assert [im.stamp for im in frame.images] == [2.0] * 6 and rig.stamp_ns == t1  # t1's alone
+    for c in cams[::-1][:5]:  # a new set, in another order
+        assert rig.on_image(c, image(c, t2)) is None
+    assert [im.stamp for im in rig.on_image("A", image("A", t2)).images] == [3.0] * 6

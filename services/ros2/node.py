@@ -104,6 +104,7 @@ class OccVONode:
         self.odom.publish(rm.odometry(self._frames, ns, M, c.odom_frame, c.base_frame, cov))
         self.tf.publish(rm.transform(ns, M, c.odom_frame, c.base_frame))
         self._published += 1
+        log_event(self.log, "odometry published", logging.DEBUG, seq=pose.seq, stamp_ns=ns)
         self._path = [*self._path[-(PATH_WINDOW - 1) :], (ns, M)]  # the window /occvo/path sends, no more
         self.path.publish(rm.path(ns, self._path, c.odom_frame))
         self.client.poses.pop(pose.seq, None)  # the node runs for hours: the client keeps nothing it has sent on

@@ -218,6 +218,11 @@ def secure_default(args, config, given_router: bool):
     args.logins_watch = None
     if getattr(args, "anonymous", False) or given_router or not config.router.enabled:
         return None
+    if any(w.role == "ros2" for w in config.workers):  # it would restart for ever, every ROS 2 key denied
+        raise ConfigError(
+            "the ROS 2 node needs --anonymous (anonymous: true) or a router config of your own with rules for the "
+            "ROS 2 keys (docs/ros2.md): the logins' access control has none for them"
+        )
     folder = logins.logins_dir()
     try:
         probe = acl.authenticate(config, folder)

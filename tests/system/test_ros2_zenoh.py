@@ -463,6 +463,12 @@ def test_serve_ros2_supervises_the_node_and_checks_its_settings(tmp_path):
     bad.write_text("{domain_id: 300}")
     with pytest.raises(ConfigError, match="domain_id"):
         up("--ros2-config", str(bad))
+    # the logins' router (the default) has no rules for the ROS 2 keys: one line, before anything starts
+    from occvo_services.commands._common import secure_default
+
+    with pytest.raises(ConfigError, match="ROS 2 node needs --anonymous"):
+        secure_default(argparse.Namespace(anonymous=False, quiet=True), up("--ros2"), given_router=False)
+    assert secure_default(argparse.Namespace(anonymous=True, quiet=True), up("--ros2"), given_router=False) is None
 
 
 def test_attachment_and_bad_clouds():

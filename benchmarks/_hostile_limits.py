@@ -22,13 +22,12 @@ from _hostile_common import (
     proc_status,
     run_replay,
 )
+from _hostile_deploy import deploy
 
 from occvo_schemas import keys
 from occvo_schemas.codec import encode
 from occvo_services.client import OccVOClient
 from occvo_services.commands.replay import replay
-from occvo_services.local import LocalService
-from occvo_services.sessions import open_session
 
 
 def heavy(args, frames, store: list[str], reg_config: str) -> None:
@@ -38,14 +37,18 @@ def heavy(args, frames, store: list[str], reg_config: str) -> None:
     from occvo_schemas.models import CameraFrame, SparseOccupancy
 
     cap = args.heavy_max_rss_mb
-    svc = LocalService(
-        quiet=True,
-        worker_args={
-            "registration": ["--config", reg_config, *store, "--max-rss-mb", str(cap)],
-            "inference": ["--config", "deploy/inference_worker.json5"],
-            "map": ["--config", "deploy/map_service.json5", *store],
-        },
-    ).start()
+    svc = (
+        deploy()
+        .service(
+            quiet=True,
+            worker_args={
+                "registration": ["--config", reg_config, *store, "--max-rss-mb", str(cap)],
+                "inference": ["--config", "deploy/inference_worker.json5"],
+                "map": ["--config", "deploy/map_service.json5", *store],
+            },
+        )
+        .start()
+    )
     try:
         ep = svc.endpoint
         solo_s, _ = run_replay(ep, "heavysolo", frames)
@@ -78,7 +81,8 @@ def heavy(args, frames, store: list[str], reg_config: str) -> None:
                 peak["rss_mb"] = max(peak["rss_mb"], proc_status(svc.procs["registration"].pid)["rss_mb"])
 
         def heavy_client(i):
-            session, stream = open_session(ep), f"heavy{i}"
+            session, login = deploy().attacker(ep, "own")
+            stream = deploy().wire(f"heavy{i}", login)
             for sn, data in enumerate(
                 [payload(stream, 0, copies)] + [payload(stream, s, full) for s in range(args.heavy_frames)]
             ):
@@ -99,14 +103,14 @@ def heavy(args, frames, store: list[str], reg_config: str) -> None:
             t.join()
         time.sleep(5.0)  # the heavy frames queued are registered
         stop.set()
-        session = open_session(ep)
+        session = svc.router
         refused = counters(
             session, svc, "registration", ("frames_refused_memory", "streams_refused_memory", "frames_out", "errors")
         )
         refused_inf = counters(session, svc, "inference", ("errors",))
-        session.close()
         emit(
             "heavy",
+            mode=deploy().name,
             registration_max_rss_mb=cap,
             registration_peak_rss_mb=peak["rss_mb"],
             replay_s=round(took, 2),
@@ -180,14 +184,18 @@ def disk_full(args, frames, alone: np.ndarray, reg_config: str) -> None:
     filesystem is filled for --full-s seconds, then freed. Every pose vs alone, the map's last seq and tiles."""
     folder = Path(args.disk_full_dir)
     store = ["--store-path", str(folder / f"occvo-{os.getpid()}.sqlite")]
-    svc = LocalService(
-        quiet=True,
-        worker_args={
-            "registration": ["--config", reg_config, *store],
-            "inference": ["--config", "deploy/inference_worker.json5"],
-            "map": ["--config", "deploy/map_service.json5", *store],
-        },
-    ).start()
+    svc = (
+        deploy()
+        .service(
+            quiet=True,
+            worker_args={
+                "registration": ["--config", reg_config, *store],
+                "inference": ["--config", "deploy/inference_worker.json5"],
+                "map": ["--config", "deploy/map_service.json5", *store],
+            },
+        )
+        .start()
+    )
     filler = folder / f"filler-{os.getpid()}"
     spell = {}
     try:

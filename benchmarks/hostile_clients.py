@@ -75,17 +75,29 @@ from _hostile_common import (
     worker_args,
     workers,
 )
+from _hostile_deploy import DEPLOY, Deployment, deploy
+from _hostile_identity import copied_id, no_credentials, query_budget, sybil, takeover_idle
 from _hostile_limits import bad_configs, disk_full, heavy
-from _hostile_outage import db_outage, lease_flood, members_acl
+from _hostile_outage import db_outage, fake_tokens, lease_flood, members_acl
+from _hostile_secrets import secrets
 from _hostile_store import store_flood
 
 from occvo_core.datasets import OccVOReleaseScene
 from occvo_schemas import keys
 from occvo_schemas.codec import encode
 from occvo_services.client import OccVOClient, camera_frame_of
-from occvo_services.local import LocalService
 from occvo_services.runtime import WorkerConfig
-from occvo_services.sessions import open_session
+
+STEPS = (
+    "no_credentials,takeover,flood,msgpack,oversize,queries,sequence,silent,degenerate,log_flood,grabber,sybil,"
+    "copied_id,query_budget,heavy,config,store_flood,disk_full,grabber_acl,db_outage,members_acl,lease_flood,"
+    "fake_tokens,secrets"
+).split(",")
+# where the anonymous mode differs: what rests on a client's identity, and the access control's refusals
+ANONYMOUS_STEPS = {
+    "no_credentials", "takeover", "sequence", "silent", "grabber", "sybil", "copied_id", "query_budget", "store_flood",
+    "lease_flood", "fake_tokens",
+}  # fmt: skip
 
 
 def main() -> int:
@@ -97,8 +109,7 @@ def main() -> int:
     p.add_argument("--frames", type=int, default=40)
     p.add_argument(
         "--steps",
-        default="flood,msgpack,oversize,queries,sequence,grabber,grabber_acl,heavy,silent,degenerate,config,log_flood,"
-        "disk_full,store_flood,db_outage,members_acl,lease_flood",
+        default=",".join(STEPS),
         help="steps after `alone`, comma separated",
     )
     p.add_argument("--disk-full-dir", help="step disk_full: a small filesystem for the store (e.g. a 64 MB tmpfs)")
@@ -112,8 +123,26 @@ def main() -> int:
         "--outage-s", default="8", help="step db_outage: how long the database is stopped, seconds (a comma list: each)"
     )
     p.add_argument("--lease-flood", type=int, default=20000, help="step lease_flood: one-byte puts on new keys")
+    p.add_argument(
+        "--modes",
+        default="logins,anonymous",
+        help="deployments: logins (the default's, every step) and anonymous (`--anonymous`: the steps that differ "
+        "there, their goals advisory)",
+    )
     args = p.parse_args()
     steps = set(args.steps.split(","))
+    for mode in args.modes.split(","):
+        anonymous = mode == "anonymous"
+        todo = steps & ANONYMOUS_STEPS if anonymous else steps
+        if not todo:
+            continue
+        DEPLOY.append(Deployment(anonymous))
+        emit("deployment", mode=mode, steps=sorted(todo), advisory=anonymous)
+        run_pass(args, todo)
+    return 0 if all(GOALS) else 1
+
+
+def run_pass(args, steps: set[str]) -> None:
     reg_config = "deploy/registration_worker.json5"
     cap = args.registration_max_rss_mb or WorkerConfig.load(reg_config).max_rss_mb
     reg_cap = ["--max-rss-mb", str(cap)] if args.registration_max_rss_mb else []
@@ -121,7 +150,7 @@ def main() -> int:
     frames = [scene[i] for i in range(min(args.frames, len(scene)))]
     store = ["--store-path", str(Path(tempfile.mkdtemp()) / "occvo.sqlite")]  # idle streams' state goes there
     args_of = functools.partial(worker_args, reg_config, reg_cap)  # the workers' arguments with a store
-    svc = LocalService(quiet=True, worker_args=args_of(store)).start()
+    svc = deploy().service(quiet=True, worker_args=args_of(store)).start()
     try:
         ep = svc.endpoint
         alone_s, alone = run_replay(ep, "legit0", frames)
@@ -129,27 +158,34 @@ def main() -> int:
             deadline = time.monotonic() + 60
             while (alone_info := c.map_info()).last_seq != len(frames) - 1 and time.monotonic() < deadline:
                 time.sleep(0.2)
-        session = open_session(ep)
-        # the flood's baseline is the service at rest: the replay's stream retired (idle_stream_s), as the flood's will be
+        if "no_credentials" in steps:
+            no_credentials(ep)
+        session, login = deploy().attacker(ep, "own")  # the flood's, and oversize's
+        # the flood's baseline is the service at rest: the replay's stream retired (idle_stream_s), as the flood's will
+        # be; takeover's victim stream is that idle one
         deadline = time.monotonic() + WorkerConfig.load(reg_config).idle_stream_s + 60
-        while "flood" in steps and counters(session, svc, "registration", ("streams_retired",))["streams_retired"] < 1:
+        idle = {"flood", "takeover"} & steps
+        while idle and counters(session, svc, "registration", ("streams_retired",))["streams_retired"] < 1:
             assert time.monotonic() < deadline, "the replay's stream was not retired"
             time.sleep(1.0)
         base = workers(svc)
-        emit("alone", replay_s=round(alone_s, 2), poses=len(alone), workers=base)
+        emit("alone", mode=deploy().name, replay_s=round(alone_s, 2), poses=len(alone), workers=base)
 
+        if "takeover" in steps:
+            takeover_idle(ep, frames, alone)
         if "flood" in steps:
             peak = {"rss_mb": 0.0}
             stop = threading.Event()
 
             # encoded before the flood (voxel indices: 0.12 MB each), so that putting them takes --flood-s, not the
             # encoding's time (21.8 s for 2,000 when encoded one by one)
-            payloads = [encode(camera_frame_of(frames[0], f"flood{i}", 0, exact=False)) for i in range(args.streams)]
+            names = [deploy().wire(f"flood{i}", login) for i in range(args.streams)]
+            payloads = [encode(camera_frame_of(frames[0], n, 0, exact=False)) for n in names]
 
             def flood():
                 start = time.perf_counter()
-                for i, small in enumerate(payloads):
-                    session.put(keys.camera(f"flood{i}"), small, congestion_control=BLOCK)
+                for i, (name, small) in enumerate(zip(names, payloads)):
+                    session.put(keys.camera(name), small, congestion_control=BLOCK)
                     time.sleep(max(0.0, start + (i + 1) * args.flood_s / args.streams - time.perf_counter()))
                 peak["put_s"] = time.perf_counter() - start
 
@@ -168,6 +204,7 @@ def main() -> int:
             stop.set()
             emit(
                 "flood",
+                mode=deploy().name,
                 streams=args.streams,
                 puts_took_s=round(peak["put_s"], 1),
                 flood_and_replay_took_s=round(flood_end - t0, 1),
@@ -201,15 +238,18 @@ def main() -> int:
             )
 
         if "msgpack" in steps:
-            msgpack_delay(ep, session, frames)
+            msgpack_delay(ep, frames)
         if "oversize" in steps:
             me = os.getpid()
             before = {**workers(svc), "router": proc_status(me)}
-            session.put(keys.camera("legit3"), b"\x00" * (args.big_mb << 20), congestion_control=BLOCK)
+            session.put(
+                keys.camera(deploy().wire("legit3", login)), b"\x00" * (args.big_mb << 20), congestion_control=BLOCK
+            )
             time.sleep(3.0)
             after = {**workers(svc), "router": proc_status(me)}
             emit(
                 "oversize",
+                mode=deploy().name,
                 put_mb=args.big_mb,
                 rss_rise_mb={r: round(after[r]["rss_mb"] - before[r]["rss_mb"], 1) for r in after},
                 note="router rise includes this process's own put buffer",
@@ -229,10 +269,11 @@ def main() -> int:
 
                 quiet = tile_times()
                 ctx = multiprocessing.get_context("spawn")  # the hostile client is a process of its own, as it would be
-                hammer, counts = ctx.Event(), ctx.Array("i", 2)
-                hostile_client = ctx.Process(target=wildcard_gets, args=(ep, 10, hammer, counts))
+                hammer, counts = ctx.Event(), ctx.Array("i", 3)
+                own = deploy().config("own")  # the attacker's own login: its gets on occvo/** (or none: refused)
+                hostile_client = ctx.Process(target=wildcard_gets, args=(ep, 10, hammer, counts, own))
                 hostile_client.start()
-                while counts[0] + counts[1] < 10:  # its gets are being answered
+                while counts[2] < 10:  # its gets are being answered (or refused by the access control)
                     time.sleep(0.05)
                 loud = tile_times()
                 hammer.set()
@@ -240,9 +281,11 @@ def main() -> int:
                 answers = {"ok": counts[0], "busy": counts[1]}
             emit(
                 "queries",
+                mode=deploy().name,
                 tile_p50_p99_ms_alone=quiet,
                 tile_p50_p99_ms_with_10_wildcard_gets=loud,
                 wildcard_replies=answers,
+                wildcard_gets=counts[2],
                 load_average=round(os.getloadavg()[0], 1),  # other jobs on the machine
                 map=counters(session, svc, "map", ("queries_refused",)),
             )
@@ -255,7 +298,13 @@ def main() -> int:
         if "log_flood" in steps:
             log_flood(ep, svc)
         if "grabber" in steps:
-            grabber(ep, frames, alone_s, [[f"grab{i}" for i in range(50)]], "legit5", "plain default, one session")
+            grabber(ep, frames, alone_s, [[f"grab{i}" for i in range(50)]], "legit5", "one session, 50 ids")
+        if "sybil" in steps:
+            sybil(ep, frames, alone, alone_s)
+        if "copied_id" in steps:
+            copied_id(ep, frames, alone, alone_s)
+        if "query_budget" in steps:
+            query_budget(ep, frames)
         session.close()
     finally:
         svc.stop()
@@ -276,17 +325,21 @@ def main() -> int:
             "the map after the spell is the map of the run alone",
             full_info.tiles == alone_info.tiles and full_info.voxel_count == alone_info.voxel_count,
         )
-    if "grabber" in steps:
+    if "grabber" in steps and deploy().anonymous:  # the ACL's identity rule without its logins
         grabber_user(frames, args_of(store))
     if "grabber_acl" in steps:
         grabber_acl(frames, args_of, reg_config)
     for outage_s in [float(x) for x in args.outage_s.split(",")] if "db_outage" in steps else []:
         db_outage(outage_s, frames, alone)
     if "members_acl" in steps:
-        members_acl(frames, alone)
+        members_acl(frames, alone, shipped=False)
+        members_acl(frames, alone, shipped=True)
     if "lease_flood" in steps:
         lease_flood(args, frames, alone_s, alone)
-    return 0 if all(GOALS) else 1
+    if "fake_tokens" in steps:
+        fake_tokens(frames, alone_s, alone)
+    if "secrets" in steps:
+        secrets(frames)
 
 
 if __name__ == "__main__":

@@ -17,7 +17,7 @@ from occvo_schemas.codec import decode, encode
 from occvo_schemas.models import ErrorEvent, WorkerHealth
 from occvo_services.client import OccVOClient, camera_frame_of
 from occvo_services.commands.replay import replay
-from occvo_services.sessions import open_session
+from occvo_services.sessions import open_login, open_session
 
 DATA = SAMPLE / "occupancy" / "scene-0101"
 BLOCK = zenoh.CongestionControl.BLOCK
@@ -118,8 +118,8 @@ def grab(endpoint: str, streams: list[str], frame, stop: threading.Event, period
 
 def run_replay(endpoint: str, stream: str, frames, base=None) -> tuple[float, np.ndarray]:
     """The replay of `frames` on `stream` (its session's zenoh config `base`): its time and poses."""
-    session = open_session(endpoint, base)
-    with session, OccVOClient(endpoint, stream, timeout=300, session=session) as c:
+    session, login = open_login(endpoint, base)
+    with session, OccVOClient(endpoint, stream, timeout=300, session=session, login=login) as c:
         t0 = time.perf_counter()
         out = replay(c, frames, window=4, timeout=600)
         took = time.perf_counter() - t0

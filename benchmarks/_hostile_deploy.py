@@ -33,7 +33,10 @@ class Deployment:
         self.victim = logins.default_login()
 
     def service(self, **kw) -> LocalService:
-        """A LocalService as `occvo serve` runs it in this mode (a router config given stays: the shipped ACL)."""
+        """A LocalService as `occvo serve` runs it in this mode (a router config given stays: the shipped ACL).
+        $OCCVO_HOSTILE_LOGS: a folder for the workers' logs (one folder a service) instead of none."""
+        if os.environ.get("OCCVO_HOSTILE_LOGS") and not kw.get("log_dir"):
+            kw["log_dir"] = Path(tempfile.mkdtemp(dir=os.environ["OCCVO_HOSTILE_LOGS"]))
         if self.anonymous or kw.get("router_config"):
             return LocalService(**kw)
         env = kw.pop("worker_env", None) or {}

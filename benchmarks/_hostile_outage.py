@@ -18,7 +18,7 @@ from occvo_schemas import keys
 from occvo_services.client import OccVOClient
 from occvo_services.commands.replay import replay
 from occvo_services.pg_local import PgCluster
-from occvo_services.sessions import ZENOH_CONFIG_ENV, open_session
+from occvo_services.sessions import ZENOH_CONFIG_ENV, open_login
 from occvo_services.store_api import open_store
 
 DEFAULTS = "services/defaults"  # what `occvo serve` runs
@@ -36,8 +36,8 @@ def _serve_args(url: str) -> dict:
 def _replays(endpoint: str, streams: list[str], frames, at: int, event, base=None) -> dict:
     """The replays of `frames` on `streams` side by side (window 4); event() runs once each has pose `at`. Per
     stream: its poses, seconds, resends and error codes."""
-    session = open_session(endpoint, base)
-    clients = {s: OccVOClient(endpoint, s, timeout=600, session=session) for s in streams}
+    session, login = open_login(endpoint, base)
+    clients = {s: OccVOClient(endpoint, s, timeout=600, session=session, login=login) for s in streams}
     out: dict = {}
 
     def run(stream: str) -> None:
@@ -88,7 +88,7 @@ def db_outage(outage_s: float, frames, alone: np.ndarray) -> None:
         down.append(time.monotonic() - t0)
 
     try:
-        streams = ["outage0", "outage1"]
+        streams = [deploy().victim_stream(f"outage{i}") for i in range(2)]
         got = _replays(svc.endpoint, streams, frames, 10, outage)
         stored = _stored_equal(url, streams, alone)
     finally:

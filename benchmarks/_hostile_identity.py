@@ -156,10 +156,10 @@ def takeover_idle(ep: str, frames, alone: np.ndarray, stream: str = "legit0", wh
     same = bool(np.array_equal(after.poses.to_numpy(), before.poses.to_numpy()))
     same_map = info1.voxel_count == info0.voxel_count and info1.last_seq == info0.last_seq
     equal = bool(np.array_equal(after.poses.to_numpy(), alone))
-    emit("takeover", mode=deploy().name, attacker=who, stored_before=len(before.poses), stored_after=len(after.poses),
+    emit("takeover", mode=deploy().name, attacker=who, stored_before=len(before.seqs.to_numpy()), stored_after=len(after.seqs.to_numpy()),
          trajectory_unchanged=same, map_unchanged=same_map, map_last_seq=[info0.last_seq, info1.last_seq])  # fmt: skip
     goal("takeover of an idle stream: its stored trajectory and map unchanged, equal to offline",
-         same and same_map and equal, stored_after=len(after.poses))  # fmt: skip
+         same and same_map and equal, stored_after=len(after.seqs.to_numpy()))  # fmt: skip
 
 
 def query_budget(ep: str, frames, stream: str = "legit0", who: str = "own") -> None:

@@ -9,7 +9,7 @@ import time
 
 import numpy as np
 import zenoh
-from _hostile_common import BLOCK, emit, goal
+from _hostile_common import BLOCK, emit, goal, run_replay
 from _hostile_deploy import deploy
 
 from occvo_schemas import keys
@@ -29,6 +29,11 @@ def victim_replay(ep: str, stream: str, frames) -> dict:
         traj = c.trajectory()
         errors = sorted({(e.code, e.seq) for e in c.errors if e.seq is not None and e.seq < len(frames)})
     return {"s": took, "poses": poses, "n": out["poses"], "traj": traj, "errors": errors}
+
+
+def solo_s(ep: str, frames, step: str) -> float:
+    """The victim's replay alone just before an attack (this host's load drifts: the ratio is side by side)."""
+    return run_replay(ep, f"solo{step}", frames)[0]
 
 
 def _verdict(step: str, got: dict, alone: np.ndarray, alone_s: float, frames, **extra) -> None:
@@ -66,6 +71,7 @@ def borrowed_ids(ep: str, n: int, who: str = "own") -> list:
 def sybil(ep: str, frames, alone: np.ndarray, alone_s: float, n: int = 64) -> None:
     """One attacker (its own login) putting a frame every 2 s on n stream ids, each frame under another borrowed id,
     beside the victim's replay."""
+    alone_s = solo_s(ep, frames, "sybil")
     session, login = deploy().attacker(ep, "own")
     ids = borrowed_ids(ep, n)
     streams = [deploy().wire(f"sybil{i}", login) for i in range(n)]
@@ -97,10 +103,12 @@ def copied_id(ep: str, frames, alone: np.ndarray, alone_s: float, who: str = "ot
     """The victim's session id copied (from its camera frames where the attacker can subscribe to them; else handed
     over, as if leaked): the attacker (a login another user owns) puts other frames on the victim's stream under
     that id, seq 0 to 39 over and over, while the victim replays."""
+    alone_s = solo_s(ep, frames, "copy")
     stream = deploy().victim_stream("legitcopy")
     session, _ = deploy().attacker(ep, who)
+    ear, _ = deploy().attacker(ep, who)  # a session of its own: a session hears its own puts
     seen = []
-    sub = session.declare_subscriber(
+    sub = ear.declare_subscriber(
         keys.camera(stream), lambda s: seen.append(s.source_info.source_id) if s.source_info else None
     )
     stray = [encode(camera_frame_of(frames[(i + 7) % len(frames)], stream, i)) for i in range(len(frames))]
@@ -134,6 +142,7 @@ def copied_id(ep: str, frames, alone: np.ndarray, alone_s: float, who: str = "ot
         got = {"s": took, "poses": poses, "n": out["poses"], "traj": c.trajectory(),
                "errors": sorted({(e.code, e.seq) for e in c.errors if e.seq is not None})}  # fmt: skip
     sub.undeclare()
+    ear.close()
     session.close()
     _verdict("copied_id", got, alone, alone_s, frames, attacker=who, id_seen_by_subscribing=bool(seen))
 

@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import json
 import os
-import re
 import shutil
 import signal
 import subprocess
@@ -21,6 +20,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import zenoh
+from mesh_certs import make_certificates, shipped
 
 from occvo_schemas import keys
 from occvo_schemas.codec import encode
@@ -31,33 +31,6 @@ from occvo_services.sessions import free_port, open_login, zenoh_config
 pytestmark = pytest.mark.skipif(shutil.which("openssl") is None, reason="openssl not found: cannot make certificates")
 MULTIHOST = REPO / "deploy" / "multihost"
 FRAMES = 6
-
-
-def _recipe_block(n: int) -> str:
-    """The n-th bash block of docs/service.md's "Two routers with certificates"."""
-    text = (REPO / "docs" / "service.md").read_text()
-    section = text.split("### Two routers with certificates", 1)[1].split("\n## ", 1)[0]
-    return re.findall(r"```bash\n(.*?)```", section, re.S)[n]
-
-
-def _as_user(text: str, tls: Path) -> str:
-    """What the recipe tells a user to edit: the certificates' folder and the routers' host names."""
-    return (
-        text.replace("/etc/occvo/tls", str(tls))
-        .replace("occvo-router-a.lan", "localhost")
-        .replace("occvo-router-b.lan", "localhost")
-    )
-
-
-def _certificates(tls: Path) -> None:
-    script = _as_user(_recipe_block(0), tls).replace(" map camera;", " map camera camera2;")  # a second login
-    subprocess.run(["bash", "-euc", script], check=True, capture_output=True, timeout=120)
-
-
-def _copy(name: str, tmp: Path, tls: Path) -> Path:
-    out = tmp / name
-    out.write_text(_as_user((MULTIHOST / name).read_text(), tls))
-    return out
 
 
 def _session(ep: str, config: Path, **inserts) -> zenoh.Session:
@@ -72,7 +45,7 @@ def mesh(tmp_path_factory, pg_cluster):
     tmp = tmp_path_factory.mktemp("mesh-tls")
     tls = tmp / "tls"
     tls.mkdir()
-    _certificates(tls)
+    make_certificates(tls, ("camera2",))  # a second client login
     pa, pb = free_port(), free_port()
     ep_a, ep_b = f"tls/localhost:{pa}", f"tls/localhost:{pb}"
     env = {**os.environ, "PYTHONPATH": str(REPO)}
@@ -85,10 +58,10 @@ def mesh(tmp_path_factory, pg_cluster):
 
     router = [sys.executable, "-m", "occvo_services.router", "--config"]
     # router B first: it keeps dialling A, as the recipe says either may start first
-    start("router-b", [*router, str(_copy("router-b.json5", tmp, tls)), "--listen", f"tls/127.0.0.1:{pb}",
+    start("router-b", [*router, str(shipped("router-b.json5", tmp, tls)), "--listen", f"tls/127.0.0.1:{pb}",
                        "--connect", ep_a])  # fmt: skip
-    start("router-a", [*router, str(_copy("router-a.json5", tmp, tls)), "--listen", f"tls/127.0.0.1:{pa}"])
-    sessions = {r: _copy(f"session-{r}.json5", tmp, tls) for r in ("inference", "registration", "map", "camera")}
+    start("router-a", [*router, str(shipped("router-a.json5", tmp, tls)), "--listen", f"tls/127.0.0.1:{pa}"])
+    sessions = {r: shipped(f"session-{r}.json5", tmp, tls) for r in ("inference", "registration", "map", "camera")}
     (tmp / "session-camera2.json5").write_text(sessions["camera"].read_text().replace("camera", "camera2"))
     sessions["camera2"] = tmp / "session-camera2.json5"
     store = ["--store-url", pg_cluster.new_database()]

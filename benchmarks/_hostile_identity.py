@@ -14,19 +14,35 @@ from _hostile_deploy import deploy
 
 from occvo_schemas import keys
 from occvo_schemas.codec import encode
-from occvo_services.client import OccVOClient, camera_frame_of
+from occvo_services.client import OccVOClient, ServiceError, camera_frame_of
 from occvo_services.commands.replay import replay
 from occvo_services.sessions import NoRouterError
 
 
+def stored(c) -> np.ndarray:
+    """The stream's stored poses (none: an empty array; an attacker may have left it so)."""
+    try:
+        return c.trajectory().poses.to_numpy()
+    except ServiceError:
+        return np.zeros((0, 4, 4))
+
+
+def replay_or_stall(c, frames) -> dict:
+    """replay's summary, or for a replay that stalled (no pose for 120 s: locked out) the poses it got."""
+    try:
+        return replay(c, frames, window=4, timeout=120)
+    except ServiceError:
+        return {"poses": len(c.poses), "stalled": True}
+
+
 def victim_replay(ep: str, stream: str, frames) -> dict:
     """The victim's replay (its own login, picked up): time, poses, stored trajectory, the errors on its frames."""
-    with OccVOClient(ep, stream, timeout=300) as c:
+    with OccVOClient(ep, stream, timeout=120) as c:
         t0 = time.perf_counter()
-        out = replay(c, frames, window=4, timeout=600)
+        out = replay_or_stall(c, frames)
         took = time.perf_counter() - t0
         poses = np.array([c.poses[i].matrix() for i in sorted(c.poses)]) if c.poses else np.zeros((0, 4, 4))
-        traj = c.trajectory()
+        traj = stored(c)
         errors = sorted({(e.code, e.seq) for e in c.errors if e.seq is not None and e.seq < len(frames)})
     return {"s": took, "poses": poses, "n": out["poses"], "traj": traj, "errors": errors}
 
@@ -38,12 +54,12 @@ def solo_s(ep: str, frames, step: str) -> float:
 
 def _verdict(step: str, got: dict, alone: np.ndarray, alone_s: float, frames, **extra) -> None:
     equal = bool(got["n"] == len(frames) and np.array_equal(got["poses"], alone))
-    stored = bool(np.array_equal(got["traj"].poses.to_numpy(), alone))
+    kept = bool(np.array_equal(got["traj"], alone))
     ratio = got["s"] / alone_s
     emit(step, mode=deploy().name, replay_s=round(got["s"], 2), ratio_to_alone=round(ratio, 2), poses=got["n"],
-         poses_equal=equal, stored_equal=stored, victim_errors=got["errors"][:8], **extra)  # fmt: skip
+         poses_equal=equal, stored_equal=kept, victim_errors=got["errors"][:8], **extra)  # fmt: skip
     goal(f"{step}: the victim's replay gets {len(frames)} of {len(frames)} poses equal to offline, stored, within 3x",
-         equal and stored and ratio <= 3.0, poses=got["n"], ratio=round(ratio, 2))  # fmt: skip
+         equal and kept and ratio <= 3.0, poses=got["n"], ratio=round(ratio, 2))  # fmt: skip
 
 
 def no_credentials(ep: str) -> None:
@@ -113,7 +129,7 @@ def copied_id(ep: str, frames, alone: np.ndarray, alone_s: float, who: str = "ot
     )
     stray = [encode(camera_frame_of(frames[(i + 7) % len(frames)], stream, i)) for i in range(len(frames))]
     stop = threading.Event()
-    with OccVOClient(ep, "legitcopy", timeout=300) as c:
+    with OccVOClient(ep, "legitcopy", timeout=120) as c:
         leaked = c.session.id
 
         def takeover():
@@ -132,14 +148,14 @@ def copied_id(ep: str, frames, alone: np.ndarray, alone_s: float, who: str = "ot
         t.start()
         try:
             t0 = time.perf_counter()
-            out = replay(c, frames, window=4, timeout=600)
+            out = replay_or_stall(c, frames)
             took = time.perf_counter() - t0
         finally:
             stop.set()
             t.join()
         poses = np.array([c.poses[i].matrix() for i in sorted(c.poses)]) if c.poses else np.zeros((0, 4, 4))
         time.sleep(1.0)
-        got = {"s": took, "poses": poses, "n": out["poses"], "traj": c.trajectory(),
+        got = {"s": took, "poses": poses, "n": out["poses"], "traj": stored(c),
                "errors": sorted({(e.code, e.seq) for e in c.errors if e.seq is not None})}  # fmt: skip
     sub.undeclare()
     ear.close()
@@ -151,7 +167,7 @@ def takeover_idle(ep: str, frames, alone: np.ndarray, stream: str = "legit0", wh
     """The victim's stream `stream` idle (retired, stored): the attacker puts seq 0 of another frame, then 1 to 5,
     on it. The victim's stored trajectory and map before and after."""
     with OccVOClient(ep, stream, timeout=60) as c:
-        before, info0 = c.trajectory(), c.map_info()
+        before, info0 = stored(c), c.map_info()
         wire = c.stream
     session, _ = deploy().attacker(ep, who)
     for i in range(6):
@@ -161,14 +177,14 @@ def takeover_idle(ep: str, frames, alone: np.ndarray, stream: str = "legit0", wh
     time.sleep(5.0)
     session.close()
     with OccVOClient(ep, stream, timeout=60) as c:
-        after, info1 = c.trajectory(), c.map_info()
-    same = bool(np.array_equal(after.poses.to_numpy(), before.poses.to_numpy()))
+        after, info1 = stored(c), c.map_info()
+    same = bool(np.array_equal(after, before))
     same_map = info1.voxel_count == info0.voxel_count and info1.last_seq == info0.last_seq
-    equal = bool(np.array_equal(after.poses.to_numpy(), alone))
-    emit("takeover", mode=deploy().name, attacker=who, stored_before=len(before.seqs.to_numpy()), stored_after=len(after.seqs.to_numpy()),
+    equal = bool(np.array_equal(after, alone))
+    emit("takeover", mode=deploy().name, attacker=who, stored_before=len(before), stored_after=len(after),
          trajectory_unchanged=same, map_unchanged=same_map, map_last_seq=[info0.last_seq, info1.last_seq])  # fmt: skip
     goal("takeover of an idle stream: its stored trajectory and map unchanged, equal to offline",
-         same and same_map and equal, stored_after=len(after.seqs.to_numpy()))  # fmt: skip
+         same and same_map and equal, stored_after=len(after))  # fmt: skip
 
 
 def query_budget(ep: str, frames, stream: str = "legit0", who: str = "own") -> None:

@@ -337,7 +337,7 @@ def run_pass(args, steps: set[str]) -> None:
     if "lease_flood" in steps:
         lease_flood(args, frames, alone_s, alone)
     if "fake_tokens" in steps:
-        fake_tokens(frames, alone_s, alone)
+        fake_tokens(frames, alone)
     if "secrets" in steps:
         secrets(frames)
 

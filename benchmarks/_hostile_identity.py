@@ -16,7 +16,10 @@ from occvo_schemas import keys
 from occvo_schemas.codec import encode
 from occvo_services.client import OccVOClient, ServiceError, camera_frame_of
 from occvo_services.commands.replay import replay
+from occvo_services.runtime import WorkerConfig
 from occvo_services.sessions import NoRouterError
+
+IDLE_S = max(WorkerConfig.load(f"deploy/{w}.json5").idle_stream_s for w in ("inference_worker", "registration_worker"))
 
 
 def stored(c) -> np.ndarray:
@@ -113,6 +116,7 @@ def sybil(ep: str, frames, alone: np.ndarray, alone_s: float, n: int = 64) -> No
         t.join()
         session.close()
     _verdict("sybil", got, alone, alone_s, frames, sybil_ids=n)
+    time.sleep(IDLE_S + 15.0)  # the sybil streams retired (idle_stream_s): the next step finds the worker as before
 
 
 def copied_id(ep: str, frames, alone: np.ndarray, alone_s: float, who: str = "other") -> None:

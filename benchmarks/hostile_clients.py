@@ -1,9 +1,15 @@
-"""A hostile client beside a legitimate replay, on loopback: the figures of issue 33's "done when".
+"""Hostile clients beside a legitimate replay, on loopback: the figures of issues 33 and 64's "done when".
 
-    python benchmarks/hostile_clients.py [--streams 2000 --flood-s 10 --settle-s 60 --big-mb 512]
-        [--steps flood,msgpack,oversize,queries] [--registration-max-rss-mb MB] [--store-flood-s 180]
+    python benchmarks/hostile_clients.py [--modes logins,anonymous] [--steps ...] [--streams 2000 --flood-s 10
+        --settle-s 60 --big-mb 512] [--registration-max-rss-mb MB] [--store-flood-s 180] [--disk-full-dir DIR]
 
-Router in this process, workers as processes (occvo_services.local.LocalService, the deploy configs' limits). Steps:
+Each pass runs against one deployment (_hostile_deploy.py): `logins`, `occvo serve`'s default (the router with logins
+and access control, the workers as their logins, a client known by its login's prefix), every step; then
+`anonymous` (`occvo serve --anonymous`: a plain router, a client known by the zid it declares), the steps that differ
+there, their goals advisory (printed, not counted: the guards keyed on a self-declared id cannot hold). The victim is
+the login `occvo serve` made for the user running it; an attacker comes without credentials, with its own login
+(`mallory`) or with another user's (`bob`), never with the victim's. Router in this process, workers as processes
+(occvo_services.local.LocalService, the deploy configs' limits). Steps:
   alone      scene-0101 replayed alone: time, poses; each worker's RSS and threads once its stream has retired
              (baseline: the service at rest)
   flood      one client puts a seq-0 frame on each of --streams stream ids in --flood-s seconds while scene-0101 is
@@ -43,7 +49,21 @@ Router in this process, workers as processes (occvo_services.local.LocalService,
              login, the owner of the first stream killed (-9) at its pose 10: every pose vs alone, owners before
   lease_flood placement members on PostgreSQL: --lease-flood one-byte puts on new keys beside a replay: its poses
              vs alone, its time vs solo, the lease rows left
-`alone` always runs (the baseline and the map the queries ask for); --steps picks the others. Prints one JSON line
+  no_credentials a session without credentials: refused by the router
+  takeover   the victim's idle (retired, stored) stream: another user's login puts seq 0 to 5 of other frames on it:
+             its stored trajectory and map before and after
+  sybil      one login putting a frame every 2 s on 64 stream ids, each under another borrowed zid, beside the
+             victim's replay: poses, stored trajectory, time vs a solo replay just before
+  copied_id  the victim's zid copied (or leaked): another user's login puts other frames, seq 0-39 over and over, on
+             the victim's stream under it while the victim replays: the same figures
+  query_budget 10 attacker threads looping tile gets under the victim's copied zid (on the victim's stream and on
+             its own) while the victim asks 200 tiles: the victim's gets refused busy
+  fake_tokens placement members on PostgreSQL: the attacker's login declares 8 registration workers' tokens, then two
+             replays: poses, time vs the same replays before, leases held by a fake worker
+  secrets    `occvo serve` on PostgreSQL, the password in OCCVO_STORE_URL (`?password=`), the database stopped
+             mid-drive: the password in ps, logs, output, events; written in --store: exit 2, one line
+members_acl runs under the default's logins and under the shipped ACL (deploy/acl). $OCCVO_HOSTILE_LOGS: a folder for
+the workers' logs. `alone` always runs (the baseline and the map the queries ask for); --steps picks the others. Prints one JSON line
 per step and one per goal ({"goal": ..., "met": ...}); exits 1 if a goal is not met."""
 
 from __future__ import annotations
@@ -98,6 +118,14 @@ ANONYMOUS_STEPS = {
     "no_credentials", "takeover", "sequence", "silent", "grabber", "sybil", "copied_id", "query_budget", "store_flood",
     "lease_flood", "fake_tokens",
 }  # fmt: skip
+
+
+def attempt(step, *args, **kw) -> None:
+    """A step that raises is one failed goal naming the error, and the run goes on with the next step."""
+    try:
+        step(*args, **kw)
+    except Exception as exc:  # noqa: BLE001 - reported as the step's result
+        goal(f"{step.__name__} ran to its end", False, error=f"{type(exc).__name__}: {str(exc)[:300]}")
 
 
 def main() -> int:
@@ -159,7 +187,7 @@ def run_pass(args, steps: set[str]) -> None:
             while (alone_info := c.map_info()).last_seq != len(frames) - 1 and time.monotonic() < deadline:
                 time.sleep(0.2)
         if "no_credentials" in steps:
-            no_credentials(ep)
+            attempt(no_credentials, ep)
         session, login = deploy().attacker(ep, "own")  # the flood's, and oversize's
         # the flood's baseline is the service at rest: the replay's stream retired (idle_stream_s), as the flood's will
         # be; takeover's victim stream is that idle one
@@ -172,7 +200,7 @@ def run_pass(args, steps: set[str]) -> None:
         emit("alone", mode=deploy().name, replay_s=round(alone_s, 2), poses=len(alone), workers=base)
 
         if "takeover" in steps:
-            takeover_idle(ep, frames, alone)
+            attempt(takeover_idle, ep, frames, alone)
         if "flood" in steps:
             peak = {"rss_mb": 0.0}
             stop = threading.Event()
@@ -238,7 +266,7 @@ def run_pass(args, steps: set[str]) -> None:
             )
 
         if "msgpack" in steps:
-            msgpack_delay(ep, frames)
+            attempt(msgpack_delay, ep, frames)
         if "oversize" in steps:
             me = os.getpid()
             before = {**workers(svc), "router": proc_status(me)}
@@ -290,32 +318,37 @@ def run_pass(args, steps: set[str]) -> None:
                 map=counters(session, svc, "map", ("queries_refused",)),
             )
         if "sequence" in steps:
-            sequence_abuse(ep, frames, alone, alone_s)
+            attempt(sequence_abuse, ep, frames, alone, alone_s)
         if "silent" in steps:
-            silent_queryable(ep, "legit0")
+            attempt(silent_queryable, ep, "legit0")
         if "degenerate" in steps:
-            degenerate_frames(ep, frames)
+            attempt(degenerate_frames, ep, frames)
         if "log_flood" in steps:
-            log_flood(ep, svc)
+            attempt(log_flood, ep, svc)
         if "grabber" in steps:
-            grabber(ep, frames, alone_s, [[f"grab{i}" for i in range(50)]], "legit5", "one session, 50 ids")
+            attempt(grabber, ep, frames, alone_s, [[f"grab{i}" for i in range(50)]], "legit5", "one session, 50 ids")
         if "sybil" in steps:
-            sybil(ep, frames, alone, alone_s)
+            attempt(sybil, ep, frames, alone, alone_s)
         if "copied_id" in steps:
-            copied_id(ep, frames, alone, alone_s)
+            attempt(copied_id, ep, frames, alone, alone_s)
         if "query_budget" in steps:
-            query_budget(ep, frames)
+            attempt(query_budget, ep, frames)
         session.close()
     finally:
         svc.stop()
     if "heavy" in steps:
-        heavy(args, frames, store, reg_config)
+        attempt(heavy, args, frames, store, reg_config)
     if "config" in steps:
-        bad_configs()
+        attempt(bad_configs)
     if "store_flood" in steps:
-        store_flood(args, frames)
+        attempt(store_flood, args, frames)
     if "disk_full" in steps and args.disk_full_dir:
-        full_info = disk_full(args, frames, alone, reg_config)
+        try:
+            full_info = disk_full(args, frames, alone, reg_config)
+        except Exception as exc:  # noqa: BLE001 - reported as the step's result
+            full_info = None
+            goal("disk_full ran to its end", False, error=f"{type(exc).__name__}: {str(exc)[:300]}")
+    if "disk_full" in steps and args.disk_full_dir and full_info is not None:
         emit(
             "disk_full_map_vs_alone",
             same_tiles=full_info.tiles == alone_info.tiles,
@@ -326,20 +359,20 @@ def run_pass(args, steps: set[str]) -> None:
             full_info.tiles == alone_info.tiles and full_info.voxel_count == alone_info.voxel_count,
         )
     if "grabber" in steps and deploy().anonymous:  # the ACL's identity rule without its logins
-        grabber_user(frames, args_of(store))
+        attempt(grabber_user, frames, args_of(store))
     if "grabber_acl" in steps:
-        grabber_acl(frames, args_of, reg_config)
+        attempt(grabber_acl, frames, args_of, reg_config)
     for outage_s in [float(x) for x in args.outage_s.split(",")] if "db_outage" in steps else []:
-        db_outage(outage_s, frames, alone)
+        attempt(db_outage, outage_s, frames, alone)
     if "members_acl" in steps:
-        members_acl(frames, alone, shipped=False)
-        members_acl(frames, alone, shipped=True)
+        attempt(members_acl, frames, alone, shipped=False)
+        attempt(members_acl, frames, alone, shipped=True)
     if "lease_flood" in steps:
-        lease_flood(args, frames, alone_s, alone)
+        attempt(lease_flood, args, frames, alone_s, alone)
     if "fake_tokens" in steps:
-        fake_tokens(frames, alone)
+        attempt(fake_tokens, frames, alone)
     if "secrets" in steps:
-        secrets(frames)
+        attempt(secrets, frames)
 
 
 if __name__ == "__main__":

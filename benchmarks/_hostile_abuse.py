@@ -246,25 +246,25 @@ def log_flood(ep: str, svc, seconds: float = 10.0) -> None:
             congestion_control=BLOCK,
             source_info=zenoh.SourceInfo(session.id, n),
         )
-    time.sleep(2.0)
-    after = counters(session, svc, "inference", names)
+    deadline = time.perf_counter() + 60.0  # the puts queued at the worker all handled: its error count settles
+    after, elapsed = counters(session, svc, "inference", names), time.perf_counter() - t0
+    while time.perf_counter() < deadline:  # elapsed: when the count was last seen still moving (or first final)
+        time.sleep(2.0)
+        again = counters(session, svc, "inference", names)
+        if again == after:
+            break
+        after, elapsed = again, time.perf_counter() - t0
     session.close()
     lines = (after["errors"] - before["errors"]) - (after["errors_suppressed"] - before["errors_suppressed"])
     config = WorkerConfig.load("deploy/inference_worker.json5")
-    bound = config.error_burst + config.error_events_per_s * (seconds + 2.0)
-    emit(
-        "log_flood",
-        mode=deploy().name,
-        seconds=seconds,
-        puts=n,
-        log_lines=lines,
-        log_mb_at_700_bytes_a_line=round(lines * 700 / 1e6, 3),
-    )
+    bound = config.error_burst + config.error_events_per_s * elapsed  # a token bucket over the time it was used
+    emit("log_flood", mode=deploy().name, seconds=seconds, puts=n, handled_within_s=round(elapsed, 1),
+         log_lines=lines, log_mb_at_700_bytes_a_line=round(lines * 700 / 1e6, 3))  # fmt: skip
     goal(
         "one client's 1-byte puts on distinct keys log at most its error budget (and under 10 MB)",
         lines <= bound + 5 and lines * 700 < 10e6,
         lines=lines,
-        bound=bound,
+        bound=round(bound),
     )
 
 

@@ -78,7 +78,10 @@ def heavy(args, frames, store: list[str], reg_config: str) -> None:
 
         def watch():
             while not stop.wait(0.05):
-                peak["rss_mb"] = max(peak["rss_mb"], proc_status(svc.procs["registration"].pid)["rss_mb"])
+                try:
+                    peak["rss_mb"] = max(peak["rss_mb"], proc_status(svc.procs["registration"].pid)["rss_mb"])
+                except (KeyError, OSError):  # the worker gone (the step ended early)
+                    return
 
         def heavy_client(i):
             session, login = deploy().attacker(ep, "own")

@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+import shutil
 import tempfile
 import time
 from pathlib import Path
@@ -86,6 +87,8 @@ def store_flood(args, frames) -> None:
     files1, logs1 = _files_bytes(folder), sum(_files_bytes(logs).values())
     growth = sum(files1.values()) - sum(files0.values())
     stored, usage = _stored(store[1], deploy().wire("sflood", login))
+    shutil.rmtree(folder, ignore_errors=True)  # a GiB or two a pass
+    shutil.rmtree(logs, ignore_errors=True)
     emit(
         "store_flood",
         mode=deploy().name,

@@ -6,7 +6,9 @@ without credentials, with its own login (`mallory`) or with a login another user
 
 from __future__ import annotations
 
+import atexit
 import os
+import shutil
 import tempfile
 from pathlib import Path
 
@@ -22,6 +24,7 @@ class Deployment:
         self.anonymous = anonymous
         self.name = "anonymous" if anonymous else "logins"
         self.folder = Path(tempfile.mkdtemp(prefix="occvo-logins-"))
+        atexit.register(shutil.rmtree, self.folder, True)  # its passwords go with the run
         # the victim's clients pick up its login from here (anonymous: an empty folder, nothing to pick up)
         os.environ[logins.LOGINS_DIR_ENV] = str(self.folder)
         self.victim = None

@@ -333,7 +333,11 @@ class Worker:
         a worker's queryables at once, and must not be refused by itself."""
         name = handler.__name__.strip("_")
         gate = self.query_gates[name] = QueryGate(
-            self.config.max_queries_per_client, self.config.max_wildcard_queries, self._refuse_query, name
+            self.config.max_queries_per_client,
+            self.config.max_wildcard_queries,
+            self._refuse_query,
+            name,
+            identity=self.config.client_identity,
         )
 
         def answer(query: zenoh.Query) -> None:

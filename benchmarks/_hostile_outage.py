@@ -16,9 +16,9 @@ from _hostile_common import BLOCK, emit, goal
 from occvo_services.client import OccVOClient
 from occvo_services.commands.replay import replay
 from occvo_services.local import LocalService
-from occvo_services.pg_local import PgCluster
 from occvo_services.sessions import ZENOH_CONFIG_ENV, open_session
-from occvo_services.store_api import open_store
+from occvo_services.store.factory import open_store
+from occvo_services.store.pg_local import PgCluster
 
 DEFAULTS = "services/defaults"  # what `occvo serve` runs
 

@@ -16,7 +16,7 @@ from occvo_services.client import camera_frame_of
 from occvo_services.local import LocalService
 from occvo_services.runtime import WorkerConfig
 from occvo_services.sessions import open_session
-from occvo_services.store_api import open_store
+from occvo_services.store.factory import open_store
 
 DEFAULTS = "services/defaults"  # what `occvo serve` runs
 

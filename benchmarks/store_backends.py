@@ -22,8 +22,8 @@ import numpy as np
 from occvo_core import OccVO
 from occvo_core.grid import OCC3D_GRID
 from occvo_schemas.models import SparseOccupancy
-from occvo_services.store_api import open_store
-from occvo_services.store_blobs import frame_digest, pack_frame
+from occvo_services.store.blobs import frame_digest, pack_frame
+from occvo_services.store.factory import open_store
 
 warnings.filterwarnings("ignore", category=RuntimeWarning)
 ROOT = Path(__file__).resolve().parents[1]
@@ -57,7 +57,7 @@ def main() -> None:
 
     cluster = None
     if args.pg_url is None:
-        from occvo_services.pg_local import PgCluster, missing
+        from occvo_services.store.pg_local import PgCluster, missing
 
         if missing():
             raise SystemExit(missing())

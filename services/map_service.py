@@ -16,9 +16,10 @@ import zenoh
 from occvo_schemas import keys
 from occvo_schemas.codec import CodecError, decode, encode
 from occvo_schemas.models import ErrorEvent, MapTileQuery, MapUpdate
-from occvo_services.map_store import open_map_store
 from occvo_services.runtime import Worker, WorkerConfig, log_event
-from occvo_services.store_api import StoreUnavailable, redact
+from occvo_services.store.errors import StoreUnavailable
+from occvo_services.store.factory import open_map_store
+from occvo_services.store.url import redact
 from occvo_services.wire import encoding
 from occvo_services.worker_cli import worker_main
 

@@ -1,5 +1,5 @@
 """Where the map service keeps its tiles: in memory (MemoryMapStore), in an embedded SQLite file (MapStore) that
-survives a restart, or in a PostgreSQL database (services/map_store_pg.py) shared by replicas on many hosts.
+survives a restart, or in a PostgreSQL database (services/store/map_tiles_pg.py) shared by replicas on many hosts.
 
 Both hold, per stream, the encoded MapTile bytes of every (ix, iy) with its voxel count and x/y/z bounds, the stream's
 tile_m and the seq of the last update. A tile stays until a reset of its stream or an explicit empty tile: the
@@ -7,7 +7,7 @@ registration worker may stop sending tiles that left its working set, and those 
 
 SQLite: WAL journal (readers never block the writer), synchronous=NORMAL (a commit survives a killed process; only
 a power cut may lose the last commits), a busy timeout and one short transaction per MapUpdate, so another process
-(the registration worker's own tables, services/store.py) may write the same file.
+(the registration worker's own tables, services/store/sqlite.py) may write the same file.
 """
 
 from __future__ import annotations
@@ -18,10 +18,8 @@ from pathlib import Path
 
 import numpy as np
 
-from occvo_core.errors import ConfigError
 from occvo_schemas.models import MapInfo, MapTileQuery, MapUpdate
-from occvo_services.sqlite_wal import enable_wal
-from occvo_services.store_api import is_postgres_url, sqlite_path
+from occvo_services.store.sqlite_wal import enable_wal
 
 Bounds = MapTileQuery | None
 
@@ -262,19 +260,3 @@ class MapStore:
         with self._wlock, self._rlock:
             self._r.close()
             self._w.close()
-
-
-def open_map_store(path: str | Path | None):
-    """A PostgreSQL store for a postgresql:// URL (services/map_store_pg.py), a SQLite file for a path or sqlite:///
-    URL, or in memory without one; ConfigError naming the file when it cannot be opened."""
-    if not path:
-        return MemoryMapStore()
-    if is_postgres_url(path):
-        from occvo_services.map_store_pg import PgMapStore
-
-        return PgMapStore(str(path))
-    path = sqlite_path(path)
-    try:
-        return MapStore(path)
-    except (sqlite3.Error, OSError) as exc:
-        raise ConfigError(f"map store {path}: {type(exc).__name__}: {exc}") from None

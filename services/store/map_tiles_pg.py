@@ -1,13 +1,13 @@
 """The map service's tiles in PostgreSQL (tables map_streams, map_tiles beside the registration worker's,
-services/store_pg.py): MapStore's methods (services/map_store.py), so map-service replicas on many hosts serve one
+services/store/postgres.py): MapStore's methods (services/store/map_tiles.py), so map-service replicas on many hosts serve one
 map. Each MapUpdate is one transaction, committed asynchronously as SQLite's synchronous=NORMAL: a tile lost in a
 server crash comes again with the stream's next update of it."""
 
 from __future__ import annotations
 
 from occvo_schemas.models import MapInfo, MapUpdate
-from occvo_services.map_store import Bounds, _info, _tile_rows
-from occvo_services.pg_pool import PgPool
+from occvo_services.store.map_tiles import Bounds, _info, _tile_rows
+from occvo_services.store.pg_pool import PgPool
 
 SCHEMA = """
 CREATE TABLE IF NOT EXISTS map_streams (

@@ -1,0 +1,243 @@
+"""The store's capacity on PostgreSQL: what a frame costs the store, and where one primary saturates.
+
+    python benchmarks/store_capacity.py [--clients 1,2,4,8,16,32] [--seconds 15] [--python-clients 1,2,4]
+                                        [--skip-drive] [--output F.json]
+
+A throwaway PostgreSQL 15 cluster is started as the tests start it (occvo_services.store.pg_local: fsync on, the
+defaults otherwise). Three measures, one after the other on it:
+
+- per_frame: the real service (router + the three workers, LocalService, placement "members" as a fleet runs) with
+  the registration worker and the map service on the cluster; each real scene replayed as one stream (window 4). The
+  write-ahead log's bytes (pg_current_wal_lsn), the write transactions (the next transaction id: a read takes none),
+  the WAL flushes (pg_stat_wal.wal_sync) and the database's growth over the drives, over the frames; and the stored
+  bytes per table of each stream (the store's sizes()).
+- server: pgbench clients (C, so the server is what saturates) each running a frame's synchronous commit a
+  transaction, the statements of commit_frame (services/store/frame_log.py): the lease row FOR SHARE, the stream's
+  row, the pose, a journal entry of the drives' median frame size, the usage update; --seconds at each count in
+  --clients. commits/s and WAL MB/s; where more clients stop adding commits is where the primary saturates.
+- python: the same commits through the store's own code (processes calling commit_frame on their own stream), so
+  that the client's share of the cost shows beside the server's.
+
+On a shared host the figures are this host's: compare them within one run. Prints JSON (docs/capacity.md)."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import multiprocessing as mp
+import statistics
+import subprocess
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+from occvo_services.store.pg_local import BIN, PgCluster, missing
+
+DATA = Path(__file__).resolve().parents[2] / "shared/data/occvo-sample/occupancy"
+SCENES = ("scene-0101", "scene-0268")
+
+
+def counters(url: str) -> dict[str, float]:
+    """The cluster's WAL position (bytes), next transaction id, WAL flushes and the database's size."""
+    import psycopg
+
+    with psycopg.connect(url, autocommit=True) as conn:
+        conn.execute("SELECT pg_stat_force_next_flush()")
+        row = conn.execute(
+            "SELECT pg_wal_lsn_diff(pg_current_wal_lsn(), '0/0'), pg_snapshot_xmax(pg_current_snapshot())::text::bigint,"
+            " (SELECT wal_sync FROM pg_stat_wal), pg_database_size(current_database())"
+        ).fetchone()
+    return {"wal_bytes": float(row[0]), "xid": float(row[1]), "wal_sync": float(row[2]), "db_bytes": float(row[3])}
+
+
+def frames_of(name: str) -> list:
+    from occvo_core.datasets import open_scene
+
+    scene = open_scene(DATA / name)
+    return [scene[i] for i in range(len(scene))]
+
+
+def per_frame(url: str) -> dict:
+    """The real service on the cluster: the store's cost of a frame, over every frame of the real scenes."""
+    from occvo_services.client import OccVOClient
+    from occvo_services.commands.replay import replay
+    from occvo_services.local import LocalService
+    from occvo_services.store.factory import open_store
+
+    drives = {name.replace("scene-", "real"): frames_of(name) for name in SCENES if (DATA / name).is_dir()}
+    store = ["--store-url", url]
+    args = {"registration": [*store, "--placement", "members"], "map": store}
+    with LocalService(quiet=True, worker_args=args) as svc:
+        time.sleep(3.0)  # the workers' start-up writes (schema, first lease renewals) settle
+        before, t0 = counters(url), time.perf_counter()
+        for stream, frames in drives.items():
+            with OccVOClient(svc.endpoint, stream, timeout=120, resend_after=5.0) as c:
+                replay(c, frames, window=4, timeout=120)
+        time.sleep(3.0)  # the work after the last poses (map tiles, snapshots) lands
+        after, wall = counters(url), time.perf_counter() - t0
+    n = sum(len(f) for f in drives.values())
+    s = open_store(url)
+    try:
+        sizes = {k: s.sizes(k) for k in drives}
+    finally:
+        s.close()
+    delta = {k: after[k] - before[k] for k in before}
+    return {
+        "frames": n,
+        "drive_s": round(wall, 1),
+        "wal_kb_per_frame": round(delta["wal_bytes"] / n / 1e3, 1),
+        "write_transactions_per_frame": round(delta["xid"] / n, 2),
+        "wal_flushes_per_frame": round(delta["wal_sync"] / n, 2),
+        "db_growth_kb_per_frame": round(delta["db_bytes"] / n / 1e3, 1),
+        "stored_bytes_per_stream": sizes,
+    }
+
+
+FRAME_SQL = """\\set seq random(1, 1000000000)
+BEGIN;
+SELECT epoch, owner FROM leases WHERE stream = 'car' || :client_id FOR SHARE;
+INSERT INTO streams (stream, created, last_seq) VALUES ('car' || :client_id, 0, :seq) ON CONFLICT (stream) DO UPDATE SET last_seq = excluded.last_seq;
+INSERT INTO poses SELECT 'car' || :client_id, :seq, 0.0, digest, 'ok', pose FROM bench_frame ON CONFLICT (stream, seq) DO UPDATE SET stamp = excluded.stamp, digest = excluded.digest, status = excluded.status, pose = excluded.pose;
+INSERT INTO journal SELECT 'car' || :client_id, :seq, frame FROM bench_frame ON CONFLICT (stream, seq) DO UPDATE SET frame = excluded.frame;
+UPDATE streams SET last_write = 0, bytes = bytes + 100000, client = 'bench' WHERE stream = 'car' || :client_id;
+COMMIT;
+"""
+
+
+def server(cluster: PgCluster, url: str, frame_bytes: int, clients: list[int], seconds: float) -> list[dict]:
+    """pgbench running a frame's commit a transaction at each client count: commits/s, WAL MB/s."""
+    import psycopg
+
+    from occvo_services.store.factory import open_store
+
+    open_store(url).close()  # the store's schema
+    with psycopg.connect(url, autocommit=True) as conn:
+        conn.execute("CREATE TABLE bench_frame (digest BYTEA, pose BYTEA, frame BYTEA)")
+        conn.execute("ALTER TABLE bench_frame ALTER COLUMN frame SET STORAGE EXTERNAL")
+        rnd = np.random.default_rng(0)  # incompressible, as packed frames are nearly
+        conn.execute(
+            "INSERT INTO bench_frame VALUES (%s, %s, %s)",
+            (rnd.bytes(16), np.eye(4).tobytes(), rnd.bytes(frame_bytes)),
+        )
+        conn.execute(  # a held lease for each client's stream, as a fenced worker writes
+            "INSERT INTO leases SELECT 'car' || i, 'bench', 1, now() + interval '1 day' FROM generate_series(0, %s) i",
+            (max(clients),),
+        )
+    out = []
+    with tempfile.TemporaryDirectory() as tmp:
+        script = Path(tmp) / "frame.sql"
+        script.write_text(FRAME_SQL)
+        for n in clients:
+            before, t0 = counters(url), time.perf_counter()
+            run = subprocess.run(
+                [str(BIN / "pgbench"), "-n", "-M", "prepared", "-c", str(n), "-j", str(min(n, 2)), "-T", str(int(seconds)),
+                 "-f", str(script), "-h", "127.0.0.1", "-p", str(cluster.port), "-U", "postgres", url.rsplit("/", 1)[1]],
+                capture_output=True, text=True, check=True,
+            )  # fmt: skip
+            after, wall = counters(url), time.perf_counter() - t0
+            tx = int(
+                next(line for line in run.stdout.splitlines() if "transactions actually processed" in line).split()[-1]
+            )
+            lat = next(line for line in run.stdout.splitlines() if line.startswith("latency average"))
+            out.append(_rate(n, tx, after, before, wall, float(lat.split()[3])))
+    return out
+
+
+def _rate(n: int, commits: int, after: dict, before: dict, wall: float, latency_ms: float) -> dict:
+    return {
+        "clients": n,
+        "commits_per_s": round(commits / wall, 1),
+        "wal_mb_per_s": round((after["wal_bytes"] - before["wal_bytes"]) / wall / 1e6, 1),
+        "wal_flushes_per_s": round((after["wal_sync"] - before["wal_sync"]) / wall, 1),
+        "latency_ms": round(latency_ms, 2),
+    }
+
+
+def _committer(url: str, stream: str, blob: bytes, seconds: float, ready, go, out) -> None:
+    from occvo_services.store.factory import open_store
+
+    store = open_store(url)
+    epoch = store.acquire(stream, stream, 3600.0)
+    ready.put(1)
+    go.wait()
+    n, t_end, lat = 0, time.perf_counter() + seconds, []
+    while (t0 := time.perf_counter()) < t_end:
+        store.commit_frame(stream, n, float(n), b"d" * 16, "ok", np.eye(4), blob, n == 0, epoch=epoch, client="b")
+        lat.append(time.perf_counter() - t0)
+        n += 1
+    store.close()
+    out.put((n, statistics.median(lat) * 1000.0))
+
+
+def python_clients(url: str, frame_bytes: int, clients: list[int], seconds: float) -> list[dict]:
+    """Processes calling the store's commit_frame as fast as it returns, each on its own stream."""
+    blob = np.random.default_rng(1).bytes(frame_bytes)
+    ctx, out = mp.get_context("spawn"), []
+    for n in clients:
+        ready, done, go = ctx.Queue(), ctx.Queue(), ctx.Event()
+        procs = [
+            ctx.Process(target=_committer, args=(url, f"py{n}-{i}", blob, seconds, ready, go, done)) for i in range(n)
+        ]
+        for p in procs:
+            p.start()
+        for _ in procs:
+            ready.get(timeout=120)
+        before, t0 = counters(url), time.perf_counter()
+        go.set()
+        got = [done.get(timeout=seconds + 120) for _ in procs]
+        after, wall = counters(url), time.perf_counter() - t0
+        for p in procs:
+            p.join()
+        out.append(_rate(n, sum(c for c, _ in got), after, before, wall, statistics.median(m for _, m in got)))
+    return out
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--clients", default="1,2,4,8,16,32", help="pgbench client counts")
+    p.add_argument("--python-clients", default="1,2,4", help="store-code client processes (empty: none)")
+    p.add_argument("--seconds", type=float, default=15.0, help="at each client count")
+    p.add_argument("--frame-kb", type=float, help="journal entry size (default: the drives' median frame)")
+    p.add_argument("--skip-drive", action="store_true", help="no per-frame drive through the service")
+    p.add_argument("--output", help="write the JSON here too")
+    args = p.parse_args()
+    if missing():
+        raise SystemExit(missing())
+    cluster = PgCluster()
+    try:
+        result: dict = {"host_cores": mp.cpu_count()}
+        if not args.skip_drive:
+            result["per_frame"] = per_frame(cluster.new_database())
+        frame_bytes = int(args.frame_kb * 1e3) if args.frame_kb else median_frame_bytes()
+        result["journal_frame_kb"] = round(frame_bytes / 1e3, 1)
+        clients = [int(c) for c in args.clients.split(",") if c]
+        result["server"] = server(cluster, cluster.new_database(), frame_bytes, clients, args.seconds)
+        py = [int(c) for c in args.python_clients.split(",") if c]
+        if py:
+            result["python"] = python_clients(cluster.new_database(), frame_bytes, py, args.seconds)
+    finally:
+        cluster.close()
+    text = json.dumps(result, indent=1)
+    print(text)
+    if args.output:
+        Path(args.output).write_text(text + "\n")
+
+
+def median_frame_bytes() -> int:
+    """The journal entry of the real scenes' frames as the worker packs them (their Occ3D indices as sent)."""
+    from occvo_core.grid import OCC3D_GRID
+    from occvo_schemas.models import SparseOccupancy
+    from occvo_services.store.blobs import pack_frame
+
+    sizes = []
+    for name in SCENES:
+        for f in frames_of(name) if (DATA / name).is_dir() else []:
+            tables = SparseOccupancy.from_points(f.points, f.labels, OCC3D_GRID).index_tables(OCC3D_GRID)
+            sizes.append(len(pack_frame(f, tables)))
+    return int(np.median(sizes)) if sizes else 100_000
+
+
+if __name__ == "__main__":
+    main()

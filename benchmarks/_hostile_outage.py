@@ -1,4 +1,4 @@
-"""Hostile-client steps on a PostgreSQL store of their own (services/pg_local.py; benchmarks/hostile_clients.py):
+"""Hostile-client steps on a PostgreSQL store of their own (services/store/pg_local.py; benchmarks/hostile_clients.py):
 db_outage (the database stopped mid-drive), members_acl (placement members under the shipped ACL, an owner killed),
 lease_flood (one-byte puts on new keys against placement members)."""
 

@@ -5,7 +5,7 @@
 
 Real frames of the scene (packed as the worker journals them, with their Occ3D indices) are committed in turn to each
 store, one commit of each per step, so that the machine's load falls on all alike. Without --pg-url a PostgreSQL 15
-server is started in a temporary folder as the tests do (services/pg_local.py). Also times a snapshot write of the scene's
+server is started in a temporary folder as the tests do (services/store/pg_local.py). Also times a snapshot write of the scene's
 OccVO state after --state-frames frames. Prints JSON: median and p90 ms per backend, the ratio of the medians."""
 
 from __future__ import annotations

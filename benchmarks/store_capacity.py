@@ -1,20 +1,23 @@
 """The store's capacity on PostgreSQL: what a frame costs the store, and where one primary saturates.
 
-    python benchmarks/store_capacity.py [--clients 1,2,4,8,16,32] [--seconds 15] [--python-clients 1,2,4]
-                                        [--skip-drive] [--output F.json]
+    python benchmarks/store_capacity.py [--placements members,shards] [--rate 2] [--clients 1,2,4,8,16,32]
+                                        [--seconds 15] [--python-clients 1,2,4] [--repeats 3] [--skip-drive]
+                                        [--output F.json]
 
 A throwaway PostgreSQL 15 cluster is started as the tests start it (occvo_services.store.pg_local: fsync on, the
 defaults otherwise). Three measures, one after the other on it:
 
-- per_frame: the real service (router + the three workers, LocalService, placement "members" as a fleet runs) with
-  the registration worker and the map service on the cluster; each real scene replayed as one stream (window 4). The
-  write-ahead log's bytes (pg_current_wal_lsn), the write transactions (the next transaction id: a read takes none),
-  the WAL flushes (pg_stat_wal.wal_sync) and the database's growth over the drives, over the frames; and the stored
-  bytes per table of each stream (the store's sizes()).
+- per_frame: the real service (router + the three workers, LocalService) with the registration worker and the map
+  service on the cluster, under each --placements ("members" as a fleet of hosts runs, "shards"); each real scene a
+  car driving at --rate frames a second, all at once (lossless replay, window 4). The write-ahead log's bytes
+  (pg_current_wal_lsn), the write transactions (the next transaction id: a read takes none), the WAL flushes
+  (pg_stat_wal.wal_sync), the database's growth and the snapshots written over the drives, over the frames; and what
+  the store holds after them per table.
 - server: pgbench clients (C, so the server is what saturates) each running a frame's synchronous commit a
   transaction, the statements of commit_frame (services/store/frame_log.py): the lease row FOR SHARE, the stream's
   row, the pose, a journal entry of the drives' median frame size, the usage update; --seconds at each count in
-  --clients. commits/s and WAL MB/s; where more clients stop adding commits is where the primary saturates.
+  --clients, the sweep repeated --repeats times (medians). commits/s and WAL MB/s; where more clients stop adding
+  commits is where the primary saturates.
 - python: the same commits through the store's own code (processes calling commit_frame on their own stream), so
   that the client's share of the cost shows beside the server's.
 
@@ -40,7 +43,8 @@ SCENES = ("scene-0101", "scene-0268")
 
 
 def counters(url: str) -> dict[str, float]:
-    """The cluster's WAL position (bytes), next transaction id, WAL flushes and the database's size."""
+    """The cluster's WAL position (bytes), next transaction id, WAL flushes, the database's size, and the rows each
+    table took in (inserted or updated: a snapshot's COPY is one insert)."""
     import psycopg
 
     with psycopg.connect(url, autocommit=True) as conn:
@@ -49,7 +53,9 @@ def counters(url: str) -> dict[str, float]:
             "SELECT pg_wal_lsn_diff(pg_current_wal_lsn(), '0/0'), pg_snapshot_xmax(pg_current_snapshot())::text::bigint,"
             " (SELECT wal_sync FROM pg_stat_wal), pg_database_size(current_database())"
         ).fetchone()
-    return {"wal_bytes": float(row[0]), "xid": float(row[1]), "wal_sync": float(row[2]), "db_bytes": float(row[3])}
+        tables = conn.execute("SELECT relname, n_tup_ins + n_tup_upd FROM pg_stat_user_tables").fetchall()
+    out = {"wal_bytes": float(row[0]), "xid": float(row[1]), "wal_sync": float(row[2]), "db_bytes": float(row[3])}
+    return out | {f"rows_{name}": float(n) for name, n in tables}
 
 
 def frames_of(name: str) -> list:
@@ -59,39 +65,73 @@ def frames_of(name: str) -> list:
     return [scene[i] for i in range(len(scene))]
 
 
-def per_frame(url: str) -> dict:
-    """The real service on the cluster: the store's cost of a frame, over every frame of the real scenes."""
-    from occvo_services.client import OccVOClient
-    from occvo_services.commands.replay import replay
+def per_frame(url: str, placement: str, rate_hz: float) -> dict:
+    """The real service on the cluster, each real scene a car driving at rate_hz at once: the store's cost of a
+    frame, over every frame of the drives."""
     from occvo_services.local import LocalService
-    from occvo_services.store.factory import open_store
 
     drives = {name.replace("scene-", "real"): frames_of(name) for name in SCENES if (DATA / name).is_dir()}
     store = ["--store-url", url]
-    args = {"registration": [*store, "--placement", "members"], "map": store}
-    with LocalService(quiet=True, worker_args=args) as svc:
+    args = {"registration": store, "map": store}
+    with LocalService(quiet=True, worker_args=args, placement=placement) as svc:
         time.sleep(3.0)  # the workers' start-up writes (schema, first lease renewals) settle
         before, t0 = counters(url), time.perf_counter()
-        for stream, frames in drives.items():
-            with OccVOClient(svc.endpoint, stream, timeout=120, resend_after=5.0) as c:
-                replay(c, frames, window=4, timeout=120)
+        drive_all(svc.endpoint, drives, rate_hz)
         time.sleep(3.0)  # the work after the last poses (map tiles, snapshots) lands
         after, wall = counters(url), time.perf_counter() - t0
     n = sum(len(f) for f in drives.values())
-    s = open_store(url)
-    try:
-        sizes = {k: s.sizes(k) for k in drives}
-    finally:
-        s.close()
-    delta = {k: after[k] - before[k] for k in before}
+    d = {k: after.get(k, 0.0) - before.get(k, 0.0) for k in after}
+    stored = stored_bytes(url)
     return {
+        "placement": placement,
+        "rate_hz": rate_hz,
         "frames": n,
         "drive_s": round(wall, 1),
-        "wal_kb_per_frame": round(delta["wal_bytes"] / n / 1e3, 1),
-        "write_transactions_per_frame": round(delta["xid"] / n, 2),
-        "wal_flushes_per_frame": round(delta["wal_sync"] / n, 2),
-        "db_growth_kb_per_frame": round(delta["db_bytes"] / n / 1e3, 1),
-        "stored_bytes_per_stream": sizes,
+        "wal_kb_per_frame": round(d["wal_bytes"] / n / 1e3, 1),
+        "write_transactions_per_frame": round(d["xid"] / n, 2),
+        "wal_flushes_per_frame": round(d["wal_sync"] / n, 2),
+        "db_growth_kb_per_frame": round(d["db_bytes"] / n / 1e3, 1),
+        "snapshots_written": int(d.get("rows_snapshots", 0)),
+        "snapshot_mb_mean": round(stored["snapshot_bytes"] / max(stored["snapshots"], 1) / 1e6, 1),
+        "map_tile_writes_per_frame": round(d.get("rows_map_tiles", 0) / n, 1),
+        "stored_kb_per_frame": {k: round(v / n / 1e3, 2) for k, v in stored.items() if k.endswith("_bytes")},
+    }
+
+
+def drive_all(endpoint: str, drives: dict, rate_hz: float) -> None:
+    """Every drive at once, a client each (lossless replay, window 4)."""
+    import threading
+
+    from occvo_services.client import OccVOClient
+    from occvo_services.commands.replay import replay
+
+    def one(stream: str, frames: list) -> None:
+        with OccVOClient(endpoint, stream, timeout=120, resend_after=5.0) as c:
+            replay(c, frames, rate_hz=rate_hz, window=4, timeout=120)
+
+    threads = [threading.Thread(target=one, args=item) for item in drives.items()]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+
+
+def stored_bytes(url: str) -> dict[str, int]:
+    """What the store holds after the drives: rows' bytes per table (the map service's tiles included)."""
+    import psycopg
+
+    with psycopg.connect(url, autocommit=True) as conn:
+        q = lambda sql: conn.execute(sql).fetchone()  # noqa: E731
+        poses, journal = q("SELECT SUM(LENGTH(pose)) FROM poses")[0], q("SELECT SUM(LENGTH(frame)) FROM journal")[0]
+        snaps, snap_bytes = q("SELECT COUNT(*), SUM(LENGTH(state)) FROM snapshots")
+        cold, tiles = q("SELECT SUM(LENGTH(block)) FROM cold_tiles")[0], q("SELECT SUM(LENGTH(data)) FROM map_tiles")[0]
+    return {
+        "poses_bytes": int(poses or 0),
+        "journal_bytes": int(journal or 0),
+        "snapshots": int(snaps),
+        "snapshot_bytes": int(snap_bytes or 0),
+        "cold_tiles_bytes": int(cold or 0),
+        "map_tiles_bytes": int(tiles or 0),
     }
 
 
@@ -201,6 +241,9 @@ def main() -> None:
     p.add_argument("--seconds", type=float, default=15.0, help="at each client count")
     p.add_argument("--frame-kb", type=float, help="journal entry size (default: the drives' median frame)")
     p.add_argument("--skip-drive", action="store_true", help="no per-frame drive through the service")
+    p.add_argument("--placements", default="members,shards", help="per-frame drives: the registration placement")
+    p.add_argument("--rate", type=float, default=2.0, help="per-frame drives: each car's frames a second")
+    p.add_argument("--repeats", type=int, default=3, help="sweeps of the client counts (figures: their medians)")
     p.add_argument("--output", help="write the JSON here too")
     args = p.parse_args()
     if missing():
@@ -209,20 +252,32 @@ def main() -> None:
     try:
         result: dict = {"host_cores": mp.cpu_count()}
         if not args.skip_drive:
-            result["per_frame"] = per_frame(cluster.new_database())
+            placements = [p for p in args.placements.split(",") if p]
+            result["per_frame"] = [per_frame(cluster.new_database(), p, args.rate) for p in placements]
         frame_bytes = int(args.frame_kb * 1e3) if args.frame_kb else median_frame_bytes()
         result["journal_frame_kb"] = round(frame_bytes / 1e3, 1)
         clients = [int(c) for c in args.clients.split(",") if c]
-        result["server"] = server(cluster, cluster.new_database(), frame_bytes, clients, args.seconds)
         py = [int(c) for c in args.python_clients.split(",") if c]
-        if py:
-            result["python"] = python_clients(cluster.new_database(), frame_bytes, py, args.seconds)
+        runs: dict[str, list] = {"server": [], "python": []}
+        for _ in range(args.repeats):  # the sweeps interleaved, so that the host's load falls on all alike
+            runs["server"].append(server(cluster, cluster.new_database(), frame_bytes, clients, args.seconds))
+            if py:
+                runs["python"].append(python_clients(cluster.new_database(), frame_bytes, py, args.seconds))
+        result |= {k: medians(v) for k, v in runs.items() if v}
     finally:
         cluster.close()
     text = json.dumps(result, indent=1)
     print(text)
     if args.output:
         Path(args.output).write_text(text + "\n")
+
+
+def medians(sweeps: list[list[dict]]) -> list[dict]:
+    """Each client count's figures, the median over the sweeps."""
+    return [
+        {k: (v[0]["clients"] if k == "clients" else round(statistics.median(r[k] for r in v), 1)) for k in v[0]}
+        for v in zip(*sweeps, strict=True)
+    ]
 
 
 def median_frame_bytes() -> int:

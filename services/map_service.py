@@ -3,7 +3,7 @@ tile queries: occvo/<stream>/map/tile/<ix>/<iy> (one tile), a wildcard such as o
 (a region, optionally bounded by a MapTileQuery payload), and occvo/<stream>/map/info (bounds, tile count, size).
 
 With `store_url` (config or --store-url; store_path and --store-path are its earlier names) the tiles live in a
-SQLite file (services/map_store.py) or a PostgreSQL database (services/map_store_pg.py): each update is one
+SQLite file (services/store/map_tiles.py) or a PostgreSQL database (services/store/map_tiles_pg.py): each update is one
 transaction, queries read the store, and a restarted service serves what it holds. Without it, in memory."""
 
 from __future__ import annotations

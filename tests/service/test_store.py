@@ -1,4 +1,4 @@
-"""Durable state of the registration worker (services/store.py, services/store_pg.py) on real SQLite files and a
+"""Durable state of the registration worker (services/store/sqlite.py, services/store/postgres.py) on real SQLite files and a
 real PostgreSQL server (tests parametrised by `store_url` run on both): commits survive a reopen, a snapshot plus the
 journal resume OccVO bit for bit, evicted tiles round-trip, two connections share the store; then the worker itself
 (real Zenoh on loopback, in this process): a clean stop and a new worker on the same store continue a stream

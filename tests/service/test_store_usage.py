@@ -1,4 +1,4 @@
-"""What the store records for retention (services/store_retention.py) on real SQLite files and a real PostgreSQL
+"""What the store records for retention (services/store/usage.py) on real SQLite files and a real PostgreSQL
 server: each stream's client, bytes and last write, kept by every commit and measured again after a snapshot; the
 idle streams oldest first; a SQLite file from before these columns opens and gets them."""
 

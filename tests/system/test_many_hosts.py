@@ -1,5 +1,5 @@
 """Many hosts on one machine: two routers in a mesh on loopback, each with its own registration worker (placement
-"members", real subprocesses), one PostgreSQL store shared by both (a real server, services/pg_local.py). Four streams go
+"members", real subprocesses), one PostgreSQL store shared by both (a real server, services/store/pg_local.py). Four streams go
 through; every pose equals offline OccVO's bit for bit, also when a worker is killed (-9) mid-drive and its streams
 move to the other, and a paused owner that comes back writes nothing over its streams' new owner."""
 

@@ -12,7 +12,7 @@ defaults otherwise). Three measures, one after the other on it:
   car driving at --rate frames a second, all at once (lossless replay, window 4). The write-ahead log's bytes
   (pg_current_wal_lsn), the write transactions (the next transaction id: a read takes none), the WAL flushes
   (pg_stat_wal.wal_sync), the database's growth and the snapshots written over the drives, over the frames; and what
-  the store holds after them per table.
+  the store holds after them per table; and what a pose row takes on disk (50,000 of them, with their index).
 - server: pgbench clients (C, so the server is what saturates) each running a frame's synchronous commit a
   transaction, the statements of commit_frame (services/store/frame_log.py): the lease row FOR SHARE, the stream's
   row, the pose, a journal entry of the drives' median frame size, the usage update; --seconds at each count in
@@ -256,6 +256,7 @@ def main() -> None:
             result["per_frame"] = [per_frame(cluster.new_database(), p, args.rate) for p in placements]
         frame_bytes = int(args.frame_kb * 1e3) if args.frame_kb else median_frame_bytes()
         result["journal_frame_kb"] = round(frame_bytes / 1e3, 1)
+        result["pose_row_bytes"] = pose_row_bytes(cluster.new_database())
         clients = [int(c) for c in args.clients.split(",") if c]
         py = [int(c) for c in args.python_clients.split(",") if c]
         runs: dict[str, list] = {"server": [], "python": []}
@@ -270,6 +271,23 @@ def main() -> None:
     print(text)
     if args.output:
         Path(args.output).write_text(text + "\n")
+
+
+def pose_row_bytes(url: str, rows: int = 50_000) -> float:
+    """What a pose row takes on disk with its primary key's index: poses of ten streams, over the rows."""
+    import psycopg
+
+    from occvo_services.store.factory import open_store
+
+    open_store(url).close()
+    with psycopg.connect(url, autocommit=True) as conn:
+        conn.execute(
+            "INSERT INTO poses SELECT 'car' || (i %% 10), i, i, %s, 'ok', %s FROM generate_series(1, %s) i",
+            (bytes(16), np.eye(4).tobytes(), rows),
+        )
+        conn.execute("VACUUM ANALYZE poses")
+        (size,) = conn.execute("SELECT pg_total_relation_size('poses')").fetchone()
+    return round(size / rows, 1)
 
 
 def medians(sweeps: list[list[dict]]) -> list[dict]:

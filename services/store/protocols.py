@@ -96,6 +96,7 @@ class Usage(Protocol):
     def idle_streams(self, before: float, client: str | None = None) -> list[str]: ...
     def measure(self, stream: str) -> int: ...
     def overhead(self) -> float: ...  # the database's room for the rows over their bytes (>= 1)
+    def has_map_tiles(self) -> bool: ...  # the map service's tiles share this store (deleted with their stream)
 
 
 @runtime_checkable

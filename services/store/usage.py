@@ -66,6 +66,10 @@ class Usage:
         self.space.measure_overhead()
         return n
 
+    def has_map_tiles(self) -> bool:
+        """Whether the map service keeps its tiles in this store too (a stream's are then deleted with it)."""
+        return self.space.has_map_tiles()
+
     def overhead(self) -> float:
         """The database's room for the rows over the bytes the streams record (at least 1), as of the store's opening
         or last measure (services/store/space.py)."""

@@ -50,6 +50,27 @@ def test_registration_imports_the_store_through_its_protocols_only():
     assert any(f"{STORE}.protocols" in _imports(p, "") or f"{STORE}.factory" in _imports(p, "") for p in files)
 
 
+def _store_calls(path: Path) -> set[str]:
+    """The attributes the code takes of a store: `store.X`, `self.store.X`, `ctx.store.X`..."""
+    calls = set()
+    for node in ast.walk(ast.parse(path.read_text(), str(path))):
+        if isinstance(node, ast.Attribute):
+            owner = node.value
+            name = owner.attr if isinstance(owner, ast.Attribute) else getattr(owner, "id", "")
+            if name == "store":
+                calls.add(node.attr)
+    return calls
+
+
+def test_what_registration_calls_of_its_store_the_protocols_name():
+    from occvo_services.store.protocols import TRAJECTORY_STORE, calls
+
+    named = {c for protocol in TRAJECTORY_STORE for c in calls(protocol)} | {"fenced_only"}
+    used = {c for path in sorted((SERVICES / "registration").rglob("*.py")) for c in _store_calls(path)}
+    assert {"commit_frame", "acquire", "write_snapshot", "cold_block", "measure"} <= used  # the calls were found
+    assert used <= named, used - named
+
+
 def test_the_check_sees_a_backend_however_it_is_imported(tmp_path):
     sample = tmp_path / "m.py"
     sample.write_text(

@@ -15,17 +15,10 @@ class SqlitePages:
         return bool(self.files.read("SELECT 1 FROM sqlite_master WHERE type = 'table' AND name = 'map_tiles'"))
 
     def measure_overhead(self) -> None:
-        """The files' pages in use (free pages are left out: the next writes reuse them) over the streams' bytes. Not
-        on a frame's path: the snapshot file's lock can be held by a snapshot waiting out another writer."""
-        used = 0
-        for db, lock in ((self.files.read_db, self.files.read_lock), (self.files.snap_db, self.files.snap_lock)):
-            with lock:
-                page, count, free = (
-                    db.execute(f"PRAGMA {p}").fetchone()[0] for p in ("page_size", "page_count", "freelist_count")
-                )
-            used += (count - free) * page
+        """The files' pages in use over the streams' bytes. Not on a frame's path: the snapshot file's lock can be held
+        by a snapshot waiting out another writer."""
         (total,) = self.files.read("SELECT COALESCE(SUM(bytes), 0) FROM streams")[0]
-        self.overhead = max(1.0, used / total) if total else 1.0
+        self.overhead = max(1.0, self.files.pages_in_use() / total) if total else 1.0
 
     def slack(self, stream: str) -> int:
         """The snapshot's last page's unused part: a snapshot takes whole pages of its file (64 kB ones)."""

@@ -5,8 +5,6 @@ from __future__ import annotations
 
 import sqlite3
 
-from occvo_services.store.sqlite_wal import transaction
-
 RETENTION_COLUMNS = (("client", "TEXT"), ("bytes", "INTEGER NOT NULL DEFAULT 0"), ("last_write", "REAL"))
 
 
@@ -29,29 +27,29 @@ def move_old_snapshots(files) -> None:
         rows = db.execute(
             "SELECT s.stream, t.created, s.seq, s.state FROM snapshots s JOIN streams t USING (stream)"
         ).fetchall()
-        transaction(
-            files.snap_db,
+        files.snapshots(
             lambda snap: snap.executemany(
                 "INSERT OR REPLACE INTO snapshots (stream, created, seq, state) VALUES (?, ?, ?, ?)", rows
-            ),
+            )
         )
         db.execute("DROP TABLE snapshots")
 
-    if old_table(files.db):  # an open takes no write lock otherwise
-        transaction(files.db, tx)
+    if files.read("SELECT 1 FROM sqlite_master WHERE type='table' AND name='snapshots'"):  # else no write lock
+        files.write(tx)
 
 
 def add_snapshot_epochs(files) -> None:
     """A snapshots' file from before leases: its table gets the epoch column (NULL: written unfenced)."""
-    with files.snap_lock:
-        _add_column(files.snap_db, "snapshots", "epoch", "INTEGER")
+    files.snapshots(lambda db: _add_column(db, "snapshots", "epoch", "INTEGER"))
 
 
 def add_retention_columns(files) -> None:
-    with files.write_lock():
+    def tx(db):
         for name, kind in RETENTION_COLUMNS:
-            _add_column(files.db, "streams", name, kind)
-        files.db.execute("CREATE INDEX IF NOT EXISTS streams_client ON streams (client)")
+            _add_column(db, "streams", name, kind)
+        db.execute("CREATE INDEX IF NOT EXISTS streams_client ON streams (client)")
+
+    files.write(tx)
 
 
 def _add_column(db, table: str, name: str, kind: str) -> None:

@@ -1,4 +1,4 @@
-"""Hostile-client steps on a PostgreSQL store of their own (services/pg_local.py; benchmarks/hostile_clients.py):
+"""Hostile-client steps on a PostgreSQL store of their own (services/store/pg_local.py; benchmarks/hostile_clients.py):
 db_outage (the database stopped mid-drive), members_acl (placement members under the shipped ACL, an owner killed),
 lease_flood (one-byte puts on new keys against placement members)."""
 
@@ -17,9 +17,9 @@ from _hostile_deploy import deploy
 from occvo_schemas import keys
 from occvo_services.client import OccVOClient, ServiceError
 from occvo_services.commands.replay import replay
-from occvo_services.pg_local import PgCluster
 from occvo_services.sessions import ZENOH_CONFIG_ENV, open_login
-from occvo_services.store_api import open_store
+from occvo_services.store.factory import open_store
+from occvo_services.store.pg_local import PgCluster
 
 DEFAULTS = "services/defaults"  # what `occvo serve` runs
 

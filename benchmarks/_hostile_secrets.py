@@ -19,9 +19,9 @@ from _hostile_deploy import deploy
 
 from occvo_services.client import OccVOClient
 from occvo_services.local import REPO
-from occvo_services.pg_local import PgCluster
 from occvo_services.sessions import free_port
-from occvo_services.store_url import STORE_URL_ENV
+from occvo_services.store.pg_local import PgCluster
+from occvo_services.store.url import STORE_URL_ENV
 
 PASSWORD = "pw-Hostile@64"
 SECRETS = (PASSWORD, "pw-Hostile%4064", "Hostile@64")

@@ -17,7 +17,7 @@ from occvo_schemas import keys
 from occvo_schemas.codec import encode
 from occvo_services.client import camera_frame_of
 from occvo_services.runtime import WorkerConfig
-from occvo_services.store_api import open_store
+from occvo_services.store.factory import open_store
 
 DEFAULTS = "services/defaults"  # what `occvo serve` runs
 

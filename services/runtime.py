@@ -28,7 +28,7 @@ from occvo_services.memory import MemoryCap
 from occvo_services.os_tuning import trim_heap
 from occvo_services.query_gate import QueryGate
 from occvo_services.sessions import open_session
-from occvo_services.store_url import redact
+from occvo_services.store.url import redact
 from occvo_services.telemetry import Stats, log_event, structured_logger
 from occvo_services.wire import blocking, encoding
 from occvo_services.worker_config import DEFAULT_ENDPOINT, Policy, WorkerConfig

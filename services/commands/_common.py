@@ -239,18 +239,6 @@ def secure_default(args, config, given_router: bool):
     return str(probe)
 
 
-def check_store_reachable(url: str | None) -> None:
-    """A PostgreSQL store that cannot be reached at start: one line naming it (no password) and why, exit 2."""
-    from occvo_services.store_api import StoreUnavailable, check_reachable
-
-    try:
-        check_reachable(url)
-    except StoreUnavailable as exc:
-        raise ConfigError(
-            f"{exc} (checked before any worker starts: start the database or fix the store URL)"
-        ) from None
-
-
 def deploy_dir() -> Path:
     """The source tree's deploy/ folder (deployment files; the package's built-in defaults live in services/defaults)."""
     return Path(__file__).resolve().parents[2] / "deploy"

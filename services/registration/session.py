@@ -28,8 +28,8 @@ from occvo_services.registration.scheduling import StreamThreads
 from occvo_services.registration.snapshots import SnapshotSchedule
 from occvo_services.registration.store_faults import refused, store_back, store_failed, waits_for_refused
 from occvo_services.registration.trajectory import StreamTrajectory, pose_message
-from occvo_services.store_api import FencedError, StoreUnavailable
-from occvo_services.store_blobs import frame_digest, legacy_frame_digest, pack_frame
+from occvo_services.store.blobs import frame_digest, legacy_frame_digest, pack_frame
+from occvo_services.store.errors import FencedError, StoreUnavailable
 from occvo_services.telemetry import log_event
 
 

@@ -46,6 +46,7 @@ def train(
     warmup: int = 30,
     cache_dir: str | Path | None = None,
     aux_weight: float = 0.5,
+    depth_weight: float = 1.0,
     resume: str | Path | None = None,
     real=None,
     real_fraction: float = 0.5,
@@ -59,7 +60,8 @@ def train(
     the step count and the loss history carry on; the learning rate restarts its cosine over the new budget (SGDR).
     `real`: a drive's DriveFrames; a step takes one of its keyframes (augmented) with probability `real_fraction`
     (1 without seeds), its voxel loss inside mask_camera only, its image losses at LiDAR returns only; the free-class
-    offset is then calibrated on its keyframes as recorded. `device`: cuda trains in bf16 autocast.
+    offset is then calibrated on its keyframes as recorded. `device`: cuda trains in bf16 autocast. `depth_weight`
+    scales the depth head's loss inside the image losses (their weight: `aux_weight`).
     """
     device = torch.device(device)
     if real is not None and not seeds:
@@ -149,7 +151,9 @@ def train(
             if aux_head is not None:
                 aux = aux_head.loss(captured.pop("levels")[0], s.pixel_labels, sparse=s.sparse)
                 if "depth" in captured:
-                    aux = aux + depth_loss(captured.pop("depth"), s.depth, s.intrinsics, cfg.depth_range)
+                    depth = depth_loss(captured.pop("depth"), s.depth, s.intrinsics, cfg.depth_range)
+                    aux = aux + depth_weight * depth
+                    parts["depth"] = float(depth.detach())
                 loss = loss + aux_weight * aux
                 parts["aux"] = float(aux.detach())
         opt.zero_grad(set_to_none=True)
@@ -162,6 +166,7 @@ def train(
         bar.set_postfix_str(
             f"step {step} loss {np.mean(losses[-20:]):.3f} ce {parts['ce']:.3f} lovasz {parts['lovasz']:.3f}"
             + (f" aux {parts['aux']:.3f}" if "aux" in parts else "")
+            + (f" depth {parts['depth']:.3f}" if "depth" in parts else "")
         )
         bar.refresh()
         if time.monotonic() - last_save > 120:

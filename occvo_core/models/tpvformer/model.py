@@ -194,6 +194,12 @@ class TPVFormer(nn.Module):
         """Images (B, 6, 3, H, W) in [0, 1] -> TPV planes [(B, C, H, W), (B, C, Z, H), (B, C, W, Z)]."""
         return self.encode_with_depth(images, intrinsics, cam_to_ego)[0]
 
+    def image_depth(self, images: torch.Tensor) -> tuple[list[torch.Tensor], torch.Tensor | None]:
+        """The image branch alone: images (B, Ncam, 3, H, W) -> FPN levels (B*Ncam, C, h_l, w_l) and the depth head's
+        logits (B*Ncam, bins, h, w) (None without a depth head)."""
+        levels = self.backbone((images.flatten(0, 1) - self.image_mean) / self.image_std)
+        return levels, (self.depth_head(levels[0]) if self.depth_head is not None else None)
+
     def encode_with_depth(
         self, images: torch.Tensor, intrinsics: torch.Tensor, cam_to_ego: torch.Tensor
     ) -> tuple[list[torch.Tensor], torch.Tensor | None]:
@@ -208,12 +214,9 @@ class TPVFormer(nn.Module):
             )
         if ncam > self.cams_embed.shape[0]:
             raise ValueError(f"{ncam} cameras given, the model has embeddings for {self.cams_embed.shape[0]}")
-        x = (images.flatten(0, 1) - self.image_mean) / self.image_std
-        levels = self.backbone(x)
-        depth_prob = None
-        if self.depth_head is not None:  # depth distribution of every pixel of the finest level
-            depth_prob = self.depth_head(levels[0]).softmax(1)
-            depth_prob = depth_prob.view(b, ncam, *depth_prob.shape[1:])
+        levels, depth_prob = self.image_depth(images)
+        if depth_prob is not None:  # depth distribution of every pixel of the finest level
+            depth_prob = depth_prob.softmax(1).view(b, ncam, -1, *depth_prob.shape[-2:])
         feats = [
             f.view(b, ncam, *f.shape[1:])
             + self.cams_embed[None, :ncam, :, None, None]

@@ -17,7 +17,7 @@ from occvo_schemas.codec import decode, encode
 from occvo_schemas.models import ErrorEvent, WorkerHealth
 from occvo_services.client import OccVOClient, camera_frame_of
 from occvo_services.commands.replay import replay
-from occvo_services.sessions import open_session
+from occvo_services.sessions import open_login, open_session
 
 DATA = SAMPLE / "occupancy" / "scene-0101"
 BLOCK = zenoh.CongestionControl.BLOCK
@@ -51,17 +51,20 @@ def worker_args(reg_config: str, reg_cap: list[str], store: list[str]) -> dict:
 
 
 def counters(session, svc, role: str, names: tuple[str, ...]) -> dict:
-    """Some of a worker's counters, from its stats queryable (LocalService names it <role>-<our pid>)."""
-    for r in session.get(keys.stats(f"{role}-{os.getpid()}"), timeout=10.0):
+    """Some of a worker's counters, from its stats queryable (LocalService names it <role>-<our pid>); behind access
+    control through the router's own session (a client login may not read stats)."""
+    asker = svc.router if svc.router_config else session
+    for r in asker.get(keys.stats(f"{role}-{os.getpid()}"), timeout=10.0):
         if r.ok is not None:
             got = decode(r.ok.payload.to_bytes(), WorkerHealth).counters
             return {n: got.get(n, 0) for n in names}
     return {}
 
 
-def wildcard_gets(endpoint: str, threads: int, stop, counts) -> None:
-    """A client looping `occvo/**` gets on `threads` threads until `stop`; counts[0] ok replies, counts[1] busy."""
-    session = open_session(endpoint)
+def wildcard_gets(endpoint: str, threads: int, stop, counts, base=None) -> None:
+    """A client (its zenoh config `base`) looping `occvo/**` gets on `threads` threads until `stop`; counts[0] ok
+    replies, counts[1] busy, counts[2] gets done."""
+    session = open_session(endpoint, base, pick_up=False)
 
     def loop():
         while not stop.is_set():
@@ -69,6 +72,8 @@ def wildcard_gets(endpoint: str, threads: int, stop, counts) -> None:
                 busy = r.err is not None and decode(r.err.payload.to_bytes(), ErrorEvent).code == "busy"
                 with counts.get_lock():
                     counts[int(busy)] += 1
+            with counts.get_lock():
+                counts[2] += 1
 
     ts = [threading.Thread(target=loop) for _ in range(threads)]
     for t in ts:
@@ -86,8 +91,14 @@ GOALS: list[bool] = []  # every goal line so far: the script exits 1 if one is n
 
 
 def goal(text: str, met: bool, **figure) -> None:
-    GOALS.append(bool(met))
-    print(json.dumps({"goal": text, "met": bool(met), **figure}), flush=True)
+    """A goal line; in the anonymous mode it is advisory (said, not counted): its guards rest on self-declared ids."""
+    from _hostile_deploy import DEPLOY
+
+    advisory = bool(DEPLOY) and DEPLOY[-1].anonymous
+    if not advisory:
+        GOALS.append(bool(met))
+    mode = DEPLOY[-1].name if DEPLOY else None
+    print(json.dumps({"goal": text, "met": bool(met), "mode": mode, "advisory": advisory, **figure}), flush=True)
 
 
 def grab(endpoint: str, streams: list[str], frame, stop: threading.Event, period_s: float = 2.0, base=None) -> None:
@@ -107,8 +118,8 @@ def grab(endpoint: str, streams: list[str], frame, stop: threading.Event, period
 
 def run_replay(endpoint: str, stream: str, frames, base=None) -> tuple[float, np.ndarray]:
     """The replay of `frames` on `stream` (its session's zenoh config `base`): its time and poses."""
-    session = open_session(endpoint, base)
-    with session, OccVOClient(endpoint, stream, timeout=300, session=session) as c:
+    session, login = open_login(endpoint, base)
+    with session, OccVOClient(endpoint, stream, timeout=300, session=session, login=login) as c:
         t0 = time.perf_counter()
         out = replay(c, frames, window=4, timeout=600)
         took = time.perf_counter() - t0

@@ -22,13 +22,12 @@ from _hostile_common import (
     proc_status,
     run_replay,
 )
+from _hostile_deploy import deploy
 
 from occvo_schemas import keys
 from occvo_schemas.codec import encode
 from occvo_services.client import OccVOClient
 from occvo_services.commands.replay import replay
-from occvo_services.local import LocalService
-from occvo_services.sessions import open_session
 
 
 def heavy(args, frames, store: list[str], reg_config: str) -> None:
@@ -38,14 +37,18 @@ def heavy(args, frames, store: list[str], reg_config: str) -> None:
     from occvo_schemas.models import CameraFrame, SparseOccupancy
 
     cap = args.heavy_max_rss_mb
-    svc = LocalService(
-        quiet=True,
-        worker_args={
-            "registration": ["--config", reg_config, *store, "--max-rss-mb", str(cap)],
-            "inference": ["--config", "deploy/inference_worker.json5"],
-            "map": ["--config", "deploy/map_service.json5", *store],
-        },
-    ).start()
+    svc = (
+        deploy()
+        .service(
+            quiet=True,
+            worker_args={
+                "registration": ["--config", reg_config, *store, "--max-rss-mb", str(cap)],
+                "inference": ["--config", "deploy/inference_worker.json5"],
+                "map": ["--config", "deploy/map_service.json5", *store],
+            },
+        )
+        .start()
+    )
     try:
         ep = svc.endpoint
         solo_s, _ = run_replay(ep, "heavysolo", frames)
@@ -75,10 +78,14 @@ def heavy(args, frames, store: list[str], reg_config: str) -> None:
 
         def watch():
             while not stop.wait(0.05):
-                peak["rss_mb"] = max(peak["rss_mb"], proc_status(svc.procs["registration"].pid)["rss_mb"])
+                try:
+                    peak["rss_mb"] = max(peak["rss_mb"], proc_status(svc.procs["registration"].pid)["rss_mb"])
+                except (KeyError, OSError):  # the worker gone (the step ended early)
+                    return
 
         def heavy_client(i):
-            session, stream = open_session(ep), f"heavy{i}"
+            session, login = deploy().attacker(ep, "own")
+            stream = deploy().wire(f"heavy{i}", login)
             for sn, data in enumerate(
                 [payload(stream, 0, copies)] + [payload(stream, s, full) for s in range(args.heavy_frames)]
             ):
@@ -94,25 +101,29 @@ def heavy(args, frames, store: list[str], reg_config: str) -> None:
         clients = [threading.Thread(target=heavy_client, args=(i,)) for i in range(4)]
         for t in clients:
             t.start()
-        took, poses = run_replay(ep, "heavylegit", frames)
+        try:
+            took, poses, lost = *run_replay(ep, "heavylegit", frames), None
+        except AssertionError as exc:  # frames of the replay refused for good: said below, the step goes on
+            took, poses, lost = float("nan"), np.zeros((0, 4, 4)), str(exc)[:400]
         for t in clients:
             t.join()
         time.sleep(5.0)  # the heavy frames queued are registered
         stop.set()
-        session = open_session(ep)
+        session = svc.router
         refused = counters(
             session, svc, "registration", ("frames_refused_memory", "streams_refused_memory", "frames_out", "errors")
         )
         refused_inf = counters(session, svc, "inference", ("errors",))
-        session.close()
         emit(
             "heavy",
+            mode=deploy().name,
             registration_max_rss_mb=cap,
             registration_peak_rss_mb=peak["rss_mb"],
             replay_s=round(took, 2),
             solo_s=round(solo_s, 2),
             ratio_to_solo=round(took / solo_s, 2),
             poses=len(poses),
+            replay_lost=lost,
             registration=refused,
             inference=refused_inf,
         )
@@ -122,6 +133,7 @@ def heavy(args, frames, store: list[str], reg_config: str) -> None:
             peak_rss_mb=peak["rss_mb"],
             cap=cap,
         )
+        goal("beside heavy-frame streams the replay gets all its poses", lost is None, refused=lost)
     finally:
         svc.stop()
 
@@ -180,14 +192,18 @@ def disk_full(args, frames, alone: np.ndarray, reg_config: str) -> None:
     filesystem is filled for --full-s seconds, then freed. Every pose vs alone, the map's last seq and tiles."""
     folder = Path(args.disk_full_dir)
     store = ["--store-path", str(folder / f"occvo-{os.getpid()}.sqlite")]
-    svc = LocalService(
-        quiet=True,
-        worker_args={
-            "registration": ["--config", reg_config, *store],
-            "inference": ["--config", "deploy/inference_worker.json5"],
-            "map": ["--config", "deploy/map_service.json5", *store],
-        },
-    ).start()
+    svc = (
+        deploy()
+        .service(
+            quiet=True,
+            worker_args={
+                "registration": ["--config", reg_config, *store],
+                "inference": ["--config", "deploy/inference_worker.json5"],
+                "map": ["--config", "deploy/map_service.json5", *store],
+            },
+        )
+        .start()
+    )
     filler = folder / f"filler-{os.getpid()}"
     spell = {}
     try:

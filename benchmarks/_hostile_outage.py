@@ -1,4 +1,4 @@
-"""Hostile-client steps on a PostgreSQL store of their own (services/pg_local.py; benchmarks/hostile_clients.py):
+"""Hostile-client steps on a PostgreSQL store of their own (services/store/pg_local.py; benchmarks/hostile_clients.py):
 db_outage (the database stopped mid-drive), members_acl (placement members under the shipped ACL, an owner killed),
 lease_flood (one-byte puts on new keys against placement members)."""
 
@@ -12,13 +12,14 @@ from pathlib import Path
 import numpy as np
 from _hostile_acl import acl_logins
 from _hostile_common import BLOCK, emit, goal
+from _hostile_deploy import deploy
 
-from occvo_services.client import OccVOClient
+from occvo_schemas import keys
+from occvo_services.client import OccVOClient, ServiceError
 from occvo_services.commands.replay import replay
-from occvo_services.local import LocalService
-from occvo_services.pg_local import PgCluster
-from occvo_services.sessions import ZENOH_CONFIG_ENV, open_session
-from occvo_services.store_api import open_store
+from occvo_services.sessions import ZENOH_CONFIG_ENV, open_login
+from occvo_services.store.factory import open_store
+from occvo_services.store.pg_local import PgCluster
 
 DEFAULTS = "services/defaults"  # what `occvo serve` runs
 
@@ -32,18 +33,21 @@ def _serve_args(url: str) -> dict:
     }
 
 
-def _replays(endpoint: str, streams: list[str], frames, at: int, event, base=None) -> dict:
+def _replays(endpoint: str, streams: list[str], frames, at: int, event, base=None, timeout: float = 900) -> dict:
     """The replays of `frames` on `streams` side by side (window 4); event() runs once each has pose `at`. Per
     stream: its poses, seconds, resends and error codes."""
-    session = open_session(endpoint, base)
-    clients = {s: OccVOClient(endpoint, s, timeout=600, session=session) for s in streams}
+    session, login = open_login(endpoint, base)
+    clients = {s: OccVOClient(endpoint, s, timeout=600, session=session, login=login) for s in streams}
     out: dict = {}
 
     def run(stream: str) -> None:
         c = clients[stream]
         c.reset()
         t0 = time.perf_counter()
-        got = replay(c, frames, window=4, timeout=900)
+        try:
+            got = replay(c, frames, window=4, timeout=timeout)
+        except ServiceError:  # stalled: no pose for `timeout` s
+            got = {"resends": c.resends}
         poses = np.array([c.poses[i].matrix() for i in sorted(c.poses)]) if c.poses else np.zeros((0, 4, 4))
         codes = sorted({e.code for e in c.errors})
         out[stream] = {"poses": poses, "s": time.perf_counter() - t0, "resends": got["resends"], "codes": codes}
@@ -51,7 +55,7 @@ def _replays(endpoint: str, streams: list[str], frames, at: int, event, base=Non
     threads = [threading.Thread(target=run, args=(s,)) for s in streams]
     for t in threads:
         t.start()
-    deadline = time.monotonic() + 600
+    deadline = time.monotonic() + min(600, timeout)
     while any(at not in c.poses for c in clients.values()) and time.monotonic() < deadline:
         time.sleep(0.05)
     event()
@@ -76,7 +80,7 @@ def db_outage(outage_s: float, frames, alone: np.ndarray) -> None:
     pose 10: each replay's poses and the stored ones vs alone, the codes its client got, its resends and time."""
     cluster = PgCluster()
     url = cluster.new_database()
-    svc = LocalService(quiet=True, worker_args=_serve_args(url)).start()
+    svc = deploy().service(quiet=True, worker_args=_serve_args(url)).start()
     down: list[float] = []
 
     def outage() -> None:
@@ -87,7 +91,7 @@ def db_outage(outage_s: float, frames, alone: np.ndarray) -> None:
         down.append(time.monotonic() - t0)
 
     try:
-        streams = ["outage0", "outage1"]
+        streams = [deploy().victim_stream(f"outage{i}") for i in range(2)]
         got = _replays(svc.endpoint, streams, frames, 10, outage)
         stored = _stored_equal(url, streams, alone)
     finally:
@@ -103,23 +107,22 @@ def db_outage(outage_s: float, frames, alone: np.ndarray) -> None:
     )
 
 
-def members_acl(frames, alone: np.ndarray) -> None:
-    """Two registration workers in placement members behind the shipped ACL, each the `registration` login; four
-    replays as the `camera` login; the owner of the first stream killed (-9) at its pose 10: every pose vs alone, the
-    survivor's fences."""
+def members_acl(frames, alone: np.ndarray, shipped: bool) -> None:
+    """Two registration workers in placement members behind the shipped ACL (`shipped`: deploy/acl, each the
+    `registration` login, four replays as the `camera` login) or the default deployment's (the workers' logins, the
+    replays the user's); the owner of the first stream killed (-9) at its pose 10: every pose vs alone, owners."""
     cluster, folder = PgCluster(), Path(tempfile.mkdtemp())
     url = cluster.new_database()
-    router, sessions = acl_logins(folder, ["camera"])
-    env = {role: {ZENOH_CONFIG_ENV: str(sessions[role])} for role in ("inference", "registration", "map")}
-    svc = LocalService(
-        quiet=True,
-        router_config=str(router),
-        registration_shards=2,
-        placement="members",
-        worker_args=_serve_args(url),
-        worker_env=env,
-    ).start()
-    streams, killed = [f"camera.m{i}" for i in range(4)], []
+    kw = {"registration_shards": 2, "placement": "members", "worker_args": _serve_args(url)}
+    if shipped:
+        router, sessions = acl_logins(folder, ["camera"])
+        env = {role: {ZENOH_CONFIG_ENV: str(sessions[role])} for role in ("inference", "registration", "map")}
+        kw.update(router_config=str(router), worker_env=env)
+        base, streams = sessions["camera"], [f"camera.m{i}" for i in range(4)]
+    else:
+        base, streams = None, [deploy().victim_stream(f"m{i}") for i in range(4)]
+    svc = deploy().service(quiet=True, **kw).start()
+    killed = []
 
     def kill_owner() -> None:
         store = open_store(url)
@@ -131,17 +134,18 @@ def members_acl(frames, alone: np.ndarray) -> None:
         killed.append((victim, sorted(owners)))
 
     try:
-        got = _replays(svc.endpoint, streams, frames, 10, kill_owner, sessions["camera"])
+        got = _replays(svc.endpoint, streams, frames, 10, kill_owner, base)
         stored = _stored_equal(url, streams, alone)
     finally:
         svc.stop()
         cluster.close()
     victim, owners = killed[0]
     equal = all(len(g["poses"]) == len(frames) and np.array_equal(g["poses"], alone) for g in got.values())
-    emit("members_acl", owners_before=owners, killed=victim, **{s: g["codes"] for s, g in got.items()})
-    goal("members under the shipped ACL: both took streams before the kill", len(owners) == 2, owners=owners)
+    acl = "the shipped ACL" if shipped else "the default's logins"
+    emit("members_acl", acl=acl, owners_before=owners, killed=victim, **{s: g["codes"] for s, g in got.items()})
+    goal(f"members under {acl}: both took streams before the kill", len(owners) == 2, owners=owners)
     goal(
-        "members under the shipped ACL, an owner killed (-9): every stream all its poses, equal to alone's, stored",
+        f"members under {acl}, an owner killed (-9): every stream all its poses, equal to alone's, stored",
         equal and stored,
     )
 
@@ -151,19 +155,21 @@ def lease_flood(args, frames, alone_s: float, alone: np.ndarray) -> None:
     while a replay runs: its poses vs alone and its time vs solo, the lease rows left once the flood is over."""
     cluster = PgCluster()
     url = cluster.new_database()
-    svc = LocalService(quiet=True, placement="members", worker_args=_serve_args(url)).start()
+    svc = deploy().service(quiet=True, placement="members", worker_args=_serve_args(url)).start()
     stop, sent = threading.Event(), [0]
 
-    def flood() -> None:
-        session = open_session(svc.endpoint)
+    def flood() -> None:  # on occupancy keys (as the inference worker would) and on its own camera keys
+        session, login = deploy().attacker(svc.endpoint, "own")
         while not stop.is_set() and sent[0] < args.lease_flood:
-            session.put(f"occvo/lease{sent[0]}/occupancy", b"x", congestion_control=BLOCK)
+            kind = ("occupancy", "camera")[sent[0] % 2]
+            session.put(f"occvo/{deploy().wire(f'lease{sent[0]}', login)}/{kind}", b"x", congestion_control=BLOCK)
             sent[0] += 1
         session.close()
 
     try:
         flooder = threading.Thread(target=flood)
-        got = _replays(svc.endpoint, ["leaselegit"], frames, 0, flooder.start)["leaselegit"]
+        legit = deploy().victim_stream("leaselegit")
+        got = _replays(svc.endpoint, [legit], frames, 0, flooder.start)[legit]
         stop.set()
         flooder.join()
         time.sleep(5.0)  # one lease renewal pass at least (lease_s / 3)
@@ -174,7 +180,47 @@ def lease_flood(args, frames, alone_s: float, alone: np.ndarray) -> None:
         svc.stop()
         cluster.close()
     equal = len(got["poses"]) == len(frames) and np.array_equal(got["poses"], alone)
-    emit("lease_flood", puts=sent[0], replay_s=round(got["s"], 1), alone_s=round(alone_s, 1), lease_rows=rows)
+    emit("lease_flood", mode=deploy().name, puts=sent[0], replay_s=round(got["s"], 1), alone_s=round(alone_s, 1),
+         lease_rows=rows[:8], lease_row_count=len(rows))  # fmt: skip
     goal("lease flood: the replay gets every pose, equal to alone's", equal)
     goal("lease flood: the replay within 3x its solo time", got["s"] <= 3 * alone_s, ratio=round(got["s"] / alone_s, 2))
-    goal("lease flood: no lease row but the replay's", rows == ["leaselegit"], lease_rows=len(rows))
+    goal("lease flood: no lease row but the replay's", rows == [legit], lease_rows=len(rows))
+
+
+def fake_tokens(frames, alone: np.ndarray, n: int = 8) -> None:
+    """Placement members (one worker) on PostgreSQL: the attacker (its own login) declares n registration workers'
+    liveliness tokens, then the victim replays two streams: their poses vs alone, their time vs the same two replays
+    before the tokens, leases held by fake workers."""
+    cluster = PgCluster()
+    url = cluster.new_database()
+    svc = deploy().service(quiet=True, placement="members", worker_args=_serve_args(url)).start()
+    session, _ = deploy().attacker(svc.endpoint, "own")
+    tokens = []
+    try:  # the two replays side by side on this service first: the time to compare with
+        solo = _replays(svc.endpoint, [deploy().victim_stream(f"solo{i}") for i in range(2)], frames, 0, lambda: None)
+        alone_s = max(g["s"] for g in solo.values())
+        for i in range(n):
+            for key in (keys.registration_shard(0, 0, f"fake{i}"), keys.alive("registration", f"fake{i}")):
+                try:
+                    tokens.append(session.liveliness().declare_token(key))
+                except Exception:  # noqa: BLE001 - refused locally: nothing declared
+                    pass
+        time.sleep(2.0)
+        streams = [deploy().victim_stream(f"tok{i}") for i in range(2)]
+        got = _replays(svc.endpoint, streams, frames, 0, lambda: None, timeout=120)  # a stalled one: 120 s
+        store = open_store(url)
+        owners = sorted({lease.owner or "(released)" for lease in store.leases() if "solo" not in lease.stream})
+        store.close()
+    finally:
+        for t in tokens:
+            t.undeclare()
+        session.close()
+        svc.stop()
+        cluster.close()
+    equal = all(len(g["poses"]) == len(frames) and np.array_equal(g["poses"], alone) for g in got.values())
+    worst = max(g["s"] for g in got.values())
+    fake = [o for o in owners if o.startswith("fake")]
+    emit("fake_tokens", mode=deploy().name, tokens=n, replay_s=round(worst, 1), alone_s=round(alone_s, 1),
+         lease_owners=owners, codes={s: g["codes"] for s, g in got.items()})  # fmt: skip
+    goal("fake worker tokens: every replay all its poses, equal to offline, within 3x, no lease to a fake worker",
+         equal and worst <= 3 * alone_s and not fake, ratio=round(worst / alone_s, 2), fake_owners=len(fake))  # fmt: skip

@@ -3,20 +3,21 @@
 
 from __future__ import annotations
 
+import shutil
 import tempfile
 import time
 from pathlib import Path
 
 import zenoh
 from _hostile_common import BLOCK, counters, emit, goal
+from _hostile_deploy import deploy
+from _hostile_identity import borrowed_ids
 
 from occvo_schemas import keys
 from occvo_schemas.codec import encode
 from occvo_services.client import camera_frame_of
-from occvo_services.local import LocalService
 from occvo_services.runtime import WorkerConfig
-from occvo_services.sessions import open_session
-from occvo_services.store_api import open_store
+from occvo_services.store.factory import open_store
 
 DEFAULTS = "services/defaults"  # what `occvo serve` runs
 
@@ -25,15 +26,15 @@ def _files_bytes(folder: Path) -> dict[str, int]:
     return {p.name: p.stat().st_size for p in sorted(folder.iterdir()) if p.is_file()}
 
 
-def _flood(session, frame, seconds: float, period_s: float) -> int:
-    """A seq-0 frame on a fresh stream id every period_s for `seconds`, as one client; how many streams."""
+def _flood(session, login, ids, frame, seconds: float, period_s: float) -> int:
+    """A seq-0 frame on a fresh stream id every period_s for `seconds`, as one client (one login), each stream's
+    frame under the next of `ids` (rotating ids); how many streams."""
     n, t0 = 0, time.perf_counter()
     while time.perf_counter() - t0 < seconds:
-        stream = f"sflood{n}"
+        stream = deploy().wire(f"sflood{n}", login)
         data = encode(camera_frame_of(frame, stream, 0, exact=False))  # ~11 ms: well within a period
-        session.put(
-            keys.camera(stream), data, congestion_control=BLOCK, source_info=zenoh.SourceInfo(session.id, n + 1)
-        )
+        zid = ids[n % len(ids)]
+        session.put(keys.camera(stream), data, congestion_control=BLOCK, source_info=zenoh.SourceInfo(zid, n + 1))
         n += 1
         time.sleep(max(0.0, t0 + n * period_s - time.perf_counter()))
     return n
@@ -60,18 +61,23 @@ def store_flood(args, frames) -> None:
     quota_mb, idle_s = config.max_store_mb_per_client, config.idle_stream_s
     folder, logs = Path(tempfile.mkdtemp()), Path(tempfile.mkdtemp())
     store = ["--store-path", str(folder / "occvo.sqlite")]
-    svc = LocalService(
-        log_dir=logs,
-        worker_args={
-            "registration": ["--config", reg_config, *store],
-            "inference": ["--config", f"{DEFAULTS}/inference_worker.json5"],
-            "map": ["--config", f"{DEFAULTS}/map_service.json5", *store],
-        },
-    ).start()
+    svc = (
+        deploy()
+        .service(
+            log_dir=logs,
+            worker_args={
+                "registration": ["--config", reg_config, *store],
+                "inference": ["--config", f"{DEFAULTS}/inference_worker.json5"],
+                "map": ["--config", f"{DEFAULTS}/map_service.json5", *store],
+            },
+        )
+        .start()
+    )
     try:
         files0, logs0 = _files_bytes(folder), sum(_files_bytes(logs).values())
-        session = open_session(svc.endpoint)
-        opened = _flood(session, frames[0], args.store_flood_s, args.store_flood_period_s)
+        session, login = deploy().attacker(svc.endpoint, "own")
+        ids = borrowed_ids(svc.endpoint, 64)
+        opened = _flood(session, login, ids, frames[0], args.store_flood_s, args.store_flood_period_s)
         time.sleep(idle_s + 30.0)  # every flood stream idle: retired, snapshotted, measured
         names = ("frames_refused_quota", "streams_refused", "streams_refused_memory", "snapshots", "streams_retired")
         reg = counters(session, svc, "registration", names)
@@ -80,9 +86,13 @@ def store_flood(args, frames) -> None:
         svc.stop()
     files1, logs1 = _files_bytes(folder), sum(_files_bytes(logs).values())
     growth = sum(files1.values()) - sum(files0.values())
-    stored, usage = _stored(store[1], "sflood")
+    stored, usage = _stored(store[1], deploy().wire("sflood", login))
+    shutil.rmtree(folder, ignore_errors=True)  # a GiB or two a pass
+    shutil.rmtree(logs, ignore_errors=True)
     emit(
         "store_flood",
+        mode=deploy().name,
+        rotating_ids=len(ids),
         flood_s=args.store_flood_s,
         streams_opened=opened,
         streams_stored=len(stored),
@@ -94,7 +104,7 @@ def store_flood(args, frames) -> None:
         registration=reg,
     )
     goal(
-        "one client's stream flood adds at most its quota to the store",
+        "one client's stream flood under 64 rotating ids adds at most its quota to the store",
         growth <= quota_mb << 20,
         growth_mb=round(growth / 2**20, 1),
         quota_mb=quota_mb,

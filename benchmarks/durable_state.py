@@ -25,7 +25,9 @@ from _common import SAMPLE
 from occvo_core import OccVO
 from occvo_core.grid import OCC3D_GRID
 from occvo_schemas.models import SparseOccupancy
-from occvo_services.store import TrajectoryStore, frame_digest, pack_frame, unpack_arrays
+from occvo_services.array_pack import unpack_arrays
+from occvo_services.store.blobs import frame_digest, pack_frame
+from occvo_services.store.sqlite import TrajectoryStore
 
 warnings.filterwarnings("ignore", category=RuntimeWarning)
 DATA = SAMPLE / "occupancy" / "scene-0101"

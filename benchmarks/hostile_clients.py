@@ -1,9 +1,15 @@
-"""A hostile client beside a legitimate replay, on loopback: the figures of issue 33's "done when".
+"""Hostile clients beside a legitimate replay, on loopback: the figures of issues 33 and 64's "done when".
 
-    python benchmarks/hostile_clients.py [--streams 2000 --flood-s 10 --settle-s 60 --big-mb 512]
-        [--steps flood,msgpack,oversize,queries] [--registration-max-rss-mb MB] [--store-flood-s 180]
+    python benchmarks/hostile_clients.py [--modes logins,anonymous] [--steps ...] [--streams 2000 --flood-s 10
+        --settle-s 60 --big-mb 512] [--registration-max-rss-mb MB] [--store-flood-s 180] [--disk-full-dir DIR]
 
-Router in this process, workers as processes (occvo_services.local.LocalService, the deploy configs' limits). Steps:
+Each pass runs against one deployment (_hostile_deploy.py): `logins`, `occvo serve`'s default (the router with logins
+and access control, the workers as their logins, a client known by its login's prefix), every step; then
+`anonymous` (`occvo serve --anonymous`: a plain router, a client known by the zid it declares), the steps that differ
+there, their goals advisory (printed, not counted: the guards keyed on a self-declared id cannot hold). The victim is
+the login `occvo serve` made for the user running it; an attacker comes without credentials, with its own login
+(`mallory`) or with another user's (`bob`), never with the victim's. Router in this process, workers as processes
+(occvo_services.local.LocalService, the deploy configs' limits). Steps:
   alone      scene-0101 replayed alone: time, poses; each worker's RSS and threads once its stream has retired
              (baseline: the service at rest)
   flood      one client puts a seq-0 frame on each of --streams stream ids in --flood-s seconds while scene-0101 is
@@ -43,7 +49,21 @@ Router in this process, workers as processes (occvo_services.local.LocalService,
              login, the owner of the first stream killed (-9) at its pose 10: every pose vs alone, owners before
   lease_flood placement members on PostgreSQL: --lease-flood one-byte puts on new keys beside a replay: its poses
              vs alone, its time vs solo, the lease rows left
-`alone` always runs (the baseline and the map the queries ask for); --steps picks the others. Prints one JSON line
+  no_credentials a session without credentials: refused by the router
+  takeover   the victim's idle (retired, stored) stream: another user's login puts seq 0 to 5 of other frames on it:
+             its stored trajectory and map before and after
+  sybil      one login putting a frame every 2 s on 64 stream ids, each under another borrowed zid, beside the
+             victim's replay: poses, stored trajectory, time vs a solo replay just before
+  copied_id  the victim's zid copied (or leaked): another user's login puts other frames, seq 0-39 over and over, on
+             the victim's stream under it while the victim replays: the same figures
+  query_budget 10 attacker threads looping tile gets under the victim's copied zid (on the victim's stream and on
+             its own) while the victim asks 200 tiles: the victim's gets refused busy
+  fake_tokens placement members on PostgreSQL: the attacker's login declares 8 registration workers' tokens, then two
+             replays: poses, time vs the same replays before, leases held by a fake worker
+  secrets    `occvo serve` on PostgreSQL, the password in OCCVO_STORE_URL (`?password=`), the database stopped
+             mid-drive: the password in ps, logs, output, events; written in --store: exit 2, one line
+members_acl runs under the default's logins and under the shipped ACL (deploy/acl). $OCCVO_HOSTILE_LOGS: a folder for
+the workers' logs. `alone` always runs (the baseline and the map the queries ask for); --steps picks the others. Prints one JSON line
 per step and one per goal ({"goal": ..., "met": ...}); exits 1 if a goal is not met."""
 
 from __future__ import annotations
@@ -75,17 +95,37 @@ from _hostile_common import (
     worker_args,
     workers,
 )
+from _hostile_deploy import DEPLOY, Deployment, deploy
+from _hostile_identity import copied_id, no_credentials, query_budget, sybil, takeover_idle
 from _hostile_limits import bad_configs, disk_full, heavy
-from _hostile_outage import db_outage, lease_flood, members_acl
+from _hostile_outage import db_outage, fake_tokens, lease_flood, members_acl
+from _hostile_secrets import secrets
 from _hostile_store import store_flood
 
 from occvo_core.datasets import OccVOReleaseScene
 from occvo_schemas import keys
 from occvo_schemas.codec import encode
 from occvo_services.client import OccVOClient, camera_frame_of
-from occvo_services.local import LocalService
 from occvo_services.runtime import WorkerConfig
-from occvo_services.sessions import open_session
+
+STEPS = (
+    "no_credentials,takeover,flood,msgpack,oversize,queries,sequence,silent,degenerate,log_flood,grabber,sybil,"
+    "copied_id,query_budget,heavy,config,store_flood,disk_full,grabber_acl,db_outage,members_acl,lease_flood,"
+    "fake_tokens,secrets"
+).split(",")
+# where the anonymous mode differs: what rests on a client's identity, and the access control's refusals
+ANONYMOUS_STEPS = {
+    "no_credentials", "takeover", "sequence", "silent", "grabber", "sybil", "copied_id", "query_budget", "store_flood",
+    "lease_flood", "fake_tokens",
+}  # fmt: skip
+
+
+def attempt(step, *args, **kw) -> None:
+    """A step that raises is one failed goal naming the error, and the run goes on with the next step."""
+    try:
+        step(*args, **kw)
+    except Exception as exc:  # noqa: BLE001 - reported as the step's result
+        goal(f"{step.__name__} ran to its end", False, error=f"{type(exc).__name__}: {str(exc)[:300]}")
 
 
 def main() -> int:
@@ -97,8 +137,7 @@ def main() -> int:
     p.add_argument("--frames", type=int, default=40)
     p.add_argument(
         "--steps",
-        default="flood,msgpack,oversize,queries,sequence,grabber,grabber_acl,heavy,silent,degenerate,config,log_flood,"
-        "disk_full,store_flood,db_outage,members_acl,lease_flood",
+        default=",".join(STEPS),
         help="steps after `alone`, comma separated",
     )
     p.add_argument("--disk-full-dir", help="step disk_full: a small filesystem for the store (e.g. a 64 MB tmpfs)")
@@ -112,8 +151,26 @@ def main() -> int:
         "--outage-s", default="8", help="step db_outage: how long the database is stopped, seconds (a comma list: each)"
     )
     p.add_argument("--lease-flood", type=int, default=20000, help="step lease_flood: one-byte puts on new keys")
+    p.add_argument(
+        "--modes",
+        default="logins,anonymous",
+        help="deployments: logins (the default's, every step) and anonymous (`--anonymous`: the steps that differ "
+        "there, their goals advisory)",
+    )
     args = p.parse_args()
     steps = set(args.steps.split(","))
+    for mode in args.modes.split(","):
+        anonymous = mode == "anonymous"
+        todo = steps & ANONYMOUS_STEPS if anonymous else steps
+        if not todo:
+            continue
+        DEPLOY.append(Deployment(anonymous))
+        emit("deployment", mode=mode, steps=sorted(todo), advisory=anonymous)
+        run_pass(args, todo)
+    return 0 if all(GOALS) else 1
+
+
+def run_pass(args, steps: set[str]) -> None:
     reg_config = "deploy/registration_worker.json5"
     cap = args.registration_max_rss_mb or WorkerConfig.load(reg_config).max_rss_mb
     reg_cap = ["--max-rss-mb", str(cap)] if args.registration_max_rss_mb else []
@@ -121,7 +178,7 @@ def main() -> int:
     frames = [scene[i] for i in range(min(args.frames, len(scene)))]
     store = ["--store-path", str(Path(tempfile.mkdtemp()) / "occvo.sqlite")]  # idle streams' state goes there
     args_of = functools.partial(worker_args, reg_config, reg_cap)  # the workers' arguments with a store
-    svc = LocalService(quiet=True, worker_args=args_of(store)).start()
+    svc = deploy().service(quiet=True, worker_args=args_of(store)).start()
     try:
         ep = svc.endpoint
         alone_s, alone = run_replay(ep, "legit0", frames)
@@ -129,27 +186,34 @@ def main() -> int:
             deadline = time.monotonic() + 60
             while (alone_info := c.map_info()).last_seq != len(frames) - 1 and time.monotonic() < deadline:
                 time.sleep(0.2)
-        session = open_session(ep)
-        # the flood's baseline is the service at rest: the replay's stream retired (idle_stream_s), as the flood's will be
+        if "no_credentials" in steps:
+            attempt(no_credentials, ep)
+        session, login = deploy().attacker(ep, "own")  # the flood's, and oversize's
+        # the flood's baseline is the service at rest: the replay's stream retired (idle_stream_s), as the flood's will
+        # be; takeover's victim stream is that idle one
         deadline = time.monotonic() + WorkerConfig.load(reg_config).idle_stream_s + 60
-        while "flood" in steps and counters(session, svc, "registration", ("streams_retired",))["streams_retired"] < 1:
+        idle = {"flood", "takeover"} & steps
+        while idle and counters(session, svc, "registration", ("streams_retired",))["streams_retired"] < 1:
             assert time.monotonic() < deadline, "the replay's stream was not retired"
             time.sleep(1.0)
         base = workers(svc)
-        emit("alone", replay_s=round(alone_s, 2), poses=len(alone), workers=base)
+        emit("alone", mode=deploy().name, replay_s=round(alone_s, 2), poses=len(alone), workers=base)
 
+        if "takeover" in steps:
+            attempt(takeover_idle, ep, frames, alone)
         if "flood" in steps:
             peak = {"rss_mb": 0.0}
             stop = threading.Event()
 
             # encoded before the flood (voxel indices: 0.12 MB each), so that putting them takes --flood-s, not the
             # encoding's time (21.8 s for 2,000 when encoded one by one)
-            payloads = [encode(camera_frame_of(frames[0], f"flood{i}", 0, exact=False)) for i in range(args.streams)]
+            names = [deploy().wire(f"flood{i}", login) for i in range(args.streams)]
+            payloads = [encode(camera_frame_of(frames[0], n, 0, exact=False)) for n in names]
 
             def flood():
                 start = time.perf_counter()
-                for i, small in enumerate(payloads):
-                    session.put(keys.camera(f"flood{i}"), small, congestion_control=BLOCK)
+                for i, (name, small) in enumerate(zip(names, payloads)):
+                    session.put(keys.camera(name), small, congestion_control=BLOCK)
                     time.sleep(max(0.0, start + (i + 1) * args.flood_s / args.streams - time.perf_counter()))
                 peak["put_s"] = time.perf_counter() - start
 
@@ -168,6 +232,7 @@ def main() -> int:
             stop.set()
             emit(
                 "flood",
+                mode=deploy().name,
                 streams=args.streams,
                 puts_took_s=round(peak["put_s"], 1),
                 flood_and_replay_took_s=round(flood_end - t0, 1),
@@ -201,15 +266,18 @@ def main() -> int:
             )
 
         if "msgpack" in steps:
-            msgpack_delay(ep, session, frames)
+            attempt(msgpack_delay, ep, frames)
         if "oversize" in steps:
             me = os.getpid()
             before = {**workers(svc), "router": proc_status(me)}
-            session.put(keys.camera("legit3"), b"\x00" * (args.big_mb << 20), congestion_control=BLOCK)
+            session.put(
+                keys.camera(deploy().wire("legit3", login)), b"\x00" * (args.big_mb << 20), congestion_control=BLOCK
+            )
             time.sleep(3.0)
             after = {**workers(svc), "router": proc_status(me)}
             emit(
                 "oversize",
+                mode=deploy().name,
                 put_mb=args.big_mb,
                 rss_rise_mb={r: round(after[r]["rss_mb"] - before[r]["rss_mb"], 1) for r in after},
                 note="router rise includes this process's own put buffer",
@@ -229,10 +297,11 @@ def main() -> int:
 
                 quiet = tile_times()
                 ctx = multiprocessing.get_context("spawn")  # the hostile client is a process of its own, as it would be
-                hammer, counts = ctx.Event(), ctx.Array("i", 2)
-                hostile_client = ctx.Process(target=wildcard_gets, args=(ep, 10, hammer, counts))
+                hammer, counts = ctx.Event(), ctx.Array("i", 3)
+                own = deploy().config("own")  # the attacker's own login: its gets on occvo/** (or none: refused)
+                hostile_client = ctx.Process(target=wildcard_gets, args=(ep, 10, hammer, counts, own))
                 hostile_client.start()
-                while counts[0] + counts[1] < 10:  # its gets are being answered
+                while counts[2] < 10:  # its gets are being answered (or refused by the access control)
                     time.sleep(0.05)
                 loud = tile_times()
                 hammer.set()
@@ -240,33 +309,46 @@ def main() -> int:
                 answers = {"ok": counts[0], "busy": counts[1]}
             emit(
                 "queries",
+                mode=deploy().name,
                 tile_p50_p99_ms_alone=quiet,
                 tile_p50_p99_ms_with_10_wildcard_gets=loud,
                 wildcard_replies=answers,
+                wildcard_gets=counts[2],
                 load_average=round(os.getloadavg()[0], 1),  # other jobs on the machine
                 map=counters(session, svc, "map", ("queries_refused",)),
             )
         if "sequence" in steps:
-            sequence_abuse(ep, frames, alone, alone_s)
+            attempt(sequence_abuse, ep, frames, alone, alone_s)
         if "silent" in steps:
-            silent_queryable(ep, "legit0")
+            attempt(silent_queryable, ep, "legit0")
         if "degenerate" in steps:
-            degenerate_frames(ep, frames)
+            attempt(degenerate_frames, ep, frames)
         if "log_flood" in steps:
-            log_flood(ep, svc)
+            attempt(log_flood, ep, svc)
         if "grabber" in steps:
-            grabber(ep, frames, alone_s, [[f"grab{i}" for i in range(50)]], "legit5", "plain default, one session")
+            attempt(grabber, ep, frames, alone_s, [[f"grab{i}" for i in range(50)]], "legit5", "one session, 50 ids")
+        if "sybil" in steps:
+            attempt(sybil, ep, frames, alone, alone_s)
+        if "copied_id" in steps:
+            attempt(copied_id, ep, frames, alone, alone_s)
+        if "query_budget" in steps:
+            attempt(query_budget, ep, frames)
         session.close()
     finally:
         svc.stop()
     if "heavy" in steps:
-        heavy(args, frames, store, reg_config)
+        attempt(heavy, args, frames, store, reg_config)
     if "config" in steps:
-        bad_configs()
+        attempt(bad_configs)
     if "store_flood" in steps:
-        store_flood(args, frames)
+        attempt(store_flood, args, frames)
     if "disk_full" in steps and args.disk_full_dir:
-        full_info = disk_full(args, frames, alone, reg_config)
+        try:
+            full_info = disk_full(args, frames, alone, reg_config)
+        except Exception as exc:  # noqa: BLE001 - reported as the step's result
+            full_info = None
+            goal("disk_full ran to its end", False, error=f"{type(exc).__name__}: {str(exc)[:300]}")
+    if "disk_full" in steps and args.disk_full_dir and full_info is not None:
         emit(
             "disk_full_map_vs_alone",
             same_tiles=full_info.tiles == alone_info.tiles,
@@ -276,17 +358,21 @@ def main() -> int:
             "the map after the spell is the map of the run alone",
             full_info.tiles == alone_info.tiles and full_info.voxel_count == alone_info.voxel_count,
         )
-    if "grabber" in steps:
-        grabber_user(frames, args_of(store))
+    if "grabber" in steps and deploy().anonymous:  # the ACL's identity rule without its logins
+        attempt(grabber_user, frames, args_of(store))
     if "grabber_acl" in steps:
-        grabber_acl(frames, args_of, reg_config)
+        attempt(grabber_acl, frames, args_of, reg_config)
     for outage_s in [float(x) for x in args.outage_s.split(",")] if "db_outage" in steps else []:
-        db_outage(outage_s, frames, alone)
+        attempt(db_outage, outage_s, frames, alone)
     if "members_acl" in steps:
-        members_acl(frames, alone)
+        attempt(members_acl, frames, alone, shipped=False)
+        attempt(members_acl, frames, alone, shipped=True)
     if "lease_flood" in steps:
-        lease_flood(args, frames, alone_s, alone)
-    return 0 if all(GOALS) else 1
+        attempt(lease_flood, args, frames, alone_s, alone)
+    if "fake_tokens" in steps:
+        attempt(fake_tokens, frames, alone)
+    if "secrets" in steps:
+        attempt(secrets, frames)
 
 
 if __name__ == "__main__":

@@ -23,8 +23,8 @@ from occvo_core.map_tiles import changed_tiles, retile_region
 from occvo_core.working_map import changed_map
 from occvo_schemas.codec import decode, encode
 from occvo_schemas.models import MapUpdate
-from occvo_services.map_store import open_map_store
 from occvo_services.registration.map_output import map_update
+from occvo_services.store.factory import open_map_store
 
 DATA = SAMPLE / "occupancy"
 TILE_M = 20.0  # the workers' default tile_m

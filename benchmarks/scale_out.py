@@ -11,7 +11,7 @@ pairs' ratios. The failover run drives the streams at the rate that saturates on
 first run, shared by the streams), so the survivor can carry them all. Keys: scaling (frames/s with 2 workers over 1), failover_s_p50 / failover_s_max (the kill to the
 first pose of each moved stream), poses_lost (frames without a pose, every run), poses_bit_identical (every pose of
 every run equal to offline OccVO's), store. Without --store-url a throwaway PostgreSQL cluster is started
-(occvo_services.pg_local, Debian's postgresql-15)."""
+(occvo_services.store.pg_local, Debian's postgresql-15)."""
 
 from __future__ import annotations
 
@@ -98,7 +98,7 @@ def drive_all(svc: LocalService, drives: dict, rate_hz: float = 0.0, on_started=
 
 
 def streams_per_worker(store_url: str, drives: dict) -> list[int]:
-    from occvo_services.store_api import open_store
+    from occvo_services.store.factory import open_store
 
     store = open_store(store_url)
     try:
@@ -116,7 +116,7 @@ def check(runs: dict, want: dict) -> tuple[int, bool]:
 def failover(store_url: str, drives: dict, want: dict, rate_hz: float, kill_after_s: float) -> dict:
     """Two workers, every stream at rate_hz (together the rate that saturates one worker); registration-0 killed (-9)
     kill_after_s into the drive; how long each of its streams waits for its next pose."""
-    from occvo_services.store_api import open_store
+    from occvo_services.store.factory import open_store
 
     with service(2, store_url) as svc:
         victim = f"registration-0-{os.getpid()}"  # LocalService's worker ids: <name>-<pid of the process starting it>
@@ -149,7 +149,7 @@ def main() -> int:
     want = offline(drives)
     cluster = None
     if args.store_url is None:
-        from occvo_services.pg_local import PgCluster, missing
+        from occvo_services.store.pg_local import PgCluster, missing
 
         if missing():
             raise SystemExit(missing())

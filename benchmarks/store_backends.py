@@ -5,7 +5,7 @@
 
 Real frames of the scene (packed as the worker journals them, with their Occ3D indices) are committed in turn to each
 store, one commit of each per step, so that the machine's load falls on all alike. Without --pg-url a PostgreSQL 15
-server is started in a temporary folder as the tests do (services/pg_local.py). Also times a snapshot write of the scene's
+server is started in a temporary folder as the tests do (services/store/pg_local.py). Also times a snapshot write of the scene's
 OccVO state after --state-frames frames. Prints JSON: median and p90 ms per backend, the ratio of the medians."""
 
 from __future__ import annotations
@@ -22,8 +22,8 @@ import numpy as np
 from occvo_core import OccVO
 from occvo_core.grid import OCC3D_GRID
 from occvo_schemas.models import SparseOccupancy
-from occvo_services.store_api import open_store
-from occvo_services.store_blobs import frame_digest, pack_frame
+from occvo_services.store.blobs import frame_digest, pack_frame
+from occvo_services.store.factory import open_store
 
 warnings.filterwarnings("ignore", category=RuntimeWarning)
 ROOT = Path(__file__).resolve().parents[1]
@@ -57,7 +57,7 @@ def main() -> None:
 
     cluster = None
     if args.pg_url is None:
-        from occvo_services.pg_local import PgCluster, missing
+        from occvo_services.store.pg_local import PgCluster, missing
 
         if missing():
             raise SystemExit(missing())

@@ -29,7 +29,7 @@ from occvo_services.os_tuning import large_blocks_from_mmap  # noqa: E402
 from occvo_services.registration.after_pose import complete  # noqa: E402
 from occvo_services.registration_worker import RegistrationWorker  # noqa: E402
 from occvo_services.runtime import WorkerConfig  # noqa: E402
-from occvo_services.store import frame_digest, pack_frame  # noqa: E402
+from occvo_services.store.blobs import frame_digest, pack_frame  # noqa: E402
 
 LAYER_M = 0.45  # one voxel pitch and a bit: a frame's own quantisation keeps re-sightings within it
 

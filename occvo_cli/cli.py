@@ -94,7 +94,7 @@ def _worded() -> tuple[type, ...]:
 
 
 def error_line(exc: BaseException) -> str:
-    from occvo_services.store_url import redact  # a store's password is never printed (a driver may quote the URL)
+    from occvo_services.store.url import redact  # a store's password is never printed (a driver may quote the URL)
 
     text = (redact(str(exc)).strip().splitlines() or [""])[0]
     if isinstance(exc, _worded()):

@@ -21,7 +21,7 @@ LIBRARIES = {"numpy": "numpy", "numba": "numba", "torch": "torch", "zenoh": "ecl
 
 
 def write_run_record(out: str | Path, args, config, source=None) -> Path:
-    from occvo_services.store_url import redact  # no password in a record, whatever option carried one
+    from occvo_services.store.url import redact  # no password in a record, whatever option carried one
 
     options = {k: v for k, v in vars(args).items() if k not in ("func", "debug", "argv")}
     record = {

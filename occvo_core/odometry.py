@@ -85,17 +85,20 @@ class Registration:
 
 
 class Stopwatch:
-    """Milliseconds per stage of a frame."""
+    """Milliseconds per stage of a frame. clock: wall time; a benchmark on a busy host may set the calling thread's
+    CPU time (time.thread_time), which other processes disturb less (all of a stage's at threads=1)."""
+
+    clock = staticmethod(time.perf_counter)
 
     def __init__(self):
         self.ms: dict[str, float] = {}
-        self._t = time.perf_counter()
+        self._t = self.clock()
 
     def restart(self) -> None:
-        self._t = time.perf_counter()
+        self._t = self.clock()
 
     def lap(self, stage: str) -> None:
-        now = time.perf_counter()
+        now = self.clock()
         self.ms[stage] = (now - self._t) * 1e3
         self._t = now
 
@@ -191,9 +194,8 @@ class OccVO:
         watch.lap("preprocess")
         t = len(self._poses)
         if t == 0:
-            return Registration(
-                frame.index, np.eye(4), "initialised", _pending=_Pending(prepared, t, watch, self._version)
-            )
+            pending = _Pending(prepared, t, watch, self._version)  # the first frame defines the world: no error
+            return Registration(frame.index, np.eye(4), "initialised", covariance=np.zeros((6, 6)), _pending=pending)
         return self.register_frame(prepared, t, watch)
 
     def register_frame(self, frame: Prepared, t: int, watch: Stopwatch) -> Registration:

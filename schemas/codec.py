@@ -10,7 +10,7 @@ from typing import TypeVar
 import msgpack
 from pydantic import BaseModel, ValidationError
 
-from occvo_schemas.models import MESSAGES, SCHEMA_VERSION
+from occvo_schemas.models import MESSAGES, VERSIONS
 
 DEFAULT_MAX_BYTES = 16 * 1024 * 1024  # 6 JPEG images or a 640k-voxel frame fit with room to spare
 # Decode limits, checked by msgpack before it builds anything: no message has long strings, long lists or big maps
@@ -24,10 +24,10 @@ MAX_ELEMENTS = 1 << 16  # all lists' and maps' entries together: many short cont
 T = TypeVar("T", bound=BaseModel)
 
 
-def schema_id(kind: str) -> str:
-    """The name of a message's schema: the $id of schemas/json/<kind>.json and, after "application/msgpack;", the
-    Zenoh encoding every put and reply of it carries."""
-    return f"occvo/{kind}/v{SCHEMA_VERSION}"
+def schema_id(kind: str, version: int | None = None) -> str:
+    """The name of a message's schema (its newest version unless told): the $id of schemas/json/<kind>.json and,
+    after "application/msgpack;", the Zenoh encoding every put and reply of it carries."""
+    return f"occvo/{kind}/v{VERSIONS[kind] if version is None else version}"
 
 
 MEDIA_TYPE = "application/msgpack"
@@ -105,9 +105,9 @@ def decode(data: bytes, expect: type[T] | tuple[type, ...] | None = None, max_by
     version = obj.get("schema_version")
     if not isinstance(version, int) or isinstance(version, bool):
         raise CodecError("unsupported_version", f"{kind}: schema_version missing or not an integer ({version!r})")
-    if version > SCHEMA_VERSION:
+    if version > VERSIONS[kind]:
         raise CodecError(
-            "unsupported_version", f"{kind}: schema_version {version} is newer than this build's {SCHEMA_VERSION}"
+            "unsupported_version", f"{kind}: schema_version {version} is newer than this build's {VERSIONS[kind]}"
         )
     if version < 1:
         raise CodecError("unsupported_version", f"{kind}: schema_version {version} is not a valid version")

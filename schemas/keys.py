@@ -3,8 +3,9 @@
 Per stream:
   occvo/<stream>/camera               pub   CameraFrame            client/replay -> inference worker
   occvo/<stream>/occupancy            pub   OccupancyFrameMsg      inference -> registration worker
-  occvo/<stream>/pose                 pub   PoseEstimate           registration worker -> clients, in seq order
-  occvo/<stream>/pose/latest          query -> PoseEstimate        (registration worker)
+  occvo/<stream>/pose/v2              pub   PoseEstimate           registration worker -> clients, in seq order
+  occvo/<stream>/pose                 pub   PoseEstimate v1        the same poses for clients built before v2
+  occvo/<stream>/pose/latest          query -> PoseEstimate        (registration worker; v1 unless ?version=2)
   occvo/<stream>/trajectory           query -> Trajectory          (registration worker)
   occvo/<stream>/map/updates          pub   MapUpdate              registration worker -> map service
   occvo/<stream>/map/tile/<ix>/<iy>   query -> MapTile             (map service); occvo/<stream>/map/tile/*/* = region
@@ -42,6 +43,11 @@ def occupancy(stream: str = "*") -> str:
 
 
 def pose(stream: str = "*") -> str:
+    return f"{ROOT}/{stream}/pose/v2"
+
+
+def pose_v1(stream: str = "*") -> str:
+    """PoseEstimate version 1 (schemas/pose_v1.py), as clients built before version 2 follow it."""
     return f"{ROOT}/{stream}/pose"
 
 

@@ -14,7 +14,7 @@ from pydantic import BaseModel, ConfigDict, Field, field_validator, model_valida
 
 from occvo_core.grid import NUM_CLASSES, GridSpec
 
-SCHEMA_VERSION = 1
+SCHEMA_VERSION = 1  # every kind's first version; VERSIONS (below) holds each kind's newest
 ALLOWED_DTYPES = ("uint8", "uint16", "int32", "int64", "float32", "float64")
 Finite = Annotated[float, Field(allow_inf_nan=False)]
 SEQ_LIMIT = 2**63  # seq is a signed 64-bit integer in the store and in Trajectory.seqs: 0 <= seq < 2^63
@@ -292,13 +292,18 @@ class OccupancyFrameMsg(_StreamMessage):
 
 
 Status = Literal[
-    "ok", "lost", "reinitialised", "relocalised", "degenerate"
-]  # relocalised: a loop closed; replaces the seq's earlier pose. degenerate: too few or collinear voxels to register,
-# the pose a constant-velocity guess
+    "ok", "lost", "initialised", "reinitialised", "relocalised", "degenerate"
+]  # initialised: a trajectory's first pose (version 1 called it reinitialised). relocalised: a loop closed; replaces
+# the seq's earlier pose. degenerate: too few or collinear voxels to register, the pose a constant-velocity guess
 
 
 class PoseEstimate(_StreamMessage):
+    """Version 2, on occvo/<stream>/pose/v2: a trajectory's first pose is `initialised` (as offline OccVO names it)
+    and a registered pose carries its covariance. Version 1 (schemas/pose_v1.py) goes on on occvo/<stream>/pose for
+    clients built before: its closed status list and extra="forbid" refuse both changes."""
+
     kind: Literal["pose_estimate"] = "pose_estimate"
+    schema_version: int = 2
     seq: int = Field(ge=0, lt=SEQ_LIMIT)
     stamp: Finite
     pose: list[list[float]] = Field(description="4x4 ego-to-world, first frame of a trajectory = identity")
@@ -307,11 +312,22 @@ class PoseEstimate(_StreamMessage):
         default_factory=dict, description="per-stage timings, inference to registration"
     )
     sent_at: Finite = 0.0
+    covariance: list[list[float]] | None = Field(
+        None,
+        description="6x6 covariance of the pose, (rotation, translation) in the ego frame, from fine GICP's "
+        "information matrix (docs/design.md); zeros for a trajectory's first pose; none where registration did not "
+        "fix the pose (degenerate, relocalised)",
+    )
 
     @field_validator("pose")
     @classmethod
     def _p(cls, v):
         return _finite_matrix(v, 4, 4, "pose")
+
+    @field_validator("covariance")
+    @classmethod
+    def _c(cls, v):
+        return None if v is None else _finite_matrix(v, 6, 6, "covariance")
 
     def matrix(self) -> np.ndarray:
         return np.array(self.pose, dtype=np.float64)
@@ -449,3 +465,5 @@ MESSAGES: dict[str, type[_Message]] = {
         WorkerHealth,
     )
 }
+# each kind's newest version: what this build sends and the newest it reads (older ones read as the newest model)
+VERSIONS: dict[str, int] = {kind: m.model_fields["schema_version"].default for kind, m in MESSAGES.items()}

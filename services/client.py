@@ -340,7 +340,7 @@ class OccVOClient:
         return found[0]
 
     def pose_latest(self) -> PoseEstimate:
-        found = self._get(keys.pose_latest(self.stream), PoseEstimate)
+        found = self._get(keys.pose_latest(self.stream) + "?version=2", PoseEstimate)  # v1 unless asked
         if not found:
             raise ServiceError("no pose/latest reply (is the registration worker up?)")
         return found[0]

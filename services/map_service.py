@@ -3,7 +3,7 @@ tile queries: occvo/<stream>/map/tile/<ix>/<iy> (one tile), a wildcard such as o
 (a region, optionally bounded by a MapTileQuery payload), and occvo/<stream>/map/info (bounds, tile count, size).
 
 With `store_url` (config or --store-url; store_path and --store-path are its earlier names) the tiles live in a
-SQLite file (services/map_store.py) or a PostgreSQL database (services/map_store_pg.py): each update is one
+SQLite file (services/store/map_tiles.py) or a PostgreSQL database (services/store/map_tiles_pg.py): each update is one
 transaction, queries read the store, and a restarted service serves what it holds. Without it, in memory."""
 
 from __future__ import annotations
@@ -16,9 +16,10 @@ import zenoh
 from occvo_schemas import keys
 from occvo_schemas.codec import CodecError, decode, encode
 from occvo_schemas.models import ErrorEvent, MapTileQuery, MapUpdate
-from occvo_services.map_store import open_map_store
 from occvo_services.runtime import Worker, WorkerConfig, log_event
-from occvo_services.store_api import StoreUnavailable, redact
+from occvo_services.store.errors import StoreUnavailable
+from occvo_services.store.factory import open_map_store
+from occvo_services.store.url import redact
 from occvo_services.wire import encoding
 from occvo_services.worker_cli import worker_main
 

@@ -29,13 +29,15 @@ from occvo_services.limits import client_of
 MAX_QUEUED = 64  # queries in work or waiting for a thread, all clients together; beyond, busy
 
 
-def query_client(key: str, query: zenoh.Query | None = None) -> str:
-    """Whose budget a query takes: `*` for a wildcard stream chunk, else the querying session named by the query's
-    source info (OccVOClient sets it; self-declared, as for frames), else the stream id's prefix."""
+def query_client(key: str, query: zenoh.Query | None = None, identity: str = "session") -> str:
+    """Whose budget a query takes: `*` for a wildcard stream chunk; under `client_identity: "user"` (logins) the
+    stream id's prefix, the login the access control lets query it (a source info is the querier's to write: a
+    copied one would spend another's budget); else the querying session named by the query's source info
+    (OccVOClient sets it; self-declared, as for frames), else the stream id's prefix."""
     stream = keys.stream_of(key)
     if stream == "*" or "*" in stream or "$" in stream:
         return "*"
-    info = None if query is None else query.source_info
+    info = None if query is None or identity == "user" else query.source_info
     return client_of(stream) if info is None else str(info.source_id.zid)
 
 
@@ -48,8 +50,10 @@ class QueryGate:
         wildcard: int,
         refuse: Callable[[zenoh.Query, str, str], None],
         name: str = "query",
+        identity: str = "session",
     ):
         self.per_client, self.wildcard = per_client, wildcard
+        self.identity = identity  # the worker's client_identity: whom a query's budget is taken from
         self.refuse = refuse
         self.pool = ThreadPoolExecutor(max(per_client, wildcard) + 1, thread_name_prefix=name)
         self._lock = threading.Lock()
@@ -61,7 +65,7 @@ class QueryGate:
 
         def callback(query: zenoh.Query) -> None:
             key = str(query.key_expr)
-            client = query_client(key, query)
+            client = query_client(key, query, self.identity)
             limit = self.wildcard if client == "*" else self.per_client
             with self._lock:
                 held = self.in_work.get(client, 0)

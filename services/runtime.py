@@ -25,7 +25,7 @@ from occvo_services.memory import MemoryCap
 from occvo_services.os_tuning import name_os_thread, trim_heap
 from occvo_services.query_gate import QueryGate
 from occvo_services.sessions import open_session
-from occvo_services.store_url import redact
+from occvo_services.store.url import redact
 from occvo_services.strand import pool
 from occvo_services.telemetry import Stats, log_event, structured_logger
 from occvo_services.wire import blocking, encoding
@@ -300,7 +300,11 @@ class Worker:
         a worker's queryables at once, and must not be refused by itself."""
         name = handler.__name__.strip("_")
         gate = self.query_gates[name] = QueryGate(
-            self.config.max_queries_per_client, self.config.max_wildcard_queries, self._refuse_query, name
+            self.config.max_queries_per_client,
+            self.config.max_wildcard_queries,
+            self._refuse_query,
+            name,
+            identity=self.config.client_identity,
         )
 
         def answer(query: zenoh.Query) -> None:

@@ -11,7 +11,7 @@ from collections import defaultdict, deque
 import numpy as np
 
 from occvo_schemas.models import StageStats
-from occvo_services.store_url import redact
+from occvo_services.store.url import redact
 
 # ---------------------------------------------------------------- logs
 

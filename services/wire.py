@@ -11,29 +11,31 @@ from occvo_schemas.codec import MEDIA_TYPE, schema_id
 
 
 @functools.cache
-def encoding(kind: str) -> zenoh.Encoding:
-    """e.g. encoding("pose_estimate"): application/msgpack;occvo/pose_estimate/v1"""
-    return zenoh.Encoding(f"{MEDIA_TYPE};{schema_id(kind)}")
+def encoding(kind: str, version: int | None = None) -> zenoh.Encoding:
+    """e.g. encoding("pose_estimate"): application/msgpack;occvo/pose_estimate/v2 (the kind's newest version
+    unless told)"""
+    return zenoh.Encoding(f"{MEDIA_TYPE};{schema_id(kind, version)}")
 
 
-def blocking(kind: str) -> dict:
+def blocking(kind: str, version: int | None = None) -> dict:
     """A put's keywords: its encoding, and block rather than drop (every occvo put is a message someone waits for)."""
-    return {"encoding": encoding(kind), "congestion_control": zenoh.CongestionControl.BLOCK}
+    return {"encoding": encoding(kind, version), "congestion_control": zenoh.CongestionControl.BLOCK}
 
 
-# what each published key carries (schemas/keys.py; docs/service.md's key table): one kind a key
+# what each published key carries (schemas/keys.py; docs/service.md's key table): one kind and version a key
 _KIND_OF_KEY_END = {
-    "/camera": "camera_frame",
-    "/occupancy": "occupancy_frame",
-    "/pose": "pose_estimate",
-    "/map/updates": "map_update",
-    "/errors": "error_event",
+    "/camera": ("camera_frame", None),
+    "/occupancy": ("occupancy_frame", None),
+    "/pose/v2": ("pose_estimate", 2),
+    "/pose": ("pose_estimate", 1),  # for clients built before version 2 (schemas/pose_v1.py)
+    "/map/updates": ("map_update", None),
+    "/errors": ("error_event", None),
 }
 
 
 def blocking_at(key: str) -> dict:
-    """blocking(kind) for a put on one of the published keys (occvo/<stream>/pose, .../map/updates, ...)."""
-    for end, kind in _KIND_OF_KEY_END.items():
+    """blocking(kind) for a put on one of the published keys (occvo/<stream>/pose/v2, .../map/updates, ...)."""
+    for end, (kind, version) in _KIND_OF_KEY_END.items():
         if key.endswith(end):
-            return blocking(kind)
+            return blocking(kind, version)
     raise ValueError(f"{key} is not a key occvo publishes on")

@@ -10,7 +10,7 @@ from collections.abc import Callable
 from occvo_core.errors import ConfigError
 from occvo_services.os_tuning import few_malloc_arenas, large_blocks_from_mmap
 from occvo_services.runtime import Worker
-from occvo_services.store_url import SECRET_WAYS, redact, refuse_password, resolve
+from occvo_services.store.url import SECRET_WAYS, redact, refuse_password, resolve
 from occvo_services.worker_config import DEFAULT_ENDPOINT, WorkerConfig
 
 

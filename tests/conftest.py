@@ -94,8 +94,8 @@ def random_pose(rng: np.random.Generator, max_angle_rad: float, max_shift_m: flo
 
 @pytest.fixture(scope="session")
 def pg_cluster():
-    """A PostgreSQL 15 server of the session's own (services/pg_local.py); its restart tests stop and start it."""
-    from occvo_services.pg_local import PgCluster, missing
+    """A PostgreSQL 15 server of the session's own (services/store/pg_local.py); its restart tests stop and start it."""
+    from occvo_services.store.pg_local import PgCluster, missing
 
     why = missing()
     if why:

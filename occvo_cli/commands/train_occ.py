@@ -54,6 +54,19 @@ def add_parser(sub) -> None:
         "--drive and written here",
     )
     p.add_argument("--real-fraction", type=float, default=0.5, help="share of steps on a real keyframe (default 0.5)")
+    p.add_argument(
+        "--depth-weight",
+        type=float,
+        default=1.0,
+        help="weight of the depth head's loss (projected LiDAR or rendered depth) against the pixel-class loss; "
+        "both are then weighed 0.5 against the voxel loss (default 1)",
+    )
+    p.add_argument(
+        "--depth-only",
+        action="store_true",
+        help="train the image branch alone (backbone, depth head, pixel classes: no voxels), a small part of a "
+        "step's cost; needs depth targets (a drive or rendered frames)",
+    )
     p.add_argument("--device", default="cpu", help="cpu or cuda (bf16 mixed precision on cuda)")
     p.add_argument(
         "--json", action="store_true", help="steps, seconds, losses and the checkpoint path as JSON on stdout"
@@ -81,6 +94,10 @@ def run(args) -> int:
     torch.set_num_threads(args.threads)
     cfg = preset(args.preset)
     real, meta = _drive_frames(args, cfg.input_size)
+    if args.depth_weight != 1.0:
+        meta = {**(meta or {}), "depth_weight": args.depth_weight}
+    if args.depth_only:
+        meta = {**(meta or {}), "depth_only": True}
     if real is None and not args.seeds:
         raise ConfigError("nothing to train on: give --seeds, or a drive (--drive or --drive-cache)")
     if not 0.0 <= args.real_fraction <= 1.0:
@@ -110,6 +127,8 @@ def run(args) -> int:
         real=real,
         real_fraction=args.real_fraction,
         device=args.device,
+        depth_weight=args.depth_weight,
+        depth_only=args.depth_only,
         meta=meta,
     )
     tail = sum(result.losses[-20:]) / max(1, len(result.losses[-20:]))

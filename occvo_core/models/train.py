@@ -46,6 +46,8 @@ def train(
     warmup: int = 30,
     cache_dir: str | Path | None = None,
     aux_weight: float = 0.5,
+    depth_weight: float = 1.0,
+    depth_only: bool = False,
     resume: str | Path | None = None,
     real=None,
     real_fraction: float = 0.5,
@@ -59,7 +61,9 @@ def train(
     the step count and the loss history carry on; the learning rate restarts its cosine over the new budget (SGDR).
     `real`: a drive's DriveFrames; a step takes one of its keyframes (augmented) with probability `real_fraction`
     (1 without seeds), its voxel loss inside mask_camera only, its image losses at LiDAR returns only; the free-class
-    offset is then calibrated on its keyframes as recorded. `device`: cuda trains in bf16 autocast.
+    offset is then calibrated on its keyframes as recorded. `device`: cuda trains in bf16 autocast. `depth_weight`
+    scales the depth head's loss inside the image losses (their weight: `aux_weight`). `depth_only`: the image
+    branch alone (backbone, depth head, pixel classes; no TPV encoder or voxels), at a small part of a step's cost.
     """
     device = torch.device(device)
     if real is not None and not seeds:
@@ -101,6 +105,8 @@ def train(
         hooks.append(model.backbone.register_forward_hook(lambda _m, _i, out: captured.__setitem__("levels", out)))
         if model.depth_head is not None:
             hooks.append(model.depth_head.register_forward_hook(lambda _m, _i, out: captured.__setitem__("depth", out)))
+    if depth_only and (aux_head is None or model.depth_head is None):
+        raise ValueError("depth_only needs a depth head and depth targets (a drive's LiDAR or rendered frames)")
     opt = torch.optim.AdamW(params, lr=lr, weight_decay=0.01)
     if "optimizer" in state:
         opt.load_state_dict(state["optimizer"])
@@ -138,18 +144,24 @@ def train(
             if taken % len(order) == 0:
                 order = rng.permutation(len(data))
         with autocast(device):
-            logits = model(s.images[None].to(device), s.intrinsics[None].to(device), s.cam_to_ego[None].to(device))
-            loss, parts = occupancy_loss(
-                logits,
-                torch.from_numpy(s.semantics[None]).long().to(device),
-                torch.from_numpy(s.camera_mask[None]).to(device),
-                weights,
-                outside_weight=0.0 if s.sparse else 0.1,  # a real frame knows nothing outside mask_camera
-            )
+            if depth_only:
+                model.image_depth(s.images[None].to(device))  # the hooks below capture what the losses need
+                loss, parts = torch.zeros((), device=device), {"ce": 0.0, "lovasz": 0.0}
+            else:
+                logits = model(s.images[None].to(device), s.intrinsics[None].to(device), s.cam_to_ego[None].to(device))
+                loss, parts = occupancy_loss(
+                    logits,
+                    torch.from_numpy(s.semantics[None]).long().to(device),
+                    torch.from_numpy(s.camera_mask[None]).to(device),
+                    weights,
+                    outside_weight=0.0 if s.sparse else 0.1,  # a real frame knows nothing outside mask_camera
+                )
             if aux_head is not None:
                 aux = aux_head.loss(captured.pop("levels")[0], s.pixel_labels, sparse=s.sparse)
                 if "depth" in captured:
-                    aux = aux + depth_loss(captured.pop("depth"), s.depth, s.intrinsics, cfg.depth_range)
+                    depth = depth_loss(captured.pop("depth"), s.depth, s.intrinsics, cfg.depth_range)
+                    aux = aux + depth_weight * depth
+                    parts["depth"] = float(depth.detach())
                 loss = loss + aux_weight * aux
                 parts["aux"] = float(aux.detach())
         opt.zero_grad(set_to_none=True)
@@ -162,6 +174,7 @@ def train(
         bar.set_postfix_str(
             f"step {step} loss {np.mean(losses[-20:]):.3f} ce {parts['ce']:.3f} lovasz {parts['lovasz']:.3f}"
             + (f" aux {parts['aux']:.3f}" if "aux" in parts else "")
+            + (f" depth {parts['depth']:.3f}" if "depth" in parts else "")
         )
         bar.refresh()
         if time.monotonic() - last_save > 120:

@@ -51,9 +51,11 @@ def pose_msg(store, M: np.ndarray):
     )
 
 
-def transform_msg(store, M: np.ndarray):
+def transform_msg(store, M: np.ndarray, quaternion=None):
+    """quaternion (x, y, z, w): the rotation as its source recorded it, where the matrix was made from one (a
+    quaternion made back from the matrix is off in its last bits)."""
     T = store.types
-    x, y, z, w = Rotation.from_matrix(M[:3, :3]).as_quat()
+    x, y, z, w = Rotation.from_matrix(M[:3, :3]).as_quat() if quaternion is None else quaternion
     return T["geometry_msgs/msg/Transform"](
         translation=T["geometry_msgs/msg/Vector3"](x=float(M[0, 3]), y=float(M[1, 3]), z=float(M[2, 3])),
         rotation=T["geometry_msgs/msg/Quaternion"](x=x, y=y, z=z, w=w),

@@ -8,11 +8,11 @@ from dataclasses import dataclass
 import numpy as np
 
 from occvo_core.config import DynamicObjectFilterConfig
-from occvo_core.grid import MOVABLE_CLASSES, OCC3D_GRID
+from occvo_core.grid import OCC3D_GRID
 from occvo_core.registration.kernels.clusters import grid_clusters
 from occvo_core.registration.kernels.nearest import near_any
 from occvo_core.registration.local_map import LocalMap, transform
-from occvo_core.registration.preprocess import Prepared
+from occvo_core.registration.preprocess import MOVABLE, Prepared
 
 
 def cluster_objects(points: np.ndarray, eps: float, min_points: int) -> np.ndarray:
@@ -90,7 +90,7 @@ def find_moved_objects(
         )
     movable_world = transform(pose, frame.points[frame.movable])
     # map objects are judged only where this frame can see them: inside its grid, after the coarse alignment
-    candidates = np.flatnonzero(np.isin(local.labels, MOVABLE_CLASSES))
+    candidates = np.flatnonzero(MOVABLE[local.labels])
     in_view = OCC3D_GRID.inside(OCC3D_GRID.indices_of(transform(np.linalg.inv(pose), local.pos[candidates])))
     candidates = candidates[in_view]
     found = dynamic_object_filter(

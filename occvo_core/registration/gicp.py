@@ -39,9 +39,10 @@ def rotation_angle(rot: np.ndarray) -> float:
     return float(np.arccos(np.clip((np.trace(rot) - 1.0) / 2.0, -1.0, 1.0)))
 
 
-def _moved(pose: np.ndarray, since: np.ndarray, reach: float) -> float:
-    """Bound on how far any point within `reach` of the origin moved from pose `since` to `pose`."""
-    step = pose @ np.linalg.inv(since)
+def _moved(pose: np.ndarray, since: np.ndarray, reach: float, since_inv: np.ndarray | None = None) -> float:
+    """Bound on how far any point within `reach` of the origin moved from pose `since` to `pose` (since_inv: its
+    inverse, when the caller keeps it)."""
+    step = pose @ (np.linalg.inv(since) if since_inv is None else since_inv)
     return float(np.linalg.norm(step[:3, 3]) + rotation_angle(step[:3, :3]) * (reach + np.linalg.norm(since[:3, 3])))
 
 
@@ -76,10 +77,14 @@ def gicp(
     origin, dims = local_map.padded_box()
     verify = False
     information = np.zeros((6, 6))
+    damping = 1e-9 * np.eye(6)
+    searched_inv = None  # the inverse of searched_at, taken once a search
     for it in range(1, iterations + 1):  # noqa: B007 - the last `it` is the result's count
         rot, trans = pose[:3, :3].copy(), pose[:3, 3].copy()
         search = (
-            verify or searched_at is None or _moved(pose, searched_at, reach) > correspondence_reuse * local_map.voxel
+            verify
+            or searched_at is None
+            or _moved(pose, searched_at, reach, searched_inv) > correspondence_reuse * local_map.voxel
         )
         if search:
             h, g, total, found, kept = gicp_linearise(
@@ -102,7 +107,7 @@ def gicp(
                 robust_scale,
                 pairs,
             )
-            searched_at = pose
+            searched_at, searched_inv = pose, np.linalg.inv(pose)
         else:
             h, g, total, _, kept = gicp_linearise_pairs(
                 points, covs, rot, trans, local_map.pos, local_map.cov, pairs, robust_scale
@@ -110,8 +115,8 @@ def gicp(
         if kept < 6:
             break
         cost = total / kept
-        information = np.array(h)
-        delta = np.linalg.solve(h + 1e-9 * np.eye(6), -g)
+        information = h  # a new array each step
+        delta = np.linalg.solve(h + damping, -g)
         pose = se3_exp_left(delta, pose)
         if (
             np.linalg.norm(delta[:3]) < convergence_rotation_rad

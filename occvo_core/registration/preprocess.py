@@ -19,6 +19,16 @@ from occvo_core.registration.local_map import EGO_LOWER
 SOURCE_PICKS = ("first", "balanced", "uniform")  # thin_sources' pick numbers
 
 
+def class_table(classes: tuple[int, ...]) -> np.ndarray:
+    """Membership of each uint8 label in `classes`, as a lookup table (a gather, where np.isin sorts)."""
+    table = np.zeros(256, bool)
+    table[list(classes)] = True
+    return table
+
+
+GROUND, MOVABLE = class_table(GROUND_CLASSES), class_table(MOVABLE_CLASSES)
+
+
 @dataclass
 class Prepared:
     """A frame made ready for registration: per-point GICP covariances and the downsampled source sets."""
@@ -69,7 +79,7 @@ def preprocess(frame: OccupancyFrame, config: OccVOConfig) -> Prepared:
     covs = plane_covariances(ijk, shape, g.k_neighbours_radius_voxels, g.covariance_epsilon)
     wide, coarse, fine = thin_sources(
         ijk,
-        np.isin(labels, GROUND_CLASSES),
+        GROUND[labels],
         shape,
         _block_factor(g.wide_voxel_m) if g.wide_voxel_m > 0 else 0,
         _block_factor(g.coarse_source_voxel_m),
@@ -77,6 +87,4 @@ def preprocess(frame: OccupancyFrame, config: OccVOConfig) -> Prepared:
         _block_factor(g.ground_source_voxel_m),
         SOURCE_PICKS.index(g.source_pick),
     )
-    return Prepared(
-        points, labels, covs, wide, coarse, fine, np.flatnonzero(np.isin(labels, MOVABLE_CLASSES)), frame.index
-    )
+    return Prepared(points, labels, covs, wide, coarse, fine, np.flatnonzero(MOVABLE[labels]), frame.index)

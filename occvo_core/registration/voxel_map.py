@@ -102,7 +102,7 @@ class VoxelPFilterMap(VoxelRows):
         keys = np.floor(points_world / self.voxel).astype(np.int64)
         if local is None or not local.contains(keys):
             local = self.window(keys.min(axis=0) - 1, keys.max(axis=0) + 1)
-        alive = self.alive[local.rows]
+        alive, back, back_last = pfilter_kernels.window_rows_state(local.rows, self.alive, self.returning, self.last)
         out, seen_from = None, points_world  # dropped points still count as sightings (not of frozen voxels)
         old = self.persistent_rows(local.rows, old_born_before) if old_born_before is not None else None
         if old is not None and old.any():
@@ -118,8 +118,6 @@ class VoxelPFilterMap(VoxelRows):
                 alive &= ~old
             out = np.full(len(keys), -1, np.int64)
             points_world, labels, covs_world, keys = points_world[take], labels[take], covs_world[take], keys[take]
-        back = local.rows[self.returning[local.rows]]
-        back_last = self.last[back].copy()
         rows, first_key = pfilter_kernels.assign_voxels(
             points_world,
             keys,
@@ -182,8 +180,8 @@ class VoxelPFilterMap(VoxelRows):
                 changed,
             )
         self._touch_box(changed)
-        seen = local.rows[self.last[local.rows] == t]
-        self.in_window[seen] = t  # a voxel seen is in view, whatever window this frame registered in
+        # a voxel seen is in view, whatever window this frame registered in
+        pfilter_kernels.mark_in_window(local.rows, self.last, self.in_window, np.int32(t))
         # seen again after a visit away: the frames in view since its last sighting (leaving, then coming back)
         # lie between two visits, which the served map does not count, as it does not count those before a
         # voxel's first sighting (a place seen in glimpses fell out of the served map at every revisit)

@@ -19,10 +19,11 @@ def header(ns: int, frame_id: str):
     return m.header(STORE, ns, frame_id)
 
 
-def odometry(frames: OdomFrames, ns: int, M: np.ndarray, frame_id: str, child_frame_id: str):
-    """nav_msgs/Odometry of a 4x4 pose through `frames` (twist from the pose before); a service pose carries no
-    covariance, so the pose's is given as unknown (1e6), never zero ("certain")."""
-    odom, pose_cov, (linear, angular), twist_cov = frames.update(M, ns, None)
+def odometry(frames: OdomFrames, ns: int, M: np.ndarray, frame_id: str, child_frame_id: str, covariance=None):
+    """nav_msgs/Odometry of a 4x4 pose through `frames` (twist from the pose before), with the pose's 6x6
+    covariance (rotation, translation in base_link, as StepResult.covariance) as the bag writer puts it; a pose
+    without one (degenerate, or from a service before version 2) is given as unknown (1e6), never zero."""
+    odom, pose_cov, (linear, angular), twist_cov = frames.update(M, ns, covariance)
     v = T["geometry_msgs/msg/Vector3"]
     return T["nav_msgs/msg/Odometry"](
         header=header(ns, frame_id),

@@ -218,6 +218,11 @@ def secure_default(args, config, given_router: bool):
     args.logins_watch = None
     if getattr(args, "anonymous", False) or given_router or not config.router.enabled:
         return None
+    if any(w.role == "ros2" for w in config.workers):  # it would restart for ever, every ROS 2 key denied
+        raise ConfigError(
+            "the ROS 2 node needs --anonymous (anonymous: true) or a router config of your own with rules for the "
+            "ROS 2 keys (docs/ros2.md): the logins' access control has none for them"
+        )
     folder = logins.logins_dir()
     try:
         probe = acl.authenticate(config, folder)
@@ -232,18 +237,6 @@ def secure_default(args, config, given_router: bool):
         f"`occvo logins add NAME` makes a login for another user or host",
     )
     return str(probe)
-
-
-def check_store_reachable(url: str | None) -> None:
-    """A PostgreSQL store that cannot be reached at start: one line naming it (no password) and why, exit 2."""
-    from occvo_services.store_api import StoreUnavailable, check_reachable
-
-    try:
-        check_reachable(url)
-    except StoreUnavailable as exc:
-        raise ConfigError(
-            f"{exc} (checked before any worker starts: start the database or fix the store URL)"
-        ) from None
 
 
 def deploy_dir() -> Path:

@@ -8,7 +8,7 @@ import time
 from pathlib import Path
 
 from occvo_core.errors import ConfigError
-from occvo_services import defaults, store_url
+from occvo_services import defaults
 from occvo_services.client import ServiceError
 from occvo_services.commands._common import (
     WARM_UP_NOTE,
@@ -16,13 +16,14 @@ from occvo_services.commands._common import (
     add_identity_flags,
     add_json,
     check_listen_secure,
-    check_store_reachable,
     emit,
     endpoint,
     listen_endpoints,
     progress,
     secure_default,
 )
+from occvo_services.store.factory import check_store
+from occvo_services.store.url import resolve as resolve_store_url
 
 
 def add_parser(subparsers) -> None:
@@ -122,20 +123,6 @@ def _absolute(path: str | None) -> str | None:
     return str(Path(path).resolve())
 
 
-def _check_store(url: str | None) -> None:
-    """A SQLite store's folder must be writable: else every write fails and the workers crash-loop."""
-    import os
-
-    if url is None or "://" in url and not url.startswith("sqlite:"):
-        return
-    path = Path(url.split("sqlite:///", 1)[-1] if url.startswith("sqlite:") else url)
-    folder = path.parent if not path.is_dir() else path
-    if not folder.is_dir():
-        raise ConfigError(f"--store {url}: folder {folder} does not exist")
-    if not os.access(folder, os.W_OK) or (path.exists() and not os.access(path, os.W_OK)):
-        raise ConfigError(f"--store {url}: {path if path.exists() else folder} is not writable")
-
-
 def _wait_alive(sup, timeout: float, login=None) -> None:
     """Until every worker's liveliness token is up (a fresh install compiles kernels first), restarting crashes."""
     from occvo_schemas import keys
@@ -171,7 +158,7 @@ def _wait_alive(sup, timeout: float, login=None) -> None:
 
 def _up_config(args, router_config: str):
     """The router and the three workers `occvo serve` supervises, from its flags."""
-    from occvo_services.store_url import STORE_URL_ENV
+    from occvo_services.store.url import STORE_URL_ENV
     from occvo_services.supervisor import RouterSpec, UpConfig, WorkerSpec
 
     store = {STORE_URL_ENV: args.store} if args.store else {}  # the environment: argv is anyone's to read (ps)
@@ -221,7 +208,7 @@ def run(args) -> int:
     if args.queue_size < 1:
         raise ConfigError(f"--queue-size must be at least 1, not {args.queue_size}")
     args.store, args.checkpoint, args.log_dir = (
-        _absolute(store_url.resolve(args.store, args.store_url_file)),
+        _absolute(resolve_store_url(args.store, args.store_url_file)),
         _absolute(args.checkpoint),
         _absolute(args.log_dir),
     )
@@ -234,8 +221,7 @@ def run(args) -> int:
     args.router_config = router_config
     if not Path(router_config).is_file():
         raise ConfigError(f"router config {router_config} not found")
-    _check_store(args.store)
-    check_store_reachable(args.store)  # once, before any worker: one line and exit 2, not workers crash-looping
+    check_store(args.store)  # once, before any worker: one line and exit 2, not workers crash-looping
     ep = args.listen or endpoint(args)
     config = _up_config(args, router_config)  # the worker configs validated
     # the default: the router with logins and access control, the workers as their logins (services/acl.py)

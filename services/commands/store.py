@@ -46,7 +46,7 @@ def add_parser(subparsers) -> None:
 
 def _store_url(args) -> str:
     """The store as `occvo serve` takes it: --store (no password there), --store-url-file, OCCVO_STORE_URL."""
-    from occvo_services.store_url import SECRET_WAYS, resolve
+    from occvo_services.store.url import SECRET_WAYS, resolve
 
     url = resolve(args.store, args.store_url_file)
     if not url:
@@ -55,8 +55,8 @@ def _store_url(args) -> str:
 
 
 def _open(url: str):
-    from occvo_services.map_store import open_map_store
-    from occvo_services.store_api import is_postgres_url, open_store, sqlite_path
+    from occvo_services.store.factory import open_map_store, open_store
+    from occvo_services.store.url import is_postgres_url, sqlite_path
 
     if not is_postgres_url(url) and not Path(sqlite_path(url)).is_file():
         raise ConfigError(f"--store {url}: no such store file")
@@ -65,7 +65,7 @@ def _open(url: str):
 
 def run(args) -> int:
     from occvo_core.trajectory import write_kitti, write_tum
-    from occvo_services.store_url import redact
+    from occvo_services.store.url import redact
 
     if args.action == "export":
         check_replaceable(args.out, "trajectory", "--out", args.force)

@@ -9,12 +9,12 @@ from occvo_services.commands._common import (
     add_identity_flags,
     add_json,
     check_listen_secure,
-    check_store_reachable,
     emit,
     listen_endpoints,
     progress,
     secure_default,
 )
+from occvo_services.store.factory import check_store
 
 
 def add_parser(subparsers) -> None:
@@ -44,7 +44,7 @@ def run(args) -> int:
         if w.config:
             WorkerConfig.load(w.config).check_served(w.config)
     for url in sorted({u for w in config.workers if w.role != "inference" and (u := _worker_store(w))}):
-        check_store_reachable(url)  # once, before any worker starts
+        check_store(url, "a worker's store")  # once, before any worker starts
     if args.listen:
         config.router.listen, config.router.connect = args.listen, None
     if args.log_dir:
@@ -98,7 +98,7 @@ def _worker_store(w) -> str | None:
     import argparse
     import os
 
-    from occvo_services.store_url import refuse_password, resolve
+    from occvo_services.store.url import refuse_password, resolve
     from occvo_services.worker_config import WorkerConfig
 
     p = argparse.ArgumentParser(add_help=False)

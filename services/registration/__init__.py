@@ -8,7 +8,7 @@ A frame's pose goes out as soon as it is registered (OccVO.register: through fin
 map update, eviction and restores follow off its latency (OccVO.complete and _finish). A frame that closed a loop
 then publishes its relocalised pose (status "relocalised"), which replaces the first.
 
-Durable state (`store_path`, services/store.py): every pose is committed with its frame before it is published, the
+Durable state (`store_path`, services/store/): every pose is committed with its frame before it is published, the
 OccVO state is snapshotted every `snapshot_every` frames (less often when snapshots would take more than
 `snapshot_max_share` of the stream's time, the first one too) and at shutdown; a restarted worker resumes a stream at its
 next frame from the snapshot plus the journaled frames. The lane only copies the state; one writer thread writes the

@@ -11,7 +11,7 @@ from typing import TYPE_CHECKING, NamedTuple
 import numpy as np
 
 from occvo_core.frame import OccupancyFrame
-from occvo_services.store_api import StoreUnavailable
+from occvo_services.store.errors import StoreUnavailable
 from occvo_services.telemetry import log_event
 
 if TYPE_CHECKING:

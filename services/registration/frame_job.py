@@ -14,7 +14,7 @@ import numpy as np
 from occvo_core.frame import OccupancyFrame
 from occvo_core.grid import OCC3D_GRID
 from occvo_services.registration.after_pose import after_pose
-from occvo_services.store_blobs import frame_digest
+from occvo_services.store.blobs import frame_digest
 
 if TYPE_CHECKING:
     from occvo_core import OccVOConfig
@@ -24,14 +24,14 @@ if TYPE_CHECKING:
     from occvo_services.registration.scheduling import CatchUp, Scheduler
     from occvo_services.registration.snapshots import SnapshotWriter
     from occvo_services.registration.store_faults import StoreOutage
-    from occvo_services.store import TrajectoryStore
+    from occvo_services.store.protocols import FrameLog
     from occvo_services.telemetry import Stats
     from occvo_services.worker_config import WorkerConfig
 
 STATUS = {  # OccVO statuses as a published pose names them
     "ok": "ok",
     "lost": "lost",
-    "initialised": "reinitialised",
+    "initialised": "initialised",  # version 1 of the wire calls it reinitialised (schemas/pose_v1.py)
     "reinitialised": "reinitialised",
     "degenerate": "degenerate",
 }
@@ -45,7 +45,7 @@ class SessionContext:
     config: WorkerConfig
     occvo_config: OccVOConfig
     occvo: type  # OccVO
-    store: TrajectoryStore | None
+    store: FrameLog | None  # open_store's: it answers every protocol of store.protocols.TRAJECTORY_STORE
     stats: Stats
     log: logging.Logger
     scheduler: Scheduler

@@ -7,6 +7,7 @@ import zenoh
 from occvo_schemas import keys
 from occvo_schemas.codec import encode
 from occvo_schemas.models import Array, Trajectory
+from occvo_schemas.pose_v1 import as_v1
 from occvo_services.wire import encoding
 
 
@@ -37,7 +38,11 @@ class Queries:
             return self._miss(query, "poses")
         for stream, s in found:
             latest = s.trajectory.latest_pose()
-            query.reply(keys.pose_latest(stream), encode(latest), encoding=encoding("pose_estimate"))
+            if query.parameters.get("version") != "2":  # a client built before version 2 asks without it
+                latest, version = as_v1(latest), 1
+            else:
+                version = 2
+            query.reply(keys.pose_latest(stream), encode(latest), encoding=encoding("pose_estimate", version))
 
     def on_trajectory(self, query: zenoh.Query) -> None:
         found = self._matching(query, keys.trajectory)

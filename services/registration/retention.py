@@ -161,7 +161,7 @@ class Retention:
 
     def _map_store(self):
         if self._maps is None:
-            from occvo_services.map_store import open_map_store
+            from occvo_services.store.factory import open_map_store
 
             self._maps = open_map_store(self.w.config.store_url)
         return self._maps

@@ -14,8 +14,8 @@ import numpy as np
 
 from occvo_core.errors import InvalidFrameError
 from occvo_schemas import keys
-from occvo_schemas.codec import encode
 from occvo_schemas.models import PoseEstimate
+from occvo_schemas.pose_v1 import pose_puts
 from occvo_services.flow import judge_seq
 from occvo_services.os_tuning import run_delay_ms
 from occvo_services.registration.frame_job import STATUS, FrameJob, SessionContext, frame_job
@@ -26,8 +26,8 @@ from occvo_services.registration.scheduling import StreamThreads
 from occvo_services.registration.snapshots import SnapshotSchedule
 from occvo_services.registration.store_faults import refused, store_back, store_failed, waits_for_refused
 from occvo_services.registration.trajectory import StreamTrajectory, pose_message
-from occvo_services.store_api import FencedError, StoreUnavailable
-from occvo_services.store_blobs import legacy_frame_digest, pack_frame
+from occvo_services.store.blobs import legacy_frame_digest, pack_frame
+from occvo_services.store.errors import FencedError, StoreUnavailable
 from occvo_services.telemetry import log_event
 
 
@@ -160,7 +160,8 @@ class StreamSession:
         ):
             return False
         self.ctx.stats.inc("republished")
-        self.ctx.put(keys.pose(self.stream), encode(pose_message(self.stream, known)))
+        for key, data in pose_puts(pose_message(self.stream, known)):
+            self.ctx.put(key, data)
         return True
 
     def _confirmed(self, job: FrameJob) -> FrameJob | None:
@@ -293,11 +294,13 @@ class StreamSession:
         # before the pose goes out: whoever has the pose and waits for the after-pose work waits for this. Caught up,
         # that work lets the pose through the router to its client first
         self._submit_after_pose(job, head_start=self.ctx.config.pose_head_start_ms > 0)
-        self.publish_pose(msg.seq, msg.stamp, job.pose_m, job.status, job.digest, timings, job.restart)
+        cov = job.reg.covariance
+        self.publish_pose(msg.seq, msg.stamp, job.pose_m, job.status, job.digest, timings, job.restart, cov)
         return None
 
-    def publish_pose(self, seq, stamp, pose_m, status, digest, timings, restart) -> None:
-        """Record the pose for queries and publish it; a relocalised pose replaces the one of its seq."""
+    def publish_pose(self, seq, stamp, pose_m, status, digest, timings, restart, covariance=None) -> None:
+        """Record the pose for queries and publish it (schemas/pose_v1.py: each version on its key); a relocalised
+        pose replaces the one of its seq."""
         pose = PoseEstimate(
             stream=self.stream,
             seq=seq,
@@ -306,14 +309,16 @@ class StreamSession:
             status=status,
             timings_ms=timings,
             sent_at=time.time(),
+            covariance=None if covariance is None else np.asarray(covariance, float).tolist(),
         )
         self.trajectory.record(pose, pose_m, digest, restart)
         t_encode = time.perf_counter()
-        data = encode(pose)
+        puts = pose_puts(pose)
         self.ctx.stats.observe("pose_encode", (time.perf_counter() - t_encode) * 1000.0)
         # counted first: a client holding the pose (another thread may wake it before put returns) finds it counted
         self.ctx.stats.inc("relocalised" if status == "relocalised" else "frames_out")
-        self.ctx.put(keys.pose(self.stream), data)
+        for key, data in puts:
+            self.ctx.put(key, data)
 
     def _submit_after_pose(self, job: FrameJob, head_start: bool = False) -> None:
         """The frame's work after its pose, handed to the after-pose thread once (the first call of the phases')."""

@@ -13,8 +13,8 @@ import threading
 import time
 from typing import TYPE_CHECKING
 
-from occvo_services.store_api import FencedError, StoreUnavailable
-from occvo_services.store_url import redact
+from occvo_services.store.errors import FencedError, StoreUnavailable
+from occvo_services.store.url import redact
 from occvo_services.telemetry import log_event
 
 if TYPE_CHECKING:

@@ -9,7 +9,7 @@ import time
 import numpy as np
 
 from occvo_schemas.models import PoseEstimate
-from occvo_services.store import StoredPose
+from occvo_services.store.records import StoredPose
 
 
 class StreamTrajectory:

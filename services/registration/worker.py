@@ -25,8 +25,8 @@ from occvo_services.registration.session import StreamSession
 from occvo_services.registration.snapshots import SnapshotWriter
 from occvo_services.registration.store_faults import StoreOutage, refused
 from occvo_services.runtime import Worker, WorkerConfig
-from occvo_services.store import TrajectoryStore
-from occvo_services.store_api import redact
+from occvo_services.store.factory import open_store
+from occvo_services.store.url import redact
 from occvo_services.telemetry import log_event
 from occvo_services.wire import blocking_at
 from occvo_services.worker_cli import worker_main
@@ -52,7 +52,7 @@ class RegistrationWorker(Worker):
                 f"working_radius_m ({radius}) must exceed tile_m ({config.tile_m}): tiles come back "
                 "within working_radius_m - tile_m"
             )
-        self.store = TrajectoryStore.open(config.store_url, config.store_sync.upper()) if config.store_url else None
+        self.store = open_store(config.store_url, config.store_sync.upper()) if config.store_url else None
         self.placement = self.leases = self.placing = None
         if config.placement == "members":
             if self.store is None:

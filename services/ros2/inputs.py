@@ -68,7 +68,10 @@ def transform_matrix(t) -> np.ndarray:
 
 class CameraSet:
     """Collects the cameras' latest image, CameraInfo and camera -> base transform; a frame once every camera has an
-    image newer than the last frame's (stamped with the first camera's image)."""
+    image newer than the last frame's (stamped with the first camera's image). A camera seen again before the others
+    came means an image was lost (rmw_zenoh's keep-last publishers drop samples when the subscriber falls behind):
+    the incomplete set is refused with the cameras it lacks, and this image starts the next, so a frame is never made
+    of two instants and one lost image costs one frame, not every frame after it."""
 
     def __init__(self, cameras: list[str], base_frame: str, raw: bool = False):
         self.cameras, self.base_frame, self.raw = list(cameras), base_frame, raw
@@ -89,7 +92,12 @@ class CameraSet:
                 self.extrinsics[t.child_frame_id] = transform_matrix(t.transform)
 
     def on_image(self, camera: str, msg) -> CameraFrame | None:
+        lost = [c for c in self.cameras if c not in self.images] if camera in self.images else []
+        if lost:
+            self.images.clear()
         self.images[camera] = msg
+        if lost:
+            raise ValueError(f"no image of {', '.join(lost)} before {camera}'s next: the frame they lack is dropped")
         if len(self.images) < len(self.cameras):
             return None
         missing = [c for c in self.cameras if c not in self.intrinsics or self._frame_id(c) not in self.extrinsics]

@@ -100,9 +100,11 @@ class OccVONode:
         ns = round(pose.stamp * 1e9) if ns is None else ns
         M = np.asarray(pose.pose, np.float64)
         c = self.config
-        self.odom.publish(rm.odometry(self._frames, ns, M, c.odom_frame, c.base_frame))
+        cov = None if pose.covariance is None else np.asarray(pose.covariance, np.float64)
+        self.odom.publish(rm.odometry(self._frames, ns, M, c.odom_frame, c.base_frame, cov))
         self.tf.publish(rm.transform(ns, M, c.odom_frame, c.base_frame))
         self._published += 1
+        log_event(self.log, "odometry published", logging.DEBUG, seq=pose.seq, stamp_ns=ns)
         self._path = [*self._path[-(PATH_WINDOW - 1) :], (ns, M)]  # the window /occvo/path sends, no more
         self.path.publish(rm.path(ns, self._path, c.odom_frame))
         self.client.poses.pop(pose.seq, None)  # the node runs for hours: the client keeps nothing it has sent on

@@ -134,6 +134,24 @@ def test_a_mixed_run_of_real_and_synthetic_frames_resumes_where_it_stopped(tmp_p
     assert "free_logit_bias" in model.meta["calibration"]  # calibrated on the real frames
 
 
+def test_a_depth_only_run_trains_the_image_branch_and_leaves_the_voxel_side_as_it_was(tmp_path):
+    from occvo_core.models.tpvformer import TPVFormer, load_checkpoint, preset, save_checkpoint
+    from occvo_core.models.train import train
+
+    cfg = preset("tiny", input_size=(100, 56))
+    rng = np.random.default_rng(0)
+    frames = _frames(np.column_stack([rng.uniform(5, 30, 300), rng.uniform(-20, 20, 300), rng.uniform(-1, 2, 300)]))
+    start = save_checkpoint(tmp_path / "start.pt", TPVFormer(cfg))
+    result = train(
+        cfg, tmp_path / "d", 5, [], max_steps=2, progress=False, real=frames, resume=start, depth_weight=4.0,
+        depth_only=True,
+    )  # fmt: skip
+    before, after = load_checkpoint(start).state_dict(), load_checkpoint(result.checkpoint).state_dict()
+    changed = {k.split(".")[0] for k in before if not torch.equal(before[k], after[k])}
+    assert changed == {"backbone", "depth_head"}  # queries, attention, decoder untouched
+    assert result.steps == 2 and all(np.isfinite(result.losses))
+
+
 def test_the_real_rig_model_is_the_default_for_a_drive_and_tiny_for_the_synthetic_town():
     from occvo_core.models.tpvformer import load_checkpoint
     from occvo_core.models.tpvformer.checkpoint import REAL_RIG_MODEL, SERVED_THRESHOLDS, served_model

@@ -28,7 +28,9 @@ def converted(tmp_path_factory):
     source = Cached(NuScenesDrive(DRIVE, scene="scene-0916"))
     root = tmp_path_factory.mktemp("recordings")
     paths = {"mcap": root / "drive.mcap", "humble": root / "humble_bag", "jazzy": root / "jazzy_bag"}
+    paths["cameras_bag"] = root / "cameras_bag"
     convert_drive(source, paths["mcap"], distro="jazzy")
+    convert_drive(source, paths["cameras_bag"], distro="jazzy", storage="sqlite3")  # with the six cameras
     convert_drive(source, paths["humble"], distro="humble", storage="sqlite3", images=False)
     convert_drive(source, paths["jazzy"], distro="jazzy", storage="mcap", images=False)
     return source, paths
@@ -72,6 +74,38 @@ def test_occvo_run_on_the_mcap_and_the_bag_gives_the_drives_poses(converted, tmp
     assert summary["frames"] == 3 and summary["ape_on_map_plane"] and summary["scene"] == source.name
     run_json = json.loads((out / "run.json").read_text())
     assert run_json["config"]["voxel_pfilter"]["p_index_threshold"] == 0.9  # the LiDAR source's own defaults
+    capsys.readouterr()
+
+
+def test_occvo_run_from_images_on_the_bag_the_mcap_and_the_drive_gives_the_same_poses(converted, tmp_path, capsys):
+    """`occvo run --input bag_dir/ --from-images` (the converter's bag of the drive's six cameras), the same on the MCAP
+    file, and on the drive itself (the nuScenes reader): the same poses, one thread each (torch's sums split by
+    thread count). In memory as the command builds its run, and the command itself on the bag."""
+    from occvo_cli.cli import build_parser, main
+    from occvo_cli.commands.run import _first_frames, _image_source, config_from_args
+    from occvo_core.pipeline import OdometryPipeline
+    from occvo_core.trajectory import read_tum
+
+    source, paths = converted
+    frames = 4
+
+    def run(path):
+        args = build_parser().parse_args(["run", "--input", str(path), "--from-images", "--threads", "1"])
+        images = _first_frames(_image_source(args), frames)
+        return OdometryPipeline(images, config_from_args(args, images), threads=1, progress=False).run()
+
+    drive = run(DRIVE)  # scene-0916, the drive's one scene
+    assert len(drive.odometry.poses) == frames
+    for form in ("cameras_bag", "mcap"):
+        recorded = run(paths[form])
+        np.testing.assert_allclose(recorded.odometry.poses, drive.odometry.poses, rtol=0, atol=1e-9, err_msg=form)
+        assert np.array_equal(recorded.stamps(), drive.stamps()), form
+    out = tmp_path / "out"
+    argv = ["run", "--input", str(paths["cameras_bag"]), "--from-images", "--threads", "1", "--frames", str(frames)]
+    assert main([*argv, "--out", str(out), "--quiet"]) == 0
+    stamps, poses = read_tum(out / "trajectory.tum")  # written to 1e-9 (%.9f)
+    np.testing.assert_allclose(poses[:, :3, 3], drive.odometry.poses[:, :3, 3], rtol=0, atol=1e-9)
+    np.testing.assert_allclose(stamps, drive.stamps(), rtol=0, atol=1e-9)
     capsys.readouterr()
 
 

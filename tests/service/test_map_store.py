@@ -21,9 +21,10 @@ from occvo_schemas import keys
 from occvo_schemas.codec import decode, encode
 from occvo_schemas.models import Array, MapInfo, MapTile, MapUpdate
 from occvo_services.local import wait_alive
-from occvo_services.map_store import MapStore, MemoryMapStore, open_map_store
 from occvo_services.runtime import WorkerConfig
 from occvo_services.sessions import free_port, open_router, open_session
+from occvo_services.store.factory import open_map_store
+from occvo_services.store.map_tiles import MapStore, MemoryMapStore
 
 REPO = Path(__file__).resolve().parents[2]
 

@@ -11,8 +11,9 @@ import pytest
 import zenoh
 
 from occvo_services.sessions import free_port, open_router, open_session
-from occvo_services.store_api import FencedError, open_store
-from occvo_services.store_blobs import pack_frame
+from occvo_services.store.blobs import pack_frame
+from occvo_services.store.errors import FencedError
+from occvo_services.store.factory import open_store
 
 
 def _commit(store, stream: str, frame, **fence) -> None:

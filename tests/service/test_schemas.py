@@ -13,6 +13,7 @@ from occvo_schemas.export import JSON_DIR, drift, rendered
 from occvo_schemas.models import (
     MESSAGES,
     SCHEMA_VERSION,
+    VERSIONS,
     Array,
     CameraFrame,
     CameraImage,
@@ -44,8 +45,9 @@ def test_drift_check_notices_a_changed_file(tmp_path):
 def test_every_message_has_kind_version_and_a_schema_file():
     assert set(MESSAGES) == {p.stem for p in JSON_DIR.glob("*.json")}
     for kind, model in MESSAGES.items():
-        assert model.model_fields["schema_version"].default == SCHEMA_VERSION
+        assert model.model_fields["schema_version"].default == VERSIONS[kind] >= SCHEMA_VERSION
         schema = json.loads((JSON_DIR / f"{kind}.json").read_text())
+        assert schema["$id"] == f"occvo/{kind}/v{VERSIONS[kind]}"
         assert "kind" in schema["properties"] and "schema_version" in schema["properties"]
 
 

@@ -1,4 +1,4 @@
-"""Durable state of the registration worker (services/store.py, services/store_pg.py) on real SQLite files and a
+"""Durable state of the registration worker (services/store/sqlite.py, services/store/postgres.py) on real SQLite files and a
 real PostgreSQL server (tests parametrised by `store_url` run on both): commits survive a reopen, a snapshot plus the
 journal resume OccVO bit for bit, evicted tiles round-trip, two connections share the store; then the worker itself
 (real Zenoh on loopback, in this process): a clean stop and a new worker on the same store continue a stream
@@ -21,17 +21,11 @@ from occvo_core import OccVO
 from occvo_core.frame import OccupancyFrame
 from occvo_core.grid import OCC3D_GRID, GridSpec
 from occvo_schemas.models import SparseOccupancy
-from occvo_services.store import (
-    TrajectoryStore,
-    frame_digest,
-    pack_arrays,
-    pack_frame,
-    snapshot_path,
-    unpack_arrays,
-    unpack_frame,
-)
-from occvo_services.store_api import open_store
-from occvo_services.store_blobs import legacy_frame_digest
+from occvo_services.array_pack import pack_arrays, unpack_arrays
+from occvo_services.store.blobs import frame_digest, legacy_frame_digest, pack_frame, unpack_frame
+from occvo_services.store.factory import open_store
+from occvo_services.store.sqlite import TrajectoryStore
+from occvo_services.store.sqlite_files import snapshot_path
 
 warnings.filterwarnings("ignore", category=RuntimeWarning)
 
@@ -320,7 +314,7 @@ def test_a_niced_thread_writes_to_the_store_at_the_lanes_priority_and_goes_back(
 
 def _open_at(kind: str, path: str, start: float) -> str:
     """In a pool process: open a store of `kind` on `path` at wall-clock `start` (all openers at once)."""
-    from occvo_services.map_store import open_map_store
+    from occvo_services.store.factory import open_map_store
 
     while time.time() < start:
         pass
@@ -553,7 +547,7 @@ def test_clean_restart_continues_the_stream_and_answers_resends(store_url, scene
             assert np.array_equal(np.array([p.pose for p in probe.poses("car")]), uninterrupted)
             # seq 0 of another frame starts a new trajectory: the old one leaves the store in the same transaction
             client.reset()
-            assert client.step(scene[3]).status == "reinitialised"
+            assert client.step(scene[3]).status == "initialised"
             assert [p.seq for p in probe.poses("car")] == [0] and probe.record("car").snapshot_seq is None
             probe.close()
     finally:
@@ -569,7 +563,9 @@ def test_a_store_digested_before_the_compact_digest_still_knows_its_frames(tmp_p
     for i in range(4):
         r = vo.step(scene[i])
         digest = legacy_frame_digest(scene[i].points, scene[i].labels, scene[i].stamp)
-        status = "reinitialised" if r.status == "initialised" else r.status  # as the lane stores a first frame
+        status = (
+            "reinitialised" if r.status == "initialised" else r.status
+        )  # as the lane stored a first frame before pose v2
         store.commit_frame(
             "car", i, scene[i].stamp, digest, status, r.pose, pack_frame(scene[i]), new_trajectory=i == 0
         )

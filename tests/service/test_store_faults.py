@@ -8,7 +8,7 @@ import threading
 from types import SimpleNamespace
 
 from occvo_services.registration.store_faults import StoreOutage, refused, waits_for_refused
-from occvo_services.store_api import StoreUnavailable
+from occvo_services.store.errors import StoreUnavailable
 from occvo_services.telemetry import Stats
 
 

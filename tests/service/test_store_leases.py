@@ -1,4 +1,4 @@
-"""Streams' leases and fencing in both store backends (services/store_api.py), on a real SQLite file and a real
+"""Streams' leases and fencing in both store backends (services/store/leases.py), on a real SQLite file and a real
 PostgreSQL server: one owner at a time, expiry and takeover move the epoch on, a write under a lost lease raises
 FencedError and writes nothing, also while two connections race; then the PostgreSQL store while its server is down
 and after it is back."""
@@ -11,8 +11,10 @@ import time
 import numpy as np
 import pytest
 
-from occvo_services.store_api import FencedError, Store, StoreUnavailable, open_store
-from occvo_services.store_blobs import pack_frame
+from occvo_services.store.blobs import pack_frame
+from occvo_services.store.errors import FencedError, StoreUnavailable
+from occvo_services.store.factory import open_store
+from occvo_services.store.protocols import TRAJECTORY_STORE
 
 FRAME_BLOB = b"f" * 4096
 
@@ -181,17 +183,17 @@ def test_two_connections_race_for_expired_leases_and_one_wins_each(store_url):
 
 
 def test_the_factory_picks_the_backend_by_url(tmp_path, pg_url):
-    from occvo_services.store import TrajectoryStore
-    from occvo_services.store_pg import PgTrajectoryStore
+    from occvo_services.store.postgres import PgTrajectoryStore
+    from occvo_services.store.sqlite import TrajectoryStore
     from occvo_services.worker_config import WorkerConfig
 
     for spec in (tmp_path / "a.sqlite", str(tmp_path / "b.sqlite"), f"sqlite:///{tmp_path}/c.sqlite"):
         s = open_store(spec)
         assert isinstance(s, TrajectoryStore) and s.path == str(tmp_path / str(spec).rsplit("/", 1)[-1])
-        assert isinstance(s, Store)  # every method of the interface
+        assert all(isinstance(s, p) for p in TRAJECTORY_STORE)  # every method of the interfaces
         s.close()
     s = open_store(pg_url)
-    assert isinstance(s, PgTrajectoryStore) and isinstance(s, Store)
+    assert isinstance(s, PgTrajectoryStore) and all(isinstance(s, p) for p in TRAJECTORY_STORE)
     s.close()
     assert WorkerConfig(store_path="x.sqlite").store_url == "x.sqlite"
     assert WorkerConfig(store_url=pg_url).store_path == pg_url  # the worker's earlier name reads the same
@@ -201,7 +203,7 @@ def test_the_factory_picks_the_backend_by_url(tmp_path, pg_url):
 
 def test_postgres_down_raises_store_unavailable_and_the_next_call_after_it_is_back_works(pg_cluster, pg_url):
     from occvo_schemas.models import MapUpdate
-    from occvo_services.map_store import open_map_store
+    from occvo_services.store.factory import open_map_store
 
     url = pg_url.replace("postgres@", "postgres:s3cret@")  # trust auth ignores it; the errors must not show it
     store, maps = open_store(url), open_map_store(url)
@@ -242,7 +244,8 @@ def test_a_store_that_cannot_be_reached_at_open_says_which(pg_cluster):
 
 OWNER = """
 import sys, numpy as np
-from occvo_services.store_api import FencedError, open_store
+from occvo_services.store.errors import FencedError
+from occvo_services.store.factory import open_store
 store = open_store(sys.argv[1])
 epoch = store.acquire("car", "w1", float(sys.argv[2]))
 seq = 0
@@ -296,7 +299,7 @@ def test_a_takeover_does_not_wait_for_a_stopped_transaction_holding_the_lease(pg
     saying nothing more. The takeover waits for it at most the server's idle-in-transaction timeout."""
     import psycopg
 
-    from occvo_services.pg_pool import IDLE_IN_TRANSACTION_S
+    from occvo_services.store.pg_pool import IDLE_IN_TRANSACTION_S
 
     store = open_store(pg_url)
     try:
@@ -316,21 +319,26 @@ def test_an_owner_paused_inside_its_commit_past_its_lease_is_refused_when_it_wak
     """The owner stops right after its commit took the lease row (the pause injected once, as a SIGSTOP would): the
     server ends its session, another worker takes the stream, and the woken commit, run again on a new connection,
     is refused; nothing of it lands."""
-    from occvo_services.pg_pool import IDLE_IN_TRANSACTION_S
+    from occvo_services.store.pg_pool import IDLE_IN_TRANSACTION_S
 
     w1, w2 = open_store(pg_url), open_store(pg_url)
     try:
         e1 = w1.acquire("car", "w1", 0.5)
         _commit(w1, "car", 0, e1)
-        real, paused = w1._fence, threading.Event()
+        real, paused = w1.lease_table.fence, threading.Event()
 
-        def fence_then_pause(conn, stream, epoch):
-            real(conn, stream, epoch)
-            if not paused.is_set():
-                paused.set()
-                time.sleep(IDLE_IN_TRANSACTION_S + 1.0)
+        def fence_then_pause(stream, epoch):
+            check = real(stream, epoch)
 
-        w1._fence = fence_then_pause
+            def then_pause(cur):
+                check(cur)
+                if not paused.is_set():
+                    paused.set()
+                    time.sleep(IDLE_IN_TRANSACTION_S + 1.0)
+
+            return then_pause
+
+        w1.lease_table.fence = fence_then_pause
         result = {}
 
         def owner():

@@ -17,8 +17,9 @@ import pytest
 
 from occvo_core.errors import ConfigError
 from occvo_services.sessions import free_port
-from occvo_services.store_api import StoreUnavailable, check_reachable, open_store
-from occvo_services.store_url import SECRET_WAYS, STORE_URL_ENV, has_password, read_url_file, redact, resolve
+from occvo_services.store.errors import StoreUnavailable
+from occvo_services.store.factory import check_reachable, open_store
+from occvo_services.store.url import SECRET_WAYS, STORE_URL_ENV, has_password, read_url_file, redact, resolve
 
 PASSWORD = "s3cr@t-Pw"  # the role's
 SECRET = "s3cr%40t-Pw"  # as a URL holds it, percent-encoded

@@ -1,4 +1,4 @@
-"""What the store records for retention (services/store_retention.py) on real SQLite files and a real PostgreSQL
+"""What the store records for retention (services/store/usage.py) on real SQLite files and a real PostgreSQL
 server: each stream's client, bytes and last write, kept by every commit and measured again after a snapshot; the
 idle streams oldest first; a SQLite file from before these columns opens and gets them."""
 
@@ -10,9 +10,11 @@ import time
 import pytest
 
 from occvo_core import OccVO
-from occvo_services.store import TrajectoryStore, frame_digest, pack_arrays, pack_frame
-from occvo_services.store_api import open_store
-from occvo_services.store_retention import frame_bytes
+from occvo_services.array_pack import pack_arrays
+from occvo_services.store.blobs import frame_digest, pack_frame
+from occvo_services.store.factory import open_store
+from occvo_services.store.sqlite import TrajectoryStore
+from occvo_services.store.usage import frame_bytes
 
 
 def _commit(store, stream, vo, frame, seq, client, new=None):

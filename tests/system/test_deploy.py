@@ -16,6 +16,7 @@ from pathlib import Path
 
 import pytest
 import zenoh
+from mesh_certs import make_certificates, shipped
 
 from occvo_services.router import router_config
 from occvo_services.runtime import WorkerConfig
@@ -133,21 +134,35 @@ def test_loopback_router_file_works():
             b.close()
 
 
-def test_router_mesh_files_work():
-    """Router B (connect to A, retrying) starts first; clients on A and B exchange data through the mesh."""
-    ep_a, ep_b = f"tcp/127.0.0.1:{free_port()}", f"tcp/127.0.0.1:{free_port()}"
-    b = zenoh.open(router_config(DEPLOY / "multihost/router-b.json5", listen=[ep_b], connect=[ep_a]))
-    a = zenoh.open(router_config(DEPLOY / "multihost/router-a.json5", listen=[ep_a]))
-    on_a, on_b = _client(ep_a), _client(ep_b)
+@pytest.mark.skipif(shutil.which("openssl") is None, reason="openssl not found on PATH: cannot make TLS certificates")
+def test_router_mesh_files_work(tmp_path):
+    """Router B (connect to A, retrying) starts first; clients on A and B exchange data through the mesh (mutual TLS:
+    the certificates of docs/service.md's recipe; tests/system/test_mesh_tls.py runs the workers through it)."""
+    make_certificates(tmp_path)
+    pa, pb = free_port(), free_port()
+    ep_a, ep_b = f"tls/localhost:{pa}", f"tls/localhost:{pb}"
+    b = zenoh.open(router_config(shipped("router-b.json5", tmp_path, tmp_path), listen=[f"tls/127.0.0.1:{pb}"],
+                                 connect=[ep_a]))  # fmt: skip
+    a = zenoh.open(router_config(shipped("router-a.json5", tmp_path, tmp_path), listen=[f"tls/127.0.0.1:{pa}"]))
+
+    def login(ep, role):
+        return zenoh.open(zenoh_config("client", connect=ep, base=shipped(f"session-{role}.json5", tmp_path, tmp_path)))
+
+    inference_b, registration_a, map_b, camera_a = login(ep_b, "inference"), login(ep_a, "registration"), None, None
     try:
-        assert _delivered(on_b, on_a, "occvo/mesh/occupancy", timeout=10)  # B's retry period is at most 4 s
-        assert _delivered(on_a, on_b, "occvo/mesh/pose")
-        q = on_a.declare_queryable("occvo/mesh/map/info", lambda query: query.reply("occvo/mesh/map/info", b"info"))
-        assert _answers(on_b, "occvo/mesh/map/info") == [b"info"]
+        map_b, camera_a = login(ep_b, "map"), login(ep_a, "camera")
+        assert _delivered(inference_b, registration_a, "occvo/camera.mesh/occupancy", timeout=10)  # B retries <= 4 s
+        assert _delivered(registration_a, map_b, "occvo/camera.mesh/map/updates")
+        key = "occvo/camera.mesh/map/info"
+        q = map_b.declare_queryable(key, lambda query: query.reply(key, b"info"))
+        assert _answers(camera_a, key) == [b"info"]
         q.undeclare()
+        with pytest.raises(zenoh.ZError):  # plain tcp: refused
+            zenoh.open(zenoh_config("client", connect=f"tcp/127.0.0.1:{pa}")).close()
     finally:
-        for s in (on_a, on_b, a, b):
-            s.close()
+        for s in (camera_a, map_b, registration_a, inference_b, a, b):
+            if s is not None:
+                s.close()
 
 
 def _openssl(*args, cwd):

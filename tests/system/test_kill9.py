@@ -25,7 +25,7 @@ from occvo_services.client import OccVOClient, ServiceError
 from occvo_services.commands.replay import replay
 from occvo_services.local import REPO, wait_alive
 from occvo_services.sessions import free_port, open_router, open_session
-from occvo_services.store import TrajectoryStore
+from occvo_services.store.sqlite import TrajectoryStore
 
 warnings.filterwarnings("ignore", category=RuntimeWarning)
 DATA = Path(__file__).resolve().parents[3] / "shared/data/occvo-sample"

@@ -1,5 +1,5 @@
 """Many hosts on one machine: two routers in a mesh on loopback, each with its own registration worker (placement
-"members", real subprocesses), one PostgreSQL store shared by both (a real server, services/pg_local.py). Four streams go
+"members", real subprocesses), one PostgreSQL store shared by both (a real server, services/store/pg_local.py). Four streams go
 through; every pose equals offline OccVO's bit for bit, also when a worker is killed (-9) mid-drive and its streams
 move to the other, and a paused owner that comes back writes nothing over its streams' new owner."""
 
@@ -118,7 +118,7 @@ def _drive(endpoint: str, stream: str, frames: list, got: dict, step_done=None) 
 
 
 def _stored(store_url: str, stream: str) -> list:
-    from occvo_services.store_api import open_store
+    from occvo_services.store.factory import open_store
 
     store = open_store(store_url)
     try:
@@ -128,7 +128,7 @@ def _stored(store_url: str, stream: str) -> list:
 
 
 def _owner(store_url: str, stream: str) -> str | None:
-    from occvo_services.store_api import open_store
+    from occvo_services.store.factory import open_store
 
     store = open_store(store_url)
     try:
@@ -189,7 +189,7 @@ def test_a_paused_owner_writes_nothing_after_its_streams_moved(hosts, drives):
     """SIGSTOP past the lease: the other worker takes the stream (epoch + 1) and drives it on; SIGCONT: whatever the
     paused worker still held is fenced (the next test makes that case), so the store holds exactly the offline poses
     and the stream stays with its new owner."""
-    from occvo_services.store_api import open_store
+    from occvo_services.store.factory import open_store
 
     stream = next(iter(drives))
     frames, want = drives[stream]
@@ -232,7 +232,7 @@ def test_a_worker_whose_lease_moved_on_writes_and_publishes_nothing(tmp_path, pg
     from occvo_services.inference_worker import InferenceWorker
     from occvo_services.registration_worker import RegistrationWorker
     from occvo_services.runtime import WorkerConfig
-    from occvo_services.store_api import open_store
+    from occvo_services.store.factory import open_store
 
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     router = open_router(endpoint)

@@ -85,7 +85,7 @@ def test_scene_0101_through_separate_worker_processes_matches_offline(capsys):
                 p, l = want[(tl.ix, tl.iy)]
                 assert np.array_equal(_sorted_rows(tl.points.to_numpy(), tl.labels.to_numpy()), _sorted_rows(p, l))
             assert info.voxel_count == len(P) and info.tile_count == len(want)
-            assert [p.status for p in out["pose_msgs"].values()].count("reinitialised") == 1
+            assert [p.status for p in out["pose_msgs"].values()].count("initialised") == 1
 
             # the CLI commands against the running service
             ep = ["--connect", service.endpoint, "--stream", "e2e"]
@@ -108,7 +108,7 @@ def test_scene_0101_through_separate_worker_processes_matches_offline(capsys):
             time.sleep(0.15)
             codes = service.stop_workers()
             assert codes == {"inference": 0, "registration": 0, "map": 0}
-            assert c2.wait_pose(0, timeout=5).status == "reinitialised"
+            assert c2.wait_pose(0, timeout=5).status == "initialised"
     finally:
         service.stop()
 

@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from occvo_services.sessions import free_port
-from occvo_services.store_url import STORE_URL_ENV
+from occvo_services.store.url import STORE_URL_ENV
 
 REPO = Path(__file__).resolve().parents[2]
 STREAMS = ("car0", "car1")
@@ -85,7 +85,7 @@ def test_a_database_outage_past_resend_after_loses_no_pose(tmp_path, pg_cluster,
         proc.send_signal(signal.SIGINT)
         proc.communicate(timeout=120)
     assert proc.returncode == 0
-    from occvo_services.store_api import open_store
+    from occvo_services.store.factory import open_store
 
     store = open_store(pg_url)
     try:

@@ -11,9 +11,8 @@ import pytest
 
 from occvo_services.client import OccVOClient, ServiceError
 from occvo_services.local import InProcessService
-from occvo_services.map_store import open_map_store
 from occvo_services.sessions import open_session
-from occvo_services.store_api import open_store
+from occvo_services.store.factory import open_map_store, open_store
 
 
 def wait_for(done, timeout=60.0):

@@ -17,7 +17,7 @@ import pytest
 
 from occvo_cli.cli import main
 from occvo_services.sessions import free_port
-from occvo_services.store_url import STORE_URL_ENV
+from occvo_services.store.url import STORE_URL_ENV
 
 REPO = Path(__file__).resolve().parents[2]
 PASSWORD = "pw-Serve@42"

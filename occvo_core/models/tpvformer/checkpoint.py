@@ -89,13 +89,18 @@ def load_checkpoint(
     return model.to(device).eval()
 
 
-def save_half(src: str | Path, dst: str | Path, free_logit_bias: float | None = None) -> Path:
+def save_half(
+    src: str | Path, dst: str | Path, free_logit_bias: float | None = None, lift_range: float | None = None
+) -> Path:
     """src's checkpoint with its floating-point weights in fp16 (half the bytes; load_checkpoint gives fp32 back);
-    `free_logit_bias` replaces the offset its training calibrated (one chosen on held-out frames)."""
+    `free_logit_bias` replaces the offset its training calibrated, `lift_range` sets depth lifting (each chosen on
+    held-out frames)."""
     payload = read_checkpoint(src)
-    if free_logit_bias is not None:
-        payload["config"] = {**payload["config"], "free_logit_bias": float(free_logit_bias)}
-        payload["meta"] = {**payload.get("meta", {}), "free_logit_bias_chosen": float(free_logit_bias)}
+    for name, value in (("free_logit_bias", free_logit_bias), ("lift_range", lift_range)):
+        if value is not None:
+            payload["config"] = {**payload["config"], name: float(value)}
+            payload["meta"] = {**payload.get("meta", {}), f"{name}_chosen": float(value)}
+    TPVFormerConfig.model_validate(payload["config"])  # a bad choice fails here, not when the file is served
     payload["state_dict"] = {k: v.half() if v.is_floating_point() else v for k, v in payload["state_dict"].items()}
     dst = Path(dst)
     dst.parent.mkdir(parents=True, exist_ok=True)

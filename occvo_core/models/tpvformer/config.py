@@ -73,6 +73,14 @@ class TPVFormerConfig(_Section):
         description="added to the free-class logit at inference: undoes the class "
         "weighting's push towards occupied; calibrated on training scenes after training",
     )
+    lift_range: float = Field(
+        0.0,
+        ge=0,
+        description="depth lifting at inference: occupied = the voxels that pixels land in at the depth head's "
+        "most likely depth, within this many metres (horizontally), each with the decoder's best occupied class; "
+        "the rest free. 0 = off (the decoder's argmax)",
+    )
+    lift_upsample: int = Field(4, ge=1, description="the depth distribution upsampled this many times before lifting")
     grid_shape: tuple[int, int, int] = OCC3D_GRID.shape
     lower: tuple[float, float, float] = OCC3D_GRID.lower
     upper: tuple[float, float, float] = OCC3D_GRID.upper
@@ -109,6 +117,8 @@ class TPVFormerConfig(_Section):
                         f"plane_upsampling 'deconv': decode_shape {self.decode_shape} must be 1x or an even "
                         f"multiple of {name}={size}"
                     )
+        if self.lift_range and not self.depth_bins:
+            raise ValueError("lift_range needs a depth head (depth_bins > 0)")
         if self.backbone.num_levels < len(self.backbone.out_stages):
             raise ValueError("num_levels must be at least the number of out stages")
         return self

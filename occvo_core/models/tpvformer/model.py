@@ -14,6 +14,7 @@ from occvo_core.grid import FREE
 from occvo_core.models.tpvformer.attention import CrossViewHybridAttention, ImageCrossAttention
 from occvo_core.models.tpvformer.backbone import ImageBackbone
 from occvo_core.models.tpvformer.config import TPVFormerConfig
+from occvo_core.models.tpvformer.lifting import lifted_points, lifted_voxels
 
 IMAGE_MEAN = (0.485, 0.456, 0.406)
 IMAGE_STD = (0.229, 0.224, 0.225)
@@ -191,6 +192,18 @@ class TPVFormer(nn.Module):
     # -- forward ---------------------------------------------------------------------------------------------------
     def encode(self, images: torch.Tensor, intrinsics: torch.Tensor, cam_to_ego: torch.Tensor) -> list[torch.Tensor]:
         """Images (B, 6, 3, H, W) in [0, 1] -> TPV planes [(B, C, H, W), (B, C, Z, H), (B, C, W, Z)]."""
+        return self.encode_with_depth(images, intrinsics, cam_to_ego)[0]
+
+    def image_depth(self, images: torch.Tensor) -> tuple[list[torch.Tensor], torch.Tensor | None]:
+        """The image branch alone: images (B, Ncam, 3, H, W) -> FPN levels (B*Ncam, C, h_l, w_l) and the depth head's
+        logits (B*Ncam, bins, h, w) (None without a depth head)."""
+        levels = self.backbone((images.flatten(0, 1) - self.image_mean) / self.image_std)
+        return levels, (self.depth_head(levels[0]) if self.depth_head is not None else None)
+
+    def encode_with_depth(
+        self, images: torch.Tensor, intrinsics: torch.Tensor, cam_to_ego: torch.Tensor
+    ) -> tuple[list[torch.Tensor], torch.Tensor | None]:
+        """The TPV planes and the depth head's distribution (B, Ncam, bins, h, w) (None without a depth head)."""
         if images.dim() != 5 or images.shape[2] != 3:
             raise ValueError(f"images must be (B, Ncam, 3, H, W), got {tuple(images.shape)}")
         b, ncam, _, ih, iw = images.shape
@@ -201,12 +214,9 @@ class TPVFormer(nn.Module):
             )
         if ncam > self.cams_embed.shape[0]:
             raise ValueError(f"{ncam} cameras given, the model has embeddings for {self.cams_embed.shape[0]}")
-        x = (images.flatten(0, 1) - self.image_mean) / self.image_std
-        levels = self.backbone(x)
-        depth_prob = None
-        if self.depth_head is not None:  # depth distribution of every pixel of the finest level
-            depth_prob = self.depth_head(levels[0]).softmax(1)
-            depth_prob = depth_prob.view(b, ncam, *depth_prob.shape[1:])
+        levels, depth_prob = self.image_depth(images)
+        if depth_prob is not None:  # depth distribution of every pixel of the finest level
+            depth_prob = depth_prob.softmax(1).view(b, ncam, -1, *depth_prob.shape[-2:])
         feats = [
             f.view(b, ncam, *f.shape[1:])
             + self.cams_embed[None, :ncam, :, None, None]
@@ -226,7 +236,7 @@ class TPVFormer(nn.Module):
         for layer in self.layers:
             tpv = layer(tpv, pos, shape, hybrid_ref, feats, ref_uv, ref_valid, ref_depth, depth_prob)
         maps = [(cfg.tpv_h, cfg.tpv_w), (cfg.tpv_z, cfg.tpv_h), (cfg.tpv_w, cfg.tpv_z)]
-        return [t.transpose(1, 2).reshape(b, -1, r, c) for t, (r, c) in zip(tpv, maps)]
+        return [t.transpose(1, 2).reshape(b, -1, r, c) for t, (r, c) in zip(tpv, maps)], depth_prob
 
     def upsample(self, planes: list[torch.Tensor]) -> list[torch.Tensor]:
         """Planes to the decoding resolution; bilinear on each plane = trilinear on the broadcast volume."""
@@ -278,8 +288,22 @@ class TPVFormer(nn.Module):
 
     def forward(self, images: torch.Tensor, intrinsics: torch.Tensor, cam_to_ego: torch.Tensor) -> torch.Tensor:
         """images (B, 6, 3, H, W) in [0, 1], intrinsics (B, 6, 3, 3) for that image size, cam_to_ego (B, 6, 4, 4)
-        -> logits (B, 18, 200, 200, 16)."""
-        return self.decode(self.encode(images, intrinsics, cam_to_ego))
+        -> logits (B, 18, 200, 200, 16). In eval mode with `lift_range`, the free logit decides by depth lifting."""
+        planes, depth_prob = self.encode_with_depth(images, intrinsics, cam_to_ego)
+        logits = self.decode(planes)
+        if self.cfg.lift_range and not self.training:
+            self.lift(logits, depth_prob, intrinsics, cam_to_ego, tuple(images.shape[-2:]))
+        return logits
+
+    def lift(self, logits, depth_prob, intrinsics, cam_to_ego, image_hw) -> None:
+        """In place: the free logit far above every class outside the lifted voxels, far below inside them."""
+        cfg = self.cfg
+        for b in range(logits.shape[0]):
+            points = lifted_points(
+                depth_prob[b], intrinsics[b], cam_to_ego[b], image_hw, tuple(cfg.depth_range), cfg.lift_upsample
+            )
+            hit = lifted_voxels(points, tuple(cfg.lower), tuple(cfg.upper), tuple(cfg.grid_shape), cfg.lift_range)
+            logits[b, FREE] = torch.where(hit, -1e4, 1e4).to(logits.dtype)
 
     def num_parameters(self) -> int:
         return sum(p.numel() for p in self.parameters())

@@ -6,7 +6,7 @@ import numpy as np
 from numba import njit, prange
 
 from occvo_core.registration.kernels import CACHE, CHUNKS
-from occvo_core.registration.kernels.nearest import nearest_within
+from occvo_core.registration.kernels.nearest import nearest_within_gaps
 from occvo_core.registration.semantic_label_filter import semantic_label_filter
 
 
@@ -107,11 +107,12 @@ def _linearise_range(
     """Search the nearest map point of sources lo..hi, record it in pairs (-1: none kept) and add the GICP terms
     of the kept pairs into out = (H upper triangle 21, g 6, cost, found, kept)."""
     q = np.empty(3)
+    gaps = np.empty((3, 2 * radius + 1))
     for n in range(lo, hi):
         pairs[n] = -1
         for a in range(3):
             q[a] = rot[a, 0] * src[n, 0] + rot[a, 1] * src[n, 1] + rot[a, 2] * src[n, 2] + trans[a]
-        m, d2 = nearest_within(q, map_pos, grid, origin, dims, voxel, radius, usable, max_d2)
+        m, d2 = nearest_within_gaps(q, map_pos, grid, origin, dims, voxel, radius, usable, max_d2, gaps)
         if m < 0 or d2 > max_d2:
             continue
         out[28] += 1.0

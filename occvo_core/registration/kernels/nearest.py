@@ -85,12 +85,13 @@ def _axis_gap(o, lo, voxel):
 
 
 @njit(cache=CACHE, nogil=True, inline="always")
-def nearest_within(q, map_pos, grid, origin, dims, voxel, radius, usable, max_d2):
+def nearest_within_gaps(q, map_pos, grid, origin, dims, voxel, radius, usable, max_d2, gaps):
     """nearest_in_window for a caller that keeps only a point within max_d2: the same point whenever that one is
     within it (a farther one or none otherwise). Beyond the query's own cell it reads only the cells that can hold a
     point nearer than the best so far and within max_d2, row by row in nearest_in_window's order (whole rows out of
     reach skipped). A query at least `radius` cells from the grid's edges needs no bounds check a cell (an EgoMap's
-    grid has that many empty cells on every side)."""
+    grid has that many empty cells on every side). gaps: (3, 2 radius + 1) scratch for the squared gaps to the
+    cells along each axis, taken once a query rather than once a cell."""
     ci = int(np.floor(q[0] / voxel)) - origin[0]
     cj = int(np.floor(q[1] / voxel)) - origin[1]
     ck = int(np.floor(q[2] / voxel)) - origin[2]
@@ -101,24 +102,38 @@ def nearest_within(q, map_pos, grid, origin, dims, voxel, radius, usable, max_d2
     if best >= 0 and _beyond_best(q, ci, cj, ck, origin, 0, voxel, best_d2):
         return best, best_d2
     lo0, lo1, lo2 = q[0] - (ci + origin[0]) * voxel, q[1] - (cj + origin[1]) * voxel, q[2] - (ck + origin[2]) * voxel
+    for o in range(-radius, radius + 1):
+        gaps[0, o + radius] = _axis_gap(o, lo0, voxel) ** 2
+        gaps[1, o + radius] = _axis_gap(o, lo1, voxel) ** 2
+        gaps[2, o + radius] = _axis_gap(o, lo2, voxel) ** 2
     for r in range(1, radius + 1):
         for di in range(-r, r + 1):
-            gi = _axis_gap(di, lo0, voxel) ** 2
+            gi = gaps[0, di + radius]
             if gi >= best_d2 or gi > max_d2:
                 continue
+            edge_i = di == -r or di == r
             for dj in range(-r, r + 1):
-                gij = gi + _axis_gap(dj, lo1, voxel) ** 2
+                gij = gi + gaps[1, dj + radius]
                 if gij >= best_d2 or gij > max_d2:
                     continue
                 base = c + (di * dims[1] + dj) * dims[2]
-                step = 1 if di == -r or di == r or dj == -r or dj == r else 2 * r  # inside the ring: the z faces
+                step = 1 if edge_i or dj == -r or dj == r else 2 * r  # inside the ring: the z faces
                 for dk in range(-r, r + 1, step):
-                    d2 = gij + _axis_gap(dk, lo2, voxel) ** 2
+                    d2 = gij + gaps[2, dk + radius]
                     if d2 < best_d2 and d2 <= max_d2:
-                        best, best_d2 = _nearer(q, map_pos, grid[base + dk], usable, best, best_d2)
+                        m = grid[base + dk]
+                        if m >= 0:
+                            best, best_d2 = _nearer(q, map_pos, m, usable, best, best_d2)
         if best >= 0 and _beyond_best(q, ci, cj, ck, origin, r, voxel, best_d2):
             break
     return best, best_d2
+
+
+@njit(cache=CACHE, nogil=True)
+def nearest_within(q, map_pos, grid, origin, dims, voxel, radius, usable, max_d2):
+    """nearest_within_gaps with scratch of its own (a caller with many queries keeps one)."""
+    gaps = np.empty((3, 2 * radius + 1))
+    return nearest_within_gaps(q, map_pos, grid, origin, dims, voxel, radius, usable, max_d2, gaps)
 
 
 @njit(cache=CACHE, nogil=True)

@@ -165,6 +165,36 @@ def mark_observed(points, map_pos, grid, origin, dims, voxel, radius_m, map_rows
 
 
 @njit(cache=CACHE, nogil=True)
+def window_rows_state(rows, alive, returning, last):
+    """One pass over a merge's window rows: whether each is alive, and the rows back in view after frames away
+    (returning) with their last sightings."""
+    n = rows.shape[0]
+    alive_out = np.empty(n, np.bool_)
+    back = np.empty(n, np.int64)
+    n_back = 0
+    for a in range(n):
+        r = rows[a]
+        alive_out[a] = alive[r]
+        if returning[r]:
+            back[n_back] = r
+            n_back += 1
+    back = back[:n_back].copy()
+    back_last = np.empty(n_back, last.dtype)
+    for b in range(n_back):
+        back_last[b] = last[back[b]]
+    return alive_out, back, back_last
+
+
+@njit(cache=CACHE, nogil=True)
+def mark_in_window(rows, last, in_window, t):
+    """in_window = t for the window rows seen at frame t."""
+    for a in range(rows.shape[0]):
+        r = rows[a]
+        if last[r] == t:
+            in_window[r] = t
+
+
+@njit(cache=CACHE, nogil=True)
 def record_window(rows, away, alive, t0, last, returning, in_window, t):
     """VoxelPFilterMap.entered() on the live rows: t0 and the last sighting move on by the frames away, returning
     marks those that were away, and in_window says frame t's window held them."""

@@ -1,5 +1,5 @@
 """Where the map service keeps its tiles: in memory (MemoryMapStore), in an embedded SQLite file (MapStore) that
-survives a restart, or in a PostgreSQL database (services/map_store_pg.py) shared by replicas on many hosts.
+survives a restart, or in a PostgreSQL database (services/store/map_tiles_pg.py) shared by replicas on many hosts.
 
 Both hold, per stream, the encoded MapTile bytes of every (ix, iy) with its voxel count and x/y/z bounds, the stream's
 tile_m and the seq of the last update. A tile stays until a reset of its stream or an explicit empty tile: the
@@ -7,7 +7,7 @@ registration worker may stop sending tiles that left its working set, and those 
 
 SQLite: WAL journal (readers never block the writer), synchronous=NORMAL (a commit survives a killed process; only
 a power cut may lose the last commits), a busy timeout and one short transaction per MapUpdate, so another process
-(the registration worker's own tables, services/store.py) may write the same file.
+(the registration worker's own tables, services/store/sqlite.py) may write the same file.
 """
 
 from __future__ import annotations
@@ -18,10 +18,10 @@ from pathlib import Path
 
 import numpy as np
 
-from occvo_core.errors import ConfigError
 from occvo_schemas.models import MapInfo, MapTileQuery, MapUpdate
-from occvo_services.sqlite_wal import enable_wal
-from occvo_services.store_api import is_postgres_url, sqlite_path
+from occvo_services.store import map_tiles_sql as sql
+from occvo_services.store.dialect import SQLITE
+from occvo_services.store.sqlite_wal import enable_wal, transaction
 
 Bounds = MapTileQuery | None
 
@@ -169,44 +169,14 @@ class MapStore:
 
     def apply(self, update: MapUpdate, encoded: list[bytes]) -> None:
         """One transaction: a reset deletes the stream's tiles first; an empty tile deletes that tile."""
-        rows = list(_tile_rows(update, encoded))  # numpy work outside the write lock
+        tx = sql.apply(SQLITE.sql, sql.SQLITE_BOUNDS, update, list(_tile_rows(update, encoded)))  # numpy work first
         with self._wlock:
-            c = self._w
-            c.execute("BEGIN IMMEDIATE")  # take the write lock now: no read-to-write upgrade that could fail busy
-            try:
-                if update.reset:
-                    c.execute("DELETE FROM map_tiles WHERE stream = ?", (update.stream,))
-                c.execute(
-                    "INSERT INTO map_streams (stream, tile_m, last_seq) VALUES (?, ?, ?) "
-                    "ON CONFLICT(stream) DO UPDATE SET tile_m = excluded.tile_m, last_seq = excluded.last_seq",
-                    (update.stream, update.tile_m, update.seq),
-                )
-                gone = [(update.stream, ix, iy) for ix, iy, n, *_ in rows if n == 0]
-                kept = [(update.stream, ix, iy, n, *lo, *hi, data) for ix, iy, n, lo, hi, data in rows if n]
-                if gone:
-                    c.executemany("DELETE FROM map_tiles WHERE stream = ? AND ix = ? AND iy = ?", gone)
-                if kept:
-                    c.executemany("INSERT OR REPLACE INTO map_tiles VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)", kept)
-                c.execute("COMMIT")
-            except BaseException:
-                if c.in_transaction:  # SQLite rolls back itself on SQLITE_FULL: the first error is the one
-                    c.execute("ROLLBACK")
-                raise
+            transaction(self._w, tx)  # BEGIN IMMEDIATE: no read-to-write upgrade that could fail busy
 
     def delete_stream(self, stream: str) -> int:
         """The stream's map gone (`occvo store delete`); the tiles deleted."""
         with self._wlock:
-            c = self._w
-            c.execute("BEGIN IMMEDIATE")
-            try:
-                n = c.execute("DELETE FROM map_tiles WHERE stream = ?", (stream,)).rowcount
-                c.execute("DELETE FROM map_streams WHERE stream = ?", (stream,))
-                c.execute("COMMIT")
-                return n
-            except BaseException:
-                if c.in_transaction:
-                    c.execute("ROLLBACK")
-                raise
+            return transaction(self._w, sql.delete_stream(SQLITE.sql, stream))
 
     def streams(self) -> list[str]:
         with self._rlock:
@@ -216,45 +186,20 @@ class MapStore:
         self, stream: str, ix: int | None = None, iy: int | None = None, bounds: Bounds = None, limit: int | None = None
     ) -> list[tuple[int, int, bytes]]:
         """Encoded tiles of a stream: the one at (ix, iy) when both are given, else the first `limit` within bounds."""
-        where, args = ["stream = ?"], [stream]
-        if ix is not None and iy is not None:
-            where += ["ix = ?", "iy = ?"]
-            args += [ix, iy]
-        if bounds is not None:
-            for col, op, v in (
-                ("ix", ">=", bounds.ix_min),
-                ("ix", "<=", bounds.ix_max),
-                ("iy", ">=", bounds.iy_min),
-                ("iy", "<=", bounds.iy_max),
-            ):
-                if v is not None:
-                    where.append(f"{col} {op} ?")
-                    args.append(v)
+        query, args = sql.tiles(stream, ix, iy, bounds, limit)
         with self._rlock:
-            return [
-                (x, y, bytes(d))
-                for x, y, d in self._r.execute(
-                    f"SELECT ix, iy, data FROM map_tiles WHERE {' AND '.join(where)} ORDER BY ix, iy LIMIT ?",
-                    [*args, -1 if limit is None else limit],
-                )
-            ]
+            return [(x, y, bytes(d)) for x, y, d in self._r.execute(SQLITE.sql(query), args)]
 
     def info(self, stream: str) -> MapInfo | None:
         with self._rlock:
-            c = self._r
-            c.execute("BEGIN")  # one snapshot for the three reads
+            self._r.execute("BEGIN")  # one snapshot for the three reads
             try:
-                row = c.execute("SELECT tile_m, last_seq FROM map_streams WHERE stream = ?", (stream,)).fetchone()
-                if row is None:
-                    return None
-                agg = c.execute(
-                    "SELECT COALESCE(SUM(voxels), 0), MIN(xmin), MIN(ymin), MIN(zmin), MAX(xmax), MAX(ymax), MAX(zmax) "
-                    "FROM map_tiles WHERE stream = ?",
-                    (stream,),
-                ).fetchone()
-                tiles = c.execute("SELECT ix, iy FROM map_tiles WHERE stream = ?", (stream,)).fetchall()
+                got = sql.info(SQLITE.sql, sql.SQLITE_BOUNDS, stream)(self._r)
             finally:
-                c.execute("COMMIT")
+                self._r.execute("COMMIT")
+        if got is None:
+            return None
+        row, agg, tiles = got
         lo, hi = (agg[1:4], agg[4:7]) if tiles else (None, None)
         return _info(stream, row[0], row[1], [tuple(t) for t in tiles], int(agg[0]), lo, hi)
 
@@ -262,19 +207,3 @@ class MapStore:
         with self._wlock, self._rlock:
             self._r.close()
             self._w.close()
-
-
-def open_map_store(path: str | Path | None):
-    """A PostgreSQL store for a postgresql:// URL (services/map_store_pg.py), a SQLite file for a path or sqlite:///
-    URL, or in memory without one; ConfigError naming the file when it cannot be opened."""
-    if not path:
-        return MemoryMapStore()
-    if is_postgres_url(path):
-        from occvo_services.map_store_pg import PgMapStore
-
-        return PgMapStore(str(path))
-    path = sqlite_path(path)
-    try:
-        return MapStore(path)
-    except (sqlite3.Error, OSError) as exc:
-        raise ConfigError(f"map store {path}: {type(exc).__name__}: {exc}") from None

@@ -1,5 +1,5 @@
 """SQLite files that several processes open at once (registration shards and the map service share one store): WAL
-mode, connections and write transactions."""
+mode, connections, write transactions and the WAL's checkpoints."""
 
 from __future__ import annotations
 
@@ -77,28 +77,29 @@ def transaction(db: sqlite3.Connection, fn, phases: dict | None = None):
     return out
 
 
-def checkpoint_loop(store, busy_timeout_s: float) -> None:
+def checkpoint_loop(files, busy_timeout_s: float) -> None:
     """A store's checkpoint thread: PASSIVE checkpoints (they copy what no reader needs and never wait for a writer)
-    every store.CHECKPOINT_EVERY_S, on their own connection; a WAL of store.WAL_BLOCK_PAGES after a pass is
-    checkpointed whole (writers waiting); the next commit after a complete one starts the WAL over."""
+    every files.checkpoint_every_s, on their own connection; a WAL of files.wal_block_pages after a pass is
+    checkpointed whole (writers waiting); the next commit after a complete one starts the WAL over. Until
+    files.stopping is set."""
     from occvo_services.os_tuning import lower_priority, name_os_thread
     from occvo_services.telemetry import log_event
 
-    db = connect(store.path, store.synchronous, busy_timeout_s, "")
+    db = connect(files.path, files.synchronous, busy_timeout_s, "")
     name_os_thread("store-checkpoint")
     lower_priority(10)  # below the threads that commit poses (best effort)
     failing = False
     try:
-        while not store._stop.wait(store.CHECKPOINT_EVERY_S):
+        while not files.stopping.wait(files.checkpoint_every_s):
             try:
                 _, log_pages, _ = db.execute("PRAGMA wal_checkpoint(PASSIVE)").fetchone()
-                if log_pages >= store.WAL_BLOCK_PAGES:
+                if log_pages >= files.wal_block_pages:
                     db.execute("PRAGMA wal_checkpoint(RESTART)")
                 failing = False
             except sqlite3.Error as exc:  # busy or an I/O error: the next pass tries again; said once a run of them
                 if not failing:
                     message = "WAL checkpoint failed; retrying every pass (the WAL grows meanwhile)"
-                    log_event(_LOG, message, logging.WARNING, path=store.path, error=repr(exc))
+                    log_event(_LOG, message, logging.WARNING, path=files.path, error=repr(exc))
                 failing = True
     finally:
         db.close()

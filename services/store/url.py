@@ -14,6 +14,7 @@ from urllib.parse import unquote
 from occvo_core.errors import ConfigError
 
 STORE_URL_ENV = "OCCVO_STORE_URL"
+PG_SCHEMES = ("postgresql://", "postgres://")
 SECRET_WAYS = (
     f"put the URL in {STORE_URL_ENV} in the environment, in a file named by --store-url-file (readable by its "
     "owner only), or the password in PGPASSFILE / ~/.pgpass"
@@ -95,3 +96,13 @@ def resolve(url: str | None, url_file: str | None, flag: str = "--store", env=No
     if url_file:
         return read_url_file(url_file)
     return env.get(STORE_URL_ENV) or None
+
+
+def is_postgres_url(url_or_path: str | Path | None) -> bool:
+    return isinstance(url_or_path, str) and url_or_path.startswith(PG_SCHEMES)
+
+
+def sqlite_path(url_or_path: str | Path) -> str:
+    """The file of a path or of a sqlite:/// URL (SQLAlchemy's form: sqlite:///relative, sqlite:////absolute)."""
+    s = str(url_or_path)
+    return s[len("sqlite:///") :] if s.startswith("sqlite:///") else s

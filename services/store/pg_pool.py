@@ -1,5 +1,5 @@
-"""Connections to a PostgreSQL store shared by the threads of one process (services/store_pg.py,
-services/map_store_pg.py): a few connections handed out one per call, so that a snapshot being written or a restore
+"""Connections to a PostgreSQL store shared by the threads of one process (services/store/pg_database.py,
+services/store/map_tiles_pg.py): a few connections handed out one per call, so that a snapshot being written or a restore
 reading cold tiles never holds another stream's frame commit.
 
 A database that cannot be reached raises StoreUnavailable naming the store (its URL without the password), not the
@@ -13,7 +13,8 @@ import threading
 import time
 from contextlib import contextmanager
 
-from occvo_services.store_api import StoreUnavailable, redact
+from occvo_services.store.errors import StoreUnavailable
+from occvo_services.store.url import redact
 
 CONNECT_TIMEOUT_S = 5
 # a host gone without a FIN (partition, power) is noticed in seconds, not after the kernel's two hours

@@ -436,7 +436,7 @@ def test_six_camera_topics_in_odometry_out(messages, tmp_path):
     assert code == 0, log.read_text()
 
 
-def test_serve_ros2_supervises_the_node_and_checks_its_settings(tmp_path):
+def test_serve_ros2_supervises_the_node_and_checks_its_settings(tmp_path, monkeypatch):
     """`occvo serve --ros2 --ros2-config FILE` adds the node to what it supervises, run as `python -m
     occvo_services.ros2 --config FILE --connect <router>`; a bad settings file is one line before anything starts."""
     import argparse
@@ -463,11 +463,17 @@ def test_serve_ros2_supervises_the_node_and_checks_its_settings(tmp_path):
     bad.write_text("{domain_id: 300}")
     with pytest.raises(ConfigError, match="domain_id"):
         up("--ros2-config", str(bad))
-    # the logins' router (the default) has no rules for the ROS 2 keys: one line, before anything starts
+    # on the logins' router (the default) the node runs as login ros2, a client of the service (no worker flags);
+    # the router's rules of its domain are test_ros2_logins.py's
+    from occvo_services import logins
     from occvo_services.commands._common import secure_default
 
-    with pytest.raises(ConfigError, match="ROS 2 node needs --anonymous"):
-        secure_default(argparse.Namespace(anonymous=False, quiet=True), up("--ros2"), given_router=False)
+    monkeypatch.setenv(logins.LOGINS_DIR_ENV, str(tmp_path / "logins"))
+    config = up("--ros2-config", str(good))
+    assert secure_default(argparse.Namespace(anonymous=False, quiet=True), config, given_router=False)
+    node = next(w for w in config.workers if w.role == "ros2")
+    assert node.env["OCCVO_ZENOH_CONFIG"] == str(logins.session_file("ros2", tmp_path / "logins").resolve())
+    assert "--client-identity" not in node.args
     assert secure_default(argparse.Namespace(anonymous=True, quiet=True), up("--ros2"), given_router=False) is None
 
 

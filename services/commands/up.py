@@ -46,7 +46,7 @@ def run(args) -> int:
             Ros2NodeConfig.load(w.config)  # the node's settings (docs/ros2.md)
         elif w.config:
             WorkerConfig.load(w.config).check_served(w.config)
-    for url in sorted({u for w in config.workers if w.role != "inference" and (u := _worker_store(w))}):
+    for url in sorted({u for w in config.workers if w.role in ("registration", "map") and (u := _worker_store(w))}):
         check_store(url, "a worker's store")  # once, before any worker starts
     if args.listen:
         config.router.listen, config.router.connect = args.listen, None

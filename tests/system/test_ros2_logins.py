@@ -87,7 +87,11 @@ def test_serve_ros2_with_logins_a_robot_login_drives_and_others_get_nothing(tmp_
     stamps = [1_533_151_603_547_590_000 + 500_000_000 * i for i in range(FRAMES)]
     want = offline_poses(frames)
     settings = tmp_path / "ros2.json5"
-    settings.write_text(f'{{domain_id: {DOMAIN}, namespace: "{NAMESPACE}"}}')
+    # the map on one level (the SDK finds a latched topic's publishers by its name with only the leading '/'
+    # mangled, test_ros2_zenoh.py), and published every 2 poses
+    settings.write_text(
+        f'{{domain_id: {DOMAIN}, namespace: "{NAMESPACE}", map_every: 2, topics: {{map: "/occvo_map"}}}}'
+    )
     proc, ep, err = _serve(tmp_path, "--ros2", "--ros2-config", str(settings))
     opened = []
     try:
@@ -156,9 +160,65 @@ def test_serve_ros2_with_logins_a_robot_login_drives_and_others_get_nothing(tmp_
         assert [m.header.stamp.sec * 10**9 + m.header.stamp.nanosec for m in got] == [*stamps, last]
         assert seen["alice_ros2"] == [] and seen["alice_occvo"] == [] and seen["robot_occvo"] == []
         assert len(seen["robot_odom"]) == FRAMES + 1 and spoof not in seen["robot_odom"]
+
+        # the latched map reaches the robot's late subscriber (zenoh-ext's cache and publisher detection, `@adv`)
+        maps = []
+        ROS2Subscriber(
+            "/occvo_map", "sensor_msgs/msg/PointCloud2", maps.append, node_name="late", qos=":1:,1:,:,:,,", **kw
+        )
+        wait_for(lambda: maps, 30, "the latched map")
+        assert maps[0].header.frame_id == "odom" and maps[0].width > 1000
     finally:
         for s in opened:
             s.close()
         _stop(proc, err)
     node_log = (tmp_path / "ros2.log").read_text()
     assert '"stream": "ros2.ros2-occupancy"' in node_log, node_log[-2000:]
+
+
+def test_occvo_up_runs_its_ros2_worker_as_the_nodes_login(tmp_path, monkeypatch):
+    """A `ros2` worker in `occvo up`'s config (deploy/occvo.json5's commented line) on the logins' router: its
+    settings checked as the node's (not as a worker config), "ready" without a token of its own, and the robot's
+    login finds the node in the graph."""
+    import subprocess
+    import sys
+
+    from test_serve_logins import REPO, _env
+
+    from occvo_services.sessions import free_port
+
+    monkeypatch.setenv(logins.LOGINS_DIR_ENV, str(tmp_path / "logins"))
+    ep = f"tcp/127.0.0.1:{free_port()}"
+    workers = [{"role": r, "config": f"{r}.json5"} for r in ("inference", "registration", "map")]
+    for w in workers:  # the built-in worker configs, beside the file
+        name = "map_service.json5" if w["role"] == "map" else f"{w['role']}_worker.json5"
+        (tmp_path / w["config"]).write_text((REPO / "services/defaults" / name).read_text())
+    (tmp_path / "ros2_node.json5").write_text(f'{{domain_id: {DOMAIN}, namespace: "{NAMESPACE}"}}')
+    workers.append({"role": "ros2", "config": "ros2_node.json5"})
+    (tmp_path / "up.json5").write_text(json.dumps({"router": {"listen": ep}, "workers": workers}))
+    err = open(tmp_path / "up.err", "w")  # noqa: SIM115 - closed with the process
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "occvo_cli", "up", "--json", "--config", str(tmp_path / "up.json5")],
+        cwd=REPO, env=_env(), stdout=subprocess.PIPE, stderr=err, text=True,
+    )  # fmt: skip
+    session = None
+    try:
+        line = {"event": None}
+        while line["event"] != "ready":
+            text = proc.stdout.readline()
+            assert text, (tmp_path / "up.err").read_text()[-2000:]
+            line = json.loads(text)
+        session = zenoh.open(
+            zenoh_config("client", connect=ep, base=added("robot1", ep, tmp_path / "logins", "--ros2"))
+        )
+        nodes = wait_for(
+            lambda: [str(r.ok.key_expr) for r in session.liveliness().get(f"@ros2_lv/{DOMAIN}/*/*/*/NN/**") if r.ok],
+            60,
+            "occvo's node in the robot's graph",
+        )
+        assert any(k.endswith("/NN/%/%robot1/occvo") for k in nodes), nodes
+    finally:
+        if session is not None:
+            session.close()
+        _stop(proc, err)
+    assert "ros2" in logins.read_users(tmp_path / "logins")

@@ -70,9 +70,14 @@ def sdk_closed():
         ZenohSession._instance.close()
 
 
+_MESSAGES: list[Path] = []  # the SDK's registry is one a process: one folder for every module using the fixture
+
+
 @pytest.fixture(scope="module")
 def messages(tmp_path_factory):
     """Local message definitions for the SDK, every type it may need: no git, no network."""
+    if _MESSAGES:
+        return _MESSAGES[0]
     root = tmp_path_factory.mktemp("msgs")
     for name in STORE.fielddefs:
         pkg, kind, base = name.split("/")
@@ -84,6 +89,7 @@ def messages(tmp_path_factory):
 
     registry = get_registry(str(root))
     assert registry.messages_dir == root, "the SDK's registry was made before this fixture"
+    _MESSAGES.append(root)
     return root
 
 
@@ -121,15 +127,14 @@ def wait_for(cond, timeout: float, what: str, node: subprocess.Popen | None = No
 
 
 def sdk_session(service: LocalService):
-    from zenoh_ros2_sdk import ZenohSession
+    from zenoh_ros2_sdk import ZenohSession, get_registry
 
     port = int(service.endpoint.rsplit(":", 1)[1])
     old = ZenohSession._instance  # the SDK keeps one session a process: the last test's is on another router
     if old is not None and old.router_port != port:
-        from zenoh_ros2_sdk import get_registry
-
         old.close()
-        get_registry()._loaded_types.clear()  # its types lived in the closed session's store
+    if ZenohSession._instance is None:  # a new session (another module's was closed by its sdk_closed)
+        get_registry()._loaded_types.clear()  # the types lived in the closed session's store
     return ZenohSession.get_instance("127.0.0.1", port), port
 
 

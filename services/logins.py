@@ -5,6 +5,7 @@
     users.txt                 the router's user:password dictionary (zenoh usrpwd)
     session-<login>.json5     the zenoh client config of each login (OCCVO_ZENOH_CONFIG, or picked up by itself)
     router.json5              the router's config, written from the logins at each start (services/acl.py)
+    ros2.txt                  the client logins also allowed onto the ROS 2 graph of `occvo serve --ros2` (robots)
 
 A client login publishes and follows only the streams whose id starts with `<login>.` (the access control), so the
 workers know a client by that prefix (`client_identity: "user"`), not by anything the client says about itself."""
@@ -22,7 +23,10 @@ from occvo_core.errors import ConfigError
 
 LOGINS_DIR_ENV = "OCCVO_LOGINS_DIR"
 WORKER_LOGINS = ("inference", "registration", "map")
+NODE_LOGIN = "ros2"  # occvo's ROS 2 node (`occvo serve --ros2`): a worker's login, made where a node runs
+RESERVED = (*WORKER_LOGINS, NODE_LOGIN)
 USERS_FILE = "users.txt"
+ROS2_FILE = "ros2.txt"
 LOGIN_RE = re.compile(r"^[A-Za-z0-9_-]{1,32}$")  # a stream id's prefix: no '.', no key expression characters
 
 
@@ -42,7 +46,7 @@ def check_login(name: str) -> str:
 def default_login() -> str:
     """The client login of the user running this: their user name, made a valid prefix (a worker's name is taken)."""
     name = re.sub(r"[^A-Za-z0-9_-]", "-", getpass.getuser())[:32] or "user"
-    return f"{name}-client"[:32] if name in WORKER_LOGINS else name
+    return f"{name}-client"[:32] if name in RESERVED else name
 
 
 def session_file(login: str, folder: Path | None = None) -> Path:
@@ -88,16 +92,18 @@ def session_text(login: str, password: str) -> str:
     )
 
 
-def add(name: str, folder: Path | None = None, write: bool = True) -> str:
+def add(name: str, folder: Path | None = None, write: bool = True, ros2: bool = False) -> str:
     """A new client login with a random password; returns its session config (written next to the others when
-    `write`, else only returned, e.g. to be printed for another host)."""
+    `write`, else only returned, e.g. to be printed for another host). `ros2`: a robot's, also allowed onto the ROS 2
+    graph of `occvo serve --ros2` (services/acl.py)."""
     folder = folder or logins_dir()
     check_login(name)
-    if name in WORKER_LOGINS:
+    if name in RESERVED:
         raise ConfigError(f"login {name!r} is a worker's: choose another name")
     users = read_users(folder)
     if name in users:
         raise ConfigError(f"login {name!r} exists already (occvo logins remove {name} first)")
+    _write_ros2(name, ros2, folder)  # before the dictionary, which a running serve watches: it reads both then
     users[name] = secrets.token_urlsafe(24)
     _write_users(users, folder)
     text = session_text(name, users[name])
@@ -108,27 +114,42 @@ def add(name: str, folder: Path | None = None, write: bool = True) -> str:
 
 def remove(name: str, folder: Path | None = None) -> None:
     folder = folder or logins_dir()
-    if name in WORKER_LOGINS:
+    if name in RESERVED:
         raise ConfigError(f"login {name!r} is a worker's and cannot be removed")
     users = read_users(folder)
     if name not in users:
         raise ConfigError(f"no login {name!r} in {folder / USERS_FILE}")
     del users[name]
     _write_users(users, folder)
+    _write_ros2(name, False, folder)
     session_file(name, folder).unlink(missing_ok=True)
 
 
 def client_logins(folder: Path | None = None) -> list[str]:
-    return sorted(u for u in read_users(folder) if u not in WORKER_LOGINS)
+    return sorted(u for u in read_users(folder) if u not in RESERVED)
 
 
-def ensure(folder: Path | None = None) -> dict[str, str]:
-    """The workers' logins and, on a first start, one client login for the user running this: created where
-    missing, with their session configs. Returns every login and its password."""
+def ros2_logins(folder: Path | None = None) -> list[str]:
+    """The client logins a robot's ROS 2 processes log in with (`occvo logins add NAME --ros2`)."""
+    path = (folder or logins_dir()) / ROS2_FILE
+    named = set(path.read_text().split()) if path.is_file() else set()
+    return [u for u in client_logins(folder) if u in named]
+
+
+def _write_ros2(name: str, ros2: bool, folder: Path) -> None:
+    path = folder / ROS2_FILE
+    named = set(path.read_text().split()) if path.is_file() else set()
+    if (name in named) != ros2:
+        write_private(path, "".join(f"{u}\n" for u in sorted(named ^ {name})))
+
+
+def ensure(folder: Path | None = None, node: bool = False) -> dict[str, str]:
+    """The workers' logins (`node`: the ROS 2 node's too) and, on a first start, one client login for the user
+    running this: created where missing, with their session configs. Returns every login and its password."""
     folder = folder or logins_dir()
     users = read_users(folder)
     first = not users
-    for login in WORKER_LOGINS:
+    for login in (*WORKER_LOGINS, NODE_LOGIN) if node else WORKER_LOGINS:
         if login not in users or not session_file(login, folder).is_file():
             # a worker running with its file's password keeps it (users.txt edited by hand): never a new one then
             users[login] = users.get(login) or _password_of(session_file(login, folder)) or secrets.token_urlsafe(24)

@@ -218,17 +218,13 @@ def secure_default(args, config, given_router: bool):
     args.logins_watch = None
     if getattr(args, "anonymous", False) or given_router or not config.router.enabled:
         return None
-    if any(w.role == "ros2" for w in config.workers):  # it would restart for ever, every ROS 2 key denied
-        raise ConfigError(
-            "the ROS 2 node needs --anonymous (anonymous: true) or a router config of your own with rules for the "
-            "ROS 2 keys (docs/ros2.md): the logins' access control has none for them"
-        )
     folder = logins.logins_dir()
     try:
         probe = acl.authenticate(config, folder)
     except OSError as exc:
         raise ConfigError(f"logins folder {folder}: {exc.strerror or exc} (set ${logins.LOGINS_DIR_ENV})") from None
-    args.logins_watch = acl.LoginsWatch(folder)  # `occvo logins add/remove` while it runs: the router restarts
+    # `occvo logins add/remove` while it runs: the router's config written again and the router restarted
+    args.logins_watch = acl.LoginsWatch(folder, nodes=acl.ros2_nodes(config))
     own = logins.default_login()
     who = own if logins.session_file(own, folder).is_file() else logins.login_of(probe)
     progress(
@@ -236,6 +232,13 @@ def secure_default(args, config, given_router: bool):
         f"clients log in as {who} by themselves ({logins.session_file(who, folder)}); streams are {who}.<name>; "
         f"`occvo logins add NAME` makes a login for another user or host",
     )
+    if any(w.role == "ros2" for w in config.workers):
+        robots = ", ".join(logins.ros2_logins(folder)) or "none yet"
+        progress(
+            args,
+            f"the ROS 2 node logs in as {logins.NODE_LOGIN}; a robot's rmw_zenoh logs in with a login of `occvo "
+            f"logins add NAME --ros2` ({robots}; docs/ros2.md)",
+        )
     return str(probe)
 
 

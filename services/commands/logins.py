@@ -21,6 +21,12 @@ def add_parser(subparsers) -> None:
         help="print its zenoh client config (password included) on stdout for another user or host, instead of "
         "writing it next to the others; there: OCCVO_ZENOH_CONFIG=<file> occvo replay --connect tcp/<host>:7447 ...",
     )
+    a.add_argument(
+        "--ros2",
+        action="store_true",
+        help="a robot's: its rmw_zenoh nodes may also publish the ROS 2 node's input topics, subscribe its outputs "
+        "and take part in the graph of `occvo serve --ros2` (docs/ros2.md)",
+    )
     r = verbs.add_parser("remove", help="remove a client login (its streams' stored data stays)")
     r.add_argument("name", help="the login to remove")
     ls = verbs.add_parser("list", help="the logins and their config files")
@@ -34,7 +40,7 @@ def run(args) -> int:
 
     folder = logins.logins_dir()
     if args.verb == "add":
-        text = logins.add(args.name, folder, write=not args.print_config)
+        text = logins.add(args.name, folder, write=not args.print_config, ros2=args.ros2)
         if args.print_config:
             sys.stdout.write(text)
         else:
@@ -44,11 +50,11 @@ def run(args) -> int:
         logins.remove(args.name, folder)
         print(f"login {args.name} removed; {RESTART_NOTE}")
     else:
-        users = logins.read_users(folder)
+        users, robots = logins.read_users(folder), set(logins.ros2_logins(folder))
         rows = [
             {
                 "login": u,
-                "role": "worker" if u in logins.WORKER_LOGINS else "client",
+                "role": "worker" if u in logins.RESERVED else "robot" if u in robots else "client",
                 "config": str(logins.session_file(u, folder)) if logins.session_file(u, folder).is_file() else None,
             }
             for u in users

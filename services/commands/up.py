@@ -35,15 +35,18 @@ def add_parser(subparsers) -> None:
 
 
 def run(args) -> int:
+    from occvo_services.ros2.config import Ros2NodeConfig
     from occvo_services.runtime import structured_logger
     from occvo_services.supervisor import Supervisor, UpConfig
     from occvo_services.worker_config import WorkerConfig
 
     config = UpConfig.load(args.config or defaults.path("occvo.json5"))
     for w in config.workers:  # one line and exit 2 for a bad worker config, not a worker crash-looping
-        if w.config:
+        if w.role == "ros2":
+            Ros2NodeConfig.load(w.config)  # the node's settings (docs/ros2.md)
+        elif w.config:
             WorkerConfig.load(w.config).check_served(w.config)
-    for url in sorted({u for w in config.workers if w.role != "inference" and (u := _worker_store(w))}):
+    for url in sorted({u for w in config.workers if w.role in ("registration", "map") and (u := _worker_store(w))}):
         check_store(url, "a worker's store")  # once, before any worker starts
     if args.listen:
         config.router.listen, config.router.connect = args.listen, None
@@ -57,7 +60,7 @@ def run(args) -> int:
         check_listen_secure(router_file, listen, args.insecure)
     sup = Supervisor(config, structured_logger("occvo.up", "WARNING") if args.quiet else None)
     sup.reload = args.logins_watch
-    roles = tuple(dict.fromkeys(w.role for w in config.workers))
+    roles = tuple(dict.fromkeys(w.role for w in config.workers if w.role != "ros2"))  # the node has no token
     watch, ready = None, set()
 
     def worker_ready(role: str, seconds: float) -> None:

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import argparse
 import faulthandler
+import os
 import signal
 import sys
 import threading
@@ -12,7 +13,8 @@ import threading
 import zenoh
 
 from occvo_core.errors import ConfigError
-from occvo_services.sessions import NoRouterError, zenoh_config
+from occvo_services.logins import login_of
+from occvo_services.sessions import ZENOH_CONFIG_ENV, NoRouterError, zenoh_config
 from occvo_services.telemetry import log_event, structured_logger
 from occvo_services.worker_config import DEFAULT_ENDPOINT
 
@@ -58,7 +60,8 @@ def main(argv: list[str] | None = None) -> int:
     stop = threading.Event()
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: stop.set())
-    node = OccVONode(session, config, log)
+    # logged in (`occvo serve --ros2` on its logins: login ros2), its stream carries the login's prefix
+    node = OccVONode(session, config, log, login=login_of(os.environ.get(ZENOH_CONFIG_ENV)))
     log_event(
         log,
         "ros2 node up",
@@ -66,7 +69,7 @@ def main(argv: list[str] | None = None) -> int:
         namespace=config.namespace,
         domain_id=config.domain_id,
         input=config.input,
-        stream=config.stream_name,
+        stream=node.client.stream,
     )
     stop.wait()
     node.close()

@@ -9,6 +9,7 @@ from typing import Literal
 from pydantic import BaseModel, ConfigDict, Field
 
 from occvo_core.cameras import CAMERA_NAMES
+from occvo_services.ros2.names import resolve
 
 
 class Ros2Topics(BaseModel):
@@ -53,3 +54,17 @@ class Ros2NodeConfig(BaseModel):
     @property
     def stream_name(self) -> str:
         return self.stream or f"ros2-{self.input}"
+
+    def inputs(self) -> list[str]:
+        """The topics the node subscribes, under its namespace: the clouds, or the cameras and /tf_static."""
+        t = self.topics
+        if self.input == "occupancy":
+            names = [t.occupancy]
+        else:
+            names = [t.tf_static, *(n.format(camera=c) for c in self.cameras for n in (t.camera_info, t.camera_image))]
+        return [resolve(n, self.namespace) for n in names]
+
+    def outputs(self) -> list[str]:
+        """The topics the node publishes, under its namespace."""
+        t = self.topics
+        return [resolve(n, self.namespace) for n in (t.odom, t.tf, t.path, t.map)]

@@ -60,6 +60,18 @@ def topic_key(domain_id: int, topic: str, ros_type: str, type_hash: str) -> str:
     return f"{domain_id}/{topic.strip('/')}/{dds_type_name(ros_type)}/{type_hash}"
 
 
+def topic_key_exprs(domain_id: int, topic: str) -> list[str]:
+    """What a topic takes on Zenoh, for access control: its samples' keys (any type, any hash) and zenoh-ext's keys
+    of its advanced publishers and subscribers (`@adv`: the latched cache, publisher and subscriber detection)."""
+    key = f"{domain_id}/{topic.strip('/')}/*/*"
+    return [key, f"{key}/@adv/**"]
+
+
+def graph_key_expr(domain_id: int) -> str:
+    """Every liveliness token of a domain's graph: its nodes, publishers and subscriptions."""
+    return f"{ADMIN_SPACE}/{domain_id}/**"
+
+
 @dataclass(frozen=True)
 class NodeName:
     domain_id: int

@@ -25,10 +25,11 @@ from occvo_services.telemetry import log_event
 
 
 class OccVONode:
-    def __init__(self, session: zenoh.Session, config: Ros2NodeConfig, log: logging.Logger):
+    def __init__(self, session: zenoh.Session, config: Ros2NodeConfig, log: logging.Logger, login: str | None = None):
+        """login: the occvo login `session` logged in as (its stream ids carry its prefix), None: anonymous."""
         self.config, self.log = config, log
         self.graph = Ros2Graph(session, config.domain_id, config.node_name, config.namespace, log)
-        self.client = OccVOClient(session=session, stream=config.stream_name)
+        self.client = OccVOClient(session=session, stream=config.stream_name, login=login)
         self.client.reset()  # this node's first frame starts a new trajectory and map
         self._seq = 0  # the next frame's seq: this node is its stream's one sender
         self._stamps: dict[int, int] = {}  # seq -> the input's header stamp (ns), for the outputs' headers
@@ -43,8 +44,8 @@ class OccVONode:
         self.path = self.graph.publisher(t.path, "nav_msgs/msg/Path", SENSOR_QOS)
         self.map = self.graph.publisher(t.map, "sensor_msgs/msg/PointCloud2", LATCHED_QOS)
         self._subs = [
-            session.declare_subscriber(keys.pose(config.stream_name), self._on_pose),
-            session.declare_subscriber(keys.errors(config.stream_name), self._on_error),
+            session.declare_subscriber(keys.pose(self.client.stream), self._on_pose),
+            session.declare_subscriber(keys.errors(self.client.stream), self._on_error),
         ]
         if config.input == "occupancy":
             self.graph.subscribe(t.occupancy, "sensor_msgs/msg/PointCloud2", self._on_cloud, SENSOR_QOS)

@@ -102,3 +102,64 @@ def test_worker_rules_are_the_shipped_acls():
     shipped = {r["id"]: r for r in json5.loads((DEPLOY / "acl/router.json5").read_text())["access_control"]["rules"]}
     ours = {r["id"]: r for r in json5.loads(defaults.path("acl_router.json5").read_text())["rules"]}
     assert ours == {k: shipped[k] for k in ours}
+
+
+def test_robot_logins_are_marked_and_the_nodes_login_is_reserved(tmp_path):
+    logins.ensure(tmp_path)
+    assert "ros2" not in logins.read_users(tmp_path)  # made only where a node runs
+    logins.add("robot1", tmp_path, ros2=True)
+    logins.add("alice", tmp_path)
+    assert logins.ros2_logins(tmp_path) == ["robot1"]
+    assert stat.S_IMODE((tmp_path / logins.ROS2_FILE).stat().st_mode) == 0o600
+    with pytest.raises(ConfigError, match="worker"):
+        logins.add("ros2", tmp_path)
+    users = logins.ensure(tmp_path, node=True)
+    assert "ros2" in users and "ros2" not in logins.client_logins(tmp_path)
+    logins.remove("robot1", tmp_path)
+    assert logins.ros2_logins(tmp_path) == []
+    logins.add("robot1", tmp_path)  # the name again, without --ros2: no ROS 2 rights left over
+    assert logins.ros2_logins(tmp_path) == []
+
+
+def test_router_config_with_a_ros2_node_gives_its_keys_to_the_node_and_the_robots_only(tmp_path):
+    from occvo_services.ros2.config import Ros2NodeConfig
+
+    logins.ensure(tmp_path)
+    logins.add("robot1", tmp_path, ros2=True)
+    logins.add("alice", tmp_path)
+    node = Ros2NodeConfig.load(None, domain_id=3, namespace="/car")
+    node.topics.odom = "odometry"  # relative: under the namespace
+    ac = json5.loads(acl.write_router_config(tmp_path, [node]).read_text())["access_control"]
+    rules = {r["id"]: r for r in ac["rules"]}
+    by_subject = {s: set(p["rules"]) for p in ac["policies"] for s in p["subjects"]}
+    assert {s["id"]: s["usernames"] for s in ac["subjects"] if s["id"].startswith("ros2")} == {
+        "ros2_node": ["ros2"],
+        "ros2_robots": ["robot1"],
+    }
+    ros2_rules = {r for r in rules if r.startswith("ros2_")}
+    assert by_subject["ros2_node"] >= {"ros2_0_in_subscribe_ingress", "ros2_0_out_publish_ingress"}
+    assert by_subject["ros2_robots"] >= {"ros2_0_in_publish_ingress", "ros2_0_out_subscribe_ingress"}
+    assert not by_subject["ros2_robots"] & {"ros2_0_out_publish_ingress", "ros2_0_in_subscribe_ingress"}
+    assert not by_subject["client_alice"] & ros2_rules and not by_subject["client_robot1"] & ros2_rules
+    assert "ros2_frames" in by_subject["client_ros2"]  # the node feeds the service on streams ros2.<name>
+    assert rules["ros2_frames"]["key_exprs"] == ["occvo/ros2.$*/camera"]
+    assert rules["ros2_0_in_publish_ingress"]["key_exprs"] == ["3/occvo/occupancy/*/*", "3/occvo/occupancy/*/*/@adv/**"]
+    outs = rules["ros2_0_out_publish_ingress"]["key_exprs"]
+    assert "3/car/odometry/*/*" in outs and "3/occvo/map/*/*/@adv/**" in outs
+    assert rules["ros2_0_graph_ingress"]["key_exprs"] == ["@ros2_lv/3/**"]
+    assert "put" in rules["ros2_0_in_publish_ingress"]["messages"]
+    assert "put" not in rules["ros2_0_out_subscribe_ingress"]["messages"]  # a robot never puts on occvo's outputs
+    cams = Ros2NodeConfig.load(None, input="cameras").inputs()
+    assert len(cams) == 13 and cams[0] == "/tf_static" and "/CAM_BACK/image_rect_compressed" in cams
+    # no node: no ROS 2 rule, and no `ros2` login's client rules
+    plain = json5.loads(acl.write_router_config(tmp_path).read_text())["access_control"]
+    assert not [r for r in plain["rules"] if r["id"].startswith("ros2")]
+
+
+def test_the_ros2_file_changed_alone_restarts_the_router(tmp_path):
+    logins.ensure(tmp_path)
+    logins.add("robot1", tmp_path)
+    watch = acl.LoginsWatch(tmp_path, every_s=0.0)
+    assert not watch()
+    (tmp_path / logins.ROS2_FILE).write_text("robot1\n")  # by hand: robot1 given ROS 2 rights
+    assert watch() and not watch()

@@ -70,9 +70,14 @@ def sdk_closed():
         ZenohSession._instance.close()
 
 
+_MESSAGES: list[Path] = []  # the SDK's registry is one a process: one folder for every module using the fixture
+
+
 @pytest.fixture(scope="module")
 def messages(tmp_path_factory):
     """Local message definitions for the SDK, every type it may need: no git, no network."""
+    if _MESSAGES:
+        return _MESSAGES[0]
     root = tmp_path_factory.mktemp("msgs")
     for name in STORE.fielddefs:
         pkg, kind, base = name.split("/")
@@ -84,6 +89,7 @@ def messages(tmp_path_factory):
 
     registry = get_registry(str(root))
     assert registry.messages_dir == root, "the SDK's registry was made before this fixture"
+    _MESSAGES.append(root)
     return root
 
 
@@ -121,15 +127,14 @@ def wait_for(cond, timeout: float, what: str, node: subprocess.Popen | None = No
 
 
 def sdk_session(service: LocalService):
-    from zenoh_ros2_sdk import ZenohSession
+    from zenoh_ros2_sdk import ZenohSession, get_registry
 
     port = int(service.endpoint.rsplit(":", 1)[1])
     old = ZenohSession._instance  # the SDK keeps one session a process: the last test's is on another router
     if old is not None and old.router_port != port:
-        from zenoh_ros2_sdk import get_registry
-
         old.close()
-        get_registry()._loaded_types.clear()  # its types lived in the closed session's store
+    if ZenohSession._instance is None:  # a new session (another module's was closed by its sdk_closed)
+        get_registry()._loaded_types.clear()  # the types lived in the closed session's store
     return ZenohSession.get_instance("127.0.0.1", port), port
 
 
@@ -436,7 +441,7 @@ def test_six_camera_topics_in_odometry_out(messages, tmp_path):
     assert code == 0, log.read_text()
 
 
-def test_serve_ros2_supervises_the_node_and_checks_its_settings(tmp_path):
+def test_serve_ros2_supervises_the_node_and_checks_its_settings(tmp_path, monkeypatch):
     """`occvo serve --ros2 --ros2-config FILE` adds the node to what it supervises, run as `python -m
     occvo_services.ros2 --config FILE --connect <router>`; a bad settings file is one line before anything starts."""
     import argparse
@@ -463,11 +468,17 @@ def test_serve_ros2_supervises_the_node_and_checks_its_settings(tmp_path):
     bad.write_text("{domain_id: 300}")
     with pytest.raises(ConfigError, match="domain_id"):
         up("--ros2-config", str(bad))
-    # the logins' router (the default) has no rules for the ROS 2 keys: one line, before anything starts
+    # on the logins' router (the default) the node runs as login ros2, a client of the service (no worker flags);
+    # the router's rules of its domain are test_ros2_logins.py's
+    from occvo_services import logins
     from occvo_services.commands._common import secure_default
 
-    with pytest.raises(ConfigError, match="ROS 2 node needs --anonymous"):
-        secure_default(argparse.Namespace(anonymous=False, quiet=True), up("--ros2"), given_router=False)
+    monkeypatch.setenv(logins.LOGINS_DIR_ENV, str(tmp_path / "logins"))
+    config = up("--ros2-config", str(good))
+    assert secure_default(argparse.Namespace(anonymous=False, quiet=True), config, given_router=False)
+    node = next(w for w in config.workers if w.role == "ros2")
+    assert node.env["OCCVO_ZENOH_CONFIG"] == str(logins.session_file("ros2", tmp_path / "logins").resolve())
+    assert "--client-identity" not in node.args
     assert secure_default(argparse.Namespace(anonymous=True, quiet=True), up("--ros2"), given_router=False) is None
 
 

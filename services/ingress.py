@@ -139,6 +139,9 @@ def _charged(w: Worker, msg, key: str) -> float | None:
     if why is None:
         return cost
     w.stats.inc("frames_refused_memory")
+    if not away and w.memory.fits_alone(cost):  # other frames in work hold the cap: this one waits its turn
+        _full(w, msg, f"{why}; send it again when a pose comes", key)
+        return None
     # the store away: the frames held for it fill the cap; this one is sent again once they are stored
     code, why = ("store_unavailable", f"{why}: frames held while {away}") if away else ("oversize", why)
     w.report_error(msg.stream, code, why, key, msg.seq)

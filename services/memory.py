@@ -78,6 +78,11 @@ class MemoryCap:
             f"{rss:.0f} MB with {charged:.0f} MB of frames in work would pass max_rss_mb={self.max_rss_mb}"
         )
 
+    def fits_alone(self, mb: float) -> bool:
+        """Whether a frame refused by `charge` would fit once the frames now in work are done: the refusal is then
+        a matter of waiting (the client sends it again), not of the frame's size."""
+        return self.max_rss_mb is None or self.rss() + mb <= self.max_rss_mb
+
     def discharge(self, mb: float) -> None:
         """A charged frame is done (or dropped)."""
         if mb > 0:

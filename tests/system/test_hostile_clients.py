@@ -473,6 +473,35 @@ def test_duplicate_voxels_and_more_voxels_than_the_grid_are_refused_by_name(serv
     assert "999 duplicate voxels" in dup and "more than the grid's 640000 cells" in big, (dup, big)
 
 
+def test_a_frame_other_frames_in_work_leave_no_room_for_waits_its_turn(service, session, scene):
+    """Frames of other streams in work hold the memory cap, and a frame that would fit alone comes: it is turned away
+    (stream_full, flow control) and registered once they are done, never refused for good as if it were too big."""
+    import threading
+
+    from occvo_services.registration.worker import FRAME_MB_PER_VOXEL
+
+    reg = service.worker("registration")
+    with OccVOClient(service.endpoint, "h12.waits", timeout=60, session=session) as c:
+        c.reset()
+        steps(c, scene[:2], 0)
+        cost = FRAME_MB_PER_VOXEL * len(scene[2].labels)
+        assert cost > 2  # the margin below
+        saved, rss = reg.memory.max_rss_mb, reg.memory.rss()
+        reg.memory.max_rss_mb = int(rss) + 2000
+        held = reg.memory.max_rss_mb - rss - 1  # room for this frame alone, not beside the others'
+        assert reg.memory.charge("others", 0, held) is None  # as other streams' frames in work are charged
+        release = threading.Timer(2.0, reg.memory.discharge, (held,))
+        release.start()
+        try:
+            assert c.step(scene[2]).seq == 2
+        finally:
+            release.join()
+            reg.memory.max_rss_mb = saved
+        assert c.turned_away >= 1 and not c.errors, (c.turned_away, c.errors)
+        assert c.poses[2].status == "ok"
+        assert c.trajectory().seqs.to_numpy().tolist() == [0, 1, 2]
+
+
 def test_a_frame_is_charged_against_the_memory_cap_before_it_is_queued(service, session, scene):
     """A full-grid frame (every one of the 640,000 cells) on an admitted stream while the registration worker's
     resident set and that frame's cost would pass max_rss_mb: refused with one error naming the cap, nothing

@@ -95,7 +95,7 @@ def main() -> int:
                 new_trajectory=i == 0,
             )
             st.trajectory.append(i, frame.stamp, np.asarray(reg.pose), "ok", b"")
-            _, _, evicted, _ = complete(st, reg, frame, i, publish=True)
+            evicted = complete(st, reg, frame, i, publish=True).evicted
             if evicted or st.pager.pending_restored:
                 worker.store.finish_frame("s", i, None, evicted=evicted, restored=st.pager.pending_restored)
             st.pager.pending_restored = []

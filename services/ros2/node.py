@@ -35,6 +35,8 @@ class OccVONode:
         self._stamps: dict[int, int] = {}  # seq -> the input's header stamp (ns), for the outputs' headers
         self._path: list = []  # (ns, pose) of the last PATH_WINDOW poses
         self._published = 0
+        self._last_seq = -1  # the last seq whose odometry went out: a resent frame's pose comes again
+        self._out = threading.Lock()  # not _lock: a send under _lock may wait for a pose
         self._frames = OdomFrames()  # twist from consecutive poses
         self._lock = threading.Lock()
         self._map_busy = threading.Lock()
@@ -97,6 +99,10 @@ class OccVONode:
             return
         if pose.status == "relocalised":  # a loop closure moves the map, never odom -> base_link (REP 105)
             return
+        with self._out:  # poses come in seq order; a frame the client sent again is answered again: publish once
+            if pose.seq <= self._last_seq:
+                return
+            self._last_seq = pose.seq
         ns = self._stamps.pop(pose.seq, None)
         ns = round(pose.stamp * 1e9) if ns is None else ns
         M = np.asarray(pose.pose, np.float64)

@@ -21,8 +21,7 @@ from test_ros2_zenoh import (  # noqa: F401 - messages, sdk_closed: fixtures
     DRIVE,
     NAMESPACE,
     SCENE,
-    blocking,
-    camera_messages,
+    CameraRig,
     cloud_kwargs,
     messages,
     offline_poses,
@@ -233,9 +232,7 @@ def test_a_robot_login_drives_the_camera_input(tmp_path, monkeypatch):
     """The camera input behind the rules: the robot's /tf_static (a transient-local publisher), six CameraInfo and
     six JPEG topics of the real drive's first keyframe make one frame and one pose. (/tf_static is put once the
     node's subscription matched, so it goes as a sample: the latched cache behind the rules is the map's test.)"""
-    from zenoh_ros2_sdk import ROS2Publisher, ROS2Subscriber, get_message_class
 
-    from occvo_core.cameras import CAMERA_NAMES
     from occvo_services.nuscenes_source import NuScenesCameraFrames
 
     folder = tmp_path / "logins"
@@ -248,29 +245,11 @@ def test_a_robot_login_drives_the_camera_input(tmp_path, monkeypatch):
         robot1 = added("robot1", ep, folder, "--ros2")
         monkeypatch.setenv("ZENOH_SESSION_CONFIG_URI", str(robot_session_config(tmp_path, robot1, ep)))
         session, port = sdk_session(SimpleNamespace(endpoint=ep))
-        cls = {n: get_message_class(n) for n in [
-            "geometry_msgs/msg/TransformStamped", "geometry_msgs/msg/Transform", "geometry_msgs/msg/Vector3",
-            "geometry_msgs/msg/Quaternion", "sensor_msgs/msg/RegionOfInterest"]}  # fmt: skip
-        kw = dict(domain_id=DOMAIN, router_port=port)
-        got = []
-        ROS2Subscriber("/occvo/odom", "nav_msgs/msg/Odometry", got.append, node_name="cam_checker", **kw)
-        tf = ROS2Publisher("/tf_static", "tf2_msgs/msg/TFMessage", node_name="rig", qos=":1:,1:,:,:,,", **kw)
-        info = {c: ROS2Publisher(f"/{c}/camera_info", "sensor_msgs/msg/CameraInfo", node_name=f"i{c}", **kw)
-                for c in CAMERA_NAMES}  # fmt: skip
-        img = {c: ROS2Publisher(f"/{c}/image_rect_compressed", "sensor_msgs/msg/CompressedImage", node_name=f"c{c}",
-                                **kw) for c in CAMERA_NAMES}  # fmt: skip
-        for p in [*info.values(), *img.values()]:
-            blocking(p, session)
-        for p in [tf, *info.values(), *img.values()]:
-            wait_for(lambda p=p: p.pub.matching_status.matching, 60, f"occvo's subscription of {p.topic}")
+        rig = CameraRig(session, port)
+        got = rig.got
         frame = NuScenesCameraFrames(DRIVE)[0]
-        transforms, infos, images = camera_messages(frame, cls)
-        tf.publish(transforms=transforms)
-        for c in CAMERA_NAMES:
-            info[c].publish(**infos[c])
-        time.sleep(0.2)  # the calibration before the images (separate topics, no order between them)
-        for c in CAMERA_NAMES:
-            img[c].publish(**images[c])
+        rig.send_tf_static(frame)
+        rig.send(frame)
         wait_for(lambda: got, 300, "the camera frame's odometry")
         assert (
             got[0].header.stamp.sec * 10**9 + got[0].header.stamp.nanosec == round(frame.images[0].stamp * 1e6) * 1000

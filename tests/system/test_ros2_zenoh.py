@@ -359,6 +359,44 @@ def test_occupancy_clouds_in_odometry_out(messages, service, tmp_path):
     assert text.count("bad ros message") == 1, text
 
 
+class CameraRig:
+    """A car's six cameras on a ROS 2 graph, as nuscenes2mcap names them (/tf_static, each camera's camera_info and
+    image_rect_compressed), and a subscriber of occvo's odometry (`got`); ready when occvo's node has subscribed."""
+
+    def __init__(self, session, port: int, node: subprocess.Popen | None = None):
+        from zenoh_ros2_sdk import ROS2Publisher, ROS2Subscriber, get_message_class
+
+        from occvo_core.cameras import CAMERA_NAMES
+
+        self.cls = {n: get_message_class(n) for n in [
+            "geometry_msgs/msg/TransformStamped", "geometry_msgs/msg/Transform", "geometry_msgs/msg/Vector3",
+            "geometry_msgs/msg/Quaternion", "sensor_msgs/msg/RegionOfInterest"]}  # fmt: skip
+        kw = dict(domain_id=DOMAIN, router_port=port)
+        self.got = []
+        ROS2Subscriber("/occvo/odom", "nav_msgs/msg/Odometry", self.got.append, node_name="cam_checker", **kw)
+        self.tf = ROS2Publisher("/tf_static", "tf2_msgs/msg/TFMessage", node_name="rig", qos=":1:,1:,:,:,,", **kw)
+        self.info = {c: ROS2Publisher(f"/{c}/camera_info", "sensor_msgs/msg/CameraInfo", node_name=f"i{c}", **kw)
+                     for c in CAMERA_NAMES}  # fmt: skip
+        self.img = {c: ROS2Publisher(f"/{c}/image_rect_compressed", "sensor_msgs/msg/CompressedImage",
+                                     node_name=f"c{c}", **kw) for c in CAMERA_NAMES}  # fmt: skip
+        for p in [*self.info.values(), *self.img.values()]:
+            blocking(p, session)
+        for p in [self.tf, *self.info.values(), *self.img.values()]:
+            wait_for(lambda p=p: p.pub.matching_status.matching, 60, f"occvo's subscription of {p.topic}", node)
+
+    def send_tf_static(self, frame) -> None:
+        self.tf.publish(transforms=camera_messages(frame, self.cls)[0])
+
+    def send(self, frame) -> None:
+        """One instant: each camera's calibration, then its image."""
+        _, infos, images = camera_messages(frame, self.cls)
+        for c, pub in self.info.items():
+            pub.publish(**infos[c])
+        time.sleep(0.2)  # the calibration before the images (separate topics, no order between them)
+        for c, pub in self.img.items():
+            pub.publish(**images[c])
+
+
 def blocking(pub, session) -> None:
     """The SDK publisher's samples put with congestion control BLOCK, as rmw_zenoh puts a keep-all publisher's: the
     SDK maps reliable QoS to BLOCK only where zenoh has a `zenoh.qos` module (zenoh-python 1.x has none), so its puts
@@ -402,9 +440,7 @@ def camera_messages(frame, cls) -> tuple[list, dict, dict]:
 def test_six_camera_topics_in_odometry_out(messages, tmp_path):
     """The real drive's six JPEG topics with CameraInfo and /tf_static (nuscenes2mcap's names) become frames of the
     model source (the shipped tiny checkpoint), and each frame a pose on /occvo/odom, stamped with CAM_FRONT's."""
-    from zenoh_ros2_sdk import ROS2Publisher, ROS2Subscriber, get_message_class
 
-    from occvo_core.cameras import CAMERA_NAMES
     from occvo_services.nuscenes_source import NuScenesCameraFrames
 
     ckpt = REPO / "occvo_core/models/tpvformer/weights/tiny.pt"
@@ -413,32 +449,13 @@ def test_six_camera_topics_in_odometry_out(messages, tmp_path):
     node, log = start_node(service, tmp_path, 'input: "cameras"')
     try:
         session, port = sdk_session(service)
-        cls = {n: get_message_class(n) for n in [
-            "geometry_msgs/msg/TransformStamped", "geometry_msgs/msg/Transform", "geometry_msgs/msg/Vector3",
-            "geometry_msgs/msg/Quaternion", "sensor_msgs/msg/RegionOfInterest"]}  # fmt: skip
-        kw = dict(domain_id=DOMAIN, router_port=port)
-        got = []
-        ROS2Subscriber("/occvo/odom", "nav_msgs/msg/Odometry", got.append, node_name="cam_checker", **kw)
-        tf = ROS2Publisher("/tf_static", "tf2_msgs/msg/TFMessage", node_name="rig", qos=":1:,1:,:,:,,", **kw)
-        info = {c: ROS2Publisher(f"/{c}/camera_info", "sensor_msgs/msg/CameraInfo", node_name=f"i{c}", **kw)
-                for c in CAMERA_NAMES}  # fmt: skip
-        img = {c: ROS2Publisher(f"/{c}/image_rect_compressed", "sensor_msgs/msg/CompressedImage", node_name=f"c{c}",
-                                **kw) for c in CAMERA_NAMES}  # fmt: skip
-        for p in [*info.values(), *img.values()]:
-            blocking(p, session)
-        for p in [tf, *info.values(), *img.values()]:
-            wait_for(lambda p=p: p.pub.matching_status.matching, 60, f"occvo's subscription of {p.topic}", node)
+        rig = CameraRig(session, port, node)
         drive = NuScenesCameraFrames(DRIVE)
         frames = [drive[i] for i in range(2)]
-        transforms, _, _ = camera_messages(frames[0], cls)
-        tf.publish(transforms=transforms)
+        rig.send_tf_static(frames[0])
         for frame in frames:
-            _, infos, images = camera_messages(frame, cls)
-            for c in CAMERA_NAMES:
-                info[c].publish(**infos[c])
-            time.sleep(0.2)  # the calibration before the images (separate topics, no order between them)
-            for c in CAMERA_NAMES:
-                img[c].publish(**images[c])
+            rig.send(frame)
+        got = rig.got
         wait_for(lambda: len(got) >= len(frames), 600, f"{len(frames)} odometry messages ({len(got)} came)", node)
         want = [round(f.images[0].stamp * 1e6) * 1000 for f in frames]
         assert [m.header.stamp.sec * 10**9 + m.header.stamp.nanosec for m in got] == want

@@ -486,6 +486,9 @@ def test_a_frame_other_frames_in_work_leave_no_room_for_waits_its_turn(service, 
         steps(c, scene[:2], 0)
         cost = FRAME_MB_PER_VOXEL * len(scene[2].labels)
         assert cost > 2  # the margin below
+        deadline = time.monotonic() + 60  # the frames before are given back once their handling ends
+        while reg.memory.charged and time.monotonic() < deadline:
+            time.sleep(0.05)
         saved, rss = reg.memory.max_rss_mb, reg.memory.rss()
         reg.memory.max_rss_mb = int(rss) + 2000
         held = reg.memory.max_rss_mb - rss - 1  # room for this frame alone, not beside the others'

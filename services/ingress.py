@@ -80,8 +80,9 @@ def enqueue(
 ) -> None:
     """Decode a stream message, check its sequence number (judge_seq False: the handler does, against what it
     committed) and queue it on its stream's lane with its hop latency; bad messages are reported by decode_input
-    and check_seq, never raised. place (services/registration/placing.py): the frame's owner decided off the
-    callback, and the rest of its ingress after that; a frame another worker owns goes no further."""
+    and check_seq, never raised. place (services/registration/placing.py): the client's part of the admission
+    judged here (a refused frame is never placed), the frame's owner decided off the callback, and the rest of its
+    ingress after that; a frame another worker owns goes no further."""
     t_recv, t_decode = time.time(), time.perf_counter()
     client = identity_of(sample, keys.stream_of(str(sample.key_expr)), w.config.client_identity)
     msg = w.decode_input(sample, expect, client)
@@ -92,6 +93,13 @@ def enqueue(
     rest = functools.partial(_admit, w, sample, msg, handler, judge_seq, (t_recv, decode_ms))
     if place is None:
         return rest()
+    if (refused := place.claim(msg.stream, client)) is not None:  # no store look-up, no lease row for it
+        w.stats.inc("frames_refused_before_placement")
+        if w.reports_input(msg.stream):  # every member refuses it: one reports
+            code, why = refused
+            seq = msg.seq if code == "stream_limit" else None  # not_owner: the owner's client would take it as its own
+            w.report_error(msg.stream, code, why, str(sample.key_expr), seq, client=client)
+        return
     if not place.submit(msg.stream, lambda: place.decide(msg) and rest()):
         _full(w, msg, f"seq {msg.seq} not placed: too many frames wait for their placement; send it again", "")
 

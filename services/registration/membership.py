@@ -40,6 +40,11 @@ class Placement:
                 self._owners = {s: w for s, w in self._owners.items() if w != worker}
         log_event(self.log, "registration workers", live=sorted(self.live))
 
+    def members(self) -> int:
+        """How many registration workers are live now."""
+        with self._lock:
+            return len(self.live)
+
     def is_live(self, worker: str | None) -> bool:
         with self._lock:
             return worker in self.live

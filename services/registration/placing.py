@@ -1,6 +1,8 @@
 """Placement "members" off Zenoh's callback: whether this worker owns a decoded frame's stream may ask the store (a
 stream not seen before, an owner gone), so the decision and the rest of the frame's ingress run on a small pool. The
-frames of one stream keep their order: a stream always goes to the same one of a few strands (services/strand.py)."""
+frames of one stream keep their order: a stream always goes to the same one of a few strands (services/strand.py).
+Only a frame its client may send is placed: the client's part of the admission (claim, services/registration/
+claims.py) is judged on the callback first, so a refused frame costs no store look-up and no lease row."""
 
 from __future__ import annotations
 
@@ -15,10 +17,11 @@ MAX_WAITING = 64  # frames a strand holds for their placement; more are turned a
 
 
 class Placing:
-    """The frames waiting for their placement, and the decision (decide(msg) -> this worker owns its stream)."""
+    """The frames waiting for their placement, and the decision (decide(msg) -> this worker owns its stream); before
+    it, claim(stream, client) -> None, or the (code, why) its client's frame is refused with."""
 
-    def __init__(self, decide: Callable[[object], bool], threads: int = 2):
-        self.decide = decide
+    def __init__(self, decide: Callable[[object], bool], claim: Callable[[str, str], tuple | None], threads: int = 2):
+        self.decide, self.claim = decide, claim
         self._pool = pool(threads, "placement")
         self._strands = [Strand(self._pool) for _ in range(STRANDS)]
         self._waiting = [0] * STRANDS

@@ -14,6 +14,7 @@ from occvo_core.errors import ConfigError
 from occvo_schemas import keys
 from occvo_schemas.models import OccupancyFrameMsg
 from occvo_services.os_tuning import trim_heap
+from occvo_services.registration.claims import Claims
 from occvo_services.registration.frame_job import SessionContext
 from occvo_services.registration.membership import Leases, Placement
 from occvo_services.registration.paging import MIN_SAFE_RADIUS_M
@@ -60,7 +61,8 @@ class RegistrationWorker(Worker):
             self.store.fenced_only = True  # every write under the stream's lease: none unfenced
             self.placement = Placement(self.worker_id, self.store, config.lease_s, self.log)
             self.leases = Leases(self.store, self.worker_id, config.lease_s, self.placement, self.log, self._serving)
-            self.placing = Placing(self._placed)  # decided off Zenoh's callback: it may ask the store
+            claims = Claims(config.max_streams_per_client, config.idle_stream_s, self.placement.members)
+            self.placing = Placing(self._placed, claims.claim)  # decided off Zenoh's callback: it may ask the store
         self.sessions: dict[str, StreamSession] = {}
         self._sessions_lock = threading.Lock()
         occvo_config = OccVOConfig.load(config.occvo_config) if config.occvo_config else OccVOConfig()
@@ -123,7 +125,7 @@ class RegistrationWorker(Worker):
 
     def _on_occupancy(self, sample: zenoh.Sample) -> None:
         # the session judges the seq against its committed trajectory: a step back may be a resend
-        if self.placement is not None:  # the owner decided only for a frame that decoded: no store call before
+        if self.placement is not None:  # the owner decided only for a frame that decoded and its client may send
             self.enqueue(sample, OccupancyFrameMsg, self._route, judge_seq=False, place=self.placing)
         elif self.owns(keys.stream_of(str(sample.key_expr))):  # another shard's stream: not ours to count or judge
             self.enqueue(sample, OccupancyFrameMsg, self._route, judge_seq=False)
@@ -131,6 +133,7 @@ class RegistrationWorker(Worker):
     def _placed(self, msg) -> bool:
         """Placement members: whether this worker owns the decoded frame's stream (the store away: not decided, the
         frame answered store_unavailable by one worker; the client sends it again)."""
+        self.stats.inc("frames_placed")
         try:
             return self.owns(msg.stream)
         except Exception as exc:  # noqa: BLE001 - a worker never dies of one frame

@@ -84,3 +84,69 @@ def test_puts_that_do_not_decode_make_no_lease_row(pg_url):
         store.close()
         reg.stop()
         router.close()
+
+
+def test_a_client_over_its_stream_share_makes_no_placement_and_no_lease_row(pg_url):
+    """Placement members, max_streams_per_client=2: one client opens 12 streams with valid frames. Its streams
+    beyond 2 are refused before their placement (stream_limit, one event each): no placement decision, no store
+    look-up, no lease row for them; a legitimate stream beside it gets every pose, equal to an offline run."""
+    from occvo_services.client import OccVOClient
+    from occvo_services.commands.replay import load_scene
+    from occvo_services.inference_worker import InferenceWorker
+    from occvo_services.registration_worker import RegistrationWorker
+    from occvo_services.runtime import WorkerConfig
+
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    router = open_router(endpoint)
+    common = {"connect": endpoint, "log_level": "WARNING", "warm_up": False}
+    # lease_s 300: no renewal pass (lease_s / 3) deletes an unused lease row while the test looks
+    reg = RegistrationWorker(
+        WorkerConfig(
+            **common, worker_id="reg-m", store_url=pg_url, placement="members", lease_s=300.0, max_streams_per_client=2
+        )
+    ).start()
+    inf = InferenceWorker(WorkerConfig(**common, worker_id="inf")).start()
+    flooder, store = open_session(endpoint), open_store(pg_url)
+    frames = load_scene("synthetic:6", frames=6)
+    n = 12
+    grabbers = [OccVOClient(endpoint, f"grab{i}", session=flooder, resend_after=None) for i in range(n)]
+    try:
+        for c in grabbers:
+            c.reset()
+            c.publish(frames[0])
+        deadline = time.monotonic() + 120
+        while sum(bool(c.errors) or 0 in c.poses for c in grabbers) < n and time.monotonic() < deadline:
+            time.sleep(0.05)
+        refused = [c for c in grabbers if c.errors]
+        assert len(refused) == n - 2 and all(c.errors[0].code == "stream_limit" for c in refused)
+        assert "max_streams_per_client=2" in refused[0].errors[0].message
+        assert len([c for c in grabbers if 0 in c.poses]) == 2
+        grabbed = sorted(c.stream for c in grabbers if 0 in c.poses)
+        assert sorted(lease.stream for lease in store.leases()) == grabbed  # none of the refused streams'
+        stats = reg.stats.snapshot()[0]
+        assert stats["frames_placed"] == 2 and stats["frames_refused_before_placement"] == n - 2
+
+        with OccVOClient(endpoint, "legit") as legit:
+            legit.reset()
+            got = [legit.step(f) for f in frames]
+        vo = _offline(frames)
+        assert np.array_equal(np.array([p.matrix() for p in got]), vo.poses) and not legit.errors
+        assert sorted(lease.stream for lease in store.leases()) == sorted([*grabbed, "legit"])
+    finally:
+        for c in grabbers:
+            c.close()
+        flooder.close()
+        store.close()
+        inf.stop()
+        reg.stop()
+        router.close()
+
+
+def _offline(frames):
+    from occvo_core import OccVO
+
+    vo = OccVO()
+    vo.reset()
+    for f in frames:
+        vo.step(f)
+    return vo

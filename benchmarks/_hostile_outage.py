@@ -1,6 +1,7 @@
 """Hostile-client steps on a PostgreSQL store of their own (services/store/pg_local.py; benchmarks/hostile_clients.py):
 db_outage (the database stopped mid-drive), members_acl (placement members under the shipped ACL, an owner killed),
-lease_flood (one-byte puts on new keys against placement members)."""
+lease_flood (one-byte puts on new keys against placement members), share_flood (valid frames on new streams beyond
+a client's share)."""
 
 from __future__ import annotations
 
@@ -10,11 +11,15 @@ import time
 from pathlib import Path
 
 import numpy as np
+import zenoh
 from _hostile_acl import acl_logins
-from _hostile_common import BLOCK, emit, goal
+from _hostile_common import BLOCK, counters, emit, goal
 from _hostile_deploy import deploy
 
 from occvo_schemas import keys
+from occvo_schemas.codec import encode
+from occvo_schemas.models import OccupancyFrameMsg
+from occvo_services.camera_frames import camera_frame_of
 from occvo_services.client import OccVOClient, ServiceError
 from occvo_services.commands.replay import replay
 from occvo_services.sessions import ZENOH_CONFIG_ENV, open_login
@@ -185,6 +190,62 @@ def lease_flood(args, frames, alone_s: float, alone: np.ndarray) -> None:
     goal("lease flood: the replay gets every pose, equal to alone's", equal)
     goal("lease flood: the replay within 3x its solo time", got["s"] <= 3 * alone_s, ratio=round(got["s"] / alone_s, 2))
     goal("lease flood: no lease row but the replay's", rows == [legit], lease_rows=len(rows))
+
+
+def share_flood(args, frames, alone_s: float, alone: np.ndarray) -> None:
+    """Placement members (one worker) on PostgreSQL: one client puts a valid frame on each of --share-flood new
+    stream ids while a replay runs (logins: its own login's camera frames, through the inference worker; anonymous:
+    occupancy frames put straight to the registration worker under one session): the replay's poses vs alone and its
+    time vs solo, the most lease rows during the flood, the worker's placements and refusals before placement."""
+    cluster = PgCluster()
+    url = cluster.new_database()
+    svc = deploy().service(quiet=True, placement="members", worker_args=_serve_args(url)).start()
+    stop, sent, peak = threading.Event(), [0], [0]
+
+    def flood() -> None:
+        session, login = deploy().attacker(svc.endpoint, "own")
+        while not stop.is_set() and sent[0] < args.share_flood:
+            stream = deploy().wire(f"share{sent[0]}", login)
+            cam = camera_frame_of(frames[0], stream, 0)
+            if deploy().anonymous:  # one session's zid: one client, its frames straight to registration
+                occ = OccupancyFrameMsg(stream=stream, seq=0, stamp=cam.stamp, source="replay",
+                                        occupancy=cam.gt_occupancy, timings_ms={})  # fmt: skip
+                key, payload = keys.occupancy(stream), encode(occ)
+            else:
+                key, payload = keys.camera(stream), encode(cam)
+            session.put(key, payload, congestion_control=BLOCK, source_info=zenoh.SourceInfo(session.id, sent[0] + 1))
+            sent[0] += 1
+        session.close()
+
+    def watch() -> None:
+        store = open_store(url)
+        while not stop.wait(0.2):
+            peak[0] = max(peak[0], len(store.leases()))
+        store.close()
+
+    try:
+        threads = [threading.Thread(target=flood), threading.Thread(target=watch)]
+        legit = deploy().victim_stream("sharelegit")
+        got = _replays(svc.endpoint, [legit], frames, 0, lambda: [t.start() for t in threads])[legit]
+        while threads[0].is_alive() and sent[0] < args.share_flood:
+            time.sleep(0.2)
+        time.sleep(2.0)  # the last frames judged
+        stop.set()
+        for t in threads:
+            t.join()
+        probe, _ = deploy().attacker(svc.endpoint, "own")
+        placed = counters(probe, svc, "registration", ("frames_placed", "frames_refused_before_placement"))
+        probe.close()
+    finally:
+        svc.stop()
+        cluster.close()
+    share = 16  # max_streams_per_client of services/defaults/registration_worker.json5, one member
+    equal = len(got["poses"]) == len(frames) and np.array_equal(got["poses"], alone)
+    emit("share_flood", mode=deploy().name, streams=sent[0], replay_s=round(got["s"], 1), alone_s=round(alone_s, 1),
+         peak_lease_rows=peak[0], **placed)  # fmt: skip
+    goal("share flood: the replay gets every pose, equal to alone's", equal)
+    goal("share flood: the replay within 3x its solo time", got["s"] <= 3 * alone_s, ratio=round(got["s"] / alone_s, 2))
+    goal("share flood: lease rows at most the client's share and the replay's", peak[0] <= share + 1, peak=peak[0])
 
 
 def fake_tokens(frames, alone: np.ndarray, n: int = 8) -> None:

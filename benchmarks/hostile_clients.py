@@ -49,6 +49,9 @@ the login `occvo serve` made for the user running it; an attacker comes without 
              login, the owner of the first stream killed (-9) at its pose 10: every pose vs alone, owners before
   lease_flood placement members on PostgreSQL: --lease-flood one-byte puts on new keys beside a replay: its poses
              vs alone, its time vs solo, the lease rows left
+  share_flood placement members on PostgreSQL: one client puts a valid frame on each of --share-flood new stream ids
+             (anonymous: occupancy frames straight to registration) beside a replay: its poses vs alone, its time vs
+             solo, the most lease rows during the flood (at most the client's share, 16, and the replay's)
   no_credentials a session without credentials: refused by the router
   takeover   the victim's idle (retired, stored) stream: another user's login puts seq 0 to 5 of other frames on it:
              its stored trajectory and map before and after
@@ -98,7 +101,7 @@ from _hostile_common import (
 from _hostile_deploy import DEPLOY, Deployment, deploy
 from _hostile_identity import copied_id, no_credentials, query_budget, sybil, takeover_idle
 from _hostile_limits import bad_configs, disk_full, heavy
-from _hostile_outage import db_outage, fake_tokens, lease_flood, members_acl
+from _hostile_outage import db_outage, fake_tokens, lease_flood, members_acl, share_flood
 from _hostile_secrets import secrets
 from _hostile_store import store_flood
 
@@ -111,12 +114,12 @@ from occvo_services.runtime import WorkerConfig
 STEPS = (
     "no_credentials,takeover,flood,msgpack,oversize,queries,sequence,silent,degenerate,log_flood,grabber,sybil,"
     "copied_id,query_budget,heavy,config,store_flood,disk_full,grabber_acl,db_outage,members_acl,lease_flood,"
-    "fake_tokens,secrets"
+    "share_flood,fake_tokens,secrets"
 ).split(",")
 # where the anonymous mode differs: what rests on a client's identity, and the access control's refusals
 ANONYMOUS_STEPS = {
     "no_credentials", "takeover", "sequence", "silent", "grabber", "sybil", "copied_id", "query_budget", "store_flood",
-    "lease_flood", "fake_tokens",
+    "lease_flood", "share_flood", "fake_tokens",
 }  # fmt: skip
 
 
@@ -151,6 +154,7 @@ def main() -> int:
         "--outage-s", default="8", help="step db_outage: how long the database is stopped, seconds (a comma list: each)"
     )
     p.add_argument("--lease-flood", type=int, default=20000, help="step lease_flood: one-byte puts on new keys")
+    p.add_argument("--share-flood", type=int, default=200, help="step share_flood: new streams, a valid frame each")
     p.add_argument(
         "--modes",
         default="logins,anonymous",
@@ -369,6 +373,8 @@ def run_pass(args, steps: set[str]) -> None:
         attempt(members_acl, frames, alone, shipped=True)
     if "lease_flood" in steps:
         attempt(lease_flood, args, frames, alone_s, alone)
+    if "share_flood" in steps:
+        attempt(share_flood, args, frames, alone_s, alone)
     if "fake_tokens" in steps:
         attempt(fake_tokens, frames, alone)
     if "secrets" in steps:

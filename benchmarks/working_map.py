@@ -26,7 +26,6 @@ warnings.filterwarnings("ignore", category=RuntimeWarning)
 from occvo_core import OccVO  # noqa: E402
 from occvo_core.sim import SyntheticScene  # noqa: E402
 from occvo_services.os_tuning import large_blocks_from_mmap  # noqa: E402
-from occvo_services.registration.after_pose import complete  # noqa: E402
 from occvo_services.registration_worker import RegistrationWorker  # noqa: E402
 from occvo_services.runtime import WorkerConfig  # noqa: E402
 from occvo_services.store.blobs import frame_digest, pack_frame  # noqa: E402
@@ -78,9 +77,8 @@ def main() -> int:
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
         worker = RegistrationWorker(WorkerConfig(store_path=str(Path(tmp) / "r.sqlite"), working_radius_m=args.radius))
-        st = worker.session_of("s")
-        st.vo = OccVO(st.ctx.occvo_config, threads=worker.config.kernel_threads)
-        st.trajectory.started = True
+        st = worker.session_of("s").after  # the work after a pose: complete, paging
+        st.restart()  # a new OccVO, as at a stream's first frame
         for i in range(args.frames):
             frame = scene[i]
             reg = st.vo.register(frame)
@@ -94,11 +92,10 @@ def main() -> int:
                 pack_frame(frame),
                 new_trajectory=i == 0,
             )
-            st.trajectory.append(i, frame.stamp, np.asarray(reg.pose), "ok", b"")
-            evicted = complete(st, reg, frame, i, publish=True).evicted
+            evicted = st.complete(reg, frame, i, publish=True).evicted
             if evicted or st.pager.pending_restored:
                 worker.store.finish_frame("s", i, None, evicted=evicted, restored=st.pager.pending_restored)
-            st.pager.pending_restored = []
+            st.pager.restores_stored()
             if i in marks:
                 row = {"frame": i, "lap": marks[i], **census(st.vo, lap_starts)}
                 rows.append(row)

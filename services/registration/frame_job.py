@@ -1,5 +1,6 @@
-"""What the registration worker lends a session (SessionContext) and what one frame hands from phase to phase
-(FrameJob, built and validated by frame_job)."""
+"""What the registration worker lends a session (SessionContext), what one frame hands from phase to phase on the
+pose path (FrameJob, built and validated by frame_job) and what the pose path hands the work after the pose
+(RegisteredFrame: the edge between a session's two parts)."""
 
 from __future__ import annotations
 
@@ -13,7 +14,7 @@ import numpy as np
 
 from occvo_core.frame import OccupancyFrame
 from occvo_core.grid import OCC3D_GRID
-from occvo_services.registration.after_pose import after_pose
+from occvo_services.registration.after_pose import AfterPose
 from occvo_services.store.blobs import frame_digest
 
 if TYPE_CHECKING:
@@ -54,7 +55,7 @@ class SessionContext:
     report_error: Callable[..., object]  # Worker.report_error: an error event
     frames_queued: Callable[[str], bool]  # stream -> whether frames of it wait in its lane
     busy_lanes: Callable[[], int]  # lanes registering now
-    after_pose: Callable = after_pose  # (session, job): the work after a pose (services/registration/after_pose.py)
+    after_pose: Callable = AfterPose.run  # (its AfterPose, RegisteredFrame): the work after a pose
     leases: Leases | None = None  # placement "members": the worker's stream leases
     catch_up: CatchUp | None = None  # reopened sessions register first
     outage: StoreOutage | None = None  # with a store: the store away until a probe reaches it
@@ -80,6 +81,29 @@ class FrameJob:
     reg_timings: dict = field(default_factory=dict)
     pose_out: Future = field(default_factory=Future)  # True once the pose is committed and published
     after: Future | None = None  # its work after the pose, once handed to the after-pose thread
+
+    def registered(self) -> RegisteredFrame:
+        return RegisteredFrame(
+            self.msg, self.frame, self.digest, self.restart, self.entered, self.reg, self.pose_m, self.reg_timings,
+            self.t_valid, self.pose_out,
+        )  # fmt: skip
+
+
+@dataclass(frozen=True)
+class RegisteredFrame:
+    """A frame the pose path registered, as the work after its pose gets it: pose_out is True once its pose was
+    committed and published (False: nothing of it is stored or published)."""
+
+    msg: OccupancyFrameMsg
+    frame: OccupancyFrame
+    digest: bytes
+    restart: bool  # a new trajectory's first frame
+    entered: int  # its count among the frames that entered the lane (whether another came since)
+    reg: Registration
+    pose_m: np.ndarray
+    reg_timings: dict  # OccVO.register's stages (complete's are the others)
+    t_valid: float  # when the pose path had it validated (the stages' total)
+    pose_out: Future
 
 
 def frame_job(msg: OccupancyFrameMsg, stream: str, entered: int) -> FrameJob:

@@ -27,6 +27,22 @@ class Pager:
         self.restored_for_next: list[tuple[int, int]] = []  # restored after the last frame, not yet published
         self.ego_xy = ego_xy  # x-y of the last registered pose (eviction and restore centre)
 
+    def moved_to(self, pose: np.ndarray) -> None:
+        """The ego's new position: eviction and restores centre on it."""
+        self.ego_xy = pose[:2, 3].copy()
+
+    def restore_near(self, vo) -> None:
+        """The cold tiles near the ego back in the working map; published with the next frame's tiles."""
+        self.restored_for_next = self.restore(vo, self.near())
+
+    def restores_stored(self) -> None:
+        """The restores so far are in the store (finish_frame), or a replay's (the store had them)."""
+        self.pending_restored = []
+
+    def adopt_cold(self, cold: dict) -> None:
+        """The store's cold index replaces this one (a resume that ended with another)."""
+        self.cold = cold
+
     def reached(self, frame: OccupancyFrame, pose: np.ndarray) -> list[tuple[int, int]]:
         """Cold tiles the frame's points reach at `pose` (occvo_core.working_map.tiles_reached)."""
         return tiles_reached(self.cold, frame.points, pose, self.tile_m) if self.cold else []

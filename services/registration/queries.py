@@ -1,4 +1,5 @@
-"""Queries: a stream's latest pose and its trajectory, answered from its session's memory by the stream's worker."""
+"""Queries: a stream's latest pose and its trajectory, answered by the stream's worker from the trajectory view its
+session published last (no lock of the session's taken)."""
 
 from __future__ import annotations
 
@@ -19,10 +20,11 @@ class Queries:
 
     def _matching(self, query: zenoh.Query, key_of) -> list:
         q = query.key_expr
+        views = ((stream, s.view) for stream, s in sorted(self.worker.sessions_now(), key=lambda i: i[0]))
         found = [
-            (stream, s)
-            for stream, s in sorted(self.worker.sessions_now(), key=lambda i: i[0])
-            if s.trajectory.started and q.intersects(zenoh.KeyExpr(key_of(stream))) and self.worker.answers(stream)
+            (stream, view)
+            for stream, view in views
+            if view is not None and q.intersects(zenoh.KeyExpr(key_of(stream))) and self.worker.answers(stream)
         ]
         return found[: self.worker.config.max_query_streams]  # a wildcard asks for every stream: the first ones answer
 
@@ -36,8 +38,8 @@ class Queries:
         found = self._matching(query, keys.pose_latest)
         if not found:
             return self._miss(query, "poses")
-        for stream, s in found:
-            latest = s.trajectory.latest_pose()
+        for stream, view in found:
+            latest = view.latest
             if query.parameters.get("version") != "2":  # a client built before version 2 asks without it
                 latest, version = as_v1(latest), 1
             else:
@@ -48,12 +50,11 @@ class Queries:
         found = self._matching(query, keys.trajectory)
         if not found:
             return self._miss(query, "trajectory")
-        for stream, s in found:
-            seqs, stamps, poses = s.trajectory.arrays()
+        for stream, view in found:
             traj = Trajectory(
                 stream=stream,
-                seqs=Array.from_numpy(seqs),
-                stamps=Array.from_numpy(stamps),
-                poses=Array.from_numpy(poses),
+                seqs=Array.from_numpy(view.seqs),
+                stamps=Array.from_numpy(view.stamps),
+                poses=Array.from_numpy(view.poses),
             )
             query.reply(keys.trajectory(stream), encode(traj, 1 << 30), encoding=encoding("trajectory"))

@@ -17,7 +17,6 @@ from __future__ import annotations
 import logging
 import threading
 import time
-from concurrent.futures import wait
 
 from occvo_services.limits import ANONYMOUS
 from occvo_services.registration.snapshots import state_bytes
@@ -53,7 +52,8 @@ class Retention:
         if self.quota_bytes is None and self.quota_streams is None:
             return None
         session = self.w.sessions.get(stream)
-        if session is not None and seq in session.trajectory.position:
+        view = None if session is None else session.view
+        if view is not None and view.has(seq):
             return None
         client = client or ANONYMOUS
         try:
@@ -99,7 +99,7 @@ class Retention:
         counted in full (only its own streams wait)."""
         for stream, s in self.w.sessions_now():
             if stream != new and s.vo is not None and self.w.admission.owner(stream) == client:
-                wait([f for f in (s.threads.tail, s.threads.map_tail) if f is not None])
+                s.threads.settle()
                 self.w.store.measure(stream)
 
     def _unsaved(self, client: str) -> tuple[int, int]:

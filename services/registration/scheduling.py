@@ -18,7 +18,7 @@ from __future__ import annotations
 import logging
 import os
 import threading
-from concurrent.futures import Future
+from concurrent.futures import Future, wait
 
 from occvo_core.free_cores import FREE_CORES
 from occvo_core.registration.kernels import own_team, use_threads
@@ -232,6 +232,10 @@ class StreamThreads:
     def wait_map(self) -> None:
         if self.map_tail is not None:
             self.map_tail.result()
+
+    def settle(self) -> None:
+        """The jobs handed to the threads so far done (head starts kept)."""
+        wait([f for f in (self.tail, self.map_tail) if f is not None])
 
     def drain(self) -> None:
         """Every job handed to the threads done (head starts end now)."""

@@ -38,6 +38,29 @@ class SnapshotSchedule:
     def unsaved(self) -> bool:
         return self.since > 0 or self.retry
 
+    def committed(self) -> None:
+        """A frame committed since the last snapshot."""
+        self.since += 1
+
+    def writing(self) -> None:
+        """A snapshot of the stream queued or being written (idle is set again once it is written or failed)."""
+        self.idle.clear()
+
+    def taken(self) -> None:
+        """A copy of the state taken for the writer: the next snapshot counts from here."""
+        self.writing()
+        self.since, self.retry = 0, False
+
+    def written(self, state_size: int) -> None:
+        self.written_bytes = state_size
+
+    def clock_restarted(self) -> None:
+        """A snapshot's write ended: the stream's share of time is counted from now."""
+        self.since_t = time.monotonic()
+
+    def failed(self) -> None:
+        self.retry = True  # the journal keeps the frames: retried at the stream's next frame
+
 
 class SnapshotWriter:
     """One thread writing snapshots in queue order (SQLite has one writer a file: a big snapshot must not hold every
@@ -62,8 +85,7 @@ class SnapshotWriter:
         """Copy the state for the writer (a few ms): the lane steps on while the copy is written."""
         t0 = time.perf_counter()
         state = {k: copied(v) for k, v in vo.state_dict(copy=False).items()}  # the big ones without the GIL
-        schedule.idle.clear()
-        schedule.since, schedule.retry = 0, False
+        schedule.taken()
         self._queue.put((stream, schedule, seq, self.store.created(stream), state, fence))
         self.stats.observe("snapshot_copy", (time.perf_counter() - t0) * 1000.0)
 
@@ -74,7 +96,7 @@ class SnapshotWriter:
     def write_now(self, stream: str, schedule: SnapshotSchedule, seq: int, vo, fence: dict) -> None:
         """A snapshot of the state in place, in the calling thread (nothing steps this OccVO any more)."""
         schedule.idle.wait()
-        schedule.idle.clear()
+        schedule.writing()
         self.write(stream, schedule, seq, self.store.created(stream), vo.state_dict(copy=False), fence)
 
     def write(self, stream: str, schedule: SnapshotSchedule, seq: int, created, state: dict, fence: dict) -> None:
@@ -83,14 +105,14 @@ class SnapshotWriter:
         try:
             if self.store.write_snapshot(stream, seq, state, created, **fence):
                 self.stats.inc("snapshots")
-                schedule.written_bytes = state_bytes(state)
+                schedule.written(state_bytes(state))
                 self.store.measure(stream)  # its stored bytes, the journal covered gone (a client's store quota)
             took = time.perf_counter() - t0
-            schedule.since_t = time.monotonic()
+            schedule.clock_restarted()
             self._s_per_byte = took / max(1, state_bytes(state))
             self.stats.observe("snapshot", took * 1000.0)
         except Exception as exc:  # noqa: BLE001 - the journal keeps the frames; retried at the stream's next frame
-            schedule.retry = True
+            schedule.failed()
             message = f"snapshot after seq {seq} failed: {type(exc).__name__}: {exc}"
             self.report_error(stream, "internal", message, keys.occupancy(stream), seq)
         finally:

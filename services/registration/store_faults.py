@@ -18,8 +18,7 @@ from occvo_services.store.url import redact
 from occvo_services.telemetry import log_event
 
 if TYPE_CHECKING:
-    from occvo_services.registration.frame_job import FrameJob
-    from occvo_services.registration.session import StreamSession
+    from occvo_services.registration.pose_path import PosePath
 
 PROBE_EVERY_S = 0.5  # between two tries to reach the store while it is away
 MAX_UNSTORED = 1024  # frames a stream remembers as refused or turned away
@@ -70,17 +69,17 @@ class StoreOutage:
 
 
 # -- a session's part ---------------------------------------------------------------------------------------------------
-def store_back(s: StreamSession, seq: int) -> bool:
+def store_back(s: PosePath, seq: int) -> bool:
     """The store away: the frame waits for it in its lane (the lane's next frames queue behind it). False if the
     worker stops first: the frame is answered store_unavailable (the client sends it again)."""
     outage = s.ctx.outage
     if outage is None or not outage.down or outage.wait_back():
         return True
-    s._report("store_unavailable", f"seq {seq} not registered: {outage.why}; send it again", seq)
+    s.report("store_unavailable", f"seq {seq} not registered: {outage.why}; send it again", seq)
     return False
 
 
-def store_failed(s: StreamSession, seq: int, exc: Exception, what: str) -> None:
+def store_failed(s: PosePath, seq: int, exc: Exception, what: str) -> None:
     """A write or read failed (disk full, the database away, or fenced: another worker owns the stream now): drop
     the in-memory state; the stream resumes from the store at its next frame (replaying the journal redoes what was
     not stored), after taking the lease again if it was fenced."""
@@ -95,37 +94,44 @@ def store_failed(s: StreamSession, seq: int, exc: Exception, what: str) -> None:
         return
     message = f"seq {seq} {what} ({type(exc).__name__}: {exc}); the stream resumes from the store at its next frame"
     away = s.ctx.outage is not None and s.ctx.outage.saw(exc)
-    s._report("store_unavailable" if away else "not_stored", message, seq)  # not answers: the client resends
+    s.report("store_unavailable" if away else "not_stored", message, seq)  # not answers: the client resends
 
 
-def refused(s: StreamSession, k: int) -> None:
-    """Frame k was not stored (or not held while the store was away): the frames after it wait for it
-    (waits_for_refused). Registered without it, its pose would be missing for good: the frame after a gap confirms a
-    held jump."""
-    with s.refusal_lock:  # the lane's thread and the worker's frame callback both mark refusals
-        _mark(s, k)
+class Refusals:
+    """The frames of a stream the store refused or that were turned away: the frames after the first of them wait
+    for it. Marked by the stream's lane and by the worker's frame callback (a frame not held while the store is
+    away), hence the lock."""
 
+    def __init__(self, report):
+        self._report = report  # (code, message, seq): the stream's error event
+        self._lock = threading.Lock()
+        self._seqs: set[int] = set()
 
-def _mark(s: StreamSession, seq: int) -> None:
-    s.unstored.add(seq)
-    if len(s.unstored) > MAX_UNSTORED:  # stray seqs far ahead: the first ones are what the stream waits for
-        s.unstored.discard(max(s.unstored))
+    def refused(self, k: int) -> None:
+        """Frame k was not stored (or not held while the store was away): the frames after it wait for it
+        (waits). Registered without it, its pose would be missing for good: the frame after a gap confirms a held
+        jump."""
+        with self._lock:
+            self._mark(k)
 
+    def _mark(self, seq: int) -> None:
+        self._seqs.add(seq)
+        if len(self._seqs) > MAX_UNSTORED:  # stray seqs far ahead: the first ones are what the stream waits for
+            self._seqs.discard(max(self._seqs))
 
-def waits_for_refused(s: StreamSession, job: FrameJob) -> bool:
-    """After the store refused seq k (disk full, the database away), the frames after k wait for k, which the client
-    sends again with them in order. A frame turned away so waits in turn: once k is registered, the first of them is
-    the next to come (before, k+2 coming before the turned-away k+1 was held as a jump, which k+3 confirmed, and k+1's
-    pose was missing for good)."""
-    seq = job.msg.seq
-    with s.refusal_lock:
-        if seq == 0:
-            s.unstored.clear()
-            return False
-        k = min(s.unstored, default=None)
-        if k is None or seq <= k:
-            s.unstored.discard(seq)
-            return False
-        _mark(s, seq)
-    s._report("not_stored", f"seq {seq} waits for seq {k}, which the store refused: send both again", seq)
-    return True
+    def waits(self, seq: int) -> bool:
+        """After the store refused seq k (disk full, the database away), the frames after k wait for k, which the
+        client sends again with them in order. A frame turned away so waits in turn: once k is registered, the first
+        of them is the next to come (before, k+2 coming before the turned-away k+1 was held as a jump, which k+3
+        confirmed, and k+1's pose was missing for good)."""
+        with self._lock:
+            if seq == 0:
+                self._seqs.clear()
+                return False
+            k = min(self._seqs, default=None)
+            if k is None or seq <= k:
+                self._seqs.discard(seq)
+                return False
+            self._mark(seq)
+        self._report("not_stored", f"seq {seq} waits for seq {k}, which the store refused: send both again", seq)
+        return True

@@ -1,10 +1,10 @@
 """A stream's trajectory as the registration worker serves it: every committed pose, in seq order, for resends and
-queries."""
+queries. The pose path writes it; queries read the TrajectoryView it publishes after each pose (no lock)."""
 
 from __future__ import annotations
 
-import threading
 import time
+from typing import NamedTuple
 
 import numpy as np
 
@@ -12,63 +12,90 @@ from occvo_schemas.models import PoseEstimate
 from occvo_services.store.records import StoredPose
 
 
-class StreamTrajectory:
-    """Committed poses of one stream (in memory; the store has them too). Its lock guards the lists and `latest`: the
-    session writes them; queries from other threads read what latest_pose() and arrays() hand out."""
+class TrajectoryView(NamedTuple):
+    """The trajectory as published after a pose: what queries read from other threads. Its arrays are never written
+    after it is published (a relocalised pose or a new trajectory writes new arrays)."""
 
-    def __init__(self):
-        self._lock = threading.Lock()
-        self.seqs: list[int] = []
-        self.stamps: list[float] = []
-        self.poses: list[np.ndarray] = []
-        self.statuses: list[str] = []
-        self.digests: list[bytes] = []
-        self.position: dict[int, int] = {}  # seq -> index in the lists
-        self.latest: PoseEstimate | None = None
-        self.started = False  # a trajectory exists (in memory or in the store)
-
-    def append(self, seq: int, stamp: float, pose: np.ndarray, status: str, digest: bytes) -> None:
-        self.position[seq] = len(self.seqs)
-        self.seqs.append(seq)
-        self.stamps.append(stamp)
-        self.poses.append(pose)
-        self.statuses.append(status)
-        self.digests.append(digest)
-
-    def record(self, pose: PoseEstimate, pose_m: np.ndarray, digest: bytes, restart: bool) -> None:
-        """A published pose: a new trajectory's first, the next one, or a relocalised pose replacing its seq's."""
-        with self._lock:
-            if restart:
-                self.seqs, self.stamps, self.poses, self.statuses, self.digests, self.position = [], [], [], [], [], {}
-                self.started = True
-            i = self.position.get(pose.seq)
-            if i is not None:
-                self.poses[i], self.statuses[i] = pose_m, pose.status
-            else:
-                self.append(pose.seq, pose.stamp, pose_m, pose.status, digest)
-            self.latest = pose
-
-    def latest_pose(self) -> PoseEstimate | None:
-        """The last published pose (a query's answer)."""
-        with self._lock:
-            return self.latest
-
-    def arrays(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """(seqs, stamps, 4x4 poses) as they are now, copied (a query's answer)."""
-        with self._lock:
-            return (
-                np.array(self.seqs, np.int64),
-                np.array(self.stamps, np.float64),
-                np.array(self.poses, np.float64).reshape(-1, 4, 4),
-            )
+    latest: PoseEstimate
+    seqs: np.ndarray
+    stamps: np.ndarray
+    poses: np.ndarray  # (n, 4, 4)
 
     @property
     def last_seq(self) -> int:
-        return self.seqs[-1]
+        return int(self.seqs[-1]) if len(self.seqs) else -1
+
+    def has(self, seq: int) -> bool:
+        i = int(np.searchsorted(self.seqs, seq))  # seqs ascend within a trajectory
+        return i < len(self.seqs) and self.seqs[i] == seq
+
+
+class StreamTrajectory:
+    """Committed poses of one stream (in memory; the store has them too), written by its session's pose path only.
+    Rows grow in place past the published ones; a row published is replaced in a copy (copy on write)."""
+
+    def __init__(self):
+        self.view: TrajectoryView | None = None  # None until a pose is known (in memory or in the store)
+        self._clear()
+
+    def _clear(self) -> None:
+        self._seqs, self._stamps, self._poses = _rows(0)
+        self._n = 0
+        self._statuses: list[str] = []
+        self._digests: list[bytes] = []
+        self._position: dict[int, int] = {}  # seq -> row
+
+    def __len__(self) -> int:
+        return self._n
+
+    def append(self, seq: int, stamp: float, pose: np.ndarray, status: str, digest: bytes) -> None:
+        """A pose after the last (the rows past the published ones: no reader sees them)."""
+        n = self._n
+        if n == len(self._seqs):  # full: rows twice as many, the published ones copied (readers keep the old)
+            grown = _rows(max(64, 2 * n))
+            for new, old in zip(grown, (self._seqs, self._stamps, self._poses), strict=True):
+                new[:n] = old
+            self._seqs, self._stamps, self._poses = grown
+        self._seqs[n], self._stamps[n], self._poses[n] = seq, stamp, pose
+        self._position[seq] = n
+        self._statuses.append(status)
+        self._digests.append(digest)
+        self._n = n + 1
+
+    def record(self, pose: PoseEstimate, pose_m: np.ndarray, digest: bytes, restart: bool) -> None:
+        """A published pose: a new trajectory's first, the next one, or a relocalised pose replacing its seq's."""
+        if restart:
+            self._clear()
+        i = self._position.get(pose.seq)
+        if i is not None:
+            self._poses = self._poses.copy()  # the published arrays stay as queries read them
+            self._poses[i], self._statuses[i] = pose_m, pose.status
+        else:
+            self.append(pose.seq, pose.stamp, pose_m, pose.status, digest)
+        self.publish(pose)
+
+    def publish(self, latest: PoseEstimate) -> None:
+        n = self._n
+        self.view = TrajectoryView(latest, self._seqs[:n], self._stamps[:n], self._poses[:n])
+
+    @property
+    def started(self) -> bool:
+        """A trajectory exists (in memory or in the store)."""
+        return self.view is not None
+
+    @property
+    def last_seq(self) -> int:
+        return int(self._seqs[self._n - 1])
 
     def stored(self, seq: int) -> StoredPose | None:
-        i = self.position.get(seq)
-        return None if i is None else StoredPose(seq, self.stamps[i], self.digests[i], self.statuses[i], self.poses[i])
+        i = self._position.get(seq)
+        if i is None:
+            return None
+        return StoredPose(seq, float(self._stamps[i]), self._digests[i], self._statuses[i], self._poses[i])
+
+
+def _rows(n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    return np.empty(n, np.int64), np.empty(n, np.float64), np.empty((n, 4, 4), np.float64)
 
 
 def pose_message(stream: str, p: StoredPose) -> PoseEstimate:

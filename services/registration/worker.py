@@ -24,7 +24,7 @@ from occvo_services.registration.retention import Retention
 from occvo_services.registration.scheduling import CatchUp, Scheduler
 from occvo_services.registration.session import StreamSession
 from occvo_services.registration.snapshots import SnapshotWriter
-from occvo_services.registration.store_faults import StoreOutage, refused
+from occvo_services.registration.store_faults import StoreOutage
 from occvo_services.runtime import Worker, WorkerConfig
 from occvo_services.store.factory import open_store
 from occvo_services.store.url import redact
@@ -160,9 +160,7 @@ class RegistrationWorker(Worker):
             self.stats.inc("frames_refused_quota")
             self.report_error(stream, "store_quota", why, keys.occupancy(stream), seq)
             return
-        session = self.session_of(stream)
-        session.client = client
-        session.handle(item)
+        self.session_of(stream).handle(item, client)
 
     def forget_idle(self, stream: str, delete):
         """delete() while no lane of the stream is open or opens; its session goes if delete() returns something.
@@ -186,9 +184,8 @@ class RegistrationWorker(Worker):
         """A frame not held while the store is away: the stream's later frames wait for it (as for a refused write)."""
         with self._sessions_lock:
             session = self.sessions.get(stream)
-        seqs = None if session is None else session.trajectory.seqs
-        if seqs is not None and (not seqs or seq > seqs[-1]):  # a resend of a registered frame is answered anyway
-            refused(session, seq)
+        if session is not None:
+            session.refused(seq)
 
     def _serving(self) -> set[str]:
         """The streams this worker has a lane or a lease-holding session of (their lease rows are kept)."""
@@ -280,12 +277,12 @@ class RegistrationWorker(Worker):
         self.ctx.snapshots.close()
         self._shutdown_step("queued snapshots written", t0)
         for stream, s in self.sessions_now():
-            vo = s.vo  # an idle session retiring now drops its OccVO (after its own snapshot)
-            if stream in in_hand or vo is None or not s.snapshot.unsaved or not s.may_write:
-                continue  # a frame in hand that did not finish in time: its OccVO is not touched from here
+            if stream in in_hand:  # a frame in hand that did not finish in time: its OccVO is not touched from here
+                continue
             t0 = time.perf_counter()
-            self.ctx.snapshots.write_now(stream, s.snapshot, s.trajectory.last_seq, vo, s.fence())  # in place
-            self._shutdown_step("snapshot at shutdown", t0, stream=stream, map_voxels=len(vo.map))
+            voxels = s.save()  # in place, if it has frames no snapshot has
+            if voxels is not None:
+                self._shutdown_step("snapshot at shutdown", t0, stream=stream, map_voxels=voxels)
         if self.leases is not None:  # the next owners take the streams at once
             self.placing.close()
             self.leases.stop()

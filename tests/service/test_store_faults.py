@@ -7,19 +7,22 @@ import logging
 import threading
 from types import SimpleNamespace
 
-from occvo_services.registration.store_faults import StoreOutage, refused, waits_for_refused
+from occvo_services.registration.store_faults import Refusals, StoreOutage
 from occvo_services.store.errors import StoreUnavailable
 from occvo_services.telemetry import Stats
 
 
 def _session():
-    s = SimpleNamespace(unstored=set(), refusal_lock=threading.Lock(), reports=[])
-    s._report = lambda code, message, seq: s.reports.append((code, seq))
-    return s
+    reports = []
+    return SimpleNamespace(refusals=Refusals(lambda code, message, seq: reports.append((code, seq))), reports=reports)
 
 
 def _waits(s, seq: int) -> bool:
-    return waits_for_refused(s, SimpleNamespace(msg=SimpleNamespace(seq=seq)))
+    return s.refusals.waits(seq)
+
+
+def refused(s, k: int) -> None:
+    s.refusals.refused(k)
 
 
 def test_frames_turned_away_come_back_in_order():

@@ -6,6 +6,7 @@ import numpy as np
 from numba import njit, prange
 
 from occvo_core.registration.kernels import CACHE, CHUNKS
+from occvo_core.registration.kernels.row_blocks import BLOCK_ROWS, block_reaches
 from occvo_core.registration.kernels.turns import canonical_xy, key_before, turn_before
 from occvo_core.registration.voxel_pfilter import p_index as voxel_p_index
 
@@ -26,38 +27,51 @@ def _empty_grid(n_cells):
 
 
 @njit(cache=CACHE, nogil=True)
-def key_bounds(keys, alive, n, lower, upper):
-    """(min, max) key of the live rows < n with keys in [lower, upper]; min > max when there are none."""
+def key_bounds(keys, alive, n, block_lo, block_hi, lower, upper):
+    """(min, max) key of the live rows < n with keys in [lower, upper]; min > max when there are none. Only the
+    row blocks whose box (block_lo, block_hi: row_blocks) reaches the box are read."""
     lo = upper.copy() + 1
     hi = lower.copy() - 1
-    for r in range(n):
-        if alive[r]:
-            inside = True
-            for a in range(3):
-                inside = inside and lower[a] <= keys[r, a] <= upper[a]
-            if inside:
+    for b in range((n + BLOCK_ROWS - 1) // BLOCK_ROWS):
+        if not block_reaches(block_lo, block_hi, b, lower, upper):
+            continue
+        for r in range(b * BLOCK_ROWS, min(n, (b + 1) * BLOCK_ROWS)):
+            if alive[r]:
+                inside = True
                 for a in range(3):
-                    lo[a] = min(lo[a], keys[r, a])
-                    hi[a] = max(hi[a], keys[r, a])
+                    inside = inside and lower[a] <= keys[r, a] <= upper[a]
+                if inside:
+                    for a in range(3):
+                        lo[a] = min(lo[a], keys[r, a])
+                        hi[a] = max(hi[a], keys[r, a])
     return lo, hi
 
 
 @njit(cache=CACHE, nogil=True, parallel=True)
-def window_voxels(keys, alive, f, t0, pos, label, n, lower, upper, t):
+def window_voxels(keys, alive, f, t0, pos, label, n, block_lo, block_hi, lower, upper, t):
     """Live rows < n with keys in [lower, upper], in row order, with copies of their positions and labels, their
-    p-index f / max(t - t0, 1), and the dense grid of the box holding each one's window index (one pass, not five)."""
+    p-index f / max(t - t0, 1), and the dense grid of the box holding each one's window index (one pass, not five).
+    Only the row blocks whose box (block_lo, block_hi: row_blocks) reaches the window are read row by row."""
     dims = upper - lower + 1
     grid = _empty_grid(dims[0] * dims[1] * dims[2])
     inside = np.empty(n, np.bool_)
     counts = np.zeros(CHUNKS + 1, np.int64)
-    for c in prange(CHUNKS):  # the scan of every row is the cost: count each slice's rows in parallel
-        for r in range(n * c // CHUNKS, n * (c + 1) // CHUNKS):
-            i = keys[r, 0] - lower[0]
-            j = keys[r, 1] - lower[1]
-            k = keys[r, 2] - lower[2]
-            inside[r] = alive[r] and 0 <= i < dims[0] and 0 <= j < dims[1] and 0 <= k < dims[2]
-            if inside[r]:
-                counts[c + 1] += 1
+    for c in prange(CHUNKS):  # count each slice's rows in parallel
+        r, end = n * c // CHUNKS, n * (c + 1) // CHUNKS
+        while r < end:
+            stop = min(end, (r // BLOCK_ROWS + 1) * BLOCK_ROWS)
+            if not block_reaches(block_lo, block_hi, r // BLOCK_ROWS, lower, upper):
+                inside[r:stop] = False
+                r = stop
+                continue
+            for q in range(r, stop):
+                i = keys[q, 0] - lower[0]
+                j = keys[q, 1] - lower[1]
+                k = keys[q, 2] - lower[2]
+                inside[q] = alive[q] and 0 <= i < dims[0] and 0 <= j < dims[1] and 0 <= k < dims[2]
+                if inside[q]:
+                    counts[c + 1] += 1
+            r = stop
     for c in range(CHUNKS):
         counts[c + 1] += counts[c]
     m = counts[CHUNKS]
@@ -89,37 +103,66 @@ def window_voxels(keys, alive, f, t0, pos, label, n, lower, upper, t):
 def ego_points(idx, rows, map_pos, map_cov, rot, trans, origin, dims, voxel, pad):
     """Map voxels rows[idx] moved into the frame of the pose (rot, trans): positions R^T (p - t), covariances
     R^T C R, and the dense grid of their cells in the box origin..origin + dims (of two voxels in one cell, the
-    first in turn_before's order), with pad empty cells on every side."""
+    first in turn_before's order), with pad empty cells on every side. The voxels come out column by column of the
+    grid (x, then y; those outside the box last): a frame's sources, in grid order too, then read the map nearly in
+    memory order rather than in the map's row order (scattered reads were GICP's cost). Returns pos, cov, grid and
+    the order (out voxel a is idx[order[a]]); no result depends on the voxels' order, only on their positions."""
     n = idx.shape[0]
-    pos = np.empty((n, 3))
-    cov = np.empty((n, 3, 3))
-    grid = _empty_grid((dims[0] + 2 * pad) * (dims[1] + 2 * pad) * (dims[2] + 2 * pad))
-    cell_of = np.empty(n, np.int64)
+    pos_in = np.empty((n, 3))
+    column = np.empty(n, np.int64)
+    n_col = dims[0] * dims[1]
     for a in prange(n):
         r = rows[idx[a]]
         d0 = map_pos[r, 0] - trans[0]
         d1 = map_pos[r, 1] - trans[1]
         d2 = map_pos[r, 2] - trans[2]
         for b in range(3):
-            pos[a, b] = d0 * rot[0, b] + d1 * rot[1, b] + d2 * rot[2, b]
+            pos_in[a, b] = d0 * rot[0, b] + d1 * rot[1, b] + d2 * rot[2, b]
+        i = int(np.floor(pos_in[a, 0] / voxel)) - origin[0]
+        j = int(np.floor(pos_in[a, 1] / voxel)) - origin[1]
+        k = int(np.floor(pos_in[a, 2] / voxel)) - origin[2]
+        inside = 0 <= i < dims[0] and 0 <= j < dims[1] and 0 <= k < dims[2]
+        column[a] = i * dims[1] + j if inside else n_col
+    start = np.zeros(n_col + 2, np.int64)  # a stable counting sort by column: voxel a goes to slot[a]
+    for a in range(n):
+        start[column[a] + 1] += 1
+    for c in range(n_col + 1):
+        start[c + 1] += start[c]
+    slot = np.empty(n, np.int64)
+    order = np.empty(n, np.int64)
+    for a in range(n):
+        slot[a] = start[column[a]]
+        order[slot[a]] = a
+        start[column[a]] += 1
+    pos = np.empty((n, 3))
+    cov = np.empty((n, 3, 3))
+    grid = _empty_grid((dims[0] + 2 * pad) * (dims[1] + 2 * pad) * (dims[2] + 2 * pad))
+    for a in prange(n):  # the map read in row order, the voxels written to their slots
+        r = rows[idx[a]]
+        s = slot[a]
+        for b in range(3):
+            pos[s, b] = pos_in[a, b]
         for u in range(3):  # R^T C R
             t0 = rot[0, u] * map_cov[r, 0, 0] + rot[1, u] * map_cov[r, 1, 0] + rot[2, u] * map_cov[r, 2, 0]
             t1 = rot[0, u] * map_cov[r, 0, 1] + rot[1, u] * map_cov[r, 1, 1] + rot[2, u] * map_cov[r, 2, 1]
             t2 = rot[0, u] * map_cov[r, 0, 2] + rot[1, u] * map_cov[r, 1, 2] + rot[2, u] * map_cov[r, 2, 2]
             for v in range(3):
-                cov[a, u, v] = t0 * rot[0, v] + t1 * rot[1, v] + t2 * rot[2, v]
-        i = int(np.floor(pos[a, 0] / voxel)) - origin[0]
-        j = int(np.floor(pos[a, 1] / voxel)) - origin[1]
-        k = int(np.floor(pos[a, 2] / voxel)) - origin[2]
-        inside = 0 <= i < dims[0] and 0 <= j < dims[1] and 0 <= k < dims[2]
-        cell_of[a] = _padded_cell(i, j, k, dims, pad) if inside else -1
+                cov[s, u, v] = t0 * rot[0, v] + t1 * rot[1, v] + t2 * rot[2, v]
+    cell_of = np.empty(n, np.int64)
+    for a in prange(n):
+        cell_of[a] = -1
+        if column[order[a]] < n_col:
+            i = int(np.floor(pos[a, 0] / voxel)) - origin[0]
+            j = int(np.floor(pos[a, 1] / voxel)) - origin[1]
+            k = int(np.floor(pos[a, 2] / voxel)) - origin[2]
+            cell_of[a] = _padded_cell(i, j, k, dims, pad)
     for a in range(n):  # two voxels in one cell: turn_before's first wins (row order turns with the frames)
         c = cell_of[a]
         if c >= 0:
             b = grid[c]
             if b < 0 or turn_before(pos[a, 0], pos[a, 1], pos[a, 2], pos[b, 0], pos[b, 1], pos[b, 2]):
                 grid[c] = a
-    return pos, cov, grid
+    return pos, cov, grid, order
 
 
 @njit(cache=CACHE, nogil=True, parallel=True)

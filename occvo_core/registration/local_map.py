@@ -164,7 +164,7 @@ class EgoMap:
     ) -> EgoMap:
         idx = np.flatnonzero(local.usable if subset is None else subset)
         origin, dims = _ego_box(np.asarray(lower, np.float64), np.asarray(upper, np.float64), voxel)
-        pos, cov, grid, order = ego_points(
+        pos, cov, grid = ego_points(
             idx,
             local.rows,
             local.map.pos,
@@ -176,7 +176,6 @@ class EgoMap:
             voxel,
             GRID_PAD,
         )
-        idx = idx[order]
         return cls(pose, pos, cov, local.labels[idx], np.ones(len(idx), bool), grid, origin, dims, voxel, idx)
 
     @classmethod

@@ -136,7 +136,7 @@ def test_two_map_voxels_in_one_ego_cell_keep_the_same_one_after_a_turn():
         p = p[np.lexsort((p[:, 2], p[:, 1], p[:, 0]))]
         covs = np.tile(np.eye(3), (len(p), 1, 1))
         origin, dims = np.array([-30, -30, -5]), np.array([60, 60, 10])
-        pos, _, grid, _ = ego_points(
+        pos, _, grid = ego_points(
             np.arange(len(p)), np.arange(len(p)), p, covs, np.eye(3), np.zeros(3), origin, dims, 0.4, 2
         )
         winners = pos[grid[grid >= 0]]

@@ -103,66 +103,37 @@ def window_voxels(keys, alive, f, t0, pos, label, n, block_lo, block_hi, lower, 
 def ego_points(idx, rows, map_pos, map_cov, rot, trans, origin, dims, voxel, pad):
     """Map voxels rows[idx] moved into the frame of the pose (rot, trans): positions R^T (p - t), covariances
     R^T C R, and the dense grid of their cells in the box origin..origin + dims (of two voxels in one cell, the
-    first in turn_before's order), with pad empty cells on every side. The voxels come out column by column of the
-    grid (x, then y; those outside the box last): a frame's sources, in grid order too, then read the map nearly in
-    memory order rather than in the map's row order (scattered reads were GICP's cost). Returns pos, cov, grid and
-    the order (out voxel a is idx[order[a]]); no result depends on the voxels' order, only on their positions."""
+    first in turn_before's order), with pad empty cells on every side."""
     n = idx.shape[0]
-    pos_in = np.empty((n, 3))
-    column = np.empty(n, np.int64)
-    n_col = dims[0] * dims[1]
+    pos = np.empty((n, 3))
+    cov = np.empty((n, 3, 3))
+    grid = _empty_grid((dims[0] + 2 * pad) * (dims[1] + 2 * pad) * (dims[2] + 2 * pad))
+    cell_of = np.empty(n, np.int64)
     for a in prange(n):
         r = rows[idx[a]]
         d0 = map_pos[r, 0] - trans[0]
         d1 = map_pos[r, 1] - trans[1]
         d2 = map_pos[r, 2] - trans[2]
         for b in range(3):
-            pos_in[a, b] = d0 * rot[0, b] + d1 * rot[1, b] + d2 * rot[2, b]
-        i = int(np.floor(pos_in[a, 0] / voxel)) - origin[0]
-        j = int(np.floor(pos_in[a, 1] / voxel)) - origin[1]
-        k = int(np.floor(pos_in[a, 2] / voxel)) - origin[2]
-        inside = 0 <= i < dims[0] and 0 <= j < dims[1] and 0 <= k < dims[2]
-        column[a] = i * dims[1] + j if inside else n_col
-    start = np.zeros(n_col + 2, np.int64)  # a stable counting sort by column: voxel a goes to slot[a]
-    for a in range(n):
-        start[column[a] + 1] += 1
-    for c in range(n_col + 1):
-        start[c + 1] += start[c]
-    slot = np.empty(n, np.int64)
-    order = np.empty(n, np.int64)
-    for a in range(n):
-        slot[a] = start[column[a]]
-        order[slot[a]] = a
-        start[column[a]] += 1
-    pos = np.empty((n, 3))
-    cov = np.empty((n, 3, 3))
-    grid = _empty_grid((dims[0] + 2 * pad) * (dims[1] + 2 * pad) * (dims[2] + 2 * pad))
-    for a in prange(n):  # the map read in row order, the voxels written to their slots
-        r = rows[idx[a]]
-        s = slot[a]
-        for b in range(3):
-            pos[s, b] = pos_in[a, b]
+            pos[a, b] = d0 * rot[0, b] + d1 * rot[1, b] + d2 * rot[2, b]
         for u in range(3):  # R^T C R
             t0 = rot[0, u] * map_cov[r, 0, 0] + rot[1, u] * map_cov[r, 1, 0] + rot[2, u] * map_cov[r, 2, 0]
             t1 = rot[0, u] * map_cov[r, 0, 1] + rot[1, u] * map_cov[r, 1, 1] + rot[2, u] * map_cov[r, 2, 1]
             t2 = rot[0, u] * map_cov[r, 0, 2] + rot[1, u] * map_cov[r, 1, 2] + rot[2, u] * map_cov[r, 2, 2]
             for v in range(3):
-                cov[s, u, v] = t0 * rot[0, v] + t1 * rot[1, v] + t2 * rot[2, v]
-    cell_of = np.empty(n, np.int64)
-    for a in prange(n):
-        cell_of[a] = -1
-        if column[order[a]] < n_col:
-            i = int(np.floor(pos[a, 0] / voxel)) - origin[0]
-            j = int(np.floor(pos[a, 1] / voxel)) - origin[1]
-            k = int(np.floor(pos[a, 2] / voxel)) - origin[2]
-            cell_of[a] = _padded_cell(i, j, k, dims, pad)
+                cov[a, u, v] = t0 * rot[0, v] + t1 * rot[1, v] + t2 * rot[2, v]
+        i = int(np.floor(pos[a, 0] / voxel)) - origin[0]
+        j = int(np.floor(pos[a, 1] / voxel)) - origin[1]
+        k = int(np.floor(pos[a, 2] / voxel)) - origin[2]
+        inside = 0 <= i < dims[0] and 0 <= j < dims[1] and 0 <= k < dims[2]
+        cell_of[a] = _padded_cell(i, j, k, dims, pad) if inside else -1
     for a in range(n):  # two voxels in one cell: turn_before's first wins (row order turns with the frames)
         c = cell_of[a]
         if c >= 0:
             b = grid[c]
             if b < 0 or turn_before(pos[a, 0], pos[a, 1], pos[a, 2], pos[b, 0], pos[b, 1], pos[b, 2]):
                 grid[c] = a
-    return pos, cov, grid, order
+    return pos, cov, grid
 
 
 @njit(cache=CACHE, nogil=True, parallel=True)

@@ -7,7 +7,7 @@ from __future__ import annotations
 import numba
 import numpy as np
 
-from occvo_core.registration.kernels import map_rows, map_window, nearest
+from occvo_core.registration.kernels import map_rows, map_window, nearest, row_blocks
 from occvo_core.registration.kernels import voxel_pfilter as pfilter_kernels
 from occvo_core.registration.local_map import EgoMap, LocalMap, moved  # noqa: F401 - EgoMap, moved: older import path
 from occvo_core.registration.voxel_pfilter import p_index
@@ -40,7 +40,7 @@ class VoxelPFilterMap(VoxelRows):
         whole box (a wide, tall search box is mostly empty: its dense grid would cost tens of MB)."""
         origin, upper = np.asarray(lower, np.int64), np.asarray(upper, np.int64)
         if tight:
-            lo, hi = map_window.key_bounds(self.keys, self.alive, self._n, origin, upper)
+            lo, hi = map_window.key_bounds(self.keys, self.alive, self._n, self.block_lo, self.block_hi, origin, upper)
             origin, upper = (lo, hi) if np.all(lo <= hi) else (origin, origin)
         rows, pos, labels, p_index, grid = map_window.window_voxels(
             self.keys,
@@ -50,6 +50,8 @@ class VoxelPFilterMap(VoxelRows):
             self.pos,
             self.label,
             self._n,
+            self.block_lo,
+            self.block_hi,
             origin,
             upper,
             t if t is not None else 0,
@@ -144,6 +146,7 @@ class VoxelPFilterMap(VoxelRows):
         self.counts[new] = 0
         self.alive[new] = True
         self._n += n_new
+        self._bound_rows_from(new.start)
         changed = np.array([np.inf, np.inf, -np.inf, -np.inf])  # merged voxels before and after, observed ones
         pfilter_kernels.merge_points(
             rows,
@@ -221,6 +224,7 @@ class VoxelPFilterMap(VoxelRows):
         self.alive[rows] = True
         self._touch(self.pos[rows])
         self._n += n_new
+        self._bound_rows_from(rows.start)
         return n_new
 
     def move(
@@ -255,6 +259,7 @@ class VoxelPFilterMap(VoxelRows):
             box,
         )
         self._touch_box(box)
+        row_blocks.grow_blocks(self.keys, rows, self.block_lo, self.block_hi)
         keys = self.keys[rows]
         self.alive[rows] = False  # judge the moved voxels against the others
         held = self.window(keys.min(axis=0) - 1, keys.max(axis=0) + 1)

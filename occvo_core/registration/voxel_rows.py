@@ -7,7 +7,7 @@ import numpy as np
 
 from occvo_core.grid import NUM_CLASSES
 from occvo_core.map_tiles import pack_tiles
-from occvo_core.registration.kernels import map_rows
+from occvo_core.registration.kernels import map_rows, row_blocks
 
 _FIELDS = (
     "keys",
@@ -86,6 +86,14 @@ class VoxelRows:
             if old is not None:
                 map_rows.copy_row_bytes(_row_bytes(arr), _row_bytes(getattr(self, name)), self._n)
             setattr(self, name, arr)
+        blocks = -(-capacity // row_blocks.BLOCK_ROWS)
+        self.block_lo, self.block_hi = np.empty((blocks, 3), np.int64), np.empty((blocks, 3), np.int64)
+        self._bound_rows_from(0)
+
+    def _bound_rows_from(self, row: int) -> None:
+        """Recompute the key boxes of the row blocks (row_blocks) from the one holding `row` on: rows from there on
+        were made or renumbered."""
+        row_blocks.block_bounds(self.keys, self._n, row // row_blocks.BLOCK_ROWS, self.block_lo, self.block_hi)
 
     def __len__(self) -> int:
         return int(np.count_nonzero(self.alive[: self._n]))
@@ -127,6 +135,7 @@ class VoxelRows:
             map_rows.gather_row_bytes(_row_bytes(getattr(self, name)), keep)
         self.alive[len(keep) : n] = False
         self._n = len(keep)
+        self._bound_rows_from(0)
 
     def state(self, copy: bool = True) -> dict[str, np.ndarray]:
         """Every row (dropped ones too, so row order and thus tie-breaking survive a reload); copy=False: views."""
@@ -142,6 +151,7 @@ class VoxelRows:
         for name in _FIELDS:
             getattr(self, name)[:n] = _field(state, name)
         self._n = n
+        self._bound_rows_from(0)
 
     def tile_ids(self, tile_m: float, rows: np.ndarray | None = None) -> np.ndarray:
         """(n,2) x-y tile of every row (or of `rows`): floor(pos / tile_m), as occvo_core.map_tiles cuts the map."""

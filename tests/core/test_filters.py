@@ -442,3 +442,37 @@ def test_compaction_reclaims_dead_rows_before_the_map_would_have_to_grow():
     m = filled(cap - cap // 16, near[:100])  # near the capacity, but too few dead rows to be worth a copy of it all
     m.compact()
     assert m._n == cap - cap // 16
+
+
+def test_a_window_finds_every_row_a_scan_would_after_merges_moves_puts_and_compaction():
+    """window() reads only the row blocks whose key box reaches it: after each way rows are made, moved, put back or
+    renumbered, it returns exactly the live rows, in row order, that a scan of every row finds."""
+    from occvo_core.registration.kernels.row_blocks import BLOCK_ROWS
+
+    def scanned(m, lower, upper):
+        keys, n = m.keys[: m._n], m._n
+        return np.flatnonzero(m.alive[:n] & np.all((keys >= lower) & (keys <= upper), axis=1))
+
+    def check(m):
+        for lower, upper in (([-5, -5, -2], [40, 5, 3]), ([-5, 60, -2], [600, 90, 3]), ([-5, -5, -1], [4200, 300, 1])):
+            lower, upper = np.array(lower), np.array(upper)
+            assert np.array_equal(m.window(lower, upper).rows, scanned(m, lower, upper))
+
+    m = VoxelPFilterMap(0.4, merge_radius_m=0.0)
+    x = np.arange(4 * BLOCK_ROWS) * 0.4 + 0.2  # a line of voxels, made over four frames: several blocks
+    for t, part in enumerate(np.array_split(x, 4)):
+        pts = np.stack([part, np.full(len(part), 0.2), np.full(len(part), 0.2)], axis=1)
+        m.merge(pts, np.zeros(len(pts), np.uint8), np.tile(np.eye(3), (len(pts), 1, 1)), t)
+    check(m)
+    rows = np.arange(10, 10 + BLOCK_ROWS // 2)  # moved 30 m aside, out of their blocks' boxes
+    shift = np.tile([0.0, 30.0, 0.0], (len(rows), 1))
+    assert m.move(rows, np.tile(np.eye(3), (len(rows), 1, 1)), shift) == 0
+    check(m)
+    block = m.take(np.arange(2 * BLOCK_ROWS, 2 * BLOCK_ROWS + 50), 4)
+    block["keys"] = block["keys"] + [0, 200, 0]  # put back 80 m aside
+    block["pos"] = block["pos"] + [0.0, 80.0, 0.0]
+    assert m.put(block, 5) == 50
+    check(m)
+    m.remove(np.arange(0, m._n, 2))
+    m.compact()
+    check(m)

@@ -45,6 +45,7 @@ MODULES = (
     "gicp",
     "clusters",
     "voxel_pfilter",
+    "row_blocks",
     "map_window",
     "map_rows",
 )

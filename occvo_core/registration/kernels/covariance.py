@@ -106,6 +106,8 @@ def plane_covariances(ijk, shape, radius, epsilon):
             i = ijk[n, 0] + di
             if i < 0 or i >= shape[0]:
                 continue
+            # the row's sums over dj first, then weighted by di once (whole numbers: the same totals)
+            rc = rcj = rcjj = rs = rsj = rq = 0
             for dj in range(-radius, radius + 1):
                 j = ijk[n, 1] + dj
                 if j < 0 or j >= shape[1]:
@@ -114,17 +116,23 @@ def plane_covariances(ijk, shape, radius, epsilon):
                 bits = (column >> low if low >= 0 else column << -low) & full
                 if bits == 0:
                     continue
-                c, s, q = table[bits, 0], table[bits, 1], table[bits, 2]
-                cnt += c
-                sx += di * c
-                sy += dj * c
-                sz += s
-                sxx += di * di * c
-                sxy += di * dj * c
-                sxz += di * s
-                syy += dj * dj * c
-                syz += dj * s
-                szz += q
+                c, s = table[bits, 0], table[bits, 1]
+                rc += c
+                rcj += dj * c
+                rcjj += dj * dj * c
+                rs += s
+                rsj += dj * s
+                rq += table[bits, 2]
+            cnt += rc
+            sx += di * rc
+            sy += rcj
+            sz += rs
+            sxx += di * di * rc
+            sxy += di * rcj
+            sxz += di * rs
+            syy += rcjj
+            syz += rsj
+            szz += rq
         nx, ny, nz, plane = 0.0, 0.0, 0.0, False
         if cnt >= 3:  # cnt^2 times the scatter matrix, in whole numbers
             nx, ny, nz, plane = _smallest_eigenvector(

@@ -6,6 +6,7 @@ import numpy as np
 from numba import njit, prange
 
 from occvo_core.registration.kernels import CACHE, CHUNKS
+from occvo_core.registration.kernels.row_blocks import BLOCK_ROWS, block_reaches
 from occvo_core.registration.kernels.turns import canonical_xy, key_before, turn_before
 from occvo_core.registration.voxel_pfilter import p_index as voxel_p_index
 
@@ -26,38 +27,51 @@ def _empty_grid(n_cells):
 
 
 @njit(cache=CACHE, nogil=True)
-def key_bounds(keys, alive, n, lower, upper):
-    """(min, max) key of the live rows < n with keys in [lower, upper]; min > max when there are none."""
+def key_bounds(keys, alive, n, block_lo, block_hi, lower, upper):
+    """(min, max) key of the live rows < n with keys in [lower, upper]; min > max when there are none. Only the
+    row blocks whose box (block_lo, block_hi: row_blocks) reaches the box are read."""
     lo = upper.copy() + 1
     hi = lower.copy() - 1
-    for r in range(n):
-        if alive[r]:
-            inside = True
-            for a in range(3):
-                inside = inside and lower[a] <= keys[r, a] <= upper[a]
-            if inside:
+    for b in range((n + BLOCK_ROWS - 1) // BLOCK_ROWS):
+        if not block_reaches(block_lo, block_hi, b, lower, upper):
+            continue
+        for r in range(b * BLOCK_ROWS, min(n, (b + 1) * BLOCK_ROWS)):
+            if alive[r]:
+                inside = True
                 for a in range(3):
-                    lo[a] = min(lo[a], keys[r, a])
-                    hi[a] = max(hi[a], keys[r, a])
+                    inside = inside and lower[a] <= keys[r, a] <= upper[a]
+                if inside:
+                    for a in range(3):
+                        lo[a] = min(lo[a], keys[r, a])
+                        hi[a] = max(hi[a], keys[r, a])
     return lo, hi
 
 
 @njit(cache=CACHE, nogil=True, parallel=True)
-def window_voxels(keys, alive, f, t0, pos, label, n, lower, upper, t):
+def window_voxels(keys, alive, f, t0, pos, label, n, block_lo, block_hi, lower, upper, t):
     """Live rows < n with keys in [lower, upper], in row order, with copies of their positions and labels, their
-    p-index f / max(t - t0, 1), and the dense grid of the box holding each one's window index (one pass, not five)."""
+    p-index f / max(t - t0, 1), and the dense grid of the box holding each one's window index (one pass, not five).
+    Only the row blocks whose box (block_lo, block_hi: row_blocks) reaches the window are read row by row."""
     dims = upper - lower + 1
     grid = _empty_grid(dims[0] * dims[1] * dims[2])
     inside = np.empty(n, np.bool_)
     counts = np.zeros(CHUNKS + 1, np.int64)
-    for c in prange(CHUNKS):  # the scan of every row is the cost: count each slice's rows in parallel
-        for r in range(n * c // CHUNKS, n * (c + 1) // CHUNKS):
-            i = keys[r, 0] - lower[0]
-            j = keys[r, 1] - lower[1]
-            k = keys[r, 2] - lower[2]
-            inside[r] = alive[r] and 0 <= i < dims[0] and 0 <= j < dims[1] and 0 <= k < dims[2]
-            if inside[r]:
-                counts[c + 1] += 1
+    for c in prange(CHUNKS):  # count each slice's rows in parallel
+        r, end = n * c // CHUNKS, n * (c + 1) // CHUNKS
+        while r < end:
+            stop = min(end, (r // BLOCK_ROWS + 1) * BLOCK_ROWS)
+            if not block_reaches(block_lo, block_hi, r // BLOCK_ROWS, lower, upper):
+                inside[r:stop] = False
+                r = stop
+                continue
+            for q in range(r, stop):
+                i = keys[q, 0] - lower[0]
+                j = keys[q, 1] - lower[1]
+                k = keys[q, 2] - lower[2]
+                inside[q] = alive[q] and 0 <= i < dims[0] and 0 <= j < dims[1] and 0 <= k < dims[2]
+                if inside[q]:
+                    counts[c + 1] += 1
+            r = stop
     for c in range(CHUNKS):
         counts[c + 1] += counts[c]
     m = counts[CHUNKS]

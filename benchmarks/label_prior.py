@@ -8,6 +8,9 @@ scored by the same bands beside it.
         --labels .train/labels-0-24 --keyframes 17-24 --thresholds 0.1 0.2 0.3 0.4 0.5
     python benchmarks/label_prior.py --prior-labels .train/labels-0-24 --prior-keyframes 0-24 \
         --labels .train/labels-all --keyframes 25-40 --thresholds 0.3 --checkpoint CKPT
+
+--own-sweeps ROOT scores, beside, each keyframe's own LiDAR sweep labelled alone (ROOT/<i> from `occvo make-occupancy
+--keyframes i-i --sweeps-from i-i --out ROOT/i`): what a perfect copy of the sensor at that instant scores.
 """
 
 from __future__ import annotations
@@ -70,6 +73,7 @@ def main() -> int:
     p.add_argument("--thresholds", type=float, nargs="+", default=[0.3])
     p.add_argument("--all-frames", action="store_true", help="frequency over all prior keyframes, not only seen")
     p.add_argument("--checkpoint", type=Path, help="also score this model's argmax by the same bands")
+    p.add_argument("--own-sweeps", type=Path, help="ROOT/<i>: keyframe i labelled from its own sweep alone")
     p.add_argument("--json", action="store_true")
     args = p.parse_args()
     from occvo_core.datasets.nuscenes_drive import NuScenesDrive
@@ -82,6 +86,7 @@ def main() -> int:
     bands = [(0, 1000), *BANDS]
     rows = {t: {b: OccMetrics() for b in bands} for t in args.thresholds}
     model_rows = {b: OccMetrics() for b in bands}
+    sweep_rows = {b: OccMetrics() for b in bands}
     source = None
     if args.checkpoint is not None:
         import torch
@@ -97,6 +102,9 @@ def main() -> int:
             banded(grid, semantics, mask, bands, rows[t])
         if source is not None:
             banded(source.grid(i), semantics, mask, bands, model_rows)
+        if args.own_sweeps is not None:
+            (_, own, _), *_ = label_grids(drive, args.own_sweeps / str(i), (i, i))
+            banded(own, semantics, mask, bands, sweep_rows)
 
     def name(b):
         return "all" if b[1] == 1000 else f"{b[0]}-{b[1]} m"
@@ -107,6 +115,8 @@ def main() -> int:
     table = {f"prior >= {t}": summary(ms) for t, ms in rows.items()}
     if source is not None:
         table[str(args.checkpoint)] = summary(model_rows)
+    if args.own_sweeps is not None:
+        table["own sweep"] = summary(sweep_rows)
     if args.json:
         print(json.dumps(table, indent=1))
         return 0

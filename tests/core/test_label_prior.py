@@ -65,3 +65,20 @@ def test_a_run_adds_the_prior_to_a_checkpoint_without_one_and_resumes_it_after(t
     assert second.steps == 3 and second.losses[:2] == first.losses  # its optimizer state carried on
     with pytest.raises(ValueError, match="label_prior"):
         train(cfg, tmp_path / "c", 5, [], max_steps=1, progress=False, real=frames, resume=start, label_prior=prior)
+
+
+@pytest.mark.parametrize(
+    "extra,says",
+    [
+        ([], "--label-prior needs a drive's labels"),
+        (["--label-prior-threshold", "1.5"], "--label-prior-threshold must be in (0, 1), got 1.5"),
+    ],
+)
+def test_a_label_prior_without_labels_or_with_a_threshold_out_of_range_is_one_line(extra, says, tmp_path, capfd):
+    from occvo_cli.cli import main
+
+    code = main(["train-occ", "--minutes", "1", "--out", str(tmp_path / "t"), "--seeds", "0", "--label-prior", "1"]
+                + extra)  # fmt: skip
+    err = [line for line in capfd.readouterr().err.splitlines() if line.strip()]
+    assert code == 2 and len(err) == 1 and says in err[0], err
+    assert not (tmp_path / "t" / "checkpoint.pt").exists()

@@ -67,6 +67,16 @@ def add_parser(sub) -> None:
         help="train the image branch alone (backbone, depth head, pixel classes: no voxels), a small part of a "
         "step's cost; needs depth targets (a drive or rendered frames)",
     )
+    p.add_argument(
+        "--label-prior",
+        type=float,
+        metavar="WEIGHT",
+        help="add a learned per-voxel free-logit offset, initialised to WEIGHT x the log-odds of the drive keyframes' "
+        "label occupancy frequency (relative to --label-prior-threshold); needs a drive",
+    )
+    p.add_argument(
+        "--label-prior-threshold", type=float, default=0.4, help="frequency the offset is 0 at (default 0.4)"
+    )
     p.add_argument("--device", default="cpu", help="cpu or cuda (bf16 mixed precision on cuda)")
     p.add_argument(
         "--json", action="store_true", help="steps, seconds, losses and the checkpoint path as JSON on stdout"
@@ -98,6 +108,20 @@ def run(args) -> int:
         meta = {**(meta or {}), "depth_weight": args.depth_weight}
     if args.depth_only:
         meta = {**(meta or {}), "depth_only": True}
+    prior = None
+    if args.label_prior is not None or (args.resume is not None and _has_prior(args.resume)):
+        cfg = cfg.model_copy(update={"label_prior": True})
+    if args.label_prior is not None:
+        from occvo_core.models.label_prior import free_prior, occupancy_frequency
+
+        if not 0 < args.label_prior_threshold < 1:
+            raise ConfigError(f"--label-prior-threshold must be in (0, 1), got {args.label_prior_threshold}")
+        if real is None:
+            raise ConfigError("--label-prior needs a drive's labels (--drive or --drive-cache)")
+        shape = cfg.decode_shape or cfg.grid_shape
+        frequency = occupancy_frequency(real.arrays["semantics"])
+        prior = free_prior(frequency, shape, args.label_prior_threshold, args.label_prior)
+        meta = {**meta, "label_prior": {"weight": args.label_prior, "threshold": args.label_prior_threshold}}
     if real is None and not args.seeds:
         raise ConfigError("nothing to train on: give --seeds, or a drive (--drive or --drive-cache)")
     if not 0.0 <= args.real_fraction <= 1.0:
@@ -130,6 +154,7 @@ def run(args) -> int:
         depth_weight=args.depth_weight,
         depth_only=args.depth_only,
         meta=meta,
+        label_prior=prior,
     )
     tail = sum(result.losses[-20:]) / max(1, len(result.losses[-20:]))
     if args.json:
@@ -152,6 +177,12 @@ def run(args) -> int:
     print(f"checkpoint: {result.checkpoint}")
     print(f"loss curve: {Path(args.out) / 'loss_curve.png'}")
     return 0
+
+
+def _has_prior(path) -> bool:
+    from occvo_core.models.tpvformer.checkpoint import read_checkpoint
+
+    return bool(read_checkpoint(path)["config"].get("label_prior"))
 
 
 def _drive_frames(args, input_size):

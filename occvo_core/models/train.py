@@ -53,6 +53,7 @@ def train(
     real_fraction: float = 0.5,
     device: str | torch.device = "cpu",
     meta: dict | None = None,
+    label_prior: torch.Tensor | None = None,
 ) -> TrainResult:
     """Time-budgeted AdamW with warm-up and cosine decay over the budget; writes checkpoint.pt, loss_curve.png, train_log.json
     and checkpoint.state.pt (optimizer, step, losses: what `resume` continues from).
@@ -64,6 +65,8 @@ def train(
     offset is then calibrated on its keyframes as recorded. `device`: cuda trains in bf16 autocast. `depth_weight`
     scales the depth head's loss inside the image losses (their weight: `aux_weight`). `depth_only`: the image
     branch alone (backbone, depth head, pixel classes; no TPV encoder or voxels), at a small part of a step's cost.
+    `label_prior`: the initial free-logit offset of a `cfg.label_prior` model (label_prior.free_prior); a resumed
+    checkpoint without one gets it added (with a fresh optimizer).
     """
     device = torch.device(device)
     if real is not None and not seeds:
@@ -82,9 +85,17 @@ def train(
     )
     model = TPVFormer(cfg).train()
     if resume is not None:  # shapes checked against cfg; the calibrated free-logit offset is re-fitted at the end
-        model.load_state_dict(load_checkpoint(resume, config=cfg).state_dict())
+        adds_prior = label_prior is not None and not read_checkpoint(resume)["config"].get("label_prior")
+        base = cfg.model_copy(update={"label_prior": False}) if adds_prior else cfg
+        model.load_state_dict(load_checkpoint(resume, config=base).state_dict(), strict=not adds_prior)
+        if adds_prior:
+            state.pop("optimizer", None)  # its parameter list has no prior
         model.cfg = cfg.model_copy(update={"free_logit_bias": 0.0})
         model.train()
+    if label_prior is not None:
+        if not cfg.label_prior:
+            raise ValueError("label_prior given for a config without one (TPVFormerConfig.label_prior)")
+        model.free_prior.data.copy_(label_prior)
     model.to(device)
     # Class frequencies inside the camera mask from a few frames of each source.
     counts = np.zeros(NUM_CLASSES)

@@ -80,6 +80,11 @@ class TPVFormerConfig(_Section):
         "most likely depth, within this many metres (horizontally), each with the decoder's best occupied class; "
         "the rest free. 0 = off (the decoder's argmax)",
     )
+    label_prior: bool = Field(
+        False,
+        description="a learned per-voxel offset of the free logit at decode_shape (the grid if None), initialised "
+        "from the training labels' ego-frame occupancy frequency (occvo train-occ --label-prior)",
+    )
     lift_upsample: int = Field(4, ge=1, description="the depth distribution upsampled this many times before lifting")
     grid_shape: tuple[int, int, int] = OCC3D_GRID.shape
     lower: tuple[float, float, float] = OCC3D_GRID.lower

@@ -123,6 +123,8 @@ class TPVFormer(nn.Module):
                 _upsampler(c, cfg.decoder_hidden, tuple(t // n for t, n in zip(tg, sh)))
                 for sh, tg in zip(shapes, targets)
             )
+        if cfg.label_prior:  # where the training drive's labels were occupied, relative to the car (label_prior.py)
+            self.free_prior = nn.Parameter(torch.zeros(tuple(cfg.decode_shape or cfg.grid_shape)))
         nn.init.normal_(self.decoder[-1].weight, std=0.01)  # start near uniform class scores: a calm first loss
         nn.init.zeros_(self.decoder[-1].bias)
         self.register_buffer("image_mean", torch.tensor(IMAGE_MEAN).view(1, 3, 1, 1), persistent=False)
@@ -271,6 +273,8 @@ class TPVFormer(nn.Module):
             f += wz[:, None]  # in place: one pass less over the largest tensor of the decoder
             chunks.append(rest(f))
         logits = chunks[0] if len(chunks) == 1 else torch.cat(chunks, 1)  # (B, X, Y, Z, classes), classes innermost
+        if self.cfg.label_prior:
+            logits[..., FREE] += self.free_prior  # in place, as the offset below
         if self.cfg.free_logit_bias:
             logits[..., FREE] += self.cfg.free_logit_bias  # in place on the fresh logits: no second full tensor
         b, x, y, z, c = logits.shape

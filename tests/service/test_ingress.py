@@ -8,6 +8,7 @@ import threading
 import time
 
 import numpy as np
+from offline import offline
 
 from occvo_schemas import keys
 from occvo_services import ingress
@@ -15,16 +16,6 @@ from occvo_services.client import OccVOClient
 from occvo_services.ingress import TurnedAway
 from occvo_services.local import InProcessService
 from occvo_services.sessions import open_session
-
-
-def offline(frames):
-    from occvo_core import OccVO
-
-    vo = OccVO()
-    vo.reset()
-    for f in frames:
-        vo.step(f)
-    return vo
 
 
 def test_frames_after_one_a_full_queue_turned_away_wait_for_it_and_a_copy_of_one_in_is_not_waited_for():

@@ -9,6 +9,7 @@ import time
 import numpy as np
 import pytest
 import zenoh
+from offline import offline
 
 from occvo_services.sessions import free_port, open_router, open_session
 from occvo_services.store.blobs import pack_frame
@@ -129,7 +130,7 @@ def test_a_client_over_its_stream_share_makes_no_placement_and_no_lease_row(pg_u
         with OccVOClient(endpoint, "legit") as legit:
             legit.reset()
             got = [legit.step(f) for f in frames]
-        vo = _offline(frames)
+        vo = offline(frames)
         assert np.array_equal(np.array([p.matrix() for p in got]), vo.poses) and not legit.errors
         assert sorted(lease.stream for lease in store.leases()) == sorted([*grabbed, "legit"])
     finally:
@@ -140,13 +141,3 @@ def test_a_client_over_its_stream_share_makes_no_placement_and_no_lease_row(pg_u
         inf.stop()
         reg.stop()
         router.close()
-
-
-def _offline(frames):
-    from occvo_core import OccVO
-
-    vo = OccVO()
-    vo.reset()
-    for f in frames:
-        vo.step(f)
-    return vo

@@ -15,6 +15,7 @@ import msgpack
 import numpy as np
 import pytest
 import zenoh
+from offline import offline
 
 from occvo_core.map_tiles import changed_tiles, tiles_from_map
 from occvo_schemas import keys
@@ -35,16 +36,6 @@ def scene(name="scene-0101"):
     from occvo_core.datasets.occvo_release import OccVOReleaseScene
 
     return OccVOReleaseScene(DATA / "occupancy" / name)
-
-
-def offline(frames):
-    from occvo_core import OccVO
-
-    vo = OccVO()
-    vo.reset()
-    for f in frames:
-        vo.step(f)
-    return vo
 
 
 # ------------------------------------------------------------------ pure parts

@@ -4,6 +4,7 @@ otherwise. Each function here makes the call numpy makes for the same expression
 
 from __future__ import annotations
 
+import ctypes
 from pathlib import Path
 
 import llvmlite.binding
@@ -16,11 +17,15 @@ from occvo_core.registration.kernels import CACHE
 
 
 def _numpy_openblas() -> str:
-    """The OpenBLAS numpy's linalg links (loaded into the process first, so that kernels resolve it by name)."""
-    libs = sorted((Path(np.__file__).parent.parent / "numpy.libs").glob("libscipy_openblas64_*.so"))
-    if not libs:
-        raise ImportError("numpy's bundled OpenBLAS (numpy.libs/libscipy_openblas64_*.so) not found")
-    return str(libs[0])
+    """The OpenBLAS numpy's linalg runs on (numpy's PyPI wheels bundle scipy-openblas64), found among the libraries
+    this process has mapped; kernels then resolve its routines by name."""
+    import numpy.linalg  # noqa: F401 - maps numpy's OpenBLAS into the process
+
+    mapped = {w for w in Path("/proc/self/maps").read_text().split() if "blas" in w.lower() and ".so" in w}
+    for path in sorted(mapped):
+        if hasattr(ctypes.CDLL(path), "scipy_dgesv_64_"):
+            return path
+    raise ImportError("numpy's linalg runs on no scipy-openblas64 (as numpy's PyPI wheels do): GICP needs its routines")
 
 
 llvmlite.binding.load_library_permanently(_numpy_openblas())

@@ -1,0 +1,59 @@
+"""GICP's loop compiled whole keeps numpy's bits: its linear algebra is numpy's own, and a nearest point kept across
+iterations is the one a fresh search would find."""
+
+import numpy as np
+
+from occvo_core.registration.kernels import numpy_blas
+from occvo_core.registration.kernels.nearest import nearest_within
+from occvo_core.registration.kernels.nearest_bound import nearest_bounded, still_nearest
+from occvo_core.registration.kernels.se3 import rotvec_matrix
+
+
+def test_kernels_linear_algebra_gives_numpys_bits():
+    rng = np.random.default_rng(0)
+    naive_differs = 0
+    for _ in range(2000):
+        a = rng.normal(size=(6, 6))
+        h, g = a @ a.T + 1e-9 * np.eye(6), rng.normal(size=6) * 10 ** rng.uniform(-6, 3)
+        assert np.array_equal(numpy_blas.solve(h, -g), np.linalg.solve(h, -g))
+        p, q = np.eye(4), np.eye(4)
+        p[:3, :3], p[:3, 3] = rotvec_matrix(rng.normal(size=3)), rng.normal(size=3) * 30
+        q[:3, :3], q[:3, 3] = rotvec_matrix(rng.normal(size=3) * 0.01), rng.normal(size=3)
+        assert np.array_equal(numpy_blas.inv(p), np.linalg.inv(p))
+        assert np.array_equal(numpy_blas.matmul(p, q), p @ q)
+        assert numpy_blas.norm((p @ q)[:3, 3]) == np.linalg.norm((p @ q)[:3, 3])
+        naive_differs += not np.array_equal(np.einsum("ik,kj->ij", p, q), p @ q)
+    assert naive_differs > 0  # the comparisons above can tell one rounding from another
+
+
+def test_a_kept_nearest_point_is_the_one_a_fresh_search_finds():
+    """nearest_bounded answers as nearest_within does and bounds every other point; still_nearest answers for a
+    moved query only when a fresh search gives the same point and the same squared distance, and mostly does."""
+    rng = np.random.default_rng(5)
+    voxel, radius, max_d2 = 0.4, 2, 0.6**2
+    pts = np.concatenate([rng.uniform(-3, 3, (1500, 3)), rng.normal(0, 0.3, (300, 3))])
+    usable = rng.random(len(pts)) < 0.9
+    cells = np.floor(pts / voxel).astype(np.int64)
+    origin = cells.min(axis=0) - radius
+    dims = cells.max(axis=0) - origin + 1 + radius
+    grid = np.full(int(np.prod(dims)), -1, np.int64)
+    for n, (i, j, k) in enumerate(cells - origin):
+        grid[(i * dims[1] + j) * dims[2] + k] = n
+    held = np.flatnonzero(np.isin(np.arange(len(pts)), grid) & usable)
+    gaps = np.empty((3, 2 * radius + 1))
+    kept = asked = 0
+    for q in np.concatenate([rng.uniform(-3.5, 3.5, (3000, 3)), rng.normal(0, 0.3, (500, 3))]):
+        m, d2, bound2 = nearest_bounded(q, pts, grid, origin, dims, voxel, radius, usable, max_d2, gaps)
+        m0, d0 = nearest_within(q, pts, grid, origin, dims, voxel, radius, usable, max_d2)
+        if d0 <= max_d2 or d2 <= max_d2:
+            assert (m, d2) == (m0, d0)
+        others = np.linalg.norm(pts[held[held != m]] - q, axis=1)
+        assert bound2 <= max_d2 and (bound2 == 0 or others.min() >= np.sqrt(bound2) - 1e-12)
+        moved = q + rng.normal(size=3) * 10 ** rng.uniform(-4, -0.5)
+        d_kept = still_nearest(moved, pts, m, q, bound2, max_d2)
+        if m >= 0 and bound2 > 0:
+            asked += 1
+        if d_kept >= 0:
+            kept += 1
+            assert (m, d_kept) == nearest_within(moved, pts, grid, origin, dims, voxel, radius, usable, max_d2)
+    assert kept > asked / 2 > 500

@@ -57,3 +57,24 @@ def test_a_kept_nearest_point_is_the_one_a_fresh_search_finds():
             kept += 1
             assert (m, d_kept) == nearest_within(moved, pts, grid, origin, dims, voxel, radius, usable, max_d2)
     assert kept > asked / 2 > 500
+
+
+def test_search_skip_decides_as_numpys_arithmetic_at_the_limit():
+    """moved_beyond takes the C library's arccos, which may differ from numpy's in the last bit: at a limit equal to
+    numpy's bound, or one ulp either side, it must still decide as numpy's arithmetic does."""
+    from occvo_core.registration.gicp import rotation_angle
+    from occvo_core.registration.kernels.se3 import moved_beyond
+
+    rng = np.random.default_rng(2)
+    for _ in range(200):
+        since, pose = np.eye(4), np.eye(4)
+        since[:3, :3], since[:3, 3] = rotvec_matrix(rng.normal(size=3)), rng.normal(size=3) * 20
+        step = np.eye(4)
+        step[:3, :3], step[:3, 3] = rotvec_matrix(rng.normal(size=3) * 1e-3), rng.normal(size=3) * 1e-2
+        pose = step @ since
+        since_inv = np.linalg.inv(since)
+        reach = float(rng.uniform(5, 60))
+        s = pose @ since_inv
+        bound = float(np.linalg.norm(s[:3, 3]) + rotation_angle(s[:3, :3]) * (reach + np.linalg.norm(since[:3, 3])))
+        for limit in (np.nextafter(bound, -np.inf), bound, np.nextafter(bound, np.inf)):
+            assert moved_beyond(pose, since, since_inv, reach, limit) == (bound > limit)

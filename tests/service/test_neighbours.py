@@ -70,17 +70,20 @@ def test_a_stream_beside_a_heavy_stream_and_one_that_stopped_reading_gets_every_
     ):
         held = threading.Event()
         reader = open_session(svc.endpoint)  # a client that stops reading: its pose callback never returns
-        sub = reader.declare_subscriber(keys.pose(stalled.stream), lambda _: held.wait(120))
-        h.reset(), s.reset(), stalled.reset()
-        for i in range(4):
-            stalled.publish(steady[i])
-        sender = threading.Thread(target=lambda: [h.publish(heavy[i]) for i in range(6)])
-        sender.start()
-        got = [s.step(steady[i]) for i in range(8)]
-        sender.join()
-        last = h.wait_pose(5, timeout=300)
-        held.set()
-        sub.undeclare(), reader.close()
+        sub = reader.declare_subscriber(keys.pose(stalled.stream), lambda _: held.wait(600))
+        try:
+            h.reset(), s.reset(), stalled.reset()
+            for i in range(4):
+                stalled.publish(steady[i])
+            sender = threading.Thread(target=lambda: [h.publish(heavy[i]) for i in range(6)])
+            sender.start()
+            # a pose held up until the stalled client's callback returned would be a TimeoutError here
+            got = [s.wait_pose(s.publish(steady[i]), timeout=120) for i in range(8)]
+            sender.join()
+            last = h.wait_pose(5, timeout=300)
+        finally:
+            held.set()
+            sub.undeclare(), reader.close()
         assert [p.seq for p in got] == list(range(8)) and sorted(s.arrived, key=s.arrived.get) == list(range(8))
         assert not s.errors and not h.errors, (s.errors, h.errors)
         assert np.array_equal(np.array([p.matrix() for p in got]), offline([steady[i] for i in range(8)]).poses)

@@ -54,6 +54,7 @@ class Scheduler:
         self._team = pool(1, "kernels", initializer=name_os_thread)
         self._team_lock = threading.Lock()
         self._team_busy = False  # a call holds the kernel team (Scheduler.kernels)
+        self._team_ident = self._team.submit(threading.get_ident).result()
         self.after_pool = pool(AFTER_POSE_THREADS, "after-pose", initializer=self.background_thread)
         self.map_pool = pool(MAP_THREADS, "map", initializer=_map_thread_start)
         self._idle_team = IdleTeam()
@@ -90,8 +91,9 @@ class Scheduler:
             return True
 
     def kernels_done(self, threads: int) -> None:
-        """In the team thread after a caught-up frame's kernels: its spinning OpenMP threads make way for the pose."""
-        if threads > 1:
+        """After a caught-up frame's kernels: in the team thread, its spinning OpenMP threads make way for the pose
+        (a frame that ran beside the held team, in its lane, has none)."""
+        if threads > 1 and threading.get_ident() == self._team_ident:
             self._idle_team.lower(threads)
 
     @staticmethod

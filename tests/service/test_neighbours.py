@@ -47,6 +47,8 @@ def test_a_call_for_the_kernel_team_while_another_holds_it_runs_at_once_in_its_o
         beside.start()
         beside.join(20)
         assert ran_in == [beside.ident] and stats.counters["kernels_beside_team"] == 1
+        scheduler.kernels_done(2)  # a frame done in its lane: the busy team's OpenMP threads are left alone
+        assert scheduler._idle_team.nice is None
         me = threading.get_ident()
         release.set()
         holder.join()

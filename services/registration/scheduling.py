@@ -64,8 +64,9 @@ class Scheduler:
 
     def kernels(self, vo, fn, *args) -> tuple[object, float]:
         """(fn(*args), ms the team thread waited for a core): in the kernel team when vo may use several kernel
-        threads and the team is free, else in the calling thread on one (a frame never waits in the team's queue
-        behind another stream's registration: a stream with heavy frames held up every other stream's poses)."""
+        threads and the team is free, else in the calling thread on one: a frame never waits in the team's queue for
+        another stream's whole registration or map update (a stream of heavy frames holds the team several times
+        longer than a normal frame)."""
         if vo.threads == 1 or not self._take_team():
             return fn(*args), 0.0
 

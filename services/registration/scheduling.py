@@ -2,7 +2,8 @@
 
 - The kernel team (`Scheduler.kernels`): the one thread of the process whose numba kernels may use several cores
   (occvo_core.registration.kernels.own_team). A session hands it its frame's registration when its OccVO may use
-  more than one thread; caught up, the frame's commit and pose publication follow in the same call. Once the kernels
+  more than one thread and no other call holds the team (else it runs in the lane's thread on one: no stream's frame
+  queues behind another's); caught up, the frame's commit and pose publication follow in the same call. Once the kernels
   are done, the team's OpenMP threads (spinning after a kernel) are lowered (IdleTeam) and raised before the next.
 - The after-pose pool (AFTER_POSE_THREADS, after_pose_nice below the lanes), where a session's strand
   (`StreamThreads.after`, services/strand.py) runs its frames' work after their poses in order (loop closure, the map
@@ -51,6 +52,9 @@ class Scheduler:
     def __init__(self, after_pose_nice: int, stats, log):
         self.after_pose_nice, self.stats, self.log = after_pose_nice, stats, log
         self._team = pool(1, "kernels", initializer=name_os_thread)
+        self._team_lock = threading.Lock()
+        self._team_busy = False  # a call holds the kernel team (Scheduler.kernels)
+        self._team_ident = self._team.submit(threading.get_ident).result()
         self.after_pool = pool(AFTER_POSE_THREADS, "after-pose", initializer=self.background_thread)
         self.map_pool = pool(MAP_THREADS, "map", initializer=_map_thread_start)
         self._idle_team = IdleTeam()
@@ -60,8 +64,10 @@ class Scheduler:
 
     def kernels(self, vo, fn, *args) -> tuple[object, float]:
         """(fn(*args), ms the team thread waited for a core): in the kernel team when vo may use several kernel
-        threads, else in the calling thread."""
-        if vo.threads == 1:
+        threads and the team is free, else in the calling thread on one: a frame never waits in the team's queue for
+        another stream's whole registration or map update (a stream of heavy frames holds the team several times
+        longer than a normal frame)."""
+        if vo.threads == 1 or not self._take_team():
             return fn(*args), 0.0
 
         def call():
@@ -70,11 +76,25 @@ class Scheduler:
             result = fn(*args)
             return result, run_delay_ms() - w0
 
-        return self._team.submit(call).result()
+        try:
+            return self._team.submit(call).result()
+        finally:
+            with self._team_lock:
+                self._team_busy = False
+
+    def _take_team(self) -> bool:
+        """The kernel team for the caller's call, if no other call holds it."""
+        with self._team_lock:
+            if self._team_busy:
+                self.stats.inc("kernels_beside_team")
+                return False
+            self._team_busy = True
+            return True
 
     def kernels_done(self, threads: int) -> None:
-        """In the team thread after a caught-up frame's kernels: its spinning OpenMP threads make way for the pose."""
-        if threads > 1:
+        """After a caught-up frame's kernels: in the team thread, its spinning OpenMP threads make way for the pose
+        (a frame that ran beside the held team, in its lane, has none)."""
+        if threads > 1 and threading.get_ident() == self._team_ident:
             self._idle_team.lower(threads)
 
     @staticmethod

@@ -78,3 +78,45 @@ def test_search_skip_decides_as_numpys_arithmetic_at_the_limit():
         bound = float(np.linalg.norm(s[:3, 3]) + rotation_angle(s[:3, :3]) * (reach + np.linalg.norm(since[:3, 3])))
         for limit in (np.nextafter(bound, -np.inf), bound, np.nextafter(bound, np.inf)):
             assert moved_beyond(pose, since, since_inv, reach, limit) == (bound > limit)
+
+
+_FALLBACK = """
+import warnings
+with warnings.catch_warnings(record=True) as caught:
+    warnings.simplefilter("always")
+    from occvo_core.registration import kernels
+    from occvo_core.registration.kernels import blas_found, numpy_blas
+assert blas_found.NUMPY_OPENBLAS is None and numpy_blas.solve is numpy_blas._numba_solve
+assert any("numba's linear algebra" in str(w.message) for w in caught), [str(w.message) for w in caught]
+print(kernels.numba.config.CACHE_DIR)
+"""
+
+
+def test_numpy_on_another_blas_takes_numbas_linear_algebra_in_a_cache_of_its_own():
+    """Where numpy runs on no bundled OpenBLAS (Accelerate, MKL; forced here by OCCVO_LINALG=numba) the kernels take
+    numba's linear algebra, said in one warning, compiled into a kernel cache of their own (a cached kernel calls
+    the OpenBLAS it was built against by name); it answers as numpy does but for the last bits. A whole registration
+    on it: two synthetic frames, poses within 1e-6 of this build's (checked by hand: 2 minutes of compiling)."""
+    import os
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    from occvo_core.registration import kernels
+
+    root = str(Path(__file__).resolve().parents[2])
+    path = os.pathsep.join(p for p in (root, os.environ.get("PYTHONPATH")) if p)
+    env = {**os.environ, "OCCVO_LINALG": "numba", "PYTHONPATH": path}
+    env.pop("NUMBA_CACHE_DIR")  # the package set it for this process: the child derives its own
+    out = subprocess.run([sys.executable, "-c", _FALLBACK], env=env, check=True, capture_output=True, text=True)
+    assert Path(out.stdout.strip()).name != Path(kernels.numba.config.CACHE_DIR).name
+
+    rng = np.random.default_rng(1)
+    for _ in range(200):
+        a = rng.normal(size=(6, 6))
+        h, g = a @ a.T + 1e-3 * np.eye(6), rng.normal(size=6)
+        assert np.allclose(numpy_blas._numba_solve(h, -g), np.linalg.solve(h, -g), rtol=1e-9, atol=1e-12)
+        p, q = rng.normal(size=(4, 4)) + 4 * np.eye(4), rng.normal(size=(4, 4))
+        assert np.allclose(numpy_blas._numba_inv(p), np.linalg.inv(p), rtol=1e-9, atol=1e-12)
+        assert np.allclose(numpy_blas._numba_matmul(p, q), p @ q, rtol=1e-12, atol=1e-12)
+        assert np.isclose(numpy_blas._numba_norm((p @ q)[:3, 3]), np.linalg.norm((p @ q)[:3, 3]), rtol=1e-12)

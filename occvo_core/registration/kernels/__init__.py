@@ -15,6 +15,7 @@ from pathlib import Path
 import numba
 
 from occvo_core.free_cores import FREE_CORES
+from occvo_core.registration.kernels.blas_found import NUMPY_OPENBLAS
 
 if "NUMBA_THREADING_LAYER" not in os.environ:
     # streams registered side by side in threads of one worker launch parallel kernels at once: numba's default
@@ -25,9 +26,11 @@ if "NUMBA_THREADING_LAYER" not in os.environ:
 def _cache_dir() -> str:
     """numba keys a cached kernel by its own file only, so one that inlines a helper from another file would keep the
     old helper after a change to it alone (a `git pull`): the kernels are cached in a directory of their own for each
-    version of the registration package's sources (under NUMBA_CACHE_DIR when set, else beside the sources)."""
+    version of the registration package's sources and linear algebra (under NUMBA_CACHE_DIR when set, else beside the sources)."""
     root = Path(__file__).resolve().parents[1]
-    digest = hashlib.blake2b(b"".join(f.read_bytes() for f in sorted(root.rglob("*.py"))), digest_size=8).hexdigest()
+    linalg = str(NUMPY_OPENBLAS).encode()  # a kernel compiled against numpy's OpenBLAS calls it by name
+    sources = b"".join(f.read_bytes() for f in sorted(root.rglob("*.py")))
+    digest = hashlib.blake2b(sources + linalg, digest_size=8).hexdigest()
     base = os.environ.get("NUMBA_CACHE_DIR") or str(Path(__file__).parent / "__pycache__")
     name = f"occvo-kernels-{digest}"
     return base if Path(base).name == name else str(Path(base) / name)  # a worker inherits its parent's

@@ -1,11 +1,11 @@
 """numpy's own BLAS and LAPACK (its bundled OpenBLAS), bound for kernels: a GICP loop compiled whole must give the
 bits numpy gave it step by step, and numba's np.linalg calls scipy's OpenBLAS, another build whose kernels may round
-otherwise. Each function here makes the call numpy makes for the same expression."""
+otherwise. Each function here makes the call numpy makes for the same expression; where numpy runs on another BLAS
+(or OCCVO_LINALG=numba), numba's own linear algebra serves instead."""
 
 from __future__ import annotations
 
-import ctypes
-from pathlib import Path
+import warnings
 
 import llvmlite.binding
 import numpy as np
@@ -14,27 +14,21 @@ from numba.core import cgutils
 from numba.extending import intrinsic
 
 from occvo_core.registration.kernels import CACHE
+from occvo_core.registration.kernels.blas_found import NUMPY_OPENBLAS
 
-
-def _numpy_openblas() -> str:
-    """The OpenBLAS numpy's linalg runs on (numpy's PyPI wheels bundle scipy-openblas64), found among the libraries
-    this process has mapped; kernels then resolve its routines by name."""
-    import numpy.linalg  # noqa: F401 - maps numpy's OpenBLAS into the process
-
-    mapped = {w for w in Path("/proc/self/maps").read_text().split() if "blas" in w.lower() and ".so" in w}
-    for path in sorted(mapped):
-        if hasattr(ctypes.CDLL(path), "scipy_dgesv_64_"):
-            return path
-    raise ImportError("numpy's linalg runs on no scipy-openblas64 (as numpy's PyPI wheels do): GICP needs its routines")
-
-
-llvmlite.binding.load_library_permanently(_numpy_openblas())
-_p, _i, _d, _e = types.voidptr, types.int64, types.float64, types.int32  # _e: a CBLAS enum
-_dgesv = types.ExternalFunction("scipy_dgesv_64_", types.void(_p, _p, _p, _p, _p, _p, _p, _p))
-_ddot = types.ExternalFunction("scipy_cblas_ddot64_", _d(_i, _p, _i, _p, _i))
-_dgemm = types.ExternalFunction(
-    "scipy_cblas_dgemm64_", types.void(_e, _e, _e, *(_i,) * 3, _d, _p, _i, _p, _i, _d, _p, _i)
-)
+if NUMPY_OPENBLAS is None:
+    # Elsewhere (numpy on Accelerate, MKL, a distribution's BLAS) numba's own linear algebra serves: poses then may
+    # differ from a numpy-wheel build in the last bits, the same on any thread count.
+    warnings.warn("numpy's linalg runs on no bundled OpenBLAS: GICP's kernels use numba's linear algebra", stacklevel=1)
+else:
+    _lib, _pre = NUMPY_OPENBLAS
+    llvmlite.binding.load_library_permanently(_lib)
+    _p, _i, _d, _e = types.voidptr, types.int64, types.float64, types.int32  # _e: a CBLAS enum
+    _dgesv = types.ExternalFunction(f"{_pre}dgesv_64_", types.void(_p, _p, _p, _p, _p, _p, _p, _p))
+    _ddot = types.ExternalFunction(f"{_pre}cblas_ddot64_", _d(_i, _p, _i, _p, _i))
+    _dgemm = types.ExternalFunction(
+        f"{_pre}cblas_dgemm64_", types.void(_e, _e, _e, *(_i,) * 3, _d, _p, _i, _p, _i, _d, _p, _i)
+    )
 _ROW_MAJOR, _NO_TRANS = 101, 111  # CBLAS's enums
 
 
@@ -97,3 +91,28 @@ def norm(x):
     """np.linalg.norm(x) of a vector: sqrt(x.dot(x)), numpy's dot adding BLAS's ddot to 0."""
     c = np.ascontiguousarray(x)
     return np.sqrt(0.0 + _ddot(c.shape[0], _address(c), 1, _address(c), 1))
+
+
+@njit(cache=CACHE, nogil=True)
+def _numba_solve(a, b):
+    return np.linalg.solve(a, b)
+
+
+@njit(cache=CACHE, nogil=True)
+def _numba_inv(a):
+    return np.linalg.inv(a)
+
+
+@njit(cache=CACHE, nogil=True)
+def _numba_matmul(a, b):
+    return a @ b
+
+
+@njit(cache=CACHE, nogil=True)
+def _numba_norm(x):
+    c = np.ascontiguousarray(x)
+    return np.sqrt(np.dot(c, c))
+
+
+if NUMPY_OPENBLAS is None:
+    solve, inv, matmul, norm = _numba_solve, _numba_inv, _numba_matmul, _numba_norm

@@ -46,6 +46,7 @@ __all__ = [  # importers of these names from here predate the split
 
 class Worker:
     role: str = "worker"
+    input_context: dict | None = None  # the validators' context of its input (codec.decode)
 
     def __init__(self, config: WorkerConfig):
         self.config = config
@@ -244,7 +245,7 @@ class Worker:
         stream = keys.stream_of(key)
         self.stats.inc("frames_in")
         try:
-            msg = decode(sample.payload.to_bytes(), expect, self.config.max_message_bytes)
+            msg = decode(sample.payload.to_bytes(), expect, self.config.max_message_bytes, self.input_context)
         except CodecError as exc:
             if self.reports_input(stream):
                 self.report_error(stream, exc.code, exc.message, key, client=client)

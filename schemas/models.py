@@ -214,10 +214,10 @@ class SparseOccupancy(_Model):
         """Ego-frame coordinates (N,3) float64: as sent, or the voxel centres of the indices."""
         if self.points is not None:
             return self.points.to_numpy().copy()
-        idx = self.voxels.to_numpy().astype(np.int64)
+        idx = self.voxels.to_numpy()
         if self.axes is not None:
             return GridSpec.points_of(idx, self.axes.to_numpy())
-        return self.grid.to_grid().centres_of(idx)
+        return self.grid.to_grid().centres_of(idx.astype(np.int64))
 
     def index_tables(self, grid: GridSpec) -> tuple[np.ndarray, np.ndarray | None] | None:
         """(indices, axes or None for the centres) as sent, when the voxels came as indices on `grid`; else None."""

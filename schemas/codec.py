@@ -84,8 +84,14 @@ def _unpack(data: bytes, max_bytes: int):
     )
 
 
-def decode(data: bytes, expect: type[T] | tuple[type, ...] | None = None, max_bytes: int = DEFAULT_MAX_BYTES) -> T:
-    """bytes -> a validated message; `expect` restricts which models are accepted."""
+def decode(
+    data: bytes,
+    expect: type[T] | tuple[type, ...] | None = None,
+    max_bytes: int = DEFAULT_MAX_BYTES,
+    context: dict | None = None,
+) -> T:
+    """bytes -> a validated message; `expect` restricts which models are accepted; `context` goes to the validators
+    (models.SHAPES_ONLY: an occupancy's arrays checked for their shapes only)."""
     if len(data) > max_bytes:
         raise CodecError("oversize", f"payload of {len(data)} bytes exceeds the limit of {max_bytes}")
     try:
@@ -117,7 +123,7 @@ def decode(data: bytes, expect: type[T] | tuple[type, ...] | None = None, max_by
             names = [m.model_fields["kind"].default for m in allowed]
             raise CodecError("unknown_kind", f"expected {' or '.join(names)}, got {kind}")
     try:
-        return model.model_validate(obj)
+        return model.model_validate(obj, context=context)
     except ValidationError as exc:
         raise CodecError("invalid_message", f"{kind}: {_summary(exc)}") from None
     except Exception as exc:  # noqa: BLE001 - a validator failing otherwise (OverflowError...) is still a bad message

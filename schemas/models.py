@@ -10,13 +10,16 @@ import math
 from typing import Annotated, Literal
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
+from pydantic import BaseModel, ConfigDict, Field, ValidationInfo, field_validator, model_validator
 
 from occvo_core.grid import NUM_CLASSES, GridSpec
 
 SCHEMA_VERSION = 1  # every kind's first version; VERSIONS (below) holds each kind's newest
 ALLOWED_DTYPES = ("uint8", "uint16", "int32", "int64", "float32", "float64")
 Finite = Annotated[float, Field(allow_inf_nan=False)]
+# validation context: a SparseOccupancy's arrays checked for dtype, shape and size only, not voxel by voxel (a worker
+# that forwards it unread: the one that uses its voxels checks them, e.g. the inference worker's replay source)
+SHAPES_ONLY = "occupancy_shapes_only"
 SEQ_LIMIT = 2**63  # seq is a signed 64-bit integer in the store and in Trajectory.seqs: 0 <= seq < 2^63
 
 
@@ -94,9 +97,7 @@ def _duplicates(v: np.ndarray, shape: tuple[int, int, int] | None) -> int:
 
 
 def _check_axes(axes: Array, grid: GridSpec) -> None:
-    """SparseOccupancy.axes: one finite coordinate an index, inside the grid."""
-    if axes.dtype != "float64" or axes.shape != [3, max(grid.shape)]:
-        raise ValueError(f"axes must be (3, {max(grid.shape)}) float64, got {axes.dtype} {axes.shape}")
+    """SparseOccupancy.axes (its shape checked): one finite coordinate an index, inside the grid."""
     a = axes.to_numpy()
     inside = (a >= np.array(grid.lower)[:, None]) & (a < np.array(grid.upper)[:, None])  # NaN fails both
     for k, n in enumerate(grid.shape):
@@ -124,53 +125,68 @@ class SparseOccupancy(_Model):
     labels: Array = Field(description="(N,) uint8 Occ3D class ids 0..17")
 
     @model_validator(mode="after")
-    def _check(self) -> SparseOccupancy:
+    def _check(self, info: ValidationInfo) -> SparseOccupancy:
+        grid = self.grid.to_grid()
+        n = self._check_shapes(grid)
+        if not (info.context and info.context.get(SHAPES_ONLY)):
+            self._check_voxels(grid, n)
+        return self
+
+    def _check_shapes(self, grid: GridSpec) -> int:
+        """The arrays' dtypes and shapes, one label a voxel, no more voxels than cells: the voxel count."""
         if (self.voxels is None) == (self.points is None):
             raise ValueError("set exactly one of voxels (grid indices) and points (coordinates)")
-        l = self.labels
-        grid = self.grid.to_grid()
         if self.voxels is not None:
             v = self.voxels
             if v.dtype not in ("uint8", "uint16") or len(v.shape) != 2 or v.shape[1] != 3:
                 raise ValueError(f"voxels must be (N,3) uint8/uint16, got {v.dtype} {v.shape}")
-            n = v.shape[0]
-            if n and (_col_extremes(v.to_numpy())[1] >= np.array(grid.shape)).any():  # one pass on the happy path
-                over = np.any(v.to_numpy() >= np.array(grid.shape), axis=1)
-                raise ValueError(f"{int(over.sum())} voxel indices outside the grid shape {grid.shape}")
-            if self.axes is not None:
-                _check_axes(self.axes, grid)
+            axes = self.axes
+            if axes is not None and (axes.dtype != "float64" or axes.shape != [3, max(grid.shape)]):
+                raise ValueError(f"axes must be (3, {max(grid.shape)}) float64, got {axes.dtype} {axes.shape}")
         else:
             if self.axes is not None:
                 raise ValueError("axes come with voxels (indices), not with points")
             v = self.points
             if v.dtype != "float64" or len(v.shape) != 2 or v.shape[1] != 3:
                 raise ValueError(f"points must be (N,3) float64, got {v.dtype} {v.shape}")
-            n = v.shape[0]
-            p = v.to_numpy()
-            if n:
-                lo, hi = _col_extremes(p)  # NaN and inf show in the extremes: one pass when all is well
-                if not (np.isfinite(lo).all() and np.isfinite(hi).all()):
-                    bad = ~np.isfinite(p).all(axis=1)
-                    raise ValueError(f"{int(bad.sum())} points with non-finite coordinates (NaN or inf)")
-                if (lo < np.array(grid.lower)).any() or (hi >= np.array(grid.upper)).any():
-                    out = ~grid.inside(grid.indices_of(p))
-                    raise ValueError(f"{int(out.sum())} points outside the grid {grid.lower}..{grid.upper}")
+        n, l = v.shape[0], self.labels
         if l.dtype != "uint8" or len(l.shape) != 1 or l.shape[0] != n:
             raise ValueError(f"labels must be ({n},) uint8, got {l.dtype} {l.shape}")
-        # a frame is a set of voxels: at most one a grid cell, none twice (3.5 M copies of one voxel passed every
-        # size check and took registration past its memory cap)
         cells = math.prod(grid.shape)
         if n > cells:
             raise ValueError(f"{n} voxels, more than the grid's {cells} cells {tuple(grid.shape)}")
+        return n
+
+    def _check_voxels(self, grid: GridSpec, n: int) -> None:
+        """Each voxel inside the grid (finite), none twice, each label a class."""
+        if self.voxels is not None:
+            v = self.voxels.to_numpy()
+            top = np.array([v[:, i].max() for i in range(3)]) if n else None  # unsigned: their maxima are enough
+            if n and (top >= np.array(grid.shape)).any():  # one pass on the happy path
+                over = np.any(v >= np.array(grid.shape), axis=1)
+                raise ValueError(f"{int(over.sum())} voxel indices outside the grid shape {grid.shape}")
+            if self.axes is not None:
+                _check_axes(self.axes, grid)
+        else:
+            v = self.points.to_numpy()
+            if n:
+                lo, hi = _col_extremes(v)  # NaN and inf show in the extremes: one pass when all is well
+                if not (np.isfinite(lo).all() and np.isfinite(hi).all()):
+                    bad = ~np.isfinite(v).all(axis=1)
+                    raise ValueError(f"{int(bad.sum())} points with non-finite coordinates (NaN or inf)")
+                if (lo < np.array(grid.lower)).any() or (hi >= np.array(grid.upper)).any():
+                    out = ~grid.inside(grid.indices_of(v))
+                    raise ValueError(f"{int(out.sum())} points outside the grid {grid.lower}..{grid.upper}")
+        # a frame is a set of voxels: at most one a grid cell, none twice (3.5 M copies of one voxel passed every
+        # size check and took registration past its memory cap)
         if n > 1:
-            dup = _duplicates(v.to_numpy(), tuple(grid.shape) if self.voxels is not None else None)
+            dup = _duplicates(v, tuple(grid.shape) if self.voxels is not None else None)
             if dup:
                 raise ValueError(f"{dup} duplicate voxels: a frame is a set of voxels, each once")
         if n:
-            top = int(l.to_numpy().max())
+            top = int(self.labels.to_numpy().max())
             if top >= NUM_CLASSES:
                 raise ValueError(f"labels out of range 0..{NUM_CLASSES - 1}: max {top}")
-        return self
 
     @classmethod
     def from_points(cls, points: np.ndarray, labels: np.ndarray, grid: GridSpec, exact: bool = True) -> SparseOccupancy:
@@ -198,10 +214,10 @@ class SparseOccupancy(_Model):
         """Ego-frame coordinates (N,3) float64: as sent, or the voxel centres of the indices."""
         if self.points is not None:
             return self.points.to_numpy().copy()
-        idx = self.voxels.to_numpy().astype(np.int64)
+        idx = self.voxels.to_numpy()
         if self.axes is not None:
             return GridSpec.points_of(idx, self.axes.to_numpy())
-        return self.grid.to_grid().centres_of(idx)
+        return self.grid.to_grid().centres_of(idx.astype(np.int64))
 
     def index_tables(self, grid: GridSpec) -> tuple[np.ndarray, np.ndarray | None] | None:
         """(indices, axes or None for the centres) as sent, when the voxels came as indices on `grid`; else None."""

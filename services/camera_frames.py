@@ -14,10 +14,8 @@ def camera_frame_of(
 ) -> CameraFrame:
     """A recorded occupancy frame as a camera-frame message for the replay source (no images, its occupancy);
     exact keeps the recorded coordinates bit for bit, else they are snapped to compact voxel indices."""
-    return CameraFrame(
-        stream=stream,
-        seq=seq,
-        stamp=float(frame.stamp),
-        gt_occupancy=SparseOccupancy.from_points(frame.points, frame.labels, grid, exact),
-        sent_at=time.time(),
+    occupancy = SparseOccupancy.from_points(frame.points, frame.labels, grid, exact)
+    # added after validation: pydantic runs a nested model's checks again, voxel by voxel, when it is a field's value
+    return CameraFrame(stream=stream, seq=seq, stamp=float(frame.stamp), sent_at=time.time()).model_copy(
+        update={"gt_occupancy": occupancy}
     )

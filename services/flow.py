@@ -116,7 +116,7 @@ class StreamLane:
         self.evict_why = "memory"  # or "reclaimed": its place goes to a new stream
         self.retiring = False  # idle_stream_s without a frame: its retirement is queued on its strand
         self.last_active = time.monotonic()  # the end of its last frame (the stream idle longest is evicted first)
-        self.pending = 0  # frames handed to this lane and not yet in its queue (Worker.enqueue); guarded by _lanes_lock
+        self.pending = 0  # frames handed to this lane, not yet in its queue (handed, entered: under Worker._lanes_lock)
         self.ended = threading.Event()  # retired: its stream's state given back
         self.queue = StageQueue(worker.config.queue_size, worker.config.policy, self._dropped, worker.stopping)
         self.strand = Strand(worker.lane_pool)
@@ -138,6 +138,23 @@ class StreamLane:
             return False
         self.strand.submit(self._take)
         return True
+
+    def evict(self, why: str) -> bool:
+        """EVICT queued without waiting, `why` ("memory", "reclaimed") kept for its turn; False if the queue is full.
+        Marked before it is queued: its turn may come on a pool thread before post() returns."""
+        self.evicting, self.evict_why = True, why
+        if not self.post(EVICT):
+            self.evicting = False
+            return False
+        return True
+
+    def handed(self) -> None:
+        """A frame is on its way to this lane (Worker.lane; under the worker's _lanes_lock)."""
+        self.pending += 1
+
+    def entered(self) -> None:
+        """A frame handed to this lane is queued or answered (Worker.lane_entered; under the worker's _lanes_lock)."""
+        self.pending -= 1
 
     def idle_for(self, now: float) -> float:
         """Seconds since its last frame ended, 0 while a frame is queued, on its way or in work."""

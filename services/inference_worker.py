@@ -23,7 +23,7 @@ import zenoh
 from occvo_core.errors import ConfigError
 from occvo_schemas import keys
 from occvo_schemas.codec import encode
-from occvo_schemas.models import CameraFrame, OccupancyFrameMsg, SparseOccupancy
+from occvo_schemas.models import SHAPES_ONLY, CameraFrame, OccupancyFrameMsg, SparseOccupancy
 from occvo_services.runtime import Worker, WorkerConfig, log_event
 from occvo_services.wire import blocking
 from occvo_services.worker_cli import worker_main
@@ -33,6 +33,9 @@ class InferenceWorker(Worker):
     """Camera frames -> occupancy frames."""
 
     role = "inference"
+    # a camera frame's recorded occupancy is checked here for its arrays' shapes only: the replay source forwards it
+    # to the registration worker, which checks it voxel by voxel (and the model source does not read it)
+    input_context = {SHAPES_ONLY: True}
 
     def __init__(self, config: WorkerConfig, model=None):
         super().__init__(config)
@@ -99,7 +102,7 @@ class InferenceWorker(Worker):
         occupancy, source = got
         infer_ms = (time.perf_counter() - t0) * 1000.0
         queue_ms = (t0 - t_queued) * 1000.0
-        out = OccupancyFrameMsg(
+        out = OccupancyFrameMsg.model_construct(  # its parts validated: the camera frame's, the network's, the timings
             stream=stream,
             seq=msg.seq,
             stamp=msg.stamp,

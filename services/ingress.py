@@ -15,7 +15,7 @@ from typing import TYPE_CHECKING
 import zenoh
 
 from occvo_schemas import keys
-from occvo_services.lane_eviction import reclaim, relieve_memory
+from occvo_services.lane_eviction import reclaim
 from occvo_services.limits import identity_of
 
 if TYPE_CHECKING:
@@ -125,12 +125,12 @@ def _admit(w: Worker, sample: zenoh.Sample, msg, handler, judge_seq: bool, times
 
 def _admitted(w: Worker, msg, client: str, key: str) -> bool:
     """The stream has (or gets) a place in the worker's admission and the frame comes from its client."""
-    relieve_memory(w)
+    w.relieve_memory()
     refused = None
     if msg.stream not in w.admission.streams and (why := w.memory.refuse(msg.stream)) is not None:
         w.stats.inc("streams_refused_memory")
         refused = ("stream_limit", why)
-    refused = refused or w.admission.admit(msg.stream, client, functools.partial(reclaim, w))
+    refused = refused or w.admission.admit(msg.stream, client, functools.partial(reclaim, w.lanes))
     if refused is None:
         return True
     code, why = refused

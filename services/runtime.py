@@ -20,8 +20,9 @@ from occvo_schemas.codec import CodecError, decode, encode
 from occvo_schemas.models import ErrorEvent, WorkerHealth
 from occvo_services.flow import LANE_THREADS, SeqTracker, StageQueue, StreamLane
 from occvo_services.ingress import TurnedAway, enqueue
+from occvo_services.lane_eviction import longest_idle
 from occvo_services.limits import MAX_KEY_CHARS, MAX_MESSAGE_CHARS, Admission, ErrorBudget, clip
-from occvo_services.memory import MemoryCap
+from occvo_services.memory import CHECK_EVERY_S, MemoryCap
 from occvo_services.os_tuning import name_os_thread, trim_heap
 from occvo_services.query_gate import QueryGate
 from occvo_services.sessions import open_session
@@ -45,6 +46,7 @@ __all__ = [  # importers of these names from here predate the split
 
 class Worker:
     role: str = "worker"
+    input_context: dict | None = None  # the validators' context of its input (codec.decode)
 
     def __init__(self, config: WorkerConfig):
         self.config = config
@@ -148,7 +150,7 @@ class Worker:
             if lane is None:
                 lane = self.lanes[stream] = StreamLane(self, stream, handler, self._retired.pop(stream, None))
                 log_event(self.log, "new stream", stream=stream)
-            lane.pending += 1
+            lane.handed()
             return lane
 
     def retire_lane(self, lane: StreamLane, why: str = "idle") -> bool:
@@ -197,6 +199,17 @@ class Worker:
         """A stream message in, queued on its lane or answered at once (services/ingress.py)."""
         enqueue(self, sample, expect, handler, judge_seq, place)
 
+    def relieve_memory(self) -> None:
+        """Over the eviction mark of max_rss_mb: the lane idle longest ends (one at a time, checked every
+        CHECK_EVERY_S at most; services/lane_eviction.py)."""
+        now = time.monotonic()
+        if now - self._evicted_at < CHECK_EVERY_S or not self.memory.over_evict_mark():
+            return
+        with self._lanes_lock:
+            lane = longest_idle(self.lanes.values(), now)
+            if lane is not None and lane.evict("memory"):
+                self._evicted_at = now
+
     def release_unserved(self, stream: str) -> None:
         """An admitted stream's frame went nowhere: without a lane its place goes back."""
         with self._lanes_lock:
@@ -206,7 +219,7 @@ class Worker:
     def lane_entered(self, lane: StreamLane) -> None:
         """A frame handed to lane() is queued or answered (lane.pending counts those on their way)."""
         with self._lanes_lock:
-            lane.pending -= 1
+            lane.entered()
 
     def reports_input(self, stream: str) -> bool:
         """Whether this worker reports a stream's message that did not decode (roles where every worker receives
@@ -232,7 +245,7 @@ class Worker:
         stream = keys.stream_of(key)
         self.stats.inc("frames_in")
         try:
-            msg = decode(sample.payload.to_bytes(), expect, self.config.max_message_bytes)
+            msg = decode(sample.payload.to_bytes(), expect, self.config.max_message_bytes, self.input_context)
         except CodecError as exc:
             if self.reports_input(stream):
                 self.report_error(stream, exc.code, exc.message, key, client=client)

@@ -25,25 +25,21 @@ def _tile_digest(tile) -> bytes:
 
 
 def map_update(stream: str, seq: int, reset: bool, tile_m: float, tiles: dict) -> MapUpdate:
-    """The MapUpdate of {(ix, iy): (points, labels)}, tiles in key order."""
-    return MapUpdate(
-        stream=stream,
-        seq=seq,
-        reset=reset,
-        tile_m=tile_m,
-        tiles=[
-            MapTile(
-                stream=stream,
-                ix=ix,
-                iy=iy,
-                tile_m=tile_m,
-                seq=seq,
-                points=Array.from_numpy(np.asarray(p, np.float64)),
-                labels=Array.from_numpy(np.asarray(l, np.uint8)),
-            )
-            for (ix, iy), (p, l) in sorted(tiles.items())
-        ],
-    )
+    """The MapUpdate of {(ix, iy): (points, labels)}, tiles in key order (each tile checked once: pydantic would
+    check them all again as the update's field)."""
+    checked = [
+        MapTile(
+            stream=stream,
+            ix=ix,
+            iy=iy,
+            tile_m=tile_m,
+            seq=seq,
+            points=Array.from_numpy(np.asarray(p, np.float64)),
+            labels=Array.from_numpy(np.asarray(l, np.uint8)),
+        )
+        for (ix, iy), (p, l) in sorted(tiles.items())
+    ]
+    return MapUpdate(stream=stream, seq=seq, reset=reset, tile_m=tile_m).model_copy(update={"tiles": checked})
 
 
 class MapOutput:

@@ -181,6 +181,7 @@ class VoxelPFilterMap(VoxelRows):
                 self.last,
                 t,
                 changed,
+                numba.get_num_threads(),
             )
         self._touch_box(changed)
         # a voxel seen is in view, whatever window this frame registered in

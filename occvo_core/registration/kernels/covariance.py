@@ -6,6 +6,7 @@ import numpy as np
 from numba import njit, prange
 
 from occvo_core.registration.kernels import CACHE
+from occvo_core.registration.kernels.grid import column_masks
 
 
 @njit(cache=CACHE, nogil=True, inline="always")
@@ -74,17 +75,6 @@ def _window_moments(width):
     return table
 
 
-@njit(cache=CACHE, nogil=True)
-def _column_masks(ijk, shape):
-    """One bit a z level for each (i, j) column of the grid: the neighbourhood is read a column at a time."""
-    if shape[2] > 62:
-        raise ValueError("grids over 62 voxels high are not supported")
-    masks = np.zeros(shape[0] * shape[1], np.int64)
-    for n in range(ijk.shape[0]):
-        masks[ijk[n, 0] * shape[1] + ijk[n, 1]] |= np.int64(1) << ijk[n, 2]
-    return masks
-
-
 @njit(cache=CACHE, nogil=True, parallel=True)
 def plane_covariances(ijk, shape, radius, epsilon):
     """GICP covariances (Segal et al.): the neighbourhood's plane, as eps along its normal and 1 across it. The plane
@@ -96,7 +86,7 @@ def plane_covariances(ijk, shape, radius, epsilon):
     covs = np.empty((n_pts, 3, 3))
     width = 2 * radius + 1
     table = _window_moments(width)
-    masks = _column_masks(ijk, shape)
+    masks = column_masks(ijk, shape)
     full = (np.int64(1) << width) - 1
     for n in prange(n_pts):
         sx = sy = sz = sxx = sxy = sxz = syy = syz = szz = 0

@@ -105,7 +105,8 @@ class VoxelPFilterMap(VoxelRows):
         if local is None or not local.contains(keys):
             local = self.window(keys.min(axis=0) - 1, keys.max(axis=0) + 1)
         alive, back, back_last = pfilter_kernels.window_rows_state(local.rows, self.alive, self.returning, self.last)
-        out, seen_from = None, points_world  # dropped points still count as sightings (not of frozen voxels)
+        # dropped points still count as sightings (not of frozen voxels)
+        out, seen_from, seen_keys = None, points_world, keys
         old = self.persistent_rows(local.rows, old_born_before) if old_born_before is not None else None
         if old is not None and old.any():
             cells = local.cells(keys)
@@ -169,11 +170,11 @@ class VoxelPFilterMap(VoxelRows):
         if self.observe_radius > 0:
             pfilter_kernels.mark_observed(
                 seen_from,
+                seen_keys,
                 local.pos,
                 local.grid,
                 local.origin,
                 local.dims,
-                self.voxel,
                 self.observe_radius,
                 local.rows,
                 alive,

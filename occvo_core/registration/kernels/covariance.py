@@ -104,9 +104,7 @@ def plane_covariances(ijk, shape, radius, epsilon):
                     continue
                 column = masks[i * shape[1] + j]
                 bits = (column >> low if low >= 0 else column << -low) & full
-                if bits == 0:
-                    continue
-                c, s = table[bits, 0], table[bits, 1]
+                c, s = table[bits, 0], table[bits, 1]  # no branch on an empty column: its row of zeros adds nothing
                 rc += c
                 rcj += dj * c
                 rcjj += dj * dj * c

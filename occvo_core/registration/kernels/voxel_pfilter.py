@@ -129,10 +129,10 @@ def _observe(seen, map_pos, m, x, y, z, r2):
 
 
 @njit(cache=CACHE, nogil=True, parallel=True)
-def mark_observed(points, map_pos, grid, origin, dims, voxel, radius_m, map_rows, alive, f, last, t, changed, parts):
-    """Count as seen at frame t every live voxel within radius_m of a frame point (once a frame): a surface that
-    straddles a voxel boundary falls in either voxel from frame to frame, and must not lose its p-index for it.
-    changed grows to hold the voxels counted."""
+def mark_observed(points, keys, map_pos, grid, origin, dims, radius_m, map_rows, alive, f, last, t, changed, parts):
+    """Count as seen at frame t every live voxel within radius_m of a frame point (keys: the points' voxels), once a
+    frame: a surface that straddles a voxel boundary falls in either voxel from frame to frame, and must not lose
+    its p-index for it. changed grows to hold the voxels counted."""
     r2 = radius_m * radius_m
     n_win = map_rows.shape[0]
     n_pts = points.shape[0]
@@ -145,9 +145,9 @@ def mark_observed(points, map_pos, grid, origin, dims, voxel, radius_m, map_rows
         hit = seen[c]
         for n in range(n_pts * c // parts, n_pts * (c + 1) // parts):
             x, y, z = points[n, 0], points[n, 1], points[n, 2]
-            ci = int(np.floor(x / voxel)) - origin[0]
-            cj = int(np.floor(y / voxel)) - origin[1]
-            ck = int(np.floor(z / voxel)) - origin[2]
+            ci = keys[n, 0] - origin[0]
+            cj = keys[n, 1] - origin[1]
+            ck = keys[n, 2] - origin[2]
             if 1 <= ci < dims[0] - 1 and 1 <= cj < dims[1] - 1 and 1 <= ck < dims[2] - 1:
                 for i in range(ci - 1, ci + 2):
                     for j in range(cj - 1, cj + 2):

@@ -180,13 +180,14 @@ class VoxelPFilterMap(VoxelRows):
                 alive,
                 self.f,
                 self.last,
-                t,
+                self.in_window,
+                np.int32(t),
                 changed,
                 numba.get_num_threads(),
             )
+        else:  # a voxel seen is in view, whatever window this frame registered in (mark_observed does it too)
+            pfilter_kernels.mark_in_window(local.rows, self.last, self.in_window, np.int32(t))
         self._touch_box(changed)
-        # a voxel seen is in view, whatever window this frame registered in
-        pfilter_kernels.mark_in_window(local.rows, self.last, self.in_window, np.int32(t))
         # seen again after a visit away: the frames in view since its last sighting (leaving, then coming back)
         # lie between two visits, which the served map does not count, as it does not count those before a
         # voxel's first sighting (a place seen in glimpses fell out of the served map at every revisit)

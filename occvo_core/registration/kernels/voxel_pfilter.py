@@ -129,10 +129,12 @@ def _observe(seen, map_pos, m, x, y, z, r2):
 
 
 @njit(cache=CACHE, nogil=True, parallel=True)
-def mark_observed(points, keys, map_pos, grid, origin, dims, radius_m, map_rows, alive, f, last, t, changed, parts):
+def mark_observed(
+    points, keys, map_pos, grid, origin, dims, radius_m, map_rows, alive, f, last, in_window, t, changed, parts
+):
     """Count as seen at frame t every live voxel within radius_m of a frame point (keys: the points' voxels), once a
     frame: a surface that straddles a voxel boundary falls in either voxel from frame to frame, and must not lose
-    its p-index for it. changed grows to hold the voxels counted."""
+    its p-index for it. changed grows to hold the voxels counted. Then mark_in_window, in the same pass."""
     r2 = radius_m * radius_m
     n_win = map_rows.shape[0]
     n_pts = points.shape[0]
@@ -176,6 +178,8 @@ def mark_observed(points, keys, map_pos, grid, origin, dims, radius_m, map_rows,
                 _grow_box(box, map_pos[m, 0], map_pos[m, 1])
                 f[row] += 1
                 last[row] = t
+            if last[row] == t:
+                in_window[row] = t
     for c in range(parts):
         if boxes[c, 0] <= boxes[c, 2]:
             _grow_box(changed, boxes[c, 0], boxes[c, 1])

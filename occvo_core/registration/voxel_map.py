@@ -101,9 +101,9 @@ class VoxelPFilterMap(VoxelRows):
           (the caller decides how long they live: OccVO drops them before they could be old map);
         - a frame off it leaves them as they are: not merged into, not counted as seen, and points in their cells
           are dropped (a frame that drifted would drag them and wear down their p-index by chance overlaps)."""
-        keys = np.floor(points_world / self.voxel).astype(np.int64)
-        if local is None or not local.contains(keys):
-            local = self.window(keys.min(axis=0) - 1, keys.max(axis=0) + 1)
+        keys, lo, hi = pfilter_kernels.voxel_keys(points_world, self.voxel)
+        if local is None or not (np.all(lo >= local.origin) and np.all(hi < local.origin + local.dims)):
+            local = self.window(lo - 1, hi + 1)
         alive, back, back_last = pfilter_kernels.window_rows_state(local.rows, self.alive, self.returning, self.last)
         # dropped points still count as sightings (not of frozen voxels)
         out, seen_from, seen_keys = None, points_world, keys
@@ -153,7 +153,7 @@ class VoxelPFilterMap(VoxelRows):
             rows,
             points_world,
             covs_world,
-            labels.astype(np.int64),
+            labels,
             t,
             self.pos,
             self.cov,

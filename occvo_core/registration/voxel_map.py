@@ -65,14 +65,13 @@ class VoxelPFilterMap(VoxelRows):
         p-index counts the frames a voxel could be seen in. On a single pass no voxel leaves the window and comes
         back, and this changes nothing. Updates local's p-index and usable; returns (rows, frames away) for
         entered() to record once the frame is committed."""
-        gap = (int(t) - 1) - self.in_window[local.rows]
-        back = np.flatnonzero(gap > 0)
+        away, back = pfilter_kernels.window_gaps(local.rows, self.in_window, int(t))
         if len(back):
             r = local.rows[back]
-            local.p_index[back] = p_index(self.f[r], t - (self.t0[r] + gap[back]))
+            local.p_index[back] = p_index(self.f[r], t - (self.t0[r] + away[back]))
             if self.pfilter:
                 local.usable[back] = local.p_index[back] > self.p_index_threshold
-        return local.rows, np.maximum(gap, 0)
+        return local.rows, away
 
     def entered(self, rows: np.ndarray, away: np.ndarray, t: int) -> None:
         """Record enter()'s window: t0 and the last sighting move on by the frames away (persistence, seen over the

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import numba
 import numpy as np
 
 from occvo_core.config import OccVOConfig
@@ -76,7 +77,7 @@ def preprocess(frame: OccupancyFrame, config: OccVOConfig) -> Prepared:
     if len(surface) < len(points):
         points, labels, ijk = points[surface], labels[surface], ijk[surface]
     g = config.gicp
-    covs = plane_covariances(ijk, shape, g.k_neighbours_radius_voxels, g.covariance_epsilon)
+    covs = plane_covariances(ijk, shape, g.k_neighbours_radius_voxels, g.covariance_epsilon, numba.get_num_threads())
     wide, coarse, fine = thin_sources(
         ijk,
         GROUND[labels],

@@ -65,14 +65,13 @@ class VoxelPFilterMap(VoxelRows):
         p-index counts the frames a voxel could be seen in. On a single pass no voxel leaves the window and comes
         back, and this changes nothing. Updates local's p-index and usable; returns (rows, frames away) for
         entered() to record once the frame is committed."""
-        gap = (int(t) - 1) - self.in_window[local.rows]
-        back = np.flatnonzero(gap > 0)
+        away, back = pfilter_kernels.window_gaps(local.rows, self.in_window, int(t))
         if len(back):
             r = local.rows[back]
-            local.p_index[back] = p_index(self.f[r], t - (self.t0[r] + gap[back]))
+            local.p_index[back] = p_index(self.f[r], t - (self.t0[r] + away[back]))
             if self.pfilter:
                 local.usable[back] = local.p_index[back] > self.p_index_threshold
-        return local.rows, np.maximum(gap, 0)
+        return local.rows, away
 
     def entered(self, rows: np.ndarray, away: np.ndarray, t: int) -> None:
         """Record enter()'s window: t0 and the last sighting move on by the frames away (persistence, seen over the
@@ -101,11 +100,12 @@ class VoxelPFilterMap(VoxelRows):
           (the caller decides how long they live: OccVO drops them before they could be old map);
         - a frame off it leaves them as they are: not merged into, not counted as seen, and points in their cells
           are dropped (a frame that drifted would drag them and wear down their p-index by chance overlaps)."""
-        keys = np.floor(points_world / self.voxel).astype(np.int64)
-        if local is None or not local.contains(keys):
-            local = self.window(keys.min(axis=0) - 1, keys.max(axis=0) + 1)
+        keys, lo, hi = pfilter_kernels.voxel_keys(points_world, self.voxel)
+        if local is None or not (np.all(lo >= local.origin) and np.all(hi < local.origin + local.dims)):
+            local = self.window(lo - 1, hi + 1)
         alive, back, back_last = pfilter_kernels.window_rows_state(local.rows, self.alive, self.returning, self.last)
-        out, seen_from = None, points_world  # dropped points still count as sightings (not of frozen voxels)
+        # dropped points still count as sightings (not of frozen voxels)
+        out, seen_from, seen_keys = None, points_world, keys
         old = self.persistent_rows(local.rows, old_born_before) if old_born_before is not None else None
         if old is not None and old.any():
             cells = local.cells(keys)
@@ -152,7 +152,7 @@ class VoxelPFilterMap(VoxelRows):
             rows,
             points_world,
             covs_world,
-            labels.astype(np.int64),
+            labels,
             t,
             self.pos,
             self.cov,
@@ -169,22 +169,24 @@ class VoxelPFilterMap(VoxelRows):
         if self.observe_radius > 0:
             pfilter_kernels.mark_observed(
                 seen_from,
+                seen_keys,
                 local.pos,
                 local.grid,
                 local.origin,
                 local.dims,
-                self.voxel,
                 self.observe_radius,
                 local.rows,
                 alive,
                 self.f,
                 self.last,
-                t,
+                self.in_window,
+                np.int32(t),
                 changed,
+                numba.get_num_threads(),
             )
+        else:  # a voxel seen is in view, whatever window this frame registered in (mark_observed does it too)
+            pfilter_kernels.mark_in_window(local.rows, self.last, self.in_window, np.int32(t))
         self._touch_box(changed)
-        # a voxel seen is in view, whatever window this frame registered in
-        pfilter_kernels.mark_in_window(local.rows, self.last, self.in_window, np.int32(t))
         # seen again after a visit away: the frames in view since its last sighting (leaving, then coming back)
         # lie between two visits, which the served map does not count, as it does not count those before a
         # voxel's first sighting (a place seen in glimpses fell out of the served map at every revisit)

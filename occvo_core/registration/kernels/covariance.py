@@ -6,6 +6,9 @@ import numpy as np
 from numba import njit, prange
 
 from occvo_core.registration.kernels import CACHE
+from occvo_core.registration.kernels.grid import column_masks
+
+PLANE_SLOTS = 4096  # planes remembered a thread (plane_covariances)
 
 
 @njit(cache=CACHE, nogil=True, inline="always")
@@ -74,89 +77,94 @@ def _window_moments(width):
     return table
 
 
-@njit(cache=CACHE, nogil=True)
-def _column_masks(ijk, shape):
-    """One bit a z level for each (i, j) column of the grid: the neighbourhood is read a column at a time."""
-    if shape[2] > 62:
-        raise ValueError("grids over 62 voxels high are not supported")
-    masks = np.zeros(shape[0] * shape[1], np.int64)
-    for n in range(ijk.shape[0]):
-        masks[ijk[n, 0] * shape[1] + ijk[n, 1]] |= np.int64(1) << ijk[n, 2]
-    return masks
+@njit(cache=CACHE, nogil=True, inline="always")
+def _plane_covariance(ijk, shape, radius, epsilon, table, masks, full, seen, solved, cov, n):
+    """plane_covariances for point n, into cov."""
+    sx = sy = sz = sxx = sxy = sxz = syy = syz = szz = 0
+    cnt = 0
+    low = ijk[n, 2] - radius
+    for di in range(-radius, radius + 1):
+        i = ijk[n, 0] + di
+        if i < 0 or i >= shape[0]:
+            continue
+        # the row's sums over dj first, then weighted by di once (whole numbers: the same totals)
+        rc = rcj = rcjj = rs = rsj = rq = 0
+        for dj in range(-radius, radius + 1):
+            j = ijk[n, 1] + dj
+            if j < 0 or j >= shape[1]:
+                continue
+            column = masks[i * shape[1] + j]
+            bits = (column >> low if low >= 0 else column << -low) & full
+            c, s = table[bits, 0], table[bits, 1]  # no branch on an empty column: its row of zeros adds nothing
+            rc += c
+            rcj += dj * c
+            rcjj += dj * dj * c
+            rs += s
+            rsj += dj * s
+            rq += table[bits, 2]
+        cnt += rc
+        sx += di * rc
+        sy += rcj
+        sz += rs
+        sxx += di * di * rc
+        sxy += di * rcj
+        sxz += di * rs
+        syy += rcjj
+        syz += rsj
+        szz += rq
+    nx, ny, nz, plane = 0.0, 0.0, 0.0, False
+    if cnt >= 3:  # cnt^2 times the scatter matrix, in whole numbers
+        a00, a01, a02 = cnt * sxx - sx * sx, cnt * sxy - sx * sy, cnt * sxz - sx * sz
+        a11, a12, a22 = cnt * syy - sy * sy, cnt * syz - sy * sz, cnt * szz - sz * sz
+        h = a00 * 0x9E3779B1 + a01 * 0x85EBCA77 + a02 * 0xC2B2AE3D + a11 * 0x27D4EB2F + a12 * 0x165667B1 + a22
+        slot = (h ^ (h >> 17)) & (PLANE_SLOTS - 1)
+        key = seen[slot]
+        if key[0] == a00 and key[1] == a01 and key[2] == a02 and key[3] == a11 and key[4] == a12 and key[5] == a22:
+            nx, ny, nz, plane = solved[slot, 0], solved[slot, 1], solved[slot, 2], solved[slot, 3] > 0.0
+        else:
+            nx, ny, nz, plane = _smallest_eigenvector(
+                float(a00), float(a01), float(a02), float(a11), float(a12), float(a22)
+            )
+            key[0], key[1], key[2], key[3], key[4], key[5] = a00, a01, a02, a11, a12, a22
+            solved[slot, 0], solved[slot, 1], solved[slot, 2] = nx, ny, nz
+            solved[slot, 3] = 1.0 if plane else 0.0
+    # d I + c u u^T: a plane (u its normal) eps along u and 1 across it; a line (u along it) 1 along u and eps
+    # across it every way; too few neighbours (u zero): isotropic
+    if plane:
+        d, c = 1.0, epsilon - 1.0
+    elif nx == 0.0 and ny == 0.0 and nz == 0.0:
+        d, c = 1.0, 0.0
+    else:
+        d, c = epsilon, 1.0 - epsilon
+    cov[0, 0] = d + c * nx * nx
+    cov[1, 1] = d + c * ny * ny
+    cov[2, 2] = d + c * nz * nz
+    cov[0, 1] = cov[1, 0] = c * nx * ny
+    cov[0, 2] = cov[2, 0] = c * nx * nz
+    cov[1, 2] = cov[2, 1] = c * ny * nz
 
 
 @njit(cache=CACHE, nogil=True, parallel=True)
-def plane_covariances(ijk, shape, radius, epsilon):
+def plane_covariances(ijk, shape, radius, epsilon, parts=1):
     """GICP covariances (Segal et al.): the neighbourhood's plane, as eps along its normal and 1 across it. The plane
     is fitted to the neighbours' grid offsets (whole numbers): its moments are exact, so a frame turned about z by a
     multiple of 90 degrees gets the same planes turned, whatever order its neighbours are met in. The voxels of
     `ijk` are each other's neighbours; each column of the neighbourhood is one look-up of its occupancy
-    bits in a table of their moments, so a wider radius costs (2r+1)^2 look-ups, not (2r+1)^3."""
+    bits in a table of their moments, so a wider radius costs (2r+1)^2 look-ups, not (2r+1)^3. parts: slices of the
+    points run at once (the threads'), the same covariances for any number."""
     n_pts = ijk.shape[0]
     covs = np.empty((n_pts, 3, 3))
     width = 2 * radius + 1
     table = _window_moments(width)
-    masks = _column_masks(ijk, shape)
+    masks = column_masks(ijk, shape)
     full = (np.int64(1) << width) - 1
-    for n in prange(n_pts):
-        sx = sy = sz = sxx = sxy = sxz = syy = syz = szz = 0
-        cnt = 0
-        low = ijk[n, 2] - radius
-        for di in range(-radius, radius + 1):
-            i = ijk[n, 0] + di
-            if i < 0 or i >= shape[0]:
-                continue
-            # the row's sums over dj first, then weighted by di once (whole numbers: the same totals)
-            rc = rcj = rcjj = rs = rsj = rq = 0
-            for dj in range(-radius, radius + 1):
-                j = ijk[n, 1] + dj
-                if j < 0 or j >= shape[1]:
-                    continue
-                column = masks[i * shape[1] + j]
-                bits = (column >> low if low >= 0 else column << -low) & full
-                if bits == 0:
-                    continue
-                c, s = table[bits, 0], table[bits, 1]
-                rc += c
-                rcj += dj * c
-                rcjj += dj * dj * c
-                rs += s
-                rsj += dj * s
-                rq += table[bits, 2]
-            cnt += rc
-            sx += di * rc
-            sy += rcj
-            sz += rs
-            sxx += di * di * rc
-            sxy += di * rcj
-            sxz += di * rs
-            syy += rcjj
-            syz += rsj
-            szz += rq
-        nx, ny, nz, plane = 0.0, 0.0, 0.0, False
-        if cnt >= 3:  # cnt^2 times the scatter matrix, in whole numbers
-            nx, ny, nz, plane = _smallest_eigenvector(
-                float(cnt * sxx - sx * sx),
-                float(cnt * sxy - sx * sy),
-                float(cnt * sxz - sx * sz),
-                float(cnt * syy - sy * sy),
-                float(cnt * syz - sy * sz),
-                float(cnt * szz - sz * sz),
-            )
-        # d I + c u u^T: a plane (u its normal) eps along u and 1 across it; a line (u along it) 1 along u and eps
-        # across it every way; too few neighbours (u zero): isotropic
-        if plane:
-            d, c = 1.0, epsilon - 1.0
-        elif nx == 0.0 and ny == 0.0 and nz == 0.0:
-            d, c = 1.0, 0.0
-        else:
-            d, c = epsilon, 1.0 - epsilon
-        covs[n, 0, 0] = d + c * nx * nx
-        covs[n, 1, 1] = d + c * ny * ny
-        covs[n, 2, 2] = d + c * nz * nz
-        covs[n, 0, 1] = covs[n, 1, 0] = c * nx * ny
-        covs[n, 0, 2] = covs[n, 2, 0] = c * nx * nz
-        covs[n, 1, 2] = covs[n, 2, 1] = c * ny * nz
+    # a flat or evenly sloped surface repeats its neighbourhood's scatter: each part keeps the last planes it solved
+    # in a small table keyed by the scatter's whole numbers; a hit is the same solve's bits
+    seen = np.full((parts, PLANE_SLOTS, 6), -1, np.int64)
+    solved = np.empty((parts, PLANE_SLOTS, 4))
+    for part in prange(parts):
+        for n in range(n_pts * part // parts, n_pts * (part + 1) // parts):
+            _plane_covariance(ijk, shape, radius, epsilon, table, masks, full, seen[part], solved[part], covs[n], n)
     return covs
 
 

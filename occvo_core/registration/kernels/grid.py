@@ -59,6 +59,40 @@ def grid_indices(points, lower, voxel, shape):
 
 
 @njit(cache=CACHE, nogil=True)
+def column_masks(ijk, shape):
+    """One bit a z level for each (i, j) column of the grid: a column's neighbourhood is read in one word."""
+    if shape[2] > 62:
+        raise ValueError("grids over 62 voxels high are not supported")
+    masks = np.zeros(shape[0] * shape[1], np.int64)
+    for n in range(ijk.shape[0]):
+        masks[ijk[n, 0] * shape[1] + ijk[n, 1]] |= np.int64(1) << ijk[n, 2]
+    return masks
+
+
+@njit(cache=CACHE, nogil=True)
 def surface_voxels(ijk, shape):
-    """Indices of the points that are surface voxels (surface_mask)."""
-    return np.flatnonzero(surface_mask(ijk, dense_index(ijk, shape), shape))
+    """Indices of the points that are surface voxels (surface_mask), read from the columns' occupancy bits: a few
+    kB of words where the dense grid is megabytes."""
+    if shape[2] > 62:
+        return np.flatnonzero(surface_mask(ijk, dense_index(ijk, shape), shape))
+    masks = column_masks(ijk, shape)
+    out = np.empty(ijk.shape[0], np.int64)
+    n_out = 0
+    for n in range(ijk.shape[0]):
+        i, j, k = ijk[n, 0], ijk[n, 1], ijk[n, 2]
+        if 0 < i < shape[0] - 1 and 0 < j < shape[1] - 1 and 0 < k < shape[2] - 1:
+            c = i * shape[1] + j
+            column = masks[c]
+            if (
+                (column >> (k - 1))
+                & (column >> (k + 1))
+                & (masks[c - shape[1]] >> k)
+                & (masks[c + shape[1]] >> k)
+                & (masks[c - 1] >> k)
+                & (masks[c + 1] >> k)
+                & 1
+            ):
+                continue  # every face neighbour occupied: inside a solid
+        out[n_out] = n
+        n_out += 1
+    return out[:n_out]

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit, prange
 
-from occvo_core.registration.kernels import CACHE, CHUNKS
+from occvo_core.registration.kernels import CACHE
 from occvo_core.registration.kernels.nearest import nearest_in_window
 from occvo_core.registration.voxel_pfilter import p_index
 
@@ -16,6 +16,23 @@ def _grow_box(box, x, y):
     box[1] = min(box[1], y)
     box[2] = max(box[2], x)
     box[3] = max(box[3], y)
+
+
+@njit(cache=CACHE, nogil=True)
+def voxel_keys(points, voxel):
+    """Voxel key floor(p / voxel) of each point, and the keys' (min, max) per axis (min > max for no points): one
+    pass where numpy takes five."""
+    n = points.shape[0]
+    keys = np.empty((n, 3), np.int64)
+    lo = np.full(3, np.iinfo(np.int64).max)
+    hi = np.full(3, np.iinfo(np.int64).min)
+    for i in range(n):
+        for a in range(3):
+            k = np.int64(np.floor(points[i, a] / voxel))
+            keys[i, a] = k
+            lo[a] = min(lo[a], k)
+            hi[a] = max(hi[a], k)
+    return keys, lo, hi
 
 
 @njit(cache=CACHE, nogil=True, parallel=True)
@@ -116,49 +133,71 @@ def merge_points(rows, pw, cw, labels, t, pos, cov, counts, label, t0, f, last, 
             _grow_box(changed, boxes[c, 2], boxes[c, 3])
 
 
+@njit(cache=CACHE, nogil=True, inline="always")
+def _observe(seen, map_pos, m, x, y, z, r2):
+    """seen[m] |= map point m (a grid entry: < 0 is no point) lies within sqrt(r2) of (x, y, z), without a branch:
+    which cells hold a point near is no pattern a branch predictor learns."""
+    valid = m >= 0
+    m = m if valid else 0
+    d0 = map_pos[m, 0] - x
+    d1 = map_pos[m, 1] - y
+    d2 = map_pos[m, 2] - z
+    seen[m] |= valid & (d0 * d0 + d1 * d1 + d2 * d2 <= r2)
+
+
 @njit(cache=CACHE, nogil=True, parallel=True)
-def mark_observed(points, map_pos, grid, origin, dims, voxel, radius_m, map_rows, alive, f, last, t, changed):
-    """Count as seen at frame t every live voxel within radius_m of a frame point (once a frame): a surface that
-    straddles a voxel boundary falls in either voxel from frame to frame, and must not lose its p-index for it.
-    changed grows to hold the voxels counted."""
+def mark_observed(
+    points, keys, map_pos, grid, origin, dims, radius_m, map_rows, alive, f, last, in_window, t, changed, parts
+):
+    """Count as seen at frame t every live voxel within radius_m of a frame point (keys: the points' voxels), once a
+    frame: a surface that straddles a voxel boundary falls in either voxel from frame to frame, and must not lose
+    its p-index for it. changed grows to hold the voxels counted. Then mark_in_window, in the same pass."""
     r2 = radius_m * radius_m
     n_win = map_rows.shape[0]
-    # window-local "already counted at t": neighbouring frame points test the same voxels many times over
-    counted = np.empty(n_win, np.bool_)
-    seen = np.empty(n_win, np.bool_)  # threads only ever write True here, so any interleaving gives the same set
-    for m in prange(n_win):
-        counted[m] = seen[m] = last[map_rows[m]] == t or not alive[m]
     n_pts = points.shape[0]
-    for c in prange(CHUNKS):
-        for n in range(n_pts * c // CHUNKS, n_pts * (c + 1) // CHUNKS):
-            ci = int(np.floor(points[n, 0] / voxel)) - origin[0]
-            cj = int(np.floor(points[n, 1] / voxel)) - origin[1]
-            ck = int(np.floor(points[n, 2] / voxel)) - origin[2]
-            for i in range(max(ci - 1, 0), min(ci + 2, dims[0])):
-                for j in range(max(cj - 1, 0), min(cj + 2, dims[1])):
-                    base = (i * dims[1] + j) * dims[2]
-                    for k in range(max(ck - 1, 0), min(ck + 2, dims[2])):
-                        m = grid[base + k]
-                        if m < 0 or seen[m]:
-                            continue
-                        d0 = map_pos[m, 0] - points[n, 0]
-                        d1 = map_pos[m, 1] - points[n, 1]
-                        d2 = map_pos[m, 2] - points[n, 2]
-                        if d0 * d0 + d1 * d1 + d2 * d2 <= r2:
-                            seen[m] = True
+    if n_win == 0:
+        return
+    # part c (one a thread) marks the voxels near its slice of the points in a row of its own, so the unconditional
+    # writes never race; a voxel is seen when any part saw it, whatever the number of parts
+    seen = np.zeros((parts, n_win), np.uint8)
+    for c in prange(parts):
+        hit = seen[c]
+        for n in range(n_pts * c // parts, n_pts * (c + 1) // parts):
+            x, y, z = points[n, 0], points[n, 1], points[n, 2]
+            ci = keys[n, 0] - origin[0]
+            cj = keys[n, 1] - origin[1]
+            ck = keys[n, 2] - origin[2]
+            if 1 <= ci < dims[0] - 1 and 1 <= cj < dims[1] - 1 and 1 <= ck < dims[2] - 1:
+                for i in range(ci - 1, ci + 2):
+                    for j in range(cj - 1, cj + 2):
+                        cell = (i * dims[1] + j) * dims[2] + ck
+                        _observe(hit, map_pos, grid[cell - 1], x, y, z, r2)
+                        _observe(hit, map_pos, grid[cell], x, y, z, r2)
+                        _observe(hit, map_pos, grid[cell + 1], x, y, z, r2)
+            else:  # at the window's faces
+                for i in range(max(ci - 1, 0), min(ci + 2, dims[0])):
+                    for j in range(max(cj - 1, 0), min(cj + 2, dims[1])):
+                        base = (i * dims[1] + j) * dims[2]
+                        for k in range(max(ck - 1, 0), min(ck + 2, dims[2])):
+                            _observe(hit, map_pos, grid[base + k], x, y, z, r2)
     # window rows are distinct map rows: slices count theirs apart, and a box's min and max take any order
-    boxes = np.empty((CHUNKS, 4))
-    for c in prange(CHUNKS):
+    boxes = np.empty((parts, 4))
+    for c in prange(parts):
         box = boxes[c]
         box[0] = box[1] = np.inf
         box[2] = box[3] = -np.inf
-        for m in range(n_win * c // CHUNKS, n_win * (c + 1) // CHUNKS):
-            if seen[m] and not counted[m]:
+        for m in range(n_win * c // parts, n_win * (c + 1) // parts):
+            near = 0
+            for p in range(parts):
+                near |= seen[p, m]
+            row = map_rows[m]
+            if near and alive[m] and last[row] != t:  # not merged into (nor counted) at t already
                 _grow_box(box, map_pos[m, 0], map_pos[m, 1])
-                row = map_rows[m]
                 f[row] += 1
                 last[row] = t
-    for c in range(CHUNKS):
+            if last[row] == t:
+                in_window[row] = t
+    for c in range(parts):
         if boxes[c, 0] <= boxes[c, 2]:
             _grow_box(changed, boxes[c, 0], boxes[c, 1])
             _grow_box(changed, boxes[c, 2], boxes[c, 3])
@@ -192,6 +231,23 @@ def mark_in_window(rows, last, in_window, t):
         r = rows[a]
         if last[r] == t:
             in_window[r] = t
+
+
+@njit(cache=CACHE, nogil=True)
+def window_gaps(rows, in_window, t):
+    """For VoxelPFilterMap.enter(): frames each window row spent outside the registration windows before frame t
+    (0 for none), and which of them (window indices) were away: one pass where numpy takes five."""
+    n = rows.shape[0]
+    away = np.empty(n, np.int64)
+    back = np.empty(n, np.int64)
+    n_back = 0
+    for a in range(n):
+        gap = (t - 1) - np.int64(in_window[rows[a]])
+        away[a] = max(gap, 0)
+        if gap > 0:
+            back[n_back] = a
+            n_back += 1
+    return away, back[:n_back].copy()
 
 
 @njit(cache=CACHE, nogil=True)

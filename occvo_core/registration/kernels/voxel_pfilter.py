@@ -238,7 +238,7 @@ def window_gaps(rows, in_window, t):
     """For VoxelPFilterMap.enter(): frames each window row spent outside the registration windows before frame t
     (0 for none), and which of them (window indices) were away: one pass where numpy takes five."""
     n = rows.shape[0]
-    away = np.empty(n, np.int64)
+    away = np.empty(n, in_window.dtype)  # the p-index of a row back takes the dtype the warm-up compiled
     back = np.empty(n, np.int64)
     n_back = 0
     for a in range(n):

@@ -20,6 +20,7 @@ from occvo_core.errors import ConfigError
 from occvo_core.frame import OccupancyFrame
 from occvo_core.loop_closure import LoopClosure
 from occvo_core.registration.dynamic_object_filter import find_moved_objects
+from occvo_core.registration.ego_buffers import EgoBuffers
 from occvo_core.registration.gicp import coarse_gicp, fine_gicp
 from occvo_core.registration.initial_guess import initial_guess
 from occvo_core.registration.kernels import use_threads
@@ -112,6 +113,7 @@ class OccVO:
         self.config = config or OccVOConfig()
         self.threads = threads
         self._margin = window_margin(self.config.voxel_pfilter.window_margin_m)
+        self._ego_buffers = EgoBuffers()
         self.reset()
 
     def reset(self) -> None:
@@ -212,7 +214,7 @@ class OccVO:
         entered = self.map.enter(local, t)
         old = self.loop_closure.old_map(local, t)
         self.loop_closure.follow(local, old)
-        ego = EgoMap.around(local, guess, self._margin)
+        ego = EgoMap.around(local, guess, self._margin, buffers=self._ego_buffers)  # valid until the next frame's
         watch.lap("local_map")
         coarse = coarse_gicp(frame, ego, cfg)  # the semantic label filter drops pairs whose labels differ
         watch.lap("coarse_gicp")

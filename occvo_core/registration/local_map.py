@@ -9,8 +9,9 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from occvo_core.grid import NUM_CLASSES, OCC3D_GRID
+from occvo_core.registration.ego_buffers import EgoBuffers
 from occvo_core.registration.kernels.covariance import rigid_motions
-from occvo_core.registration.kernels.map_window import ego_points, pool_voxels
+from occvo_core.registration.kernels.map_window import ego_points_into, empty_grid, pool_voxels
 from occvo_core.registration.kernels.nearest import nearest_distances
 
 if TYPE_CHECKING:
@@ -161,10 +162,17 @@ class EgoMap:
         upper: np.ndarray,
         voxel: float,
         subset: np.ndarray | None = None,
+        buffers: EgoBuffers | None = None,
     ) -> EgoMap:
+        """buffers: arrays to reuse (the EgoMap built on them before is invalid from then on); None: new ones."""
         idx = np.flatnonzero(local.usable if subset is None else subset)
         origin, dims = _ego_box(np.asarray(lower, np.float64), np.asarray(upper, np.float64), voxel)
-        pos, cov, grid = ego_points(
+        n, n_cells = len(idx), int(np.prod(dims + 2 * GRID_PAD))
+        if buffers is None:
+            pos, cov, grid, cell_of = np.empty((n, 3)), np.empty((n, 3, 3)), empty_grid(n_cells), np.empty(n, np.int64)
+        else:
+            pos, cov, grid, cell_of = buffers.take(n, n_cells)
+        ego_points_into(
             idx,
             local.rows,
             local.map.pos,
@@ -175,13 +183,24 @@ class EgoMap:
             dims,
             voxel,
             GRID_PAD,
+            pos,
+            cov,
+            grid,
+            cell_of,
         )
         return cls(pose, pos, cov, local.labels[idx], np.ones(len(idx), bool), grid, origin, dims, voxel, idx)
 
     @classmethod
-    def around(cls, local: LocalMap, pose: np.ndarray, margin: np.ndarray, subset: np.ndarray | None = None) -> EgoMap:
+    def around(
+        cls,
+        local: LocalMap,
+        pose: np.ndarray,
+        margin: np.ndarray,
+        subset: np.ndarray | None = None,
+        buffers: EgoBuffers | None = None,
+    ) -> EgoMap:
         """The window's usable voxels (or `subset`) in the frame's box with the margin, at the frame's pose."""
-        return cls.build(local, pose, EGO_LOWER - margin, EGO_UPPER + margin, local.map.voxel, subset)
+        return cls.build(local, pose, EGO_LOWER - margin, EGO_UPPER + margin, local.map.voxel, subset, buffers)
 
     def pooled(self, voxel: float) -> EgoMap:
         """The same map averaged on a coarser grid (coarse GICP searches farther at the same cost). Pooling a pooled

@@ -476,3 +476,27 @@ def test_a_window_finds_every_row_a_scan_would_after_merges_moves_puts_and_compa
     m.remove(np.arange(0, m._n, 2))
     m.compact()
     check(m)
+
+
+def test_grid_clusters_are_the_connected_components_of_pairs_within_eps():
+    """Each pair tried once, cells a point cannot reach skipped: still every pair within eps joined (lattice points
+    lie exactly eps apart), and each cluster named by its smallest index."""
+    from scipy.sparse.csgraph import connected_components
+    from scipy.spatial import cKDTree
+
+    from occvo_core.registration.kernels.clusters import grid_clusters
+
+    rng = np.random.default_rng(3)
+    for n_points, spread, eps, lattice in ((1, 5.0, 1.0, False), (400, 6.0, 1.0, False), (600, 8.0, 0.4, True)):
+        points = rng.uniform(-spread, spread, (n_points, 3))
+        if lattice:
+            points = np.round(points / eps) * eps + 0.1
+        pairs = cKDTree(points).query_pairs(eps * (1 + 1e-12), output_type="ndarray")
+        d2 = ((points[pairs[:, 0]] - points[pairs[:, 1]]) ** 2).sum(axis=1)
+        pairs = pairs[d2 <= eps * eps]  # the kernel's test, exactly
+        adjacency = np.zeros((n_points, n_points), bool)
+        adjacency[pairs[:, 0], pairs[:, 1]] = True
+        _, component = connected_components(adjacency, directed=False)
+        smallest = np.full(component.max() + 1, n_points)
+        np.minimum.at(smallest, component, np.arange(n_points))
+        assert np.array_equal(grid_clusters(points, eps), smallest[component])

@@ -225,3 +225,27 @@ def test_the_gicp_step_rotation_is_scipys_bit_for_bit():
             v[n % 3] = 0.0
         assert np.array_equal(rotvec_matrix(v).view(np.uint64), Rotation.from_rotvec(v).as_matrix().view(np.uint64))
     assert np.array_equal(rotvec_matrix(np.zeros(3)), np.eye(3))
+
+
+def test_an_ego_map_on_reused_buffers_equals_one_on_new_arrays():
+    """EgoBuffers empties only the cells the last EgoMap wrote: a second, smaller build on them equals a fresh one."""
+    from occvo_core.registration.ego_buffers import EgoBuffers
+    from occvo_core.registration.local_map import EgoMap, window_margin
+    from occvo_core.registration.voxel_map import VoxelPFilterMap
+
+    rng = np.random.default_rng(5)
+    voxel_map = VoxelPFilterMap(0.4)
+    points = rng.uniform([-45, -45, -4], [45, 45, 4], (6000, 3))
+    voxel_map.merge(points, rng.integers(0, 17, len(points)).astype(np.uint8), np.tile(np.eye(3), (6000, 1, 1)), 0)
+    local = voxel_map.window(np.array([-130, -130, -15]), np.array([130, 130, 15]))
+    margin, buffers = window_margin(4.0), EgoBuffers()
+    for yaw, keep in ((0.3, 1.0), (-1.1, 0.5)):
+        pose = np.eye(4)
+        pose[:2, :2] = [[np.cos(yaw), -np.sin(yaw)], [np.sin(yaw), np.cos(yaw)]]
+        pose[:3, 3] = [1.3, -2.1, 0.2]
+        subset = rng.random(len(local)) < keep
+        reused = EgoMap.around(local, pose, margin, subset=subset, buffers=buffers)
+        fresh = EgoMap.around(local, pose, margin, subset=subset)
+        for field in ("pos", "cov", "grid", "source"):
+            assert np.array_equal(getattr(reused, field), getattr(fresh, field)), field
+        assert (reused.grid >= 0).sum() > 100

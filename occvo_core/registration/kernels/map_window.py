@@ -18,7 +18,7 @@ def _padded_cell(i, j, k, dims, pad):
 
 
 @njit(cache=CACHE, nogil=True, parallel=True)
-def _empty_grid(n_cells):
+def empty_grid(n_cells):
     """A dense grid of n_cells, every cell empty (-1), filled in CHUNKS slices at once: the grid is megabytes."""
     grid = np.empty(n_cells, np.int32)
     for c in prange(CHUNKS):
@@ -53,7 +53,7 @@ def window_voxels(keys, alive, f, t0, pos, label, n, block_lo, block_hi, lower, 
     p-index f / max(t - t0, 1), and the dense grid of the box holding each one's window index (one pass, not five).
     Only the row blocks whose box (block_lo, block_hi: row_blocks) reaches the window are read row by row."""
     dims = upper - lower + 1
-    grid = _empty_grid(dims[0] * dims[1] * dims[2])
+    grid = empty_grid(dims[0] * dims[1] * dims[2])
     inside = np.empty(n, np.bool_)
     counts = np.zeros(CHUNKS + 1, np.int64)
     for c in prange(CHUNKS):  # count each slice's rows in parallel
@@ -99,16 +99,21 @@ def window_voxels(keys, alive, f, t0, pos, label, n, block_lo, block_hi, lower, 
     return rows, out_pos, out_label, p_index, grid
 
 
+@njit(cache=CACHE, nogil=True)
+def clear_cells(grid, cells):
+    """Empty (-1) the cells of grid that a build wrote (cells < 0: none), not the whole megabytes."""
+    for c in cells:
+        if c >= 0:
+            grid[c] = -1
+
+
 @njit(cache=CACHE, nogil=True, parallel=True)
-def ego_points(idx, rows, map_pos, map_cov, rot, trans, origin, dims, voxel, pad):
-    """Map voxels rows[idx] moved into the frame of the pose (rot, trans): positions R^T (p - t), covariances
-    R^T C R, and the dense grid of their cells in the box origin..origin + dims (of two voxels in one cell, the
-    first in turn_before's order), with pad empty cells on every side."""
+def ego_points_into(idx, rows, map_pos, map_cov, rot, trans, origin, dims, voxel, pad, pos, cov, grid, cell_of):
+    """Map voxels rows[idx] moved into the frame of the pose (rot, trans): positions R^T (p - t) into pos,
+    covariances R^T C R into cov, and their cells in the box origin..origin + dims, with pad empty cells on every
+    side, into grid (every cell empty on entry; of two voxels in one cell, the first in turn_before's order) and
+    cell_of (each one's cell, -1 outside). The caller gives the arrays: reused ones spare a frame its page faults."""
     n = idx.shape[0]
-    pos = np.empty((n, 3))
-    cov = np.empty((n, 3, 3))
-    grid = _empty_grid((dims[0] + 2 * pad) * (dims[1] + 2 * pad) * (dims[2] + 2 * pad))
-    cell_of = np.empty(n, np.int64)
     for a in prange(n):
         r = rows[idx[a]]
         d0 = map_pos[r, 0] - trans[0]
@@ -133,6 +138,16 @@ def ego_points(idx, rows, map_pos, map_cov, rot, trans, origin, dims, voxel, pad
             b = grid[c]
             if b < 0 or turn_before(pos[a, 0], pos[a, 1], pos[a, 2], pos[b, 0], pos[b, 1], pos[b, 2]):
                 grid[c] = a
+
+
+def ego_points(idx, rows, map_pos, map_cov, rot, trans, origin, dims, voxel, pad):
+    """ego_points_into on new arrays: (pos, cov, grid)."""
+    n = len(idx)
+    pos, cov = np.empty((n, 3)), np.empty((n, 3, 3))
+    grid = empty_grid(int(np.prod(np.asarray(dims) + 2 * pad)))
+    ego_points_into(
+        idx, rows, map_pos, map_cov, rot, trans, origin, dims, voxel, pad, pos, cov, grid, np.empty(n, np.int64)
+    )
     return pos, cov, grid
 
 
@@ -143,7 +158,7 @@ def pool_voxels(pos, cov, labels, usable, weight, votes_in, voxel, origin, dims,
     equals pooling its voxels directly. Returns pos, cov, labels, dense grid of the cells (with pad empty cells on
     every side), weights, votes."""
     n_pts = pos.shape[0]
-    grid = _empty_grid((dims[0] + 2 * pad) * (dims[1] + 2 * pad) * (dims[2] + 2 * pad))
+    grid = empty_grid((dims[0] + 2 * pad) * (dims[1] + 2 * pad) * (dims[2] + 2 * pad))
     cell_of = np.empty(n_pts, np.int64)
     for n in prange(n_pts):
         cell_of[n] = -1

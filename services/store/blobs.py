@@ -9,6 +9,7 @@ import numpy as np
 
 from occvo_core.frame import OccupancyFrame
 from occvo_core.grid import OCC3D_GRID
+from occvo_core.grid_kernels import used_cells
 from occvo_services.array_pack import pack_arrays, unpack_arrays
 
 
@@ -45,7 +46,7 @@ def _used(idx: np.ndarray, axes: np.ndarray | None) -> list[np.ndarray] | None:
     n = max(OCC3D_GRID.shape)
     if len(idx) and int(idx.max()) >= n:
         return None
-    used = [np.bincount(idx[:, a], minlength=n)[:n] > 0 for a in range(3)]
+    used = list(used_cells(idx, n))
     if axes is None or len(idx) == 0:
         return used
     for a in range(3):

@@ -60,8 +60,8 @@ def _tile_rows(update: MapUpdate, encoded: list[bytes]):
         if n == 0:
             yield tile.ix, tile.iy, 0, None, None, data
         else:
-            p = tile.points.to_numpy()
-            yield tile.ix, tile.iy, n, p.min(0).tolist(), p.max(0).tolist(), data
+            lo, hi = tile.extent()
+            yield tile.ix, tile.iy, n, lo, hi, data
 
 
 def _info(

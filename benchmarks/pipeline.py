@@ -267,6 +267,8 @@ def main(argv=None) -> int:
         "--registration-args", default="", help='extra flags of the registration worker, e.g. "--after-pose-nice 0"'
     )
     args = ap.parse_args(argv)
+    if args.live_runs < 1 or args.repeats < 1:
+        ap.error("--repeats and --live-runs must be at least 1: the ratio needs a replay, the 2 Hz latency a stream")
 
     results = {"hop": {}, "scenes": {}}
     for name in ("points", "axes", "voxels") if args.hop_messages > 0 else ():

@@ -43,7 +43,11 @@ def run_load(
     load0 = os.getloadavg()[0]  # other jobs on the machine change everything below: say how busy it was
     worker_args = {"map": ["--store-path", str(log_dir / "occvo.sqlite")]} if store else {}
     if working_radius > 0:  # as deployed (deploy/registration_worker.json5): each stream's working map is bounded
+        # the streams here are many cars under one login: a car's store quota (a client's) would count them all
+        (log_dir / "registration.json5").write_text("{max_store_mb_per_client: null}\n")
         worker_args["registration"] = [
+            "--config",
+            str(log_dir / "registration.json5"),
             "--store-path",
             str(log_dir / "registration.sqlite"),
             "--working-radius-m",

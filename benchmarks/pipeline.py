@@ -9,7 +9,7 @@ Per scene, in one service (a 3-frame stream first: the workers' first use of a s
     registration and map workers, both stores on, from the first frame sent to the last pose received (the frames
     read before, as offline's are), each between two offline runs (OccVO.step on all cores, as `occvo run`). The
     host's speed drifts within seconds, so each replay's ratio is its frames/s over the mean of its two neighbours';
-    ratio = the median of those (goal >= 0.8); poses checked equal to the offline ones bit for bit;
+    ratio = the median of those (goal >= 0.9); poses checked equal to the offline ones bit for bit;
   - pose latency p50/p99 at 2 Hz (client send to pose arrival; `live_runs` streams, each between two offline runs
     too) beside the time a frame of the offline runs beside it (the whole step, median and p99; goal p50 <= median
     + 10 ms, p99 <= 2 x p99; the medians over the streams), and beside an offline run at 2 Hz (its steps start on
@@ -228,9 +228,10 @@ def run_scene(scene_dir: Path, args) -> dict:
         "poses_identical": bool(identical),
         "errors": int(sum(f["errors"] for f in fast + live)),
         "goals": {
-            "ratio >= 0.8": ratio >= 0.8,
+            "ratio >= 0.9": ratio >= 0.9,
             "latency p50 <= offline median + 10 ms": p50_margin <= 10.0,
-            "latency p99 <= 2 x offline p99": p99_ratio <= 2.0,
+            "latency p99 <= 1.5 x offline p99": p99_ratio <= 1.5,
+            "CPU the service adds a frame <= 6 ms": added_cpu <= 6.0,
         },
         "offline_stage_median_ms": _medians_of([o["stages"] for o in offs]),
         "offline_cpu_ms": offline_cpu,

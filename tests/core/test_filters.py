@@ -6,7 +6,7 @@ from scenes import box, car, frame, shell, town
 from occvo_core import OccVO, OccVOConfig
 from occvo_core.grid import OCC3D_GRID
 from occvo_core.registration.dynamic_object_filter import cluster_objects, dynamic_object_filter
-from occvo_core.registration.kernels.gicp import gicp_linearise
+from occvo_core.registration.kernels.gicp_loop import gicp_linearise
 from occvo_core.registration.kernels.grid import dense_index, surface_mask
 from occvo_core.registration.voxel_map import VoxelPFilterMap
 
@@ -38,8 +38,8 @@ def test_semantic_label_filter_drops_exactly_the_pairs_whose_labels_differ():
         1,
         0.3,
     )
-    _, _, _, found_on, kept_on = gicp_linearise(*args, True, 0.0)
-    _, _, _, found_off, kept_off = gicp_linearise(*args, False, 0.0)
+    _, _, _, found_on, kept_on = gicp_linearise(*args, True, 0.0, np.empty(len(points), np.int64))
+    _, _, _, found_off, kept_off = gicp_linearise(*args, False, 0.0, np.empty(len(points), np.int64))
     assert found_on == found_off == len(points)
     assert kept_off == len(points)
     assert kept_on == len(points) - len(relabelled)

@@ -6,7 +6,8 @@ from scenes import town
 from occvo_core.grid import OCC3D_GRID
 from occvo_core.registration.gicp import gicp
 from occvo_core.registration.kernels.covariance import _smallest_eigenvector, plane_covariances
-from occvo_core.registration.kernels.gicp import gicp_linearise, gicp_linearise_pairs
+from occvo_core.registration.kernels.gicp import gicp_linearise_pairs
+from occvo_core.registration.kernels.gicp_loop import gicp_linearise
 from occvo_core.registration.kernels.grid import surface_voxels
 from occvo_core.registration.kernels.nearest import nearest_within
 from occvo_core.registration.kernels.sources import thin_sources

@@ -1,4 +1,5 @@
-"""GICP's linearisation: pairs searched (and filtered by the semantic label filter), H and g summed."""
+"""GICP's linearisation: one pair's terms of H and g (_add_pair), summed over fixed slices of the sources; the search
+and the Gauss-Newton loop are in gicp_loop.py."""
 
 from __future__ import annotations
 
@@ -6,8 +7,6 @@ import numpy as np
 from numba import njit, prange
 
 from occvo_core.registration.kernels import CACHE, CHUNKS
-from occvo_core.registration.kernels.nearest import nearest_within_gaps
-from occvo_core.registration.semantic_label_filter import semantic_label_filter
 
 
 @njit(cache=CACHE, nogil=True, inline="always")
@@ -81,49 +80,6 @@ def _add_pair(n, m, src, src_cov, rot, trans, map_pos, map_cov, robust_scale, ou
 
 
 @njit(cache=CACHE, nogil=True)
-def _linearise_range(
-    lo,
-    hi,
-    src,
-    src_cov,
-    src_lab,
-    rot,
-    trans,
-    map_pos,
-    map_cov,
-    map_lab,
-    usable,
-    grid,
-    origin,
-    dims,
-    voxel,
-    radius,
-    max_d2,
-    label_filter,
-    robust_scale,
-    pairs,
-    out,
-):
-    """Search the nearest map point of sources lo..hi, record it in pairs (-1: none kept) and add the GICP terms
-    of the kept pairs into out = (H upper triangle 21, g 6, cost, found, kept)."""
-    q = np.empty(3)
-    gaps = np.empty((3, 2 * radius + 1))
-    for n in range(lo, hi):
-        pairs[n] = -1
-        for a in range(3):
-            q[a] = rot[a, 0] * src[n, 0] + rot[a, 1] * src[n, 1] + rot[a, 2] * src[n, 2] + trans[a]
-        m, d2 = nearest_within_gaps(q, map_pos, grid, origin, dims, voxel, radius, usable, max_d2, gaps)
-        if m < 0 or d2 > max_d2:
-            continue
-        out[28] += 1.0
-        if not semantic_label_filter(label_filter, src_lab[n], map_lab[m]):
-            continue
-        out[29] += 1.0
-        pairs[n] = m
-        _add_pair(n, m, src, src_cov, rot, trans, map_pos, map_cov, robust_scale, out)
-
-
-@njit(cache=CACHE, nogil=True)
 def _sum_parts(parts):
     total = np.zeros(parts.shape[1])
     for c in range(parts.shape[0]):
@@ -140,7 +96,7 @@ def _sum_parts(parts):
 
 @njit(cache=CACHE, nogil=True, parallel=True)
 def gicp_linearise_pairs(src, src_cov, rot, trans, map_pos, map_cov, pairs, robust_scale):
-    """gicp_linearise at a new pose with the pairs of an earlier search kept (the pose moved too little since
+    """gicp_linearise (kernels/gicp_loop.py) at a new pose with the pairs of an earlier search kept (the pose moved too little since
     to change which map point is nearest, so the search, most of the cost, is skipped)."""
     n = src.shape[0]
     parts = np.zeros((CHUNKS, 30))
@@ -149,60 +105,4 @@ def gicp_linearise_pairs(src, src_cov, rot, trans, map_pos, map_cov, pairs, robu
             if pairs[i] >= 0:
                 parts[c, 29] += 1.0
                 _add_pair(i, pairs[i], src, src_cov, rot, trans, map_pos, map_cov, robust_scale, parts[c])
-    return _sum_parts(parts)
-
-
-@njit(cache=CACHE, nogil=True, parallel=True)
-def gicp_linearise(
-    src,
-    src_cov,
-    src_lab,
-    rot,
-    trans,
-    map_pos,
-    map_cov,
-    map_lab,
-    usable,
-    grid,
-    origin,
-    dims,
-    voxel,
-    radius,
-    max_dist,
-    label_filter,
-    robust_scale,
-    pairs=None,
-):
-    """One Gauss-Newton step of GICP: H, g of the Mahalanobis cost, plus counts of pairs found and kept; the kept
-    pairs go into `pairs` (map index per source, -1 none) when given. The grid is padded (nearest_within).
-    Sums run over CHUNKS fixed slices of the sources, added in order."""
-    n = src.shape[0]
-    if pairs is None:
-        pairs = np.empty(n, np.int64)
-    parts = np.zeros((CHUNKS, 30))
-    max_d2 = max_dist * max_dist
-    for c in prange(CHUNKS):
-        _linearise_range(
-            n * c // CHUNKS,
-            n * (c + 1) // CHUNKS,
-            src,
-            src_cov,
-            src_lab,
-            rot,
-            trans,
-            map_pos,
-            map_cov,
-            map_lab,
-            usable,
-            grid,
-            origin,
-            dims,
-            voxel,
-            radius,
-            max_d2,
-            label_filter,
-            robust_scale,
-            pairs,
-            parts[c],
-        )
     return _sum_parts(parts)

@@ -39,7 +39,7 @@ def _linearise_kept(
     searched_q,
 ):
     """gicp_linearise's answer, searching only the sources whose nearest map point (near, bound2, searched_q: each
-    one's last search) may have changed."""
+    one's last search) may have changed. Sums run over CHUNKS fixed slices of the sources, added in order."""
     n = src.shape[0]
     parts = np.zeros((CHUNKS, 30))
     for c in prange(CHUNKS):
@@ -64,6 +64,35 @@ def _linearise_kept(
             pairs[i] = m
             _add_pair(i, m, src, src_cov, rot, trans, map_pos, map_cov, robust_scale, out)
     return _sum_parts(parts)
+
+
+@njit(cache=CACHE, nogil=True)
+def gicp_linearise(
+    src,
+    src_cov,
+    src_lab,
+    rot,
+    trans,
+    map_pos,
+    map_cov,
+    map_lab,
+    usable,
+    grid,
+    origin,
+    dims,
+    voxel,
+    radius,
+    max_dist,
+    label_filter,
+    robust_scale,
+    pairs,
+):
+    """One Gauss-Newton step of GICP after a fresh search: H, g of the Mahalanobis cost, plus counts of pairs found
+    and kept; the kept pairs go into `pairs` (map index per source, -1 none). The grid is padded (nearest_within)."""
+    n = src.shape[0]
+    near, bound2, searched_q = np.full(n, -1), np.zeros(n), np.empty((n, 3))  # nothing kept: every source searched
+    args = (src, src_cov, src_lab, rot, trans, map_pos, map_cov, map_lab, usable, grid, origin, dims, voxel, radius)
+    return _linearise_kept(*args, max_dist * max_dist, label_filter, robust_scale, pairs, near, bound2, searched_q)
 
 
 @njit(cache=CACHE, nogil=True)

@@ -1,6 +1,6 @@
 """Compiled single passes over a frame's voxels on the grid, for what every frame of the service goes through: its
-axis tables (the client's message), its points from them, the cells in use (the digest) and its repeated voxels
-(the admission check). numpy took a dozen passes and temporary arrays for each; these take one."""
+axis tables (the client's message), its points from them and the cells in use (the digest). numpy took a dozen
+passes and temporary arrays for each; these take one."""
 
 from __future__ import annotations
 
@@ -46,16 +46,3 @@ def used_cells(indices, n):
         for a in range(3):
             used[a, indices[i, a]] = True
     return used
-
-
-@njit(cache=True, nogil=True)
-def repeated_cells(indices, shape) -> int:
-    """Rows of indices repeating an earlier row: a flag per grid cell, no sort; the indices are inside `shape`."""
-    seen = np.zeros(shape[0] * shape[1] * shape[2], np.bool_)
-    repeats = 0
-    for i in range(indices.shape[0]):
-        cell = (np.int64(indices[i, 0]) * shape[1] + indices[i, 1]) * shape[2] + indices[i, 2]
-        if seen[cell]:
-            repeats += 1
-        seen[cell] = True
-    return repeats

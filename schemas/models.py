@@ -13,7 +13,6 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationInfo, field_validator, model_validator
 
 from occvo_core.grid import NUM_CLASSES, GridSpec
-from occvo_core.grid_kernels import repeated_cells
 
 SCHEMA_VERSION = 1  # every kind's first version; VERSIONS (below) holds each kind's newest
 ALLOWED_DTYPES = ("uint8", "uint16", "int32", "int64", "float32", "float64")
@@ -89,7 +88,10 @@ def _col_extremes(a: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 def _duplicates(v: np.ndarray, shape: tuple[int, int, int] | None) -> int:
     """Rows of v (N,3) repeating an earlier row: voxel indices (`shape`: the grid's) or coordinates (None)."""
     if shape is not None and math.prod(shape) <= 1 << 24:  # a flag per grid cell: one pass, no sort, no counts
-        return int(repeated_cells(v, np.array(shape, np.int64)))
+        lin = (v[:, 0].astype(np.int64) * shape[1] + v[:, 1]) * shape[2] + v[:, 2]
+        seen = np.zeros(math.prod(shape), np.bool_)
+        seen[lin] = True
+        return int(len(v) - np.count_nonzero(seen))
     rows = np.ascontiguousarray(v).view(np.dtype((np.void, v.dtype.itemsize * 3))).ravel()
     return int(len(v) - len(np.unique(rows)))
 

@@ -9,7 +9,6 @@ import numpy as np
 
 from occvo_core.config import GICPConfig, OccVOConfig
 from occvo_core.registration.kernels.gicp_loop import gicp_loop
-from occvo_core.registration.kernels.se3 import rotvec_matrix  # noqa: F401 - re-exported: tests check its bits
 from occvo_core.registration.local_map import EgoMap, LocalMap
 from occvo_core.registration.preprocess import Prepared
 

@@ -216,7 +216,7 @@ def test_the_gicp_step_rotation_is_scipys_bit_for_bit():
     its small-angle series: poses and maps stay bit for bit what they were with scipy."""
     from scipy.spatial.transform import Rotation
 
-    from occvo_core.registration.gicp import rotvec_matrix
+    from occvo_core.registration.kernels.se3 import rotvec_matrix
 
     rng = np.random.default_rng(11)
     for n in range(20000):

@@ -85,6 +85,16 @@ def _axis_gap(o, lo, voxel):
 
 
 @njit(cache=CACHE, nogil=True, inline="always")
+def square_gaps(q, ci, cj, ck, origin, voxel, radius, gaps):
+    """gaps[a, o + radius]: the squared gap along axis a from q to the cells o away from q's cell (ci, cj, ck)."""
+    lo0, lo1, lo2 = q[0] - (ci + origin[0]) * voxel, q[1] - (cj + origin[1]) * voxel, q[2] - (ck + origin[2]) * voxel
+    for o in range(-radius, radius + 1):
+        gaps[0, o + radius] = _axis_gap(o, lo0, voxel) ** 2
+        gaps[1, o + radius] = _axis_gap(o, lo1, voxel) ** 2
+        gaps[2, o + radius] = _axis_gap(o, lo2, voxel) ** 2
+
+
+@njit(cache=CACHE, nogil=True, inline="always")
 def nearest_within_gaps(q, map_pos, grid, origin, dims, voxel, radius, usable, max_d2, gaps):
     """nearest_in_window for a caller that keeps only a point within max_d2: the same point whenever that one is
     within it (a farther one or none otherwise). Beyond the query's own cell it reads only the cells that can hold a
@@ -101,11 +111,7 @@ def nearest_within_gaps(q, map_pos, grid, origin, dims, voxel, radius, usable, m
     best, best_d2 = _nearer(q, map_pos, grid[c], usable, -1, np.inf)
     if best >= 0 and _beyond_best(q, ci, cj, ck, origin, 0, voxel, best_d2):
         return best, best_d2
-    lo0, lo1, lo2 = q[0] - (ci + origin[0]) * voxel, q[1] - (cj + origin[1]) * voxel, q[2] - (ck + origin[2]) * voxel
-    for o in range(-radius, radius + 1):
-        gaps[0, o + radius] = _axis_gap(o, lo0, voxel) ** 2
-        gaps[1, o + radius] = _axis_gap(o, lo1, voxel) ** 2
-        gaps[2, o + radius] = _axis_gap(o, lo2, voxel) ** 2
+    square_gaps(q, ci, cj, ck, origin, voxel, radius, gaps)
     for r in range(1, radius + 1):
         for di in range(-r, r + 1):
             gi = gaps[0, di + radius]

@@ -10,7 +10,7 @@ import numpy as np
 from numba import njit
 
 from occvo_core.registration.kernels import CACHE
-from occvo_core.registration.kernels.nearest import _axis_gap, _beyond_best, _nearer, nearest_in_window
+from occvo_core.registration.kernels.nearest import _beyond_best, _nearer, nearest_in_window, square_gaps
 
 SLACK_M = 1e-6  # far above the rounding of any distance here: the kept point is strictly nearest, no tie to break
 
@@ -29,11 +29,7 @@ def nearest_bounded(q, map_pos, grid, origin, dims, voxel, radius, usable, max_d
     c = (ci * dims[1] + cj) * dims[2] + ck
     best, best_d2 = _nearer(q, map_pos, grid[c], usable, -1, np.inf)
     bound2 = max_d2  # the second best's squared distance, capped
-    lo0, lo1, lo2 = q[0] - (ci + origin[0]) * voxel, q[1] - (cj + origin[1]) * voxel, q[2] - (ck + origin[2]) * voxel
-    for o in range(-radius, radius + 1):
-        gaps[0, o + radius] = _axis_gap(o, lo0, voxel) ** 2
-        gaps[1, o + radius] = _axis_gap(o, lo1, voxel) ** 2
-        gaps[2, o + radius] = _axis_gap(o, lo2, voxel) ** 2
+    square_gaps(q, ci, cj, ck, origin, voxel, radius, gaps)
     for r in range(1, radius + 1):
         if _beyond_best(q, ci, cj, ck, origin, r - 1, voxel, bound2):
             break

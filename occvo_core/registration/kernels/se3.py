@@ -52,7 +52,7 @@ def _numpy_arccos(x):
 
 @njit(cache=CACHE, nogil=True)
 def moved_beyond(pose, since, since_inv, reach, limit):
-    """Whether no point within `reach` of the origin can have moved more than `limit` from pose `since` (inverse
+    """Whether a point within `reach` of the origin may have moved more than `limit` from pose `since` (inverse
     since_inv) to pose, by the bound |t| + angle * (reach + |t since|) that numpy gives. The angle is the C library's
     arccos, within 2 ulps of numpy's: numpy's is asked only when the bound over 4 ulps either side straddles the
     limit (the bound grows with the angle)."""

@@ -27,36 +27,44 @@ STALE_S = 3.0  # a turned-away frame not sent again this long is not waited for 
 
 
 class TurnedAway:
-    """Per stream, the first frame a full queue turned away (the frames after it wait for it) and the frames that
-    entered the lane since its last seq 0 (RECENT of them): a frame among those, turned away (a resend overlapping
-    its original), is waited for by nothing, since its pose comes anyway. A wait no copy of its frame renewed for
-    STALE_S ends: the client has that frame's pose (a copy of it was turned away after a seq 0 copy came again)."""
+    """Per stream, the frames a full queue turned away that have not entered its lane since (the frames after the
+    first of them wait for it), and the frames that entered the lane since its last seq 0 (RECENT of them): a frame
+    among those, turned away (a resend overlapping its original), is waited for by nothing, since its pose comes
+    anyway. Every turned-away frame is remembered, not only the first: once the first is in, the next still missing
+    holds the frames after it (an upstream worker may forward them before it). A wait no copy of its frame renewed
+    for STALE_S ends: the client has that frame's pose (a copy of it was turned away after a seq 0 copy came again)."""
 
     def __init__(self):
         self._lock = threading.Lock()
-        self._first: dict[str, list] = {}  # stream -> [seq, time.monotonic() it was last turned away]
+        self._away: dict[str, dict[int, float]] = {}  # stream -> {seq: time.monotonic() it was last turned away}
         self._in: dict[str, deque] = {}
 
     def waits(self, stream: str, seq: int) -> int | None:
         """The seq frame `seq` waits for, or None (seq 0 starts the stream again)."""
         with self._lock:
-            first = self._first.get(stream)
-            if first is None:
+            away = self._away.get(stream)
+            if away is None:
                 return None
-            k, at = first
-            if seq == 0 or k in self._in.get(stream, ()) or time.monotonic() - at > STALE_S:
-                del self._first[stream]  # a new trajectory, k is in after all, or nobody sends k again
+            entered, now = self._in.get(stream, ()), time.monotonic()
+            for k in [k for k, at in away.items() if seq == 0 or k in entered or now - at > STALE_S]:
+                del away[k]  # a new trajectory, k is in after all, or nobody sends k again
+            if not away:
+                del self._away[stream]
                 return None
+            k = min(away)
             return None if seq <= k else k
 
     def turned_away(self, stream: str, seq: int) -> None:
         with self._lock:
             if seq != 0 and seq in self._in.get(stream, ()):
                 return  # a copy of a frame in already: nothing waits for it
-            first = self._first.get(stream)
-            if first is None or seq <= first[0]:
-                self._first[stream] = [seq, time.monotonic()]
-                _bound(self._first)
+            away = self._away.get(stream)
+            if away is None:
+                away = self._away[stream] = {}
+                _bound(self._away)
+            away[seq] = time.monotonic()
+            if len(away) > RECENT:  # stray seqs far ahead: the first ones are what the stream waits for
+                del away[max(away)]
 
     def entered(self, stream: str, seq: int) -> None:
         with self._lock:
@@ -65,9 +73,12 @@ class TurnedAway:
                 entered = self._in[stream] = deque(maxlen=RECENT)
                 _bound(self._in)
             entered.append(seq)
-            first = self._first.get(stream)
-            if first is not None and first[0] <= seq:
-                del self._first[stream]
+            away = self._away.get(stream)
+            if away is not None:
+                for k in [k for k in away if k <= seq or seq == 0]:
+                    del away[k]
+                if not away:
+                    del self._away[stream]
 
 
 def _bound(streams: dict) -> None:

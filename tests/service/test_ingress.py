@@ -12,6 +12,7 @@ from offline import offline
 
 from occvo_schemas import keys
 from occvo_services import ingress
+from occvo_services.camera_frames import camera_frame_of
 from occvo_services.client import OccVOClient
 from occvo_services.ingress import TurnedAway
 from occvo_services.local import InProcessService
@@ -37,6 +38,20 @@ def test_frames_after_one_a_full_queue_turned_away_wait_for_it_and_a_copy_of_one
     t.entered("s", 0)
     t.turned_away("s", 1)
     assert t.waits("s", 2) == 1 and t.waits("t", 2) is None  # one stream's wait is its own
+
+
+def test_the_next_frame_still_missing_holds_the_frames_after_it_once_the_first_is_in():
+    """3, 4 and 5 turned away (4 and 5 waited for 3); copies of 3 and 4 get in, 5's copy is stopped upstream (the
+    inference worker's lane full) while 6 passes there: 6 waits for 5 here, it must not enter before it."""
+    t = TurnedAway()
+    for seq in range(3):
+        t.entered("s", seq)
+    for seq in (3, 4, 5):
+        t.turned_away("s", seq)
+    t.entered("s", 3), t.entered("s", 4)
+    assert t.waits("s", 6) == 5 and t.waits("s", 5) is None
+    t.entered("s", 5)
+    assert t.waits("s", 6) is None
 
 
 def test_a_wait_no_copy_of_its_frame_renews_ends(monkeypatch):
@@ -73,8 +88,10 @@ def test_a_stream_overflowing_its_queue_loses_nothing_and_holds_up_no_other_stre
         b.reset(), s.reset(), stalled.reset()
         for i in range(3):
             stalled.publish(steady[i])
+        # built before: the burst goes out faster than the service answers it, however busy the host
+        frames = [camera_frame_of(burst[i], b.stream, i) for i in range(10)]
         for i in range(10):
-            b.publish(burst[i])  # waits by itself while turned-away frames go again
+            b.publish(frames[i])  # waits by itself while turned-away frames go again
         got = [s.step(steady[i]) for i in range(6)]
         last = b.wait_pose(9, timeout=300)
         held.set()

@@ -20,9 +20,8 @@ ratio of the last minute's latency p99 to the first minute's. Prints a table and
 "Keeps up" = every frame sent on time and answered, poses at >= 95% of the offered rate in the last bucket, frames in
 flight growing by less than one per stream per minute, and the median latency of the last bucket under twice the first's.
 
-Beyond capacity, `lossless` is not lossless end to end: a worker whose queues are full blocks its Zenoh callback, and
-Zenoh closes a link blocked longer than transport/link/tx/queue/congestion_control/block/wait_before_close (5 s by
-default), losing what was buffered on it; the registration worker then reports missing_seq (docs/service.md).
+Beyond capacity, `lossless` answers a frame its stream's queue cannot take with stream_full and the client sends it
+again (docs/service.md, "Lossless under overload"): frames wait at the client and latency grows; none is lost.
 """
 
 from __future__ import annotations

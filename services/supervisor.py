@@ -127,8 +127,24 @@ class Child:
         self.backoff = Backoff(spec)
         self.proc: subprocess.Popen | None = None
         self.started_at = 0.0
-        self.restart_at: float | None = None
+        self.restart_at: float | None = None  # when a crashed child starts again; inf: it exited cleanly, it stays
         self.restarts = 0
+
+    def running(self, proc: subprocess.Popen) -> None:
+        self.proc, self.started_at, self.restart_at = proc, time.monotonic(), None
+
+    def restarting(self) -> None:
+        self.restarts += 1
+
+    def exited(self) -> None:
+        """A clean exit is a decision (e.g. systemctl stop of one worker): not restarted."""
+        self.proc, self.restart_at = None, float("inf")
+
+    def crashed(self, now: float) -> float:
+        """Its restart after the backoff its uptime earns; returns the delay."""
+        delay = self.backoff.next(now - self.started_at)
+        self.restart_at = now + delay
+        return delay
 
 
 def _die_with_parent() -> None:
@@ -195,13 +211,12 @@ class Supervisor:
             Path(self.config.log_dir).mkdir(parents=True, exist_ok=True)
             err = open(Path(self.config.log_dir) / f"{child.name}.log", "a")
         # own process group: a terminal's Ctrl-C reaches only the supervisor, which stops workers before the router
-        child.proc = subprocess.Popen(
+        proc = subprocess.Popen(
             child.cmd, cwd=REPO, env=child.env, stdout=err, stderr=err, process_group=0, preexec_fn=_die_with_parent
         )
         if err not in (None, subprocess.DEVNULL):
             err.close()
-        child.started_at = time.monotonic()
-        child.restart_at = None
+        child.running(proc)
         log_event(self.log, "started", name=child.name, role=child.role, pid=child.proc.pid, restarts=child.restarts)
 
     def _wait_router(self, timeout: float) -> None:
@@ -243,7 +258,7 @@ class Supervisor:
         if self.router is None or self.router.proc is None or self.stopping.is_set():
             return
         self._stop_group([self.router])
-        self.router.restarts += 1
+        self.router.restarting()
         self._spawn(self.router)
         log_event(self.log, "router restarted", reason="its config changed", pid=self.router.proc.pid)
 
@@ -255,7 +270,7 @@ class Supervisor:
         for child in ([self.router] if self.router else []) + self.workers:
             if child.restart_at is not None:
                 if now >= child.restart_at and not self.stopping.is_set():
-                    child.restarts += 1
+                    child.restarting()
                     self._spawn(child)
                 continue
             code = child.proc.poll() if child.proc else None
@@ -264,11 +279,9 @@ class Supervisor:
             uptime = now - child.started_at
             if code == 0:  # a clean exit is a decision (e.g. systemctl stop of one worker): not restarted
                 log_event(self.log, "exited", name=child.name, code=0, uptime_s=round(uptime, 3))
-                child.proc = None
-                child.restart_at = float("inf")
+                child.exited()
                 continue
-            delay = child.backoff.next(uptime)
-            child.restart_at = now + delay
+            delay = child.crashed(now)
             how = f"signal {signal.Signals(-code).name}" if code < 0 else f"code {code}"
             log_event(
                 self.log,

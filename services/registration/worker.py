@@ -53,12 +53,15 @@ class RegistrationWorker(Worker):
                 f"working_radius_m ({radius}) must exceed tile_m ({config.tile_m}): tiles come back "
                 "within working_radius_m - tile_m"
             )
-        self.store = open_store(config.store_url, config.store_sync.upper()) if config.store_url else None
+        members = config.placement == "members"
+        if members and not config.store_url:
+            raise ConfigError('placement "members" needs a store: the workers hand streams over through it')
+        # under "members" every write is under the stream's lease: none unfenced
+        self.store = (
+            open_store(config.store_url, config.store_sync.upper(), fenced_only=members) if config.store_url else None
+        )
         self.placement = self.leases = self.placing = None
-        if config.placement == "members":
-            if self.store is None:
-                raise ConfigError('placement "members" needs a store: the workers hand streams over through it')
-            self.store.fenced_only = True  # every write under the stream's lease: none unfenced
+        if members:
             self.placement = Placement(self.worker_id, self.store, config.lease_s, self.log)
             self.leases = Leases(self.store, self.worker_id, config.lease_s, self.placement, self.log, self._serving)
             claims = Claims(config.max_streams_per_client, config.idle_stream_s, self.placement.members)

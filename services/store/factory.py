@@ -16,15 +16,18 @@ from occvo_services.store.url import is_postgres_url, redact, sqlite_path
 START_CHECK_TIMEOUT_S = 4  # libpq's connect_timeout a host address: the start check answers within 10 s
 
 
-def open_store(url_or_path: str | Path, synchronous: str = "FULL", busy_timeout_s: float = 30.0):
-    """The trajectory store (services/store/protocols.TRAJECTORY_STORE names what it answers)."""
+def open_store(
+    url_or_path: str | Path, synchronous: str = "FULL", busy_timeout_s: float = 30.0, fenced_only: bool = False
+):
+    """The trajectory store (services/store/protocols.TRAJECTORY_STORE names what it answers); fenced_only (placement
+    "members"): every write of a stream under its lease, one without an epoch refused."""
     if is_postgres_url(url_or_path):
         from occvo_services.store.postgres import PgTrajectoryStore
 
-        return PgTrajectoryStore(str(url_or_path), synchronous)
+        return PgTrajectoryStore(str(url_or_path), synchronous, fenced_only=fenced_only)
     from occvo_services.store.sqlite import TrajectoryStore
 
-    return TrajectoryStore(sqlite_path(url_or_path), synchronous, busy_timeout_s)
+    return TrajectoryStore(sqlite_path(url_or_path), synchronous, busy_timeout_s, fenced_only)
 
 
 def open_map_store(path: str | Path | None):

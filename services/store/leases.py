@@ -22,9 +22,9 @@ ACQUIRE = (
 class LeaseTable:
     """The `leases` table of a store's database (`db`: write(fn, ...) runs a transaction, read(sql, args) a query)."""
 
-    def __init__(self, db):
+    def __init__(self, db, fenced_only: bool = False):
         self.db, self.q = db, db.dialect.sql
-        self.fenced_only = False  # placement "members" sets it: every write fenced, one without an epoch refused
+        self.fenced_only = fenced_only  # placement "members": every write fenced, one without an epoch refused
 
     def fence(self, stream: str, epoch: int | None):
         """What a write of the stream runs first in its transaction: FencedError unless the stream's lease is still

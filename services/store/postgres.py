@@ -17,10 +17,10 @@ from occvo_services.store.usage import Usage
 
 
 class PgTrajectoryStore:
-    def __init__(self, url: str, synchronous: str = "FULL", pool_size: int = 4):
+    def __init__(self, url: str, synchronous: str = "FULL", pool_size: int = 4, fenced_only: bool = False):
         self.database = db = PgDatabase(url, synchronous, pool_size)
         self.path, self.synchronous, self.pool, self.label = url, synchronous, db.pool, db.label
-        self.lease_table = LeaseTable(db)
+        self.lease_table = LeaseTable(db, fenced_only)
         self.frame_log = FrameLog(db, self.lease_table)
         self.snapshot_rows = PgSnapshots(db, self.frame_log, self.lease_table)
         for part, protocol in (
@@ -35,10 +35,6 @@ class PgTrajectoryStore:
     @property
     def fenced_only(self) -> bool:
         return self.lease_table.fenced_only
-
-    @fenced_only.setter
-    def fenced_only(self, value: bool) -> None:
-        self.lease_table.fenced_only = value
 
     def ping(self) -> None:
         self.database.read("SELECT 1")  # StoreUnavailable while the server is away

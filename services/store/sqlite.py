@@ -24,14 +24,20 @@ class TrajectoryStore:
     CHECKPOINT_EVERY_S = 1.0
     WAL_BLOCK_PAGES = 65536  # a WAL this long (256 MB of 4 kB pages) after a pass: checkpoint it whole, writers waiting
 
-    def __init__(self, path: str | Path, synchronous: Literal["NORMAL", "FULL"] = "FULL", busy_timeout_s: float = 30.0):
+    def __init__(
+        self,
+        path: str | Path,
+        synchronous: Literal["NORMAL", "FULL"] = "FULL",
+        busy_timeout_s: float = 30.0,
+        fenced_only: bool = False,
+    ):
         self.files = files = SqliteFiles(path, synchronous, busy_timeout_s)
         self.path, self.snapshot_path, self.synchronous = files.path, files.snapshot_path, synchronous
         # the connections and the frames' write lock, as tools and tests reach them
         self.db, self.snap_db, self.lock = files.db, files.snap_db, files.lock
         self._write, self._read = files.write, files.read
         upgrade(files)
-        self.lease_table = LeaseTable(files)
+        self.lease_table = LeaseTable(files, fenced_only)
         self.frame_log = FrameLog(files, self.lease_table)
         self.snapshot_file = SqliteSnapshots(files, self.frame_log, self.lease_table)
         self.retention = Usage(files, SqlitePages(files), self.sizes)
@@ -49,10 +55,6 @@ class TrajectoryStore:
     @property
     def fenced_only(self) -> bool:
         return self.lease_table.fenced_only
-
-    @fenced_only.setter
-    def fenced_only(self, value: bool) -> None:
-        self.lease_table.fenced_only = value
 
     def ping(self) -> None:
         self.files.read("SELECT 1")

@@ -22,9 +22,8 @@ def _commit(store, stream: str, frame, **fence) -> None:
 
 
 def test_a_members_store_refuses_every_unfenced_write(pg_url, scene):
-    store = open_store(pg_url)
+    store = open_store(pg_url, fenced_only=True)
     try:
-        store.fenced_only = True
         with pytest.raises(FencedError, match="without a lease"):
             _commit(store, "car", scene[0])
         epoch = store.acquire("car", "w1", 30.0)

@@ -13,17 +13,12 @@ from occvo_services.registration.trajectory import StreamTrajectory
 
 SERVICES = Path(__file__).resolve().parents[2] / "services"
 # (module, object written) allowed: the pose path fills its frame's FrameJob phase by phase; the OccVO's kernel
-# threads are set by its owner (AfterPose); a worker marks the store it opened as fenced-only, a store its lease
-# table; the supervisor keeps its Child records (a process, its restarts); parsed arguments and configs are filled in
-# before anything else holds them; the interpreter's and logging's hooks are set at start-up
+# threads are set by its owner (AfterPose); parsed arguments and configs are filled in before anything else holds
+# them; the interpreter's and logging's hooks are set at start-up
 OWN = {
     ("registration/pose_path.py", "job"),
     ("registration/sequencing.py", "job"),
     ("registration/after_pose.py", "self.vo"),
-    ("registration/worker.py", "self.store"),
-    ("store/postgres.py", "self.lease_table"),
-    ("store/sqlite.py", "self.lease_table"),
-    ("supervisor.py", "child"),
     ("supervisor.py", "self.router"),
     ("supervisor.py", "cfg"),
     ("supervisor.py", "cfg.router"),

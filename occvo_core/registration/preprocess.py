@@ -13,7 +13,7 @@ from occvo_core.errors import InvalidFrameError
 from occvo_core.frame import OccupancyFrame
 from occvo_core.grid import GROUND_CLASSES, MOVABLE_CLASSES, OCC3D_GRID
 from occvo_core.registration.kernels.covariance import plane_covariances
-from occvo_core.registration.kernels.grid import grid_indices, surface_voxels
+from occvo_core.registration.kernels.grid import grid_indices, keep_rows, surface_voxels
 from occvo_core.registration.kernels.sources import thin_sources
 from occvo_core.registration.local_map import EGO_LOWER
 
@@ -55,7 +55,7 @@ def preprocess(frame: OccupancyFrame, config: OccVOConfig) -> Prepared:
     frame.validate()
     points = np.ascontiguousarray(frame.points, dtype=np.float64)
     shape = np.array(OCC3D_GRID.shape, np.int64)
-    ijk, outside = grid_indices(points, EGO_LOWER, OCC3D_GRID.voxel_size, shape)
+    ijk, outside, ascending = grid_indices(points, EGO_LOWER, OCC3D_GRID.voxel_size, shape)
     if outside:
         raise InvalidFrameError(
             frame.index,
@@ -65,8 +65,8 @@ def preprocess(frame: OccupancyFrame, config: OccVOConfig) -> Prepared:
     labels = np.asarray(frame.labels, np.uint8)
     # the same points in any order give the same pose and map: sources are the first voxel of each block in
     # grid order, i.e. the block's rear-most (lowest ego x)
-    cell = (ijk[:, 0] * shape[1] + ijk[:, 1]) * shape[2] + ijk[:, 2]
-    if len(cell) > 1 and not np.all(cell[1:] > cell[:-1]):
+    if not ascending:
+        cell = (ijk[:, 0] * shape[1] + ijk[:, 1]) * shape[2] + ijk[:, 2]
         order = np.lexsort((points[:, 2], points[:, 1], points[:, 0], labels, cell))
         points, labels, ijk = points[order], labels[order], ijk[order]
     max_range = config.max_range_m
@@ -75,7 +75,7 @@ def preprocess(frame: OccupancyFrame, config: OccVOConfig) -> Prepared:
         points, labels, ijk = points[near], labels[near], ijk[near]
     surface = surface_voxels(ijk, shape)
     if len(surface) < len(points):
-        points, labels, ijk = points[surface], labels[surface], ijk[surface]
+        points, labels, ijk = keep_rows(surface, points, labels, ijk)
     g = config.gicp
     covs = plane_covariances(ijk, shape, g.k_neighbours_radius_voxels, g.covariance_epsilon, numba.get_num_threads())
     wide, coarse, fine = thin_sources(

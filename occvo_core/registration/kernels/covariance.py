@@ -6,9 +6,9 @@ import numpy as np
 from numba import njit, prange
 
 from occvo_core.registration.kernels import CACHE
-from occvo_core.registration.kernels.grid import column_masks
 
 PLANE_SLOTS = 4096  # planes remembered a thread (plane_covariances)
+MOMENT_STEP = 1 << 16  # a field of _window_moments' packed words
 
 
 @njit(cache=CACHE, nogil=True, inline="always")
@@ -64,54 +64,67 @@ def _smallest_eigenvector(a00, a01, a02, a11, a12, a22):
 @njit(cache=CACHE, nogil=True)
 def _window_moments(width):
     """For each occupancy pattern of a column window `width` voxels high (bit b: offset b - width // 2): its count,
-    sum of offsets and sum of squared offsets."""
+    sum of offsets and sum of squared offsets, packed in one word (count + sum * 2^16 + squares * 2^32): the
+    moments are linear in the word, so a weighted sum of words is the words of the weighted sums, three fields
+    at once."""
     half = width // 2
-    table = np.zeros((1 << width, 3), np.int64)
+    table = np.zeros(1 << width, np.int64)
     for bits in range(1 << width):
         for b in range(width):
             if bits >> b & 1:
                 d = b - half
-                table[bits, 0] += 1
-                table[bits, 1] += d
-                table[bits, 2] += d * d
+                table[bits] += 1 + d * MOMENT_STEP + d * d * MOMENT_STEP * MOMENT_STEP
     return table
+
+
+@njit(cache=CACHE, nogil=True, inline="always")
+def _low_field(word):
+    """(the lowest signed 16-bit field of a packed word, the word above it): exact while each field is under 2^15."""
+    low = ((word + MOMENT_STEP // 2) & (MOMENT_STEP - 1)) - MOMENT_STEP // 2
+    return low, (word - low) >> 16
+
+
+@njit(cache=CACHE, nogil=True)
+def _padded_masks(ijk, shape, radius):
+    """column_masks with `radius` empty columns around the grid and each column's bits raised by radius: a point's
+    neighbourhood is then read with no test for the grid's edges (an empty column adds nothing, as one outside)."""
+    if shape[2] + 2 * radius > 62:
+        raise ValueError("grids over 62 voxels high are not supported")
+    nj = shape[1] + 2 * radius
+    masks = np.zeros((shape[0] + 2 * radius) * nj, np.int64)
+    for n in range(ijk.shape[0]):
+        masks[(ijk[n, 0] + radius) * nj + ijk[n, 1] + radius] |= np.int64(1) << (ijk[n, 2] + radius)
+    return masks
 
 
 @njit(cache=CACHE, nogil=True, inline="always")
 def _plane_covariance(ijk, shape, radius, epsilon, table, masks, full, seen, solved, cov, n):
     """plane_covariances for point n, into cov."""
-    sx = sy = sz = sxx = sxy = sxz = syy = syz = szz = 0
-    cnt = 0
-    low = ijk[n, 2] - radius
+    nj = shape[1] + 2 * radius
+    k = ijk[n, 2]
+    t0 = ti = tii = tj = tij = tjj = 0  # packed sums of the neighbours' moments weighted by 1, di, di^2, dj, ...
     for di in range(-radius, radius + 1):
-        i = ijk[n, 0] + di
-        if i < 0 or i >= shape[0]:
-            continue
         # the row's sums over dj first, then weighted by di once (whole numbers: the same totals)
-        rc = rcj = rcjj = rs = rsj = rq = 0
+        first = (ijk[n, 0] + radius + di) * nj + ijk[n, 1]
+        r0 = r1 = r2 = 0
         for dj in range(-radius, radius + 1):
-            j = ijk[n, 1] + dj
-            if j < 0 or j >= shape[1]:
-                continue
-            column = masks[i * shape[1] + j]
-            bits = (column >> low if low >= 0 else column << -low) & full
-            c, s = table[bits, 0], table[bits, 1]  # no branch on an empty column: its row of zeros adds nothing
-            rc += c
-            rcj += dj * c
-            rcjj += dj * dj * c
-            rs += s
-            rsj += dj * s
-            rq += table[bits, 2]
-        cnt += rc
-        sx += di * rc
-        sy += rcj
-        sz += rs
-        sxx += di * di * rc
-        sxy += di * rcj
-        sxz += di * rs
-        syy += rcjj
-        syz += rsj
-        szz += rq
+            w = table[(masks[first + radius + dj] >> k) & full]  # an empty column's word is 0: no branch
+            r0 += w
+            r1 += dj * w
+            r2 += dj * dj * w
+        t0 += r0
+        ti += di * r0
+        tii += di * di * r0
+        tj += r1
+        tij += di * r1
+        tjj += r2
+    cnt, rest = _low_field(t0)
+    sz, szz = _low_field(rest)
+    sx, rest = _low_field(ti)
+    sxz = _low_field(rest)[0]
+    sy, rest = _low_field(tj)
+    syz = _low_field(rest)[0]
+    sxx, sxy, syy = _low_field(tii)[0], _low_field(tij)[0], _low_field(tjj)[0]
     nx, ny, nz, plane = 0.0, 0.0, 0.0, False
     if cnt >= 3:  # cnt^2 times the scatter matrix, in whole numbers
         a00, a01, a02 = cnt * sxx - sx * sx, cnt * sxy - sx * sy, cnt * sxz - sx * sz
@@ -154,9 +167,11 @@ def plane_covariances(ijk, shape, radius, epsilon, parts=1):
     points run at once (the threads'), the same covariances for any number."""
     n_pts = ijk.shape[0]
     covs = np.empty((n_pts, 3, 3))
+    if radius > 4:  # r^2 (2r+1)^3 bounds the packed fields, each under 2^15
+        raise ValueError("neighbourhood radii over 4 voxels are not supported")
     width = 2 * radius + 1
     table = _window_moments(width)
-    masks = column_masks(ijk, shape)
+    masks = _padded_masks(ijk, shape, radius)
     full = (np.int64(1) << width) - 1
     # a flat or evenly sloped surface repeats its neighbourhood's scatter: each part keeps the last planes it solved
     # in a small table keyed by the scatter's whole numbers; a hit is the same solve's bits

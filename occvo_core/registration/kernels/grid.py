@@ -44,9 +44,12 @@ def surface_mask(ijk, grid, shape):
 
 @njit(cache=CACHE, nogil=True)
 def grid_indices(points, lower, voxel, shape):
-    """Voxel indices floor((p - lower) / voxel) of each point, and how many fall outside the grid."""
+    """Voxel indices floor((p - lower) / voxel) of each point, how many fall outside the grid, and whether the
+    points' cells rise strictly in grid order (read in the same pass: a sorted frame needs no sort)."""
     ijk = np.empty((points.shape[0], 3), np.int64)
     outside = 0
+    ascending = True
+    last = np.int64(-1)
     for n in range(points.shape[0]):
         inside = True
         for a in range(3):
@@ -55,7 +58,10 @@ def grid_indices(points, lower, voxel, shape):
             inside = inside and 0 <= v < shape[a]
         if not inside:
             outside += 1
-    return ijk, outside
+        cell = (ijk[n, 0] * shape[1] + ijk[n, 1]) * shape[2] + ijk[n, 2]
+        ascending = ascending and cell > last
+        last = cell
+    return ijk, outside, ascending
 
 
 @njit(cache=CACHE, nogil=True)
@@ -96,3 +102,17 @@ def surface_voxels(ijk, shape):
         out[n_out] = n
         n_out += 1
     return out[:n_out]
+
+
+@njit(cache=CACHE, nogil=True)
+def keep_rows(rows, points, labels, ijk):
+    """points, labels and ijk at `rows`, in one pass (numpy's gathers copy each array on its own)."""
+    n = rows.shape[0]
+    p, l, g = np.empty((n, 3)), np.empty(n, labels.dtype), np.empty((n, 3), np.int64)
+    for m in range(n):
+        r = rows[m]
+        for a in range(3):
+            p[m, a] = points[r, a]
+            g[m, a] = ijk[r, a]
+        l[m] = labels[r]
+    return p, l, g

@@ -17,14 +17,6 @@ def _block_offset(size, f):
 
 
 @njit(cache=CACHE, nogil=True, inline="always")
-def _source_block(ijk, n, f, oi, oj, nj, nk):
-    """(block of point n among the f^3 blocks of the grid, block parity); x and y blocks shifted by oi and oj
-    (_block_offset), nj and nk blocks along y and z."""
-    bi, bj, bk = (ijk[n, 0] + oi) // f, (ijk[n, 1] + oj) // f, ijk[n, 2] // f
-    return (bi * nj + bj) * nk + bk, (bi + bj + bk) % 2
-
-
-@njit(cache=CACHE, nogil=True, inline="always")
 def _cell_hash(ijk, n, shape):
     """A fixed pseudo-random number of point n's grid cell (splitmix64 of its index, the index taken up to turns about
     z): picks by it favour no direction, and a turned frame picks the same voxels."""
@@ -36,23 +28,28 @@ def _cell_hash(ijk, n, shape):
 
 
 @njit(cache=CACHE, nogil=True)
-def _pick_blocks(ijk, ground, on, f, shape, pick, h, chosen):
-    """Mark in `chosen` the source of every f^3 block, among all points (on 0), those off the ground (1) or on it
-    (2); pick and h as thin_sources'."""
-    oi, oj = _block_offset(shape[0], f), _block_offset(shape[1], f)
-    nj, nk = (shape[1] + oj + f - 1) // f, (shape[2] + f - 1) // f
-    nb = ((shape[0] + oi + f - 1) // f) * nj * nk
-    picks = np.full(nb, -1, np.int64)
-    for n in range(ijk.shape[0]):
-        if (on == 1 and ground[n]) or (on == 2 and not ground[n]):
+def _block_tables(shape, factors):
+    """For each factor (0: none), the block of every voxel along each axis (x and y shifted by _block_offset), the
+    blocks along y and z, and where its blocks start among all factors' blocks. Looked up per point: three integer
+    divisions a point and factor cost more than the whole rest of a pick."""
+    axis = np.zeros((len(factors), 3, max(shape[0], shape[1], shape[2])), np.int64)
+    nj, nk, first = (
+        np.ones(len(factors), np.int64),
+        np.ones(len(factors), np.int64),
+        np.zeros(len(factors) + 1, np.int64),
+    )
+    for q in range(len(factors)):
+        f = factors[q]
+        first[q + 1] = first[q]
+        if f == 0:
             continue
-        b, odd = _source_block(ijk, n, f, oi, oj, nj, nk)
-        p = picks[b]
-        if p < 0 or (pick == 1 and odd == 1) or (pick == 2 and h[n] < h[p]):
-            picks[b] = n
-    for b in range(nb):
-        if picks[b] >= 0:
-            chosen[picks[b]] = True
+        for a in range(3):
+            offset = _block_offset(shape[a], f) if a < 2 else 0
+            for v in range(shape[a]):
+                axis[q, a, v] = (v + offset) // f
+        nj[q], nk[q] = axis[q, 1, shape[1] - 1] + 1, axis[q, 2, shape[2] - 1] + 1
+        first[q + 1] += (axis[q, 0, shape[0] - 1] + 1) * nj[q] * nk[q]
+    return axis, nj, nk, first
 
 
 @njit(cache=CACHE, nogil=True)
@@ -63,18 +60,28 @@ def thin_sources(ijk, ground, shape, wide, coarse, fine, fine_ground, pick=0):
     makes its rear-most (lowest x); 1 (balanced): its last (front-most) in blocks of odd parity; 2 (uniform): the
     point whose cell has the smallest fixed hash, so every voxel of a block is as likely a source, the picks lean
     no way, and a frame turned about z by a multiple of 90 degrees picks the same voxels (a cell's turned copies
-    share its hash and, blocks edging on the centre, lie in other blocks). Indices ascending."""
+    share its hash and, blocks edging on the centre, lie in other blocks). Indices ascending. One pass over the
+    points picks for all four block grids."""
     n = ijk.shape[0]
+    factors = np.array([wide, coarse, fine, fine_ground], np.int64)
+    on = (0, 0, 1, 2)  # the points a grid picks among: all, those off the ground, those on it
+    axis, nj, nk, first = _block_tables(shape, factors)
+    picks = np.full(first[-1], -1, np.int32)  # half the bytes of int64: the blocks outnumber the points
     h = np.zeros(n, np.uint64)
     if pick == 2:
-        for i in range(n):
-            h[i] = _cell_hash(ijk, i, shape)
-    out = []
-    for f, on, f2, on2 in ((wide, 0, 0, 0), (coarse, 0, 0, 0), (fine, 1, fine_ground, 2)):
-        chosen = np.zeros(n, np.bool_)
-        if f > 0:
-            _pick_blocks(ijk, ground, on, f, shape, pick, h, chosen)
-        if f2 > 0:
-            _pick_blocks(ijk, ground, on2, f2, shape, pick, h, chosen)
-        out.append(np.flatnonzero(chosen))
-    return out[0], out[1], out[2]
+        for m in range(n):
+            h[m] = _cell_hash(ijk, m, shape)
+    for m in range(n):
+        for q in range(4):
+            if factors[q] == 0 or (on[q] == 1 and ground[m]) or (on[q] == 2 and not ground[m]):
+                continue
+            bi, bj, bk = axis[q, 0, ijk[m, 0]], axis[q, 1, ijk[m, 1]], axis[q, 2, ijk[m, 2]]
+            b = first[q] + (bi * nj[q] + bj) * nk[q] + bk
+            if picks[b] < 0 or (pick == 1 and (bi + bj + bk) % 2 == 1) or (pick == 2 and h[m] < h[picks[b]]):
+                picks[b] = m
+    chosen = np.zeros((3, n), np.bool_)  # fine's two grids pick among disjoint points into one set
+    for q in range(4):
+        for b in range(first[q], first[q + 1]):
+            if picks[b] >= 0:
+                chosen[min(q, 2), picks[b]] = True
+    return np.flatnonzero(chosen[0]), np.flatnonzero(chosen[1]), np.flatnonzero(chosen[2])

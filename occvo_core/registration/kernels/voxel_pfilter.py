@@ -64,7 +64,7 @@ def _nearest_around(q, ci, cj, ck, map_pos, grid, dims, alive):
 
 
 @njit(cache=CACHE, nogil=True, parallel=True)
-def assign_voxels(points, keys, map_pos, grid, origin, dims, voxel, merge_radius, map_rows, alive, n_map):
+def assign_voxels(points, keys, map_pos, grid, origin, dims, merge_radius, map_rows, alive, n_map):
     """Map row of each frame point: the live map voxel holding it; else the nearest live map point within
     merge_radius (so a surface straddling a voxel boundary stays one voxel across frames and its p-index measures
     persistence, not aliasing), unless another point in its cell has none near; else a new row, numbered from n_map

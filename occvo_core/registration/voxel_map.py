@@ -127,7 +127,6 @@ class VoxelPFilterMap(VoxelRows):
             local.grid,
             local.origin,
             local.dims,
-            self.voxel,
             self.merge_radius,
             local.rows,
             alive,

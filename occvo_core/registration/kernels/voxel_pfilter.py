@@ -6,7 +6,7 @@ import numpy as np
 from numba import njit, prange
 
 from occvo_core.registration.kernels import CACHE
-from occvo_core.registration.kernels.nearest import nearest_in_window
+from occvo_core.registration.kernels.turns import turn_before
 from occvo_core.registration.voxel_pfilter import p_index
 
 
@@ -35,8 +35,36 @@ def voxel_keys(points, voxel):
     return keys, lo, hi
 
 
+@njit(cache=CACHE, nogil=True)
+def _turn_before_rows(pos, a, b):
+    """turn_before of map points a and b: a call of its own, made only on a tie (inlined into a loop, it slows
+    the whole loop fourfold)."""
+    return turn_before(pos[a, 0], pos[a, 1], pos[a, 2], pos[b, 0], pos[b, 1], pos[b, 2])
+
+
+@njit(cache=CACHE, nogil=True)
+def _nearest_around(q, ci, cj, ck, map_pos, grid, dims, alive):
+    """nearest_in_window(q, ..., radius 1, alive) for a point whose own cell (ci, cj, ck) holds no live voxel: the
+    27 cells around it in the same order, with the same tie-break, so the same (index or -1, squared distance)."""
+    best = -1
+    best_d2 = np.inf
+    for i in range(max(ci - 1, 0), min(ci + 2, dims[0])):
+        for j in range(max(cj - 1, 0), min(cj + 2, dims[1])):
+            base = (i * dims[1] + j) * dims[2]
+            for k in range(max(ck - 1, 0), min(ck + 2, dims[2])):
+                m = grid[base + k]
+                if m >= 0 and alive[m]:
+                    d0 = map_pos[m, 0] - q[0]
+                    d1 = map_pos[m, 1] - q[1]
+                    d2 = map_pos[m, 2] - q[2]
+                    d = d0 * d0 + d1 * d1 + d2 * d2
+                    if d < best_d2 or (d == best_d2 and best >= 0 and _turn_before_rows(map_pos, m, best)):
+                        best, best_d2 = m, d
+    return best, best_d2
+
+
 @njit(cache=CACHE, nogil=True, parallel=True)
-def assign_voxels(points, keys, map_pos, grid, origin, dims, voxel, merge_radius, map_rows, alive, n_map):
+def assign_voxels(points, keys, map_pos, grid, origin, dims, merge_radius, map_rows, alive, n_map):
     """Map row of each frame point: the live map voxel holding it; else the nearest live map point within
     merge_radius (so a surface straddling a voxel boundary stays one voxel across frames and its p-index measures
     persistence, not aliasing), unless another point in its cell has none near; else a new row, numbered from n_map
@@ -49,14 +77,15 @@ def assign_voxels(points, keys, map_pos, grid, origin, dims, voxel, merge_radius
     r2 = merge_radius * merge_radius
     # lookups in the map's own voxels, in parallel (new rows never take part in them) ...
     for n in prange(n_pts):
-        cell = ((keys[n, 0] - origin[0]) * dims[1] + keys[n, 1] - origin[1]) * dims[2] + keys[n, 2] - origin[2]
+        ci, cj, ck = keys[n, 0] - origin[0], keys[n, 1] - origin[1], keys[n, 2] - origin[2]
+        cell = (ci * dims[1] + cj) * dims[2] + ck
         cells[n] = cell
         out[n] = near[n] = -1
         local = grid[cell]
         if local >= 0 and alive[local]:
             out[n] = map_rows[local]
         elif r2 > 0.0:
-            m, d2 = nearest_in_window(points[n], map_pos, grid, origin, dims, voxel, 1, alive)
+            m, d2 = _nearest_around(points[n], ci, cj, ck, map_pos, grid, dims, alive)
             if m >= 0 and d2 <= r2:
                 near[n] = map_rows[m]
     # ... then a new row for each empty cell holding a point with no map point near; every point of such a cell
@@ -76,57 +105,78 @@ def assign_voxels(points, keys, map_pos, grid, origin, dims, voxel, merge_radius
     return out, first_key[:n_new]
 
 
+@njit(cache=CACHE, nogil=True)
+def _by_block(rows, n_blocks):
+    """The points in order of their rows' blocks of 64 (start[b]..start[b + 1] in order: block b's), and in point
+    order within a block: a stable counting sort, so a merge walks the map's arrays forward a block at a time."""
+    start = np.zeros(n_blocks + 1, np.int64)
+    for n in range(rows.shape[0]):
+        start[(rows[n] >> 6) + 1] += 1
+    for b in range(n_blocks):
+        start[b + 1] += start[b]
+    fill = start[:n_blocks].copy()
+    order = np.empty(rows.shape[0], np.int64)
+    for n in range(rows.shape[0]):
+        b = rows[n] >> 6
+        order[fill[b]] = n
+        fill[b] += 1
+    return order, start
+
+
 @njit(cache=CACHE, nogil=True, parallel=True)
 def merge_points(rows, pw, cw, labels, t, pos, cov, counts, label, t0, f, last, wacc, use_p_index, changed, parts):
     """Voxel PFilter merge, in place: each touched voxel becomes the weighted mean of its old point
     (weight f * p-index, or f without the filter) and the frame's points in it (weight 1 each).
     changed (xmin, ymin, xmax, ymax) grows to hold every touched voxel before and after."""
-    # part c (one a thread) owns the rows r with (r // 64) % parts == c and adds their points in point order, so every
-    # voxel sums the same numbers in the same order for any number of parts (blocks of 64 rows: no shared cache lines)
+    # part c (one a thread) owns the blocks of 64 rows b with b % parts == c and adds their points in point order, so
+    # every voxel sums the same numbers in the same order for any number of parts (no shared cache lines); the
+    # points taken a block at a time keep a frame's scattered rows from missing the cache at every point
+    n_blocks = (pos.shape[0] + 63) >> 6
+    order, start = _by_block(rows, n_blocks)
     boxes = np.empty((parts, 4))
     for c in prange(parts):
         box = boxes[c]
         box[0] = box[1] = np.inf
         box[2] = box[3] = -np.inf
-        for n in range(rows.shape[0]):
-            r = rows[n]
-            if (r >> 6) % parts != c:
-                continue
-            if last[r] != t:  # first point of this frame in voxel r
-                if f[r] > 0:
-                    _grow_box(box, pos[r, 0], pos[r, 1])
-                    w = f[r] * p_index(f[r], t - t0[r]) if use_p_index else float(f[r])
-                else:
-                    w = 0.0
+        for b in range(c, n_blocks, parts):
+            for q in range(start[b], start[b + 1]):
+                n = order[q]
+                r = rows[n]
+                if last[r] != t:  # first point of this frame in voxel r
+                    if f[r] > 0:
+                        _grow_box(box, pos[r, 0], pos[r, 1])
+                        w = f[r] * p_index(f[r], t - t0[r]) if use_p_index else float(f[r])
+                    else:
+                        w = 0.0
+                    for a in range(3):
+                        pos[r, a] *= w
+                        for e in range(3):
+                            cov[r, a, e] *= w
+                    wacc[r] = w
+                    f[r] += 1
+                    last[r] = t
                 for a in range(3):
-                    pos[r, a] *= w
-                    for b in range(3):
-                        cov[r, a, b] *= w
-                wacc[r] = w
-                f[r] += 1
-                last[r] = t
-            for a in range(3):
-                pos[r, a] += pw[n, a]
-                for b in range(3):
-                    cov[r, a, b] += cw[n, a, b]
-            wacc[r] += 1.0
-            counts[r, labels[n]] += 1
-        for n in range(rows.shape[0]):
-            r = rows[n]
-            if (r >> 6) % parts != c or wacc[r] <= 0.0:
-                continue
-            inv = 1.0 / wacc[r]
-            for a in range(3):
-                pos[r, a] *= inv
-                for b in range(3):
-                    cov[r, a, b] *= inv
-            wacc[r] = 0.0
-            _grow_box(box, pos[r, 0], pos[r, 1])
-            best = 0
-            for k in range(counts.shape[1]):
-                if counts[r, k] > counts[r, best]:
-                    best = k
-            label[r] = best
+                    pos[r, a] += pw[n, a]
+                    for e in range(3):
+                        cov[r, a, e] += cw[n, a, e]
+                wacc[r] += 1.0
+                counts[r, labels[n]] += 1
+            for q in range(start[b], start[b + 1]):
+                r = rows[order[q]]
+                if wacc[r] <= 0.0:
+                    continue
+                inv = 1.0 / wacc[r]
+                for a in range(3):
+                    pos[r, a] *= inv
+                    for e in range(3):
+                        cov[r, a, e] *= inv
+                wacc[r] = 0.0
+                _grow_box(box, pos[r, 0], pos[r, 1])
+                best = 0
+                for k in range(counts.shape[1]):
+                    if counts[r, k] > counts[r, best]:
+                        best = k
+                label[r] = best
     for c in range(parts):
         if boxes[c, 0] <= boxes[c, 2]:  # this part touched a voxel
             _grow_box(changed, boxes[c, 0], boxes[c, 1])

@@ -37,8 +37,7 @@ def voxel_keys(points, voxel):
 
 @njit(cache=CACHE, nogil=True)
 def _turn_before_rows(pos, a, b):
-    """turn_before of map points a and b: a call of its own, made only on a tie (inlined into a loop, it slows
-    the whole loop fourfold)."""
+    """turn_before of map points a and b, asked only on an exact tie of distances (rare)."""
     return turn_before(pos[a, 0], pos[a, 1], pos[a, 2], pos[b, 0], pos[b, 1], pos[b, 2])
 
 

@@ -6,6 +6,7 @@ import numpy as np
 from numba import njit, prange
 
 from occvo_core.registration.kernels import CACHE
+from occvo_core.registration.kernels.grid import column_masks
 
 PLANE_SLOTS = 4096  # planes remembered a thread (plane_covariances)
 MOMENT_STEP = 1 << 16  # a field of _window_moments' packed words
@@ -84,19 +85,6 @@ def _low_field(word):
     return low, (word - low) >> 16
 
 
-@njit(cache=CACHE, nogil=True)
-def _padded_masks(ijk, shape, radius):
-    """column_masks with `radius` empty columns around the grid and each column's bits raised by radius: a point's
-    neighbourhood is then read with no test for the grid's edges (an empty column adds nothing, as one outside)."""
-    if shape[2] + 2 * radius > 62:
-        raise ValueError("grids over 62 voxels high are not supported")
-    nj = shape[1] + 2 * radius
-    masks = np.zeros((shape[0] + 2 * radius) * nj, np.int64)
-    for n in range(ijk.shape[0]):
-        masks[(ijk[n, 0] + radius) * nj + ijk[n, 1] + radius] |= np.int64(1) << (ijk[n, 2] + radius)
-    return masks
-
-
 @njit(cache=CACHE, nogil=True, inline="always")
 def _plane_covariance(ijk, shape, radius, epsilon, table, masks, full, seen, solved, cov, n):
     """plane_covariances for point n, into cov."""
@@ -171,7 +159,7 @@ def plane_covariances(ijk, shape, radius, epsilon, parts=1):
         raise ValueError("neighbourhood radii over 4 voxels are not supported")
     width = 2 * radius + 1
     table = _window_moments(width)
-    masks = _padded_masks(ijk, shape, radius)
+    masks = column_masks(ijk, shape, radius)  # padded by the radius: no edge tests
     full = (np.int64(1) << width) - 1
     # a flat or evenly sloped surface repeats its neighbourhood's scatter: each part keeps the last planes it solved
     # in a small table keyed by the scatter's whole numbers; a hit is the same solve's bits

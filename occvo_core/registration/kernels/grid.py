@@ -65,13 +65,16 @@ def grid_indices(points, lower, voxel, shape):
 
 
 @njit(cache=CACHE, nogil=True)
-def column_masks(ijk, shape):
-    """One bit a z level for each (i, j) column of the grid: a column's neighbourhood is read in one word."""
-    if shape[2] > 62:
+def column_masks(ijk, shape, pad=0):
+    """One bit a z level for each (i, j) column of the grid: a column's neighbourhood is read in one word. pad:
+    that many empty columns around the grid and each column's bits raised by pad, so a neighbourhood `pad` voxels
+    wide is read with no test for the grid's edges (an empty column adds nothing, as one outside)."""
+    if shape[2] + 2 * pad > 62:
         raise ValueError("grids over 62 voxels high are not supported")
-    masks = np.zeros(shape[0] * shape[1], np.int64)
+    nj = shape[1] + 2 * pad
+    masks = np.zeros((shape[0] + 2 * pad) * nj, np.int64)
     for n in range(ijk.shape[0]):
-        masks[ijk[n, 0] * shape[1] + ijk[n, 1]] |= np.int64(1) << ijk[n, 2]
+        masks[(ijk[n, 0] + pad) * nj + ijk[n, 1] + pad] |= np.int64(1) << (ijk[n, 2] + pad)
     return masks
 
 

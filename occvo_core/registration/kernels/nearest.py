@@ -154,6 +154,23 @@ def nearest_distances(queries, map_pos, grid, origin, dims, voxel, radius, usabl
 
 
 @njit(cache=CACHE, nogil=True)
+def bucket_order(keys, n_buckets):
+    """(order, start): the items by key, bucket b's being order[start[b]:start[b + 1]] in item order (a stable
+    counting sort)."""
+    start = np.zeros(n_buckets + 1, np.int64)
+    for i in range(keys.shape[0]):
+        start[keys[i] + 1] += 1
+    for b in range(n_buckets):
+        start[b + 1] += start[b]
+    fill = start[:-1].copy()
+    order = np.empty(keys.shape[0], np.int64)
+    for i in range(keys.shape[0]):
+        order[fill[keys[i]]] = i
+        fill[keys[i]] += 1
+    return order, start
+
+
+@njit(cache=CACHE, nogil=True)
 def cell_sort(points, cell):
     """Points bucketed in cubes of side `cell` from their lowest corner (counting sort): (lo, dims, start, order),
     the points of cube c being order[start[c]:start[c + 1]]."""
@@ -168,16 +185,7 @@ def cell_sort(points, cell):
         cell_of[i] = (int((points[i, 0] - lo[0]) / cell) * dims[1] + int((points[i, 1] - lo[1]) / cell)) * dims[
             2
         ] + int((points[i, 2] - lo[2]) / cell)
-    start = np.zeros(dims[0] * dims[1] * dims[2] + 1, np.int64)
-    for i in range(n):
-        start[cell_of[i] + 1] += 1
-    for c in range(start.shape[0] - 1):
-        start[c + 1] += start[c]
-    fill = start[:-1].copy()
-    order = np.empty(n, np.int64)
-    for i in range(n):
-        order[fill[cell_of[i]]] = i
-        fill[cell_of[i]] += 1
+    order, start = bucket_order(cell_of, dims[0] * dims[1] * dims[2])
     return lo, dims, start, order
 
 

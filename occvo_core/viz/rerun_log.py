@@ -23,6 +23,7 @@ from pathlib import Path
 import numpy as np
 import rerun as rr
 
+from occvo_core.errors import ConfigError
 from occvo_core.grid import CLASS_COLORS, MOVABLE_CLASSES, OCC3D_GRID
 
 VIEWER_PORT = 9876  # rerun's native viewer, as rr.spawn starts it
@@ -181,16 +182,19 @@ class RerunView:
 
 
 def _rerun_binary() -> str:
-    """The viewer binary rerun-sdk ships (rerun_cli), else `rerun` on PATH."""
+    """The viewer binary rerun-sdk ships (rerun_cli), else `rerun` on PATH; ConfigError, one line, with neither."""
     try:
         import rerun_cli
-
-        exe = Path(rerun_cli.__file__).parent / "rerun"
-        if exe.is_file():
-            return str(exe)
-    except ImportError:
-        pass
-    return shutil.which("rerun") or "rerun"
+    except ImportError:  # a rerun-sdk without the bundled binary: the viewer may be installed on its own
+        shipped = None
+    else:
+        shipped = Path(rerun_cli.__file__).parent / "rerun"
+    found = str(shipped) if shipped is not None and shipped.is_file() else shutil.which("rerun")
+    if found is None:
+        raise ConfigError(
+            "no rerun viewer: rerun-sdk ships none here and `rerun` is not on PATH (pip install 'occvo[view]')"
+        )
+    return found
 
 
 def _start_viewer(args: list[str], detach: bool = False) -> subprocess.Popen:

@@ -148,6 +148,8 @@ def summarise(run: dict) -> dict:
             "registration_final": sum(h.counters.get("drops", 0) for h in reg_health) if reg_health else None,
         },
         "errors": {st.name: st.errors for st in streams if st.errors},
+        "turned_away": sum(st.turned_away for st in streams),  # stream_full: flow control, the frames sent again
+        "resends": sum(st.resends for st in streams),
         "p99_ratio_last_first": (last / first) if first and last else None,
         "capture_p99_ratio_last_first": (clast / cfirst) if cfirst and clast else None,
         "wait_p99_ratio_last_first": (wlast / wfirst) if wfirst and wlast else None,
@@ -251,9 +253,10 @@ def print_run(r: dict, bucket_s: float) -> None:
         f"{json.dumps({k: round(v) for k, v in r['worker_cpu_pct'].items()})}, client+router {r['client_and_router_cpu_pct']:.0f}%"
     )
     print(
-        f"client per frame: build+encode p50 {fmt(r['client_build_ms_p50'], '{:.2f}')} ms p99 {fmt(r['client_build_ms_p99'], '{:.2f}')} ms, "
-        f"put p50 {fmt(r['client_put_ms_p50'], '{:.2f}')} ms p99 {fmt(r['client_put_ms_p99'], '{:.2f}')} ms, send lag p50 "
-        f"{r['send_lag_ms_p50']:.1f} ms max {fmt(r['send_lag_ms_max'], '{:.0f}')} ms; errors {r['errors'] or 'none'}; "
+        f"client per frame: build p50 {fmt(r['client_build_ms_p50'], '{:.2f}')} ms p99 {fmt(r['client_build_ms_p99'], '{:.2f}')} ms, "
+        f"encode+put p50 {fmt(r['client_put_ms_p50'], '{:.2f}')} ms p99 {fmt(r['client_put_ms_p99'], '{:.2f}')} ms, send lag p50 "
+        f"{r['send_lag_ms_p50']:.1f} ms max {fmt(r['send_lag_ms_max'], '{:.0f}')} ms; errors {r['errors'] or 'none'}, "
+        f"turned away by a full queue {r['turned_away']} (frames sent again {r['resends']}); "
         f"exit codes {r['worker_exit_codes']}"
     )
     print(

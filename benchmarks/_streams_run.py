@@ -15,6 +15,7 @@ from _streams_scenes import Stream
 from occvo_schemas import keys
 from occvo_schemas.codec import CodecError, decode, encode
 from occvo_schemas.models import CameraFrame, ErrorEvent, WorkerHealth
+from occvo_services.client import OccVOClient
 from occvo_services.local import LocalService
 from occvo_services.sessions import open_session
 
@@ -66,14 +67,12 @@ def run_load(
         registration_shards=registration_workers,
     ).start(timeout=120)
     streams = [Stream(f"load{k}", scenes[k][:total], k / n) for k in range(n)]
-    subs, pubs, session = [], [], None
+    subs, pubs, clients, session = [], [], [], None
     try:
         session = open_session(svc.endpoint)
-        for st in streams:
+        for st in streams:  # each a car's client: it sends again what a full queue turned away (lossless)
             subs.append(session.declare_subscriber(keys.pose(st.name), st.on_pose))
-            pubs.append(
-                session.declare_publisher(keys.camera(st.name), congestion_control=zenoh.CongestionControl.BLOCK)
-            )
+            clients.append(OccVOClient(svc.endpoint, st.name, timeout=60.0, session=session))
 
         def on_error(sample):
             try:
@@ -81,13 +80,11 @@ def run_load(
             except CodecError:
                 return
             for st in streams:
-                if st.name == e.stream:
+                if st.name == e.stream and e.code != "stream_full":  # flow control: the client counts and resends
                     st.errors[e.code] = st.errors.get(e.code, 0) + 1
 
         subs.append(session.declare_subscriber(keys.errors("*"), on_error))
         deadline = time.monotonic() + 30
-        while not all(p.matching_status.matching for p in pubs) and time.monotonic() < deadline:
-            time.sleep(0.05)
 
         # warm-up on a stream of each registration shard (numba compiles on the first frames), outside the measurement
         for w in range(registration_workers):
@@ -111,8 +108,8 @@ def run_load(
         t0 = time.time() + 1.0
         stop = threading.Event()
         senders = [
-            threading.Thread(target=st.send_all, args=(pub, t0, rate, stop), daemon=True)
-            for st, pub in zip(streams, pubs)
+            threading.Thread(target=st.send_all, args=(client, t0, rate, stop), daemon=True)
+            for st, client in zip(streams, clients)
         ]
         for th in senders:
             th.start()
@@ -145,6 +142,8 @@ def run_load(
         while any(st.newest_back() < st.last_sent for st in streams) and time.monotonic() < deadline:
             time.sleep(0.1)
         drained = all(st.newest_back() >= st.last_sent for st in streams)
+        for st, client in zip(streams, clients):
+            st.turned_away, st.resends = client.turned_away, client.resends
         cpu1 = {role: sum(p.cpu_times()[:2]) for role, p in procs.items()}
         io1 = {role: p.io_counters().write_bytes for role, p in procs.items()}
         health, reg_health = {}, []
@@ -155,6 +154,8 @@ def run_load(
                 if h.role == "registration":
                     reg_health.append(h)
     finally:
+        for client in clients:
+            client.close()
         if session is not None:
             for x in subs + pubs:
                 x.undeclare()

@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 
 from occvo_core.grid import OCC3D_GRID
-from occvo_schemas.codec import CodecError, decode, encode
+from occvo_schemas.codec import CodecError, decode
 from occvo_schemas.models import Array, CameraFrame, GridSpecModel, PoseEstimate, SparseOccupancy
 
 
@@ -87,12 +87,13 @@ class Stream:
         self.due = np.zeros(len(frames))  # wall clock the frame is due (a camera would capture it then)
         self.sent_at = np.full(len(frames), np.nan)  # wall clock at send (the message's sent_at)
         self.lag = np.full(len(frames), np.nan)  # send time - schedule, s
-        self.build_ms = np.full(len(frames), np.nan)  # message build + encode
-        self.put_ms = np.full(len(frames), np.nan)  # Zenoh put (blocks under lossless backpressure)
+        self.build_ms = np.full(len(frames), np.nan)  # message build
+        self.put_ms = np.full(len(frames), np.nan)  # encode and put (waits under lossless backpressure)
         self.recv_at: dict[int, float] = {}
         self.timings: dict[int, dict[str, float]] = {}  # seq -> the pose's timings_ms (where its time went)
         self.last_sent = -1
         self.errors: dict[str, int] = {}
+        self.turned_away = self.resends = 0  # stream_full answers and frames sent again (the client's counts)
 
     def on_pose(self, sample) -> None:
         t = time.time()
@@ -106,9 +107,10 @@ class Stream:
     def newest_back(self) -> int:
         return max(self.recv_at, default=-1)
 
-    def send_all(self, pub, t0: float, rate: float, stop: threading.Event) -> None:
-        """Until every frame is sent or `stop` (the end of the window): under lossless backpressure a put blocks,
-        the schedule slips (send lag) and frames due after the window are never sent."""
+    def send_all(self, client, t0: float, rate: float, stop: threading.Event) -> None:
+        """Until every frame is sent or `stop` (the end of the window), through the product's client (OccVOClient):
+        a frame a full queue turned away (stream_full) goes again and the frames after it wait in the client, so
+        under lossless backpressure the schedule slips (send lag) and frames due after the window are never sent."""
         self.due = t0 + (np.arange(len(self.frames)) + self.offset) / rate
         for i, occ in enumerate(self.frames):
             due = self.due[i]
@@ -118,9 +120,9 @@ class Stream:
                 return
             a = time.perf_counter()
             now = time.time()
-            data = encode(CameraFrame(stream=self.name, seq=i, stamp=i / rate, gt_occupancy=occ, sent_at=now))
+            frame = CameraFrame(stream=self.name, seq=i, stamp=i / rate, gt_occupancy=occ, sent_at=now)
             b = time.perf_counter()
-            pub.put(data)
+            client.publish(frame)  # encoded, held while the stream's frames are turned away, put
             self.put_ms[i] = (time.perf_counter() - b) * 1000.0
             self.build_ms[i] = (b - a) * 1000.0
             self.sent_at[i], self.lag[i] = now, now - due

@@ -10,7 +10,7 @@
 
 Router in this process, the three workers as subprocesses (occvo_services.local.LocalService). Each stream replays its own
 synthetic scene (seed = stream number) open loop at --rate, as a live camera would: frame i leaves at t0 + i / rate
-whatever came back. Scenes are rendered once before the run (in --render-jobs processes, niced) and cached as voxel
+whatever came back, through the product's client (OccVOClient: it sends again what a full queue turned away). Scenes are rendered once before the run (in --render-jobs processes, niced) and cached as voxel
 indices in --cache-dir, so the client only builds and sends messages; its send cost per frame is measured and printed.
 
 Per minute and stream: frames sent and poses received; pose latency p50/p99 (client send to pose arrival); the

@@ -58,11 +58,15 @@ class FrameSender:
                 self._credit.set()
 
     def full(self, seq: int | None) -> None:
-        """stream_full: flow control, not an error; sent again from the first unanswered (_full_due)."""
+        """stream_full: flow control, not an error; sent again from the first unanswered (_full_due). The retry's
+        clock runs from the first refusal since the last resend: refusals of the frames in flight behind it keep
+        coming, and restarting the clock at each would put the resend off for as long as they do."""
         with self._cv:
             self.turned_away += 1
             if seq is not None:  # from the first unanswered on: the frame it waits for may be earlier
-                self._full = (min(self._unanswered, default=seq), time.monotonic())
+                first = min(self._unanswered, default=seq)
+                at = time.monotonic() if self._full is None else self._full[1]
+                self._full = (first, at)
 
     def forget(self) -> None:
         """A new trajectory: the frames of the old one are not waited for."""

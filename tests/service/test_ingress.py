@@ -8,12 +8,14 @@ import threading
 import time
 
 import numpy as np
+import zenoh
 from offline import offline
 
 from occvo_schemas import keys
 from occvo_services import ingress
 from occvo_services.camera_frames import camera_frame_of
 from occvo_services.client import OccVOClient
+from occvo_services.client_sends import FULL_RETRY_S, FrameSender
 from occvo_services.ingress import TurnedAway
 from occvo_services.local import InProcessService
 from occvo_services.sessions import open_session
@@ -67,6 +69,29 @@ def test_a_wait_no_copy_of_its_frame_renews_ends(monkeypatch):
     assert t.waits("s", 2) == 1
     time.sleep(0.25)
     assert t.waits("s", 2) is None and t.waits("s", 3) is None
+
+
+def test_a_turned_away_frame_goes_again_while_the_frames_behind_it_keep_being_turned_away():
+    """The retry runs from the first refusal: refusals of the frames in flight behind it, one every 0.2 s as an
+    open-loop camera's would come, do not put the resend off (restarted at each, they did for as long as they came,
+    and the worker gave up waiting for the frame)."""
+    config = zenoh.Config()
+    config.insert_json5("scouting/multicast/enabled", "false")
+    with zenoh.open(config) as session:
+        sent = []
+        sub = session.declare_subscriber(keys.camera("s"), lambda sample: sent.append(sample.payload.to_bytes()))
+        sender = FrameSender(session, "s", resend_after=60.0)
+        for seq in range(3):
+            sender.send(seq, f"frame {seq}".encode(), timeout=0.0)
+        sender.full(1)
+        end = time.monotonic() + 3 * FULL_RETRY_S
+        while time.monotonic() < end and sent.count(b"frame 1") < 2:
+            time.sleep(0.2)
+            sender.full(2)
+        sender.close()
+        sub.undeclare()
+    assert sent.count(b"frame 1") >= 2, sent
+    assert sent.index(b"frame 0", 1) < sent.index(b"frame 1", 2)  # from the first unanswered on, in order
 
 
 def test_a_stream_overflowing_its_queue_loses_nothing_and_holds_up_no_other_stream():

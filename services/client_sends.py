@@ -33,6 +33,7 @@ class FrameSender:
         self.resends = 0
         self.turned_away = 0  # stream_full answers: frames a full queue turned away (sent again)
         self._full: tuple[int, float] | None = None  # (first seq a full queue turned away, when), until resent
+        self._refused_at = 0.0  # the last stream_full
         self._subs = [
             session.liveliness().declare_subscriber(keys.registration_shard(), self._on_alive, history=True),
             session.liveliness().declare_subscriber(keys.alive("inference"), self._on_alive, history=True),
@@ -58,15 +59,15 @@ class FrameSender:
                 self._credit.set()
 
     def full(self, seq: int | None) -> None:
-        """stream_full: flow control, not an error; sent again from the first unanswered (_full_due). The retry's
-        clock runs from the first refusal since the last resend: refusals of the frames in flight behind it keep
-        coming, and restarting the clock at each would put the resend off for as long as they do."""
+        """stream_full: flow control, not an error; sent again from the first frame turned away (_full_due): the
+        frames before it are in a queue, and copies of them would only be turned away in turn. The retry's clock
+        runs from the first refusal since the last resend: refusals of the frames in flight behind it keep coming,
+        and restarting the clock at each would put the resend off for as long as they do."""
         with self._cv:
             self.turned_away += 1
-            if seq is not None:  # from the first unanswered on: the frame it waits for may be earlier
-                first = min(self._unanswered, default=seq)
-                at = time.monotonic() if self._full is None else self._full[1]
-                self._full = (first, at)
+            self._refused_at = time.monotonic()  # the service answers: not a stall (_resend_loop)
+            if seq is not None and seq in self._unanswered:
+                self._full = (seq, self._refused_at) if self._full is None else (min(seq, self._full[0]), self._full[1])
 
     def forget(self) -> None:
         """A new trajectory: the frames of the old one are not waited for."""
@@ -112,7 +113,8 @@ class FrameSender:
                 now = time.monotonic()
                 # back: its subscriptions have reached the router by now (they are declared before its token)
                 back = self._back_at is not None and now - self._back_at >= settle_s
-                stalled = bool(self._unanswered) and not self._down and now - self._last_answer >= self.resend_after
+                heard = max(self._last_answer, self._refused_at)  # frames a full queue turned away go by _full_due
+                stalled = bool(self._unanswered) and not self._down and now - heard >= self.resend_after
                 if not (back or stalled):
                     continue
                 self._last_answer = now

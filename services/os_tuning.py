@@ -16,10 +16,9 @@ def lower_priority(nice: int) -> bool:
         return True
     try:
         tid = threading.get_native_id()
-        os.setpriority(os.PRIO_PROCESS, tid, min(19, os.getpriority(os.PRIO_PROCESS, tid) + nice))
+        return set_thread_nice(tid, min(19, os.getpriority(os.PRIO_PROCESS, tid) + nice))
     except (OSError, AttributeError):
         return False
-    return True
 
 
 def name_os_thread(name: str | None = None) -> None:
@@ -31,8 +30,23 @@ def name_os_thread(name: str | None = None) -> None:
         return  # no prctl (not Linux): the thread works the same, unnamed
 
 
+def _libc_setpriority():
+    try:
+        return ctypes.CDLL(None, use_errno=True).setpriority
+    except (OSError, AttributeError):
+        return None
+
+
+_SETPRIORITY = _libc_setpriority()
+
+
 def set_thread_nice(tid: int, nice: int) -> bool:
-    """Set a thread's niceness; False where not allowed (raising priority needs CAP_SYS_NICE or RLIMIT_NICE)."""
+    """Set a thread's niceness; False where not allowed (raising priority needs CAP_SYS_NICE or RLIMIT_NICE).
+    Through libc, which ctypes calls with the GIL released: a thread that lowers itself is often preempted inside
+    the call, and os.setpriority holds the GIL across it (in a worker's profile a fifth of the time the GIL was
+    held, every other thread waiting for the niced one to get a core back)."""
+    if _SETPRIORITY is not None:
+        return _SETPRIORITY(os.PRIO_PROCESS, tid, nice) == 0
     try:
         os.setpriority(os.PRIO_PROCESS, tid, nice)
     except (OSError, AttributeError):

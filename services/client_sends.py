@@ -59,15 +59,17 @@ class FrameSender:
                 self._credit.set()
 
     def full(self, seq: int | None) -> None:
-        """stream_full: flow control, not an error; sent again from the first frame turned away (_full_due): the
-        frames before it are in a queue, and copies of them would only be turned away in turn. The retry's clock
-        runs from the first refusal since the last resend: refusals of the frames in flight behind it keep coming,
-        and restarting the clock at each would put the resend off for as long as they do."""
+        """stream_full: flow control, not an error; sent again from the first unanswered frame (_full_due: the one
+        the turned-away frame waits for may be earlier, and a frame a worker answered missing_seq or seq_held waits
+        for its copy too). The retry's clock runs from the first refusal since the last resend: refusals of the
+        frames in flight behind it keep coming, and restarting the clock at each put the resend off for as long as
+        they did."""
         with self._cv:
             self.turned_away += 1
             self._refused_at = time.monotonic()  # the service answers: not a stall (_resend_loop)
-            if seq is not None and seq in self._unanswered:
-                self._full = (seq, self._refused_at) if self._full is None else (min(seq, self._full[0]), self._full[1])
+            if seq is not None:
+                first = min(self._unanswered, default=seq)
+                self._full = (first, self._refused_at if self._full is None else self._full[1])
 
     def forget(self) -> None:
         """A new trajectory: the frames of the old one are not waited for."""

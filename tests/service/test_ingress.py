@@ -91,8 +91,7 @@ def test_a_turned_away_frame_goes_again_while_the_frames_behind_it_keep_being_tu
         sender.close()
         sub.undeclare()
     assert sent.count(b"frame 1") >= 2, sent
-    assert sent.count(b"frame 0") == 1  # not turned away (in a queue): a copy would only be turned away in turn
-    assert sent.index(b"frame 1", 3) < sent.index(b"frame 2", 3)  # from the first turned away on, in order
+    assert sent.index(b"frame 0", 1) < sent.index(b"frame 1", 2)  # from the first unanswered on, in order
 
 
 def test_a_stream_overflowing_its_queue_loses_nothing_and_holds_up_no_other_stream():

@@ -9,10 +9,11 @@ import numpy as np
 
 from occvo_core.config import DynamicObjectFilterConfig
 from occvo_core.grid import OCC3D_GRID
-from occvo_core.registration.kernels.clusters import grid_clusters
-from occvo_core.registration.kernels.nearest import near_any
+from occvo_core.registration.kernels.clusters import displaced, grid_clusters, in_box, of_classes
 from occvo_core.registration.local_map import LocalMap, transform
 from occvo_core.registration.preprocess import MOVABLE, Prepared
+
+EGO_LOWER, EGO_SHAPE = np.array(OCC3D_GRID.lower), np.array(OCC3D_GRID.shape)
 
 
 def cluster_objects(points: np.ndarray, eps: float, min_points: int) -> np.ndarray:
@@ -28,19 +29,18 @@ def displaced_objects(
     points: np.ndarray, ids: np.ndarray, counterparts: np.ndarray, threshold_m: float, quantile: float
 ) -> np.ndarray:
     """Mask of points whose object is displaced: the object's `quantile` of nearest-counterpart distances > threshold."""
-    valid = np.flatnonzero(ids >= 0)
-    if len(valid) == 0:
-        return np.zeros(len(points), bool)
-    near = near_any(
-        np.ascontiguousarray(points[valid], np.float64),
+    return displaced(
+        np.ascontiguousarray(points, np.float64),
+        np.ascontiguousarray(ids, np.int64),
         np.ascontiguousarray(counterparts, np.float64).reshape(-1, 3),
         float(threshold_m),
+        float(quantile),
     )
-    objects, which, sizes = np.unique(ids[valid], return_inverse=True, return_counts=True)
-    rank = np.minimum((quantile * (sizes - 1)).round().astype(np.int64), sizes - 1)
-    # the distance at the quantile's rank exceeds the threshold exactly when no more than `rank` points are near
-    moved_objects = objects[np.bincount(which.reshape(-1), weights=near, minlength=len(objects)) <= rank]
-    return np.isin(ids, moved_objects) & (ids >= 0)
+
+
+def count_objects(ids: np.ndarray) -> int:
+    """Objects among cluster_objects' ids: each is numbered by its smallest point index."""
+    return int(np.count_nonzero(ids == np.arange(len(ids))))
 
 
 @dataclass
@@ -65,8 +65,8 @@ def dynamic_object_filter(
     return DynamicObjects(
         displaced_objects(frame_movable_world, frame_ids, map_movable, threshold_m, quantile),
         displaced_objects(map_movable, map_ids, frame_movable_world, threshold_m, quantile),
-        int(len(np.unique(frame_ids[frame_ids >= 0]))),
-        int(len(np.unique(map_ids[map_ids >= 0]))),
+        count_objects(frame_ids),
+        count_objects(map_ids),
     )
 
 
@@ -90,12 +90,13 @@ def find_moved_objects(
         )
     movable_world = transform(pose, frame.points[frame.movable])
     # map objects are judged only where this frame can see them: inside its grid, after the coarse alignment
-    candidates = np.flatnonzero(MOVABLE[local.labels])
-    in_view = OCC3D_GRID.inside(OCC3D_GRID.indices_of(transform(np.linalg.inv(pose), local.pos[candidates])))
+    candidates = of_classes(local.labels, MOVABLE)
+    candidates_pos = local.pos[candidates]
+    in_view = in_box(transform(np.linalg.inv(pose), candidates_pos), EGO_LOWER, OCC3D_GRID.voxel_size, EGO_SHAPE)
     candidates = candidates[in_view]
     found = dynamic_object_filter(
         movable_world,
-        local.pos[candidates],
+        candidates_pos[in_view],
         threshold_m=config.displacement_threshold_m,
         cluster_eps_m=config.cluster_eps_m,
         min_cluster_points=config.min_cluster_voxels,

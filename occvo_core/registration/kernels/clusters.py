@@ -1,4 +1,4 @@
-"""Dynamic object filter: single-linkage clusters of movable voxels."""
+"""Dynamic object filter: single-linkage clusters of movable voxels, which of them are in view, which displaced."""
 
 from __future__ import annotations
 
@@ -6,7 +6,7 @@ import numpy as np
 from numba import njit
 
 from occvo_core.registration.kernels import CACHE
-from occvo_core.registration.kernels.nearest import cell_sort
+from occvo_core.registration.kernels.nearest import cell_sort, near_one
 
 
 @njit(cache=CACHE, nogil=True)
@@ -27,29 +27,26 @@ def _gap(x, d, cell, eps, tol):
 
 
 @njit(cache=CACHE, nogil=True)
-def _union(parent, i, j):
-    ri, rj = _find(parent, i), _find(parent, j)
-    if ri != rj:
-        parent[max(ri, rj)] = min(ri, rj)
-
-
-@njit(cache=CACHE, nogil=True)
 def grid_clusters(points, eps):
     """Single-linkage clusters at distance eps, found through a grid of eps-sized cells (union-find). Each point's
-    id is the smallest index of its cluster whatever order the pairs are joined in, so each pair is tried once
-    (its own cell and the 13 cells after it), and a cell beside a point is skipped when the point is farther than
-    eps from all of it."""
+    id is the smallest index of its cluster whatever order the pairs are joined in (a root is always its set's
+    smallest index), so each pair is tried once (its own cell and the 13 cells after it), and a cell beside a point
+    is skipped when the point is farther than eps from all of it. The points are read in a copy in cell order."""
     n = points.shape[0]
     parent = np.arange(n)
     if n == 0:
         return parent
     lo, dims, start, order = cell_sort(points, eps)
+    by_cell = np.empty((n, 3))
+    for s in range(n):
+        by_cell[s, 0], by_cell[s, 1], by_cell[s, 2] = points[order[s], 0], points[order[s], 1], points[order[s], 2]
     eps2 = eps * eps
     tol = 1e-6 * eps  # rounding of the cell bounds: never skip a cell a point might reach
     for q in range(n):
-        i = order[q]
-        x0, x1, x2 = points[i, 0] - lo[0], points[i, 1] - lo[1], points[i, 2] - lo[2]
+        p0, p1, p2 = by_cell[q, 0], by_cell[q, 1], by_cell[q, 2]
+        x0, x1, x2 = p0 - lo[0], p1 - lo[1], p2 - lo[2]
         ci, cj, ck = int(x0 / eps), int(x1 / eps), int(x2 / eps)
+        root = _find(parent, order[q])  # kept up to date below: only this point's unions move it
         for di in range(0, 2):
             g0 = _gap(x0, di, ci, eps, tol)
             for dj in range(-1 if di > 0 else 0, 2):
@@ -65,11 +62,70 @@ def grid_clusters(points, eps):
                     first = q + 1 if di == 0 and dj == 0 and dk == 0 else start[cell]  # own cell: the pairs after
                     for s in range(first, start[cell + 1]):
                         j = order[s]
-                        d0 = points[i, 0] - points[j, 0]
-                        d1 = points[i, 1] - points[j, 1]
-                        d2 = points[i, 2] - points[j, 2]
+                        if parent[j] == root:  # joined already (most pairs of an object, once it is one)
+                            continue
+                        d0, d1, d2 = p0 - by_cell[s, 0], p1 - by_cell[s, 1], p2 - by_cell[s, 2]
                         if d0 * d0 + d1 * d1 + d2 * d2 <= eps2:
-                            _union(parent, i, j)
+                            other = _find(parent, j)
+                            if other != root:  # the smaller root stays
+                                parent[max(root, other)] = min(root, other)
+                                root = min(root, other)
     for i in range(n):
         parent[i] = _find(parent, i)
     return parent
+
+
+@njit(cache=CACHE, nogil=True)
+def displaced(points, ids, counterparts, radius, quantile):
+    """Mask of the points whose object (ids: its smallest index, -1 for none) is displaced: no more of its points
+    than the `quantile` rank have a counterpart within radius. An object is decided as soon as enough of its points
+    are found near or not near, and its other points are not looked up."""
+    n = points.shape[0]
+    size = np.zeros(n, np.int64)
+    for i in range(n):
+        if ids[i] >= 0:
+            size[ids[i]] += 1
+    rank = np.zeros(n, np.int64)
+    for o in range(n):
+        if size[o] > 0:
+            rank[o] = min(np.int64(np.rint(quantile * (size[o] - 1))), size[o] - 1)  # half to even, as numpy's
+    near, far = np.zeros(n, np.int64), np.zeros(n, np.int64)
+    if counterparts.shape[0] > 0:
+        lo, dims, start, order = cell_sort(counterparts, radius)
+        for i in range(n):
+            o = ids[i]
+            if o < 0 or near[o] > rank[o] or far[o] >= size[o] - rank[o]:
+                continue
+            if near_one(points[i, 0], points[i, 1], points[i, 2], counterparts, lo, dims, start, order, radius):
+                near[o] += 1
+            else:
+                far[o] += 1
+    moved = np.zeros(n, np.bool_)
+    for i in range(n):
+        moved[i] = ids[i] >= 0 and near[ids[i]] <= rank[ids[i]]
+    return moved
+
+
+@njit(cache=CACHE, nogil=True)
+def in_box(points, lower, voxel, shape):
+    """Which points fall in a grid's box: their voxel indices floor((p - lower) / voxel) within shape."""
+    out = np.empty(points.shape[0], np.bool_)
+    for n in range(points.shape[0]):
+        inside = True
+        for a in range(3):
+            idx = np.floor((points[n, a] - lower[a]) / voxel)
+            inside = inside and 0 <= idx < shape[a]
+        out[n] = inside
+    return out
+
+
+@njit(cache=CACHE, nogil=True)
+def of_classes(labels, table):
+    """Indices of the labels that table marks (np.flatnonzero(table[labels]) in one pass)."""
+    out = np.empty(labels.shape[0], np.int64)
+    m = 0
+    for i in range(labels.shape[0]):
+        if table[labels[i]]:
+            out[m] = i
+            m += 1
+    return out[:m]

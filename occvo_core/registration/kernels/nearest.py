@@ -189,6 +189,27 @@ def cell_sort(points, cell):
     return lo, dims, start, order
 
 
+@njit(cache=CACHE, nogil=True, inline="always")
+def near_one(x0, x1, x2, points, lo, dims, start, order, radius):
+    """Whether some point lies within radius of (x0, x1, x2) (distance not above it), in cell_sort's grid of
+    radius-sized cells over the points: the 27 cells around the query's."""
+    c0 = int(np.floor((x0 - lo[0]) / radius))
+    c1 = int(np.floor((x1 - lo[1]) / radius))
+    c2 = int(np.floor((x2 - lo[2]) / radius))
+    for i in range(max(c0 - 1, 0), min(c0 + 2, dims[0])):
+        for j in range(max(c1 - 1, 0), min(c1 + 2, dims[1])):
+            base = (i * dims[1] + j) * dims[2]
+            for cell in range(base + max(c2 - 1, 0), base + min(c2 + 2, dims[2])):
+                for s in range(start[cell], start[cell + 1]):
+                    p = order[s]
+                    d0 = x0 - points[p, 0]
+                    d1 = x1 - points[p, 1]
+                    d2 = x2 - points[p, 2]
+                    if not np.sqrt(d0 * d0 + d1 * d1 + d2 * d2) > radius:
+                        return True
+    return False
+
+
 @njit(cache=CACHE, nogil=True)
 def near_any(queries, points, radius):
     """For each query, whether some point lies within radius (distance not above it), through a grid of
@@ -198,27 +219,5 @@ def near_any(queries, points, radius):
         return out
     lo, dims, start, order = cell_sort(points, radius)
     for q in range(queries.shape[0]):
-        c = np.empty(3, np.int64)
-        for a in range(3):
-            c[a] = int(np.floor((queries[q, a] - lo[a]) / radius))
-        found = False
-        for i in range(max(c[0] - 1, 0), min(c[0] + 2, dims[0])):
-            for j in range(max(c[1] - 1, 0), min(c[1] + 2, dims[1])):
-                for k in range(max(c[2] - 1, 0), min(c[2] + 2, dims[2])):
-                    cell = (i * dims[1] + j) * dims[2] + k
-                    for s in range(start[cell], start[cell + 1]):
-                        p = order[s]
-                        d0 = queries[q, 0] - points[p, 0]
-                        d1 = queries[q, 1] - points[p, 1]
-                        d2 = queries[q, 2] - points[p, 2]
-                        if not np.sqrt(d0 * d0 + d1 * d1 + d2 * d2) > radius:
-                            found = True
-                            break
-                    if found:
-                        break
-                if found:
-                    break
-            if found:
-                break
-        out[q] = found
+        out[q] = near_one(queries[q, 0], queries[q, 1], queries[q, 2], points, lo, dims, start, order, radius)
     return out

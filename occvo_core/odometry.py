@@ -24,7 +24,7 @@ from occvo_core.registration.ego_buffers import EgoBuffers
 from occvo_core.registration.gicp import coarse_gicp, fine_gicp
 from occvo_core.registration.initial_guess import initial_guess
 from occvo_core.registration.kernels import use_threads
-from occvo_core.registration.kernels.covariance import rotate_covariances
+from occvo_core.registration.kernels.covariance import rotate_covariances, scatter
 from occvo_core.registration.local_map import EgoMap, LocalMap, frame_window, transform, window_margin
 from occvo_core.registration.pose_covariance import pose_covariance
 from occvo_core.registration.preprocess import Prepared, preprocess
@@ -36,7 +36,10 @@ def degenerate(points: np.ndarray) -> bool:
     registration cannot fix the pose, the frame is "degenerate"."""
     if len(points) < 3:
         return True
-    centred = points - points.mean(axis=0)
+    quick = np.linalg.eigvalsh(scatter(points))
+    if quick[1] > 1e-6 * quick[2]:  # a thousand times the threshold: rounding cannot carry it across
+        return False
+    centred = points - points.mean(axis=0)  # near the line: the test as it always was, bit for bit
     spread = np.linalg.eigvalsh(centred.T @ centred)  # ascending
     return bool(spread[1] <= 1e-9 * max(spread[2], 1e-300))
 
@@ -278,7 +281,12 @@ class OccVO:
             entered=p.entered,
         )
         p.watch.lap("voxel_pfilter")
-        pairs = {**reg.pairs, "reliable_voxels": int(p.local.usable.sum()), "map_voxels": len(self.map), **loop}
+        pairs = {
+            **reg.pairs,
+            "reliable_voxels": int(np.count_nonzero(p.local.usable)),
+            "map_voxels": len(self.map),
+            **loop,
+        }
         return StepResult(
             p.frame.index,
             pose,

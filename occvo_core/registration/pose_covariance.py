@@ -33,11 +33,21 @@ def pose_covariance(information: np.ndarray, fine_pose: np.ndarray) -> np.ndarra
     """6x6 covariance of the pose in base_link, (rotation x, y, z, translation x, y, z); None when fine GICP's
     information does not fix all six directions."""
     info = np.asarray(information, np.float64)
-    if not np.all(np.isfinite(info)) or np.linalg.matrix_rank(info) < 6:
+    if not np.all(np.isfinite(info)) or not _full_rank(info):
         return None
     A = adjoint(np.linalg.inv(fine_pose))
     cov = A @ np.linalg.inv(info) @ A.T
     return (cov + cov.T) / 2
+
+
+def _full_rank(info: np.ndarray) -> bool:
+    """np.linalg.matrix_rank(info) == 6, its SVD skipped where the condition number, bounded by the product of the
+    Frobenius norms of info and its inverse, lies many orders below the rank's tolerance (1 / (6 eps))."""
+    try:
+        bound = np.linalg.norm(info) * np.linalg.norm(np.linalg.inv(info))
+    except np.linalg.LinAlgError:
+        bound = np.inf
+    return bool(bound < 1e10) or np.linalg.matrix_rank(info) == 6
 
 
 def relative_translation_covariance(

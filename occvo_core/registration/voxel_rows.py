@@ -126,7 +126,7 @@ class VoxelRows:
         `min_reclaim` of it comes back, or a map full of live rows would copy itself whole for a few dead ones at
         every frame. Renumbers rows, keeping their order."""
         n = self._n
-        dead = np.count_nonzero(~self.alive[:n]) if n else 0
+        dead = n - np.count_nonzero(self.alive[:n])  # no inverted copy of the map's flags
         near_full = n > (1 - headroom) * len(self.pos) and dead >= min_reclaim * len(self.pos)
         if dead == 0 or (dead <= n * min_dead_share and not near_full):
             return

@@ -120,7 +120,9 @@ class VoxelPFilterMap(VoxelRows):
                 alive &= ~old
             out = np.full(len(keys), -1, np.int64)
             points_world, labels, covs_world, keys = points_world[take], labels[take], covs_world[take], keys[take]
-        rows, first_key = pfilter_kernels.assign_voxels(
+        parts = numba.get_num_threads()
+        # the sightings are read with the lookups, where the points are those seen from (none dropped)
+        rows, first_key, seen = pfilter_kernels.assign_voxels(
             points_world,
             keys,
             local.pos,
@@ -131,6 +133,8 @@ class VoxelPFilterMap(VoxelRows):
             local.rows,
             alive,
             self._n,
+            self.observe_radius if out is None else 0.0,
+            parts,
         )
         n_new = len(first_key)
         if self._n + n_new > len(self.pos):
@@ -163,27 +167,18 @@ class VoxelPFilterMap(VoxelRows):
             self.wacc,
             self.pfilter,
             changed,
-            numba.get_num_threads(),
+            parts,
         )
         if self.observe_radius > 0:
-            pfilter_kernels.mark_observed(
-                seen_from,
-                seen_keys,
-                local.pos,
-                local.grid,
-                local.origin,
-                local.dims,
-                self.observe_radius,
-                local.rows,
-                alive,
-                self.f,
-                self.last,
-                self.in_window,
-                np.int32(t),
-                changed,
-                numba.get_num_threads(),
+            if out is not None:
+                seen = pfilter_kernels.observe_points(
+                    seen_from, seen_keys, local.pos, local.grid, local.origin, local.dims, self.observe_radius,
+                    len(local.rows), parts,
+                )  # fmt: skip
+            pfilter_kernels.count_observed(
+                seen, local.pos, local.rows, alive, self.f, self.last, self.in_window, np.int32(t), changed, parts
             )
-        else:  # a voxel seen is in view, whatever window this frame registered in (mark_observed does it too)
+        else:  # a voxel seen is in view, whatever window this frame registered in (count_observed does it too)
             pfilter_kernels.mark_in_window(local.rows, self.last, self.in_window, np.int32(t))
         self._touch_box(changed)
         # seen again after a visit away: the frames in view since its last sighting (leaving, then coming back)

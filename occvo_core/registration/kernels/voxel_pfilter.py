@@ -64,31 +64,69 @@ def _nearest_around(q, ci, cj, ck, map_pos, grid, dims, alive):
     return best, best_d2
 
 
+@njit(cache=CACHE, nogil=True, inline="always")
+def _observe(seen, map_pos, m, x, y, z, r2):
+    """seen[m] |= map point m (a grid entry: < 0 is no point) lies within sqrt(r2) of (x, y, z), without a branch:
+    which cells hold a point near is no pattern a branch predictor learns."""
+    valid = m >= 0
+    m = m if valid else 0
+    d0 = map_pos[m, 0] - x
+    d1 = map_pos[m, 1] - y
+    d2 = map_pos[m, 2] - z
+    seen[m] |= valid & (d0 * d0 + d1 * d1 + d2 * d2 <= r2)
+
+
+@njit(cache=CACHE, nogil=True, inline="always")
+def _observe_around(hit, p, ci, cj, ck, map_pos, grid, dims, radius_m):
+    """_observe over the 27 cells around cell (ci, cj, ck) of the window's grid, for point p."""
+    x, y, z, r2 = p[0], p[1], p[2], radius_m * radius_m
+    if 1 <= ci < dims[0] - 1 and 1 <= cj < dims[1] - 1 and 1 <= ck < dims[2] - 1:
+        for i in range(ci - 1, ci + 2):
+            for j in range(cj - 1, cj + 2):
+                cell = (i * dims[1] + j) * dims[2] + ck
+                _observe(hit, map_pos, grid[cell - 1], x, y, z, r2)
+                _observe(hit, map_pos, grid[cell], x, y, z, r2)
+                _observe(hit, map_pos, grid[cell + 1], x, y, z, r2)
+    else:  # at the window's faces
+        for i in range(max(ci - 1, 0), min(ci + 2, dims[0])):
+            for j in range(max(cj - 1, 0), min(cj + 2, dims[1])):
+                base = (i * dims[1] + j) * dims[2]
+                for k in range(max(ck - 1, 0), min(ck + 2, dims[2])):
+                    _observe(hit, map_pos, grid[base + k], x, y, z, r2)
+
+
 @njit(cache=CACHE, nogil=True, parallel=True)
-def assign_voxels(points, keys, map_pos, grid, origin, dims, merge_radius, map_rows, alive, n_map):
+def assign_voxels(
+    points, keys, map_pos, grid, origin, dims, merge_radius, map_rows, alive, n_map, observe_radius, parts
+):
     """Map row of each frame point: the live map voxel holding it; else the nearest live map point within
     merge_radius (so a surface straddling a voxel boundary stays one voxel across frames and its p-index measures
     persistence, not aliasing), unless another point in its cell has none near; else a new row, numbered from n_map
-    on, for its voxel.
-    Returns (rows, first point of each new row). The grid is used up: new rows are written into it."""
+    on, for its voxel. With observe_radius > 0, also observe_points' sightings, read while the grid is at hand.
+    Returns (rows, first point of each new row, sightings). The grid is used up: new rows are written into it."""
     n_pts = keys.shape[0]
     out = np.empty(n_pts, np.int64)
     near = np.empty(n_pts, np.int64)
     cells = np.empty(n_pts, np.int64)
     r2 = merge_radius * merge_radius
-    # lookups in the map's own voxels, in parallel (new rows never take part in them) ...
-    for n in prange(n_pts):
-        ci, cj, ck = keys[n, 0] - origin[0], keys[n, 1] - origin[1], keys[n, 2] - origin[2]
-        cell = (ci * dims[1] + cj) * dims[2] + ck
-        cells[n] = cell
-        out[n] = near[n] = -1
-        local = grid[cell]
-        if local >= 0 and alive[local]:
-            out[n] = map_rows[local]
-        elif r2 > 0.0:
-            m, d2 = _nearest_around(points[n], ci, cj, ck, map_pos, grid, dims, alive)
-            if m >= 0 and d2 <= r2:
-                near[n] = map_rows[m]
+    observe = observe_radius > 0 and map_rows.shape[0] > 0
+    seen = np.zeros((parts, map_rows.shape[0] if observe else 0), np.uint8)
+    # lookups in the map's own voxels, a slice of the points a part (new rows never take part in them) ...
+    for c in prange(parts):
+        for n in range(n_pts * c // parts, n_pts * (c + 1) // parts):
+            ci, cj, ck = keys[n, 0] - origin[0], keys[n, 1] - origin[1], keys[n, 2] - origin[2]
+            cell = (ci * dims[1] + cj) * dims[2] + ck
+            cells[n] = cell
+            out[n] = near[n] = -1
+            local = grid[cell]
+            if local >= 0 and alive[local]:
+                out[n] = map_rows[local]
+            elif r2 > 0.0:
+                m, d2 = _nearest_around(points[n], ci, cj, ck, map_pos, grid, dims, alive)
+                if m >= 0 and d2 <= r2:
+                    near[n] = map_rows[m]
+            if observe:
+                _observe_around(seen[c], points[n], ci, cj, ck, map_pos, grid, dims, observe_radius)
     # ... then a new row for each empty cell holding a point with no map point near; every point of such a cell
     # joins it (whatever the points' order, which turns with the frame), the others their nearest map point
     first_key = np.empty(n_pts, np.int64)
@@ -103,7 +141,7 @@ def assign_voxels(points, keys, map_pos, grid, origin, dims, merge_radius, map_r
             continue
         local = grid[cells[n]]
         out[n] = n_map + (-3 - local) if local <= -3 else near[n]
-    return out, first_key[:n_new]
+    return out, first_key[:n_new], seen
 
 
 @njit(cache=CACHE, nogil=True, parallel=True)
@@ -166,53 +204,29 @@ def merge_points(rows, pw, cw, labels, t, pos, cov, counts, label, t0, f, last, 
             _grow_box(changed, boxes[c, 2], boxes[c, 3])
 
 
-@njit(cache=CACHE, nogil=True, inline="always")
-def _observe(seen, map_pos, m, x, y, z, r2):
-    """seen[m] |= map point m (a grid entry: < 0 is no point) lies within sqrt(r2) of (x, y, z), without a branch:
-    which cells hold a point near is no pattern a branch predictor learns."""
-    valid = m >= 0
-    m = m if valid else 0
-    d0 = map_pos[m, 0] - x
-    d1 = map_pos[m, 1] - y
-    d2 = map_pos[m, 2] - z
-    seen[m] |= valid & (d0 * d0 + d1 * d1 + d2 * d2 <= r2)
-
-
 @njit(cache=CACHE, nogil=True, parallel=True)
-def mark_observed(
-    points, keys, map_pos, grid, origin, dims, radius_m, map_rows, alive, f, last, in_window, t, changed, parts
-):
-    """Count as seen at frame t every live voxel within radius_m of a frame point (keys: the points' voxels), once a
-    frame: a surface that straddles a voxel boundary falls in either voxel from frame to frame, and must not lose
-    its p-index for it. changed grows to hold the voxels counted. Then mark_in_window, in the same pass."""
-    r2 = radius_m * radius_m
-    n_win = map_rows.shape[0]
-    n_pts = points.shape[0]
-    if n_win == 0:
-        return
+def observe_points(points, keys, map_pos, grid, origin, dims, radius_m, n_win, parts):
+    """Sightings for count_observed: which window voxels lie within radius_m of a frame point (keys: the points'
+    voxels), a row of them a part. A grid entry < 0 is no voxel (assign_voxels' new rows among them)."""
     # part c (one a thread) marks the voxels near its slice of the points in a row of its own, so the unconditional
     # writes never race; a voxel is seen when any part saw it, whatever the number of parts
     seen = np.zeros((parts, n_win), np.uint8)
+    n_pts = points.shape[0]
+    if n_win == 0:
+        return seen
     for c in prange(parts):
-        hit = seen[c]
         for n in range(n_pts * c // parts, n_pts * (c + 1) // parts):
-            x, y, z = points[n, 0], points[n, 1], points[n, 2]
-            ci = keys[n, 0] - origin[0]
-            cj = keys[n, 1] - origin[1]
-            ck = keys[n, 2] - origin[2]
-            if 1 <= ci < dims[0] - 1 and 1 <= cj < dims[1] - 1 and 1 <= ck < dims[2] - 1:
-                for i in range(ci - 1, ci + 2):
-                    for j in range(cj - 1, cj + 2):
-                        cell = (i * dims[1] + j) * dims[2] + ck
-                        _observe(hit, map_pos, grid[cell - 1], x, y, z, r2)
-                        _observe(hit, map_pos, grid[cell], x, y, z, r2)
-                        _observe(hit, map_pos, grid[cell + 1], x, y, z, r2)
-            else:  # at the window's faces
-                for i in range(max(ci - 1, 0), min(ci + 2, dims[0])):
-                    for j in range(max(cj - 1, 0), min(cj + 2, dims[1])):
-                        base = (i * dims[1] + j) * dims[2]
-                        for k in range(max(ck - 1, 0), min(ck + 2, dims[2])):
-                            _observe(hit, map_pos, grid[base + k], x, y, z, r2)
+            ci, cj, ck = keys[n, 0] - origin[0], keys[n, 1] - origin[1], keys[n, 2] - origin[2]
+            _observe_around(seen[c], points[n], ci, cj, ck, map_pos, grid, dims, radius_m)
+    return seen
+
+
+@njit(cache=CACHE, nogil=True, parallel=True)
+def count_observed(seen, map_pos, map_rows, alive, f, last, in_window, t, changed, parts):
+    """Count as seen at frame t every live window voxel a part saw (seen: observe_points' or assign_voxels'), once a
+    frame: a surface that straddles a voxel boundary falls in either voxel from frame to frame, and must not lose
+    its p-index for it. changed grows to hold the voxels counted. Then mark_in_window, in the same pass."""
+    n_win = seen.shape[1]
     # window rows are distinct map rows: slices count theirs apart, and a box's min and max take any order
     boxes = np.empty((parts, 4))
     for c in prange(parts):
@@ -221,7 +235,7 @@ def mark_observed(
         box[2] = box[3] = -np.inf
         for m in range(n_win * c // parts, n_win * (c + 1) // parts):
             near = 0
-            for p in range(parts):
+            for p in range(seen.shape[0]):
                 near |= seen[p, m]
             row = map_rows[m]
             if near and alive[m] and last[row] != t:  # not merged into (nor counted) at t already

@@ -14,6 +14,7 @@ from occvo_schemas import keys
 from occvo_services.wire import encoding
 
 FULL_RETRY_S = 1.0  # a frame a full queue turned away is sent again at the stream's next pose, or after this
+FULL_BURST = 8  # frames sent again at a time after stream_full (a stream's queues hold a few)
 
 
 class FrameSender:
@@ -127,23 +128,28 @@ class FrameSender:
                     self._cv.notify_all()
 
     def _full_due(self) -> bool:
-        """Frames a full queue turned away sent again, in order, once a pose freed room (or after FULL_RETRY_S)."""
+        """Frames a full queue turned away sent again, in order, once a pose freed room (or after FULL_RETRY_S):
+        FULL_BURST of them, the rest with the next pose (a queue takes a few frames and turns the rest away again:
+        sending them all each time multiplied an overloaded worker's input). New frames wait until the last went."""
         with self._cv:
             if self._full is None:
                 return False
             k, at = self._full
-            if self._last_answer <= at and time.monotonic() - at < FULL_RETRY_S:
+            now = time.monotonic()
+            if self._last_answer <= at and now - at < FULL_RETRY_S:
                 return False
-            self._full = None
+            rest = sorted(s for s in self._unanswered if s >= k)[FULL_BURST:]
+            self._full = (rest[0], now) if rest else None
             self._cv.notify_all()
-        self.resend(k)
+        self.resend(k, FULL_BURST)
         return True
 
-    def resend(self, first: int = 0) -> int:
-        """Send every unanswered frame (from seq `first` on) again, in seq order; returns how many."""
+    def resend(self, first: int = 0, most: int | None = None) -> int:
+        """Send the unanswered frames from seq `first` on again (the first `most` of them), in seq order; returns
+        how many."""
         with self._send_lock:
             with self._cv:
-                pending = sorted((seq, p) for seq, p in self._unanswered.items() if seq >= first)
+                pending = sorted((seq, p) for seq, p in self._unanswered.items() if seq >= first)[:most]
             for _, payload in pending:
                 self._put(payload)
             self.resends += len(pending)

@@ -66,24 +66,6 @@ class TurnedAway:
             if len(away) > RECENT:  # stray seqs far ahead: the first ones are what the stream waits for
                 del away[max(away)]
 
-    def missing(self, stream: str, seq: int) -> None:
-        """Lossless: a frame more than one after the last one in: the seqs between, not in, are waited for as if
-        turned away (a frame lost on the way, or turned away upstream and its wait there over); the client's
-        copies fill the gap within STALE_S, else the frame goes on (a client that skips seqs)."""
-        with self._lock:
-            entered = self._in.get(stream)
-            if not entered or seq == 0 or not entered[-1] + 1 < seq <= entered[-1] + RECENT:
-                return
-            gap = [k for k in range(entered[-1] + 1, seq) if k not in entered]
-            if gap:
-                away = self._away.get(stream)
-                if away is None:
-                    away = self._away[stream] = {}
-                    _bound(self._away)
-                now = time.monotonic()
-                for k in gap:
-                    away.setdefault(k, now)  # not renewed by later frames: a seq never sent is waited for once
-
     def entered(self, stream: str, seq: int) -> None:
         with self._lock:
             entered = self._in.get(stream)
@@ -141,10 +123,8 @@ def _admit(w: Worker, sample: zenoh.Sample, msg, handler, judge_seq: bool, times
     if judge_seq and not w.check_seq(msg.stream, msg.seq, key):
         w.release_unserved(msg.stream)  # admitted for nothing: its place goes back
         return
-    if w.config.policy == "lossless":
-        w.turned_away.missing(msg.stream, msg.seq)
     if (waits_for := w.turned_away.waits(msg.stream, msg.seq)) is not None:
-        why = f"seq {msg.seq} waits for seq {waits_for}, turned away or not come yet: send both again"
+        why = f"seq {msg.seq} waits for seq {waits_for}, which its full queue turned away: send both again"
         return _full(w, msg, why, key)
     cost = _charged(w, msg, key)
     if cost is None:

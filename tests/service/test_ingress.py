@@ -71,30 +71,6 @@ def test_a_wait_no_copy_of_its_frame_renews_ends(monkeypatch):
     assert t.waits("s", 2) is None and t.waits("s", 3) is None
 
 
-def test_a_frame_after_a_gap_waits_for_the_seqs_not_in_until_they_come_or_their_wait_is_over(monkeypatch):
-    """Lossless: a frame lost on the way (or turned away upstream, its wait there over) holds the frames after it,
-    which a held jump would otherwise skip; a seq never sent is waited for STALE_S, later frames do not renew it."""
-    monkeypatch.setattr(ingress, "STALE_S", 0.2)
-    t = TurnedAway()
-    for seq in range(3):
-        t.entered("s", seq)
-    t.missing("s", 5)
-    assert t.waits("s", 5) == 3
-    t.entered("s", 3)
-    t.missing("s", 5)
-    assert t.waits("s", 5) == 4
-    t.entered("s", 4)
-    assert t.waits("s", 5) is None
-    t.entered("s", 5)
-    t.missing("s", 8)
-    assert t.waits("s", 8) == 6
-    time.sleep(0.25)
-    t.missing("s", 8)
-    assert t.waits("s", 8) is None
-    t.missing("s", 0)
-    assert t.waits("s", 0) is None  # a new trajectory
-
-
 def test_a_turned_away_frame_goes_again_while_the_frames_behind_it_keep_being_turned_away():
     """The retry runs from the first refusal: refusals of the frames in flight behind it, one every 0.2 s as an
     open-loop camera's would come, do not put the resend off (restarted at each, they did for as long as they came,

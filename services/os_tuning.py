@@ -9,6 +9,16 @@ import os
 import threading
 
 
+def _libc() -> ctypes.CDLL | None:
+    try:
+        return ctypes.CDLL(None)  # the process's own symbols: libc's prctl and setpriority, loaded once
+    except OSError:
+        return None
+
+
+_LIBC = _libc()
+
+
 def lower_priority(nice: int) -> bool:
     """Run the calling thread `nice` steps below the thread that made it (Linux threads are tasks with their own
     niceness; raising it needs no privilege). False where that is not possible: the thread keeps its priority."""
@@ -25,19 +35,9 @@ def name_os_thread(name: str | None = None) -> None:
     """Name the calling OS thread (first 15 bytes; default: its Python name), so `top -H`, `ps -L` and
     /proc/<pid>/task/*/comm tell the lanes and background threads apart (Python < 3.14 leaves them all "python")."""
     try:
-        ctypes.CDLL(None).prctl(15, (name or threading.current_thread().name).encode()[:15], 0, 0, 0)  # PR_SET_NAME
-    except (OSError, AttributeError):
-        return  # no prctl (not Linux): the thread works the same, unnamed
-
-
-def _libc_setpriority():
-    try:
-        return ctypes.CDLL(None, use_errno=True).setpriority
-    except (OSError, AttributeError):
-        return None
-
-
-_SETPRIORITY = _libc_setpriority()
+        _LIBC.prctl(15, (name or threading.current_thread().name).encode()[:15], 0, 0, 0)  # PR_SET_NAME
+    except AttributeError:  # no libc handle or no prctl (not Linux): the thread works the same, unnamed
+        return
 
 
 def set_thread_nice(tid: int, nice: int) -> bool:
@@ -45,8 +45,8 @@ def set_thread_nice(tid: int, nice: int) -> bool:
     Through libc, which ctypes calls with the GIL released: a thread that lowers itself is often preempted inside
     the call, and os.setpriority holds the GIL across it (in a worker's profile a fifth of the time the GIL was
     held, every other thread waiting for the niced one to get a core back)."""
-    if _SETPRIORITY is not None:
-        return _SETPRIORITY(os.PRIO_PROCESS, tid, nice) == 0
+    if hasattr(_LIBC, "setpriority"):
+        return _LIBC.setpriority(os.PRIO_PROCESS, tid, nice) == 0
     try:
         os.setpriority(os.PRIO_PROCESS, tid, nice)
     except (OSError, AttributeError):

@@ -237,6 +237,45 @@ def test_bad_input_is_reported_and_good_poses_still_come(service):
     session.close()
 
 
+def test_recorded_occupancy_no_reader_accepts_is_the_inference_workers_error_and_is_not_forwarded(service):
+    """The replay source publishes a frame's recorded occupancy as its own output: a label out of range or a voxel
+    twice is refused there by name, and no occupancy frame goes on that its readers would refuse."""
+    from occvo_core.frame import OccupancyFrame
+    from occvo_core.grid import OCC3D_GRID
+
+    session = open_session(service.endpoint)
+    errors = ErrorLog(session, "recbad")
+    errors.make_live(session, keys.camera("recbad"))
+    forwarded = []
+    sub = session.declare_subscriber(keys.occupancy("recbad"), lambda s: forwarded.append(s.payload.to_bytes()))
+    cells = np.stack(np.unravel_index(np.arange(0, 64_000, 97), OCC3D_GRID.shape), axis=1)
+    good = msgpack.unpackb(
+        encode(
+            camera_frame_of(
+                OccupancyFrame(OCC3D_GRID.centres_of(cells), np.full(len(cells), 4, np.uint8)), "recbad", 0, exact=False
+            )
+        ),
+        raw=False,
+    )
+    occ = good["gt_occupancy"]
+    labels = np.full(len(cells), 4, np.uint8)
+    labels[3] = 130
+    voxels = np.frombuffer(occ["voxels"]["data"], np.uint8).reshape(-1, 3).copy()
+    voxels[-5:] = voxels[:5]
+    bad_label = {**good, "gt_occupancy": {**occ, "labels": {**occ["labels"], "data": labels.tobytes()}}}
+    bad_twice = {**good, "gt_occupancy": {**occ, "voxels": {**occ["voxels"], "data": voxels.tobytes()}}}
+    block = zenoh.CongestionControl.BLOCK
+    for msg in (bad_label, bad_twice):
+        session.put(keys.camera("recbad"), msgpack.packb(msg, use_bin_type=True), congestion_control=block)
+    events = errors.wait(2, timeout=20.0)
+    time.sleep(0.3)  # and nothing after them
+    assert [(e.worker.split("-")[0], e.code) for e in errors.events] == [("inference", "invalid_message")] * 2, events
+    assert "labels out of range 0..17: max 130" in events[0].message and "5 duplicate voxels" in events[1].message
+    assert forwarded == []
+    sub.undeclare()
+    session.close()
+
+
 @needs_data
 def test_sequence_gaps_and_steps_back_are_reported(service):
     s = scene()

@@ -3,6 +3,7 @@ a stream and its strand on the worker's lane pool, in arrival order)."""
 
 from __future__ import annotations
 
+import bisect
 import logging
 import queue
 import threading
@@ -97,6 +98,41 @@ class SeqTracker:
             else:
                 self.held, self.expected = None, seq + 1
         return verdict
+
+
+class SeqRanges:
+    """A set of seqs kept as sorted, disjoint runs [lo, hi]: a stream's frames are mostly consecutive, so a whole
+    trajectory is a few runs; the lowest runs go first past `most`."""
+
+    def __init__(self, most: int = 256):
+        self.lo: list[int] = []
+        self.hi: list[int] = []
+        self.most = most
+
+    def add(self, seq: int) -> None:
+        lo, hi = self.lo, self.hi
+        if hi and hi[-1] + 1 == seq:  # the next frame: the usual case
+            hi[-1] = seq
+            return
+        i = bisect.bisect_right(lo, seq)
+        if i and hi[i - 1] >= seq:
+            return  # in already
+        after = i < len(lo) and lo[i] == seq + 1
+        if i and hi[i - 1] + 1 == seq:
+            hi[i - 1] = hi.pop(i) if after else seq
+            if after:
+                lo.pop(i)
+        elif after:
+            lo[i] = seq
+        else:
+            lo.insert(i, seq)
+            hi.insert(i, seq)
+            if len(lo) > self.most:
+                del lo[0], hi[0]
+
+    def __contains__(self, seq: int) -> bool:
+        i = bisect.bisect_right(self.lo, seq)
+        return bool(i) and self.hi[i - 1] >= seq
 
 
 EVICT = object()  # put on an idle lane's queue: the lane ends and its stream's state is given back (services/memory.py)

@@ -15,7 +15,6 @@ import argparse
 import sys
 import threading
 import time
-from collections import deque
 
 import numpy as np
 import zenoh
@@ -24,6 +23,7 @@ from occvo_core.errors import ConfigError
 from occvo_schemas import keys
 from occvo_schemas.codec import encode
 from occvo_schemas.models import SHAPES_ONLY, CameraFrame, OccupancyFrameMsg, SparseOccupancy
+from occvo_services.flow import SeqRanges
 from occvo_services.runtime import Worker, WorkerConfig, log_event
 from occvo_services.wire import blocking
 from occvo_services.worker_cli import worker_main
@@ -42,7 +42,7 @@ class InferenceWorker(Worker):
         self.input_context = {SHAPES_ONLY: True} if config.source == "model" else None
         self.model = model
         self._model_lock = threading.Lock()  # one network, one device: streams take turns
-        self._forwarded: dict[str, deque] = {}  # per stream, the last seqs forwarded (resends pass, see check_seq)
+        self._forwarded: dict[str, SeqRanges] = {}  # per stream, the seqs forwarded (resends pass: check_seq)
         if config.source == "model" and model is None:
             import torch
 
@@ -73,15 +73,16 @@ class InferenceWorker(Worker):
         self._declared.append(self.session.declare_subscriber(keys.camera("*"), self._on_camera))
 
     def check_seq(self, stream: str, seq: int, key: str) -> bool:
-        """A step back to a frame forwarded lately is a resend (its pose was lost, e.g. the registration worker
-        restarted): forward it; the registration worker answers it from its stored trajectory."""
-        recent = self._forwarded.setdefault(stream, deque(maxlen=64))
+        """A step back to a frame forwarded before is a resend (its pose was lost, e.g. the registration worker
+        restarted, or a full queue there turned it away while the client sent hundreds more): forward it; the
+        registration worker answers it from its stored trajectory or registers it in its turn."""
+        forwarded = self._forwarded.setdefault(stream, SeqRanges())
         expected = self.trackers[stream].expected
-        if expected is not None and seq < expected and seq in recent:
+        if expected is not None and seq < expected and seq in forwarded:
             return True
         ok = super().check_seq(stream, seq, key)
         if ok:
-            recent.append(seq)
+            forwarded.add(seq)
         return ok
 
     def retire_stream(self, stream: str) -> None:

@@ -12,6 +12,7 @@ import zenoh
 from offline import offline
 
 from occvo_schemas import keys
+from occvo_schemas.codec import encode
 from occvo_services import ingress
 from occvo_services.camera_frames import camera_frame_of
 from occvo_services.client import OccVOClient
@@ -133,3 +134,21 @@ def test_a_stream_overflowing_its_queue_loses_nothing_and_holds_up_no_other_stre
             + svc.worker("inference").stats.snapshot()[0].get("frames_refused_full", 0)
             >= 1
         )
+
+
+def test_a_copy_of_a_frame_far_behind_the_stream_reaches_the_registration_worker(scene):
+    """A full queue at registration turns frames away while the client goes on sending: a copy of a frame hundreds of
+    seqs behind is still a resend of a frame the inference worker forwarded, and its pose comes back (from the stored
+    trajectory here), never dropped there as out of order."""
+    with InProcessService(warm_up=False) as svc, OccVOClient(svc.endpoint, "far") as c:
+        c.reset()
+        for _ in range(80):  # a car standing still: the same frame, 80 seqs
+            c.step(scene[0])
+        reg = svc.worker("registration")
+        before = reg.stats.snapshot()[0].get("republished", 0)
+        c.put_encoded(encode(camera_frame_of(scene[0], "far", 3)))
+        deadline = time.monotonic() + 20
+        while reg.stats.snapshot()[0].get("republished", 0) == before and time.monotonic() < deadline:
+            time.sleep(0.05)
+        assert reg.stats.snapshot()[0].get("republished", 0) == before + 1
+        assert not c.errors, [(e.worker, e.code, e.message) for e in c.errors]

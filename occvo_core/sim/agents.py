@@ -6,8 +6,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from occvo_core.sim.raster import BICYCLE, BUS, CAR, MOTORCYCLE, PEDESTRIAN, TRUCK, VEHICLE_SIZE, Town
 from occvo_core.sim.route import lane_path, random_walk, resample, speed_profile
-from occvo_core.sim.town import BICYCLE, BUS, CAR, MOTORCYCLE, PEDESTRIAN, TRUCK, VEHICLE_SIZE, Town
 
 
 @dataclass

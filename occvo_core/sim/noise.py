@@ -20,8 +20,8 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
 from occvo_core.grid import FREE, OCC3D_GRID
+from occvo_core.sim.raster import hash_uniform
 from occvo_core.sim.render import horizontal_neighbours, nonzero3, surface_free_voxels
-from occvo_core.sim.town import hash_uniform
 
 
 def occupied_indices(grid: np.ndarray) -> np.ndarray:

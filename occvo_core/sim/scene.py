@@ -12,9 +12,10 @@ from occvo_core.grid import FREE, OCC3D_GRID
 from occvo_core.sim import render
 from occvo_core.sim.agents import DynamicTrack, boxes_in_ego, loop_traffic, make_traffic
 from occvo_core.sim.noise import NoiseModel, occupied_indices
+from occvo_core.sim.raster import ZQ, Town
 from occvo_core.sim.roads import RoadGraph, Terrain
 from occvo_core.sim.route import DS, block_loop, lane_path, random_walk, speed_profile
-from occvo_core.sim.town import ZQ, Town, build_town
+from occvo_core.sim.town import build_town
 
 # The six nuScenes cameras (ego frame, approximately their calibration): x, y, z, yaw, half horizontal FOV,
 # lowest and highest elevation. Front cameras: f = 1266 px on 1600x900 images; the back camera: f = 809 px.

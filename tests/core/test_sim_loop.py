@@ -8,7 +8,7 @@ import pytest
 
 from occvo_core.errors import ConfigError
 from occvo_core.sim import SyntheticScene
-from occvo_core.sim.town import PEDESTRIAN
+from occvo_core.sim.raster import PEDESTRIAN
 
 
 @pytest.fixture(scope="module")

@@ -31,12 +31,13 @@ class TurnedAway:
     first of them wait for it), and the frames that entered the lane since its last seq 0 (RECENT of them): a frame
     among those, turned away (a resend overlapping its original), is waited for by nothing, since its pose comes
     anyway. Every turned-away frame is remembered, not only the first: once the first is in, the next still missing
-    holds the frames after it (an upstream worker may forward them before it). A wait no copy of its frame renewed
-    for STALE_S ends: the client has that frame's pose (a copy of it was turned away after a seq 0 copy came again)."""
+    holds the frames after it (an upstream worker may forward them before it). A wait no copy of its frame, nor of a
+    frame waiting for it, renewed for STALE_S ends: the client has that frame's pose (a copy of it was turned away
+    after a seq 0 copy came again), or it does not send again."""
 
     def __init__(self):
         self._lock = threading.Lock()
-        self._away: dict[str, dict[int, float]] = {}  # stream -> {seq: time.monotonic() it was last turned away}
+        self._away: dict[str, dict[int, float]] = {}  # stream -> {seq: when last turned away, or a copy after it came}
         self._in: dict[str, deque] = {}
 
     def waits(self, stream: str, seq: int) -> int | None:
@@ -46,6 +47,10 @@ class TurnedAway:
             if away is None:
                 return None
             entered, now = self._in.get(stream, ()), time.monotonic()
+            if seq in away:  # a copy of a frame turned away: its client sends again, and so the frames it waits for
+                for k in away:  # (their copies may be stopped upstream, out of this worker's sight)
+                    if k < seq:
+                        away[k] = now
             for k in [k for k, at in away.items() if seq == 0 or k in entered or now - at > STALE_S]:
                 del away[k]  # a new trajectory, k is in after all, or nobody sends k again
             if not away:

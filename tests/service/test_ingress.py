@@ -72,6 +72,23 @@ def test_a_wait_no_copy_of_its_frame_renews_ends(monkeypatch):
     assert t.waits("s", 2) is None and t.waits("s", 3) is None
 
 
+def test_a_copy_of_a_frame_waiting_renews_the_wait_for_the_frame_before_it(monkeypatch):
+    """1 and 2 turned away, 2 waiting for 1; 1's copies are stopped upstream (a full queue there), 2's come: the
+    client is sending again, so 1 is still waited for past STALE_S (else 3 would enter after a gap and 1 and 2 be
+    lost); once no copy comes, the wait ends."""
+    monkeypatch.setattr(ingress, "STALE_S", 0.2)
+    t = TurnedAway()
+    t.entered("s", 0)
+    t.turned_away("s", 1), t.turned_away("s", 2)
+    time.sleep(0.15)
+    assert t.waits("s", 2) == 1  # a copy of 2
+    t.turned_away("s", 2)
+    time.sleep(0.15)
+    assert t.waits("s", 3) == 1  # 0.3 s after 1 was turned away: renewed by 2's copy
+    time.sleep(0.25)
+    assert t.waits("s", 3) is None
+
+
 def test_a_turned_away_frame_goes_again_while_the_frames_behind_it_keep_being_turned_away():
     """The retry runs from the first refusal: refusals of the frames in flight behind it, one every 0.2 s as an
     open-loop camera's would come, do not put the resend off (restarted at each, they did for as long as they came,

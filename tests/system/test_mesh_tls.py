@@ -64,25 +64,25 @@ def mesh(tmp_path_factory, pg_cluster):
     sessions = {r: shipped(f"session-{r}.json5", tmp, tls) for r in ("inference", "registration", "map", "camera")}
     (tmp / "session-camera2.json5").write_text(sessions["camera"].read_text().replace("camera", "camera2"))
     sessions["camera2"] = tmp / "session-camera2.json5"
-    store = ["--store-url", pg_cluster.new_database()]
-    for role, module, config in (
-        ("inference", "inference_worker", "inference_worker.json5"),
-        ("registration", "registration_worker", "registration_worker_b.json5"),
-        ("map", "map_service", "map_service_b.json5"),
-    ):
-        args = ["--source", "replay"] if role == "inference" else store
-        cmd = [sys.executable, "-m", f"occvo_services.{module}", "--config", str(MULTIHOST / config),
-               "--connect", ep_b, "--worker-id", f"{role}-b", *args]  # fmt: skip
-        start(role, cmd, {"OCCVO_ZENOH_CONFIG": str(sessions[role])})
     try:
         deadline = time.monotonic() + 60
-        while True:  # router B up (a python process's start)
+        while True:  # router B up (a python process's start) before the workers, which do not wait for a router
             try:
                 watcher = _session(ep_b, sessions["registration"])  # a worker's view: the tokens it sees
                 break
             except zenoh.ZError:
                 assert time.monotonic() < deadline, (tmp / "router-b.log").read_text()[-2000:]
                 time.sleep(0.5)
+        store = ["--store-url", pg_cluster.new_database()]
+        for role, module, config in (
+            ("inference", "inference_worker", "inference_worker.json5"),
+            ("registration", "registration_worker", "registration_worker_b.json5"),
+            ("map", "map_service", "map_service_b.json5"),
+        ):
+            args = ["--source", "replay"] if role == "inference" else store
+            cmd = [sys.executable, "-m", f"occvo_services.{module}", "--config", str(MULTIHOST / config),
+                   "--connect", ep_b, "--worker-id", f"{role}-b", *args]  # fmt: skip
+            start(role, cmd, {"OCCVO_ZENOH_CONFIG": str(sessions[role])})
         wait_alive(watcher, ("inference", "registration", "map"), timeout=240)
         yield {"a": ep_a, "b": ep_b, "sessions": sessions, "watcher": watcher, "tmp": tmp}
         watcher.close()

@@ -44,9 +44,10 @@ class Strand:
     def _schedule(self) -> None:
         try:
             self._executor.submit(self._step)
-        except RuntimeError:  # the pool was shut down (the worker stops): the strand's tasks run here
-            while self._run_one():
-                pass
+        except RuntimeError:  # the pool was shut down (the worker stops): the strand's tasks left run here, in order
+            more = True
+            while more:
+                more = self._run_one()
 
     def _step(self) -> None:
         if self._run_one():

@@ -576,9 +576,11 @@ def test_a_store_digested_before_the_compact_digest_still_knows_its_frames(tmp_p
         with OccVOClient(svc.endpoint, "car") as client:
             got = [client.step(scene[i]).matrix() for i in range(N)]  # seqs 0-3 again, then the stream goes on
             assert np.array_equal(got, uninterrupted)
-            # each frame the client sent twice (it resends what is unanswered when it first sees a worker come up,
-            # which under load can be after seq 0 went out) is answered from the store once more
-            assert reg.stats.snapshot()[0]["republished"] == 4 + client.resends and not client.errors
+            # seqs 0-3 are answered from the store; a frame the client sent twice (it resends what is unanswered when
+            # it first sees a worker come up, or after resend_after under load) is answered from it once more if the
+            # copy came after its frame was stored
+            republished = reg.stats.snapshot()[0]["republished"]
+            assert 4 <= republished <= 4 + client.resends and not client.errors
     finally:
         svc.close()
 

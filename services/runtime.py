@@ -25,7 +25,7 @@ from occvo_services.limits import MAX_KEY_CHARS, MAX_MESSAGE_CHARS, Admission, E
 from occvo_services.memory import CHECK_EVERY_S, MemoryCap
 from occvo_services.os_tuning import name_os_thread, trim_heap
 from occvo_services.query_gate import QueryGate
-from occvo_services.sessions import open_session
+from occvo_services.sessions import open_worker_session
 from occvo_services.store.url import redact
 from occvo_services.strand import pool
 from occvo_services.telemetry import Stats, log_event, structured_logger
@@ -54,6 +54,7 @@ class Worker:
         self.log = structured_logger(f"occvo.{self.role}", config.log_level)
         self.stats = Stats()
         self.stopping = threading.Event()
+        self.shutdown_requested = threading.Event()  # SIGTERM / SIGINT (run_forever), also while waiting for a router
         self.started = time.time()
         self.lanes: dict[str, StreamLane] = {}
         self.trackers: dict[str, SeqTracker] = defaultdict(lambda: SeqTracker(config.max_seq_jump))
@@ -73,7 +74,16 @@ class Worker:
 
     # -- lifecycle
     def start(self) -> Worker:
-        self.session = open_session(self.config.connect, pick_up=False)  # its role's login, never the user's
+        """On the network: its session (a router not up yet waited for, config.router_wait_s), queryables and
+        token. A shutdown requested while it waits leaves it unstarted (session None)."""
+        self.session = open_worker_session(
+            self.config.connect,
+            self.config.router_wait_s,
+            self.shutdown_requested,
+            lambda why: log_event(self.log, "waiting for the router", why=why, wait_s=self.config.router_wait_s),
+        )
+        if self.session is None:
+            return self
         self._declared.append(self.session.declare_queryable(keys.stats(self.worker_id), self._on_stats))
         self.declare()
         self.token = self.session.liveliness().declare_token(keys.alive(self.role, self.worker_id))
@@ -124,10 +134,11 @@ class Worker:
 
     def run_forever(self) -> int:
         """Until SIGTERM or SIGINT; returns the exit code."""
-        requested = threading.Event()
+        requested = self.shutdown_requested
         for sig in (signal.SIGTERM, signal.SIGINT):
             signal.signal(sig, lambda *_: requested.set())
-        self.start()
+        if self.start().session is None:
+            return 0
         while not requested.wait(0.2):  # short waits keep the main thread responsive to signals
             continue
         log_event(self.log, "shutdown requested", worker=self.worker_id)

@@ -7,6 +7,9 @@ import json
 import os
 import re
 import socket
+import threading
+import time
+from collections.abc import Callable
 from pathlib import Path
 
 import zenoh
@@ -87,6 +90,30 @@ def open_session(
     NoRouterError, each one line. The config: `base`, else $OCCVO_ZENOH_CONFIG, else (pick_up) the client login
     `occvo serve` made for this user (client_login)."""
     return open_login(connect, base, pick_up)[0]
+
+
+ROUTER_RETRY_S = 0.5  # a worker's tries for a router that is not up yet (open_worker_session)
+
+
+def open_worker_session(
+    connect: str, wait_s: float, stop: threading.Event, waiting: Callable[[str], None]
+) -> zenoh.Session | None:
+    """A worker's session, in its role's login, never the user's. A router nothing answers for yet is waited for up
+    to wait_s (`waiting` is told once why); one that answers and refuses the session fails at once. None: `stop` was
+    set while waiting."""
+    deadline = time.monotonic() + wait_s
+    told = False
+    while True:
+        try:
+            return open_session(connect, pick_up=False)
+        except NoRouterError as exc:
+            if _answers(connect) or time.monotonic() >= deadline:
+                raise
+            if not told:
+                waiting(str(exc))
+                told = True
+        if stop.wait(ROUTER_RETRY_S):
+            return None
 
 
 def client_login(base: str | Path | None = None, pick_up: bool = True) -> tuple[str | None, bool]:

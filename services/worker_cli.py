@@ -10,6 +10,7 @@ from collections.abc import Callable
 from occvo_core.errors import ConfigError
 from occvo_services.os_tuning import few_malloc_arenas, large_blocks_from_mmap
 from occvo_services.runtime import Worker
+from occvo_services.sessions import NoRouterError
 from occvo_services.store.url import SECRET_WAYS, redact, refuse_password, resolve
 from occvo_services.worker_config import DEFAULT_ENDPOINT, WorkerConfig
 
@@ -20,7 +21,7 @@ def worker_main(
     """`python -m occvo_services.<role>_worker [--config deploy/x.json5] [--connect ...] ...`"""
     import argparse
 
-    p = argparse.ArgumentParser(prog=prog or f"python -m {worker_cls.__module__}", description=worker_cls.__doc__)
+    p = argparse.ArgumentParser(prog=prog or f"python -m {_module_name(worker_cls)}", description=worker_cls.__doc__)
     p.add_argument("--config", help="worker json5 config (deploy/*.json5)")
     p.add_argument("--connect", help=f"router endpoint (default {DEFAULT_ENDPOINT})")
     p.add_argument("--worker-id")
@@ -28,6 +29,7 @@ def worker_main(
     p.add_argument("--queue-size", type=int)
     p.add_argument("--max-message-bytes", type=int)
     p.add_argument("--log-level")
+    p.add_argument("--router-wait-s", type=float, help="how long to wait at start for a router not up yet (default 60)")
     p.add_argument("--max-rss-mb", type=int, help="memory cap: idle streams evicted near it, new streams refused")
     p.add_argument(
         "--client-identity", choices=["session", "user"], help="who a client is: its Zenoh session, or the ACL user"
@@ -51,7 +53,18 @@ def worker_main(
     config = WorkerConfig.load(args.pop("config"), **args)
     large_blocks_from_mmap()
     few_malloc_arenas()
-    return worker_cls(config).run_forever()
+    try:
+        return worker_cls(config).run_forever()
+    except NoRouterError as exc:  # none came up within router_wait_s, or it refused the worker: one line
+        print(f"{p.prog}: {exc}", file=sys.stderr)
+        return 1
+
+
+def _module_name(worker_cls: type[Worker]) -> str:
+    """The module `python -m` ran: a worker class defined there is in __main__, whose spec keeps the name."""
+    name = worker_cls.__module__
+    spec = getattr(sys.modules.get(name), "__spec__", None) if name == "__main__" else None
+    return spec.name if spec is not None else name
 
 
 def _store_url(args: dict) -> None:

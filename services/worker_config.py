@@ -27,6 +27,9 @@ class WorkerConfig(BaseModel):
     queue_size: int = Field(4, ge=1, le=1024)
     max_message_bytes: int = Field(DEFAULT_MAX_BYTES, ge=1024)
     log_level: str = "INFO"
+    # a router not up yet is waited for this long at start (one started beside the worker, by systemd or a script,
+    # may come up after it); a router that answers and refuses the worker is not. 0: exit at once
+    router_wait_s: float = Field(60.0, ge=0)
     # what one client may cost (services/limits.py); the defaults fit a 2-core machine
     max_streams: int = Field(64, ge=1)  # streams a worker serves at once; more get a stream_limit error event
     max_streams_per_client: int = Field(16, ge=1)  # of them, per client (client_identity)

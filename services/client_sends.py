@@ -1,7 +1,7 @@
 """A client's sends: its frames leave in seq order and are kept until answered; they go again when a worker of their
-path comes back (its liveliness token), after `resend_after` seconds without an answer, or once a pose frees room
-after a full queue turned them away (stream_full). New frames wait meanwhile: one that overtook a lost frame would
-make it old."""
+path comes back (its liveliness token), after `resend_after` seconds without an answer, or, the frames a full queue
+turned away (stream_full) and only those, once a pose frees room. New frames wait meanwhile: one that overtook a lost
+frame would make it old."""
 
 from __future__ import annotations
 
@@ -33,7 +33,8 @@ class FrameSender:
         self._back_at: float | None = None
         self.resends = 0
         self.turned_away = 0  # stream_full answers: frames a full queue turned away (sent again)
-        self._full: tuple[int, float] | None = None  # (first seq a full queue turned away, when), until resent
+        self._full: float | None = None  # when a full queue first turned a frame away since the last resend of them
+        self._refused: set[int] = set()  # the frames a full queue turned away, not sent again since
         self._refused_at = 0.0  # the last stream_full
         self._subs = [
             session.liveliness().declare_subscriber(keys.registration_shard(), self._on_alive, history=True),
@@ -55,27 +56,31 @@ class FrameSender:
         with self._cv:
             for s in [s for s in self._unanswered if s <= seq] if in_order else [seq]:
                 self._unanswered.pop(s, None)
+                self._refused.discard(s)
             self._last_answer = time.monotonic()
             if in_order and self._full is not None:
                 self._credit.set()
 
     def full(self, seq: int | None) -> None:
-        """stream_full: flow control, not an error; sent again from the first unanswered frame (_full_due: the one
-        the turned-away frame waits for may be earlier, and a frame a worker answered missing_seq or seq_held waits
-        for its copy too). The retry's clock runs from the first refusal since the last resend: refusals of the
-        frames in flight behind it keep coming, and restarting the clock at each put the resend off for as long as
-        they did."""
+        """stream_full: flow control, not an error; that frame is sent again (_full_due). Only the frames turned away:
+        a copy of a frame a queue holds is turned away in its turn (the queue is full) and sent again, and resending
+        from the first unanswered frame multiplied the frames an overloaded worker took in (five for each frame), until
+        the puts blocked for seconds and the waits at the workers ran out. The retry's clock runs from the first
+        refusal since the last resend: refusals of the frames in flight behind it keep coming, and restarting the
+        clock at each put the resend off for as long as they did."""
         with self._cv:
             self.turned_away += 1
             self._refused_at = time.monotonic()  # the service answers: not a stall (_resend_loop)
-            if seq is not None:
-                first = min(self._unanswered, default=seq)
-                self._full = (first, self._refused_at if self._full is None else self._full[1])
+            if seq is not None and seq in self._unanswered:
+                self._refused.add(seq)
+                self._full = self._refused_at if self._full is None else self._full
 
     def forget(self) -> None:
         """A new trajectory: the frames of the old one are not waited for."""
         with self._cv:
             self._unanswered.clear()
+            self._refused.clear()
+            self._full = None
 
     # -- the path's workers
     def _on_alive(self, sample: zenoh.Sample) -> None:
@@ -128,20 +133,22 @@ class FrameSender:
                     self._cv.notify_all()
 
     def _full_due(self) -> bool:
-        """Frames a full queue turned away sent again, in order, once a pose freed room (or after FULL_RETRY_S):
+        """Frames a full queue turned away sent again, in seq order, once a pose freed room (or after FULL_RETRY_S):
         FULL_BURST of them, the rest with the next pose (a queue takes a few frames and turns the rest away again:
         sending them all each time multiplied an overloaded worker's input). New frames wait until the last went."""
-        with self._cv:
-            if self._full is None:
-                return False
-            k, at = self._full
-            now = time.monotonic()
-            if self._last_answer <= at and now - at < FULL_RETRY_S:
-                return False
-            rest = sorted(s for s in self._unanswered if s >= k)[FULL_BURST:]
-            self._full = (rest[0], now) if rest else None
-            self._cv.notify_all()
-        self.resend(k, FULL_BURST)
+        with self._send_lock:
+            with self._cv:
+                at, now = self._full, time.monotonic()
+                if at is None or (self._last_answer <= at and now - at < FULL_RETRY_S):
+                    return False
+                seqs = sorted(self._refused)[:FULL_BURST]
+                self._refused.difference_update(seqs)
+                self._full = now if self._refused else None
+                pending = [self._unanswered[s] for s in seqs if s in self._unanswered]
+                self._cv.notify_all()
+            for payload in pending:
+                self._put(payload)
+            self.resends += len(pending)
         return True
 
     def resend(self, first: int = 0, most: int | None = None) -> int:
@@ -150,6 +157,7 @@ class FrameSender:
         with self._send_lock:
             with self._cv:
                 pending = sorted((seq, p) for seq, p in self._unanswered.items() if seq >= first)[:most]
+                self._refused.difference_update(seq for seq, _ in pending)
             for _, payload in pending:
                 self._put(payload)
             self.resends += len(pending)

@@ -285,11 +285,14 @@ class Worker:
     ) -> ErrorEvent:
         """Log and publish an error event, keys and messages clipped, at most error_events_per_s a client (the
         client given, else the stream's owner, else the stream: one client's flood of keys shares one budget; the
-        rest counted as errors_suppressed and named in the next event)."""
+        rest counted as errors_suppressed and named in the next event). Flow control (stream_full) is an answer, one a
+        frame its client sent well formed, not an error: never suppressed (a client not told would not send the frame
+        again, and the frames waiting for it would wait in vain), and logged at debug level only."""
         self.stats.inc("errors")
         stream = stream if keys.STREAM_RE.match(stream) else "*"
         client = client or self.admission.owner(stream) or stream
-        suppressed = self.error_budget.take(client)
+        flow = code == "stream_full"
+        suppressed = 0 if flow else self.error_budget.take(client)
         message = clip(redact(message), MAX_MESSAGE_CHARS)  # a store error's text names the store: no password
         if suppressed:
             message += f" (+{suppressed} error events of this client suppressed before this one)"
@@ -306,7 +309,8 @@ class Worker:
             self.stats.inc("errors_suppressed")
             return event
         fields = event.model_dump(exclude={"kind", "schema_version"})
-        log_event(self.log, "error", logging.WARNING, client=clip(client, MAX_KEY_CHARS), **fields)
+        level = logging.DEBUG if flow else logging.WARNING
+        log_event(self.log, "error", level, client=clip(client, MAX_KEY_CHARS), **fields)
         if self.session is not None and not self.session.is_closed():
             try:
                 self.session.put(

@@ -109,7 +109,9 @@ def test_a_turned_away_frame_goes_again_while_the_frames_behind_it_keep_being_tu
         sender.close()
         sub.undeclare()
     assert sent.count(b"frame 1") >= 2, sent
-    assert sent.index(b"frame 0", 1) < sent.index(b"frame 1", 2)  # from the first unanswered on, in order
+    assert sent.index(b"frame 1", 2) < sent.index(b"frame 2", 3)  # the turned-away frames again, in seq order
+    assert sent.count(b"frame 0") == 1  # no queue turned it away: no copy of it (copies of queued frames multiplied
+    # an overloaded worker's input)
 
 
 def test_a_stream_overflowing_its_queue_loses_nothing_and_holds_up_no_other_stream():
@@ -151,6 +153,34 @@ def test_a_stream_overflowing_its_queue_loses_nothing_and_holds_up_no_other_stre
             + svc.worker("inference").stats.snapshot()[0].get("frames_refused_full", 0)
             >= 1
         )
+
+
+def test_every_frame_a_full_queue_turns_away_is_told_to_its_client_whatever_its_error_budget():
+    """stream_full is flow control, not an error: with a budget of one error event a client, a burst into a queue of
+    1 is turned away many times, and each refusal reaches the client (a refusal it is not told of is a frame it does
+    not send again, and the frames after it wait in vain); every pose comes, in order."""
+    from occvo_services.commands.replay import load_scene
+
+    burst = load_scene("synthetic:6", frames=10)
+    with (
+        InProcessService(queue_size=1, policy="lossless", error_events_per_s=0.01, error_burst=1) as svc,
+        OccVOClient(svc.endpoint, "told") as c,
+    ):
+        c.reset()
+        frames = [camera_frame_of(burst[i], c.stream, i) for i in range(10)]
+        for f in frames:
+            c.publish(f)
+        assert c.wait_pose(9, timeout=300).seq == 9
+
+        def refusals():
+            return sum(w.stats.snapshot()[0].get("frames_refused_full", 0) for w in svc.workers if w.role != "map")
+
+        deadline = time.monotonic() + 10  # the last refusals' events may be on their way
+        while c.turned_away != refusals() and time.monotonic() < deadline:
+            time.sleep(0.05)
+        refused = refusals()
+        assert refused > 1 and c.turned_away == refused, (c.turned_away, refused)
+        assert sorted(c.arrived, key=c.arrived.get) == list(range(10)) and not c.errors, c.errors
 
 
 def test_a_copy_of_a_frame_far_behind_the_stream_reaches_the_registration_worker(scene):

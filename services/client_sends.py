@@ -73,7 +73,8 @@ class FrameSender:
             self._refused_at = time.monotonic()  # the service answers: not a stall (_resend_loop)
             if seq is not None and seq in self._unanswered:
                 self._refused.add(seq)
-                self._full = self._refused_at if self._full is None else self._full
+                if self._full is None:
+                    self._full = self._refused_at
 
     def forget(self) -> None:
         """A new trajectory: the frames of the old one are not waited for."""
@@ -146,9 +147,7 @@ class FrameSender:
                 self._full = now if self._refused else None
                 pending = [self._unanswered[s] for s in seqs if s in self._unanswered]
                 self._cv.notify_all()
-            for payload in pending:
-                self._put(payload)
-            self.resends += len(pending)
+            self._put_again(pending)
         return True
 
     def resend(self, first: int = 0, most: int | None = None) -> int:
@@ -158,10 +157,14 @@ class FrameSender:
             with self._cv:
                 pending = sorted((seq, p) for seq, p in self._unanswered.items() if seq >= first)[:most]
                 self._refused.difference_update(seq for seq, _ in pending)
-            for _, payload in pending:
-                self._put(payload)
-            self.resends += len(pending)
-            return len(pending)
+            return self._put_again([p for _, p in pending])
+
+    def _put_again(self, payloads: list[bytes]) -> int:
+        """Copies of kept frames out, counted as resends; under _send_lock."""
+        for payload in payloads:
+            self._put(payload)
+        self.resends += len(payloads)
+        return len(payloads)
 
     # -- sending
     def send(self, seq: int, payload: bytes, timeout: float) -> None:

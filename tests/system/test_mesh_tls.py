@@ -66,7 +66,7 @@ def mesh(tmp_path_factory, pg_cluster):
     sessions["camera2"] = tmp / "session-camera2.json5"
     try:
         deadline = time.monotonic() + 60
-        while True:  # router B up (a python process's start) before the workers, which do not wait for a router
+        while True:  # router B up (a python process's start) first: its watcher session is made here
             try:
                 watcher = _session(ep_b, sessions["registration"])  # a worker's view: the tokens it sees
                 break

@@ -40,13 +40,14 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--domain-id", type=int, help="ROS_DOMAIN_ID (default 0)")
     p.add_argument("--namespace", help="the node's namespace (default /)")
     p.add_argument("--input", choices=["occupancy", "cameras"], help="which ROS input feeds the odometry")
-    p.add_argument("--log-level", default="INFO")
+    p.add_argument("--log-level", choices=["DEBUG", "INFO", "WARNING", "ERROR"], help="(default: the settings', INFO)")
     args = p.parse_args(argv)
-    log = structured_logger(f"occvo.{args.worker_id}", args.log_level)
     try:
         from occvo_services.ros2.config import Ros2NodeConfig
 
-        config = Ros2NodeConfig.load(args.config, domain_id=args.domain_id, namespace=args.namespace, input=args.input)
+        config = Ros2NodeConfig.load(
+            args.config, domain_id=args.domain_id, namespace=args.namespace, input=args.input, log_level=args.log_level
+        )
         from occvo_services.ros2.node import OccVONode  # rosbags (the `ros` extra) from here on
 
         session = _open(args.connect)
@@ -56,6 +57,7 @@ def main(argv: list[str] | None = None) -> int:
     except ImportError as exc:
         print(f"occvo ros2: {exc.name} is missing: pip install 'occvo[ros]'", file=sys.stderr)
         return 2
+    log = structured_logger(f"occvo.{args.worker_id}", config.log_level)
     faulthandler.register(signal.SIGUSR1)  # `kill -USR1 <pid>`: every thread's stack on stderr
     stop = threading.Event()
     for sig in (signal.SIGINT, signal.SIGTERM):

@@ -41,6 +41,9 @@ class Ros2NodeConfig(BaseModel):
     odom_frame: str = "odom"
     base_frame: str = "base_link"
     map_every: int = Field(5, ge=1, description="the map is published every this many poses")
+    log_level: Literal["DEBUG", "INFO", "WARNING", "ERROR"] = Field(
+        "INFO", description="DEBUG: a line per frame sent and per odometry published"
+    )
     topics: Ros2Topics = Ros2Topics()
 
     @classmethod

@@ -56,6 +56,12 @@ def robot_session_config(tmp, login_file, endpoint: str):
     return path
 
 
+def log_tails(tmp, chars: int = 1500) -> str:
+    """The last lines of serve's and each process's log (--log-dir tmp)."""
+    names = ("serve.err", "router.log", "ros2.log", "inference.log", "registration.log")
+    return "\n".join(f"--- {n}:\n{(tmp / n).read_text()[-chars:]}" for n in names if (tmp / n).is_file())
+
+
 def added(name: str, endpoint: str, folder, *flags) -> object:
     """`occvo logins add NAME [--ros2]` while serve runs; its config once the restarted router takes it."""
     got = _occvo("logins", "add", name, *flags)
@@ -92,7 +98,8 @@ def test_serve_ros2_with_logins_a_robot_login_drives_and_others_get_nothing(tmp_
     # the map on one level (the SDK finds a latched topic's publishers by its name with only the leading '/'
     # mangled, test_ros2_zenoh.py), and published every 2 poses
     settings.write_text(
-        f'{{domain_id: {DOMAIN}, namespace: "{NAMESPACE}", map_every: 2, topics: {{map: "/occvo_map"}}}}'
+        f'{{domain_id: {DOMAIN}, namespace: "{NAMESPACE}", map_every: 2, topics: {{map: "/occvo_map"}}, '
+        'log_level: "DEBUG"}'
     )
     proc, ep, err = _serve(tmp_path, "--ros2", "--ros2-config", str(settings))
     opened = []
@@ -170,6 +177,8 @@ def test_serve_ros2_with_logins_a_robot_login_drives_and_others_get_nothing(tmp_
         )
         wait_for(lambda: maps, 30, "the latched map")
         assert maps[0].header.frame_id == "odom" and maps[0].width > 1000
+    except AssertionError as exc:  # what the node, the workers and the router said, in the failure's report
+        raise AssertionError(f"{exc}\n{log_tails(tmp_path)}") from None
     finally:
         for s in opened:
             s.close()

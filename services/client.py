@@ -44,6 +44,8 @@ from occvo_services.logins import own_stream
 from occvo_services.runtime import DEFAULT_ENDPOINT
 from occvo_services.sessions import open_login
 
+# the error events a client keeps, the latest: one that runs for hours on a bad input does not grow without end
+MAX_ERRORS = 1000
 # error events that leave a frame waiting for its pose: it is sent again every resend_after until the pose comes
 PENDING_CODES = ("missing_seq", "seq_held", "not_stored", "store_unavailable", "stream_full")
 
@@ -123,6 +125,7 @@ class OccVOClient:
             self._sender.answered(event.seq, in_order=False)
         with self._cv:
             self.errors.append(event)
+            del self.errors[:-MAX_ERRORS]
             self._cv.notify_all()
 
     # -- sending (client_sends.FrameSender)
@@ -161,6 +164,14 @@ class OccVOClient:
         self._seq += 1
         self._sender.send(seq, payload, self.timeout)
         return seq
+
+    def forget(self, through: int) -> None:
+        """Drop the poses and arrival times of seqs up to `through`: a client that runs for hours and has used them
+        keeps nothing it has sent on (a pose that comes again later is dropped with the next call)."""
+        with self._cv:
+            for kept in (self.poses, self.arrived):
+                for seq in [s for s in kept if s <= through]:
+                    del kept[seq]
 
     def put_encoded(self, payload: bytes) -> None:
         """An encoded camera frame of this stream sent as this client, not tracked (tools and tests: a resend, a

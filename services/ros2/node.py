@@ -114,8 +114,7 @@ class OccVONode:
         log_event(self.log, "odometry published", logging.DEBUG, seq=pose.seq, stamp_ns=ns)
         self._path = [*self._path[-(PATH_WINDOW - 1) :], (ns, M)]  # the window /occvo/path sends, no more
         self.path.publish(rm.path(ns, self._path, c.odom_frame))
-        self.client.poses.pop(pose.seq, None)  # the node runs for hours: the client keeps nothing it has sent on
-        self.client.arrived.pop(pose.seq, None)
+        self.client.forget(pose.seq)  # the node runs for hours: its client keeps nothing it has sent on
         if self._published % c.map_every == 0 and self._map_busy.acquire(blocking=False):
             threading.Thread(target=self._publish_map, args=(ns,), name="occvo-ros2-map", daemon=True).start()
 
@@ -134,7 +133,6 @@ class OccVONode:
         except CodecError:
             return
         log_event(self.log, "frame refused", logging.WARNING, seq=e.seq, code=e.code, message=e.message[:300])
-        del self.client.errors[:-100]
 
     def close(self) -> None:
         for s in self._subs:

@@ -42,6 +42,8 @@ class Ros2Graph:
         self.node = NodeName(domain_id, str(session.info.zid()), 0, name, namespace)
         self._decls: list = [session.liveliness().declare_token(self.node.node_token())]
         self.bad_messages = 0
+        self.lost_messages = 0  # messages a publisher numbered that never came (rmw_zenoh's attachment)
+        self._count = threading.Lock()
 
     def _endpoint(self, kind: str, topic: str, ros_type: str, qos: QoS) -> tuple[str, str, bytes]:
         topic = resolve(topic, self.namespace)
@@ -69,8 +71,14 @@ class Ros2Graph:
     def subscribe(self, topic: str, ros_type: str, handler: Callable, qos: QoS) -> None:
         """handler(msg) for each message; a message that is not CDR of ros_type is logged in one line and dropped."""
         topic, key, _ = self._endpoint("MS", topic, ros_type, qos)
+        gaps = _Gaps()
 
         def on_sample(sample: zenoh.Sample) -> None:
+            lost = gaps.lost(sample.attachment)
+            if lost:
+                with self._count:
+                    self.lost_messages += lost
+                log_event(self.log, "ros messages lost", logging.WARNING, topic=topic, lost=lost)
             try:
                 msg = STORE.deserialize_cdr(sample.payload.to_bytes(), ros_type)
             except Exception as exc:  # noqa: BLE001 - any decoder failure is the sender's bad message
@@ -96,3 +104,25 @@ class Ros2Graph:
         for d in reversed(self._decls):
             d.undeclare()
         self._decls.clear()
+
+
+class _Gaps:
+    """Messages lost on the way, from the sequence numbers rmw_zenoh's publishers put on each sample (a keep-last
+    publisher drops samples under congestion): a number that skips ahead counts the ones between; one that goes back
+    is a publisher that started again."""
+
+    def __init__(self):
+        self._last: dict[bytes, int] = {}  # publisher gid -> its last sequence number seen
+        self._lock = threading.Lock()
+
+    def lost(self, attachment) -> int:
+        if attachment is None:
+            return 0
+        try:
+            a = Attachment.decode(attachment.to_bytes())
+        except ValueError:
+            return 0  # not rmw_zenoh's: nothing to count
+        with self._lock:
+            last = self._last.get(a.source_gid)
+            self._last[a.source_gid] = a.sequence_number
+        return a.sequence_number - last - 1 if last is not None and a.sequence_number > last + 1 else 0

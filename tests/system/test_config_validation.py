@@ -110,7 +110,7 @@ def test_a_worker_that_never_comes_up_is_not_reported_ready(tmp_path):
     env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(REPO), os.environ.get("PYTHONPATH", "")]).rstrip(os.pathsep))
     proc = subprocess.run(
         [sys.executable, "-m", "occvo_cli", "serve", "--json", "--quiet", "--config-dir", str(cfg),
-         "--listen", f"tcp/127.0.0.1:{free_port()}", "--start-timeout", "20"],
+         "--listen", f"tcp/127.0.0.1:{free_port()}", "--start-timeout", "10"],
         capture_output=True, text=True, timeout=240, env=env, cwd=tmp_path,
     )  # fmt: skip
     events = [json.loads(line) for line in proc.stdout.splitlines() if line.startswith("{")]

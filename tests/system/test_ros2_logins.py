@@ -22,6 +22,7 @@ from test_ros2_zenoh import (  # noqa: F401 - messages, sdk_closed: fixtures
     NAMESPACE,
     SCENE,
     CameraRig,
+    blocking,
     cloud_kwargs,
     messages,
     offline_poses,
@@ -121,6 +122,7 @@ def test_serve_ros2_with_logins_a_robot_login_drives_and_others_get_nothing(tmp_
         kw = dict(domain_id=DOMAIN, router_port=port)
         ROS2Subscriber("/occvo/odom", "nav_msgs/msg/Odometry", got.append, node_name="checker", **kw)
         pub = ROS2Publisher("/occvo/occupancy", "sensor_msgs/msg/PointCloud2", node_name="drive", **kw)
+        blocking(pub, session)  # every cloud reaches the node, as the poses are counted
         info = wait_for(  # the graph through the router's rules: occvo's subscription, by node and namespace
             lambda: (i := get_topic_info("/occvo/occupancy", verbose=True, **kw)) and i.subscriber_count and i,
             120,

@@ -71,10 +71,11 @@ class Ros2Graph:
     def subscribe(self, topic: str, ros_type: str, handler: Callable, qos: QoS) -> None:
         """handler(msg) for each message; a message that is not CDR of ros_type is logged in one line and dropped."""
         topic, key, _ = self._endpoint("MS", topic, ros_type, qos)
-        gaps = _Gaps()
+        # a latched topic's history comes beside its live samples, in no order with them: no gaps counted there
+        gaps = None if qos.durability == TRANSIENT_LOCAL else _Gaps()
 
         def on_sample(sample: zenoh.Sample) -> None:
-            lost = gaps.lost(sample.attachment)
+            lost = gaps.lost(sample.attachment) if gaps is not None else 0
             if lost:
                 with self._count:
                     self.lost_messages += lost

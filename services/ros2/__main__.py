@@ -40,7 +40,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--domain-id", type=int, help="ROS_DOMAIN_ID (default 0)")
     p.add_argument("--namespace", help="the node's namespace (default /)")
     p.add_argument("--input", choices=["occupancy", "cameras"], help="which ROS input feeds the odometry")
-    p.add_argument("--log-level", choices=["DEBUG", "INFO", "WARNING", "ERROR"], help="(default: the settings', INFO)")
+    p.add_argument("--log-level", help="DEBUG, INFO, WARNING or ERROR (default: the settings', INFO)")
     args = p.parse_args(argv)
     try:
         from occvo_services.ros2.config import Ros2NodeConfig

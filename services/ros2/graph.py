@@ -43,7 +43,7 @@ class Ros2Graph:
         self._decls: list = [session.liveliness().declare_token(self.node.node_token())]
         self.bad_messages = 0
         self.lost_messages = 0  # messages a publisher numbered that never came (rmw_zenoh's attachment)
-        self._count = threading.Lock()
+        self._count = threading.Lock()  # lost_messages and each subscription's last sequence numbers
 
     def _endpoint(self, kind: str, topic: str, ros_type: str, qos: QoS) -> tuple[str, str, bytes]:
         topic = resolve(topic, self.namespace)
@@ -71,14 +71,13 @@ class Ros2Graph:
     def subscribe(self, topic: str, ros_type: str, handler: Callable, qos: QoS) -> None:
         """handler(msg) for each message; a message that is not CDR of ros_type is logged in one line and dropped."""
         topic, key, _ = self._endpoint("MS", topic, ros_type, qos)
-        # a latched topic's history comes beside its live samples, in no order with them: no gaps counted there
-        gaps = None if qos.durability == TRANSIENT_LOCAL else _Gaps()
+        # publisher gid -> its last sequence number; a latched topic's history comes beside its live samples, in no
+        # order with them: no gaps counted there
+        last_seen: dict[bytes, int] | None = None if qos.durability == TRANSIENT_LOCAL else {}
 
         def on_sample(sample: zenoh.Sample) -> None:
-            lost = gaps.lost(sample.attachment) if gaps is not None else 0
+            lost = self._count_lost(last_seen, sample.attachment) if last_seen is not None else 0
             if lost:
-                with self._count:
-                    self.lost_messages += lost
                 log_event(self.log, "ros messages lost", logging.WARNING, topic=topic, lost=lost)
             try:
                 msg = STORE.deserialize_cdr(sample.payload.to_bytes(), ros_type)
@@ -101,29 +100,24 @@ class Ros2Graph:
             sub = self.session.declare_subscriber(key, on_sample)
         self._decls.append(sub)
 
-    def close(self) -> None:
-        for d in reversed(self._decls):
-            d.undeclare()
-        self._decls.clear()
-
-
-class _Gaps:
-    """Messages lost on the way, from the sequence numbers rmw_zenoh's publishers put on each sample (a keep-last
-    publisher drops samples under congestion): a number that skips ahead counts the ones between; one that goes back
-    is a publisher that started again."""
-
-    def __init__(self):
-        self._last: dict[bytes, int] = {}  # publisher gid -> its last sequence number seen
-        self._lock = threading.Lock()
-
-    def lost(self, attachment) -> int:
+    def _count_lost(self, last_seen: dict[bytes, int], attachment) -> int:
+        """Messages lost before this sample, from the sequence numbers rmw_zenoh's publishers put on each one (a
+        keep-last publisher drops samples under congestion): a number that skips ahead counts the ones between; one
+        that goes back is a publisher that started again; a sample without rmw_zenoh's attachment counts nothing."""
         if attachment is None:
             return 0
         try:
             a = Attachment.decode(attachment.to_bytes())
         except ValueError:
-            return 0  # not rmw_zenoh's: nothing to count
-        with self._lock:
-            last = self._last.get(a.source_gid)
-            self._last[a.source_gid] = a.sequence_number
-        return a.sequence_number - last - 1 if last is not None and a.sequence_number > last + 1 else 0
+            return 0  # not rmw_zenoh's
+        with self._count:
+            last = last_seen.get(a.source_gid)
+            last_seen[a.source_gid] = a.sequence_number
+            lost = a.sequence_number - last - 1 if last is not None and a.sequence_number > last + 1 else 0
+            self.lost_messages += lost
+        return lost
+
+    def close(self) -> None:
+        for d in reversed(self._decls):
+            d.undeclare()
+        self._decls.clear()

@@ -277,7 +277,7 @@ def test_occupancy_clouds_in_odometry_out(messages, service, tmp_path):
         pub = ROS2Publisher(
             "/occvo/occupancy", "sensor_msgs/msg/PointCloud2", domain_id=DOMAIN, router_port=port, node_name="drive"
         )
-        blocking(pub, session)  # every cloud reaches the node, as the poses are counted (blocking())
+        blocking(pub, session)  # every cloud reaches the node, as the poses are counted
         # the graph as `ros2 topic info -v` sees it: occvo's subscription is up before the first cloud goes out
         info = wait_for(
             lambda: (
@@ -402,8 +402,10 @@ def blocking(pub, session) -> None:
     """The SDK publisher's samples put with congestion control BLOCK, as rmw_zenoh puts a keep-all publisher's: the
     SDK maps reliable QoS to BLOCK only where zenoh has a `zenoh.qos` module (zenoh-python 1.x has none), so its puts
     DROP, and on a busy host camera images and clouds were dropped on their way to the node, each such frame lost (one
-    pose of two came, or none; three of four clouds). A keep-last camera driver's images may be lost so too: the node drops that frame and goes on
-    (test_a_lost_camera_image_costs_one_frame_and_never_mixes_two_instants); this test counts every frame's pose."""
+    pose of two came, or none; three of four clouds). A keep-last driver's messages may be lost so too: the node drops
+    that frame, logs `ros messages lost` and goes on
+    (test_a_lost_camera_image_costs_one_frame_and_never_mixes_two_instants, tests/service/test_ros2_input_loss.py);
+    these tests count every frame's pose."""
     import zenoh
 
     pub.pub.undeclare()

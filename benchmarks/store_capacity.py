@@ -236,7 +236,7 @@ def python_clients(url: str, frame_bytes: int, clients: list[int], seconds: floa
 
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    p.add_argument("--clients", default="1,2,4,8,16,32", help="pgbench client counts")
+    p.add_argument("--clients", default="1,2,4,8,16,32", help="pgbench client counts (empty: none)")
     p.add_argument("--python-clients", default="1,2,4", help="store-code client processes (empty: none)")
     p.add_argument("--seconds", type=float, default=15.0, help="at each client count")
     p.add_argument("--frame-kb", type=float, help="journal entry size (default: the drives' median frame)")
@@ -261,7 +261,8 @@ def main() -> None:
         py = [int(c) for c in args.python_clients.split(",") if c]
         runs: dict[str, list] = {"server": [], "python": []}
         for _ in range(args.repeats):  # the sweeps interleaved, so that the host's load falls on all alike
-            runs["server"].append(server(cluster, cluster.new_database(), frame_bytes, clients, args.seconds))
+            if clients:
+                runs["server"].append(server(cluster, cluster.new_database(), frame_bytes, clients, args.seconds))
             if py:
                 runs["python"].append(python_clients(cluster.new_database(), frame_bytes, py, args.seconds))
         result |= {k: medians(v) for k, v in runs.items() if v}

@@ -20,6 +20,8 @@ from occvo_core.grid import OCC3D_GRID
 from occvo_core.odometry import OccVO
 from occvo_core.registration import kernels, semantic_label_filter, voxel_pfilter
 from occvo_core.registration.voxel_map import copied
+from occvo_core.registration.voxel_rows import stored_rows
+from occvo_core.state import stored
 
 _FRAMES = 4
 _STEP_M = 1.0  # the made-up ego drives this far per frame
@@ -79,7 +81,7 @@ def warm_up(config: OccVOConfig | None = None, threads: int = 1) -> dict[str, fl
         vo.step(_frame(world, labels, i))
     # bounded memory: the street behind goes to the caller's store, then a closed loop's map correction (a real
     # closure needs a drive that drifted), the merge after it, and the street back as the correction moved it
-    blocks = vo.evict_tiles([vo.poses[-1][0, 3] + 80.0, 0.0], 60.0, 20.0)
+    blocks = {k: stored_rows(b) for k, b in vo.evict_tiles([vo.poses[-1][0, 3] + 80.0, 0.0], 60.0, 20.0).items()}
     correction = np.eye(4)
     correction[:3, :3] = Rotation.from_euler("z", 0.01).as_matrix()
     correction[:3, 3] = [1.5, 0.2, 0.0]
@@ -90,7 +92,7 @@ def warm_up(config: OccVOConfig | None = None, threads: int = 1) -> dict[str, fl
     vo.map_points()
     vo.map_points((np.array([-1, -1]), np.array([0, 0]), 20.0))
     state = {k: copied(v) for k, v in vo.state_dict(copy=False).items()}  # as the worker's snapshot copy
-    OccVO(vo.config, threads=threads).load_state_dict(state)
+    OccVO(vo.config, threads=threads).load_state_dict(stored(state))  # in the form a store keeps
     after = kernels_ready()
     return {"seconds": round(time.perf_counter() - t0, 2), "kernels": len(after), "new": len(after - before)}
 

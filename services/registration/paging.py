@@ -6,6 +6,7 @@ from __future__ import annotations
 import numpy as np
 
 from occvo_core.frame import OccupancyFrame
+from occvo_core.registration.voxel_rows import stored_rows
 from occvo_core.working_map import has_far_tiles, tiles_near, tiles_reached
 from occvo_services.array_pack import unpack_arrays
 
@@ -69,10 +70,11 @@ class Pager:
         return self.radius_m is not None and has_far_tiles(vo, pose[:2, 3], self.radius_m, self.tile_m)
 
     def evict_far(self, vo, seq: int, pose: np.ndarray) -> dict:
-        """After a step: take the tiles wholly farther than working_radius_m out of the working map."""
+        """After a step: take the tiles wholly farther than working_radius_m out of the working map, in the form a
+        store keeps (voxel_rows.stored_rows)."""
         if self.radius_m is None:
             return {}
-        blocks = vo.evict_tiles(pose[:2, 3], self.radius_m, self.tile_m)
+        blocks = {k: stored_rows(b) for k, b in vo.evict_tiles(pose[:2, 3], self.radius_m, self.tile_m).items()}
         for k in blocks:
             self.cold.setdefault(k, []).append(seq)
         if blocks:

@@ -9,6 +9,7 @@ import threading
 import time
 
 from occvo_core.registration.voxel_map import copied
+from occvo_core.state import stored
 from occvo_schemas import keys
 from occvo_services.telemetry import log_event
 
@@ -100,10 +101,11 @@ class SnapshotWriter:
         self.write(stream, schedule, seq, self.store.created(stream), vo.state_dict(copy=False), fence)
 
     def write(self, stream: str, schedule: SnapshotSchedule, seq: int, created, state: dict, fence: dict) -> None:
-        """fence: the lease epoch the write carries (placement "members"), else nothing."""
+        """The state in its stored form (occvo_core.state.stored: a third smaller). fence: the lease epoch the write
+        carries (placement "members"), else nothing."""
         t0 = time.perf_counter()
         try:
-            if self.store.write_snapshot(stream, seq, state, created, **fence):
+            if self.store.write_snapshot(stream, seq, stored(state), created, **fence):
                 self.stats.inc("snapshots")
                 schedule.written(state_bytes(state))
                 self.store.measure(stream)  # its stored bytes, the journal covered gone (a client's store quota)

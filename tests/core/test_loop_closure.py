@@ -330,8 +330,11 @@ print(json.dumps(warm_up()))
 ready = kernels_ready()
 import test_loop_closure as t
 scene = t.SyntheticScene(seed=1, frames=t.FRAMES, route="loop", loop_blocks=(1, 1))
-_, closures, _, _ = t._drive(scene, t._config(True), t._drift(2.0, [6.0, -4.0, 0.0]),
-                             each=lambda vo, i, r, ev: vo.map_points(tiles=t.START_TILES))
+from occvo_core.registration.voxel_rows import stored_rows
+vo, closures, _, _ = t._drive(scene, t._config(True), t._drift(2.0, [6.0, -4.0, 0.0]),
+                              each=lambda vo, i, r, ev: vo.map_points(tiles=t.START_TILES))
+far = vo.evict_tiles(vo.poses[-1][:2, 3], 0.0, 20.0)  # all but the ego's tile, kept as the worker keeps them
+assert far and vo.restore_tiles({{k: stored_rows(b) for k, b in far.items()}})
 print(json.dumps({{"closures": len(closures), "compiled_after": sorted(map(list, kernels_ready() - ready))}}))
 """
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=600)

@@ -12,6 +12,7 @@ import pytest
 from occvo_core import OccVO, OccVOConfig
 from occvo_core.errors import ConfigError
 from occvo_core.sim import SyntheticScene
+from occvo_core.state import stored
 
 
 @pytest.fixture(scope="module")
@@ -38,6 +39,28 @@ def test_resume_from_state_dict_is_bit_identical(scene):
         resumed.step(scene[i])
     assert np.array_equal(resumed.poses, whole.poses)
     assert resumed.frame_indices == whole.frame_indices
+    for a, b in zip(resumed.map_points(), whole.map_points()):
+        assert np.array_equal(a, b)
+
+
+def test_the_stored_form_is_smaller_and_resumes_bit_identical(scene):
+    whole = OccVO()
+    for i in range(len(scene)):
+        whole.step(scene[i])
+    first = OccVO()
+    for i in range(6):
+        first.step(scene[i])
+    state = first.state_dict()
+    kept = stored(state)
+    assert "map.counts" not in kept and kept["map.keys"].dtype == np.int32
+    assert sum(a.nbytes for a in kept.values()) < 0.8 * sum(a.nbytes for a in state.values())
+    resumed = OccVO()
+    resumed.load_state_dict(_through_bytes(kept))
+    for name in ("counts", "keys"):
+        assert np.array_equal(resumed.map.state(copy=False)[name], state[f"map.{name}"])
+    for i in range(6, len(scene)):
+        resumed.step(scene[i])
+    assert np.array_equal(resumed.poses, whole.poses)
     for a, b in zip(resumed.map_points(), whole.map_points()):
         assert np.array_equal(a, b)
 

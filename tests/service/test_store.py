@@ -663,6 +663,11 @@ def test_crash_with_eviction_resumes_exactly_and_the_map_service_keeps_far_tiles
             probe = open_store(path)
             assert probe.record("cut").snapshot_seq == 5 and [s for s, _ in probe.journal("cut", 5)] == [6, 7]
             assert probe.sizes("cut")["cold_tiles_rows"] > 0
+            # snapshot and cold tiles in the stored form (a third smaller), read back below as they were
+            (ix, iy), seqs = next(iter(probe.cold_index("cut").items()))
+            block = unpack_arrays(probe.cold_block("cut", ix, iy, seqs[0]))
+            assert "counts.at" in block and "counts" not in block and block["keys"].dtype == np.int32
+            assert "map.counts.at" in unpack_arrays(probe.snapshot("cut")[1])
             second = svc.start_registration()
             for i in range(8, N):
                 cut.step(scene[i])

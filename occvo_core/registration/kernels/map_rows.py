@@ -97,3 +97,22 @@ def gather_row_bytes(arr, keep):
         if k != i:
             for j in range(w):
                 arr[i, j] = arr[k, j]
+
+
+@njit(cache=CACHE, nogil=True)
+def nonzero_entries(table):
+    """The nonzero entries of a C-contiguous table as (flat index, value), in order, without the GIL: the map's class
+    counts hold one or two classes of 18 a voxel, so their entries are a tenth of the table."""
+    flat = table.reshape(-1)
+    m = 0
+    for i in range(flat.size):
+        m += flat[i] != 0
+    at = np.empty(m, np.uint32)
+    values = np.empty(m, flat.dtype)
+    m = 0
+    for i in range(flat.size):
+        if flat[i] != 0:
+            at[m] = i
+            values[m] = flat[i]
+            m += 1
+    return at, values

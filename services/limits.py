@@ -76,7 +76,7 @@ class Admission:
         self._lock = threading.Lock()
         self.owners: dict[str, str] = {}  # stream -> the client it was admitted for
         self.clients: dict[str, int] = {}
-        self.leaving: set[str] = set()  # admitted streams whose lane is being reclaimed: their places are taken
+        self.leaving: set[str] = set()  # admitted streams whose lane is leaving: their places are taken
 
     @property
     def streams(self):
@@ -133,6 +133,13 @@ class Admission:
             return False
         self.leaving.add(got)
         return True
+
+    def leaves(self, stream: str) -> None:
+        """An admitted stream whose lane has left (idle, or evicted for memory) and whose state is being given back:
+        a new stream may take its place meanwhile (writing a big snapshot takes a while)."""
+        with self._lock:
+            if stream in self.owners:
+                self.leaving.add(stream)
 
     def stays(self, stream: str) -> None:
         """A reclaimed stream whose lane got a frame before it left: it keeps its place."""

@@ -173,6 +173,7 @@ class Worker:
                 return False
             del self.lanes[lane.stream]
             self._retired[lane.stream] = lane  # a new lane of the stream waits for this one's thread
+            self.admission.leaves(lane.stream)  # a new stream was refused while this one's snapshot was written
         try:
             self.retire_stream(lane.stream)
         except Exception as exc:  # noqa: BLE001 - the state stays in memory then; the worker goes on
@@ -183,6 +184,8 @@ class Worker:
                     del self._retired[lane.stream]
                 if lane.stream not in self.lanes:
                     self.admission.release(lane.stream)
+                else:  # a frame came meanwhile: the stream keeps its place
+                    self.admission.stays(lane.stream)
         if why == "reclaimed":
             self.stats.inc("streams_reclaimed")
             log_event(self.log, "idle stream's place reclaimed for a new stream", stream=lane.stream)

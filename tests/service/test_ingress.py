@@ -199,3 +199,20 @@ def test_a_copy_of_a_frame_far_behind_the_stream_reaches_the_registration_worker
             time.sleep(0.05)
         assert reg.stats.snapshot()[0].get("republished", 0) == before + 1
         assert not c.errors, [(e.worker, e.code, e.message) for e in c.errors]
+
+
+def test_a_stream_whose_lane_left_gives_its_place_while_its_state_is_given_back():
+    """An idle stream's lane leaves before its state is given back (a snapshot of a big map takes a while): a new
+    stream arriving meanwhile takes its place instead of being refused; a frame of the leaving stream keeps it."""
+    from occvo_services.limits import Admission
+
+    admission = Admission(max_streams=2, per_client=2)
+    assert admission.admit("a.1", "a") is None and admission.admit("b.1", "b") is None
+    assert admission.admit("c.1", "c")[0] == "stream_limit"
+    admission.leaves("a.1")
+    assert admission.admit("c.1", "c") is None  # over the limit by one until a.1's state is given back
+    admission.release("a.1")
+    assert admission.admit("d.1", "d")[0] == "stream_limit"
+    admission.leaves("b.1")
+    admission.stays("b.1")  # a frame came for it before it left
+    assert admission.admit("d.1", "d")[0] == "stream_limit"

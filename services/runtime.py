@@ -173,7 +173,7 @@ class Worker:
                 return False
             del self.lanes[lane.stream]
             self._retired[lane.stream] = lane  # a new lane of the stream waits for this one's thread
-            self.admission.leaves(lane.stream)  # a new stream was refused while this one's snapshot was written
+            self.admission.leaves(lane.stream)  # its place is free while its state is given back (a snapshot)
         try:
             self.retire_stream(lane.stream)
         except Exception as exc:  # noqa: BLE001 - the state stays in memory then; the worker goes on

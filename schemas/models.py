@@ -88,7 +88,10 @@ def _col_extremes(a: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 def _duplicates(v: np.ndarray, shape: tuple[int, int, int] | None) -> int:
     """Rows of v (N,3) repeating an earlier row: voxel indices (`shape`: the grid's) or coordinates (None)."""
     if shape is not None and math.prod(shape) <= 1 << 24:  # a flag per grid cell: one pass, no sort, no counts
-        lin = (v[:, 0].astype(np.int64) * shape[1] + v[:, 1]) * shape[2] + v[:, 2]
+        c = v.astype(np.int32)  # under 2^24 cells: int32 holds every cell number
+        lin = (c[:, 0] * shape[1] + c[:, 1]) * shape[2] + c[:, 2]
+        if (lin[1:] > lin[:-1]).all():  # cells rising in grid order (replays, the network's output): none twice
+            return 0
         seen = np.zeros(math.prod(shape), np.bool_)
         seen[lin] = True
         return int(len(v) - np.count_nonzero(seen))

@@ -41,3 +41,8 @@ def test_repeated_voxels_are_counted_and_refused():
     with pytest.raises(ValueError, match="2 duplicate voxels"):
         SparseOccupancy(voxels=Array.from_numpy(idx), labels=labels)
     assert len(SparseOccupancy(voxels=Array.from_numpy(idx[2:4]), labels=Array.from_numpy(np.zeros(2, np.uint8))))
+    # in grid order (as replays and the network send them): a repeat is next to its twin, and still refused
+    three = Array.from_numpy(np.zeros(3, np.uint8))
+    with pytest.raises(ValueError, match="1 duplicate voxels"):
+        SparseOccupancy(voxels=Array.from_numpy(idx[[0, 1, 3]]), labels=three)
+    assert len(SparseOccupancy(voxels=Array.from_numpy(idx[[0, 3, 2]]), labels=three)) == 3

@@ -133,6 +133,7 @@ def summarise(run: dict) -> dict:
         "queue_size": queue_size,
         "store": store,
         "registration_workers": registration_workers,
+        "placement": run["placement"],
         "after_pose_nice": after_pose_nice,
         "snapshot_max_share": snapshot_max_share,
         "store_sync": store_sync,
@@ -165,6 +166,7 @@ def summarise(run: dict) -> dict:
         "map_update_ms_p50": reg.stages["map_update"].p50_ms if reg and "map_update" in reg.stages else None,
         "worker_cpu_pct": {role: 100.0 * (cpu1[role] - cpu0[role]) / (time.time() - wall0) for role in cpu0},
         "worker_disk_write_mb_per_s": {role: (io1[role] - io0[role]) / 2**20 / (time.time() - wall0) for role in io0},
+        "registration_frames_by_worker": sorted((h.counters.get("frames_out", 0) for h in reg_health), reverse=True),
         "registration_counters": {
             k: sum(h.counters.get(k, 0) for h in reg_health)
             for k in ("loop_closures", "after_pose_boosted", "tiles_evicted", "tiles_restored")
@@ -203,7 +205,11 @@ def print_run(r: dict, bucket_s: float) -> None:
         f"\n== {r['streams']} streams x {r['rate_hz']:g} Hz, {r['minutes']:g} min, policy {r['policy']}, "
         f"queue {r['queue_size']}, map store {'sqlite' if r['store'] else 'memory'}, registration "
         + (f"store + eviction at {r['working_radius_m']:g} m" if r["working_radius_m"] else "in memory, no eviction")
-        + (f", {r['registration_workers']} registration workers (shards)" if r["registration_workers"] > 1 else "")
+        + (
+            f", {r['registration_workers']} registration workers ({r.get('placement', 'shards')})"
+            if r["registration_workers"] > 1
+            else ""
+        )
         + (f", a neighbour busy {r['neighbour_load']:g} of every core" if r.get("neighbour_load") else "")
     )
     unit = "min" if bucket_s == 60 else f"{bucket_s:g}s"
@@ -244,13 +250,18 @@ def print_run(r: dict, bucket_s: float) -> None:
         f"{fmt(r['slope_reg_queue_per_min'], '{:+.2f}')}, frames in flight {fmt(r['slope_in_flight_per_min'], '{:+.2f}')}, "
         f"latency {fmt(r['slope_latency_ms_per_min'], '{:+.0f}')} ms  ->  keeps up: {r['keeps_up']}"
     )
-    busiest = " (busiest shard)" if r["registration_workers"] > 1 else ""
+    busiest = " (busiest worker)" if r["registration_workers"] > 1 else ""
     print(
         f"registration{busiest} p50 {fmt(r['registration_ms_p50'], '{:.1f}')} ms, stage mean {fmt(r['registration_stage_mean_ms'], '{:.1f}')} ms, "
         f"map tiling p50 {fmt(r['map_update_ms_p50'], '{:.1f}')} ms; map service apply p50/p99 {fmt(r['map_apply_ms_p50'], '{:.1f}')}/"
         f"{fmt(r['map_apply_ms_p99'], '{:.1f}')} ms; load avg start/end {r['loadavg_1min_start_end'][0]:.1f}/"
         f"{r['loadavg_1min_start_end'][1]:.1f}; CPU % "
         f"{json.dumps({k: round(v) for k, v in r['worker_cpu_pct'].items()})}, client+router {r['client_and_router_cpu_pct']:.0f}%"
+        + (
+            f"; poses a registration worker {r['registration_frames_by_worker']}"
+            if r["registration_workers"] > 1
+            else ""
+        )
     )
     print(
         f"client per frame: build p50 {fmt(r['client_build_ms_p50'], '{:.2f}')} ms p99 {fmt(r['client_build_ms_p99'], '{:.2f}')} ms, "

@@ -37,6 +37,7 @@ def run_load(
     after_pose_nice: int | None = None,
     snapshot_max_share: float | None = None,
     store_sync: str | None = None,
+    placement: str = "shards",
 ) -> dict:
     import psutil
 
@@ -65,6 +66,7 @@ def run_load(
         worker_args=worker_args,
         log_dir=log_dir,
         registration_shards=registration_workers,
+        placement=placement,
     ).start(timeout=120)
     streams = [Stream(f"load{k}", scenes[k][:total], k / n) for k in range(n)]
     subs, pubs, clients, session = [], [], [], None
@@ -176,6 +178,7 @@ def run_load(
             after_pose_nice=after_pose_nice,
             snapshot_max_share=snapshot_max_share,
             store_sync=store_sync,
+            placement=placement,
             load0=load0,
             streams=streams,
             samples=samples,

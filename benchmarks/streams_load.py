@@ -3,6 +3,8 @@
     python benchmarks/streams_load.py --streams 8 --rate 2 --minutes 5            # the full measurement
     python benchmarks/streams_load.py --streams 8 --rate 2 --minutes 5 --working-radius 120   # as deployed
     python benchmarks/streams_load.py --streams 8 --minutes 5 --working-radius 120 --registration-workers 2  # 2 shards
+    python benchmarks/streams_load.py --streams 12 --minutes 5 --working-radius 120 --registration-workers 2 \
+        --placement members                                                        # 2 workers, least loaded first
     python benchmarks/streams_load.py --streams 2 4 6 8 --minutes 1               # a sweep: one run per count
     python benchmarks/streams_load.py --streams 8 --policy latest --minutes 1     # what dropping the oldest does
     python benchmarks/streams_load.py --streams 8 --minutes 5 --working-radius 120 --registration-workers 2 \
@@ -62,6 +64,13 @@ def main(argv=None) -> int:
         help="registration workers sharing the streams (shards, as `count: N` in occvo up)",
     )
     ap.add_argument(
+        "--placement",
+        choices=["shards", "members"],
+        default="shards",
+        help="how the registration workers share the streams: shards (by the hash of the stream id, `count: N` in "
+        "occvo up) or members (the least-loaded live worker takes a new stream, under leases in the store)",
+    )
+    ap.add_argument(
         "--after-pose-nice",
         type=int,
         default=None,
@@ -101,6 +110,8 @@ def main(argv=None) -> int:
     ap.add_argument("--log-dir", help="keep the workers' logs and the map store here (default: a temporary folder)")
     ap.add_argument("--output", help="write all runs as JSON here")
     args = ap.parse_args(argv)
+    if args.placement == "members" and args.working_radius <= 0:
+        ap.error("--placement members needs the registration store: give --working-radius (as deployed, 120)")
     bucket_s = args.bucket_s or (60.0 if args.minutes >= 3 else args.minutes * 20.0)
     total = int(round(args.minutes * 60 * args.rate))
     scenes = load_scenes(list(range(max(args.streams))), total, args.rate, Path(args.cache_dir), args.render_jobs)
@@ -127,6 +138,7 @@ def main(argv=None) -> int:
                 args.after_pose_nice,
                 args.snapshot_max_share,
                 args.store_sync,
+                args.placement,
             )
         r["neighbour_load"] = args.neighbour_load
         results.append(r)

@@ -14,9 +14,9 @@ process, real Zenoh sessions, lossless queues of 2). The steady stream sends at 
 
 A group joined by '+' runs together (e.g. heavy+reader). Prints the heavy frames' voxels and registration cost
 against a normal frame's (offline, one thread), the steady stream's p50/p99 alone and beside each group, the p99
-ratio against the goal (<= 1.2) and, where `normal` ran, against the p99 beside it, whether every pose came, in order, equal to the poses alone, and how many kernel
-calls found the kernel team held by another stream and ran in their lane (`--kernel-threads 2`: every stream asks
-for the team). Runtime: about (1 + groups) x frames / rate seconds plus a minute of start-up and warm-up (the
+ratio against the goal (<= 1.2) and, where `normal` ran, against the p99 beside it, whether every pose came, in
+order, equal to the poses alone, and how many kernel calls found the kernel team held by another stream and ran in
+their lane (`--kernel-threads 2`: every stream asks for the team). Runtime: about (1 + groups) x frames / rate seconds plus a minute of start-up and warm-up (the
 defaults: about five minutes)."""
 
 from __future__ import annotations

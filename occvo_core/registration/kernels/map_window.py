@@ -151,6 +151,34 @@ def ego_points(idx, rows, map_pos, map_cov, rot, trans, origin, dims, voxel, pad
     return pos, cov, grid
 
 
+@njit(cache=CACHE, nogil=True, inline="always")
+def _pool_cell(s, members, pos, cov, labels, weight, votes_in, out_pos, out_cov, out_lab, votes, count):
+    """Cell s of pool_voxels from its points `members`, summed in that order."""
+    weighted = weight.shape[0] > 0
+    pooled_votes = votes_in.shape[0] > 0
+    for n in members:
+        w = weight[n] if weighted else 1.0
+        for a in range(3):
+            out_pos[s, a] += w * pos[n, a]
+            for b in range(3):
+                out_cov[s, a, b] += w * cov[n, a, b]
+        if pooled_votes:
+            for v in range(votes.shape[1]):
+                votes[s, v] += votes_in[n, v]
+        else:
+            votes[s, labels[n]] += 1
+        count[s] += w
+    for a in range(3):
+        out_pos[s, a] /= count[s]
+        for b in range(3):
+            out_cov[s, a, b] /= count[s]
+    best = 0
+    for v in range(votes.shape[1]):
+        if votes[s, v] > votes[s, best]:
+            best = v
+    out_lab[s] = best
+
+
 @njit(cache=CACHE, nogil=True, parallel=True)
 def pool_voxels(pos, cov, labels, usable, weight, votes_in, voxel, origin, dims, n_classes, pad):
     """Weighted mean position and covariance and majority label of the usable points in each cell of a coarser grid.
@@ -193,45 +221,26 @@ def pool_voxels(pos, cov, labels, usable, weight, votes_in, voxel, origin, dims,
     votes = np.zeros((n_out, n_classes), np.int32)
     count = np.zeros(n_out)
     out_lab = np.empty(n_out, np.uint8)
-    weighted = weight.shape[0] > 0
-    pooled_votes = votes_in.shape[0] > 0
     # a cell sums its points in turn_before's order: the same sums on any number of threads, and in a turned frame
-    # the same numbers in the same order (in point order, rounding would part two exactly equal distances)
-    key = np.empty((n_pts, 2))
-    for n in prange(n_pts):
-        if slot[n] >= 0:
-            key[n, 0], key[n, 1] = canonical_xy(pos[n, 0], pos[n, 1])
-    for s in prange(n_out):
-        for q in range(start[s] + 1, start[s + 1]):  # insertion sort: a cell holds a few points
-            n = order[q]
-            r = q - 1
-            while r >= start[s]:
-                m = order[r]
-                if not key_before(key[n, 0], key[n, 1], pos[n, 2], key[m, 0], key[m, 1], pos[m, 2]):
-                    break
-                order[r + 1] = m
-                r -= 1
-            order[r + 1] = n
-        for q in range(start[s], start[s + 1]):
-            n = order[q]
-            w = weight[n] if weighted else 1.0
-            for a in range(3):
-                out_pos[s, a] += w * pos[n, a]
-                for b in range(3):
-                    out_cov[s, a, b] += w * cov[n, a, b]
-            if pooled_votes:
-                for v in range(n_classes):
-                    votes[s, v] += votes_in[n, v]
-            else:
-                votes[s, labels[n]] += 1
-            count[s] += w
-        for a in range(3):
-            out_pos[s, a] /= count[s]
-            for b in range(3):
-                out_cov[s, a, b] /= count[s]
-        best = 0
-        for v in range(n_classes):
-            if votes[s, v] > votes[s, best]:
-                best = v
-        out_lab[s] = best
+    # the same numbers in the same order (in point order, rounding would part two exactly equal distances). Each
+    # point's key is read once into a part's own buffer and sorted there: compared in place, the scattered points
+    # of a cell missed the cache at every comparison
+    most = 0
+    for s in range(n_out):
+        most = max(most, start[s + 1] - start[s])
+    for c in prange(CHUNKS):
+        kx, ky, kz, kn = np.empty(most), np.empty(most), np.empty(most), np.empty(most, np.int64)
+        for s in range(n_out * c // CHUNKS, n_out * (c + 1) // CHUNKS):
+            k = 0
+            for q in range(start[s], start[s + 1]):  # insertion sort: a cell holds a few points
+                n = order[q]
+                x, y = canonical_xy(pos[n, 0], pos[n, 1])
+                z = pos[n, 2]
+                r = k - 1
+                while r >= 0 and key_before(x, y, z, kx[r], ky[r], kz[r]):
+                    kx[r + 1], ky[r + 1], kz[r + 1], kn[r + 1] = kx[r], ky[r], kz[r], kn[r]
+                    r -= 1
+                kx[r + 1], ky[r + 1], kz[r + 1], kn[r + 1] = x, y, z, n
+                k += 1
+            _pool_cell(s, kn[:k], pos, cov, labels, weight, votes_in, out_pos, out_cov, out_lab, votes, count)
     return out_pos, out_cov, out_lab, grid, count, votes

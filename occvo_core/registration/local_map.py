@@ -204,7 +204,7 @@ class EgoMap:
 
     def pooled(self, voxel: float) -> EgoMap:
         """The same map averaged on a coarser grid (coarse GICP searches farther at the same cost). Pooling a pooled
-        map again equals pooling this one directly on the coarser grid, when the grids nest (sizes multiples)."""
+        map again is pooling this one directly on the coarser grid (to the sums' units), when the grids nest."""
         origin, dims = _coarser_box(self.origin, self.dims, self.voxel, voxel)
         empty_w, empty_v = np.zeros(0), np.zeros((0, NUM_CLASSES), np.int32)
         pos, cov, labels, grid, weight, votes = pool_voxels(

@@ -7,7 +7,7 @@ from numba import njit, prange
 
 from occvo_core.registration.kernels import CACHE, CHUNKS
 from occvo_core.registration.kernels.row_blocks import BLOCK_ROWS, block_reaches
-from occvo_core.registration.kernels.turns import canonical_xy, key_before, turn_before
+from occvo_core.registration.kernels.turns import turn_before
 from occvo_core.registration.voxel_pfilter import p_index as voxel_p_index
 
 
@@ -151,96 +151,77 @@ def ego_points(idx, rows, map_pos, map_cov, rot, trans, origin, dims, voxel, pad
     return pos, cov, grid
 
 
+POOL_POS_STEP = 2.0**-32  # metres: the pooled sums' unit for positions (an ego box's sums stay under 2^53 of it)
+POOL_COV_STEP = 2.0**-40  # the same for covariance entries (at most 1 here)
+
+
 @njit(cache=CACHE, nogil=True, inline="always")
-def _pool_cell(s, members, pos, cov, labels, weight, votes_in, out_pos, out_cov, out_lab, votes, count):
-    """Cell s of pool_voxels from its points `members`, summed in that order."""
-    weighted = weight.shape[0] > 0
-    pooled_votes = votes_in.shape[0] > 0
-    for n in members:
-        w = weight[n] if weighted else 1.0
-        for a in range(3):
-            out_pos[s, a] += w * pos[n, a]
-            for b in range(3):
-                out_cov[s, a, b] += w * cov[n, a, b]
-        if pooled_votes:
-            for v in range(votes.shape[1]):
-                votes[s, v] += votes_in[n, v]
-        else:
-            votes[s, labels[n]] += 1
-        count[s] += w
-    for a in range(3):
-        out_pos[s, a] /= count[s]
-        for b in range(3):
-            out_cov[s, a, b] /= count[s]
-    best = 0
-    for v in range(votes.shape[1]):
-        if votes[s, v] > votes[s, best]:
-            best = v
-    out_lab[s] = best
+def _fixed(x, step):
+    """x in whole units of step (a power of two): exact sums in any order, and rint(-x) = -rint(x), so a turned
+    point's units are its turned units."""
+    return np.int64(np.rint(x / step))
 
 
-@njit(cache=CACHE, nogil=True, parallel=True)
+@njit(cache=CACHE, nogil=True)
 def pool_voxels(pos, cov, labels, usable, weight, votes_in, voxel, origin, dims, n_classes, pad):
     """Weighted mean position and covariance and majority label of the usable points in each cell of a coarser grid.
     weight and votes_in (empty: one point, one vote of its label) carry a pooled map's counts, so pooling it again
-    equals pooling its voxels directly. Returns pos, cov, labels, dense grid of the cells (with pad empty cells on
-    every side), weights, votes."""
+    is pooling its voxels directly (to the sums' units). Returns pos, cov, labels, dense grid of the cells (with pad
+    empty cells on every side), weights, votes.
+    The sums are whole numbers of POOL_POS_STEP and POOL_COV_STEP: exact, so neither the points' order nor the
+    number of threads nor a turn of the frame changes a bit, and the points are read once, in their order (a sort
+    of each cell's points, scattered in memory, took three times as long)."""
     n_pts = pos.shape[0]
     grid = empty_grid((dims[0] + 2 * pad) * (dims[1] + 2 * pad) * (dims[2] + 2 * pad))
-    cell_of = np.empty(n_pts, np.int64)
-    for n in prange(n_pts):
-        cell_of[n] = -1
+    slot = np.empty(n_pts, np.int64)
+    n_out = 0
+    for n in range(n_pts):  # cells numbered in order of first point
+        slot[n] = -1
         if usable[n]:
             i = int(np.floor(pos[n, 0] / voxel)) - origin[0]
             j = int(np.floor(pos[n, 1] / voxel)) - origin[1]
             k = int(np.floor(pos[n, 2] / voxel)) - origin[2]
             if 0 <= i < dims[0] and 0 <= j < dims[1] and 0 <= k < dims[2]:
-                cell_of[n] = _padded_cell(i, j, k, dims, pad)
-    slot = np.empty(n_pts, np.int64)
-    start = np.zeros(n_pts + 1, np.int64)
-    n_out = 0
-    for n in range(n_pts):  # cells numbered in order of first point, serially
-        c = cell_of[n]
-        slot[n] = -1
-        if c >= 0:
-            if grid[c] < 0:
-                grid[c] = n_out
-                n_out += 1
-            slot[n] = grid[c]
-            start[slot[n] + 1] += 1
-    for s in range(n_out):
-        start[s + 1] += start[s]
-    order = np.empty(start[n_out], np.int64)  # each cell's points, in point order (a stable counting sort)
-    fill = start[:n_out].copy()
-    for n in range(n_pts):
-        if slot[n] >= 0:
-            order[fill[slot[n]]] = n
-            fill[slot[n]] += 1
-    out_pos = np.zeros((n_out, 3))
-    out_cov = np.zeros((n_out, 3, 3))
+                c = _padded_cell(i, j, k, dims, pad)
+                if grid[c] < 0:
+                    grid[c] = n_out
+                    n_out += 1
+                slot[n] = grid[c]
+    sums = np.zeros((n_out, 9), np.int64)  # x y z, then the covariance's upper triangle
     votes = np.zeros((n_out, n_classes), np.int32)
     count = np.zeros(n_out)
+    weighted = weight.shape[0] > 0
+    pooled_votes = votes_in.shape[0] > 0
+    for n in range(n_pts):
+        s = slot[n]
+        if s < 0:
+            continue
+        w = np.int64(weight[n]) if weighted else np.int64(1)  # a pooled map's weights are voxel counts
+        e = 3
+        for a in range(3):
+            sums[s, a] += w * _fixed(pos[n, a], POOL_POS_STEP)
+            for b in range(a, 3):
+                sums[s, e] += w * _fixed(cov[n, a, b], POOL_COV_STEP)
+                e += 1
+        if pooled_votes:
+            for v in range(n_classes):
+                votes[s, v] += votes_in[n, v]
+        else:
+            votes[s, labels[n]] += 1
+        count[s] += w
+    out_pos = np.empty((n_out, 3))
+    out_cov = np.empty((n_out, 3, 3))
     out_lab = np.empty(n_out, np.uint8)
-    # a cell sums its points in turn_before's order: the same sums on any number of threads, and in a turned frame
-    # the same numbers in the same order (in point order, rounding would part two exactly equal distances). Each
-    # point's key is read once into a part's own buffer and sorted there: compared in place, the scattered points
-    # of a cell missed the cache at every comparison
-    most = 0
     for s in range(n_out):
-        most = max(most, start[s + 1] - start[s])
-    for c in prange(CHUNKS):
-        kx, ky, kz, kn = np.empty(most), np.empty(most), np.empty(most), np.empty(most, np.int64)
-        for s in range(n_out * c // CHUNKS, n_out * (c + 1) // CHUNKS):
-            k = 0
-            for q in range(start[s], start[s + 1]):  # insertion sort: a cell holds a few points
-                n = order[q]
-                x, y = canonical_xy(pos[n, 0], pos[n, 1])
-                z = pos[n, 2]
-                r = k - 1
-                while r >= 0 and key_before(x, y, z, kx[r], ky[r], kz[r]):
-                    kx[r + 1], ky[r + 1], kz[r + 1], kn[r + 1] = kx[r], ky[r], kz[r], kn[r]
-                    r -= 1
-                kx[r + 1], ky[r + 1], kz[r + 1], kn[r + 1] = x, y, z, n
-                k += 1
-            _pool_cell(s, kn[:k], pos, cov, labels, weight, votes_in, out_pos, out_cov, out_lab, votes, count)
+        e = 3
+        for a in range(3):
+            out_pos[s, a] = sums[s, a] * POOL_POS_STEP / count[s]
+            for b in range(a, 3):
+                out_cov[s, a, b] = out_cov[s, b, a] = sums[s, e] * POOL_COV_STEP / count[s]
+                e += 1
+        best = 0
+        for v in range(n_classes):
+            if votes[s, v] > votes[s, best]:
+                best = v
+        out_lab[s] = best
     return out_pos, out_cov, out_lab, grid, count, votes

@@ -12,7 +12,6 @@ import argparse
 import json
 import logging
 import os
-import signal
 import sys
 import threading
 from pathlib import Path
@@ -23,6 +22,7 @@ from occvo_core.errors import ConfigError
 from occvo_services import defaults
 from occvo_services.runtime import log_event, structured_logger
 from occvo_services.sessions import limit_messages
+from occvo_services.stop_signals import set_on_signal
 
 DEFAULT_CONFIG = defaults.path("router.json5")
 
@@ -55,8 +55,7 @@ def main(argv: list[str] | None = None) -> int:
     args = p.parse_args(argv)
     log = structured_logger("occvo.router", args.log_level)
     stop = threading.Event()
-    for sig in (signal.SIGTERM, signal.SIGINT):
-        signal.signal(sig, lambda *_: stop.set())
+    set_on_signal(stop)
     try:
         config = router_config(args.config, args.listen, args.connect)
         session = zenoh.open(config)

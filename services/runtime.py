@@ -6,7 +6,6 @@ from __future__ import annotations
 
 import logging
 import os
-import signal
 import threading
 import time
 import uuid
@@ -26,6 +25,7 @@ from occvo_services.memory import CHECK_EVERY_S, MemoryCap
 from occvo_services.os_tuning import name_os_thread, trim_heap
 from occvo_services.query_gate import QueryGate
 from occvo_services.sessions import open_worker_session
+from occvo_services.stop_signals import set_on_signal
 from occvo_services.store.url import redact
 from occvo_services.strand import pool
 from occvo_services.telemetry import Stats, log_event, structured_logger
@@ -135,8 +135,7 @@ class Worker:
     def run_forever(self) -> int:
         """Until SIGTERM or SIGINT; returns the exit code."""
         requested = self.shutdown_requested
-        for sig in (signal.SIGTERM, signal.SIGINT):
-            signal.signal(sig, lambda *_: requested.set())
+        set_on_signal(requested)
         if self.start().session is None:
             return 0
         while not requested.wait(0.2):  # short waits keep the main thread responsive to signals

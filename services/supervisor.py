@@ -30,6 +30,7 @@ from occvo_core.errors import ConfigError
 from occvo_services import defaults
 from occvo_services.runtime import log_event, structured_logger
 from occvo_services.sessions import router_endpoint
+from occvo_services.stop_signals import set_on_signal
 
 REPO = Path(__file__).resolve().parents[1]
 MODULES = {
@@ -298,8 +299,7 @@ class Supervisor:
 
     def run(self, ready=None) -> int:
         """Start, supervise until SIGINT/SIGTERM, stop; returns 0 when every child stopped cleanly."""
-        for sig in (signal.SIGINT, signal.SIGTERM):
-            signal.signal(sig, lambda *_: self.stopping.set())
+        set_on_signal(self.stopping)
         try:
             self.start()
             if ready:

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import json
-import signal
 import threading
 
 import numpy as np
@@ -13,6 +12,7 @@ from occvo_schemas import keys
 from occvo_schemas.codec import decode
 from occvo_schemas.models import PoseEstimate
 from occvo_services.commands._common import add_connection, client, progress
+from occvo_services.stop_signals import set_on_signal
 
 
 def _line(p: PoseEstimate, fmt: str) -> str:
@@ -76,8 +76,7 @@ def run(args) -> int:
 
         sub = c.session.declare_subscriber(keys.pose(c.stream), on_pose)
         progress(args, f"following {keys.pose(c.stream)}; Ctrl-C stops")
-        for sig in (signal.SIGINT, signal.SIGTERM):
-            signal.signal(sig, lambda *_: done.set())
+        set_on_signal(done)
         done.wait()
         sub.undeclare()
     return 0

@@ -22,6 +22,7 @@ from occvo_services.commands._common import (
     progress,
     secure_default,
 )
+from occvo_services.stop_signals import set_on_signal
 from occvo_services.store.factory import check_store
 from occvo_services.store.url import resolve as resolve_store_url
 
@@ -234,8 +235,7 @@ def run(args) -> int:
         config, structured_logger("occvo.serve", "WARNING") if args.quiet else None, role_names=True, quiet=args.quiet
     )
     sup.reload = args.logins_watch
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(sig, lambda *_: sup.stopping.set())
+    set_on_signal(sup.stopping)
     emit(args, {"event": "listening", "endpoint": ep}, f"listening on {ep}")
     progress(args, f"starting the inference, registration and map workers; the registration worker {WARM_UP_NOTE}")
     return _supervise(args, sup, ep)

@@ -10,6 +10,7 @@ import time
 
 from occvo_cli.paths import out_file
 from occvo_services.commands._common import add_connection, endpoint
+from occvo_services.stop_signals import set_on_signal
 
 
 def add_parser(subparsers) -> None:
@@ -83,7 +84,7 @@ def run(args) -> int:
     view = Views(views)
     follower = StreamFollower(session, args.stream, view)
     stop = threading.Event()
-    signal.signal(signal.SIGTERM, lambda *_: stop.set())
+    set_on_signal(stop, (signal.SIGTERM,))
     ended = False
     try:
         host = "127.0.0.1" if args.bind in ("0.0.0.0", "::") else args.bind

@@ -1,0 +1,32 @@
+"""SIGINT and SIGTERM as a threading.Event, set outside the signal handler.
+
+A Python handler runs in the main thread between two of its bytecodes. When the main thread is inside that very
+Event's wait() (every service's main loop is `while not event.wait(0.2)`), it may hold the lock that Event.set()
+takes, and set() called from the handler then waits for it forever: a Ctrl-C or SIGTERM that never stops the
+process. So the handler only writes a byte to a pipe, and a thread of its own reads it and sets the event."""
+
+from __future__ import annotations
+
+import os
+import signal
+import threading
+
+
+def set_on_signal(event: threading.Event, signals: tuple[int, ...] = (signal.SIGINT, signal.SIGTERM)) -> None:
+    """event.set() soon after any of `signals` arrives (call from the main thread, as signal.signal asks)."""
+    read_fd, write_fd = os.pipe()
+    os.set_blocking(write_fd, False)  # a handler never blocks: a full pipe already holds a wake-up
+
+    def relay() -> None:
+        while os.read(read_fd, 1):
+            event.set()
+
+    def note(*_) -> None:
+        try:
+            os.write(write_fd, b"\0")
+        except BlockingIOError:
+            pass
+
+    threading.Thread(target=relay, name="signals", daemon=True).start()
+    for sig in signals:
+        signal.signal(sig, note)

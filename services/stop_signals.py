@@ -7,6 +7,7 @@ process. So the handler only writes a byte to a pipe, and a thread of its own re
 
 from __future__ import annotations
 
+import contextlib
 import os
 import signal
 import threading
@@ -15,17 +16,15 @@ import threading
 def set_on_signal(event: threading.Event, signals: tuple[int, ...] = (signal.SIGINT, signal.SIGTERM)) -> None:
     """event.set() soon after any of `signals` arrives (call from the main thread, as signal.signal asks)."""
     read_fd, write_fd = os.pipe()
-    os.set_blocking(write_fd, False)  # a handler never blocks: a full pipe already holds a wake-up
+    os.set_blocking(write_fd, False)  # a handler never blocks
 
     def relay() -> None:
         while os.read(read_fd, 1):
             event.set()
 
     def note(*_) -> None:
-        try:
+        with contextlib.suppress(BlockingIOError):  # a full pipe already holds wake-ups enough for the relay
             os.write(write_fd, b"\0")
-        except BlockingIOError:
-            pass
 
     threading.Thread(target=relay, name="signals", daemon=True).start()
     for sig in signals:

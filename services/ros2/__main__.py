@@ -15,6 +15,7 @@ import zenoh
 from occvo_core.errors import ConfigError
 from occvo_services.logins import login_of
 from occvo_services.sessions import ZENOH_CONFIG_ENV, NoRouterError, zenoh_config
+from occvo_services.stop_signals import set_on_signal
 from occvo_services.telemetry import log_event, structured_logger
 from occvo_services.worker_config import DEFAULT_ENDPOINT
 
@@ -60,8 +61,7 @@ def main(argv: list[str] | None = None) -> int:
     log = structured_logger(f"occvo.{args.worker_id}", config.log_level)
     faulthandler.register(signal.SIGUSR1)  # `kill -USR1 <pid>`: every thread's stack on stderr
     stop = threading.Event()
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(sig, lambda *_: stop.set())
+    set_on_signal(stop)
     # logged in (`occvo serve --ros2` on its logins: login ros2), its stream carries the login's prefix
     node = OccVONode(session, config, log, login=login_of(os.environ.get(ZENOH_CONFIG_ENV)))
     log_event(

@@ -11,6 +11,7 @@ import time
 from pathlib import Path
 
 from occvo_schemas import keys
+from occvo_services.os_tuning import short_gil_turns
 from occvo_services.runtime import WorkerConfig
 from occvo_services.sessions import free_port, open_router, open_session
 
@@ -161,19 +162,22 @@ class LocalService:
 
 
 class InProcessService:
-    """Router and the three workers as threads of this process: same code and real Zenoh sessions, faster start."""
+    """Router and the three workers as threads of this process: same code and real Zenoh sessions, faster start.
+    While it runs, the process takes the workers' short interpreter-lock turns (os_tuning.short_gil_turns)."""
 
     def __init__(self, endpoint: str | None = None, **config):
         self.endpoint = endpoint or f"tcp/127.0.0.1:{free_port()}"
         self.config = config
         self.workers = []
         self.router = None
+        self._switch_interval = None  # the process's own, given back at stop()
 
     def start(self, timeout: float = 30.0) -> InProcessService:
         from occvo_services.inference_worker import InferenceWorker
         from occvo_services.map_service import MapService
         from occvo_services.registration_worker import RegistrationWorker
 
+        self._switch_interval = short_gil_turns()
         self.router = open_router(self.endpoint)
         cfg = {"log_level": "WARNING", **self.config, "connect": self.endpoint}
         try:
@@ -199,6 +203,9 @@ class InProcessService:
         if self.router is not None:
             self.router.close()
             self.router = None
+        if self._switch_interval is not None:
+            sys.setswitchinterval(self._switch_interval)
+            self._switch_interval = None
 
     def __enter__(self) -> InProcessService:
         return self.start()

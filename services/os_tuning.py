@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import ctypes
 import os
+import sys
 import threading
 
 
@@ -114,6 +115,21 @@ def trim_heap() -> bool:
         return bool(ctypes.CDLL("libc.so.6").malloc_trim(0))
     except (OSError, AttributeError):
         return False
+
+
+GIL_SWITCH_S = 0.0005  # a worker's interpreter-lock turn (Python's default: 5 ms)
+
+
+def short_gil_turns(interval_s: float = GIL_SWITCH_S) -> float:
+    """Set the interpreter's switch interval for the whole process; returns the one before. A thread coming back
+    from a compiled kernel (GIL released) waits for the lock until a thread running Python gives it up, which it
+    is asked to after this interval; registration takes the lock back at every kernel, so beside any thread running
+    Python (a stream's map tiles, a decode) a frame waited up to the interval that many times. scene-0101 offline
+    beside one busy Python thread (benchmarks/gil_turns.py): step p50 670-682 ms at Python's 5 ms, 106-113 ms at
+    0.5 ms, 26-28 ms alone; 0.1 ms gave 55-61 ms but can cost two Python threads 10-45% of their speed."""
+    before = sys.getswitchinterval()
+    sys.setswitchinterval(interval_s)
+    return before
 
 
 def few_malloc_arenas(arenas: int | None = None) -> bool:

@@ -8,7 +8,7 @@ import traceback
 from collections.abc import Callable
 
 from occvo_core.errors import ConfigError
-from occvo_services.os_tuning import few_malloc_arenas, large_blocks_from_mmap
+from occvo_services.os_tuning import few_malloc_arenas, large_blocks_from_mmap, short_gil_turns
 from occvo_services.runtime import Worker
 from occvo_services.sessions import NoRouterError
 from occvo_services.store.url import SECRET_WAYS, redact, refuse_password, resolve
@@ -53,6 +53,7 @@ def worker_main(
     config = WorkerConfig.load(args.pop("config"), **args)
     large_blocks_from_mmap()
     few_malloc_arenas()
+    short_gil_turns()
     try:
         return worker_cls(config).run_forever()
     except NoRouterError as exc:  # none came up within router_wait_s, or it refused the worker: one line

@@ -1,8 +1,10 @@
-"""IdleTeam with real numba OpenMP threads: the threads a kernel team leaves spinning make way, then come back."""
+"""IdleTeam with real numba OpenMP threads: the threads a kernel team leaves spinning make way, then come back; the
+workers' short interpreter-lock turns."""
 
 from __future__ import annotations
 
 import os
+import sys
 import threading
 from concurrent.futures import ThreadPoolExecutor
 
@@ -11,7 +13,8 @@ import numpy as np
 import pytest
 
 from occvo_core.registration.kernels.covariance import rotate_covariances
-from occvo_services.os_tuning import IdleTeam, may_raise_to, name_os_thread
+from occvo_services.local import InProcessService
+from occvo_services.os_tuning import GIL_SWITCH_S, IdleTeam, may_raise_to, name_os_thread, short_gil_turns
 
 
 def _nice(tid: int) -> int:
@@ -44,3 +47,22 @@ def test_a_kernel_teams_spinning_threads_are_lowered_after_its_kernels_and_raise
     assert layer == "omp", "the team threads are found by the name they inherit from libgomp's master thread"
     assert active and lowered and me not in lowered, lowered
     assert set(lowered.values()) == {19} and set(restored.values()) == {mine}
+
+
+def test_short_gil_turns_sets_the_process_switch_interval_and_returns_the_one_before():
+    before = sys.getswitchinterval()
+    try:
+        assert short_gil_turns(0.002) == before
+        assert sys.getswitchinterval() == pytest.approx(0.002)
+        assert short_gil_turns() == pytest.approx(0.002)
+        assert sys.getswitchinterval() == pytest.approx(GIL_SWITCH_S)
+    finally:
+        sys.setswitchinterval(before)
+    assert GIL_SWITCH_S < 0.005  # shorter than Python's default, or the workers gain nothing
+
+
+def test_an_in_process_service_takes_the_workers_turns_while_it_runs_and_gives_the_process_its_own_back():
+    before = sys.getswitchinterval()
+    with InProcessService():
+        assert sys.getswitchinterval() == pytest.approx(GIL_SWITCH_S)
+    assert sys.getswitchinterval() == before

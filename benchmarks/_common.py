@@ -44,6 +44,18 @@ def stage_medians(timings: list[dict[str, float]]) -> dict[str, float]:
     return dict(sorted(med.items(), key=lambda kv: -kv[1]))
 
 
+def step_ms(frames, threads: int = 1) -> np.ndarray:
+    """ms of each OccVO.step over the frames, in order, on a new OccVO with `threads` kernel threads."""
+    from occvo_core import OccVO
+
+    vo, ts = OccVO(threads=threads), []
+    for f in frames:
+        t0 = time.perf_counter()
+        vo.step(f)
+        ts.append((time.perf_counter() - t0) * 1000.0)
+    return np.array(ts)
+
+
 # ---------------------------------------------------------------- printing
 
 

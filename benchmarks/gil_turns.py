@@ -19,20 +19,15 @@ import threading
 import time
 
 import numpy as np
-from _common import SAMPLE
+from _common import SAMPLE, step_ms
 
-from occvo_core import OccVO
 from occvo_core.datasets import OccVOReleaseScene
 
 
 def steps_ms(frames) -> tuple[float, float]:
     """p50, p90 of OccVO.step over the frames after the first, one kernel thread."""
-    vo, ts = OccVO(threads=1), []
-    for f in frames:
-        t0 = time.perf_counter()
-        vo.step(f)
-        ts.append((time.perf_counter() - t0) * 1000.0)
-    return float(np.median(ts[1:])), float(np.percentile(ts[1:], 90))
+    ts = step_ms(frames)[1:]
+    return float(np.median(ts)), float(np.percentile(ts, 90))
 
 
 def beside_python(frames) -> tuple[float, float]:

@@ -35,7 +35,8 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from occvo_core import OccVO  # noqa: E402
+from _common import step_ms  # noqa: E402
+
 from occvo_core.sim.heavy import thicken  # noqa: E402
 from occvo_schemas import keys  # noqa: E402
 from occvo_services.client import OccVOClient  # noqa: E402
@@ -62,8 +63,11 @@ def steady(svc, scene, n: int, rate: float, name: str) -> tuple[np.ndarray, np.n
         return np.array(lat), np.array([c.poses[i].matrix() for i in range(n)]), in_order
 
 
+DETUNE = 1.03  # a paced neighbour's rate over the steady stream's: its frames fall at every phase of the steady's
+
+
 def paced(client: OccVOClient, frames, rate: float, stop, started) -> int:
-    """Frames sent at `rate`, a new trajectory after each pass, until stop; frames sent."""
+    """Frames sent at `rate` x DETUNE, a new trajectory after each pass, until stop; frames sent."""
     sent, t_next = 0, time.perf_counter()
     while not stop.is_set():
         client.reset()
@@ -72,40 +76,32 @@ def paced(client: OccVOClient, frames, rate: float, stop, started) -> int:
                 return sent
             client.publish(f)
             started.set()
-            sent, t_next = sent + 1, t_next + 1.0 / rate
+            sent, t_next = sent + 1, t_next + 1.0 / (rate * DETUNE)
         client.wait_pose(len(frames) - 1, timeout=120)
         t_next = max(t_next, time.perf_counter())
     return sent
 
 
-def reader(endpoint: str, stream: str, frames, rate: float, stop, started, out: dict) -> None:
+def steady_sender(endpoint: str, stream: str, frames, rate: float, stop, started) -> dict:
+    """normal and heavy: paced, its poses read."""
+    with OccVOClient(endpoint, stream) as c:
+        return {"sent": paced(c, frames, rate, stop, started), "errors": len(c.errors)}
+
+
+def reader(endpoint: str, stream: str, frames, rate: float, stop, started) -> dict:
     """A stream whose client stopped reading its poses: its pose callback holds until the run ends."""
     session = open_session(endpoint)
     held = threading.Event()
     sub = session.declare_subscriber(keys.pose(stream), lambda _: held.wait(600))
     try:
-        with OccVOClient(endpoint, stream) as c:
-            out["reader_sent"] = paced(c, frames, rate * 1.03, stop, started)
-            out["reader_errors"] = len(c.errors)
+        return steady_sender(endpoint, stream, frames, rate, stop, started)
     finally:
         held.set()
         sub.undeclare()
         session.close()
 
 
-def normal(endpoint: str, stream: str, frames, rate: float, stop, started, out: dict) -> None:
-    with OccVOClient(endpoint, stream) as c:
-        out["normal_sent"] = paced(c, frames, rate * 1.03, stop, started)
-        out["normal_errors"] = len(c.errors)
-
-
-def heavy(endpoint: str, stream: str, frames, rate: float, stop, started, out: dict) -> None:
-    with OccVOClient(endpoint, stream) as c:
-        out["heavy_sent"] = paced(c, frames, rate * 1.03, stop, started)
-        out["heavy_errors"] = len(c.errors)
-
-
-def burst(endpoint: str, stream: str, frames, rate: float, stop, started, out: dict) -> None:
+def burst(endpoint: str, stream: str, frames, rate: float, stop, started) -> dict:
     with OccVOClient(endpoint, stream) as b:
         rounds = 0
         while not stop.is_set():
@@ -115,10 +111,10 @@ def burst(endpoint: str, stream: str, frames, rate: float, stop, started, out: d
                 started.set()
             b.wait_pose(len(frames) - 1, timeout=120)
             rounds += 1
-        out.update(burst_rounds=rounds, burst_turned_away=b.turned_away, burst_errors=len(b.errors))
+        return {"rounds": rounds, "turned_away": b.turned_away, "errors": len(b.errors)}
 
 
-NEIGHBOURS = {"normal": normal, "reader": reader, "heavy": heavy, "burst": burst}
+NEIGHBOURS = {"normal": steady_sender, "reader": reader, "heavy": steady_sender, "burst": burst}
 
 
 def neighbour_frames(kind: str, heavy_factor: int) -> list:
@@ -135,7 +131,8 @@ def neighbour(kind: str, endpoint: str, stream: str, rate: float, heavy_factor: 
     callbacks would take the interpreter lock from the service's threads, and read as the service's harm."""
     out = {}
     try:
-        NEIGHBOURS[kind](endpoint, stream, neighbour_frames(kind, heavy_factor), rate, stop, started, out)
+        figures = NEIGHBOURS[kind](endpoint, stream, neighbour_frames(kind, heavy_factor), rate, stop, started)
+        out = {f"{kind}_{k}": v for k, v in figures.items()}
     except Exception as exc:  # noqa: BLE001 - said in the summary
         out[f"{kind}_failed"] = repr(exc)
     finally:
@@ -178,13 +175,7 @@ def beside(svc, group: list[str], scene, args, r: int = 0) -> tuple[np.ndarray, 
 
 def registration_ms(frames) -> float:
     """Median ms of OccVO.step over frames (after the first two), one kernel thread, in this process."""
-    vo, ts = OccVO(threads=1), []
-    vo.reset()
-    for f in frames:
-        t0 = time.perf_counter()
-        vo.step(f)
-        ts.append((time.perf_counter() - t0) * 1000.0)
-    return float(np.median(ts[2:]))
+    return float(np.median(step_ms(frames)[2:]))
 
 
 def report(runs: list, poses_alone: np.ndarray) -> bool:

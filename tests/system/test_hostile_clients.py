@@ -261,11 +261,16 @@ def test_streams_over_the_limits_are_refused_with_an_error_naming_the_limit(serv
     inference = service.worker("inference")
     time.sleep(LIMITS["idle_stream_s"] + 1.0)  # the other tests' streams retired: their places are free
     assert not inference.lanes and not inference.admission.owners, dict(inference.admission.owners)
+    posed: set[str] = set()
+    poses = session.declare_subscriber(keys.pose("h4.$*"), lambda s: posed.add(keys.stream_of(str(s.key_expr))))
     for s in ("h4.a", "h4.b", "h4.c"):  # client h4 may have 2
         session.put(keys.camera(s), encode(camera_frame_of(scene[0], s, 0)), congestion_control=BLOCK)
     assert events.wait(lambda: events.of("h4.c", "stream_limit"))
     [ev] = events.of("h4.c", "stream_limit")
     assert "max_streams_per_client=2" in ev.message
+    # a lane still inferring its frame is not taken from (its frame would be lost): h4's frames done first
+    assert events.wait(lambda: posed == {"h4.a", "h4.b"}, timeout=60.0), posed
+    poses.undeclare()
     # six more clients, one stream each: the worker serves 6 in all; the fifth takes a place from client h4 (two
     # streams, two more than it has), the sixth finds every client at one stream and is refused
     others = [open_session(service.endpoint) for _ in range(6)]
